@@ -1,0 +1,468 @@
+"""The AutoPower energy model: power, utilisation and lifetime of an allocation.
+
+Rules (../shared/paper/model-notes.md, which reproduce the paper's Fig. 7 exactly):
+- CPU power = idle_w + (busy_w - idle_w) * u, u = sum(latency / period) of hosted stages.
+- A message of n bytes occupies its medium for n*8 / (kbps*1024) s; on every hop the sender pays
+  send_w for that airtime and the receiver receive_w (a relay pays both); the base station pays
+  nothing (mains).
+- A node has one radio per medium among its links; each draws sleep_w * (1 - busy) plus its
+  send/receive energy. u > 1 or busy > 1 makes an allocation infeasible.
+- Lifetime = min over robots of energy / power, rounded to the scenario's 0.8 s.
+- "paper" accounting charges every flow one message per second (the paper's quirk);
+  "physical" charges 1/period messages per second.
+
+Loads (utilisation and airtime) add up chain by chain, so they are vectors; `LoadSpace.power`
+turns a batch of load vectors into power, and both `evaluate` and the planners use it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from itertools import product
+from typing import Mapping, Sequence
+
+import networkx as nx
+import numpy as np
+
+from autopower.errors import ScenarioError
+from autopower.scenario import Chain, Radio, Scenario
+
+UTILISATION_LIMIT = 1.0 + 1e-9  # float noise must not flip a 100 %-utilised plan to infeasible
+
+
+def airtime_s(n_bytes: int, radio: Radio) -> float:
+    """Seconds one message of n_bytes occupies the radio (the paper's kbit = 1024 bit)."""
+    return n_bytes * 8.0 / (radio.kbps * 1024.0)
+
+
+def flow_rate_hz(chain: Chain, accounting: str) -> float:
+    """Modelled messages per second on each flow of a chain."""
+    return 1.0 if accounting == "paper" else 1.0 / chain.period_s
+
+
+def flow_weight(chain: Chain, accounting: str) -> float:
+    """How many modelled messages one real message stands for (a runtime sends 1/period a second).
+
+    Under paper accounting a 2 s chain's real message is charged as 2, a 0.25 s one as 0.25,
+    so that a metering runtime reproduces the model's one-message-per-second rule.
+    """
+    return flow_rate_hz(chain, accounting) * chain.period_s
+
+
+def round_lifetime(lifetime_s: float, quantum_s: float) -> float:
+    if quantum_s <= 0 or not np.isfinite(lifetime_s):
+        return lifetime_s
+    return round(round(lifetime_s / quantum_s) * quantum_s, 6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Networks
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class Link:
+    a: str
+    b: str
+    medium: str
+    group: str  # the media-choice group it belongs to ("laptop-robot", "robot-robot", ...)
+
+    def touches(self, node: str) -> bool:
+        return node in (self.a, self.b)
+
+
+class Network:
+    """A concrete network: nodes, links with a chosen medium each, shortest-hop routing."""
+
+    def __init__(self, nodes: Sequence[str], basestation: str, links: Sequence[Link], topology: str = "explicit"):
+        self.nodes = tuple(nodes)
+        self.basestation = basestation
+        self.links = tuple(links)
+        self.topology = topology
+        seen = set()
+        for link in self.links:
+            for end in (link.a, link.b):
+                if end not in self.nodes:
+                    raise ScenarioError(f"link {link.a}-{link.b}: unknown node {end!r}")
+            key = frozenset((link.a, link.b))
+            if key in seen:
+                raise ScenarioError(f"two links between {link.a} and {link.b}; keep one (with one medium)")
+            seen.add(key)
+
+    @cached_property
+    def graph(self) -> nx.Graph:
+        graph = nx.Graph()
+        graph.add_nodes_from(self.nodes)  # insertion order makes BFS ties deterministic
+        for link in sorted(self.links, key=lambda l: (l.a, l.b)):
+            graph.add_edge(link.a, link.b, medium=link.medium)
+        return graph
+
+    @cached_property
+    def _paths(self) -> dict[str, dict[str, list[str]]]:
+        return {}
+
+    def path(self, src: str, dst: str) -> list[str] | None:
+        if src not in self._paths:
+            self._paths[src] = nx.single_source_shortest_path(self.graph, src) if src in self.graph else {}
+        return self._paths[src].get(dst)
+
+    def route(self, src: str, dst: str) -> list[tuple[str, str, str]]:
+        """Shortest-hop route as hops (from, to, medium); [] when src == dst."""
+        path = self.path(src, dst)
+        if path is None:
+            raise ScenarioError(f"no route from {src} to {dst} on this network (links: {self.describe()})")
+        return [(u, v, self.graph.edges[u, v]["medium"]) for u, v in zip(path, path[1:])]
+
+    def reachable(self, src: str, dst: str) -> bool:
+        return self.path(src, dst) is not None
+
+    def media_of(self, node: str) -> set[str]:
+        """Media of the radios a node carries: one radio per medium among its links."""
+        return {link.medium for link in self.links if link.touches(node)}
+
+    def media_by_group(self) -> dict[str, str]:
+        out: dict[str, str] = {}
+        for link in self.links:
+            out.setdefault(link.group, link.medium)
+        return out
+
+    def medium_between(self, a: str, b: str) -> str | None:
+        if self.graph.has_edge(a, b):
+            return self.graph.edges[a, b]["medium"]
+        return None
+
+    # ---- changes (faults, dead robots) ------------------------------------------------------
+    def without_link(self, a: str, b: str) -> "Network":
+        links = [l for l in self.links if {l.a, l.b} != {a, b}]
+        return Network(self.nodes, self.basestation, links, self.topology)
+
+    def without_nodes(self, nodes: set[str] | frozenset[str]) -> "Network":
+        links = [l for l in self.links if l.a not in nodes and l.b not in nodes]
+        return Network([n for n in self.nodes if n not in nodes], self.basestation, links, self.topology)
+
+    def with_node_media(self, node: str, laptop_robot: str | None = None, robot_robot: str | None = None) -> "Network":
+        """The node's links to the base station / to robots switch medium (a radio fault)."""
+        if node not in self.nodes:
+            raise ScenarioError(f"unknown node {node!r}; nodes: {', '.join(self.nodes)}")
+        links = []
+        for l in self.links:
+            if l.touches(node):
+                to_base = self.basestation in (l.a, l.b)
+                new = laptop_robot if to_base else robot_robot
+                if new is not None:
+                    l = Link(a=l.a, b=l.b, medium=new, group=f"{l.group}@{node}")
+            links.append(l)
+        return Network(self.nodes, self.basestation, links, self.topology)
+
+    def describe(self) -> str:
+        return ", ".join(f"{l.a}-{l.b}:{l.medium}" for l in self.links) or "none"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Network) and (self.nodes, set(self.links)) == (other.nodes, set(other.links))
+
+    def __hash__(self) -> int:
+        return hash((self.nodes, frozenset(self.links)))
+
+    def __repr__(self) -> str:
+        return f"Network({self.topology}: {self.describe()})"
+
+
+def media_choices(scenario: Scenario, topology: str | None = None) -> list[dict[str, str]]:
+    """Every media assignment (group -> medium) the scenario allows on a topology."""
+    groups: dict[str, tuple[str, ...]] = {}
+    for spec in scenario.link_specs(topology):
+        groups.setdefault(spec.group, spec.media)
+    names = list(groups)
+    return [dict(zip(names, combo)) for combo in product(*(groups[g] for g in names))]
+
+
+def build_network(scenario: Scenario, topology: str | None = None, media: Mapping[str, str] | None = None) -> Network:
+    """The concrete network of a topology under a media choice (default: first candidates)."""
+    topology = topology or scenario.network_spec.topology
+    specs = scenario.link_specs(topology)
+    media = dict(media or {})
+    groups = {s.group: s.media for s in specs}
+    for group, medium in media.items():
+        if group not in groups:
+            raise ScenarioError(f"unknown media group {group!r} on {topology}; groups: {', '.join(groups)}")
+        if medium not in scenario.radios:
+            raise ScenarioError(f"unknown medium {medium!r}; radios: {', '.join(scenario.radios)}")
+    links = [Link(a=s.a, b=s.b, medium=media.get(s.group, s.media[0]), group=s.group) for s in specs]
+    return Network(scenario.node_names(), scenario.basestation, links, topology)
+
+
+# ---------------------------------------------------------------------------------------------
+# Loads and power
+# ---------------------------------------------------------------------------------------------
+
+
+class LoadSpace:
+    """Index layout of load vectors on one network, and the load -> power arithmetic.
+
+    A load vector holds, per node, CPU utilisation, then per (node, medium) send airtime per
+    second and receive airtime per second.
+    """
+
+    def __init__(self, scenario: Scenario, network: Network, accounting: str, energies_j: Mapping[str, float]):
+        self.scenario = scenario
+        self.network = network
+        self.accounting = accounting
+        self.nodes = list(network.nodes)
+        self.robots = [n for n in self.nodes if n != network.basestation]
+        self.media = list(scenario.radios)
+        self.node_index = {n: i for i, n in enumerate(self.nodes)}
+        self.medium_index = {m: i for i, m in enumerate(self.media)}
+        n, m = len(self.nodes), len(self.media)
+        self.size = n + 2 * n * m
+        self._send0, self._recv0 = n, n + n * m
+        self.robot_rows = np.array([self.node_index[r] for r in self.robots], dtype=int)
+        self.energy_j = np.array([float(energies_j[r]) for r in self.robots])
+        platforms = [scenario.platform_of(r) for r in self.robots]
+        self.idle_w = np.array([p.idle_w for p in platforms])
+        self.busy_extra_w = np.array([p.busy_w - p.idle_w for p in platforms])
+        radios = [scenario.radios[k] for k in self.media]
+        self.sleep_w = np.array([r.sleep_w for r in radios])
+        self.send_w = np.array([r.send_w for r in radios])
+        self.receive_w = np.array([r.receive_w for r in radios])
+        self.present = np.zeros((len(self.robots), m), dtype=bool)
+        for i, robot in enumerate(self.robots):
+            for medium in network.media_of(robot):
+                self.present[i, self.medium_index[medium]] = True
+        self._chain_cache: dict[tuple[str, tuple[str, ...]], np.ndarray] = {}
+
+    def cpu_slot(self, node: str) -> int:
+        return self.node_index[node]
+
+    def send_slot(self, node: str, medium: str) -> int:
+        return self._send0 + self.node_index[node] * len(self.media) + self.medium_index[medium]
+
+    def recv_slot(self, node: str, medium: str) -> int:
+        return self._recv0 + self.node_index[node] * len(self.media) + self.medium_index[medium]
+
+    def flow_load(self, src: str, dst: str, n_bytes: int, rate_hz: float, out: np.ndarray) -> None:
+        for u, v, medium in self.network.route(src, dst):
+            air = airtime_s(n_bytes, self.scenario.radios[medium]) * rate_hz
+            out[self.send_slot(u, medium)] += air
+            out[self.recv_slot(v, medium)] += air
+
+    def chain_load(self, chain: Chain, hosts: tuple[str, ...]) -> np.ndarray:
+        """Load of one chain with its stages on `hosts` (cached: planners call it a lot)."""
+        key = (chain.name, hosts)
+        cached = self._chain_cache.get(key)
+        if cached is not None:
+            return cached
+        load = np.zeros(self.size)
+        for stage, host in zip(chain.stages, hosts):
+            latency = self.scenario.components[stage.component].latency_s[self.scenario.platform_of(host).name]
+            load[self.cpu_slot(host)] += latency / chain.period_s
+        rate = flow_rate_hz(chain, self.accounting)
+        hops = (chain.source, *hosts, chain.sink)
+        for (src, dst), n_bytes in zip(zip(hops, hops[1:]), chain.message_bytes):
+            if src != dst:
+                self.flow_load(src, dst, n_bytes, rate, load)
+        self._chain_cache[key] = load
+        return load
+
+    # ---- load -> power -------------------------------------------------------------------------
+    def split(self, loads: np.ndarray):
+        """(cpu_u (K,N), send_air (K,N,M), recv_air (K,N,M)) views of a (K, size) batch."""
+        k = loads.shape[0]
+        n, m = len(self.nodes), len(self.media)
+        cpu = loads[:, :n]
+        send = loads[:, self._send0:self._recv0].reshape(k, n, m)
+        recv = loads[:, self._recv0:].reshape(k, n, m)
+        return cpu, send, recv
+
+    def breakdown(self, loads: np.ndarray) -> dict[str, np.ndarray]:
+        """Per robot power parts for a batch of loads: cpu_w (K,R); send/receive/sleep_w (K,R,M)."""
+        cpu, send, recv = self.split(loads)
+        rows = self.robot_rows
+        u = cpu[:, rows]
+        send_r, recv_r = send[:, rows, :], recv[:, rows, :]
+        busy = send_r + recv_r
+        return {
+            "cpu_u": u,
+            "cpu_w": self.idle_w + self.busy_extra_w * u,
+            "send_w": send_r * self.send_w,
+            "receive_w": recv_r * self.receive_w,
+            "sleep_w": self.present * self.sleep_w * np.clip(1.0 - busy, 0.0, None),
+            "busy": busy,
+        }
+
+    def feasible(self, loads: np.ndarray) -> np.ndarray:
+        cpu, send, recv = self.split(loads)
+        ok = (cpu <= UTILISATION_LIMIT).all(axis=1)
+        busy = (send + recv)[:, self.robot_rows, :]
+        return ok & (busy <= UTILISATION_LIMIT).all(axis=(1, 2))
+
+    def total_power(self, loads: np.ndarray) -> np.ndarray:
+        parts = self.breakdown(loads)
+        return parts["cpu_w"] + (parts["send_w"] + parts["receive_w"] + parts["sleep_w"]).sum(axis=2)
+
+    def lifetimes(self, loads: np.ndarray) -> np.ndarray:
+        """Raw team lifetime per load row; -inf where infeasible."""
+        life = (self.energy_j / self.total_power(loads)).min(axis=1)
+        return np.where(self.feasible(loads), life, -np.inf)
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation of one allocation
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class RadioPower:
+    medium: str
+    send_w: float
+    receive_w: float
+    sleep_w: float
+    busy: float  # fraction of each second the radio is sending or receiving
+
+    @property
+    def total_w(self) -> float:
+        return self.send_w + self.receive_w + self.sleep_w
+
+
+@dataclass(frozen=True, kw_only=True)
+class RobotPower:
+    robot: str
+    energy_j: float
+    cpu_w: float
+    cpu_utilisation: float
+    radios: Mapping[str, RadioPower]
+    total_w: float
+    lifetime_s: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class Violation:
+    node: str
+    resource: str  # "cpu" or "radio:<medium>"
+    value: float
+    limit: float
+
+    @property
+    def message(self) -> str:
+        return f"{self.node} {self.resource} utilisation {self.value:.1%} exceeds {self.limit:.0%}"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Evaluation:
+    accounting: str
+    allocation: Mapping[str, str]
+    network: Network
+    robots: Mapping[str, RobotPower]
+    utilisation: Mapping[str, float]  # CPU utilisation of every node, the base station too
+    violations: tuple[Violation, ...]
+    bottleneck: str | None
+    lifetime_s: float | None  # raw; None when infeasible
+    lifetime_rounded_s: float | None
+
+    @property
+    def feasible(self) -> bool:
+        return not self.violations
+
+    def to_dict(self) -> dict:
+        return {
+            "accounting": self.accounting,
+            "allocation": dict(self.allocation),
+            "feasible": self.feasible,
+            "lifetime_s": self.lifetime_rounded_s,
+            "lifetime_raw_s": self.lifetime_s,
+            "bottleneck": self.bottleneck,
+            "violations": [v.message for v in self.violations],
+            "robots": {
+                name: {
+                    "energy_j": rp.energy_j,
+                    "total_w": rp.total_w,
+                    "cpu_w": rp.cpu_w,
+                    "cpu_utilisation": rp.cpu_utilisation,
+                    "lifetime_s": rp.lifetime_s,
+                    "radios": {m: {"send_w": r.send_w, "receive_w": r.receive_w, "sleep_w": r.sleep_w,
+                                   "busy": r.busy} for m, r in rp.radios.items()},
+                }
+                for name, rp in self.robots.items()
+            },
+        }
+
+
+def active_chains(scenario: Scenario, network: Network, disabled: frozenset[str] = frozenset()) -> list[Chain]:
+    """Chains that run: not disabled by the operator and whose source robot is in the network."""
+    return [c for c in scenario.chains if c.name not in disabled and c.source in network.nodes]
+
+
+def check_allocation(scenario: Scenario, network: Network, chains: Sequence[Chain], allocation: Mapping[str, str]) -> None:
+    stages = {s.name: s for c in chains for s in c.stages}
+    missing = [s for s in stages if s not in allocation]
+    if missing:
+        raise ScenarioError(f"allocation places no host for {', '.join(missing)}")
+    for stage_name, host in allocation.items():
+        if stage_name not in stages:
+            raise ScenarioError(f"allocation names unknown or inactive stage {stage_name!r}; "
+                                f"active stages: {', '.join(stages)}")
+        if host not in network.nodes:
+            raise ScenarioError(f"allocation puts {stage_name} on unknown or unavailable node {host!r}; "
+                                f"nodes: {', '.join(network.nodes)}")
+
+
+def load_of(space: LoadSpace, chains: Sequence[Chain], allocation: Mapping[str, str]) -> np.ndarray:
+    total = np.zeros(space.size)
+    for chain in chains:
+        total += space.chain_load(chain, tuple(allocation[s.name] for s in chain.stages))
+    return total
+
+
+def evaluate(
+    scenario: Scenario,
+    network: Network,
+    allocation: Mapping[str, str],
+    accounting: str | None = None,
+    energies_j: Mapping[str, float] | None = None,
+    disabled_chains: frozenset[str] = frozenset(),
+) -> Evaluation:
+    """Power, utilisation, feasibility and lifetime of one allocation on one network."""
+    accounting = accounting or scenario.accounting
+    energies = {**scenario.energies_j(), **(energies_j or {})}
+    chains = active_chains(scenario, network, disabled_chains)
+    check_allocation(scenario, network, chains, allocation)
+    space = LoadSpace(scenario, network, accounting, energies)
+    load = load_of(space, chains, allocation)[None, :]
+    parts = {k: v[0] for k, v in space.breakdown(load).items()}
+    cpu_u, send_air, recv_air = (x[0] for x in space.split(load))
+
+    violations = []
+    for node in space.nodes:
+        u = float(cpu_u[space.node_index[node]])
+        if u > UTILISATION_LIMIT:
+            violations.append(Violation(node=node, resource="cpu", value=u, limit=1.0))
+    robots = {}
+    for i, robot in enumerate(space.robots):
+        radios = {}
+        for j, medium in enumerate(space.media):
+            if not space.present[i, j]:
+                continue
+            busy = float(parts["busy"][i, j])
+            if busy > UTILISATION_LIMIT:
+                violations.append(Violation(node=robot, resource=f"radio:{medium}", value=busy, limit=1.0))
+            radios[medium] = RadioPower(medium=medium, send_w=float(parts["send_w"][i, j]),
+                                        receive_w=float(parts["receive_w"][i, j]),
+                                        sleep_w=float(parts["sleep_w"][i, j]), busy=busy)
+        total = float(parts["cpu_w"][i] + sum(r.total_w for r in radios.values()))
+        robots[robot] = RobotPower(robot=robot, energy_j=space.energy_j[i], cpu_w=float(parts["cpu_w"][i]),
+                                   cpu_utilisation=float(parts["cpu_u"][i]), radios=radios, total_w=total,
+                                   lifetime_s=space.energy_j[i] / total)
+    feasible = not violations
+    bottleneck = min(robots, key=lambda r: robots[r].lifetime_s) if robots else None
+    lifetime = robots[bottleneck].lifetime_s if (feasible and bottleneck) else None
+    return Evaluation(
+        accounting=accounting,
+        allocation=dict(allocation),
+        network=network,
+        robots=robots,
+        utilisation={n: float(cpu_u[space.node_index[n]]) for n in space.nodes},
+        violations=tuple(violations),
+        bottleneck=bottleneck if feasible else (violations[0].node if violations else None),
+        lifetime_s=lifetime,
+        lifetime_rounded_s=round_lifetime(lifetime, scenario.lifetime_rounding_s) if lifetime else None,
+    )
