@@ -303,9 +303,11 @@ class _Parser:
                     "unknown key",
                     f"one of {', '.join(sorted(allowed))} (check the spelling)",
                 )
-        for key in required:
-            if key not in obj:
-                raise self.fail(path or key, f"missing required key {key!r}", f"{key} = ...")
+        missing = [key for key in required if key not in obj]
+        if missing:
+            names = ", ".join(repr(k) for k in missing)
+            raise self.fail(path or "(top level)", f"missing required key{'s' if len(missing) > 1 else ''} {names}",
+                            "every one of them (see README, Scenario format)")
         return obj
 
     def number(self, obj: dict, key: str, path: str, *, minimum: float | None = None,

@@ -1,0 +1,38 @@
+"""Wire protocol: messages, the strict msgpack codec, and the key expressions."""
+
+from autopower.protocol.codec import PROTOCOL_VERSION, decode, encode, message_kinds
+from autopower.protocol.keys import Keys, check_name
+from autopower.protocol.messages import (
+    CONTROL_MESSAGES,
+    INBOX_MESSAGES,
+    OPERATOR_COMMANDS,
+    Assign,
+    AutoCommand,
+    ChainCommand,
+    ChainFrame,
+    LinkCommand,
+    LinkInfo,
+    MigrateCommand,
+    MigrateOut,
+    MissionInfo,
+    NodeStatus,
+    OperatorReply,
+    Packet,
+    PlanUpdate,
+    Prepare,
+    Prepared,
+    Release,
+    SinkStats,
+    SnapshotRequest,
+    SourceStats,
+    StageReady,
+    StateTransfer,
+)
+
+__all__ = [
+    "CONTROL_MESSAGES", "INBOX_MESSAGES", "OPERATOR_COMMANDS", "PROTOCOL_VERSION",
+    "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo",
+    "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet",
+    "PlanUpdate", "Prepare", "Prepared", "Release", "SinkStats", "SnapshotRequest", "SourceStats",
+    "StageReady", "StateTransfer", "check_name", "decode", "encode", "message_kinds",
+]

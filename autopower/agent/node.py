@@ -1,0 +1,568 @@
+"""What every node of the team does with chain data: host stages, run sources, forward, sink.
+
+`NodeRuntime` is the logic shared by the robot agents and the base station (which hosts
+off-loaded components and is the operator's sink). It has no threads and no sockets of its
+own: the owning process feeds it events from its loop and it publishes through a `Bus`.
+
+Data follows the model's routes exactly: a sender takes the shortest-hop path of the current
+network and puts it in the packet's header; every node on the way (a robot's agent, since
+Zenoh peers do not relay) forwards it to the next one and is charged send + receive for it.
+
+Stage lifecycle (per node): STARTING (prepared for an incoming migration: inputs are buffered)
+-> RUNNING -> DRAINING (exporting its state) -> MIGRATED (a forwarding pointer: late inputs
+go to the new host). Sequence numbers make each stage run each input once and in order.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import time
+import zlib
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from autopower.agent.meter import BatteryMeter
+from autopower.agent.sequencing import SequenceGate, SinkLedger
+from autopower.bus import Bus
+from autopower.clock import Clock, VirtualClock
+from autopower.errors import AutoPowerError, ProtocolError
+from autopower.model import Link, Network, flow_weight
+from autopower.protocol import (
+    Assign,
+    ChainFrame,
+    Keys,
+    MigrateOut,
+    MissionInfo,
+    NodeStatus,
+    Packet,
+    PlanUpdate,
+    Prepare,
+    Prepared,
+    Release,
+    SinkStats,
+    SourceStats,
+    StageReady,
+    StateTransfer,
+    decode,
+    encode,
+)
+from autopower.protocol.messages import CONTROL_MESSAGES
+from autopower.scenario import Chain, Scenario, Stage
+
+log = logging.getLogger(__name__)
+
+MAX_FORWARDS = 16  # a frame bounced more often than this between pointers is parked instead
+ORPHAN_LIMIT = 4096  # frames held for a stage this node does not know yet
+
+
+class Lifecycle(enum.Enum):
+    STARTING = "starting"
+    RUNNING = "running"
+    DRAINING = "draining"
+    MIGRATED = "migrated"
+
+
+def chain_seed(scenario: Scenario, chain: Chain) -> int:
+    """The same seed on every node, so a source and its component agree on the world."""
+    return zlib.crc32(f"{scenario.name}/{chain.name}".encode())
+
+
+def pad(payload: bytes, size: int, what: str) -> bytes:
+    """Zero-pad a real payload to the chain's declared message size.
+
+    The radios are charged for the declared sizes (the model's), so the bytes on the wire are
+    made exactly that long too; a payload longer than declared is a scenario error.
+    """
+    if len(payload) > size:
+        raise ProtocolError(f"{what}: a real payload of {len(payload)} B exceeds the chain's declared "
+                            f"message_bytes {size}; raise message_bytes in the scenario")
+    return payload + bytes(size - len(payload))
+
+
+@dataclass
+class HostedStage:
+    stage: Stage
+    chain: Chain
+    index: int
+    generation: int
+    lifecycle: Lifecycle
+    run: int = 0
+    component: Any = None
+    gate: SequenceGate = field(default_factory=SequenceGate)
+    buffer: list[ChainFrame] = field(default_factory=list)  # inputs held while STARTING
+    forward_to: str | None = None  # MIGRATED: where late inputs go
+    runs: int = 0
+    compute_s: float = 0.0
+
+
+@dataclass
+class SourceRunner:
+    chain: Chain
+    source: Any
+    run: int
+    next_t: float
+    seq: int = 0
+    missed: int = 0
+    produced_total: int = 0
+
+
+class NodeRuntime:
+    """Chain data handling for one node; see the module docstring."""
+
+    def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
+                 make_component: Callable | None = None, make_source: Callable | None = None,
+                 clock_factory: Callable[[MissionInfo], Clock] | None = None):
+        if node not in scenario.node_names():
+            raise AutoPowerError(f"node {node!r} is not in scenario {scenario.name} "
+                                 f"(nodes: {', '.join(scenario.node_names())})")
+        if make_component is None or make_source is None:
+            from autopower import chains
+
+            make_component = make_component or chains.make_component
+            make_source = make_source or chains.make_source
+        self.node = node
+        self.scenario = scenario
+        self.bus = bus
+        self.keys = keys
+        self.platform = scenario.platform_of(node)
+        self._make_component = make_component
+        self._make_source = make_source
+        self._clock_factory = clock_factory or (lambda m: VirtualClock(m.epoch_unix, m.speed))
+        self.chains = {c.name: c for c in scenario.chains}
+        self.stage_index = {s.name: (c, i) for c in scenario.chains for i, s in enumerate(c.stages)}
+
+        self.mission: MissionInfo | None = None
+        self.clock: Clock | None = None
+        self.meter: BatteryMeter | None = None
+        self.plan: PlanUpdate | None = None
+        self.network: Network | None = None
+        self.hosted: dict[str, HostedStage] = {}
+        self.orphans: dict[str, list[ChainFrame]] = {}
+        self.sources: dict[str, SourceRunner] = {}
+        self.source_totals: dict[str, SourceStats] = {}
+        self.sinks: dict[str, SinkLedger] = {}
+        self.last_output: dict[str, bytes] = {}
+        self.alive: set[str] = set()
+        self.errors: dict[str, int] = {}
+        self.weights: dict[str, float] = {}
+
+    # ---- small helpers -----------------------------------------------------------------------
+    def now(self) -> float:
+        return self.clock.now() if self.clock else 0.0
+
+    def count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None:
+        n = self.errors.get(what, 0) + 1
+        self.errors[what] = n
+        if n <= 5 or n % 1000 == 0:  # a flood of garbage must not flood the log
+            log.log(level, "%s: %s (%d so far)%s", self.node, what, n, f": {detail}" if detail else "")
+
+    @property
+    def started(self) -> bool:
+        return self.mission is not None
+
+    # ---- plan --------------------------------------------------------------------------------
+    def on_plan(self, plan: PlanUpdate) -> None:
+        if self.plan is not None and plan.epoch <= self.plan.epoch:
+            return  # old or repeated
+        if plan.mission.scenario != self.scenario.name:
+            self.count("foreign-plan", f"plan for scenario {plan.mission.scenario!r}")
+            return
+        if self.mission is None:
+            self.mission = plan.mission
+            self.clock = self._clock_factory(plan.mission)
+            if not self.platform.mains and self.node not in plan.mission.energies_j:
+                raise AutoPowerError(f"the mission gives no starting energy for {self.node}")
+            self.meter = BatteryMeter(platform=self.platform, radios=self.scenario.radios,
+                                      initial_j=plan.mission.energies_j.get(self.node),
+                                      t0=max(0.0, self.clock.now()))
+            self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
+        self.plan = plan
+        nodes = self.scenario.node_names()
+        links = [Link(a=l.a, b=l.b, medium=l.medium, group="runtime") for l in plan.links
+                 if l.a in nodes and l.b in nodes and l.medium in self.scenario.radios]
+        self.network = Network(nodes, self.scenario.basestation, links, "runtime")
+        self.meter.set_media(self.network.media_of(self.node), self.now())
+        # stages that have landed elsewhere: frames held here for them can go now
+        for stage, frames in list(self.orphans.items()):
+            host = plan.placement.get(stage)
+            if host is not None and host != self.node:
+                del self.orphans[stage]
+                for frame in frames:
+                    self.send_frame(frame, host)
+        self._sync_sources()
+
+    def _sync_sources(self) -> None:
+        running = self.plan.running if self.plan else {}
+        for name, runner in list(self.sources.items()):
+            if running.get(name) != runner.run:
+                self._retire_source(runner)
+        for name, run in running.items():
+            chain = self.chains.get(name)
+            if chain is None or chain.source != self.node or name in self.sources:
+                continue
+            try:
+                source = self._make_source(chain.stages[0].component, chain.source, chain_seed(self.scenario, chain))
+            except Exception as exc:  # a broken component type must not take the agent down
+                self.count("source-failed", f"{name}: {exc}", logging.ERROR)
+                continue
+            period = chain.period_s
+            self.sources[name] = SourceRunner(chain=chain, source=source, run=run,
+                                              next_t=math.ceil(self.now() / period - 1e-9) * period)
+
+    def _retire_source(self, runner: SourceRunner) -> None:
+        del self.sources[runner.chain.name]
+        self.source_totals[runner.chain.name] = self.source_stats(runner)
+
+    def source_stats(self, runner: SourceRunner) -> SourceStats:
+        return SourceStats(run=runner.run, produced=runner.seq, missed=runner.missed,
+                           produced_total=runner.produced_total)
+
+    # ---- timers --------------------------------------------------------------------------------
+    def next_deadline(self) -> float | None:
+        """Virtual time of the next source tick (None: nothing scheduled)."""
+        return min((r.next_t for r in self.sources.values()), default=None)
+
+    def on_timer(self) -> None:
+        now = self.now()
+        for runner in list(self.sources.values()):
+            if runner.next_t > now:
+                continue
+            period = runner.chain.period_s
+            late = int((now - runner.next_t) // period)
+            if late > 0:  # never burst to catch up: a real camera would have dropped them too
+                runner.missed += late
+                runner.next_t += late * period
+                self.count("missed-periods", f"{runner.chain.name} is {late} period(s) late", logging.INFO)
+            self._produce(runner, runner.next_t)
+            runner.next_t += period
+
+    def _produce(self, runner: SourceRunner, t_tick: float) -> None:
+        chain = runner.chain
+        try:
+            data = runner.source.produce(runner.seq)
+            payload = pad(data, chain.message_bytes[0], f"{chain.name} source")
+        except Exception as exc:
+            self.count("source-error", f"{chain.name}: {exc}", logging.ERROR)
+            return
+        frame = ChainFrame(chain=chain.name, run=runner.run, seq=runner.seq, target=0, t_virtual=t_tick,
+                           t_unix=time.time(), payload_len=len(data), payload=payload)
+        runner.seq += 1
+        runner.produced_total += 1
+        host = self.plan.placement.get(chain.stages[0].name)
+        if host is None:
+            self.count("unplaced-stage", f"{chain.stages[0].name} has no host")
+            return
+        self.send_frame(frame, host)
+
+    # ---- sending -----------------------------------------------------------------------------
+    def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0) -> None:
+        if dest == self.node:
+            self.deliver_frame(frame, forwards)
+            return
+        chain = self.chains[frame.chain]
+        self.send_routed(dest, encode(frame), chain.message_bytes[frame.target], self.weights[chain.name],
+                         "chain", chain.name)
+
+    def send_routed(self, dest: str, body: bytes, charge_bytes: int, weight: float, purpose: str,
+                    chain: str) -> bool:
+        path = self.network.path(self.node, dest) if self.network else None
+        if path is None:
+            self.count("unroutable", f"no route from {self.node} to {dest}")
+            return False
+        media = tuple(self.network.medium_between(u, v) for u, v in zip(path, path[1:]))
+        packet = Packet(path=tuple(path), media=media, hop=1, charge_bytes=charge_bytes, weight=weight,
+                        purpose=purpose, chain=chain, body=body)
+        self.meter.charge_radio("send", media[0], charge_bytes, weight, self.now(), purpose)
+        self.bus.publish(self.keys.node_data(path[1]), encode(packet))
+        return True
+
+    # ---- receiving -----------------------------------------------------------------------------
+    def on_data(self, payload: bytes) -> None:
+        packet = decode(payload, Packet)
+        if not self.started:
+            self.count("data-before-mission")
+            return
+        if packet.path[packet.hop] != self.node:
+            self.count("misaddressed", f"packet for {packet.path[packet.hop]}")
+            return
+        for medium in packet.media:
+            if medium not in self.scenario.radios:
+                raise ProtocolError(f"packet names unknown medium {medium!r}")
+        now = self.now()
+        self.meter.charge_radio("receive", packet.media[packet.hop - 1], packet.charge_bytes, packet.weight, now,
+                                packet.purpose)
+        if packet.hop < len(packet.path) - 1:  # a relay: pass it on, untouched
+            nxt = Packet(path=packet.path, media=packet.media, hop=packet.hop + 1,
+                         charge_bytes=packet.charge_bytes, weight=packet.weight, purpose=packet.purpose,
+                         chain=packet.chain, body=packet.body)
+            self.meter.charge_radio("send", packet.media[packet.hop], packet.charge_bytes, packet.weight, now,
+                                    packet.purpose)
+            self.bus.publish(self.keys.node_data(packet.path[packet.hop + 1]), encode(nxt))
+            self.errors.setdefault("forwarded", 0)
+            self.errors["forwarded"] += 1
+            return
+        body = decode(packet.body, (ChainFrame, StateTransfer))
+        if isinstance(body, StateTransfer):
+            self.on_state(body)
+        else:
+            self.deliver_frame(body)
+
+    def deliver_frame(self, frame: ChainFrame, forwards: int = 0) -> None:
+        chain = self.chains.get(frame.chain)
+        if chain is None or frame.target > len(chain.stages):
+            self.count("unknown-chain", f"{frame.chain} target {frame.target}")
+            return
+        if frame.target == len(chain.stages):
+            self._sink(chain, frame)
+            return
+        stage = chain.stages[frame.target]
+        hosted = self.hosted.get(stage.name)
+        if hosted is None:
+            host = self.plan.placement.get(stage.name) if self.plan else None
+            if host is not None and host != self.node and forwards < MAX_FORWARDS:
+                self.count("rerouted", f"{stage.name} lives on {host}", logging.DEBUG)
+                self.send_frame(frame, host, forwards + 1)
+            else:
+                held = self.orphans.setdefault(stage.name, [])
+                if len(held) >= ORPHAN_LIMIT:
+                    self.count("orphan-overflow", f"{stage.name}: dropped seq {frame.seq}", logging.ERROR)
+                    return
+                held.append(frame)
+            return
+        if hosted.lifecycle is Lifecycle.STARTING:
+            hosted.buffer.append(frame)
+        elif hosted.lifecycle is Lifecycle.MIGRATED:
+            if forwards >= MAX_FORWARDS:
+                self.orphans.setdefault(stage.name, []).append(frame)
+                return
+            self.send_frame(frame, hosted.forward_to, forwards + 1)
+        else:
+            self._admit(hosted, frame)
+
+    def _admit(self, hosted: HostedStage, frame: ChainFrame) -> None:
+        if frame.run != hosted.run:
+            self.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
+                       logging.INFO)
+            return
+        before = hosted.gate.duplicates
+        for ready in hosted.gate.offer(frame.seq, frame):
+            self._run(hosted, ready)
+        if hosted.gate.duplicates != before:
+            self.count("duplicate-input", f"{hosted.stage.name} seq {frame.seq}", logging.INFO)
+
+    def _run(self, hosted: HostedStage, frame: ChainFrame) -> None:
+        chain, index = hosted.chain, hosted.index
+        started = time.perf_counter()
+        try:
+            output = hosted.component.run(frame.data())
+        except Exception as exc:  # a bad input must not kill the agent
+            self.count("run-error", f"{hosted.stage.name} seq {frame.seq}: {exc}", logging.ERROR)
+            return
+        hosted.compute_s += time.perf_counter() - started
+        hosted.runs += 1
+        latency = self.scenario.components[hosted.stage.component].latency_s[self.platform.name]
+        self.meter.charge_run(latency, self.now())
+        target = index + 1
+        try:
+            payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
+        except ProtocolError as exc:
+            self.count("oversize-output", str(exc), logging.ERROR)
+            return
+        out = ChainFrame(chain=chain.name, run=frame.run, seq=frame.seq, target=target, t_virtual=frame.t_virtual,
+                         t_unix=frame.t_unix, payload_len=len(output), payload=payload)
+        dest = chain.sink if target == len(chain.stages) else self.plan.placement.get(chain.stages[target].name)
+        if dest is None:
+            self.count("unplaced-stage", f"{chain.stages[target].name} has no host")
+            return
+        self.send_frame(out, dest)
+
+    def _sink(self, chain: Chain, frame: ChainFrame) -> None:
+        if chain.sink != self.node:
+            self.count("wrong-sink", f"{chain.name} output reached {self.node}")
+            return
+        ledger = self.sinks.setdefault(chain.name, SinkLedger())
+        latency_ms = (time.time() - frame.t_unix) * 1000.0
+        if not ledger.record(frame.run, frame.seq, latency_ms):
+            self.count("duplicate-output" if frame.run >= ledger.run else "stale-output",
+                       f"{chain.name} run {frame.run} seq {frame.seq}", logging.ERROR)
+        self.last_output[chain.name] = frame.data()
+
+    # ---- control: hosting and migration -----------------------------------------------------------
+    def on_control(self, payload: bytes) -> None:
+        msg = decode(payload, CONTROL_MESSAGES)
+        if not self.started:
+            self.count("control-before-mission")
+            return
+        if msg.stage not in self.stage_index:
+            self.count("unknown-stage", msg.stage)
+            return
+        if isinstance(msg, Assign):
+            self.on_assign(msg)
+        elif isinstance(msg, Prepare):
+            self.on_prepare(msg)
+        elif isinstance(msg, MigrateOut):
+            self.on_migrate_out(msg)
+        elif isinstance(msg, Release):
+            self.on_release(msg)
+
+    def _new_component(self, chain: Chain, stage: Stage):
+        return self._make_component(stage.component, chain.source, chain_seed(self.scenario, chain))
+
+    def _reply(self, msg) -> None:
+        self.bus.publish(self.keys.inbox, encode(msg))
+
+    def on_assign(self, msg: Assign) -> None:
+        chain, index = self.stage_index[msg.stage]
+        stage = chain.stages[index]
+        current = self.hosted.get(msg.stage)
+        if current and current.generation > msg.generation:
+            return
+        try:
+            component = self._new_component(chain, stage)
+        except Exception as exc:
+            self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
+            return
+        hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
+                             lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
+                             gate=SequenceGate(next_seq=msg.resume_seq))
+        held = (current.buffer if current else []) + self.orphans.pop(msg.stage, [])
+        self.hosted[msg.stage] = hosted
+        self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=False,
+                               resume_seq=msg.resume_seq, downtime_ms=0.0, buffered=len(held)))
+        for frame in sorted(held, key=lambda f: f.seq):
+            self._admit(hosted, frame)
+
+    def on_prepare(self, msg: Prepare) -> None:
+        chain, index = self.stage_index[msg.stage]
+        current = self.hosted.get(msg.stage)
+        if current is not None and current.lifecycle in (Lifecycle.RUNNING, Lifecycle.DRAINING):
+            self.count("prepare-while-running", msg.stage, logging.ERROR)
+            return
+        hosted = HostedStage(stage=chain.stages[index], chain=chain, index=index, generation=msg.generation,
+                             lifecycle=Lifecycle.STARTING)
+        hosted.buffer = self.orphans.pop(msg.stage, [])
+        if current is not None and current.lifecycle is Lifecycle.STARTING:
+            hosted.buffer = current.buffer + hosted.buffer
+        self.hosted[msg.stage] = hosted
+        self._reply(Prepared(stage=msg.stage, generation=msg.generation, node=self.node))
+
+    def on_migrate_out(self, msg: MigrateOut) -> None:
+        hosted = self.hosted.get(msg.stage)
+        if hosted is None or hosted.lifecycle is not Lifecycle.RUNNING:
+            self.count("migrate-not-running", f"{msg.stage} is {hosted.lifecycle.value if hosted else 'absent'}",
+                       logging.ERROR)
+            return
+        # The current run has finished: runs are synchronous in this loop.
+        hosted.lifecycle = Lifecycle.DRAINING
+        try:
+            state = hosted.component.export_state()
+        except Exception as exc:
+            self.count("export-failed", f"{msg.stage}: {exc}", logging.ERROR)
+            hosted.lifecycle = Lifecycle.RUNNING
+            return
+        pending = tuple(hosted.gate.take_pending())
+        transfer = StateTransfer(stage=msg.stage, generation=msg.generation, chain=hosted.chain.name,
+                                 run=hosted.run, state=state, next_seq=hosted.gate.next_seq, pending=pending,
+                                 t_export_unix=time.time(), from_node=self.node)
+        body = encode(transfer)
+        hosted.lifecycle = Lifecycle.MIGRATED
+        hosted.forward_to = msg.to_node
+        hosted.component = None
+        # The state crosses the network like any message: routed, forwarded, charged (real bytes).
+        if msg.to_node == self.node:
+            self.on_state(transfer)
+        else:
+            self.send_routed(msg.to_node, body, len(body), 1.0, "migration", hosted.chain.name)
+
+    def on_state(self, msg: StateTransfer) -> None:
+        if msg.stage not in self.stage_index:
+            self.count("unknown-stage", msg.stage)
+            return
+        chain, index = self.stage_index[msg.stage]
+        stage = chain.stages[index]
+        current = self.hosted.get(msg.stage)
+        if current is not None and current.generation > msg.generation:
+            self.count("stale-state", f"{msg.stage} generation {msg.generation}")
+            return
+        try:
+            component = self._new_component(chain, stage)
+            component.import_state(msg.state)
+        except Exception as exc:
+            self.count("import-failed", f"{msg.stage}: {exc}", logging.ERROR)
+            return
+        held = list(msg.pending)
+        if current is not None and current.lifecycle is Lifecycle.STARTING:
+            held += current.buffer
+        held += self.orphans.pop(msg.stage, [])
+        hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
+                             lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
+                             gate=SequenceGate(next_seq=msg.next_seq))
+        self.hosted[msg.stage] = hosted
+        self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=True,
+                               resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3),
+                               buffered=len(held)))
+        for frame in sorted(held, key=lambda f: f.seq):
+            self._admit(hosted, frame)
+
+    def on_release(self, msg: Release) -> None:
+        hosted = self.hosted.get(msg.stage)
+        if hosted is not None and hosted.generation <= msg.generation:
+            del self.hosted[msg.stage]
+        self.orphans.pop(msg.stage, None)
+
+    # ---- liveliness ----------------------------------------------------------------------------------
+    def on_liveliness(self, node: str, alive: bool) -> None:
+        if alive:
+            self.alive.add(node)
+        else:
+            self.alive.discard(node)
+
+    # ---- status ----------------------------------------------------------------------------------------
+    def status(self, window_s: float, queue_depth: int = 0) -> NodeStatus:
+        now = self.now()
+        power, utilisation = self.meter.window(now, window_s) if self.meter else ({}, 0.0)
+        neighbours = sorted({l.b if l.a == self.node else l.a for l in self.network.links if l.touches(self.node)}
+                            ) if self.network else []
+        sources = {n: self.source_stats(r) for n, r in self.sources.items()}
+        for name, stats in self.source_totals.items():
+            sources.setdefault(name, stats)
+        return NodeStatus(
+            node=self.node, t_virtual=now, t_unix=time.time(), plan_epoch=self.plan.epoch if self.plan else -1,
+            initial_j=self.meter.initial_j if self.meter else None,
+            battery_j=self.meter.battery_j if self.meter else None,
+            energy_j=dict(self.meter.energy_j) if self.meter else {},
+            power_w=power, cpu_utilisation=utilisation,
+            hosted={n: h.lifecycle.value for n, h in self.hosted.items()},
+            sources=sources,
+            sinks={n: SinkStats(run=l.run, received=l.received, duplicates=l.duplicates, contiguous=l.contiguous,
+                                max_seq=l.max_seq, stale=l.stale, latency_ms_p50=l.latency_ms_p50,
+                                latency_ms_max=l.latency_ms_max, received_total=l.received_total,
+                                duplicates_total=l.duplicates_total)
+                   for n, l in self.sinks.items()},
+            links={n: n in self.alive for n in neighbours},
+            runs={n: h.runs for n, h in self.hosted.items() if h.runs},
+            compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},
+            queue_depth=queue_depth, errors=dict(self.errors),
+            depleted=bool(self.meter and self.meter.depleted),
+        )
+
+    # ---- dispatch -----------------------------------------------------------------------------------------
+    def on_message(self, key: str, payload: bytes) -> bool:
+        """Handle a message on one of this node's keys; False if the key is not ours.
+
+        Garbage (ProtocolError) is counted, logged and dropped; it never propagates.
+        """
+        try:
+            if key == self.keys.node_data(self.node):
+                self.on_data(payload)
+            elif key == self.keys.node_control(self.node):
+                self.on_control(payload)
+            elif key == self.keys.plan:
+                self.on_plan(decode(payload, PlanUpdate))
+            else:
+                return False
+        except ProtocolError as exc:
+            self.count("garbled", f"on {key}: {exc}")
+        return True

@@ -1,0 +1,386 @@
+"""The Bus the processes talk through: a Zenoh adapter and an in-memory one for unit tests.
+
+The agent and the base station only use this small surface (publish, subscribe, liveliness,
+query/reply), so their logic runs unchanged on the `InMemoryBus` in unit tests and on
+`ZenohBus` between real processes. Callbacks run on the transport's threads: they must only
+enqueue (the processes' event loops do the work).
+
+Zenoh traps this adapter handles (see ../shared/notes/zenoh-rerun.md):
+- the default congestion control drops under load: ``reliable=True`` publishes with BLOCK;
+- failure detection is the dying peer's lease: it is a setting here (`ZenohSettings.lease_ms`);
+- peers do not relay for other peers: every process connects explicitly to the endpoints it is
+  given (one per peer pair, so a test can put a proxy on any single link), multicast and gossip
+  scouting are off so nothing leaves loopback and parallel test runs cannot find each other.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+log = logging.getLogger(__name__)
+
+MessageCallback = Callable[[str, bytes], None]
+LivelinessCallback = Callable[[str, bool], None]
+
+
+class Closeable(Protocol):
+    def close(self) -> None: ...
+
+
+class Request(Protocol):
+    """An operator query: read ``payload``, ``reply`` once, then ``close``."""
+
+    key: str
+    payload: bytes
+
+    def reply(self, payload: bytes) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class Bus(Protocol):
+    def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None: ...
+
+    def subscribe(self, key_expr: str, callback: MessageCallback) -> Closeable: ...
+
+    def declare_token(self, key: str) -> Closeable: ...
+
+    def watch_liveliness(self, key_expr: str, callback: LivelinessCallback) -> Closeable: ...
+
+    def serve(self, key: str, callback: Callable[[Request], None]) -> Closeable: ...
+
+    def query(self, key: str, payload: bytes, timeout_s: float = 2.0) -> list[bytes]: ...
+
+    def close(self) -> None: ...
+
+
+def key_matches(pattern: str, key: str) -> bool:
+    """Whether a concrete key matches a key expression with ``*`` and ``**`` chunks."""
+    p, k = pattern.split("/"), key.split("/")
+
+    def go(i: int, j: int) -> bool:
+        if i == len(p):
+            return j == len(k)
+        if p[i] == "**":
+            return any(go(i + 1, jj) for jj in range(j, len(k) + 1))
+        if j == len(k):
+            return False
+        return (p[i] == "*" or p[i] == k[j]) and go(i + 1, j + 1)
+
+    return go(0, 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Zenoh
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class ZenohSettings:
+    """How one process joins Zenoh. Endpoints are explicit; nothing is discovered."""
+
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    lease_ms: int = 1000  # a frozen peer or cut link is detected after about this long
+    keep_alive: int = 4
+    retry_init_ms: int = 100
+    retry_max_ms: int = 500
+
+    def to_config(self):
+        import zenoh
+
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", json.dumps("peer"))
+        cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("scouting/gossip/enabled", "false")
+        cfg.insert_json5("transport/link/tx/lease", str(int(self.lease_ms)))
+        cfg.insert_json5("transport/link/tx/keep_alive", str(int(self.keep_alive)))
+        retry = {"period_init_ms": self.retry_init_ms, "period_max_ms": self.retry_max_ms,
+                 "period_increase_factor": 2}
+        cfg.insert_json5("connect/retry", json.dumps(retry))
+        # Keep retrying a peer that is not up yet instead of failing the open.
+        cfg.insert_json5("connect/timeout_ms", "-1")
+        cfg.insert_json5("connect/exit_on_failure", "false")
+        return cfg
+
+
+_zenoh_log_once = threading.Lock()
+_zenoh_log_done = False
+
+
+class _ZenohRequest:
+    def __init__(self, query, key: str):
+        self._query = query
+        self.key = key
+        payload = query.payload
+        self.payload = payload.to_bytes() if payload is not None else b""
+        self._closed = False
+
+    def reply(self, payload: bytes) -> None:
+        self._query.reply(self.key, payload)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._query.drop()
+
+
+class ZenohBus:
+    """A Bus over one Zenoh peer session (a context manager)."""
+
+    def __init__(self, settings: ZenohSettings):
+        import zenoh
+
+        global _zenoh_log_done
+        with _zenoh_log_once:
+            if not _zenoh_log_done:
+                zenoh.init_log_from_env_or("error")
+                _zenoh_log_done = True
+        self._zenoh = zenoh
+        self.settings = settings
+        self.session = zenoh.open(settings.to_config())
+        self._publishers: dict[tuple[str, bool], object] = {}
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def __enter__(self) -> "ZenohBus":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _publisher(self, key: str, reliable: bool):
+        pub = self._publishers.get((key, reliable))
+        if pub is None:
+            with self._lock:
+                pub = self._publishers.get((key, reliable))
+                if pub is None:
+                    cc = self._zenoh.CongestionControl
+                    pub = self.session.declare_publisher(
+                        key, congestion_control=cc.BLOCK if reliable else cc.DROP)
+                    self._publishers[(key, reliable)] = pub
+        return pub
+
+    def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
+        if self._closed:
+            return
+        self._publisher(key, reliable).put(payload)
+
+    def subscribe(self, key_expr: str, callback: MessageCallback):
+        def on_sample(sample) -> None:
+            callback(str(sample.key_expr), sample.payload.to_bytes())
+
+        return _Undeclare(self.session.declare_subscriber(key_expr, on_sample))
+
+    def declare_token(self, key: str):
+        return _Undeclare(self.session.liveliness().declare_token(key))
+
+    def watch_liveliness(self, key_expr: str, callback: LivelinessCallback):
+        put = self._zenoh.SampleKind.PUT
+
+        def on_sample(sample) -> None:
+            callback(str(sample.key_expr), sample.kind == put)
+
+        return _Undeclare(self.session.liveliness().declare_subscriber(key_expr, on_sample, history=True))
+
+    def serve(self, key: str, callback: Callable[[Request], None]):
+        def on_query(query) -> None:
+            callback(_ZenohRequest(query, key))
+
+        return _Undeclare(self.session.declare_queryable(key, on_query))
+
+    def query(self, key: str, payload: bytes, timeout_s: float = 2.0) -> list[bytes]:
+        out = []
+        for reply in self.session.get(key, payload=payload, timeout=timeout_s):
+            if reply.ok is not None:
+                out.append(reply.ok.payload.to_bytes())
+        return out
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for pub in list(self._publishers.values()):
+            try:
+                pub.undeclare()
+            except Exception:  # the session may already be going down
+                pass
+        self._publishers.clear()
+        self.session.close()
+
+
+class _Undeclare:
+    def __init__(self, entity):
+        self._entity = entity
+
+    def close(self) -> None:
+        try:
+            self._entity.undeclare()
+        except Exception:  # already undeclared, or the session is closed
+            pass
+
+
+# ---------------------------------------------------------------------------------------------
+# In memory
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Sub:
+    bus: "InMemoryBus"
+    key_expr: str
+    callback: Callable
+    liveliness: bool = False
+
+
+class _MemRequest:
+    def __init__(self, key: str, payload: bytes, sink: list[bytes]):
+        self.key = key
+        self.payload = payload
+        self._sink = sink
+        self.closed = False
+
+    def reply(self, payload: bytes) -> None:
+        if self.closed:
+            raise RuntimeError("reply after close")
+        self._sink.append(bytes(payload))
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@dataclass
+class InMemoryHub:
+    """The shared 'network' of InMemoryBus instances.
+
+    With ``synchronous=False`` nothing is delivered until `pump` is called: a unit test then
+    decides exactly when messages arrive (and can inspect them, drop them or reorder them).
+    """
+
+    synchronous: bool = True
+    subs: list[_Sub] = field(default_factory=list)
+    tokens: dict[str, int] = field(default_factory=dict)
+    queryables: dict[str, tuple["InMemoryBus", Callable]] = field(default_factory=dict)
+    pending: deque = field(default_factory=deque)
+    published: list[tuple[str, bytes, bool]] = field(default_factory=list)
+    record: bool = False
+
+    def _deliver(self, call: Callable[[], None]) -> None:
+        if self.synchronous:
+            call()
+        else:
+            self.pending.append(call)
+
+    def pump(self, limit: int = 1_000_000) -> int:
+        """Deliver queued messages (and whatever they cause) until none is left."""
+        n = 0
+        while self.pending and n < limit:
+            self.pending.popleft()()
+            n += 1
+        return n
+
+    def bus(self, name: str = "") -> "InMemoryBus":
+        return InMemoryBus(self, name)
+
+
+class InMemoryBus:
+    """A Bus whose 'network' is an `InMemoryHub` in this process."""
+
+    def __init__(self, hub: InMemoryHub | None = None, name: str = ""):
+        self.hub = hub or InMemoryHub()
+        self.name = name
+        self._tokens: list[str] = []
+        self._closed = False
+
+    def __enter__(self) -> "InMemoryBus":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
+        if self._closed:
+            return
+        payload = bytes(payload)
+        if self.hub.record:
+            self.hub.published.append((key, payload, reliable))
+        for sub in list(self.hub.subs):
+            if not sub.liveliness and not sub.bus._closed and key_matches(sub.key_expr, key):
+                self.hub._deliver(lambda cb=sub.callback: cb(key, payload))
+
+    def subscribe(self, key_expr: str, callback: MessageCallback):
+        sub = _Sub(self, key_expr, callback)
+        self.hub.subs.append(sub)
+        return _MemHandle(lambda: self._remove(sub))
+
+    def _remove(self, sub: _Sub) -> None:
+        if sub in self.hub.subs:
+            self.hub.subs.remove(sub)
+
+    def _notify(self, key: str, alive: bool) -> None:
+        for sub in list(self.hub.subs):
+            if sub.liveliness and key_matches(sub.key_expr, key):
+                self.hub._deliver(lambda cb=sub.callback: cb(key, alive))
+
+    def declare_token(self, key: str):
+        self.hub.tokens[key] = self.hub.tokens.get(key, 0) + 1
+        self._tokens.append(key)
+        if self.hub.tokens[key] == 1:
+            self._notify(key, True)
+        return _MemHandle(lambda: self._undeclare(key))
+
+    def _undeclare(self, key: str) -> None:
+        if key not in self._tokens:
+            return
+        self._tokens.remove(key)
+        self.hub.tokens[key] -= 1
+        if self.hub.tokens[key] == 0:
+            del self.hub.tokens[key]
+            self._notify(key, False)
+
+    def watch_liveliness(self, key_expr: str, callback: LivelinessCallback):
+        sub = _Sub(self, key_expr, callback, liveliness=True)
+        self.hub.subs.append(sub)
+        for key in list(self.hub.tokens):  # history: tokens already present
+            if key_matches(key_expr, key):
+                self.hub._deliver(lambda k=key: callback(k, True))
+        return _MemHandle(lambda: self._remove(sub))
+
+    def serve(self, key: str, callback: Callable[[Request], None]):
+        self.hub.queryables[key] = (self, callback)
+        return _MemHandle(lambda: self.hub.queryables.pop(key, None))
+
+    def query(self, key: str, payload: bytes, timeout_s: float = 2.0) -> list[bytes]:
+        replies: list[bytes] = []
+        for qkey, (bus, callback) in list(self.hub.queryables.items()):
+            if not bus._closed and key_matches(qkey, key):
+                callback(_MemRequest(qkey, bytes(payload), replies))
+        return replies
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        for key in list(self._tokens):
+            self._undeclare(key)
+        self._closed = True
+        self.hub.subs = [s for s in self.hub.subs if s.bus is not self]
+        for qkey, (bus, _) in list(self.hub.queryables.items()):
+            if bus is self:
+                del self.hub.queryables[qkey]
+
+
+class _MemHandle:
+    def __init__(self, fn: Callable[[], None]):
+        self._fn = fn
+
+    def close(self) -> None:
+        fn, self._fn = self._fn, None
+        if fn is not None:
+            fn()

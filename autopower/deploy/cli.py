@@ -1,0 +1,177 @@
+"""The `autopower` command line.
+
+Every AutoPowerError becomes one line on stderr and exit status 2: what was wrong, where, and
+what to do. Tracebacks are for bugs only.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import click
+from rich.console import Console
+from rich.table import Table
+
+from autopower.errors import AutoPowerError
+from autopower.scenario import Scenario, builtin_scenarios, load_scenario
+
+# Piped output (CI logs, `| less`) would otherwise be cut to 80 columns and truncate the tables.
+console = Console() if sys.stdout.isatty() else Console(width=200)
+
+
+def parse_energies(values: tuple[str, ...]) -> dict[str, float]:
+    out = {}
+    for item in values:
+        name, sep, joules = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[name.strip()] = float(joules)
+        except ValueError:
+            raise AutoPowerError(f"--energy {item!r}: expected ROBOT=JOULES, e.g. --energy r1=32000") from None
+    return out
+
+
+def scenario_from(name: str, energy: tuple[str, ...] = (), accounting: str | None = None) -> Scenario:
+    scenario = load_scenario(name)
+    if energy:
+        scenario = scenario.with_energies(parse_energies(energy))
+    return scenario.with_accounting(accounting)
+
+
+SCENARIO_ARG = click.argument("scenario", default="paper-fig7", metavar="SCENARIO")
+ENERGY_OPT = click.option("--energy", multiple=True, metavar="ROBOT=J", help="Override a robot's starting energy (repeatable).")
+ACCOUNTING_OPT = click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None,
+                              help="Message accounting (default: the scenario's).")
+JSON_OPT = click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+def cli() -> None:
+    """AutoPower: energy-aware placement of robot software across a multi-robot team.
+
+    SCENARIO is a built-in name (paper-fig7, paper-fig8, ...) or a path to a .toml file.
+    """
+
+
+@cli.command()
+@SCENARIO_ARG
+def check(scenario: str) -> None:
+    """Validate a scenario file and summarise it."""
+    s = load_scenario(scenario)
+    console.print(f"[green]ok[/green] {s.source_path}: {s.name} — {len(s.robots)} robots, "
+                  f"{len(s.chains)} chains, {len(s.stage_names())} stages, accounting {s.accounting}")
+
+
+@cli.command("scenarios")
+def list_scenarios() -> None:
+    """List the built-in scenarios."""
+    for name in builtin_scenarios():
+        console.print(f"{name}: {load_scenario(name).description}")
+
+
+@cli.command()
+@SCENARIO_ARG
+@ENERGY_OPT
+@ACCOUNTING_OPT
+@JSON_OPT
+@click.option("--ties", default=4, show_default=True, help="How many tied optima to list per media pair.")
+def analyze(scenario: str, energy, accounting, as_json: bool, ties: int) -> None:
+    """A Fig. 7-style table: all-local, all-laptop and the optimum per topology and media pair."""
+    from autopower.deploy.analysis import analyze as run
+
+    s = scenario_from(scenario, energy, accounting)
+    rows, normaliser = run(s, max_ties=ties)
+    if as_json:
+        click.echo(json.dumps({"scenario": s.name, "accounting": s.accounting,
+                               "energies_j": s.energies_j(), "normalized_by_s": normaliser,
+                               "rows": [r.to_dict(normaliser) for r in rows]}, indent=2))
+        return
+    stages = s.stage_names()
+    table = Table(title=f"{s.name} — {s.accounting} accounting — energies "
+                        + ", ".join(f"{r.name}={r.energy_j:g} J" for r in s.robots),
+                  caption=f"normalized: divided by the shortest-lived feasible all-local row ({normaliser} s)")
+    for col in ("topology", "laptop-robot", "robot-robot", "label", "lifetime s", "norm.", *stages, "bottleneck", "paper s"):
+        table.add_column(col, justify="right" if col in ("lifetime s", "norm.", "paper s") else "left",
+                         no_wrap=True)
+    for row in rows:
+        d = row.to_dict(normaliser)
+        life = f"{d['lifetime_s']:.1f}" if d["lifetime_s"] else "infeasible"
+        norm = f"{d['normalized']:.2f}" if d["normalized"] else ""
+        paper = f"{row.paper_lifetime_s:.1f}" if row.paper_lifetime_s else ""
+        style = "bold green" if d["label"] == "optimal" else None
+        table.add_row(d["topology"], d["laptop_robot_medium"] or "-", d["robot_robot_medium"] or "-", d["label"],
+                      life, norm, *[d["allocation"][st] for st in stages], d["bottleneck"] or "-", paper, style=style)
+    console.print(table)
+
+
+@cli.command("plan")
+@SCENARIO_ARG
+@ENERGY_OPT
+@ACCOUNTING_OPT
+@JSON_OPT
+@click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None)
+@click.option("--method", type=click.Choice(["auto", "exhaustive", "milp"]), default="auto", show_default=True)
+@click.option("--disable", multiple=True, metavar="CHAIN", help="Plan without this chain (repeatable).")
+@click.option("--without", multiple=True, metavar="ROBOT", help="Plan as if this robot were gone (repeatable).")
+@click.option("--time-limit", type=float, default=None, help="MILP time limit in seconds.")
+@click.option("--no-bound", is_flag=True, help="Skip the time-sharing bound.")
+def plan_cmd(scenario, energy, accounting, as_json, topology, method, disable, without, time_limit, no_bound) -> None:
+    """The optimal allocation and media, with reasons and the time-sharing bound."""
+    from autopower.planner import PlanRequest, plan
+
+    s = scenario_from(scenario, energy, accounting)
+    for chain in disable:
+        s.chain(chain)
+    for robot in without:
+        s.robot(robot)
+    p = plan(PlanRequest(scenario=s, topology=topology, method=method, disabled_chains=frozenset(disable),
+                         unavailable_nodes=frozenset(without), time_limit_s=time_limit, with_bound=not no_bound))
+    if as_json:
+        click.echo(json.dumps({"scenario": s.name, "accounting": s.accounting, **p.to_dict()}, indent=2))
+        return
+    ev = p.evaluation
+    console.print(f"[bold]{s.name}[/bold] ({s.accounting} accounting, {p.network.topology}, media "
+                  + ", ".join(f"{g}={m}" for g, m in p.network.media_by_group().items()) + ")")
+    console.print(f"lifetime [bold green]{ev.lifetime_rounded_s:.1f} s[/bold green], bottleneck {ev.bottleneck}, "
+                  f"method {p.method}{' (proven optimal)' if p.proven_optimal else f' (gap {p.mip_gap:.2%})'}")
+    table = Table("stage", "host", "why")
+    for stage, host in p.allocation.items():
+        table.add_row(stage, host, p.reasons.get(stage, ""))
+    for chain, why in p.dropped.items():
+        table.add_row(chain, "-", why)
+    console.print(table)
+    power = Table("robot", "energy J", "power W", "CPU W", "CPU util", "radios", "lifetime s")
+    for name, rp in ev.robots.items():
+        radios = ", ".join(f"{m} {r.total_w:.4f} W ({r.busy:.1%})" for m, r in rp.radios.items())
+        power.add_row(name, f"{rp.energy_j:g}", f"{rp.total_w:.4f}", f"{rp.cpu_w:.4f}", f"{rp.cpu_utilisation:.1%}",
+                      radios, f"{rp.lifetime_s:.1f}")
+    console.print(power)
+    if p.bound:
+        b = p.bound
+        console.print(f"time-sharing bound: {b.lifetime_s:.1f} s ({b.lifetime_s / ev.lifetime_s - 1:+.2%} over the "
+                      f"best static plan{'' if b.proven else ', not proven tight'}) by switching between "
+                      f"{len(b.schedule)} configuration(s)")
+    if p.ties:
+        console.print(f"{len(p.ties)} other configuration(s) tie with this one.")
+
+
+def main() -> None:
+    try:
+        cli(standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except AutoPowerError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

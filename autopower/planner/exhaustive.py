@@ -1,0 +1,75 @@
+"""Exhaustive search over hosts x media: the paper's method, exact, for small teams.
+
+Loads add up chain by chain, so every combination's load is a sum of per-chain rows; the sums
+are built by numpy broadcasting and scored in one batch by the model's own load -> power code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from autopower.errors import AutoPowerError
+from autopower.model import LoadSpace, Network
+from autopower.planner.problem import Problem
+
+MAX_COMBINATIONS = 2_000_000  # beyond this, use the MILP
+TIE_REL = 1e-9
+
+
+@dataclass(frozen=True)
+class Candidate:
+    lifetime_s: float  # raw
+    spread: float  # sum of robots' power / energy: the tie-breaker (less drain elsewhere is better)
+    network: Network
+    allocation: dict[str, str]
+
+
+def search_network(problem: Problem, network: Network) -> tuple[LoadSpace, np.ndarray, list[list[tuple[str, ...]]]]:
+    """All combinations on one network: (space, loads (K, D), per-chain option lists)."""
+    space = LoadSpace(problem.scenario, network, problem.accounting, problem.energies_j)
+    loads = np.zeros((1, space.size))
+    options = []
+    for chain in problem.chains:
+        opts = problem.options(chain)
+        rows = np.array([space.chain_load(chain, o) for o in opts])
+        loads = (loads[:, None, :] + rows[None, :, :]).reshape(-1, space.size)
+        options.append(opts)
+    return space, loads, options
+
+
+def decode(problem: Problem, options: list[list[tuple[str, ...]]], flat_index: int) -> dict[str, str]:
+    """Index into the C-ordered product of per-chain options -> allocation."""
+    sizes = [len(o) for o in options]
+    picks = np.unravel_index(flat_index, sizes) if sizes else ()
+    allocation = {}
+    for chain, opts, pick in zip(problem.chains, options, picks):
+        for stage, host in zip(chain.stages, opts[int(pick)]):
+            allocation[stage.name] = host
+    return allocation
+
+
+def exhaustive(problem: Problem, max_ties: int = 8) -> list[Candidate]:
+    """The optimal configurations (best first, ties included), or [] if nothing is feasible."""
+    if problem.combinations() > MAX_COMBINATIONS:
+        raise AutoPowerError(
+            f"{problem.combinations():,} combinations is too many for exhaustive search "
+            f"(limit {MAX_COMBINATIONS:,}); use --method milp"
+        )
+    found: list[Candidate] = []
+    for network in problem.networks:
+        space, loads, options = search_network(problem, network)
+        life = space.lifetimes(loads)
+        best = life.max()
+        if not np.isfinite(best):
+            continue
+        spread = (space.total_power(loads) / space.energy_j).sum(axis=1)
+        for k in np.flatnonzero(life >= best * (1 - TIE_REL)):
+            found.append(Candidate(float(life[k]), float(spread[k]), network, decode(problem, options, int(k))))
+    if not found:
+        return []
+    top = max(c.lifetime_s for c in found)
+    ties = [c for c in found if c.lifetime_s >= top * (1 - TIE_REL)]
+    ties.sort(key=lambda c: (-c.lifetime_s, c.spread))
+    return ties[:max_ties]

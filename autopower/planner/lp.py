@@ -1,0 +1,102 @@
+"""A minimal sparse (MI)LP builder on HiGHS.
+
+highspy's expression objects cost a Python object per term; a 100-robot model has ~10^5 terms,
+so rows are collected as plain lists and handed to HiGHS as one CSR matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import highspy
+import numpy as np
+
+INF = highspy.kHighsInf
+
+
+@dataclass
+class LinearProgram:
+    lower: list[float] = field(default_factory=list)
+    upper: list[float] = field(default_factory=list)
+    cost: list[float] = field(default_factory=list)
+    integer: list[bool] = field(default_factory=list)
+    row_lower: list[float] = field(default_factory=list)
+    row_upper: list[float] = field(default_factory=list)
+    starts: list[int] = field(default_factory=lambda: [0])
+    index: list[int] = field(default_factory=list)
+    value: list[float] = field(default_factory=list)
+
+    def var(self, lower: float = 0.0, upper: float = INF, cost: float = 0.0, integer: bool = False) -> int:
+        self.lower.append(lower)
+        self.upper.append(upper)
+        self.cost.append(cost)
+        self.integer.append(integer)
+        return len(self.lower) - 1
+
+    def binary(self) -> int:
+        return self.var(0.0, 1.0, integer=True)
+
+    def row(self, terms: dict[int, float], lower: float = -INF, upper: float = INF) -> int:
+        for col, coef in terms.items():
+            if coef != 0.0:
+                self.index.append(col)
+                self.value.append(coef)
+        self.starts.append(len(self.index))
+        self.row_lower.append(lower)
+        self.row_upper.append(upper)
+        return len(self.row_lower) - 1
+
+    def solve(self, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
+              threads: int | None = None) -> "Solution":
+        h = highspy.Highs()
+        h.setOptionValue("output_flag", False)
+        h.setOptionValue("mip_rel_gap", mip_rel_gap)
+        # The objective is a power in watts (~1): absolute gaps of 1e-6 W would stop too early.
+        h.setOptionValue("mip_abs_gap", 0.0)
+        if time_limit_s is not None:
+            h.setOptionValue("time_limit", float(time_limit_s))
+        if threads is not None:
+            h.setOptionValue("threads", threads)
+        lp = highspy.HighsLp()
+        lp.num_col_ = len(self.lower)
+        lp.num_row_ = len(self.row_lower)
+        lp.col_cost_ = np.array(self.cost, dtype=float)
+        lp.col_lower_ = np.array(self.lower, dtype=float)
+        lp.col_upper_ = np.array(self.upper, dtype=float)
+        lp.row_lower_ = np.array(self.row_lower, dtype=float)
+        lp.row_upper_ = np.array(self.row_upper, dtype=float)
+        lp.a_matrix_.format_ = highspy.MatrixFormat.kRowwise
+        lp.a_matrix_.start_ = np.array(self.starts, dtype=np.int32)
+        lp.a_matrix_.index_ = np.array(self.index, dtype=np.int32)
+        lp.a_matrix_.value_ = np.array(self.value, dtype=float)
+        if any(self.integer):
+            lp.integrality_ = [highspy.HighsVarType.kInteger if i else highspy.HighsVarType.kContinuous
+                               for i in self.integer]
+        h.passModel(lp)
+        h.run()
+        status = h.getModelStatus()
+        info = h.getInfo()
+        sol = h.getSolution()
+        has_solution = info.primal_solution_status == 2  # kSolutionStatusFeasible
+        return Solution(
+            status=h.modelStatusToString(status),
+            optimal=status == highspy.HighsModelStatus.kOptimal,
+            has_solution=has_solution,
+            values=np.array(sol.col_value) if has_solution else None,
+            duals=np.array(sol.row_dual) if sol.dual_valid else None,
+            objective=info.objective_function_value if has_solution else None,
+            mip_gap=info.mip_gap if any(self.integer) else 0.0,
+            runtime_s=h.getRunTime(),
+        )
+
+
+@dataclass
+class Solution:
+    status: str
+    optimal: bool
+    has_solution: bool
+    values: np.ndarray | None
+    duals: np.ndarray | None
+    objective: float | None
+    mip_gap: float
+    runtime_s: float

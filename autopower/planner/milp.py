@@ -1,0 +1,251 @@
+"""The placement MILP on HiGHS: hosts and media that maximise the team's lifetime.
+
+Variables: x[stage, host] (binary), y[group, medium] (binary, only where a group has a choice),
+T (continuous). Minimise T subject to, for every robot i,
+
+    P_i(x, y) <= (E_i / E_ref) * T          (lifetime = E_ref / T)
+    cpu_u_i <= 1,  busy_i,m <= 1
+
+P_i is linear in products of binaries (a flow's hop on a medium exists when its endpoints' hosts
+and its group's medium are chosen). Every such product appears with a non-negative coefficient
+(send/receive power >= sleep power, checked when a scenario loads), so the standard lower-bound
+linearisation v >= sum(b) - (k - 1), v >= 0 is exact at the optimum.
+
+A second solve with T fixed at its optimum minimises sum_i P_i / E_i, so non-bottleneck robots
+are not left burning energy for nothing (the same tie-break as the exhaustive search).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+
+from autopower.model import Link, Network, airtime_s, flow_rate_hz
+from autopower.planner.lp import INF, LinearProgram
+from autopower.planner.problem import Problem
+
+TERM = tuple[int, ...]  # product of binary columns; () = the constant 1
+
+
+@dataclass
+class MilpResult:
+    allocation: dict[str, str] | None
+    network: Network | None
+    lifetime_s: float | None  # the model's lifetime of the returned plan (raw)
+    optimal: bool
+    mip_gap: float
+    status: str
+    runtime_s: float
+    columns: int
+    rows: int
+
+
+class PlacementModel:
+    """Builds the MILP for a problem; `objective` is either min-max or a weighted power sum."""
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        self.scenario = problem.scenario
+        base = problem.networks[0]
+        self.structure = base
+        self.nodes = list(base.nodes)
+        self.robots = [n for n in self.nodes if n != base.basestation]
+        self.lp = LinearProgram()
+        self._products: dict[TERM, int] = {}
+        # media groups: every link of the structure, with the candidates seen across networks
+        self.group_media: dict[str, list[str]] = {}
+        self.link_group: dict[frozenset, str] = {}
+        for network in problem.networks:
+            for link in network.links:
+                key = frozenset((link.a, link.b))
+                group = link.group if len(problem.networks) > 1 else f"{link.a}-{link.b}"
+                self.link_group[key] = group
+                media = self.group_media.setdefault(group, [])
+                if link.medium not in media:
+                    media.append(link.medium)
+        self.y: dict[tuple[str, str], int] = {}
+        for group, media in self.group_media.items():
+            if len(media) > 1:
+                cols = [self.lp.binary() for _ in media]
+                self.y.update({(group, m): c for m, c in zip(media, cols)})
+                self.lp.row({c: 1.0 for c in cols}, 1.0, 1.0)
+        self.x: dict[tuple[str, str], int] = {}
+        for chain in problem.chains:
+            for stage in chain.stages:
+                cols = {h: self.lp.binary() for h in problem.hosts[stage.name]}
+                self.x.update({(stage.name, h): c for h, c in cols.items()})
+                self.lp.row({c: 1.0 for c in cols.values()}, 1.0, 1.0)
+        self._build_loads()
+
+    # ---- linear pieces -----------------------------------------------------------------------
+    def product(self, term: TERM) -> int | None:
+        """Column equal to the product of binary columns (None for the constant 1)."""
+        term = tuple(sorted(set(term)))
+        if not term:
+            return None
+        if len(term) == 1:
+            return term[0]
+        col = self._products.get(term)
+        if col is None:
+            col = self.lp.var(0.0, 1.0)
+            # v >= sum(b) - (k-1)  <=>  v - sum(b) >= 1 - k
+            self.lp.row({col: 1.0, **{b: -1.0 for b in term}}, 1.0 - len(term), INF)
+            self._products[term] = col
+        return col
+
+    def media_terms(self, a: str, b: str) -> list[tuple[str, TERM]]:
+        group = self.link_group[frozenset((a, b))]
+        media = self.group_media[group]
+        if len(media) == 1:
+            return [(media[0], ())]
+        return [(m, (self.y[(group, m)],)) for m in media]
+
+    def _build_loads(self) -> None:
+        """Linear expressions (col -> coef, const) for CPU and per-radio airtime."""
+        cpu = {n: {} for n in self.nodes}
+        send = {(n, m): {} for n in self.nodes for m in self.scenario.radios}
+        recv = {(n, m): {} for n in self.nodes for m in self.scenario.radios}
+        self.const_send = {k: 0.0 for k in send}
+        self.const_recv = {k: 0.0 for k in recv}
+
+        def add(expr: dict, consts: dict, key, term: TERM, coef: float) -> None:
+            col = self.product(term)
+            if col is None:
+                consts[key] += coef
+            else:
+                expr[col] = expr.get(col, 0.0) + coef
+
+        for chain in self.problem.chains:
+            for stage in chain.stages:
+                latency = self.scenario.components[stage.component].latency_s
+                for host in self.problem.hosts[stage.name]:
+                    col = self.x[(stage.name, host)]
+                    u = latency[self.scenario.platform_of(host).name] / chain.period_s
+                    cpu[host][col] = cpu[host].get(col, 0.0) + u
+            rate = flow_rate_hz(chain, self.problem.accounting)
+            ends: list[list[tuple[str, TERM]]] = [[(chain.source, ())]]
+            for stage in chain.stages:
+                ends.append([(h, (self.x[(stage.name, h)],)) for h in self.problem.hosts[stage.name]])
+            ends.append([(chain.sink, ())])
+            for k, n_bytes in enumerate(chain.message_bytes):
+                for (u_node, u_term), (v_node, v_term) in product(ends[k], ends[k + 1]):
+                    if u_node == v_node or n_bytes == 0:
+                        continue
+                    for a, b, _ in self.structure.route(u_node, v_node):
+                        for medium, m_term in self.media_terms(a, b):
+                            air = airtime_s(n_bytes, self.scenario.radios[medium]) * rate
+                            term = u_term + v_term + m_term
+                            add(send[(a, medium)], self.const_send, (a, medium), term, air)
+                            add(recv[(b, medium)], self.const_recv, (b, medium), term, air)
+        self.cpu, self.send, self.recv = cpu, send, recv
+
+        # radio presence r[i, m] >= y[g, m] for every link of i (a constant 1 for fixed media)
+        self.present: dict[tuple[str, str], int | float] = {}
+        for robot in self.robots:
+            for link in self.structure.links:
+                if not link.touches(robot):
+                    continue
+                for medium, m_term in self.media_terms(link.a, link.b):
+                    key = (robot, medium)
+                    if not m_term:
+                        self.present[key] = 1.0
+                    elif self.present.get(key) != 1.0:
+                        if key not in self.present:
+                            self.present[key] = self.lp.var(0.0, 1.0)
+                        self.lp.row({self.present[key]: 1.0, m_term[0]: -1.0}, 0.0, INF)
+
+        # utilisation limits
+        for node in self.nodes:
+            if cpu[node]:
+                self.lp.row(cpu[node], -INF, 1.0)
+        for robot in self.robots:
+            for medium in self.scenario.radios:
+                key = (robot, medium)
+                busy = dict(send[key])
+                for col, coef in recv[key].items():
+                    busy[col] = busy.get(col, 0.0) + coef
+                const = self.const_send[key] + self.const_recv[key]
+                if busy:
+                    self.lp.row(busy, -INF, 1.0 - const)
+
+    def power(self, robot: str) -> tuple[dict[int, float], float]:
+        """P_robot as (col -> coef, constant) watts."""
+        platform = self.scenario.platform_of(robot)
+        expr: dict[int, float] = {}
+        const = platform.idle_w
+        for col, u in self.cpu[robot].items():
+            expr[col] = expr.get(col, 0.0) + (platform.busy_w - platform.idle_w) * u
+        for medium, radio in self.scenario.radios.items():
+            key = (robot, medium)
+            pres = self.present.get(key)
+            if pres is None:
+                continue
+            if isinstance(pres, float):
+                const += radio.sleep_w
+            else:
+                expr[pres] = expr.get(pres, 0.0) + radio.sleep_w
+            for source, consts, active_w in ((self.send[key], self.const_send, radio.send_w),
+                                             (self.recv[key], self.const_recv, radio.receive_w)):
+                coef = active_w - radio.sleep_w
+                for col, air in source.items():
+                    expr[col] = expr.get(col, 0.0) + coef * air
+                const += coef * consts[key]
+        return expr, const
+
+    # ---- read back -----------------------------------------------------------------------------
+    def decode(self, values) -> tuple[dict[str, str], Network]:
+        allocation = {}
+        for (stage, host), col in self.x.items():
+            if values[col] > 0.5:
+                allocation[stage] = host
+        chosen = {}
+        for (group, medium), col in self.y.items():
+            if values[col] > 0.5:
+                chosen[group] = medium
+        links = []
+        for link in self.structure.links:
+            group = self.link_group[frozenset((link.a, link.b))]
+            media = self.group_media[group]
+            medium = media[0] if len(media) == 1 else chosen[group]
+            links.append(Link(a=link.a, b=link.b, medium=medium, group=link.group))
+        network = Network(self.structure.nodes, self.structure.basestation, links, self.structure.topology)
+        return allocation, network
+
+
+def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
+               refine: bool = True) -> MilpResult:
+    """Min-max lifetime placement; optionally a second pass to minimise total normalised drain."""
+    from autopower.model import evaluate
+
+    model = PlacementModel(problem)
+    lp = model.lp
+    e_ref = max(problem.energies_j[r] for r in model.robots)
+    t_col = lp.var(0.0, INF, cost=1.0)
+    power_rows = {}
+    for robot in model.robots:
+        expr, const = model.power(robot)
+        # P_i - (E_i/E_ref) T <= 0  ->  expr - k T <= -const
+        power_rows[robot] = (expr, const)
+        lp.row({**expr, t_col: -problem.energies_j[robot] / e_ref}, -INF, -const)
+    columns, rows = len(lp.lower), len(lp.row_lower)
+    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap)
+    if not sol.has_solution:
+        return MilpResult(None, None, None, False, 1.0, sol.status, sol.runtime_s, columns, rows)
+    runtime = sol.runtime_s
+    best = sol
+    if refine and sol.optimal:
+        t_star = sol.values[t_col]
+        lp.cost[t_col] = 0.0
+        lp.upper[t_col] = t_star * (1 + 1e-9) + 1e-12
+        for robot, (expr, _) in power_rows.items():
+            for col, coef in expr.items():
+                lp.cost[col] += coef / problem.energies_j[robot]
+        second = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=1e-6)
+        runtime += second.runtime_s
+        if second.has_solution:
+            best = second
+    allocation, network = model.decode(best.values)
+    ev = evaluate(problem.scenario, network, allocation, accounting=problem.accounting,
+                  energies_j=problem.energies_j,
+                  disabled_chains=frozenset(c.name for c in problem.scenario.chains) - {c.name for c in problem.chains})
+    return MilpResult(allocation, network, ev.lifetime_s, sol.optimal, sol.mip_gap, sol.status, runtime, columns, rows)

@@ -1,0 +1,207 @@
+"""One strict msgpack codec for every AutoPower message.
+
+Wire form: a msgpack array ``[b"AP", version, kind, {field: value, ...}]``. Decoding checks the
+magic, the protocol version, the kind, the exact set of fields and every field's type (nested
+structs, tuples, dicts included); anything else raises ProtocolError, which the processes log
+and drop. Nothing here trusts the sender.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+from functools import lru_cache
+from typing import Any, Union, get_args, get_origin, get_type_hints
+
+import msgpack
+
+from autopower.errors import ProtocolError
+
+PROTOCOL_VERSION = 1
+MAGIC = b"AP"
+
+_MESSAGES: dict[str, type] = {}  # kind -> class; only these may be top-level
+_STRUCTS: set[type] = set()  # nested value types (also frozen dataclasses)
+
+
+def message(cls: type) -> type:
+    """Register a frozen, keyword-only dataclass with a unique ``KIND`` as a wire message."""
+    kind = cls.__dict__.get("KIND")
+    if not isinstance(kind, str) or not kind:
+        raise TypeError(f"{cls.__name__} needs a KIND string")
+    if kind in _MESSAGES and _MESSAGES[kind] is not cls:
+        raise TypeError(f"two messages share KIND {kind!r}")
+    _check_dataclass(cls)
+    _MESSAGES[kind] = cls
+    return cls
+
+
+def struct(cls: type) -> type:
+    """Register a frozen dataclass used as a field value inside messages."""
+    _check_dataclass(cls)
+    _STRUCTS.add(cls)
+    return cls
+
+
+def _check_dataclass(cls: type) -> None:
+    params = getattr(cls, "__dataclass_params__", None)
+    if params is None or not params.frozen:
+        raise TypeError(f"{cls.__name__} must be a frozen dataclass")
+
+
+def message_kinds() -> dict[str, type]:
+    return dict(_MESSAGES)
+
+
+# ---------------------------------------------------------------------------------------------
+# encoding
+# ---------------------------------------------------------------------------------------------
+
+
+def _to_wire(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _to_wire(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, (tuple, list)):
+        return [_to_wire(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _to_wire(v) for k, v in value.items()}
+    return value
+
+
+def encode(msg: Any) -> bytes:
+    """Encode a registered message; raises ProtocolError for anything else."""
+    kind = getattr(type(msg), "KIND", None)
+    if _MESSAGES.get(kind) is not type(msg):
+        raise ProtocolError(f"cannot encode {type(msg).__name__}: not a registered message")
+    try:
+        return msgpack.packb([MAGIC, PROTOCOL_VERSION, kind, _to_wire(msg)], use_bin_type=True)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ProtocolError(f"cannot encode {kind}: {exc}") from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# decoding
+# ---------------------------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=None)
+def _hints(cls: type) -> dict[str, Any]:
+    return get_type_hints(cls)
+
+
+def _fail(where: str, what: str) -> ProtocolError:
+    return ProtocolError(f"{where}: {what}")
+
+
+def _from_wire(value: Any, hint: Any, where: str) -> Any:
+    if hint is Any:
+        return value
+    origin = get_origin(hint)
+    if origin in (Union, types.UnionType):
+        options = get_args(hint)
+        if value is None:
+            if type(None) in options:
+                return None
+            raise _fail(where, "null is not allowed here")
+        errors = []
+        for option in options:
+            if option is type(None):
+                continue
+            try:
+                return _from_wire(value, option, where)
+            except ProtocolError as exc:
+                errors.append(str(exc))
+        raise _fail(where, "; ".join(errors) or f"unexpected {type(value).__name__}")
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise _fail(where, f"expected bool, got {type(value).__name__}")
+    if hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise _fail(where, f"expected int, got {type(value).__name__}")
+    if hint is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            value = float(value)
+            if math.isnan(value):
+                raise _fail(where, "NaN is not a number we accept")
+            return value
+        raise _fail(where, f"expected float, got {type(value).__name__}")
+    if hint is str:
+        if isinstance(value, str):
+            return value
+        raise _fail(where, f"expected str, got {type(value).__name__}")
+    if hint is bytes:
+        if isinstance(value, bytes):
+            return value
+        raise _fail(where, f"expected bytes, got {type(value).__name__}")
+    if origin is tuple:
+        args = get_args(hint)
+        if not isinstance(value, (list, tuple)):
+            raise _fail(where, f"expected a list, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_from_wire(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise _fail(where, f"expected {len(args)} items, got {len(value)}")
+        return tuple(_from_wire(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if origin is dict:
+        key_t, val_t = get_args(hint)
+        if not isinstance(value, dict):
+            raise _fail(where, f"expected a map, got {type(value).__name__}")
+        return {_from_wire(k, key_t, f"{where}.<key>"): _from_wire(v, val_t, f"{where}[{k!r}]")
+                for k, v in value.items()}
+    if isinstance(hint, type) and (hint in _STRUCTS or hint in _MESSAGES.values()):
+        return _build(hint, value, where)
+    raise _fail(where, f"unsupported field type {hint!r}")  # a bug in a message definition
+
+
+def _build(cls: type, fields: Any, where: str) -> Any:
+    if not isinstance(fields, dict):
+        raise _fail(where, f"expected a map of fields, got {type(fields).__name__}")
+    hints = _hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = [k for k in fields if k not in hints]
+    missing = [n for n in names if n not in fields]
+    if unknown or missing:
+        detail = []
+        if unknown:
+            detail.append(f"unknown field(s) {', '.join(map(repr, unknown))}")
+        if missing:
+            detail.append(f"missing field(s) {', '.join(missing)}")
+        raise _fail(where, "; ".join(detail))
+    kwargs = {n: _from_wire(fields[n], hints[n], f"{where}.{n}") for n in names}
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise _fail(where, str(exc)) from exc
+
+
+def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...] | None = None) -> Any:
+    """Decode one message, strictly. ``expect`` limits which message classes are acceptable here."""
+    try:
+        obj = msgpack.unpackb(bytes(data), raw=False, strict_map_key=False, max_bin_len=64 * 2**20)
+    except Exception as exc:  # msgpack raises many unrelated types on garbage
+        raise ProtocolError(f"not a msgpack message ({exc.__class__.__name__}: {exc})") from exc
+    if not isinstance(obj, list) or len(obj) != 4:
+        raise ProtocolError(f"not an AutoPower message (expected [magic, version, kind, fields], got {type(obj).__name__})")
+    magic, version, kind, fields = obj
+    if magic != MAGIC:
+        raise ProtocolError(f"bad magic {magic!r}; not an AutoPower message")
+    if version != PROTOCOL_VERSION:
+        raise ProtocolError(f"protocol version {version!r}; this build speaks {PROTOCOL_VERSION}. "
+                            "Run the same AutoPower version on every node")
+    if not isinstance(kind, str):
+        raise ProtocolError(f"message kind must be a string, got {type(kind).__name__}")
+    cls = _MESSAGES.get(kind)
+    if cls is None:
+        raise ProtocolError(f"unknown message kind {kind!r}")
+    if expect is not None:
+        allowed = expect if isinstance(expect, tuple) else (expect,)
+        if cls not in allowed:
+            raise ProtocolError(f"message kind {kind!r} is not accepted here "
+                                f"(expected {', '.join(c.KIND for c in allowed)})")
+    return _build(cls, fields, kind)
+
+
+__all__ = ["PROTOCOL_VERSION", "decode", "encode", "message", "message_kinds", "struct"]

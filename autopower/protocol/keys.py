@@ -1,0 +1,83 @@
+"""Every Zenoh key expression AutoPower uses; no other module builds key strings.
+
+All keys live under ``autopower/<team>/`` so that several teams (or parallel test runs) never
+see each other's traffic even on a shared network.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+ROOT = "autopower"
+_NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")  # a key chunk: no '/', '*', '$', '?', '#'
+
+
+def check_name(name: str, what: str = "name") -> str:
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ValueError(f"{what} {name!r} cannot be used in a key expression "
+                         "(letters, digits and _ . + - only)")
+    return name
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key expressions of one team."""
+
+    team: str
+
+    def __post_init__(self) -> None:
+        check_name(self.team, "team")
+
+    @property
+    def prefix(self) -> str:
+        return f"{ROOT}/{self.team}"
+
+    # data and control addressed to one node (robot agent or the base station's host)
+    def node_data(self, node: str) -> str:
+        return f"{self.prefix}/node/{check_name(node, 'node')}/data"
+
+    def node_control(self, node: str) -> str:
+        return f"{self.prefix}/node/{check_name(node, 'node')}/control"
+
+    # presence
+    def alive(self, node: str) -> str:
+        return f"{self.prefix}/alive/{check_name(node, 'node')}"
+
+    @property
+    def alive_all(self) -> str:
+        return f"{self.prefix}/alive/*"
+
+    def node_of_alive(self, key: str) -> str | None:
+        head = f"{self.prefix}/alive/"
+        if key.startswith(head) and "/" not in key[len(head):]:
+            return key[len(head):]
+        return None
+
+    # telemetry
+    def status(self, node: str) -> str:
+        return f"{self.prefix}/status/{check_name(node, 'node')}"
+
+    @property
+    def status_all(self) -> str:
+        return f"{self.prefix}/status/*"
+
+    # coordinator
+    @property
+    def plan(self) -> str:
+        return f"{self.prefix}/base/plan"
+
+    @property
+    def inbox(self) -> str:
+        return f"{self.prefix}/base/inbox"
+
+    @property
+    def operator(self) -> str:
+        return f"{self.prefix}/base/operator"
+
+    def all_keys_of(self, node: str, basestation: bool) -> list[str]:
+        """The keys a node subscribes to (used by the garbage-survival tests)."""
+        keys = [self.node_data(node), self.node_control(node), self.plan, self.status_all]
+        if basestation:
+            keys += [self.inbox, self.operator]
+        return keys

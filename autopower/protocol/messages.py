@@ -1,0 +1,329 @@
+"""Every message AutoPower processes exchange, one frozen dataclass each, grouped by direction.
+
+Data plane (``node/<n>/data``, CongestionControl.BLOCK): `Packet`, carrying an encoded
+`ChainFrame` or `StateTransfer` hop by hop along a source route.
+Coordinator -> node (``node/<n>/control``, BLOCK): `Assign`, `Prepare`, `MigrateOut`, `Release`.
+Node -> coordinator (``base/inbox``, BLOCK): `Prepared`, `StageReady`.
+Coordinator -> everyone (``base/plan``, BLOCK): `PlanUpdate`.
+Telemetry (``agent/<r>/status``, ``base/status``, DROP): `NodeStatus`.
+Operator -> coordinator (query on ``base/operator``): `ChainCommand`, `MigrateCommand`,
+`AutoCommand`, `LinkCommand`, `SnapshotRequest`; reply `OperatorReply`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from autopower.protocol.codec import message, struct
+
+# ---------------------------------------------------------------------------------------------
+# shared value types
+# ---------------------------------------------------------------------------------------------
+
+
+@struct
+@dataclass(frozen=True, kw_only=True)
+class LinkInfo:
+    a: str
+    b: str
+    medium: str
+
+
+@struct
+@dataclass(frozen=True, kw_only=True)
+class MissionInfo:
+    """What every node must agree on to meter the same mission."""
+
+    scenario: str  # the scenario's name (every node loads the same file)
+    accounting: str  # "paper" | "physical"
+    epoch_unix: float  # wall time (time.time()) of virtual t = 0
+    speed: float  # virtual seconds per wall second
+    energies_j: dict[str, float]  # starting battery per robot
+
+
+@struct
+@dataclass(frozen=True, kw_only=True)
+class SourceStats:
+    run: int  # activation number of the chain (a disable/enable starts a new run)
+    produced: int  # frames produced in this run (the next seq)
+    missed: int  # periods skipped because the agent was late
+    produced_total: int
+
+
+@struct
+@dataclass(frozen=True, kw_only=True)
+class SinkStats:
+    run: int
+    received: int  # distinct outputs of this run
+    duplicates: int  # outputs seen twice (must stay 0)
+    contiguous: int  # every seq below this has arrived
+    max_seq: int  # highest seq seen, -1 for none
+    stale: int  # outputs of an older run that arrived late
+    latency_ms_p50: float
+    latency_ms_max: float
+    received_total: int
+    duplicates_total: int
+
+
+# ---------------------------------------------------------------------------------------------
+# data plane
+# ---------------------------------------------------------------------------------------------
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class Packet:
+    """One routed hop. Forwarders only read the header: body stays encoded end to end."""
+
+    KIND = "packet"
+    path: tuple[str, ...]  # nodes from the sender to the destination (the model's shortest route)
+    media: tuple[str, ...]  # medium of each hop, fixed by the first sender, len(path) - 1
+    hop: int  # index in path of the node this copy is addressed to
+    charge_bytes: int  # bytes the radios are charged for (the chain's declared message size)
+    weight: float  # modelled messages this real message stands for (model.flow_weight)
+    purpose: str  # "chain" | "migration": which meter bucket pays
+    chain: str
+    body: bytes  # an encoded ChainFrame or StateTransfer
+
+    def __post_init__(self) -> None:
+        if len(self.path) < 2 or len(self.media) != len(self.path) - 1:
+            raise ValueError(f"path {self.path} needs >= 2 nodes and one medium per hop")
+        if not 1 <= self.hop < len(self.path):
+            raise ValueError(f"hop {self.hop} outside path of {len(self.path)} nodes")
+        if self.charge_bytes < 0 or self.weight < 0:
+            raise ValueError("charge_bytes and weight must be >= 0")
+        if self.purpose not in ("chain", "migration"):
+            raise ValueError(f"purpose {self.purpose!r} is not chain or migration")
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class ChainFrame:
+    """The input of stage ``target`` (``target == len(stages)``: the output for the sink)."""
+
+    KIND = "frame"
+    chain: str
+    run: int
+    seq: int
+    target: int
+    t_virtual: float  # when the source produced it
+    t_unix: float  # wall time of production, for latency measurements
+    payload_len: int  # real length; payload is zero-padded to the chain's declared size
+    payload: bytes
+
+    def __post_init__(self) -> None:
+        if self.seq < 0 or self.target < 0 or self.run < 0:
+            raise ValueError("seq, target and run must be >= 0")
+        if not 0 <= self.payload_len <= len(self.payload):
+            raise ValueError(f"payload_len {self.payload_len} exceeds the {len(self.payload)} B payload")
+
+    def data(self) -> bytes:
+        return self.payload[: self.payload_len]
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class StateTransfer:
+    """A migrating stage: its exported state, where its input sequence resumes, pending inputs."""
+
+    KIND = "state"
+    stage: str
+    generation: int
+    chain: str
+    run: int
+    state: bytes
+    next_seq: int | None  # None: the old host never ran it (resume from the first input seen)
+    pending: tuple[ChainFrame, ...]  # inputs that reached the old host but were not run
+    t_export_unix: float  # when the old host stopped it (downtime measurement)
+    from_node: str
+
+
+# ---------------------------------------------------------------------------------------------
+# coordinator -> node
+# ---------------------------------------------------------------------------------------------
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class Assign:
+    """Host a new instance of a stage, with no state."""
+
+    KIND = "assign"
+    stage: str
+    generation: int
+    chain: str
+    run: int
+    resume_seq: int | None  # 0 for a new run; None after a failure (start at the first input seen)
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class Prepare:
+    """A stage is about to move here: buffer its inputs, answer `Prepared`."""
+
+    KIND = "prepare"
+    stage: str
+    generation: int
+    from_node: str
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class MigrateOut:
+    """Stop the stage after its current run, export its state, send it to ``to_node``."""
+
+    KIND = "migrate-out"
+    stage: str
+    generation: int
+    to_node: str
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class Release:
+    """Stop hosting a stage and forget it (its chain was disabled or dropped)."""
+
+    KIND = "release"
+    stage: str
+    generation: int
+
+
+# ---------------------------------------------------------------------------------------------
+# node -> coordinator
+# ---------------------------------------------------------------------------------------------
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class Prepared:
+    KIND = "prepared"
+    stage: str
+    generation: int
+    node: str
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class StageReady:
+    """A stage now runs here (after `Assign`, or after importing a `StateTransfer`)."""
+
+    KIND = "stage-ready"
+    stage: str
+    generation: int
+    node: str
+    imported_state: bool
+    resume_seq: int | None
+    downtime_ms: float  # old host stopped it -> it runs here; 0 for a fresh assignment
+    buffered: int  # inputs held during the move
+
+
+# ---------------------------------------------------------------------------------------------
+# coordinator -> everyone
+# ---------------------------------------------------------------------------------------------
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class PlanUpdate:
+    KIND = "plan"
+    epoch: int  # increases with every change
+    mission: MissionInfo
+    placement: dict[str, str]  # stage -> node where it runs now (confirmed)
+    running: dict[str, int]  # chain -> run number, for chains whose sources should produce
+    links: tuple[LinkInfo, ...]  # the network the data follows (routing and radio media)
+    predicted_w: dict[str, float]  # the model's power per robot for this placement
+    predicted_lifetime_s: float | None
+    plan_t_virtual: float  # when this placement's prediction starts
+
+
+# ---------------------------------------------------------------------------------------------
+# telemetry
+# ---------------------------------------------------------------------------------------------
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class NodeStatus:
+    KIND = "status"
+    node: str
+    t_virtual: float
+    t_unix: float
+    plan_epoch: int
+    initial_j: float | None  # None for mains power
+    battery_j: float | None
+    energy_j: dict[str, float]  # consumed so far, by part ("cpu_idle", "cpu_busy", "802.11a:send", ...)
+    power_w: dict[str, float]  # by part, averaged over the last status window
+    cpu_utilisation: float  # modelled (component latencies on this platform), last window
+    hosted: dict[str, str]  # stage -> lifecycle state
+    sources: dict[str, SourceStats]
+    sinks: dict[str, SinkStats]
+    links: dict[str, bool]  # neighbour -> its liveliness token is visible from here
+    runs: dict[str, int]  # stage -> runs executed here
+    compute_ms: dict[str, float]  # stage -> real mean run time on this machine
+    queue_depth: int
+    errors: dict[str, int]  # dropped garbled messages, unroutable frames, ...
+    depleted: bool
+
+
+# ---------------------------------------------------------------------------------------------
+# operator
+# ---------------------------------------------------------------------------------------------
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class ChainCommand:
+    KIND = "op-chain"
+    chain: str
+    enabled: bool
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class MigrateCommand:
+    """Pin a stage to a node (forces a migration; overrides the planner until `AutoCommand`)."""
+
+    KIND = "op-migrate"
+    stage: str
+    to_node: str
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class AutoCommand:
+    """Drop every pin: placement follows the planner again."""
+
+    KIND = "op-auto"
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class LinkCommand:
+    """A node's radio changes (the paper's V.C fault), or a link goes down (medium None, down)."""
+
+    KIND = "op-link"
+    node: str
+    laptop_robot: str | None = None
+    robot_robot: str | None = None
+    down_peer: str | None = None
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class SnapshotRequest:
+    KIND = "op-snapshot"
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class OperatorReply:
+    KIND = "op-reply"
+    ok: bool
+    message: str
+    snapshot: dict[str, Any] = field(default_factory=dict)
+
+
+OPERATOR_COMMANDS = (ChainCommand, MigrateCommand, AutoCommand, LinkCommand, SnapshotRequest)
+CONTROL_MESSAGES = (Assign, Prepare, MigrateOut, Release)
+INBOX_MESSAGES = (Prepared, StageReady)

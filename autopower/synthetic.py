@@ -1,0 +1,100 @@
+"""Random but honest scenarios: the paper's platforms and radios, teams of any size.
+
+Used by the property tests (MILP == exhaustive), the planner benchmark and the simulator's
+random-scenario sweeps. Everything is a function of the seed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from autopower.scenario import (
+    LAPTOP_ROBOT,
+    ROBOT_ROBOT,
+    Chain,
+    ComponentSpec,
+    LinkSpec,
+    NetworkSpec,
+    Platform,
+    Radio,
+    Robot,
+    Scenario,
+    Stage,
+    load_scenario,
+)
+
+
+def random_scenario(
+    seed: int,
+    robots: int = 3,
+    chains: int = 5,
+    *,
+    topology: str = "fully-connected",
+    accounting: str = "paper",
+    multi_stage: bool = False,
+    energy_spread: float = 0.5,
+) -> Scenario:
+    """A team of `robots` Sitsang robots and `chains` localisation/blob-like chains.
+
+    Latencies, periods, message sizes and energies are drawn around the paper's values so that
+    both local and offloaded placements are sometimes feasible and sometimes not.
+    """
+    rng = np.random.default_rng(seed)
+    paper = load_scenario("paper-fig7")
+    names = [f"r{i + 1}" for i in range(robots)]
+    team = tuple(
+        Robot(name=n, platform="sitsang", energy_j=float(round(64000 * (1 - energy_spread * rng.random()))),
+              sensors=frozenset({"laser", "odometry", "camera"}))
+        for n in names
+    )
+    components = {}
+    out_chains = []
+    for k in range(chains):
+        kind = rng.choice(["loc", "blob"])
+        comp = f"C{k}"
+        if kind == "loc":
+            period = float(rng.choice([1.0, 2.0, 4.0]))
+            sitsang = float(rng.uniform(0.1, 0.9)) * period / 2
+            sizes = [int(rng.integers(500, 2000)), int(rng.integers(300, 1200))]
+        else:
+            period = float(rng.choice([0.25, 0.5, 1.0]))
+            sitsang = float(rng.uniform(0.05, 0.5)) * period
+            sizes = [int(rng.choice([2000, 20000, 230415])), int(rng.integers(50, 400))]
+        components[comp] = ComponentSpec(name=comp, latency_s={"sitsang": sitsang, "laptop": sitsang / rng.uniform(10, 250)})
+        source = names[int(rng.integers(robots))]
+        sink = source if kind == "loc" else "laptop"
+        if multi_stage and rng.random() < 0.4:
+            comp2 = f"C{k}b"
+            components[comp2] = ComponentSpec(name=comp2, latency_s={"sitsang": sitsang / 2, "laptop": sitsang / 40})
+            stages = (Stage(name=f"{comp}-s0", component=comp), Stage(name=f"{comp}-s1", component=comp2))
+            sizes = [sizes[0], int(rng.integers(100, 3000)), sizes[1]]
+        else:
+            stages = (Stage(name=f"{comp}-{source}", component=comp),)
+        out_chains.append(Chain(name=f"{comp}-{source}", source=source, sink=sink, period_s=period,
+                                stages=stages, message_bytes=tuple(sizes)))
+    network = NetworkSpec(topology=topology, relay=names[0],
+                          laptop_robot_media=("802.11a", "gsm"), robot_robot_media=("802.11a", "bluetooth"),
+                          analyze_topologies=(topology,))
+    return Scenario(
+        name=f"random-{seed}-{robots}x{chains}",
+        description="synthetic",
+        source_path=f"<random seed {seed}>",
+        accounting=accounting,
+        lifetime_rounding_s=0.8,
+        platforms=dict(paper.platforms),
+        radios=dict(paper.radios),
+        robots=team,
+        basestation="laptop",
+        basestation_platform="laptop",
+        network_spec=network,
+        components=components,
+        chains=tuple(out_chains),
+    )
+
+
+def fleet_scenario(robots: int, components: int, seed: int = 0, accounting: str = "paper") -> Scenario:
+    """A large team for scaling: `components` single-stage chains spread over the robots."""
+    return random_scenario(seed, robots, components, accounting=accounting)
+
+
+__all__ = ["random_scenario", "fleet_scenario", "LAPTOP_ROBOT", "ROBOT_ROBOT", "LinkSpec", "Platform", "Radio"]
