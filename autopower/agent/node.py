@@ -54,7 +54,7 @@ from autopower.scenario import Chain, Scenario, Stage
 log = logging.getLogger(__name__)
 
 MAX_FORWARDS = 16  # a frame bounced more often than this between pointers is parked instead
-ORPHAN_LIMIT = 4096  # frames held for a stage this node does not know yet
+ORPHAN_LIMIT = 256  # frames held for a stage this node is about to host (a transient window)
 
 
 class Lifecycle(enum.Enum):
@@ -145,8 +145,10 @@ class NodeRuntime:
         self.sinks: dict[str, SinkLedger] = {}
         self.last_output: dict[str, bytes] = {}
         self.alive: set[str] = set()
-        self.errors: dict[str, int] = {}
+        self.errors: dict[str, int] = {}  # things that should not happen (garbage, lost frames)
+        self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
         self.weights: dict[str, float] = {}
+        self._early_control: list[bytes] = []
 
     # ---- small helpers -----------------------------------------------------------------------
     def now(self) -> float:
@@ -157,6 +159,9 @@ class NodeRuntime:
         self.errors[what] = n
         if n <= 5 or n % 1000 == 0:  # a flood of garbage must not flood the log
             log.log(level, "%s: %s (%d so far)%s", self.node, what, n, f": {detail}" if detail else "")
+
+    def tally(self, what: str, n: int = 1) -> None:
+        self.counters[what] = self.counters.get(what, 0) + n
 
     @property
     def started(self) -> bool:
@@ -192,6 +197,9 @@ class NodeRuntime:
                 for frame in frames:
                     self.send_frame(frame, host)
         self._sync_sources()
+        early, self._early_control = self._early_control, []
+        for payload in early:
+            self.on_control(payload)
 
     def _sync_sources(self) -> None:
         running = self.plan.running if self.plan else {}
@@ -234,7 +242,8 @@ class NodeRuntime:
             if late > 0:  # never burst to catch up: a real camera would have dropped them too
                 runner.missed += late
                 runner.next_t += late * period
-                self.count("missed-periods", f"{runner.chain.name} is {late} period(s) late", logging.INFO)
+                self.tally("missed-periods", late)
+                log.info("%s: source %s is %d period(s) late; skipped them", self.node, runner.chain.name, late)
             self._produce(runner, runner.next_t)
             runner.next_t += period
 
@@ -246,14 +255,14 @@ class NodeRuntime:
         except Exception as exc:
             self.count("source-error", f"{chain.name}: {exc}", logging.ERROR)
             return
-        frame = ChainFrame(chain=chain.name, run=runner.run, seq=runner.seq, target=0, t_virtual=t_tick,
-                           t_unix=time.time(), payload_len=len(data), payload=payload)
-        runner.seq += 1
-        runner.produced_total += 1
         host = self.plan.placement.get(chain.stages[0].name)
         if host is None:
             self.count("unplaced-stage", f"{chain.stages[0].name} has no host")
             return
+        frame = ChainFrame(chain=chain.name, run=runner.run, seq=runner.seq, target=0, t_virtual=t_tick,
+                           t_unix=time.time(), payload_len=len(data), payload=payload)
+        runner.seq += 1
+        runner.produced_total += 1
         self.send_frame(frame, host)
 
     # ---- sending -----------------------------------------------------------------------------
@@ -300,8 +309,7 @@ class NodeRuntime:
             self.meter.charge_radio("send", packet.media[packet.hop], packet.charge_bytes, packet.weight, now,
                                     packet.purpose)
             self.bus.publish(self.keys.node_data(packet.path[packet.hop + 1]), encode(nxt))
-            self.errors.setdefault("forwarded", 0)
-            self.errors["forwarded"] += 1
+            self.tally("forwarded")
             return
         body = decode(packet.body, (ChainFrame, StateTransfer))
         if isinstance(body, StateTransfer):
@@ -322,8 +330,11 @@ class NodeRuntime:
         if hosted is None:
             host = self.plan.placement.get(stage.name) if self.plan else None
             if host is not None and host != self.node and forwards < MAX_FORWARDS:
-                self.count("rerouted", f"{stage.name} lives on {host}", logging.DEBUG)
+                self.tally("rerouted")
                 self.send_frame(frame, host, forwards + 1)
+            elif host is None and (self.plan is None or frame.chain not in self.plan.running):
+                self.count("inactive-chain", f"{frame.chain} seq {frame.seq} arrived after its chain stopped",
+                           logging.INFO)
             else:
                 held = self.orphans.setdefault(stage.name, [])
                 if len(held) >= ORPHAN_LIMIT:
@@ -337,6 +348,7 @@ class NodeRuntime:
             if forwards >= MAX_FORWARDS:
                 self.orphans.setdefault(stage.name, []).append(frame)
                 return
+            self.tally("pointer-forwarded")
             self.send_frame(frame, hosted.forward_to, forwards + 1)
         else:
             self._admit(hosted, frame)
@@ -393,7 +405,9 @@ class NodeRuntime:
     def on_control(self, payload: bytes) -> None:
         msg = decode(payload, CONTROL_MESSAGES)
         if not self.started:
-            self.count("control-before-mission")
+            # The plan that starts the mission may arrive after the first orders (other key).
+            if len(self._early_control) < 1000:
+                self._early_control.append(payload)
             return
         if msg.stage not in self.stage_index:
             self.count("unknown-stage", msg.stage)
@@ -544,7 +558,7 @@ class NodeRuntime:
             links={n: n in self.alive for n in neighbours},
             runs={n: h.runs for n, h in self.hosted.items() if h.runs},
             compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},
-            queue_depth=queue_depth, errors=dict(self.errors),
+            queue_depth=queue_depth, errors=dict(self.errors), counters=dict(self.counters),
             depleted=bool(self.meter and self.meter.depleted),
         )
 

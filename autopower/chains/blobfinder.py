@@ -169,7 +169,10 @@ def classify(image: np.ndarray, table: np.ndarray) -> np.ndarray:
     return table[index]
 
 
-def find_regions(class_image: np.ndarray, min_area_px: int) -> list[tuple[int, int, float, float, tuple[int, int, int, int]]]:
+Region = tuple[int, int, float, float, tuple[int, int, int, int]]  # class, area, x, y, bbox
+
+
+def find_regions(class_image: np.ndarray, min_area_px: int) -> list[Region]:
     """Connected regions (4-connectivity) of equal non-zero class in a (H, W) uint8 image.
 
     Returns ``(class_id, area_px, x_px, y_px, (x0, y0, x1, y1))`` for every region with
@@ -207,7 +210,7 @@ def find_regions(class_image: np.ndarray, min_area_px: int) -> list[tuple[int, i
 
     lengths = run_end - run_start
     col_start = run_start - run_row * stride
-    _, region, = np.unique(labels, return_inverse=True)
+    _, region = np.unique(labels, return_inverse=True)
     n_regions = int(region.max()) + 1
     area = np.bincount(region, weights=lengths, minlength=n_regions)
     keep = np.flatnonzero(area >= min_area_px)
@@ -294,7 +297,8 @@ class BlobFinder:
         """Accept only the empty state ``export_state`` produces."""
         obj = unpack_map(state, "Blob state", ComponentStateError)
         if obj:
-            raise ComponentStateError(f"Blob state: the blob finder is stateless, expected an empty map, got keys {sorted(obj)}")
+            raise ComponentStateError(
+                f"Blob state: the blob finder is stateless, expected an empty map, got keys {sorted(obj)}")
 
 
 def encode_report(width_px: int, height_px: int, blobs: Sequence[Blob], max_bytes: int = MAX_OUTPUT_BYTES) -> bytes:

@@ -49,7 +49,7 @@ from autopower.chains.world import (
 OUTPUT_VERSION = 1
 STATE_FORMAT = "autopower.chains.mcl"
 STATE_VERSION = 1
-N_REPORTED_PARTICLES = 40  # top-weighted particles in the output: ~805 bytes in all
+N_REPORTED_PARTICLES = 40  # top-weighted particles in the output: 799-805 bytes in all
 
 # Motion noise (Probabilistic Robotics' alpha1..alpha4), a little wider than the simulated
 # odometry's, plus a floor so particles keep some diversity when the robot stands still.
@@ -63,6 +63,7 @@ _RANDOM_FLOOR = 0.02  # relative likelihood of a reading the map does not explai
 _FIELD_MAX_M = 0.6  # distances beyond this all get the floor anyway (exp(-18) ~ 0)
 _BEAM_STRIDE = 8
 _TEMPERATURE = 0.25  # log-likelihood multiplier: beams are far from independent
+_IN_WALL_LOGLIK = -50.0  # a particle inside a wall is impossible whatever the laser says
 
 
 @dataclass(frozen=True)
@@ -84,8 +85,8 @@ def likelihood_field(seed: int) -> np.ndarray:
     Distance to the nearest occupied cell is found exactly up to ``_FIELD_MAX_M`` by taking the
     minimum over all cell offsets within that radius (no scipy needed; ~20 ms, cached).
     """
-    occupied = make_building(seed).occupied
-    res = make_building(seed).resolution_m
+    building = make_building(seed)
+    occupied, res = building.occupied, building.resolution_m
     reach = int(math.ceil(_FIELD_MAX_M / res))
     rows, cols = occupied.shape
     padded = np.zeros((rows + 2 * reach, cols + 2 * reach), dtype=bool)
@@ -201,7 +202,7 @@ class MonteCarloLocaliser:
         if (weights < 0).any() or not math.isclose(float(weights.sum()), 1.0, rel_tol=1e-6):
             raise ComponentStateError(f"{what}: weights must be >= 0 and sum to 1 (sum {weights.sum()!r})")
         odom = obj["last_odom"]
-        if len(odom) != 3 or not all(isinstance(v, float) and math.isfinite(v) for v in odom):
+        if len(odom) != 3 or not all(_is_finite_number(v) for v in odom):
             raise ComponentStateError(f"{what}: last_odom must be 3 finite floats, got {odom!r}")
         rng = np.random.Generator(np.random.PCG64())
         try:
@@ -225,24 +226,24 @@ class MonteCarloLocaliser:
         what = "Loc input"
         msg = unpack_map(payload, what)
         require_fields(msg, {"v": int, "robot": str, "seq": int, "odom": list, "laser": dict,
-                             "front_mm": bytes, "rear_mm": bytes}, what)
+                             "front": bytes, "rear": bytes}, what)
         if msg["v"] != INPUT_VERSION:
             raise MalformedInputError(f"{what}: version {msg['v']}, expected {INPUT_VERSION}")
         if msg["robot"] != self.robot:
             raise MalformedInputError(
                 f"{what}: message is from robot {msg['robot']!r} but this filter localises {self.robot!r}")
         odom = msg["odom"]
-        if len(odom) != 3 or not all(isinstance(v, float) and math.isfinite(v) for v in odom):
+        if len(odom) != 3 or not all(_is_finite_number(v) for v in odom):
             raise MalformedInputError(f"{what}: odom must be 3 finite floats [x_m, y_m, theta_rad], got {odom!r}")
         laser = msg["laser"]
         if laser.get("beams") != BEAMS_PER_SCANNER or laser.get("max_mm") != MAX_RANGE_MM:
             raise MalformedInputError(
                 f"{what}: laser {laser!r} differs from the configured {BEAMS_PER_SCANNER} beams, {MAX_RANGE_MM} mm")
-        for key in ("front_mm", "rear_mm"):
+        for key in ("front", "rear"):
             if len(msg[key]) != 2 * BEAMS_PER_SCANNER:
                 raise MalformedInputError(
                     f"{what}: {key} is {len(msg[key])} bytes, expected {2 * BEAMS_PER_SCANNER} (uint16 per beam)")
-        ranges = np.frombuffer(msg["front_mm"] + msg["rear_mm"], dtype="<u2")
+        ranges = np.frombuffer(msg["front"] + msg["rear"], dtype="<u2")
         return msg["seq"], np.array(odom, dtype=np.float64), ranges
 
     def _predict(self, odom: np.ndarray) -> None:
@@ -286,9 +287,8 @@ class MonteCarloLocaliser:
         inside = (ix >= 0) & (ix < cols) & (iy >= 0) & (iy < rows)
         floor = math.log(_RANDOM_FLOOR)
         loglik = np.where(inside, self._field[np.clip(iy, 0, rows - 1), np.clip(ix, 0, cols - 1)], floor)
-        # A particle inside a wall is impossible whatever the laser says.
         in_wall = self._building.is_occupied_m(p[:, 0], p[:, 1])
-        score = _TEMPERATURE * loglik.sum(axis=1) - np.where(in_wall, 50.0, 0.0)
+        score = _TEMPERATURE * loglik.sum(axis=1) + np.where(in_wall, _IN_WALL_LOGLIK, 0.0)
         with np.errstate(divide="ignore"):
             logw = np.log(self._weights) + score
         logw -= logw.max()
@@ -315,6 +315,11 @@ class MonteCarloLocaliser:
         return mean, cov
 
     def _encode_estimate(self, seq: int) -> bytes:
+        """The output message: 796 bytes + len(robot) + 1-5 bytes for seq (799-801 for "r1").
+
+        Never more than the paper's 805 for robot names of up to 4 characters (the runtime
+        refuses outputs larger than the chain's declared size).
+        """
         mean, cov = self.estimate()
         top = np.argsort(-self._weights, kind="stable")[:N_REPORTED_PARTICLES]
         particles = np.column_stack([self._particles[top], self._weights[top]]).astype("<f4")
@@ -323,8 +328,12 @@ class MonteCarloLocaliser:
             "pose": [float(v) for v in mean],  # x_m, y_m, theta_rad in the map frame
             "cov": [float(v) for v in cov.ravel()],  # row-major 3x3
             "n_eff": 1.0 / float(np.sum(self._weights ** 2)),
-            "particles": particles.tobytes(),  # K x (x_m, y_m, theta_rad, weight), little-endian float32
+            "top": particles.tobytes(),  # K x (x_m, y_m, theta_rad, weight), little-endian float32
         })
+
+
+def _is_finite_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def decode_estimate(data: bytes) -> LocEstimate:
@@ -332,14 +341,14 @@ def decode_estimate(data: bytes) -> LocEstimate:
     what = "Loc output"
     obj = unpack_map(data, what)
     require_fields(obj, {"v": int, "robot": str, "seq": int, "pose": list, "cov": list,
-                         "n_eff": float, "particles": bytes}, what)
-    if obj["v"] != OUTPUT_VERSION or len(obj["pose"]) != 3 or len(obj["cov"]) != 9 or len(obj["particles"]) % 16:
+                         "n_eff": float, "top": bytes}, what)
+    if obj["v"] != OUTPUT_VERSION or len(obj["pose"]) != 3 or len(obj["cov"]) != 9 or len(obj["top"]) % 16:
         raise MalformedInputError(f"{what}: bad layout (v={obj['v']}, {len(obj['pose'])} pose values, "
-                                  f"{len(obj['cov'])} cov values, {len(obj['particles'])} particle bytes)")
+                                  f"{len(obj['cov'])} cov values, {len(obj['top'])} particle bytes)")
     return LocEstimate(
         robot=obj["robot"], seq=obj["seq"], pose=tuple(float(v) for v in obj["pose"]),  # type: ignore[arg-type]
         covariance=np.array(obj["cov"], dtype=np.float64).reshape(3, 3), n_eff=obj["n_eff"],
-        particles=np.frombuffer(obj["particles"], dtype="<f4").reshape(-1, 4),
+        particles=np.frombuffer(obj["top"], dtype="<f4").reshape(-1, 4),
     )
 
 

@@ -8,7 +8,7 @@
   starts at its own point of the tour (and half of them drive it backwards).
 * ``LocSource``: the "Loc" chain's source: per step ``seq``, the robot's odometry and the two
   laser scans it would see, as one msgpack message of about 1059 bytes (the paper's
-  localisation input size).
+  localisation input size, which it never exceeds).
 
 Laser: a front and a rear scanner at the robot centre, 180 deg each, 240 beams each (0.75 deg
 apart), 8 m range, ranges in mm as little-endian uint16 (8000 = no return). Odometry is the
@@ -106,8 +106,9 @@ def make_building(seed: int) -> Building:
         grid[np.ix_(rows, cols)] = value
 
     w = WALL_M
-    for outer in ((0, 0, SIZE_M, w), (0, SIZE_M - w, SIZE_M, SIZE_M), (0, 0, w, SIZE_M), (SIZE_M - w, 0, SIZE_M, SIZE_M)):
-        fill(*outer)
+    outer_walls = ((0, 0, SIZE_M, w), (0, SIZE_M - w, SIZE_M, SIZE_M), (0, 0, w, SIZE_M), (SIZE_M - w, 0, SIZE_M, SIZE_M))
+    for wall in outer_walls:
+        fill(*wall)
     (cy0, cy1), (cx0, cx1) = CORRIDOR_Y_M, CORRIDOR_X_M
     rooms: list[Room] = []
     for side, (ry0, ry1) in ((-1, (w, cy0 - w)), (+1, (cy1 + w, SIZE_M - w))):
@@ -178,37 +179,43 @@ def cast_rays(building: Building, pose: np.ndarray, angles_rad: np.ndarray,
               max_range_m: float = MAX_RANGE_M) -> np.ndarray:
     """Exact range (m) from ``pose`` along each beam to the first occupied cell, or max range.
 
-    Marches in 2.5 cm steps to find the first occupied cell, then intersects the ray with that
-    cell's square, so ranges are exact to the cell boundary (no step quantisation).
+    Grid traversal (Amanatides & Woo), vectorised over beams: each iteration moves every beam
+    into the next cell it crosses, so no cell corner is skipped and ranges are exact.
     """
-    step_m = 0.025
-    t = np.arange(1, int(max_range_m / step_m) + 1) * step_m
-    world = pose[2] + angles_rad
+    res = building.resolution_m
+    rows, cols = building.occupied.shape
+    world = pose[2] + np.asarray(angles_rad, dtype=np.float64)
     dx, dy = np.cos(world), np.sin(world)
-    xs = pose[0] + dx[:, None] * t[None, :]
-    ys = pose[1] + dy[:, None] * t[None, :]
-    hit = building.is_occupied_m(xs, ys)
-    any_hit = hit.any(axis=1)
-    first = hit.argmax(axis=1)
-    ranges = np.full(angles_rad.shape, max_range_m)
-    beams = np.flatnonzero(any_hit)
-    if beams.size:
-        res = building.resolution_m
-        k = first[beams]
-        cx = np.floor(xs[beams, k] / res) * res
-        cy = np.floor(ys[beams, k] / res) * res
-        # Slab method: the ray enters the cell at the larger of the two near-face crossings.
-        with np.errstate(divide="ignore", invalid="ignore"):
-            bdx, bdy = dx[beams], dy[beams]
-            tx = np.where(bdx > 0, cx - pose[0], cx + res - pose[0]) / bdx
-            ty = np.where(bdy > 0, cy - pose[1], cy + res - pose[1]) / bdy
-        tx = np.where(np.abs(bdx) < 1e-12, -np.inf, tx)
-        ty = np.where(np.abs(bdy) < 1e-12, -np.inf, ty)
-        entry = np.maximum(tx, ty)
-        # Guard: the entry lies within the last march step before the hit sample.
-        lo = np.maximum(t[k] - step_m, 0.0)
-        ranges[beams] = np.clip(entry, lo, t[k])
-    return np.minimum(ranges, max_range_m)
+    ix = np.full(world.shape, int(math.floor(pose[0] / res)))
+    iy = np.full(world.shape, int(math.floor(pose[1] / res)))
+    step_x = np.where(dx > 0, 1, -1)
+    step_y = np.where(dy > 0, 1, -1)
+    with np.errstate(divide="ignore"):
+        # Distance along the beam between vertical (horizontal) cell boundaries, and to the first.
+        delta_x = np.where(dx != 0, res / np.abs(dx), np.inf)
+        delta_y = np.where(dy != 0, res / np.abs(dy), np.inf)
+        first_x = np.where(dx > 0, (ix + 1) * res - pose[0], pose[0] - ix * res)
+        first_y = np.where(dy > 0, (iy + 1) * res - pose[1], pose[1] - iy * res)
+        t_x = np.where(dx != 0, first_x / np.abs(dx), np.inf)
+        t_y = np.where(dy != 0, first_y / np.abs(dy), np.inf)
+    ranges = np.full(world.shape, max_range_m)
+    active = np.ones(world.shape, dtype=bool)
+    for _ in range(2 * int(math.ceil(max_range_m / res)) + 2):  # cells a beam can cross
+        cross_x = t_x < t_y
+        t = np.where(cross_x, t_x, t_y)
+        ix = np.where(cross_x, ix + step_x, ix)
+        iy = np.where(cross_x, iy, iy + step_y)
+        t_x = np.where(cross_x, t_x + delta_x, t_x)
+        t_y = np.where(cross_x, t_y, t_y + delta_y)
+        beyond = t >= max_range_m
+        inside = (ix >= 0) & (ix < cols) & (iy >= 0) & (iy < rows)
+        hit = ~inside | building.occupied[np.clip(iy, 0, rows - 1), np.clip(ix, 0, cols - 1)]
+        done = active & hit & ~beyond
+        ranges[done] = t[done]
+        active &= ~(hit | beyond)
+        if not active.any():
+            break
+    return ranges
 
 
 class LocSource:
@@ -283,7 +290,13 @@ class LocSource:
         return mm.astype("<u2")
 
     def produce(self, seq: int) -> bytes:
-        """The msgpack input message for step ``seq`` (about 1059 bytes)."""
+        """The msgpack input message for step ``seq``.
+
+        Its size is 1050 bytes + len(robot) + 1, 2, 3 or 5 bytes for seq (< 128, < 256,
+        < 65536, < 2**32): 1053-1055 bytes for robots "r1".."r9", and never more than the paper's
+        1059 for robot names of up to 4 characters - the runtime refuses payloads larger than a
+        chain's declared message size.
+        """
         odom = self.odometry(seq)
         scan = self.scan_mm(seq)
         return pack({
@@ -293,8 +306,8 @@ class LocSource:
             "odom": [float(v) for v in odom],  # x_m, y_m, theta_rad in the odometry frame
             # Two 180-degree scanners (front, rear) of this many beams; readings of max_mm = no return.
             "laser": {"beams": BEAMS_PER_SCANNER, "max_mm": MAX_RANGE_MM},
-            "front_mm": scan[:BEAMS_PER_SCANNER].tobytes(),
-            "rear_mm": scan[BEAMS_PER_SCANNER:].tobytes(),
+            "front": scan[:BEAMS_PER_SCANNER].tobytes(),  # little-endian uint16 mm per beam
+            "rear": scan[BEAMS_PER_SCANNER:].tobytes(),
         })
 
     def ground_truth(self, seq: int) -> dict[str, Any]:

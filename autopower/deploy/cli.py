@@ -77,12 +77,22 @@ def list_scenarios() -> None:
 @ACCOUNTING_OPT
 @JSON_OPT
 @click.option("--ties", default=4, show_default=True, help="How many tied optima to list per media pair.")
-def analyze(scenario: str, energy, accounting, as_json: bool, ties: int) -> None:
+@click.option("--markdown", is_flag=True, help="Print a Markdown table (for reports).")
+@click.option("--only", type=click.Choice(["all", "paper", "optimal"]), default="all", show_default=True,
+              help="Rows to show: everything, the paper's reference rows, or the optimum per media pair.")
+def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdown: bool, only: str) -> None:
     """A Fig. 7-style table: all-local, all-laptop and the optimum per topology and media pair."""
     from autopower.deploy.analysis import analyze as run
 
     s = scenario_from(scenario, energy, accounting)
     rows, normaliser = run(s, max_ties=ties)
+    if only == "paper":
+        rows = [r for r in rows if r.label.startswith("paper-row-")]
+    elif only == "optimal":
+        rows = [r for r in rows if r.label == "optimal"]
+    if markdown:
+        click.echo(markdown_table(s, rows, normaliser))
+        return
     if as_json:
         click.echo(json.dumps({"scenario": s.name, "accounting": s.accounting,
                                "energies_j": s.energies_j(), "normalized_by_s": normaliser,
@@ -104,6 +114,24 @@ def analyze(scenario: str, energy, accounting, as_json: bool, ties: int) -> None
         table.add_row(d["topology"], d["laptop_robot_medium"] or "-", d["robot_robot_medium"] or "-", d["label"],
                       life, norm, *[d["allocation"][st] for st in stages], d["bottleneck"] or "-", paper, style=style)
     console.print(table)
+
+
+def markdown_table(s: Scenario, rows, normaliser) -> str:
+    stages = s.stage_names()
+    head = ["topology", "laptop–robot", "robot–robot", "row", "lifetime (s)", "norm.", *stages, "bottleneck"]
+    if any(r.paper_lifetime_s for r in rows):
+        head.append("paper (s)")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in rows:
+        d = row.to_dict(normaliser)
+        cells = [d["topology"], d["laptop_robot_medium"] or "-", d["robot_robot_medium"] or "-", d["label"],
+                 f"{d['lifetime_s']:.1f}" if d["lifetime_s"] else "infeasible",
+                 f"{d['normalized']:.2f}" if d["normalized"] else "", *[d["allocation"][st] for st in stages],
+                 d["bottleneck"] or "-"]
+        if "paper (s)" in head:
+            cells.append(f"{row.paper_lifetime_s:.1f}" if row.paper_lifetime_s else "")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 @cli.command("plan")

@@ -47,7 +47,7 @@ class LinearProgram:
         return len(self.row_lower) - 1
 
     def solve(self, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
-              threads: int | None = None) -> "Solution":
+              threads: int | None = None, objective_cutoff: float | None = None) -> "Solution":
         h = highspy.Highs()
         h.setOptionValue("output_flag", False)
         h.setOptionValue("mip_rel_gap", mip_rel_gap)
@@ -55,6 +55,9 @@ class LinearProgram:
         h.setOptionValue("mip_abs_gap", 0.0)
         if time_limit_s is not None:
             h.setOptionValue("time_limit", float(time_limit_s))
+        if objective_cutoff is not None:
+            # prune branches that cannot beat an incumbent found elsewhere (another media choice)
+            h.setOptionValue("objective_bound", float(objective_cutoff))
         if threads is not None:
             h.setOptionValue("threads", threads)
         lp = highspy.HighsLp()
@@ -86,6 +89,7 @@ class LinearProgram:
             duals=np.array(sol.row_dual) if sol.dual_valid else None,
             objective=info.objective_function_value if has_solution else None,
             mip_gap=info.mip_gap if any(self.integer) else 0.0,
+            dual_bound=info.mip_dual_bound if any(self.integer) else (info.objective_function_value if has_solution else None),
             runtime_s=h.getRunTime(),
         )
 
@@ -99,4 +103,5 @@ class Solution:
     duals: np.ndarray | None
     objective: float | None
     mip_gap: float
+    dual_bound: float | None
     runtime_s: float

@@ -17,6 +17,7 @@ are not left burning energy for nothing (the same tie-break as the exhaustive se
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from itertools import product
 
@@ -212,23 +213,74 @@ class PlacementModel:
         return allocation, network
 
 
+SPLIT_MEDIA_UP_TO = 16  # media combinations solved as separate, product-free MILPs
+
+
 def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
                refine: bool = True) -> MilpResult:
-    """Min-max lifetime placement; optionally a second pass to minimise total normalised drain."""
-    from autopower.model import evaluate
+    """Min-max lifetime placement; optionally a second pass to minimise total normalised drain.
 
+    With few media combinations (a named topology has 4) one MILP per combination is much smaller
+    than the joint model (no binary products) and each solve passes the best lifetime so far as
+    an objective cut-off, so hopeless combinations are pruned at once. Otherwise the joint model
+    chooses media itself.
+    """
+    import time as _time
+
+    if not 1 < len(problem.networks) <= SPLIT_MEDIA_UP_TO:
+        return _finish(problem, *_first_pass(problem, time_limit_s, mip_rel_gap, None), refine, time_limit_s)
+    started = _time.monotonic()
+    best = None
+    bounds = []
+    runtime = 0.0
+    status = "Infeasible"
+    for network in problem.networks:
+        left = None if time_limit_s is None else max(1.0, time_limit_s - (_time.monotonic() - started))
+        sub = dataclasses.replace(problem, networks=[network])
+        cutoff = best[2].values[best[1]] if best else None
+        built, t_col, sol = _first_pass(sub, left, mip_rel_gap, cutoff)
+        runtime += sol.runtime_s
+        if sol.has_solution:
+            bounds.append(sol.dual_bound if sol.dual_bound is not None else sol.objective)
+            if best is None or sol.objective < best[2].objective:
+                best = (built, t_col, sol, sub)
+        elif cutoff is not None and ("Infeasible" in sol.status or "bound" in sol.status.lower()):
+            bounds.append(cutoff)  # nothing here beats the incumbent: its bound is at least the cut-off
+        elif "Infeasible" not in sol.status:
+            status = sol.status
+            bounds.append(0.0)  # unknown: no proof for this combination
+    if best is None:
+        return MilpResult(None, None, None, False, 1.0, status, runtime, 0, 0)
+    built, t_col, sol, sub = best
+    incumbent = sol.objective
+    gap = max(0.0, (incumbent - min(bounds)) / incumbent) if incumbent > 0 else 0.0
+    sol.optimal = sol.optimal and gap <= max(mip_rel_gap, 1e-6)
+    sol.mip_gap = gap
+    result = _finish(sub, built, t_col, sol, refine, time_limit_s)
+    result.runtime_s += runtime - sol.runtime_s
+    return result
+
+
+def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff):
     model = PlacementModel(problem)
     lp = model.lp
     e_ref = max(problem.energies_j[r] for r in model.robots)
     t_col = lp.var(0.0, INF, cost=1.0)
-    power_rows = {}
+    model.power_rows = {}
     for robot in model.robots:
         expr, const = model.power(robot)
         # P_i - (E_i/E_ref) T <= 0  ->  expr - k T <= -const
-        power_rows[robot] = (expr, const)
+        model.power_rows[robot] = expr
         lp.row({**expr, t_col: -problem.energies_j[robot] / e_ref}, -INF, -const)
+    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff)
+    return model, t_col, sol
+
+
+def _finish(problem: Problem, model: PlacementModel, t_col: int, sol, refine: bool, time_limit_s) -> MilpResult:
+    from autopower.model import evaluate
+
+    lp = model.lp
     columns, rows = len(lp.lower), len(lp.row_lower)
-    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap)
     if not sol.has_solution:
         return MilpResult(None, None, None, False, 1.0, sol.status, sol.runtime_s, columns, rows)
     runtime = sol.runtime_s
@@ -237,7 +289,7 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
         t_star = sol.values[t_col]
         lp.cost[t_col] = 0.0
         lp.upper[t_col] = t_star * (1 + 1e-9) + 1e-12
-        for robot, (expr, _) in power_rows.items():
+        for robot, expr in model.power_rows.items():
             for col, coef in expr.items():
                 lp.cost[col] += coef / problem.energies_j[robot]
         second = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=1e-6)
@@ -245,7 +297,8 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
         if second.has_solution:
             best = second
     allocation, network = model.decode(best.values)
+    placed = {c.name for c in problem.chains}
     ev = evaluate(problem.scenario, network, allocation, accounting=problem.accounting,
                   energies_j=problem.energies_j,
-                  disabled_chains=frozenset(c.name for c in problem.scenario.chains) - {c.name for c in problem.chains})
+                  disabled_chains=frozenset(c.name for c in problem.scenario.chains) - placed)
     return MilpResult(allocation, network, ev.lifetime_s, sol.optimal, sol.mip_gap, sol.status, runtime, columns, rows)

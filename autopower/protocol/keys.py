@@ -62,6 +62,12 @@ class Keys:
     def status_all(self) -> str:
         return f"{self.prefix}/status/*"
 
+    def node_of_status(self, key: str) -> str | None:
+        head = f"{self.prefix}/status/"
+        if key.startswith(head) and "/" not in key[len(head):]:
+            return key[len(head):]
+        return None
+
     # coordinator
     @property
     def plan(self) -> str:

@@ -263,6 +263,7 @@ class NodeStatus:
     compute_ms: dict[str, float]  # stage -> real mean run time on this machine
     queue_depth: int
     errors: dict[str, int]  # dropped garbled messages, unroutable frames, ...
+    counters: dict[str, int]  # normal events: forwarded packets, missed periods, ...
     depleted: bool
 
 

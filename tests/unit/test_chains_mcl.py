@@ -58,13 +58,13 @@ def test_ray_casting_matches_a_fine_brute_force_march():
         ys = pose[1] + np.sin(world)[:, None] * t
         hit = building.is_occupied_m(xs, ys)
         slow = np.where(hit.any(axis=1), t[hit.argmax(axis=1)], MAX_RANGE_M)
-        assert np.abs(fast - slow).max() < 0.002
+        assert np.abs(fast - slow).max() <= 0.0011  # the brute force's own 1 mm step
 
 
 def test_source_is_deterministic_whatever_the_order_of_requests():
     in_order = LocSource("r2", seed=5)
-    for seq in range(300):
-        in_order.produce(seq)
+    for seq in range(300):  # crosses an odometry chunk boundary (256 steps)
+        in_order.odometry(seq)
     assert LocSource("r2", seed=5).produce(299) == in_order.produce(299)
     assert LocSource("r2", seed=5).produce(3) != in_order.produce(4)
     assert LocSource("r1", seed=5).produce(3) != in_order.produce(3)
@@ -86,8 +86,20 @@ def test_message_sizes_are_close_to_the_papers(seq):
     source = LocSource("r2", seed=0)
     payload = source.produce(seq)
     out = MonteCarloLocaliser("r2", seed=0).run(payload)
-    assert abs(len(payload) - PAPER_INPUT_BYTES) <= 0.01 * PAPER_INPUT_BYTES, len(payload)
-    assert abs(len(out) - PAPER_OUTPUT_BYTES) <= 0.01 * PAPER_OUTPUT_BYTES, len(out)
+    assert PAPER_INPUT_BYTES * 0.99 <= len(payload) <= PAPER_INPUT_BYTES, len(payload)
+    assert PAPER_OUTPUT_BYTES * 0.99 <= len(out) <= PAPER_OUTPUT_BYTES, len(out)
+
+
+def test_messages_never_exceed_the_papers_sizes():
+    # The runtime refuses payloads above a chain's declared size (the paper's sizes), so the
+    # worst case - a 4-character robot name and a 32-bit seq - must still fit.
+    source = LocSource("r100", seed=0)
+    payload = source.produce(0)
+    obj = msgpack.unpackb(payload)
+    obj["seq"] = 2**32 - 1
+    worst = msgpack.packb(obj, use_bin_type=True)
+    out = MonteCarloLocaliser("r100", seed=0).run(worst)
+    assert len(worst) == PAPER_INPUT_BYTES and len(out) == PAPER_OUTPUT_BYTES
 
 
 def test_output_carries_pose_covariance_and_top_particles():
@@ -111,14 +123,16 @@ def test_converges_from_an_offset_initial_belief(robot, seed, offset):
     source = LocSource(robot, seed)
     wrong_start = tuple(source.true_pose(0) + np.array(offset))
     mcl = MonteCarloLocaliser(robot, seed, initial_pose=wrong_start, initial_sigma=(1.0, 1.0, 0.5))
-    errors, traces = [], []
+    prior_mean, prior_cov = mcl.estimate()
+    assert math.dist(prior_mean[:2], source.true_pose(0)[:2]) > 0.5
+    errors = []
     for seq in range(30):
         out = mcl.run(source.produce(seq))
         scores = score_estimate(source.ground_truth(seq), out)
         errors.append((scores["position_error_m"], scores["heading_error_rad"]))
-        traces.append(np.trace(decode_estimate(out).covariance[:2, :2]))
     assert all(pos < 0.3 and head < 0.1 for pos, head in errors[10:]), errors
-    assert traces[-1] < 0.1 * traces[0], "the belief should tighten as evidence accumulates"
+    final_cov = decode_estimate(out).covariance
+    assert np.trace(final_cov[:2, :2]) < 0.01 * np.trace(prior_cov[:2, :2]), "the belief should tighten"
 
 
 def test_tracks_a_whole_tour_while_odometry_drifts():
@@ -215,7 +229,7 @@ def _input_with(**changes):
 @pytest.mark.parametrize(("payload", "message"), [
     (b"\xc1", "not valid msgpack"),
     (LocSource("r2", seed=0).produce(0), "from robot 'r2' but this filter localises 'r1'"),
-    (_input_with(front_mm=b"\x00" * 10), "front_mm is 10 bytes"),
+    (_input_with(front=b"\x00" * 10), "front is 10 bytes"),
     (_input_with(odom=[0.0, float("nan"), 0.0]), "odom must be 3 finite floats"),
     (_input_with(laser={"beams": 181, "max_mm": 8000}), "differs from the configured"),
     (_input_with(v=2), "version 2"),
@@ -236,3 +250,13 @@ def test_step_latency_is_well_under_50_ms():
         mcl.run(payload)
         latencies.append(time.perf_counter() - start)
     assert statistics.median(latencies) < 0.025
+
+
+def test_missed_repeated_and_reordered_messages_do_not_lose_the_robot():
+    # Around a migration the runtime may drop, repeat or reorder a step; the filter differences
+    # integrated odometry against the last message it saw, so it still applies the right motion.
+    source = LocSource("r1", seed=0)
+    mcl = MonteCarloLocaliser("r1", seed=0)
+    for seq in [0, 1, 2, 3, 7, 7, 6, 8, 9, 15, 16, 17]:
+        scores = score_estimate(source.ground_truth(seq), mcl.run(source.produce(seq)))
+        assert scores["position_error_m"] < 0.3, (seq, scores)

@@ -98,3 +98,31 @@ def test_infeasible_raises_with_hint():
     s = dataclasses.replace(FIG7, chains=chains)
     with pytest.raises(InfeasibleError, match="no allocation meets"):
         plan(PlanRequest(scenario=s, network=FIG7.network("fully-connected", {"laptop-robot": "gsm", "robot-robot": "bluetooth"})))
+
+
+def test_greedy_is_feasible_and_never_beats_the_optimum():
+    from autopower.planner.greedy import greedy
+    for seed in range(10):
+        s = random_scenario(seed, 3, 4)
+        problem = make_problem(PlanRequest(scenario=s))
+        g = greedy(problem)
+        best = exhaustive(problem)
+        if g is None:
+            continue
+        assert evaluate(s, g[0], g[1]).feasible
+        assert g[2] <= best[0].lifetime_s * (1 + 1e-9)
+
+
+def test_thirty_robots_ninety_components_proven_optimal():
+    from autopower.synthetic import fleet_scenario
+    p = plan(PlanRequest(scenario=fleet_scenario(30, 90, seed=1)))
+    assert p.method == "milp" and p.proven_optimal and p.mip_gap <= 1e-6
+    assert p.evaluation.feasible and len(p.allocation) == 90
+
+
+@pytest.mark.slow
+def test_hundred_robots_three_hundred_components_within_one_percent():
+    from autopower.synthetic import fleet_scenario
+    p = plan(PlanRequest(scenario=fleet_scenario(100, 300, seed=3), mip_rel_gap=0.01, time_limit_s=600))
+    assert p.evaluation.feasible and len(p.allocation) == 300
+    assert p.mip_gap <= 0.01

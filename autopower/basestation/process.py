@@ -1,0 +1,190 @@
+"""The base station process: the coordinator plus the laptop's own host, on one event loop.
+
+The laptop is a node of the team like the robots (components are off-loaded to it and it is
+the operator's sink for results), so the process runs a `NodeRuntime` for it beside the
+`Coordinator`. Both are driven by the same loop; Zenoh callbacks only enqueue.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from autopower.agent.loop import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
+from autopower.agent.node import NodeRuntime
+from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
+from autopower.bus import Bus, ZenohBus, ZenohSettings
+from autopower.errors import ProtocolError
+from autopower.protocol import (
+    INBOX_MESSAGES,
+    OPERATOR_COMMANDS,
+    Keys,
+    NodeStatus,
+    OperatorReply,
+    Prepared,
+    StageReady,
+    decode,
+    encode,
+)
+from autopower.scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class BaseStationConfig:
+    scenario: Scenario
+    team: str
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    coordinator: CoordinatorConfig = field(default_factory=CoordinatorConfig)
+    status_period_s: float = 0.5
+    status_window_s: float = 2.0
+    parent_pid: int | None = None
+
+
+class BaseStation:
+    """The base station (a context manager)."""
+
+    def __init__(self, config: BaseStationConfig, bus: Bus | None = None, planner: Callable | None = None,
+                 **runtime_kwargs):
+        self.config = config
+        self.keys = Keys(config.team)
+        self.node = config.scenario.basestation
+        self.events = EventQueue()
+        self._bus = bus
+        self._owns_bus = bus is None
+        self._handles: list = []
+        self._planner = planner
+        self._runtime_kwargs = runtime_kwargs
+        self.runtime: NodeRuntime | None = None
+        self.coordinator: Coordinator | None = None
+        self.stop_reason: str | None = None
+        self.garbled = 0
+
+    def __enter__(self) -> "BaseStation":
+        if self._bus is None:
+            self._bus = ZenohBus(self.config.zenoh)
+        bus, keys = self._bus, self.keys
+        self.runtime = NodeRuntime(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys,
+                                   **self._runtime_kwargs)
+        self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
+                                       config=self.config.coordinator, planner=self._planner)
+        for key in (keys.node_data(self.node), keys.node_control(self.node), keys.plan, keys.inbox,
+                    keys.status_all):
+            self._handles.append(bus.subscribe(key, self.events.on_message))
+        self._handles.append(bus.serve(keys.operator, self.events.on_request))
+        self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))
+        self._handles.append(bus.declare_token(keys.alive(self.node)))
+        log.info("base station %s up for team %s (scenario %s)", self.node, self.config.team,
+                 self.config.scenario.name)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for handle in reversed(self._handles):
+            handle.close()
+        self._handles.clear()
+        if self._owns_bus and self._bus is not None:
+            self._bus.close()
+            self._bus = None
+
+    def request_stop(self, reason: str) -> None:
+        self.events.post(StopRequested(reason))
+
+    # ---- events ----------------------------------------------------------------------------------
+    def _garbage(self, key: str, exc: Exception) -> None:
+        self.garbled += 1
+        self.runtime.count("garbled", f"on {key}: {exc}")
+
+    def _handle(self, event) -> None:
+        rt, co, keys = self.runtime, self.coordinator, self.keys
+        if isinstance(event, Received):
+            if rt.on_message(event.key, event.payload):
+                return
+            try:
+                if event.key == keys.inbox:
+                    msg = decode(event.payload, INBOX_MESSAGES)
+                    if isinstance(msg, Prepared):
+                        co.on_prepared(msg)
+                    elif isinstance(msg, StageReady):
+                        co.on_stage_ready(msg)
+                elif keys.node_of_status(event.key) is not None:
+                    status = decode(event.payload, NodeStatus)
+                    if status.node != self.node:
+                        co.on_status(status)
+                else:
+                    rt.count("unexpected-key", event.key)
+            except ProtocolError as exc:
+                self._garbage(event.key, exc)
+        elif isinstance(event, LivelinessChanged):
+            node = keys.node_of_alive(event.key)
+            if node is not None:
+                rt.on_liveliness(node, event.alive)
+                co.on_liveliness(node, event.alive)
+        elif isinstance(event, OperatorRequest):
+            request = event.request
+            try:
+                try:
+                    cmd = decode(request.payload, OPERATOR_COMMANDS)
+                except ProtocolError as exc:
+                    self._garbage(keys.operator, exc)
+                    reply = OperatorReply(ok=False, message=f"bad request: {exc}")
+                else:
+                    reply = co.on_operator(cmd)
+                    if reply.snapshot:
+                        reply = dataclasses.replace(reply, snapshot=self.snapshot(reply.snapshot))
+                request.reply(encode(reply))
+            finally:
+                request.close()
+
+    def snapshot(self, base: dict[str, Any] | None = None) -> dict[str, Any]:
+        snap = dict(base) if base is not None else self.coordinator.snapshot()
+        if self.runtime.started:
+            status = self.runtime.status(self.config.status_window_s * self.runtime.clock.speed,
+                                         self.events.depth())
+            snap["basestation"] = dataclasses.asdict(status)
+        else:
+            snap["basestation"] = None
+        return snap
+
+    def run(self, max_wall_s: float | None = None) -> str:
+        rt, co = self.runtime, self.coordinator
+        deadline = None if max_wall_s is None else time.time() + max_wall_s
+        next_status = time.time()
+        while True:
+            now = time.time()
+            wake = [next_status, co.next_deadline_unix()]
+            if deadline is not None:
+                wake.append(deadline)
+            if rt.started and (t := rt.next_deadline()) is not None:
+                wake.append(rt.clock.wall_at(t))
+            event = self.events.get(max(0.0, min(wake) - now))
+            if isinstance(event, StopRequested):
+                self.stop_reason = event.reason
+                break
+            if event is not None:
+                try:
+                    self._handle(event)
+                except Exception:  # never let one bad event stop the coordinator
+                    log.exception("base station: error handling %s", type(event).__name__)
+                    rt.count("internal-error")
+            co.on_timer()
+            if rt.started:
+                rt.on_timer()
+            now = time.time()
+            if now >= next_status:
+                next_status = max(next_status + self.config.status_period_s, now)
+                if rt.started:
+                    status = rt.status(self.config.status_window_s * rt.clock.speed, self.events.depth())
+                    self._bus.publish(self.keys.status(self.node), encode(status), reliable=False)
+                if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
+                    self.stop_reason = "parent exited"
+                    break
+            if deadline is not None and now >= deadline:
+                self.stop_reason = "time limit"
+                break
+        log.info("base station stopping: %s", self.stop_reason)
+        return self.stop_reason

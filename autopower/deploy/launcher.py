@@ -1,0 +1,233 @@
+"""Start a whole team on this machine: the base station and one agent per robot, as processes.
+
+Used by `autopower up` and by the integration tests. Everything listens and connects on
+127.0.0.1 only, on ports picked free at start; scouting is off, so nothing leaves loopback
+and parallel runs never meet. Every pair of nodes gets exactly one Zenoh connection (the
+later node connects to the earlier one), and the endpoint used for each pair can be replaced
+(``peer_endpoints``), e.g. by a forwarding proxy that can cut that one link.
+
+Children are put in their own process group (a Ctrl-C reaches only `up`, which stops them in
+order) and get SIGTERM if `up` itself dies (Linux PR_SET_PDEATHSIG; elsewhere they notice
+their parent is gone at their next status tick).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from autopower.basestation.operator import OperatorClient
+from autopower.errors import AutoPowerError
+from autopower.scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+HOST = "127.0.0.1"
+
+
+def free_ports(n: int, host: str = HOST) -> list[int]:
+    """Ports free right now on ``host`` (held open together so they are distinct)."""
+    socks = []
+    try:
+        for _ in range(n):
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.bind((host, 0))
+            socks.append(s)
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+def endpoint(port: int, host: str = HOST) -> str:
+    return f"tcp/{host}:{port}"
+
+
+def pair_endpoints(nodes: list[str], ports: dict[str, int],
+                   overrides: dict[tuple[str, str], str] | None = None) -> dict[str, list[str]]:
+    """For each node, the endpoints it connects to: one per earlier node (one link per pair).
+
+    ``overrides[(node, peer)]`` replaces the endpoint ``node`` uses to reach ``peer`` (a proxy).
+    """
+    overrides = overrides or {}
+    out: dict[str, list[str]] = {}
+    for i, node in enumerate(nodes):
+        out[node] = [overrides.get((node, peer), endpoint(ports[peer])) for peer in nodes[:i]]
+    return out
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except Exception:
+        pass
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen
+    log_path: Path
+
+    def tail(self, lines: int = 15) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+
+@dataclass(kw_only=True)
+class TeamSpec:
+    scenario: str  # a built-in name or a path
+    speed: float = 10.0
+    energy: tuple[str, ...] = ()  # "r1=32000"
+    energy_scale: float | None = None
+    accounting: str | None = None
+    topology: str | None = None
+    pins: tuple[str, ...] = ()  # "Loc-2=r1"
+    auto_replan: bool = True
+    lease_ms: int = 1000
+    status_period_s: float = 0.5
+    team: str | None = None
+    log_dir: Path | None = None
+    log_level: str = "info"
+    extra_basestation_args: tuple[str, ...] = ()
+    endpoint_overrides: dict[tuple[str, str], str] = field(default_factory=dict)
+
+
+class LocalTeam:
+    """A team of processes on localhost (a context manager: leaving it stops every child)."""
+
+    def __init__(self, spec: TeamSpec, scenario: Scenario):
+        self.spec = spec
+        self.scenario = scenario
+        self.team = spec.team or f"up-{os.getpid()}-{secrets.token_hex(3)}"
+        self.log_dir = Path(spec.log_dir) if spec.log_dir else Path(tempfile.mkdtemp(prefix="autopower-up-"))
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.nodes = [scenario.basestation] + [r.name for r in scenario.robots]
+        ports = free_ports(len(self.nodes))
+        self.ports = dict(zip(self.nodes, ports))
+        self.connects = pair_endpoints(self.nodes, self.ports, spec.endpoint_overrides)
+        self.children: dict[str, Child] = {}
+        self.client: OperatorClient | None = None
+        self.exit_codes: dict[str, int | None] = {}
+
+    @property
+    def base_endpoint(self) -> str:
+        return endpoint(self.ports[self.scenario.basestation])
+
+    def _common(self, node: str) -> list[str]:
+        args = ["--scenario", self.spec.scenario, "--team", self.team,
+                "--listen", endpoint(self.ports[node]), "--lease-ms", str(self.spec.lease_ms),
+                "--status-period", str(self.spec.status_period_s),
+                "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level]
+        for ep in self.connects[node]:
+            args += ["--connect", ep]
+        return args
+
+    def _spawn(self, name: str, args: list[str]) -> None:
+        log_path = self.log_dir / f"{name}.log"
+        cmd = [sys.executable, "-m", "autopower.deploy.runtime_commands", *args]
+        with open(log_path, "wb") as out:
+            proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+                                    process_group=0, preexec_fn=_die_with_parent,
+                                    env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.children[name] = Child(name, proc, log_path)
+
+    def start(self) -> None:
+        spec, base = self.spec, self.scenario.basestation
+        args = ["basestation", *self._common(base), "--speed", str(spec.speed)]
+        for item in spec.energy:
+            args += ["--energy", item]
+        if spec.energy_scale is not None:
+            args += ["--energy-scale", str(spec.energy_scale)]
+        if spec.accounting:
+            args += ["--accounting", spec.accounting]
+        if spec.topology:
+            args += ["--topology", spec.topology]
+        for pin in spec.pins:
+            args += ["--pin", pin]
+        if not spec.auto_replan:
+            args.append("--no-replan")
+        args += list(spec.extra_basestation_args)
+        self._spawn(base, args)
+        for robot in self.nodes[1:]:
+            self._spawn(robot, ["agent", "--robot", robot, *self._common(robot)])
+        self.client = OperatorClient(self.team, connect=(self.base_endpoint,))
+
+    def check_children(self) -> None:
+        """Raise if a child exited on its own with an error."""
+        for child in self.children.values():
+            rc = child.proc.poll()
+            if rc not in (None, 0):
+                raise AutoPowerError(f"{child.name} exited with status {rc}; its log ({child.log_path}) ends:\n"
+                                     f"{child.tail()}")
+
+    def snapshot(self, timeout_s: float = 5.0) -> dict:
+        return self.client.snapshot(timeout_s)
+
+    def wait_ready(self, timeout_s: float = 60.0) -> dict:
+        """Block until the base station reports every stage where the plan wants it."""
+        deadline = time.monotonic() + timeout_s
+        snap: dict = {}
+        while time.monotonic() < deadline:
+            self.check_children()
+            try:
+                snap = self.snapshot(timeout_s=max(0.5, min(3.0, deadline - time.monotonic())))
+            except AutoPowerError:
+                continue
+            if snap.get("ready"):
+                return snap
+            time.sleep(0.05)
+        detail = json.dumps({k: snap.get(k) for k in ("placement", "target", "migrating", "plan_error", "events")},
+                            indent=1) if snap else "no answer from the base station"
+        raise AutoPowerError(f"the team was not ready within {timeout_s:g} s (logs in {self.log_dir}):\n{detail}")
+
+    def stop(self, timeout_s: float = 8.0) -> dict[str, int | None]:
+        """Stop the agents, then the base station; kill what does not stop in time."""
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+        base = self.scenario.basestation
+        order = [[n for n in self.children if n != base], [base]]
+        for group in order:
+            procs = [self.children[n] for n in group if n in self.children]
+            for child in procs:
+                if child.proc.poll() is None:
+                    try:
+                        child.proc.send_signal(signal.SIGTERM)
+                    except ProcessLookupError:
+                        pass
+            deadline = time.monotonic() + timeout_s
+            for child in procs:
+                try:
+                    child.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    log.warning("%s did not stop in %.0f s; killing it", child.name, timeout_s)
+                    child.proc.kill()
+                    child.proc.wait(timeout=5)
+                self.exit_codes[child.name] = child.proc.returncode
+        return dict(self.exit_codes)
+
+    def __enter__(self) -> "LocalTeam":
+        try:
+            self.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
