@@ -175,6 +175,30 @@ class Scenario:
             )
         return dataclasses.replace(self, accounting=accounting)
 
+    def with_latency_profile(self, path: str | Path, platform: str) -> "Scenario":
+        """A copy whose components run on `platform` with the latencies measured in a profile
+        file written by `autopower profile` (components the profile lacks keep theirs)."""
+        if platform not in self.platforms:
+            raise ScenarioError(f"--as-platform {platform!r}: the scenario has platforms "
+                                f"{', '.join(self.platforms)}")
+        where, text = resolve_scenario_path(path)
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ScenarioError(f"{where}: not valid TOML: {exc}") from None
+        measured = data.get("latency_s")
+        if not isinstance(measured, dict) or not measured:
+            raise ScenarioError(f"{where}: no [latency_s] table; write one with `autopower profile --out FILE`")
+        components = dict(self.components)
+        for name, seconds in measured.items():
+            if name not in components:
+                continue  # a profile may cover more component types than this mission uses
+            if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not seconds > 0:
+                raise ScenarioError(f"{where}: latency_s.{name}: found {seconds!r}; expected a number > 0")
+            spec = components[name]
+            components[name] = dataclasses.replace(spec, latency_s={**spec.latency_s, platform: float(seconds)})
+        return dataclasses.replace(self, components=components)
+
     def network(self, topology: str | None = None, media: Mapping[str, str] | None = None):
         """The concrete network for a topology (default: the scenario's) and media choice
         (group -> medium; default: each group's first candidate)."""

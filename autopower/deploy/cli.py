@@ -33,8 +33,11 @@ def parse_energies(values: tuple[str, ...]) -> dict[str, float]:
     return out
 
 
-def scenario_from(name: str, energy: tuple[str, ...] = (), accounting: str | None = None) -> Scenario:
+def scenario_from(name: str, energy: tuple[str, ...] = (), accounting: str | None = None,
+                  profile: str | None = None, as_platform: str | None = None) -> Scenario:
     scenario = load_scenario(name)
+    if profile:
+        scenario = scenario.with_latency_profile(profile, as_platform or scenario.basestation_platform)
     if energy:
         scenario = scenario.with_energies(parse_energies(energy))
     return scenario.with_accounting(accounting)
@@ -44,6 +47,13 @@ SCENARIO_ARG = click.argument("scenario", default="paper-fig7", metavar="SCENARI
 ENERGY_OPT = click.option("--energy", multiple=True, metavar="ROBOT=J", help="Override a robot's starting energy (repeatable).")
 ACCOUNTING_OPT = click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None,
                               help="Message accounting (default: the scenario's).")
+def profile_opts(f):
+    f = click.option("--latency-profile", "profile", default=None, metavar="FILE",
+                     help="Latencies measured by `autopower profile` ...")(f)
+    return click.option("--as-platform", default=None, metavar="PLATFORM",
+                        help="... applied to this platform (default: the base station's).")(f)
+
+
 JSON_OPT = click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 
 
@@ -78,13 +88,15 @@ def list_scenarios() -> None:
 @JSON_OPT
 @click.option("--ties", default=4, show_default=True, help="How many tied optima to list per media pair.")
 @click.option("--markdown", is_flag=True, help="Print a Markdown table (for reports).")
+@profile_opts
 @click.option("--only", type=click.Choice(["all", "paper", "optimal"]), default="all", show_default=True,
               help="Rows to show: everything, the paper's reference rows, or the optimum per media pair.")
-def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdown: bool, only: str) -> None:
+def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdown: bool, only: str,
+            profile, as_platform) -> None:
     """A Fig. 7-style table: all-local, all-laptop and the optimum per topology and media pair."""
     from autopower.deploy.analysis import analyze as run
 
-    s = scenario_from(scenario, energy, accounting)
+    s = scenario_from(scenario, energy, accounting, profile, as_platform)
     rows, normaliser = run(s, max_ties=ties)
     if only == "paper":
         rows = [r for r in rows if r.label.startswith("paper-row-")]
@@ -145,11 +157,13 @@ def markdown_table(s: Scenario, rows, normaliser) -> str:
 @click.option("--without", multiple=True, metavar="ROBOT", help="Plan as if this robot were gone (repeatable).")
 @click.option("--time-limit", type=float, default=None, help="MILP time limit in seconds.")
 @click.option("--no-bound", is_flag=True, help="Skip the time-sharing bound.")
-def plan_cmd(scenario, energy, accounting, as_json, topology, method, disable, without, time_limit, no_bound) -> None:
+@profile_opts
+def plan_cmd(scenario, energy, accounting, as_json, topology, method, disable, without, time_limit, no_bound,
+             profile, as_platform) -> None:
     """The optimal allocation and media, with reasons and the time-sharing bound."""
     from autopower.planner import PlanRequest, plan
 
-    s = scenario_from(scenario, energy, accounting)
+    s = scenario_from(scenario, energy, accounting, profile, as_platform)
     for chain in disable:
         s.chain(chain)
     for robot in without:
@@ -183,6 +197,45 @@ def plan_cmd(scenario, energy, accounting, as_json, topology, method, disable, w
                       f"{len(b.schedule)} configuration(s)")
     if p.ties:
         console.print(f"{len(p.ties)} other configuration(s) tie with this one.")
+
+
+@cli.command()
+@click.option("--runs", default=50, show_default=True, help="Runs per component.")
+@click.option("--out", default=None, metavar="FILE", help="Write the profile (TOML) here.")
+@JSON_OPT
+def profile(runs: int, out: str | None, as_json: bool) -> None:
+    """Measure each real component's latency and message sizes on this machine.
+
+    The file it writes plugs into any scenario: `autopower plan --latency-profile FILE
+    --as-platform laptop` plans as if the base station were this machine.
+    """
+    import platform as host
+    from datetime import datetime, timezone
+
+    from autopower.chains.profile import profile_components
+
+    if runs < 1:
+        raise AutoPowerError(f"--runs must be >= 1, got {runs}")
+    result = profile_components(runs)
+    if as_json:
+        click.echo(json.dumps(result, indent=2))
+    else:
+        table = Table("component", "mean ms", "median ms", "max ms", "input B", "output B", title=f"{runs} runs on this machine")
+        for name, r in result.items():
+            table.add_row(name, f"{r['latency_mean_s'] * 1e3:.3f}", f"{r['latency_median_s'] * 1e3:.3f}",
+                          f"{r['latency_max_s'] * 1e3:.3f}", str(r["input_bytes"]), str(r["output_bytes"]))
+        console.print(table)
+    if out:
+        lines = [f"# autopower profile: {runs} runs on {host.node()} ({host.processor() or host.machine()}), "
+                 f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
+                 "# use: autopower plan SCENARIO --latency-profile THIS_FILE --as-platform PLATFORM", "",
+                 "[latency_s]        # median seconds per run"]
+        lines += [f"{name} = {r['latency_median_s']:.6g}" for name, r in result.items()]
+        lines += ["", "[message_bytes]    # largest input and output seen"]
+        lines += [f"{name} = [{r['input_bytes_max']}, {r['output_bytes_max']}]" for name, r in result.items()]
+        with open(out, "w", encoding="utf-8") as fh:
+            fh.write("\n".join(lines) + "\n")
+        console.print(f"wrote {out}")
 
 
 def main() -> None:

@@ -91,3 +91,26 @@ def test_check_reports_file_and_line(tmp_path):
     bad.write_text(PAPER)
     ok = run("check", str(bad))
     assert ok.returncode == 0 and "5 chains" in ok.stdout
+
+
+def test_profile_writes_a_file_the_planner_uses(tmp_path):
+    out_file = tmp_path / "prof.toml"
+    res = CliRunner().invoke(cli, ["profile", "--runs", "3", "--out", str(out_file)])
+    assert res.exit_code == 0, res.output
+    text = out_file.read_text()
+    assert "[latency_s]" in text and "Blob = " in text and "Loc = " in text
+    # A platform as fast as this machine makes local computation cheap: the plan changes.
+    from autopower.scenario import load_scenario
+    s = load_scenario("paper-fig7").with_latency_profile(out_file, "sitsang")
+    assert s.components["Loc"].latency_s["sitsang"] < 0.1
+    res = CliRunner().invoke(cli, ["plan", "paper-fig7", "--latency-profile", str(out_file), "--as-platform", "sitsang", "--json", "--no-bound"])
+    assert json.loads(res.output)["lifetime_s"] > 45715.2
+
+
+def test_bad_profile_is_a_clear_error(tmp_path):
+    bad = tmp_path / "p.toml"
+    bad.write_text("[latency_s]\nBlob = -1\n")
+    proc = run("plan", "--latency-profile", str(bad), "--as-platform", "sitsang")
+    assert proc.returncode == 2 and "latency_s.Blob: found -1" in proc.stderr
+    proc = run("plan", "--latency-profile", str(bad), "--as-platform", "cray")
+    assert proc.returncode == 2 and "--as-platform 'cray'" in proc.stderr
