@@ -118,7 +118,7 @@ class Scenario:
     components: Mapping[str, ComponentSpec]
     chains: tuple[Chain, ...]
     reference_rows: tuple[ReferenceRow, ...] = ()
-    migration: Mapping[str, float] = field(default_factory=dict)
+    migration: Mapping[str, Any] = field(default_factory=dict)  # downtime_s, cpu_s, state_bytes_default, state_bytes
 
     # ---- lookups -------------------------------------------------------------------------
     def node_names(self) -> list[str]:
@@ -395,7 +395,7 @@ class _Parser:
         components = self.components(top["components"], platforms)
         chains = self.chains(top["chains"], components, robots, nodes, base_name)
         rows = self.reference_rows(top.get("reference_rows", []), radios, chains, nodes)
-        migration = self.migration(top.get("migration", {}))
+        migration = self.migration(top.get("migration", {}), components)
         scenario = Scenario(
             name=self.string(head, "name", "scenario"),
             description=str(head.get("description", "")),
@@ -632,10 +632,14 @@ class _Parser:
             ))
         return tuple(out)
 
-    def migration(self, obj: Any) -> dict[str, float]:
-        keys = ["downtime_s", "cpu_s", "state_bytes_default"]
-        obj = self.table(obj, "migration", keys)
-        return {k: self.number(obj, k, "migration", minimum=0.0) for k in obj}
+    def migration(self, obj: Any, components: Mapping[str, ComponentSpec]) -> dict[str, Any]:
+        """What moving a component costs: downtime, CPU, and state bytes per component type."""
+        obj = self.table(obj, "migration", ["downtime_s", "cpu_s", "state_bytes_default", "state_bytes"])
+        out: dict[str, Any] = {k: self.number(obj, k, "migration", minimum=0.0) for k in obj if k != "state_bytes"}
+        if "state_bytes" in obj:
+            sizes = self.table(obj["state_bytes"], "migration.state_bytes", components)
+            out["state_bytes"] = {k: self.number(sizes, k, "migration.state_bytes", minimum=0.0) for k in sizes}
+        return out
 
     def check_routable(self, scenario: Scenario) -> None:
         """Every chain must be able to reach its sink on every topology `analyze` explores."""

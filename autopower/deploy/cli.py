@@ -238,6 +238,16 @@ def profile(runs: int, out: str | None, as_json: bool) -> None:
         console.print(f"wrote {out}")
 
 
+def _register_commands() -> None:
+    """Commands that live in their own modules (they import heavier parts lazily)."""
+    from autopower.deploy.simulate_command import simulate
+
+    cli.add_command(simulate)
+
+
+_register_commands()
+
+
 def main() -> None:
     try:
         cli(standalone_mode=False)

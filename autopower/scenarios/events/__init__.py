@@ -1,0 +1,1 @@
+"""Shipped events files for `autopower simulate --events NAME` (``NAME.events.toml``)."""
