@@ -723,14 +723,12 @@ class RebalancePolicy:
         if not view.problem.chains:
             return None
         seeds = [(o.network, o.allocation) for o in (best, stay) if o is not None]
-        found = _time_sharing(view, seeds)
-        if found is None:
-            try:
-                bound = time_sharing_bound(view.problem, seeds)
-            except AutoPowerError:  # pragma: no cover - the bound is an optimisation, not a necessity
-                return None
-            found = (bound.lifetime_s, [(p.network, dict(p.allocation), p.duration_s) for p in bound.schedule])
-        lifetime, schedule = found
+        try:
+            bound = time_sharing_bound(view.problem, seeds)
+        except AutoPowerError:  # pragma: no cover - the bound is an optimisation, not a necessity
+            return None
+        lifetime = bound.achieved_s
+        schedule = [(p.network, dict(p.allocation), p.duration_s) for p in bound.schedule]
         phases = [(n, a) for n, a, _ in schedule]
         if len(phases) <= 1:
             return None
@@ -775,64 +773,6 @@ def _same_config(view: _View, option: _Option, stay: _Option) -> bool:
     return first_net == stay.network and dict(first_alloc) == dict(stay.allocation)
 
 
-TIME_SHARING_ENUMERATE_UP_TO = 400_000  # configurations; beyond, the planner's column generation (MILP pricing)
-
-
-def _time_sharing(view: _View, seeds: Sequence[tuple[Network, Mapping[str, str]]]):
-    """The time-sharing LP from the current energies: (lifetime, [(network, allocation, duration)]).
-
-    Column generation with exact pricing by enumeration: every configuration's power vector is
-    computed at once (loads add up chain by chain), the master LP starts from the seeds and
-    each round adds the configuration with the lowest dual-weighted power, until none prices
-    below 1. The same optimum as the planner's `time_sharing_bound`, but it touches (decodes)
-    only the handful of columns the LP uses, not every configuration. None when too large.
-    """
-    from autopower.planner.exhaustive import decode, search_network
-
-    problem = view.problem
-    if problem.combinations() > TIME_SHARING_ENUMERATE_UP_TO:
-        return None
-    blocks = []
-    for network in problem.networks:
-        space, loads, options = search_network(problem, network)
-        ok = np.flatnonzero(space.feasible(loads))
-        if ok.size:
-            blocks.append((network, options, ok, space.total_power(loads[ok])))
-    if not blocks:
-        return None
-    powers = np.concatenate([b[3] for b in blocks])
-    where = [(k, int(i)) for k, b in enumerate(blocks) for i in b[2]]
-    energy = view.energy
-    chosen: list[int] = [int(np.argmin((powers / energy).max(axis=1)))]
-    for network, allocation in seeds:  # start from the configurations the policy already knows
-        p = view.power(network, allocation)[0]
-        match = np.flatnonzero(np.all(np.abs(powers - p) <= 1e-12 * (1 + np.abs(p)), axis=1))
-        if match.size and int(match[0]) not in chosen:
-            chosen.append(int(match[0]))
-    values = np.zeros(len(chosen))
-    for _ in range(200):
-        lp = LinearProgram()
-        cols = [lp.var(0.0, INF, cost=-1.0) for _ in chosen]
-        for i in range(len(view.robots)):
-            lp.row({c: float(powers[k, i]) for c, k in zip(cols, chosen)}, -INF, float(energy[i]))
-        sol = lp.solve()
-        if not sol.has_solution:  # pragma: no cover - t = 0 is always feasible
-            return None
-        values = sol.values
-        prices = np.maximum(-sol.duals, 0.0)
-        reduced = powers @ prices
-        best = int(np.argmin(reduced))
-        if reduced[best] >= 1.0 - 1e-9 or best in chosen:
-            break
-        chosen.append(best)
-    schedule = []
-    for k, t in zip(chosen, values):
-        if t > 1e-6:
-            block, flat = where[k]
-            network, options = blocks[block][0], blocks[block][1]
-            schedule.append((network, decode(problem, options, flat), float(t)))
-    schedule.sort(key=lambda phase: -phase[2])
-    return float(sum(values)), schedule
 
 
 def _restricted_lp(view: _View, phases: list[tuple[Network, dict[str, str]]]) -> list[float]:
