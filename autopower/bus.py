@@ -278,11 +278,22 @@ class InMemoryHub:
         else:
             self.pending.append(call)
 
-    def pump(self, limit: int = 1_000_000) -> int:
-        """Deliver queued messages (and whatever they cause) until none is left."""
+    def pump(self, limit: int = 1_000_000, rng=None) -> int:
+        """Deliver queued messages (and whatever they cause) until none is left.
+
+        With ``rng`` (a ``random.Random``) the next message is picked at random among those
+        waiting: a harsher order than any real transport, for robustness tests.
+        """
         n = 0
         while self.pending and n < limit:
-            self.pending.popleft()()
+            if rng is None:
+                call = self.pending.popleft()
+            else:
+                i = rng.randrange(len(self.pending))
+                self.pending.rotate(-i)
+                call = self.pending.popleft()
+                self.pending.rotate(i)
+            call()
             n += 1
         return n
 

@@ -45,7 +45,7 @@ class BatteryMeter:
         self.energy_j: dict[str, float] = {}
         self.cpu_busy_s = 0.0  # modelled busy time, for utilisation
         self.airtime_s: dict[str, float] = {}  # weighted busy airtime per medium
-        self._history: deque[tuple[float, dict[str, float], float]] = deque()
+        self._history: deque[tuple[float, dict[str, float], float]] = deque([(self.t, {}, 0.0)])
 
     # ---- time ------------------------------------------------------------------------------
     def advance(self, t: float) -> None:

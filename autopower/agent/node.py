@@ -149,6 +149,7 @@ class NodeRuntime:
         self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
         self.weights: dict[str, float] = {}
         self._early_control: list[bytes] = []
+        self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
 
     # ---- small helpers -----------------------------------------------------------------------
     def now(self) -> float:
@@ -216,8 +217,10 @@ class NodeRuntime:
                 self.count("source-failed", f"{name}: {exc}", logging.ERROR)
                 continue
             period = chain.period_s
+            before = self.source_totals.get(name)
             self.sources[name] = SourceRunner(chain=chain, source=source, run=run,
-                                              next_t=math.ceil(self.now() / period - 1e-9) * period)
+                                              next_t=math.ceil(self.now() / period - 1e-9) * period,
+                                              produced_total=before.produced_total if before else 0)
 
     def _retire_source(self, runner: SourceRunner) -> None:
         del self.sources[runner.chain.name]
@@ -396,10 +399,12 @@ class NodeRuntime:
             return
         ledger = self.sinks.setdefault(chain.name, SinkLedger())
         latency_ms = (time.time() - frame.t_unix) * 1000.0
-        if not ledger.record(frame.run, frame.seq, latency_ms):
+        if not ledger.record(frame.run, frame.seq, latency_ms, frame.data()):
             self.count("duplicate-output" if frame.run >= ledger.run else "stale-output",
                        f"{chain.name} run {frame.run} seq {frame.seq}", logging.ERROR)
         self.last_output[chain.name] = frame.data()
+        if self.on_output is not None:
+            self.on_output(chain.name, frame.run, frame.seq, frame.data())
 
     # ---- control: hosting and migration -----------------------------------------------------------
     def on_control(self, payload: bytes) -> None:
@@ -537,8 +542,8 @@ class NodeRuntime:
     def status(self, window_s: float, queue_depth: int = 0) -> NodeStatus:
         now = self.now()
         power, utilisation = self.meter.window(now, window_s) if self.meter else ({}, 0.0)
-        neighbours = sorted({l.b if l.a == self.node else l.a for l in self.network.links if l.touches(self.node)}
-                            ) if self.network else []
+        # Every other node, not only today's neighbours: a link that went down must be seen coming back.
+        others = [n for n in self.scenario.node_names() if n != self.node]
         sources = {n: self.source_stats(r) for n, r in self.sources.items()}
         for name, stats in self.source_totals.items():
             sources.setdefault(name, stats)
@@ -553,9 +558,9 @@ class NodeRuntime:
             sinks={n: SinkStats(run=l.run, received=l.received, duplicates=l.duplicates, contiguous=l.contiguous,
                                 max_seq=l.max_seq, stale=l.stale, latency_ms_p50=l.latency_ms_p50,
                                 latency_ms_max=l.latency_ms_max, received_total=l.received_total,
-                                duplicates_total=l.duplicates_total)
+                                duplicates_total=l.duplicates_total, digest=l.digest)
                    for n, l in self.sinks.items()},
-            links={n: n in self.alive for n in neighbours},
+            links={n: n in self.alive for n in others},
             runs={n: h.runs for n, h in self.hosted.items() if h.runs},
             compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},
             queue_depth=queue_depth, errors=dict(self.errors), counters=dict(self.counters),

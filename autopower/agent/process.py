@@ -15,7 +15,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
-from autopower.agent.loop import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
+from autopower.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.agent.node import NodeRuntime
 from autopower.bus import Bus, ZenohBus, ZenohSettings
 from autopower.protocol import Keys, encode
@@ -42,7 +42,7 @@ class Agent:
         config.scenario.robot(config.robot)  # unknown robot -> ScenarioError
         self.config = config
         self.keys = Keys(config.team)
-        self.events = EventQueue()
+        self.events = EventQueue(bulk_keys=[self.keys.node_data(config.robot)])
         self._bus = bus
         self._owns_bus = bus is None
         self._handles: list = []
@@ -120,15 +120,16 @@ class Agent:
                     rt.count("internal-error")
             if rt.started:
                 rt.on_timer()
-            now = time.time()
-            if now >= next_status:
-                self.publish_status()
-                next_status = max(next_status + self.config.status_period_s, now)
-                if rt.meter is not None and rt.meter.depleted:
+                rt.meter.advance(rt.now())
+                if rt.meter.depleted:
                     log.warning("agent %s: battery empty at t=%.1f s; leaving the team", self.config.robot,
                                 rt.now())
                     self.stop_reason = "depleted"
                     break
+            now = time.time()
+            if now >= next_status:
+                self.publish_status()
+                next_status = max(next_status + self.config.status_period_s, now)
                 if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                     self.stop_reason = "parent exited"
                     break

@@ -9,6 +9,8 @@ the new host resumes exactly where the old one stopped, whatever order the input
 from __future__ import annotations
 
 import statistics
+import struct
+import zlib
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
@@ -48,6 +50,16 @@ class SequenceGate(Generic[T]):
         return items
 
 
+def fold_digest(digest: int, seq: int, data: bytes) -> int:
+    """Extend an in-order digest of a chain's outputs by output ``seq``.
+
+    Two sinks (or a sink and an offline re-run of the chain) that saw the same outputs for seqs
+    0..n-1 have the same digest: a cheap end-to-end check that nothing was lost, repeated,
+    reordered or computed from the wrong state.
+    """
+    return zlib.crc32(struct.pack("<QI", seq, zlib.crc32(data)), digest)
+
+
 @dataclass
 class SinkLedger:
     """Counts one chain's outputs at its sink: received, duplicated, contiguous prefix."""
@@ -63,8 +75,10 @@ class SinkLedger:
     duplicates_total: int = 0
     latencies_ms: deque = field(default_factory=lambda: deque(maxlen=512))
     latency_ms_max: float = 0.0
+    digest: int = 0  # fold_digest over the outputs of seqs < contiguous
+    _waiting: dict[int, bytes] = field(default_factory=dict)  # data of seqs above the prefix
 
-    def record(self, run: int, seq: int, latency_ms: float | None = None) -> bool:
+    def record(self, run: int, seq: int, latency_ms: float | None = None, data: bytes = b"") -> bool:
         """True if this output is new."""
         if run < self.run:
             self.stale += 1
@@ -74,13 +88,16 @@ class SinkLedger:
             self.received, self.duplicates, self.max_seq = 0, 0, -1
             self.latency_ms_max = 0.0
             self.latencies_ms.clear()
+            self.digest, self._waiting = 0, {}
         if seq < self.contiguous or seq in self.above:
             self.duplicates += 1
             self.duplicates_total += 1
             return False
         self.above.add(seq)
+        self._waiting[seq] = data
         while self.contiguous in self.above:
             self.above.remove(self.contiguous)
+            self.digest = fold_digest(self.digest, self.contiguous, self._waiting.pop(self.contiguous))
             self.contiguous += 1
         self.received += 1
         self.received_total += 1

@@ -26,7 +26,7 @@ from typing import Any, Callable
 
 from autopower.bus import Bus
 from autopower.clock import VirtualClock
-from autopower.errors import AutoPowerError, InfeasibleError
+from autopower.errors import AutoPowerError
 from autopower.model import Network, evaluate
 from autopower.protocol import (
     Assign,
@@ -57,6 +57,7 @@ log = logging.getLogger(__name__)
 class CoordinatorConfig:
     speed: float = 10.0
     topology: str | None = None  # None: the scenario's
+    media: dict[str, str] | None = None  # group -> medium, fixed; None: the planner chooses
     pins: dict[str, str] = field(default_factory=dict)  # stage -> node, fixed by the operator
     auto_replan: bool = True  # replan on battery drift / periodically (joins, leaves, commands always)
     replan_interval_s: float = 600.0  # virtual seconds between re-plans with remaining energies
@@ -138,6 +139,7 @@ class Coordinator:
         self.next_periodic_replan: float | None = None
         self.events: deque[str] = deque(maxlen=50)
         self.downtimes_ms: list[float] = []
+        self.migration_log: deque[dict] = deque(maxlen=200)
         self.migrations_done = 0
         self.assignments_done = 0
         self.aborted = 0
@@ -202,6 +204,8 @@ class Coordinator:
 
     def _network_for_request(self) -> Network | None:
         base = self.network_override
+        if base is None and self.config.media:
+            base = self.scenario.network(topology=self.config.topology, media=self.config.media)
         if self.links_down:
             base = base or self.plan_network
             if base is not None:
@@ -214,13 +218,19 @@ class Coordinator:
         if self.mission is None:
             return False
         unavailable = frozenset(r for r in self.robots if r not in self.alive_nodes())
+        if len(unavailable) == len(self.robots):
+            self.note(f"no robot left ({reason}); nothing to plan")
+            self.target = {}
+            self.reconcile()
+            self.publish_plan()
+            return False
         energies = self.remaining_energies()
         request = dict(scenario=self.scenario, network=self._network_for_request(), topology=self.config.topology,
                        energies_j=energies, disabled_chains=frozenset(self.disabled),
                        unavailable_nodes=unavailable)
         try:
             plan = self.planner(**request)
-        except InfeasibleError as exc:
+        except AutoPowerError as exc:  # InfeasibleError, or a request the planner rejects
             self.plan_error = str(exc)
             self.note(f"re-plan ({reason}) found nothing feasible: {exc}")
             return False
@@ -339,6 +349,9 @@ class Coordinator:
         else:
             self.migrations_done += 1
             self.downtimes_ms.append(msg.downtime_ms)
+            self.migration_log.append({"stage": msg.stage, "from": m.from_node, "to": msg.node,
+                                       "downtime_ms": msg.downtime_ms, "held_inputs": msg.buffered,
+                                       "total_ms": (self.wall() - m.started_unix) * 1e3})
             log.info("coordinator: %s moved %s -> %s in %.1f ms (%d inputs held)", msg.stage, m.from_node,
                      msg.node, msg.downtime_ms, msg.buffered)
         self.reconcile()
@@ -404,12 +417,20 @@ class Coordinator:
         self._check_links(status)
         self._check_drift(status)
 
+    def _topology_pairs(self) -> set[frozenset[str]]:
+        network = self.scenario.network(topology=self.config.topology)
+        return {frozenset((l.a, l.b)) for l in network.links}
+
     def _check_links(self, status: NodeStatus) -> None:
+        """A link counts as down once an end has reported it so for ``link_down_after_s``."""
         now = self.wall()
         alive = self.alive_nodes()
+        pairs = self._topology_pairs()
         changed = False
         for peer, up in status.links.items():
             pair = frozenset((status.node, peer))
+            if pair not in pairs:
+                continue
             if up or peer not in alive or status.node not in alive:
                 self._link_reports.pop(pair, None)
                 if up and pair in self.links_down:
@@ -568,6 +589,7 @@ class Coordinator:
             "aborted": self.aborted,
             "replans": self.replans,
             "downtime_ms": _stats(self.downtimes_ms),
+            "migration_log": list(self.migration_log),
             "first_depletion": self.first_depletion,
             "events": list(self.events),
         }

@@ -1,8 +1,10 @@
 """The base station process: the coordinator plus the laptop's own host, on one event loop.
 
 The laptop is a node of the team like the robots (components are off-loaded to it and it is
-the operator's sink for results), so the process runs a `NodeRuntime` for it beside the
-`Coordinator`. Both are driven by the same loop; Zenoh callbacks only enqueue.
+the operator's sink for results), so the process runs a host for it (the agents'
+`NodeRuntime`, injected by the deploy layer as ``host_factory`` so that this package does not
+import its sibling) beside the `Coordinator`. Both are driven by the same loop; Zenoh
+callbacks only enqueue.
 """
 
 from __future__ import annotations
@@ -12,10 +14,9 @@ import logging
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
-from autopower.agent.loop import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
-from autopower.agent.node import NodeRuntime
+from autopower.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.bus import Bus, ZenohBus, ZenohSettings
 from autopower.errors import ProtocolError
@@ -35,6 +36,25 @@ from autopower.scenario import Scenario
 log = logging.getLogger(__name__)
 
 
+class Host(Protocol):
+    """What the base station needs from the laptop's host (`autopower.agent.node.NodeRuntime`)."""
+
+    started: bool
+    clock: Any
+
+    def on_message(self, key: str, payload: bytes) -> bool: ...
+
+    def on_liveliness(self, node: str, alive: bool) -> None: ...
+
+    def on_timer(self) -> None: ...
+
+    def next_deadline(self) -> float | None: ...
+
+    def status(self, window_s: float, queue_depth: int = 0) -> NodeStatus: ...
+
+    def count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None: ...
+
+
 @dataclass(frozen=True, kw_only=True)
 class BaseStationConfig:
     scenario: Scenario
@@ -49,18 +69,18 @@ class BaseStationConfig:
 class BaseStation:
     """The base station (a context manager)."""
 
-    def __init__(self, config: BaseStationConfig, bus: Bus | None = None, planner: Callable | None = None,
-                 **runtime_kwargs):
+    def __init__(self, config: BaseStationConfig, *, host_factory: Callable[..., Host], bus: Bus | None = None,
+                 planner: Callable | None = None):
         self.config = config
         self.keys = Keys(config.team)
         self.node = config.scenario.basestation
-        self.events = EventQueue()
+        self.events = EventQueue(bulk_keys=[self.keys.node_data(self.node)])
         self._bus = bus
         self._owns_bus = bus is None
         self._handles: list = []
         self._planner = planner
-        self._runtime_kwargs = runtime_kwargs
-        self.runtime: NodeRuntime | None = None
+        self._host_factory = host_factory
+        self.runtime: Host | None = None
         self.coordinator: Coordinator | None = None
         self.stop_reason: str | None = None
         self.garbled = 0
@@ -69,8 +89,7 @@ class BaseStation:
         if self._bus is None:
             self._bus = ZenohBus(self.config.zenoh)
         bus, keys = self._bus, self.keys
-        self.runtime = NodeRuntime(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys,
-                                   **self._runtime_kwargs)
+        self.runtime = self._host_factory(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys)
         self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
                                        config=self.config.coordinator, planner=self._planner)
         for key in (keys.node_data(self.node), keys.node_control(self.node), keys.plan, keys.inbox,

@@ -93,7 +93,7 @@ def list_scenarios() -> None:
               help="Rows to show: everything, the paper's reference rows, or the optimum per media pair.")
 def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdown: bool, only: str,
             profile, as_platform) -> None:
-    """A Fig. 7-style table: all-local, all-laptop and the optimum per topology and media pair."""
+    """Tabulate all-local, all-laptop and the optimum per topology and media pair (the paper's Fig 7)."""
     from autopower.deploy.analysis import analyze as run
 
     s = scenario_from(scenario, energy, accounting, profile, as_platform)
@@ -240,9 +240,12 @@ def profile(runs: int, out: str | None, as_json: bool) -> None:
 
 def _register_commands() -> None:
     """Commands that live in their own modules (they import heavier parts lazily)."""
+    from autopower.deploy.runtime_commands import COMMANDS  # agent, basestation, up, chain, migrate, status
     from autopower.deploy.simulate_command import simulate
 
     cli.add_command(simulate)
+    for command in COMMANDS:
+        cli.add_command(command)
 
 
 _register_commands()

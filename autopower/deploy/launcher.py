@@ -96,6 +96,7 @@ class TeamSpec:
     energy_scale: float | None = None
     accounting: str | None = None
     topology: str | None = None
+    media: tuple[str, ...] = ()  # "laptop-robot=gsm"
     pins: tuple[str, ...] = ()  # "Loc-2=r1"
     auto_replan: bool = True
     lease_ms: int = 1000
@@ -116,7 +117,7 @@ class LocalTeam:
         self.team = spec.team or f"up-{os.getpid()}-{secrets.token_hex(3)}"
         self.log_dir = Path(spec.log_dir) if spec.log_dir else Path(tempfile.mkdtemp(prefix="autopower-up-"))
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.nodes = [scenario.basestation] + [r.name for r in scenario.robots]
+        self.nodes = [scenario.basestation] + [r.name for r in scenario.robots]  # base first: it listens first
         ports = free_ports(len(self.nodes))
         self.ports = dict(zip(self.nodes, ports))
         self.connects = pair_endpoints(self.nodes, self.ports, spec.endpoint_overrides)
@@ -157,6 +158,8 @@ class LocalTeam:
             args += ["--accounting", spec.accounting]
         if spec.topology:
             args += ["--topology", spec.topology]
+        for item in spec.media:
+            args += ["--media", item]
         for pin in spec.pins:
             args += ["--pin", pin]
         if not spec.auto_replan:

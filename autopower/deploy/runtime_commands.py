@@ -80,6 +80,20 @@ def run_until_signalled(process, duration: float | None) -> str:
     return process.run(duration)
 
 
+def exit_now(message: str) -> None:
+    """Leave without interpreter teardown once the session is closed.
+
+    Teardown resets signal handlers (a SIGTERM from `up` arriving then would kill the process
+    with -15 instead of a clean 0) and can wait on the transport's threads; there is nothing
+    left to clean up at this point.
+    """
+    click.echo(message, err=True)
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
 def network_options(f):
     f = click.option("--scenario", "scenario_name", default="paper-fig7", show_default=True,
                      help="Built-in scenario name or path to a .toml file.")(f)
@@ -118,7 +132,7 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
                          status_period_s=status_period, parent_pid=parent_pid)
     with Agent(config) as process:
         reason = run_until_signalled(process, duration)
-    click.echo(f"agent {robot} stopped: {reason}", err=True)
+    exit_now(f"agent {robot} stopped: {reason}")
 
 
 @click.command("basestation")
@@ -130,6 +144,8 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
               help="Multiply every robot's starting energy (short missions at a sustainable speed).")
 @click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None)
 @click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None)
+@click.option("--media", multiple=True, metavar="GROUP=MEDIUM",
+              help="Fix a link group's medium, e.g. laptop-robot=gsm (default: the planner chooses).")
 @click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable).")
 @click.option("--no-replan", is_flag=True, help="No re-plans on battery drift or periodically.")
 @click.option("--replan-interval", type=float, default=600.0, show_default=True,
@@ -137,8 +153,10 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
 @click.option("--start-grace", type=float, default=30.0, show_default=True,
               help="Wall seconds to wait for every robot before starting without the missing ones.")
 def basestation(scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
-                speed, energy, energy_scale, accounting, topology, pin, no_replan, replan_interval, start_grace):
+                speed, energy, energy_scale, accounting, topology, media, pin, no_replan, replan_interval,
+                start_grace):
     """Run the base station: plan, place and migrate components; the operator's sink."""
+    from autopower.agent.node import NodeRuntime
     from autopower.basestation.coordinator import CoordinatorConfig
     from autopower.basestation.process import BaseStation, BaseStationConfig
 
@@ -146,14 +164,18 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     if not speed > 0:
         raise AutoPowerError(f"--speed must be > 0, got {speed}")
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting)
-    coordinator = CoordinatorConfig(speed=speed, topology=topology, pins=parse_pairs(pin, "--pin", "Loc-2=r1"),
+    media_choice = parse_pairs(media, "--media", "laptop-robot=gsm") or None
+    if media_choice:
+        scenario.network(topology=topology, media=media_choice)  # unknown group or medium -> ScenarioError
+    coordinator = CoordinatorConfig(speed=speed, topology=topology, media=media_choice,
+                                    pins=parse_pairs(pin, "--pin", "Loc-2=r1"),
                                     auto_replan=not no_replan, replan_interval_s=replan_interval,
                                     start_grace_s=start_grace)
     config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh_settings(listen, connect, lease_ms),
                                coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
-    with BaseStation(config) as process:
+    with BaseStation(config, host_factory=NodeRuntime) as process:
         reason = run_until_signalled(process, duration)
-    click.echo(f"base station stopped: {reason}", err=True)
+    exit_now(f"base station stopped: {reason}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -235,7 +257,7 @@ def render(snap: dict, speed: float):
         have = snap.get("placement", {}).get(stage, "-")
         moving = snap.get("migrating", {}).get(stage)
         stages.add_row(stage, have + (f" → {moving['to']}" if moving else ""), want,
-                       (snap.get("reasons") or {}).get(stage, "")[:70])
+                       (snap.get("reasons") or {}).get(stage, ""))
     sinks = []
     base = snap.get("basestation") or {}
     for chain, s in (base.get("sinks") or {}).items():
@@ -256,6 +278,8 @@ def render(snap: dict, speed: float):
               help="Multiply every starting energy, e.g. 0.01 to watch a whole mission in a minute or two.")
 @click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None)
 @click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None)
+@click.option("--media", multiple=True, metavar="GROUP=MEDIUM",
+              help="Fix a link group's medium, e.g. laptop-robot=gsm (default: the planner chooses).")
 @click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable).")
 @click.option("--no-replan", is_flag=True, help="No re-plans on battery drift or periodically.")
 @click.option("--lease-ms", default=1000, show_default=True)
@@ -263,7 +287,7 @@ def render(snap: dict, speed: float):
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
               help="Where the children's logs go (default: a new temporary directory).")
 @click.option("--until-depleted", is_flag=True, help="Stop when the first robot's battery is empty.")
-def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, pin, no_replan,
+def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
        lease_ms, ready_timeout, log_dir, until_depleted):
     """Start the base station and every robot's agent on this machine and watch them.
 
@@ -275,8 +299,11 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
 
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting)  # fail fast on bad options
     parse_pairs(pin, "--pin", "Loc-2=r1")
+    if media:
+        scenario.network(topology=topology, media=parse_pairs(media, "--media", "laptop-robot=gsm"))
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
-                    accounting=accounting, topology=topology, pins=tuple(pin), auto_replan=not no_replan,
+                    accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
+                    auto_replan=not no_replan,
                     lease_ms=lease_ms, log_dir=log_dir)
 
     def on_term(signum, _frame):
@@ -286,12 +313,14 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     team = LocalTeam(spec, scenario)
     started = time.monotonic()
     snap: dict = {}
+    failure = None
     interrupted = False
     ready_after = None
     console = None
     try:
         team.start()
         write_session({"team": team.team, "connect": [team.base_endpoint], "pid": os.getpid(),
+                       "children": {n: c.proc.pid for n, c in team.children.items()},
                        "scenario": scenario.name, "log_dir": str(team.log_dir)})
         if not as_json:
             from rich.console import Console
@@ -323,7 +352,12 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     team.check_children()
                     snap = team.snapshot()
                     live.update(render(snap, speed))
+            console.print()
         snap = team.snapshot()
+    except AutoPowerError as exc:
+        if not snap:
+            raise
+        failure = str(exc)  # report what we saw last, then fail
     except KeyboardInterrupt:
         interrupted = True
         try:
@@ -337,6 +371,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     summary = summarize(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
+    summary["failure"] = failure
     bad = {n: c for n, c in codes.items() if c not in (0, None)}
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
@@ -349,6 +384,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                        "Lower --speed (and use --energy-scale for shorter missions).", err=True)
     if bad:
         raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")
+    if failure:
+        raise AutoPowerError(f"{failure} (logs in {team.log_dir})")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -81,6 +81,8 @@ def evaluate_in(problem: Problem, network: Network, allocation: dict[str, str]) 
 def plan(request: PlanRequest) -> Plan:
     """The optimal allocation and media for a request; raises InfeasibleError if nothing fits."""
     problem = make_problem(request)
+    if not any(n != problem.networks[0].basestation for n in problem.networks[0].nodes):
+        raise InfeasibleError("no robot is available to plan for (all are unavailable); wait for one to join")
     method = request.method
     if method == "auto":
         method = "exhaustive" if problem.combinations() <= EXHAUSTIVE_UP_TO else "milp"

@@ -64,6 +64,7 @@ class SinkStats:
     latency_ms_max: float
     received_total: int
     duplicates_total: int
+    digest: int  # sequencing.fold_digest over the outputs of seqs < contiguous
 
 
 # ---------------------------------------------------------------------------------------------

@@ -126,3 +126,8 @@ def test_hundred_robots_three_hundred_components_within_one_percent():
     p = plan(PlanRequest(scenario=fleet_scenario(100, 300, seed=3), mip_rel_gap=0.01, time_limit_s=600))
     assert p.evaluation.feasible and len(p.allocation) == 300
     assert p.mip_gap <= 0.01
+
+
+def test_no_robot_left_is_a_clear_infeasible_error():
+    with pytest.raises(InfeasibleError, match="no robot is available"):
+        plan(PlanRequest(scenario=FIG7, unavailable_nodes=frozenset({"r1", "r2", "r3"})))

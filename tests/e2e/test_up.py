@@ -1,0 +1,118 @@
+"""`autopower up` as a user runs it: a subprocess of the installed console script.
+
+Everything is bounded: readiness is polled through `autopower status --json`, never slept for.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from autopower.planner import PlanRequest, plan
+from autopower.scenario import load_scenario
+
+AUTOPOWER = os.environ.get("AUTOPOWER_BIN") or str(Path(sys.executable).parent / "autopower")
+
+
+def env_for(tmp_path: Path) -> dict:
+    return {**os.environ, "AUTOPOWER_STATE_DIR": str(tmp_path / "state"), "PYTHONUNBUFFERED": "1"}
+
+
+def run_cli(args: list[str], env: dict, timeout: float = 30.0) -> subprocess.CompletedProcess:
+    return subprocess.run([AUTOPOWER, *args], env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie is dead for our purposes
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+def wait_until(predicate, timeout_s: float, what: str):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
+
+
+def test_up_reaches_the_planned_placement(tmp_path):
+    result = run_cli(["up", "paper-fig7", "--duration", "6", "--json", "--log-dir", str(tmp_path / "logs")],
+                     env_for(tmp_path), timeout=90)
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads(result.stdout)
+    best = plan(PlanRequest(scenario=load_scenario("paper-fig7")))
+    assert summary["ready"] and summary["placement"] == best.allocation
+    assert summary["media"] == best.network.media_by_group()
+    assert summary["exit_codes"] == {"laptop": 0, "r1": 0, "r2": 0, "r3": 0}
+    assert summary["missed_ratio"] < 0.05  # startup included; a loaded CI machine misses a few
+    sinks = {**summary["basestation"]["sinks"], **{c: s for r in summary["robots"].values() for c, s in r["sinks"].items()}}
+    assert set(sinks) == {c.name for c in load_scenario("paper-fig7").chains}
+    assert all(s["received"] > 0 and s["duplicates_total"] == 0 for s in sinks.values())
+    for robot, info in summary["robots"].items():
+        # over the whole run, startup included, the battery follows the model to within 2 %
+        assert abs(info["power_error"]) < 0.02, (robot, info["mean_power_w"], info["predicted_w"])
+    assert not (tmp_path / "state" / "session.json").exists()
+
+
+def start_up(tmp_path: Path) -> tuple[subprocess.Popen, dict, dict]:
+    env = env_for(tmp_path)
+    proc = subprocess.Popen([AUTOPOWER, "up", "paper-fig7", "--log-dir", str(tmp_path / "logs")], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    session_file = tmp_path / "state" / "session.json"
+    session = wait_until(lambda: session_file.exists() and json.loads(session_file.read_text()), 30,
+                         "up to write its session file")
+
+    def ready():
+        if proc.poll() is not None:
+            raise AssertionError(f"up exited early: {proc.stderr.read()[-2000:]}")
+        status = run_cli(["status", "--json", "--timeout", "2"], env)
+        return status.returncode == 0 and json.loads(status.stdout).get("ready")
+
+    wait_until(ready, 60, "the team to be ready")
+    return proc, session, env
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_every_child_and_chain_disable_works(tmp_path):
+    proc, session, env = start_up(tmp_path)
+    try:
+        children = session["children"]
+        assert set(children) == {"laptop", "r1", "r2", "r3"} and all(alive(p) for p in children.values())
+        result = run_cli(["chain", "disable", "Blob-2"], env)
+        assert result.returncode == 0, result.stderr
+        snap = json.loads(run_cli(["status", "--json"], env).stdout)
+        assert snap["disabled"] == ["Blob-2"] and "Blob-2" not in snap["target"]
+        assert run_cli(["chain", "disable", "Nope"], env).returncode != 0
+        proc.send_signal(signal.SIGINT)  # what Ctrl-C delivers to the foreground process
+        proc.wait(timeout=30)
+        assert proc.returncode == 0, proc.stderr.read()[-2000:]
+        wait_until(lambda: not any(alive(p) for p in children.values()), 5, "no child left")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_no_orphans_when_up_is_terminated_or_killed(tmp_path, sig):
+    proc, session, _ = start_up(tmp_path)
+    children = session["children"]
+    proc.send_signal(sig)
+    proc.wait(timeout=30)
+    # SIGTERM: `up` stops them itself; SIGKILL: they get SIGTERM from the kernel (PR_SET_PDEATHSIG)
+    wait_until(lambda: not any(alive(p) for p in children.values()), 15, "every child to exit")

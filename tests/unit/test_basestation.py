@@ -1,0 +1,267 @@
+"""The coordinator: when it plans, what it moves, how it reacts to the team and the operator."""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+
+import pytest
+
+from autopower.agent.node import NodeRuntime
+from autopower.basestation.coordinator import CoordinatorConfig
+from autopower.basestation.process import BaseStation, BaseStationConfig
+from autopower.bus import InMemoryHub
+from autopower.events import StopRequested
+from autopower.protocol import (
+    AutoCommand,
+    ChainCommand,
+    Keys,
+    LinkCommand,
+    MigrateCommand,
+    OperatorReply,
+    SnapshotRequest,
+    decode,
+    encode,
+)
+from autopower.model import evaluate
+from autopower.scenario import load_scenario
+from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+
+ALL_LAPTOP = {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "laptop", "Blob-2": "laptop", "Blob-3": "laptop"}
+
+
+@pytest.fixture
+def sc():
+    return load_scenario("paper-fig7")
+
+
+def test_mission_waits_for_every_robot_then_places_the_optimum(sc):
+    team = SimTeam(sc)
+    team.join(["r1", "r2"])
+    assert team.coordinator.mission is None
+    assert not team.coordinator.on_operator(ChainCommand(chain="Blob-2", enabled=False)).ok
+    team.join(["r3"])
+    co = team.coordinator
+    assert co.mission is not None and co.ready
+    assert co.placement == ALL_LAPTOP  # Fig. 7's best: everything on the laptop over 802.11a
+    assert co.plan_obj.evaluation.lifetime_rounded_s == 45715.2
+    assert set(co.running) == {c.name for c in sc.chains}
+    assert all(rt.plan is not None and rt.plan.epoch == co.epoch for rt in team.nodes.values())
+
+
+def test_starts_without_missing_robots_after_the_grace_period(sc):
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, start_grace_s=5.0))
+    team.join(["r1"])
+    assert team.coordinator.mission is None
+    team.clock.advance(6.0)
+    team.coordinator.on_timer()
+    team.pump()
+    co = team.coordinator
+    assert co.mission is not None
+    assert set(co.target) == {"Loc-1"}  # r2's and r3's chains cannot run without them
+
+
+def test_a_robot_leaving_drops_its_chains_and_rehosts_what_it_ran(sc):
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, pins={"Loc-1": "r2"}))
+    team.join()
+    co = team.coordinator
+    assert co.placement["Loc-1"] == "r2"
+    team.run_until(4.0)
+    team.leave("r2")
+    assert "Loc-2" not in co.target and "Blob-2" not in co.target
+    assert co.placement["Loc-1"] != "r2" and co.ready  # the pin to a departed robot is ignored
+    team.run_until(10.0)
+    assert team.nodes["r1"].sinks["Loc-1"].received > 0
+    assert co.replans >= 2
+
+
+def test_rejoining_robot_is_planned_again(sc):
+    team = SimTeam(sc)
+    team.join()
+    team.leave("r3")
+    assert "Loc-3" not in team.coordinator.target
+    # the agent comes back (a new process would resubscribe; reuse the runtime's bus here)
+    rt = team.nodes["r3"]
+    keys = team.keys
+    team.subscriptions["r3"] = [rt.bus.subscribe(k, lambda key, p, rt=rt: rt.on_message(key, p))
+                                for k in (keys.node_data("r3"), keys.node_control("r3"), keys.plan)]
+    team.join(["r3"])
+    assert team.coordinator.placement == ALL_LAPTOP
+
+
+def test_chain_disable_releases_and_stops_the_source(sc):
+    team = SimTeam(sc)
+    team.join()
+    team.run_until(3.0)
+    reply = team.coordinator.on_operator(ChainCommand(chain="Blob-2", enabled=False))
+    assert reply.ok and "re-planned" in reply.message
+    team.run_until(6.0)
+    assert "Blob-2" not in team.nodes["laptop"].hosted
+    assert "Blob-2" not in team.nodes["r2"].sources
+    assert team.coordinator.on_operator(ChainCommand(chain="Blob-2", enabled=False)).message.endswith("disabled")
+    assert not team.coordinator.on_operator(ChainCommand(chain="Nope", enabled=False)).ok
+
+
+def test_operator_pins_and_auto(sc):
+    team = SimTeam(sc)
+    team.join()
+    co = team.coordinator
+    for bad in (MigrateCommand(stage="Loc-9", to_node="r1"), MigrateCommand(stage="Loc-1", to_node="r9")):
+        reply = co.on_operator(bad)
+        assert not reply.ok and "unknown" in reply.message
+    assert co.on_operator(MigrateCommand(stage="Loc-2", to_node="r1")).ok
+    team.pump()
+    assert co.placement["Loc-2"] == "r1" and co.migrations_done == 1
+    assert co.on_operator(AutoCommand()).ok
+    team.pump()
+    assert co.placement == ALL_LAPTOP and co.pins == {}
+
+
+def test_radio_fault_replans_like_the_paper(sc):
+    """Paper V.C: r3 falls back to GSM/Bluetooth; Loc-3 goes to r1, Blob-3 stays on r3."""
+    team = SimTeam(sc)
+    team.join()
+    reply = team.coordinator.on_operator(LinkCommand(node="r3", laptop_robot="gsm", robot_robot="bluetooth"))
+    assert reply.ok
+    team.run_until(4.0)
+    co = team.coordinator
+    assert co.placement == {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "r1", "Blob-2": "laptop", "Blob-3": "r3"}
+    assert co.plan_network.medium_between("r3", "laptop") == "gsm"
+    assert team.nodes["r3"].meter.media == frozenset({"gsm", "bluetooth"})
+
+
+def test_reported_link_down_replans_around_it(sc):
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, link_down_after_s=2.0))
+    team.join()
+    team.nodes["r2"].alive.discard("laptop")  # r2 no longer sees the laptop (nor it r2)
+    team.nodes["laptop"].alive.discard("r2")
+    team.report_status()
+    assert not team.coordinator.links_down
+    team.clock.advance(2.5)  # wall time = virtual / speed 1
+    team.report_status()
+    co = team.coordinator
+    assert co.links_down == {frozenset({"r2", "laptop"})}
+    assert not co.plan_network.reachable("r2", "laptop") or co.plan_network.medium_between("r2", "laptop") is None
+    team.run_until(co.now() + 4.0)
+    assert team.nodes["laptop"].sinks["Blob-2"].received > 0  # now relayed by another robot
+    assert team.nodes["r1"].counters.get("forwarded", 0) + team.nodes["r3"].counters.get("forwarded", 0) > 0
+    team.nodes["r2"].alive.add("laptop")
+    team.report_status()
+    assert not co.links_down
+
+
+def test_battery_drift_triggers_a_replan(sc):
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, drift_min_window_s=10.0))
+    team.join()
+    team.run_until(2.0)
+    team.report_status()
+    assert team.coordinator.baselines
+    team.run_until(20.0)
+    team.nodes["r1"].meter._add("cpu_idle", 50.0)  # r1 burns far more than planned
+    team.report_status()
+    assert any("plan said" in e for e in team.coordinator.events)
+
+
+def test_periodic_replan_with_uneven_batteries_moves_work_off_the_weak_robot():
+    sc = load_scenario("paper-fig7")
+    media = {"laptop-robot": "gsm", "robot-robot": "bluetooth"}
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=media, replan_interval_s=20.0))
+    team.join()
+    first = dict(team.coordinator.target)
+    team.run_until(10.0)
+    team.nodes["r2"].meter._add("cpu_idle", 40000.0)  # r2 has lost most of its battery
+    team.report_status()
+    team.run_until(25.0)
+    team.coordinator.on_timer()
+    team.pump()
+    co = team.coordinator
+    assert co.target != first and co.ready
+    energies = co.remaining_energies()
+    kept = evaluate(sc, co.plan_network, first, energies_j=energies)
+    assert co.plan_obj.evaluation.lifetime_s > kept.lifetime_s * 1.01
+    assert any("periodic" in e for e in co.events)
+
+
+def test_depleted_robot_leaves_the_plan(sc):
+    team = SimTeam(sc)
+    team.join()
+    team.nodes["r1"].meter._add("cpu_idle", 64000.0)
+    team.report_status()
+    co = team.coordinator
+    assert "r1" in co.departed and co.first_depletion["robot"] == "r1"
+    assert "Loc-1" not in co.target
+
+
+def test_stuck_migration_is_abandoned_and_restarted(sc):
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, migration_timeout_s=3.0, pins={"Loc-2": "r2"}))
+    team.join()
+    co = team.coordinator
+    for handle in team.subscriptions["r1"]:  # r1 silently stops answering (no liveliness change)
+        handle.close()
+    co.on_operator(MigrateCommand(stage="Loc-2", to_node="r1"))
+    team.pump()
+    assert "Loc-2" in co.migrations
+    team.clock.advance(4.0)
+    co.on_timer()
+    team.pump()
+    assert co.aborted == 1
+    assert any("abandoned" in e for e in co.events)
+
+
+class FakeRequest:
+    def __init__(self, key, payload):
+        self.key, self.payload, self.replies, self.closed = key, payload, [], False
+
+    def reply(self, payload):
+        self.replies.append(payload)
+
+    def close(self):
+        self.closed = True
+
+
+def test_base_station_process_survives_garbage_on_every_key(sc):
+    hub = InMemoryHub()
+    keys = Keys("g")
+    config = BaseStationConfig(scenario=sc, team="g", coordinator=CoordinatorConfig(speed=1.0))
+
+    def host(**kw):
+        return NodeRuntime(make_component=FakeComponent, make_source=FakeSource, **kw)
+
+    with BaseStation(config, host_factory=host, bus=hub.bus("laptop")) as base:
+        attacker = hub.bus("attacker")
+        rng = random.Random(1)
+        garbage = [b"", b"\x00\xff", encode(SnapshotRequest()), b"\x94\xa2AP\x01\xa5frame\x80"]
+        garbage += [bytes(rng.randrange(256) for _ in range(rng.randrange(1, 64))) for _ in range(20)]
+        requests = []
+        for key in keys.all_keys_of("laptop", basestation=True):
+            for junk in garbage:
+                if key == keys.operator:
+                    requests.append(FakeRequest(key, junk))
+                    base.events.on_request(requests[-1])
+                else:
+                    attacker.publish(key.replace("*", "r1"), junk)
+        good = FakeRequest(keys.operator, encode(SnapshotRequest()))
+        base.events.on_request(good)
+        base.events.post(StopRequested("test"), bulk=True)  # after every queued message
+        base.run(max_wall_s=5.0)
+        assert base.stop_reason == "test"
+        # every request got exactly one answer and was finalised; garbage was refused, not fatal
+        assert all(len(r.replies) == 1 and r.closed for r in requests + [good])
+        answers = [decode(r.replies[0], OperatorReply) for r in requests]
+        assert sum(not a.ok for a in answers) >= len(garbage) - 1
+        assert decode(good.replies[0], OperatorReply).ok
+        published_keys = len(keys.all_keys_of("laptop", basestation=True)) - 1
+        assert base.runtime.errors["garbled"] == published_keys * len(garbage) + len(garbage) - 1
+        assert "internal-error" not in base.runtime.errors
+
+
+def test_snapshot_is_plain_data(sc):
+    team = SimTeam(sc)
+    team.join()
+    team.run_until(2.0)
+    team.report_status()
+    snap = team.coordinator.snapshot()
+    assert snap["ready"] and snap["placement"] == ALL_LAPTOP
+    assert snap["robots"]["r1"]["status"]["battery_j"] < 64000
+    reply = OperatorReply(ok=True, message="", snapshot=snap)
+    assert decode(encode(reply)) == dataclasses.replace(reply)

@@ -1,0 +1,186 @@
+"""The wire protocol: every message round-trips, and anything malformed is a ProtocolError."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from autopower.errors import ProtocolError
+from autopower.protocol import (
+    PROTOCOL_VERSION,
+    Assign,
+    AutoCommand,
+    ChainCommand,
+    ChainFrame,
+    Keys,
+    LinkCommand,
+    LinkInfo,
+    MigrateCommand,
+    MigrateOut,
+    MissionInfo,
+    NodeStatus,
+    OperatorReply,
+    Packet,
+    PlanUpdate,
+    Prepare,
+    Prepared,
+    Release,
+    SinkStats,
+    SnapshotRequest,
+    SourceStats,
+    StageReady,
+    StateTransfer,
+    decode,
+    encode,
+    message_kinds,
+)
+
+FRAME = ChainFrame(chain="Blob-2", run=1, seq=7, target=0, t_virtual=1.75, t_unix=1.7e9, payload_len=3,
+                   payload=b"abc\0\0")
+MISSION = MissionInfo(scenario="paper-fig7", accounting="paper", epoch_unix=1.7e9, speed=10.0,
+                      energies_j={"r1": 64000.0})
+
+SAMPLES = [
+    FRAME,
+    Packet(path=("r2", "r1", "laptop"), media=("bluetooth", "802.11a"), hop=1, charge_bytes=230415, weight=0.25,
+           purpose="chain", chain="Blob-2", body=encode(FRAME)),
+    StateTransfer(stage="Loc-2", generation=4, chain="Loc-2", run=0, state=b"\x01" * 100, next_seq=None,
+                  pending=(FRAME,), t_export_unix=1.0, from_node="r2"),
+    Assign(stage="Loc-1", generation=1, chain="Loc-1", run=0, resume_seq=0),
+    Prepare(stage="Loc-1", generation=2, from_node="r1"),
+    MigrateOut(stage="Loc-1", generation=2, to_node="laptop"),
+    Release(stage="Loc-1", generation=3),
+    Prepared(stage="Loc-1", generation=2, node="laptop"),
+    StageReady(stage="Loc-1", generation=2, node="laptop", imported_state=True, resume_seq=5, downtime_ms=3.5,
+               buffered=1),
+    PlanUpdate(epoch=3, mission=MISSION, placement={"Loc-1": "laptop"}, running={"Loc-1": 0},
+               links=(LinkInfo(a="r1", b="laptop", medium="802.11a"),), predicted_w={"r1": 1.35},
+               predicted_lifetime_s=None, plan_t_virtual=0.0),
+    NodeStatus(node="r1", t_virtual=3.0, t_unix=1.0, plan_epoch=3, initial_j=64000.0, battery_j=63990.0,
+               energy_j={"cpu_idle": 10.0}, power_w={"cpu_idle": 1.34}, cpu_utilisation=0.0,
+               hosted={"Loc-1": "running"},
+               sources={"Loc-1": SourceStats(run=0, produced=2, missed=0, produced_total=2)},
+               sinks={"Loc-1": SinkStats(run=0, received=2, duplicates=0, contiguous=2, max_seq=1, stale=0,
+                                         latency_ms_p50=1.0, latency_ms_max=2.0, received_total=2,
+                                         duplicates_total=0, digest=12345)},
+               links={"laptop": True}, runs={}, compute_ms={}, queue_depth=0, errors={}, counters={},
+               depleted=False),
+    ChainCommand(chain="Blob-2", enabled=False),
+    MigrateCommand(stage="Loc-2", to_node="r1"),
+    AutoCommand(),
+    LinkCommand(node="r3", laptop_robot="gsm", robot_robot="bluetooth"),
+    SnapshotRequest(),
+    OperatorReply(ok=True, message="ok", snapshot={"a": [1, 2.5, None, {"b": "c"}]}),
+]
+
+
+def test_every_kind_has_a_sample():
+    assert {type(m).KIND for m in SAMPLES} == set(message_kinds())
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: type(m).KIND)
+def test_round_trip(msg):
+    assert decode(encode(msg)) == msg
+
+
+def _raw(kind, fields, version=PROTOCOL_VERSION, magic=b"AP"):
+    return msgpack.packb([magic, version, kind, fields], use_bin_type=True)
+
+
+def _fields(msg) -> dict:
+    return msgpack.unpackb(encode(msg), raw=False)[3]
+
+
+@pytest.mark.parametrize("data, match", [
+    (b"", "msgpack"),
+    (b"\xc1", "msgpack"),
+    (msgpack.packb({"a": 1}), "not an AutoPower message"),
+    (msgpack.packb([b"AP", 1, "frame"]), "not an AutoPower message"),
+    (_raw("frame", {}, magic=b"XX"), "magic"),
+    (_raw("frame", {}, version=PROTOCOL_VERSION + 1), "protocol version"),
+    (_raw("no-such-kind", {}), "unknown message kind"),
+    (_raw(7, {}), "kind must be a string"),
+    (_raw("frame", [1, 2]), "map of fields"),
+    (_raw("release", {"stage": "x"}), "missing field"),
+    (_raw("release", {"stage": "x", "generation": 1, "extra": 2}), "unknown field"),
+    (_raw("release", {"stage": "x", "generation": "1"}), "expected int"),
+    (_raw("release", {"stage": "x", "generation": True}), "expected int"),
+    (_raw("release", {"stage": 5, "generation": 1}), "expected str"),
+    (_raw("stage-ready", {**_fields(SAMPLES[8]), "downtime_ms": math.nan}), "NaN"),
+    (_raw("packet", {**_fields(SAMPLES[1]), "hop": 5}), "hop"),
+    (_raw("packet", {**_fields(SAMPLES[1]), "media": ["bluetooth"]}), "medium per hop"),
+    (_raw("frame", {**_fields(FRAME), "payload_len": 99}), "exceeds"),
+    (_raw("state", {**_fields(SAMPLES[2]), "pending": [{"chain": "x"}]}), "missing field"),
+    (_raw("plan", {**_fields(SAMPLES[9]), "links": [{"a": "r1", "b": "laptop"}]}), "missing field"),
+])
+def test_strict_rejection(data, match):
+    with pytest.raises(ProtocolError, match=match):
+        decode(data)
+
+
+def test_expect_limits_kinds():
+    with pytest.raises(ProtocolError, match="not accepted here"):
+        decode(encode(SAMPLES[3]), Packet)
+    assert decode(encode(SAMPLES[3]), (Assign, Release)) == SAMPLES[3]
+
+
+def test_encode_refuses_non_messages():
+    with pytest.raises(ProtocolError):
+        encode({"kind": "frame"})
+    with pytest.raises(ProtocolError):
+        encode(LinkInfo(a="a", b="b", medium="gsm"))  # a struct, not a message
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=300))
+def test_random_bytes_never_escape_as_other_errors(data):
+    try:
+        decode(data)
+    except ProtocolError:
+        pass
+
+
+json_values = st.recursive(st.none() | st.booleans() | st.integers(-2**63, 2**63 - 1) | st.text(max_size=8)
+                           | st.binary(max_size=8),
+                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=5), inner,
+                                                                                       max_size=3),
+                           max_leaves=10)
+
+
+@settings(max_examples=300, deadline=None)
+@given(kind=st.sampled_from(sorted(message_kinds())), fields=st.dictionaries(st.text(max_size=12), json_values,
+                                                                            max_size=6))
+def test_random_fields_for_every_kind_are_rejected_or_valid(kind, fields):
+    try:
+        msg = decode(_raw(kind, fields))
+    except ProtocolError:
+        return
+    assert decode(encode(msg)) == msg  # whatever is accepted is a well-formed message
+
+
+@settings(max_examples=200, deadline=None)
+@given(chain=st.text(min_size=1, max_size=10), run=st.integers(0, 2**31), seq=st.integers(0, 2**62),
+       target=st.integers(0, 9), t=st.floats(allow_nan=False, allow_infinity=False),
+       payload=st.binary(max_size=64), padding=st.integers(0, 16))
+def test_frame_round_trip_property(chain, run, seq, target, t, payload, padding):
+    frame = ChainFrame(chain=chain, run=run, seq=seq, target=target, t_virtual=t, t_unix=t, payload_len=len(payload),
+                       payload=payload + bytes(padding))
+    back = decode(encode(frame))
+    assert back == frame and back.data() == payload
+
+
+def test_keys():
+    keys = Keys("team-1")
+    assert keys.node_data("r1") == "autopower/team-1/node/r1/data"
+    assert keys.node_of_alive(keys.alive("r2")) == "r2"
+    assert keys.node_of_alive("autopower/team-1/alive/r2/x") is None
+    assert keys.node_of_status(keys.status("laptop")) == "laptop"
+    for bad in ("a/b", "*", "", "r$1"):
+        with pytest.raises(ValueError):
+            Keys(bad)
+        with pytest.raises(ValueError):
+            keys.node_data(bad)
