@@ -169,6 +169,19 @@ class Telemetry:
         if self._rows >= self.flush_rows:
             self.flush()
 
+    def log(self, entity: str, t_s: float, *archetypes) -> None:
+        """Log archetypes (e.g. ``rr.Points2D``) now, at mission time `t_s`; never raises.
+
+        For low-rate visual data (component outputs); numbers belong in `scalar` (batched).
+        """
+        if self.stream is None:
+            return
+        try:
+            self.stream.set_time(TIMELINE, duration=float(t_s))
+            self.stream.log(entity, *archetypes)
+        except Exception as exc:  # noqa: BLE001
+            self._fail("log", exc)
+
     # ---- graphs (logged as they change) ----------------------------------------------------------
     def allocation(self, t_s: float, allocation: Mapping[str, str], nodes: Sequence[str]) -> None:
         """The placement as a graph: the team's nodes, every stage, an edge stage → host."""

@@ -241,9 +241,11 @@ def profile(runs: int, out: str | None, as_json: bool) -> None:
 def _register_commands() -> None:
     """Commands that live in their own modules (they import heavier parts lazily)."""
     from autopower.deploy.runtime_commands import COMMANDS  # agent, basestation, up, chain, migrate, status
+    from autopower.deploy.replay_command import replay
     from autopower.deploy.simulate_command import simulate
 
     cli.add_command(simulate)
+    cli.add_command(replay)
     for command in COMMANDS:
         cli.add_command(command)
 

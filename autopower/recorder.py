@@ -1,0 +1,568 @@
+"""The live side of a recording: a bus tap that turns protocol traffic into `Telemetry` calls.
+
+Each process (agent, base station) wraps its bus once::
+
+    recorder = open_recorder(run_dir, node, scenario=scenario)  # autopower.deploy.recording; or
+                                                               # Recorder.open (no output drawings)
+    bus = recorder.tap(ZenohBus(settings))   # a RecordingBus: same Bus surface -> runs/<run-id>/<node>.rrd
+    ...
+    recorder.attach(runtime)        # the sink's outputs (NodeRuntime.on_output), see below
+    bus.close()                     # closes the inner bus, flushes and closes the recording
+
+Every process of a run writes its own file with the same recording id (derived from the run
+directory's name, so nobody has to pass it around) and `merge_recordings` joins them into
+``run.rrd`` with ``rerun rrd merge``.
+
+What is recorded, on the mission timeline (virtual seconds; the clock comes from the first
+`PlanUpdate` seen, or from `clock=`):
+
+- own `NodeStatus` published -> ``robots/<r>/battery_j``, ``robots/<r>/power_w/<part>`` (and
+  ``total``), ``team/links/<a>-<b>/up`` when a neighbour's visibility changes, sink and source
+  counters under ``components/<chain>/sink|source/...``;
+- `PlanUpdate` published -> ``team/allocation`` and ``team/network`` graphs, the model's power
+  per robot ``robots/<r>/model_w`` and a decision text event (type ``plan``), at publication;
+- `StageReady` published -> a migration text event with its downtime; control messages
+  (``assign``, ``prepare``, ``migrate-out``, ``release``) -> migration text events (DEBUG), any
+  other message a process publishes (e.g. subgroup rounds) -> a decision text event (DEBUG),
+  each typed by its KIND;
+- liveliness lost / regained -> fault text events (phase ``detected`` / ``restored``);
+- outputs reaching this node as their sink (`on_output`) -> ``components/<chain>/run/<run>/seq``
+  (one scalar per output: replay checks exactly-once per (chain, run, seq)) and, at most every
+  `visual_every_s`, what the injected `visualise` draws (the deploy layer's draws blobs as
+  ``Boxes2D`` on ``components/<chain>/blobs``, MCL particles and pose as ``Points2D`` on
+  ``components/<chain>/particles`` and ``.../pose``; chains are single-stage, so <chain> is
+  also the stage);
+- `record_fault(...)` / `record_fault_event(run_dir, ...)` for tools that inject faults
+  (``phase="injected"``): replay measures detection and reconfiguration from them.
+
+Text events carry a machine-readable JSON tail after `EVENT_TAG` (see `tag_event`/
+`parse_event`), so replay derives detection, reconfiguration and downtime without guessing.
+
+Logging never stops a robot: every handler catches everything, `Telemetry` never raises, and
+scalars and texts are batched with ``send_columns`` (flushed every `flush_every_s`).
+Data still buffered when a process is SIGKILLed (≤ `flush_every_s`) is lost.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import msgpack
+
+from autopower.errors import AutoPowerError, ProtocolError
+from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION
+from autopower.telemetry import DECISIONS, MIGRATIONS, Telemetry, component_path, link_path
+
+log = logging.getLogger(__name__)
+
+EVENT_TAG = " ~ap"  # human text, then this tag, then one JSON object
+MERGED_NAME = "run.rrd"
+# (rerun module, chain, output bytes) -> [(sub-entity, archetype)]: how to draw a chain's output.
+# Injected by the deploy layer (`autopower.deploy.recording`), which may import the chains.
+Visualiser = Callable[[Any, str, bytes], list[tuple[str, Any]]]
+_RUN_NAMESPACE = uuid.UUID("5d1f4b7e-7c55-4c1e-9a0e-6a2f0b1f3a11")
+
+
+# ---------------------------------------------------------------------------------------------
+# structured text events
+# ---------------------------------------------------------------------------------------------
+
+
+def tag_event(text: str, **payload: Any) -> str:
+    """A text event line: human `text`, then `EVENT_TAG` and `payload` as compact JSON."""
+    return f"{text}{EVENT_TAG}{json.dumps(payload, sort_keys=True, separators=(',', ':'), default=str)}"
+
+
+def parse_event(line: str | None) -> tuple[str, dict[str, Any] | None]:
+    """Split a text event into (human text, payload or None)."""
+    if not line:
+        return "", None
+    text, tag, tail = line.rpartition(EVENT_TAG)
+    if not tag:
+        return line, None
+    try:
+        payload = json.loads(tail)
+    except ValueError:
+        return line, None
+    return (text, payload) if isinstance(payload, dict) else (line, None)
+
+
+def _peek(payload: bytes) -> tuple[str | None, dict]:
+    """(kind, fields) of an AutoPower message, without the codec's full validation.
+
+    The tap reads what its own process has just encoded (or a plan, whose fields it only
+    reads): the strict `decode` costs ~150 µs for a status, this ~10 µs. Anything odd raises,
+    and the recorder's guard counts and drops it.
+    """
+    magic, version, kind, fields = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    if magic != MAGIC or version != PROTOCOL_VERSION or not isinstance(fields, dict):
+        raise ProtocolError("not an AutoPower message of this protocol version")
+    return kind, fields
+
+
+def run_recording_id(run_dir: str | Path) -> str:
+    """The recording id every process of the run in `run_dir` uses (from the folder's name)."""
+    return str(uuid.uuid5(_RUN_NAMESPACE, Path(run_dir).resolve().name))
+
+
+def output_path(chain: str, run: int) -> str:
+    """Entity of a chain's outputs at its sink in one run: one scalar (the seq) per output."""
+    return f"{component_path(chain, f'run/{int(run)}')}/seq"
+
+
+def record_fault(telemetry: Telemetry, t_s: float, *, kind: str, target: str, phase: str = "injected",
+                 reason: str = "", observer: str | None = None) -> None:
+    """Log a fault event replay understands: `kind` (``cut``, ``kill``, ``freeze``, ``radio``,
+    ``node-lost``...), `target` (``r1-laptop`` or ``r2``), `phase` (``injected``, ``detected``,
+    ``healed``, ``restored``)."""
+    human = f"{kind} {target} {phase}" + (f": {reason}" if reason else "")
+    telemetry.fault(t_s, tag_event(human, type="fault", kind=kind, target=target, phase=phase,
+                                   reason=reason, observer=observer))
+
+
+def record_fault_event(run_dir: str | Path, *, kind: str, target: str, phase: str = "injected", reason: str = "",
+                       mission: Mapping[str, Any] | None = None, t_s: float | None = None,
+                       wall_unix: float | None = None) -> Path:
+    """For a one-shot tool (``autopower fault cut r1 laptop``): write one fault event into its own
+    ``<run_dir>/fault-<n>.rrd`` of the run's recording (merged with the others at the end).
+
+    Mission time is `t_s`, or derived from `mission` (the coordinator snapshot's ``"mission"``:
+    ``epoch_unix`` and ``speed``) at `wall_unix` (default now).
+    """
+    if t_s is None:
+        if mission is None:
+            raise AutoPowerError("record_fault_event needs t_s or the mission (epoch_unix, speed) to place "
+                                 "the fault on the mission timeline")
+        wall = time.time() if wall_unix is None else wall_unix
+        t_s = max(0.0, (wall - float(mission["epoch_unix"])) * float(mission["speed"]))
+    run_dir = Path(run_dir)
+    path = run_dir / f"fault-{time.time_ns()}-{os.getpid()}.rrd"
+    with Telemetry(path, recording_id=run_recording_id(run_dir), kind="live",
+                   properties={"node": "fault-tool", "run": run_dir.resolve().name}) as telemetry:
+        record_fault(telemetry, t_s, kind=kind, target=target, phase=phase, reason=reason, observer="fault-tool")
+    return path
+
+
+# ---------------------------------------------------------------------------------------------
+# the recorder
+# ---------------------------------------------------------------------------------------------
+
+
+class Recorder:
+    """Turns one process's protocol traffic into Telemetry calls; thread-safe, never raises."""
+
+    def __init__(self, telemetry: Telemetry, node: str, *, team: str | None = None,
+                 clock: Callable[[], float] | None = None, flush_every_s: float = 1.0,
+                 visual_every_s: float = 0.5, owns_telemetry: bool = True,
+                 visualise: Visualiser | None = None):
+        self.telemetry = telemetry
+        self.node = node
+        self.keys = None
+        if team is not None:
+            from autopower.protocol import Keys
+
+            self.keys = Keys(team)
+        self._clock = clock
+        self._mission = None  # MissionInfo from the first PlanUpdate
+        self._lock = threading.RLock()
+        self.flush_every_s = flush_every_s
+        self.visual_every_s = visual_every_s
+        self._last_flush = time.monotonic()
+        self._last_visual: dict[str, float] = {}
+        self._last_epoch = -1
+        self._links_seen: dict[str, bool] = {}
+        self._all_links: dict[frozenset, SimpleNamespace] = {}
+        self._lost: set[str] = set()
+        self._owns = owns_telemetry
+        self.visualise = visualise
+        self.errors = 0
+        self.closed = False
+
+    @classmethod
+    def open(cls, run_dir: str | Path, node: str, *, recording_id: str | None = None, scenario=None,
+             kind: str = "live", properties: dict | None = None, **kwargs) -> "Recorder":
+        """A recorder writing ``<run_dir>/<node>.rrd`` with the run's recording id."""
+        run_dir = Path(run_dir)
+        props = {"node": node, "run": run_dir.resolve().name}
+        if scenario is not None:
+            props.update(scenario=scenario.name, accounting=scenario.accounting,
+                         topology=scenario.network_spec.topology, basestation=scenario.basestation)
+        props.update(properties or {})
+        telemetry = Telemetry(run_dir / f"{node}.rrd", recording_id=recording_id or run_recording_id(run_dir),
+                              kind=kind, properties=props, flush_rows=20_000)
+        return cls(telemetry, node, **kwargs)
+
+    def tap(self, bus) -> "RecordingBus":
+        """Wrap `bus`: what goes through it is recorded; closing it closes both."""
+        return RecordingBus(bus, self)
+
+    def attach(self, runtime) -> None:
+        """Record every output reaching `runtime` (a `NodeRuntime`) as its chain's sink."""
+        previous = getattr(runtime, "on_output", None)
+        if previous is None:
+            runtime.on_output = self.on_output
+        else:
+            def both(chain, run, seq, data, _prev=previous):
+                self.on_output(chain, run, seq, data)
+                _prev(chain, run, seq, data)
+            runtime.on_output = both
+
+    # ---- time --------------------------------------------------------------------------------------
+    def set_mission(self, mission: Mapping[str, Any]) -> None:
+        """Use this mission clock (``epoch_unix``, ``speed``) before the first plan is seen."""
+        with self._lock:
+            self._set_mission(dict(mission))
+
+    def now(self) -> float:
+        """Mission time (virtual seconds); 0 until the mission clock is known."""
+        if self._clock is not None:
+            return float(self._clock())
+        m = self._mission
+        if m is None:
+            return 0.0
+        return max(0.0, (time.time() - m.epoch_unix) * m.speed)
+
+    # ---- entry points (called from the bus wrapper; each catches everything) -------------------------
+    def _guard(self, what: str, fn: Callable, *args) -> None:
+        try:
+            with self._lock:
+                if not self.closed:
+                    fn(*args)
+                    self._maybe_flush()
+        except Exception as exc:  # noqa: BLE001 - recording must never stop a robot
+            self.errors += 1
+            if self.errors <= 3:
+                log.warning("recorder %s: %s failed (%s: %s); continuing", self.node, what,
+                            type(exc).__name__, exc)
+
+    def _keys(self, key: str):
+        if self.keys is None:
+            from autopower.protocol import Keys
+
+            parts = key.split("/")
+            if len(parts) < 3:
+                return None
+            self.keys = Keys(parts[1])
+        return self.keys
+
+    def on_publish(self, key: str, payload: bytes) -> None:
+        """What this process sends: its status, plans, stage-ready notices."""
+        if key.endswith("/data"):  # the data plane: by far the most traffic, nothing to record
+            return
+        self._guard("publish", self._published, key, payload)
+
+    def _published(self, key: str, payload: bytes) -> None:
+        keys = self._keys(key)
+        if keys is None:
+            return
+        if keys.node_of_status(key) is not None:
+            kind, fields = _peek(payload)
+            if kind == "status":
+                self._status(fields)
+        elif key == keys.plan:
+            kind, fields = _peek(payload)
+            if kind == "plan":
+                self._plan(fields)
+        elif key == keys.inbox:
+            kind, fields = _peek(payload)
+            if kind == "stage-ready":
+                self._stage_ready(fields)
+        else:  # control messages and whatever else a process announces (e.g. subgroup rounds)
+            kind, fields = _peek(payload)
+            self._other(key, kind, fields)
+
+    def on_receive(self, key: str, payload: bytes) -> None:
+        """What this process receives: only plans matter (they carry the mission clock)."""
+        if self._mission is not None or not key.endswith("/base/plan"):
+            return
+        self._guard("receive", self._received_plan, key, payload)
+
+    def _received_plan(self, key: str, payload: bytes) -> None:
+        kind, fields = _peek(payload)
+        if kind == "plan":
+            self._set_mission(fields["mission"])
+
+    def _set_mission(self, mission: dict) -> None:
+        self._mission = SimpleNamespace(epoch_unix=float(mission["epoch_unix"]), speed=float(mission["speed"]),
+                                        accounting=mission.get("accounting"),
+                                        energies_j=dict(mission.get("energies_j") or {}))
+
+    def on_liveliness(self, key: str, alive: bool) -> None:
+        self._guard("liveliness", self._liveliness, key, alive)
+
+    def on_output(self, chain: str, run: int, seq: int, data: bytes) -> None:
+        """An output reached this node, its chain's sink (hook for `NodeRuntime.on_output`)."""
+        self._guard("output", self._output, chain, run, seq, data)
+
+    def fault(self, *, kind: str, target: str, phase: str = "injected", reason: str = "") -> None:
+        with self._lock:
+            record_fault(self.telemetry, self.now(), kind=kind, target=target, phase=phase, reason=reason,
+                         observer=self.node)
+
+    # ---- handlers ----------------------------------------------------------------------------------------
+    def _status(self, s: dict) -> None:
+        tel, t, node = self.telemetry, float(s["t_virtual"]), s["node"]
+        if s.get("battery_j") is not None:
+            tel.battery(t, node, s["battery_j"])
+            parts = dict(s.get("power_w") or {})
+            parts.setdefault("total", sum(parts.values()))
+            tel.power(t, node, parts)
+        for peer, up in (s.get("links") or {}).items():
+            path = link_path(node, peer)
+            if self._links_seen.get(path) != up:
+                self._links_seen[path] = up
+                tel.scalar(f"{path}/up", t, 1.0 if up else 0.0)
+        for chain, st in (s.get("sinks") or {}).items():
+            tel.scalar(component_path(chain, "sink/received_total"), t, st["received_total"])
+            tel.scalar(component_path(chain, "sink/duplicates_total"), t, st["duplicates_total"])
+        for chain, st in (s.get("sources") or {}).items():
+            tel.scalar(component_path(chain, "source/produced_total"), t, st["produced_total"])
+
+    def _plan(self, p: dict) -> None:
+        self._set_mission(p["mission"])
+        epoch = int(p["epoch"])
+        if epoch <= self._last_epoch:
+            return
+        self._last_epoch = epoch
+        # when it was published (plan_t_virtual is the start of the prediction's baseline, which
+        # a plan that only drops a robot keeps)
+        tel, t = self.telemetry, self.now()
+        placement, links = dict(p["placement"]), [(l["a"], l["b"], l["medium"]) for l in p["links"]]
+        nodes = sorted({*placement.values(), *(x for a, b, _ in links for x in (a, b))})
+        tel.allocation(t, placement, nodes)
+        for a, b, _ in links:
+            self._all_links[frozenset((a, b))] = SimpleNamespace(a=a, b=b)
+        network = SimpleNamespace(nodes=nodes, links=[SimpleNamespace(a=a, b=b, medium=m) for a, b, m in links])
+        tel.network(t, network, list(self._all_links.values()))
+        predicted = dict(p.get("predicted_w") or {})
+        for robot, watts in predicted.items():
+            tel.scalar(f"robots/{robot}/model_w", t, watts)
+        life = p.get("predicted_lifetime_s")
+        human = (f"plan epoch {epoch}: " + ", ".join(f"{s} → {h}" for s, h in sorted(placement.items()))
+                 + (f"; predicted lifetime {life:,.0f} s" if life is not None else ""))
+        tel.decision(t, tag_event(human, type="plan", epoch=epoch, placement=placement,
+                                  running=dict(p.get("running") or {}), predicted_w=predicted,
+                                  predicted_lifetime_s=life, accounting=self._mission.accounting,
+                                  links=[list(l) for l in links], energies_j=self._mission.energies_j,
+                                  by=self.node))
+
+    def _stage_ready(self, m: dict) -> None:
+        moved = "state imported" if m["imported_state"] else "fresh start"
+        human = (f"{m['stage']} runs on {m['node']} (generation {m['generation']}, {moved}, downtime "
+                 f"{m['downtime_ms']:.1f} ms, {m['buffered']} input(s) buffered)")
+        self.telemetry.migration(self.now(), tag_event(
+            human, type="stage-ready", stage=m["stage"], node=m["node"], generation=m["generation"],
+            imported_state=m["imported_state"], downtime_ms=m["downtime_ms"], buffered=m["buffered"],
+            resume_seq=m.get("resume_seq")))
+
+    def _other(self, key: str, kind: str | None, fields: dict) -> None:
+        brief = {k: v for k, v in fields.items() if not isinstance(v, (bytes, bytearray))
+                 and len(json.dumps(v, default=str)) <= 400}
+        control = key.endswith("/control")
+        target = key.rsplit("/", 2)[-2] if control else key
+        human = f"{self.node} → {target}: {kind} " + ", ".join(f"{k}={v}" for k, v in brief.items()
+                                                               if isinstance(v, (str, int, float)))
+        entity = MIGRATIONS if control else DECISIONS
+        self.telemetry.text(entity, self.now(), tag_event(human.strip(), type=str(kind), key=key, by=self.node,
+                                                          **{k: v for k, v in brief.items()
+                                                             if k not in ("type", "key", "by")}), "DEBUG")
+
+    def _liveliness(self, key: str, alive: bool) -> None:
+        keys = self._keys(key)
+        node = keys.node_of_alive(key) if keys is not None else None
+        if node is None or node == self.node:
+            return
+        if not alive and node not in self._lost:
+            self._lost.add(node)
+            record_fault(self.telemetry, self.now(), kind="node-lost", target=node, phase="detected",
+                         reason=f"{self.node} lost {node}'s liveliness", observer=self.node)
+        elif alive and node in self._lost:
+            self._lost.discard(node)
+            record_fault(self.telemetry, self.now(), kind="node-lost", target=node, phase="restored",
+                         reason=f"{self.node} sees {node} again", observer=self.node)
+
+    def _output(self, chain: str, run: int, seq: int, data: bytes) -> None:
+        t = self.now()
+        self.telemetry.scalar(output_path(chain, run), t, seq)
+        last = self._last_visual.get(chain)
+        wall = time.monotonic()
+        if last is not None and wall - last < self.visual_every_s:
+            return
+        self._last_visual[chain] = wall
+        self._visual(chain, t, data)
+
+    def _visual(self, chain: str, t: float, data: bytes) -> None:
+        if self.visualise is None or self.telemetry.rr is None:
+            return
+        for what, archetype in self.visualise(self.telemetry.rr, chain, data):
+            self.telemetry.log(component_path(chain, what), t, archetype)
+
+    # ---- flushing ------------------------------------------------------------------------------------------
+    def _maybe_flush(self) -> None:
+        now = time.monotonic()
+        if now - self._last_flush >= self.flush_every_s:
+            self._last_flush = now
+            self.telemetry.flush()
+
+    def flush(self) -> None:
+        with self._lock:
+            self.telemetry.flush()
+            self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            if self._owns:
+                self.telemetry.close()
+            else:
+                self.telemetry.flush()
+
+    def __enter__(self) -> "Recorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class RecordingBus:
+    """A `Bus` that records what passes through it (see `Recorder`) and otherwise delegates."""
+
+    def __init__(self, inner, recorder: Recorder):
+        self.inner = inner
+        self.recorder = recorder
+
+    def __enter__(self) -> "RecordingBus":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def on_output(self, chain: str, run: int, seq: int, data: bytes) -> None:
+        self.recorder.on_output(chain, run, seq, data)
+
+    def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
+        self.inner.publish(key, payload, reliable=reliable)
+        self.recorder.on_publish(key, payload)
+
+    def subscribe(self, key_expr: str, callback):
+        rec = self.recorder
+
+        def tapped(key: str, payload: bytes) -> None:
+            rec.on_receive(key, payload)
+            callback(key, payload)
+
+        return self.inner.subscribe(key_expr, tapped)
+
+    def declare_token(self, key: str):
+        return self.inner.declare_token(key)
+
+    def watch_liveliness(self, key_expr: str, callback):
+        rec = self.recorder
+
+        def tapped(key: str, alive: bool) -> None:
+            rec.on_liveliness(key, alive)
+            callback(key, alive)
+
+        return self.inner.watch_liveliness(key_expr, tapped)
+
+    def serve(self, key: str, callback):
+        return self.inner.serve(key, callback)
+
+    def query(self, key: str, payload: bytes, timeout_s: float = 2.0) -> list[bytes]:
+        return self.inner.query(key, payload, timeout_s)
+
+    def close(self) -> None:
+        try:
+            self.inner.close()
+        finally:
+            self.recorder.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# merging
+# ---------------------------------------------------------------------------------------------
+
+
+def rerun_binary() -> str:
+    """The ``rerun`` executable of this environment.
+
+    Prefers the real binary shipped in ``rerun_cli`` over the venv's ``rerun`` (a Python wrapper
+    next to the interpreter, which survives SIGTERM without stopping its child): a process we
+    start must be one we can stop by its own pid. Then the wrapper, then PATH.
+    """
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).with_name("rerun")
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return str(exe)
+    except ImportError:
+        pass
+    here = Path(sys.executable).parent / "rerun"
+    if here.is_file():
+        return str(here)
+    found = shutil.which("rerun")
+    if found is None:
+        raise AutoPowerError("the 'rerun' command is not installed next to Python or on PATH; "
+                             "install rerun-sdk in this environment")
+    return found
+
+
+def rerun_env() -> dict[str, str]:
+    return {**os.environ, "RERUN_ANALYTICS": "0"}
+
+
+def merge_recordings(files: Iterable[str | Path], out: str | Path, *, timeout_s: float = 60.0) -> Path:
+    """Merge per-process files of one run into `out` with ``rerun rrd merge``.
+
+    Missing or empty files are skipped (a process that died before writing anything); raises
+    `RecordingError` if nothing is left or the merge fails.
+    """
+    from autopower.errors import RecordingError
+
+    out = Path(out)
+    inputs = [str(f) for f in files if Path(f).is_file() and Path(f).stat().st_size > 0
+              and Path(f).resolve() != out.resolve()]
+    if not inputs:
+        raise RecordingError(f"{out}: no per-process recording to merge; check that the processes were "
+                             "started with a recording directory")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".part")
+    cmd = [rerun_binary(), "rrd", "merge", "--continue-on-error", "-o", str(tmp), *inputs]
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=rerun_env(),
+                              stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        tmp.unlink(missing_ok=True)
+        raise RecordingError(f"{out}: 'rerun rrd merge' took more than {timeout_s:.0f} s") from None
+    if done.returncode != 0 or not tmp.is_file():
+        tmp.unlink(missing_ok=True)
+        raise RecordingError(f"{out}: 'rerun rrd merge' failed ({done.returncode}): "
+                             f"{(done.stderr or done.stdout).strip()[-400:]}")
+    os.replace(tmp, out)
+    return out
+
+
+def merge_run(run_dir: str | Path) -> Path:
+    """Merge every ``<node>.rrd`` of `run_dir` into ``<run_dir>/run.rrd``."""
+    run_dir = Path(run_dir)
+    files: Sequence[Path] = sorted(p for p in run_dir.glob("*.rrd") if p.name != MERGED_NAME)
+    return merge_recordings(files, run_dir / MERGED_NAME)
+
+
+__all__ = ["EVENT_TAG", "MERGED_NAME", "Recorder", "RecordingBus", "merge_recordings", "merge_run",
+           "output_path", "parse_event", "record_fault", "record_fault_event", "rerun_binary", "run_recording_id",
+           "tag_event"]

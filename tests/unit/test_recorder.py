@@ -1,0 +1,227 @@
+"""The recording bus tap: a whole in-memory team recorded per process, merged, replayed."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from autopower.basestation.coordinator import CoordinatorConfig
+from autopower.bus import InMemoryBus, InMemoryHub
+from autopower.protocol import Keys, MigrateCommand, encode
+from autopower.recorder import (
+    EVENT_TAG,
+    Recorder,
+    merge_run,
+    output_path,
+    parse_event,
+    record_fault,
+    run_recording_id,
+    tag_event,
+)
+from autopower.replay import load, summarize
+from autopower.scenario import load_scenario
+from autopower.telemetry import Telemetry, read_recording
+from tests.unit import sim_team
+from tests.unit.sim_team import SimTeam
+
+os.environ.setdefault("RERUN_ANALYTICS", "0")
+FC = {"laptop-robot": "802.11a", "robot-robot": "802.11a"}
+
+
+def test_tagged_events_round_trip():
+    line = tag_event("Loc-1 runs on r2", type="stage-ready", stage="Loc-1", downtime_ms=3.5)
+    assert EVENT_TAG in line
+    text, payload = parse_event(line)
+    assert text == "Loc-1 runs on r2" and payload == {"type": "stage-ready", "stage": "Loc-1", "downtime_ms": 3.5}
+    assert parse_event("plain text") == ("plain text", None)
+    assert parse_event(f"broken{EVENT_TAG}{{not json") == (f"broken{EVENT_TAG}{{not json", None)
+    assert parse_event(None) == ("", None)
+
+
+def test_recording_id_comes_from_the_run_directory(tmp_path):
+    a, b = tmp_path / "x" / "run-1", tmp_path / "y" / "run-1"
+    assert run_recording_id(a) == run_recording_id(b) != run_recording_id(tmp_path / "run-2")
+
+
+class _TappedHub(InMemoryHub):
+    """Every bus of the SimTeam goes through a Recorder writing <run_dir>/<node>.rrd."""
+
+    run_dir = None
+    scenario = None
+    clock_holder: list = []
+    recorders: dict = {}
+
+    def bus(self, name: str = ""):
+        rec = Recorder.open(self.run_dir, name, scenario=self.scenario, clock=lambda: self.clock_holder[0].t)
+        self.recorders[name] = rec
+        return rec.tap(InMemoryBus(self, name))
+
+
+@pytest.fixture
+def recorded_team(tmp_path, monkeypatch):
+    sc = load_scenario("paper-fig7")
+    run_dir = tmp_path / "run-42"
+    holder: list = []
+    hub_cls = type("Hub", (_TappedHub,), {"run_dir": run_dir, "scenario": sc, "clock_holder": holder,
+                                          "recorders": {}})
+    monkeypatch.setattr(sim_team, "InMemoryHub", hub_cls)
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False))
+    holder.append(team.clock)
+    return team, hub_cls.recorders, run_dir
+
+
+def _publish_status(team: SimTeam) -> None:
+    keys = team.keys
+    for name, rt in team.nodes.items():
+        if rt.started:
+            rt.bus.publish(keys.status(name), encode(rt.status(5.0)), reliable=False)
+    team.pump()
+
+
+def test_a_recorded_team_replays_with_migrations_outputs_and_energy(recorded_team):
+    team, recorders, run_dir = recorded_team
+    for name, rt in team.nodes.items():
+        recorders[name].attach(rt)
+    team.join()
+    for t in range(1, 31):
+        team.run_until(float(t))
+        if t == 10:
+            reply = team.coordinator.on_operator(MigrateCommand(stage="Loc-1", to_node="r2"))
+            assert reply.ok, reply.message
+        if t % 2 == 0:
+            _publish_status(team)
+    for rec in recorders.values():
+        rec.close()
+    files = sorted(p.name for p in run_dir.glob("*.rrd"))
+    assert "r1.rrd" in files and "coordinator.rrd" in files
+    merged = merge_run(run_dir)
+    assert merged.name == "run.rrd"
+
+    rec = load(merged)
+    ids = {read_recording(run_dir / f).properties["recording_id"] for f in files}
+    assert ids == {run_recording_id(run_dir)} == {rec.properties["recording_id"]}
+    s = summarize(rec, merged)
+    assert s["kind"] == "live" and s["scenario"] == "paper-fig7"
+    assert set(s["robots"]) == {"r1", "r2", "r3"}
+    assert 25 <= s["mission"]["end_s"] <= 30.0
+    assert all(v["used_j"] > 0 for v in s["robots"].values())
+    assert s["decisions"] >= 2  # the first plan and the move
+    moved = [m for m in s["migrations"]["list"] if m["stage"] == "Loc-1"]
+    assert moved and moved[-1]["to"] == "r2" and moved[-1]["downtime_ms"] is not None
+    assert s["outputs"]["recorded"] and s["lost_outputs"] == 0 and s["duplicated_outputs"] == 0
+    assert set(s["outputs"]["chains"]) == {c.name for c in team.scenario.chains}
+    assert all(c["outputs"] >= 10 for c in s["outputs"]["chains"].values())  # Loc every 2 s, Blob 4 Hz
+    assert s["energy_model_error_pct"] is not None and abs(s["energy_model_error_pct"]) < 1
+    assert s["ok"], s["invariants"]
+    assert "robots/r1/model_w" in rec.scalars and "team/allocation" in rec.graphs
+
+
+def test_lost_and_duplicated_outputs_are_counted(tmp_path):
+    t = [0.0]
+    rec = Recorder(Telemetry(tmp_path / "x.rrd", kind="live", properties={"scenario": "paper-fig7"}), "laptop",
+                   clock=lambda: t[0])
+    rec.telemetry.battery(0.0, "r1", 100.0)
+    rec.telemetry.battery(1.0, "r1", 90.0)
+    for seq in (0, 1, 1, 3, 4, 4, 4):  # 2 lost, 3 duplicates
+        t[0] += 0.1
+        rec.on_output("Blob-2", 0, seq, b"")
+    rec.on_output("Blob-2", 1, 0, b"")  # a new run starts over at 0
+    rec.close()
+    s = summarize(load(tmp_path / "x.rrd"))
+    assert s["outputs"]["chains"]["Blob-2"] == {"outputs": 8, "distinct": 5, "lost": 1, "duplicated": 3,
+                                               "runs": [0, 1]}
+    assert s["lost_outputs"] == 1 and s["duplicated_outputs"] == 3
+    inv = {i["name"]: i["ok"] for i in s["invariants"]}
+    assert inv["every output exactly once at its sink"] is False and not s["ok"]
+    assert output_path("Blob-2", 1) in load(tmp_path / "x.rrd").scalars
+
+
+def test_faults_detection_and_reconfiguration(tmp_path):
+    """Injected by a fault tool, detected by liveliness, replanned, stage moved: times derived."""
+    hub = InMemoryHub()
+    t = [0.0]
+    rec = Recorder(Telemetry(tmp_path / "laptop.rrd", kind="live", properties={"scenario": "paper-fig7"}),
+                   "laptop", clock=lambda: t[0])
+    watcher = rec.tap(hub.bus("laptop"))
+    seen = []
+    watcher.watch_liveliness(Keys("t").alive_all, lambda k, alive: seen.append((k, alive)))
+    r1 = hub.bus("r1")
+    token = r1.declare_token(Keys("t").alive("r1"))
+    rec.telemetry.battery(0.0, "r2", 10.0)
+    t[0] = 100.0
+    record_fault(rec.telemetry, 100.0, kind="cut", target="r1-laptop")
+    t[0] = 100.8
+    token.close()  # liveliness lost: detected
+    rec.telemetry.decision(101.0, tag_event("plan epoch 2", type="plan", epoch=2, placement={}))
+    rec.telemetry.migration(101.3, tag_event("Loc-1 runs on r2", type="stage-ready", stage="Loc-1", node="r2",
+                                             generation=2, imported_state=True, downtime_ms=120.0))
+    rec.telemetry.battery(102.0, "r2", 9.0)
+    t[0] = 150.0
+    r1.declare_token(Keys("t").alive("r1"))  # back
+    watcher.close()
+    assert seen[-1] == (Keys("t").alive("r1"), True)  # the process's own callback still runs
+    s = summarize(load(tmp_path / "laptop.rrd"))
+    [fault] = s["faults"]
+    assert fault["kind"] == "cut" and fault["target"] == "r1-laptop"
+    assert fault["detected_s"] == pytest.approx(0.8) and fault["reconfigured_s"] == pytest.approx(1.3)
+    assert s["migrations"]["count"] == 1 and s["migrations"]["downtime_ms_max"] == 120.0
+
+
+def test_recording_never_breaks_the_bus(tmp_path):
+    hub = InMemoryHub()
+    rec = Recorder(Telemetry(tmp_path / "r1.rrd", kind="live"), "r1")
+    bus = rec.tap(hub.bus("r1"))
+    got = []
+    other = hub.bus("laptop")
+    other.subscribe("autopower/t/status/*", lambda k, p: got.append(p))
+    bus.publish("autopower/t/status/r1", b"garbage", reliable=False)  # undecodable: counted, delivered
+    bus.publish("autopower/t/base/plan", b"\x00\x01")
+    assert got == [b"garbage"] and rec.errors == 2
+    rec.telemetry.stream = None  # the sink is gone: still no exception
+    rec.on_output("Loc-1", 0, 0, b"x")
+    bus.close()
+    bus.publish("autopower/t/status/r1", b"after close")  # closed inner bus drops it; recorder ignores it
+
+
+def test_outputs_are_drawn_with_the_deploy_visualiser(tmp_path):
+    from autopower.chains import make_component, make_source
+    from autopower.deploy.recording import draw_output, open_recorder
+
+    import rerun as rr
+
+    blob = make_component("Blob", "r2", 0).run(make_source("Blob", "r2", 0).produce(0))
+    loc = make_component("Loc", "r1", 0).run(make_source("Loc", "r1", 0).produce(0))
+    assert [w for w, _ in draw_output(rr, "Blob-2", blob)] == ["blobs"]
+    assert [w for w, _ in draw_output(rr, "Loc-1", loc)] == ["particles", "pose"]
+    assert draw_output(rr, "X", b"not msgpack") == []
+    rec = open_recorder(tmp_path / "run-1", "laptop", clock=lambda: 1.0, visual_every_s=0.0)
+    rec.on_output("Blob-2", 0, 0, blob)
+    rec.on_output("Loc-1", 0, 0, loc)
+    rec.close()
+    assert rec.errors == 0 and rec.telemetry.errors == 0
+    assert (tmp_path / "run-1" / "laptop.rrd").stat().st_size > 0
+
+
+def test_a_fault_tool_writes_its_own_file_of_the_run(tmp_path):
+    from autopower.recorder import record_fault_event
+
+    run_dir = tmp_path / "run-7"
+    t = [0.0]
+    rec = Recorder.open(run_dir, "laptop", clock=lambda: t[0])
+    rec.telemetry.battery(0.0, "r1", 50.0)
+    t[0] = 100.4
+    rec.on_liveliness("autopower/t/alive/r1", False)
+    rec.telemetry.decision(100.6, tag_event("plan epoch 5", type="plan", epoch=5, placement={}))
+    rec.telemetry.battery(110.0, "r1", 40.0)
+    rec.close()
+    # the tool knows the mission clock from the coordinator's snapshot: t = (wall - epoch) * speed
+    path = record_fault_event(run_dir, kind="cut", target="r1-laptop", mission={"epoch_unix": 1000.0, "speed": 10.0},
+                              wall_unix=1010.0)
+    assert path.parent == run_dir and path.name.startswith("fault-")
+    with pytest.raises(Exception, match="needs t_s or the mission"):
+        record_fault_event(run_dir, kind="kill", target="r2")
+    s = summarize(load(merge_run(run_dir)))
+    [fault] = s["faults"]
+    assert (fault["kind"], fault["target"], fault["t_s"]) == ("cut", "r1-laptop", 100.0)
+    assert fault["detected_s"] == pytest.approx(0.4) and fault["reconfigured_s"] == pytest.approx(0.6)

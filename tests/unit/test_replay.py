@@ -1,0 +1,147 @@
+"""`autopower replay`: summaries of simulated recordings, what-ifs, clear errors, the web viewer."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from autopower.deploy.replay_command import main as replay_main
+from autopower.errors import AutoPowerError, RecordingError
+from autopower.mission_events import load_events
+from autopower.replay import load, recorded_state, summarize, what_if
+from autopower.scenario import load_scenario
+from autopower.simulator import simulate
+from autopower.telemetry import Telemetry
+
+os.environ.setdefault("RERUN_ANALYTICS", "0")
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sim") / "sim.rrd"
+    sc = load_scenario("paper-fig7")
+    events = load_events("link-cuts", sc)
+    with Telemetry(path, kind="simulation", properties={"scenario": sc.name, "policy": "rebalance",
+                                                        "accounting": sc.accounting,
+                                                        "topology": sc.network_spec.topology}) as tel:
+        result = simulate(sc, events, policy="rebalance", telemetry=tel)
+    return path, result
+
+
+def run_cli(capsys, *args):
+    with pytest.raises(SystemExit) as exit_info:
+        replay_main([str(a) for a in args])
+        raise SystemExit(0)
+    out = capsys.readouterr()
+    return exit_info.value.code, out.out, out.err
+
+
+def test_summary_of_a_simulation_matches_the_simulator(simulated):
+    path, result = simulated
+    s = summarize(load(path), path)
+    assert s["kind"] == "simulation" and s["scenario"] == "paper-fig7" and s["policy"] == "rebalance"
+    assert s["mission"]["end_s"] == pytest.approx(result.lifetime_s)
+    assert s["first_dry"]["robot"] == result.first_dry and not s["first_dry"]["projected"]
+    assert s["first_dry"]["at_s"] == pytest.approx(result.lifetime_s)
+    for robot, final in result.final_energies_j.items():
+        assert s["robots"][robot]["final_j"] == pytest.approx(final, abs=1e-6)
+    assert s["migrations"]["count"] == len(result.migrations)
+    cuts = [f for f in s["faults"] if f["kind"] == "cut"]
+    assert {f["target"] for f in cuts} >= {"r1-laptop", "r2-laptop", "r3-laptop"}
+    assert all(f["detected_s"] == 0.0 and f["reconfigured_s"] == 0.0 for f in cuts)
+    # the battery also pays for migrations, which the steady-state model does not: a small error
+    assert s["energy_model_error_pct"] is not None and abs(s["energy_model_error_pct"]) < 5
+    assert not s["outputs"]["recorded"] and s["ok"]
+    inv = {i["name"]: i["ok"] for i in s["invariants"]}
+    assert inv["battery never increases"] is True  # the fresh battery pack is an event, exempt
+
+
+def test_json_output_is_one_object(simulated, capsys):
+    path, result = simulated
+    code, out, err = run_cli(capsys, path, "--json")
+    assert code == 0, err
+    doc = json.loads(out)
+    for key in ("recording", "kind", "mission", "robots", "first_dry", "migrations", "faults", "energy",
+                "outputs", "invariants", "ok", "lost_outputs", "duplicated_outputs", "energy_model_error_pct"):
+        assert key in doc
+    assert doc["migrations"]["count"] == len(result.migrations)
+
+
+def test_text_output(simulated, capsys):
+    path, _ = simulated
+    code, out, _ = run_cli(capsys, path)
+    assert code == 0
+    assert "first to run dry" in out and "invariants:" in out and "faults:" in out
+
+
+def test_what_if_from_the_recorded_state(simulated, capsys):
+    path, _ = simulated
+    rec = load(path)
+    state = recorded_state(rec, 7300.0)
+    assert state["allocation"]["Loc-1"] == "r1"  # all cut from the base station at 7200 s
+    assert all(e < 64000 for e in state["energies_j"].values())
+    w = what_if(rec, at_s=7300.0)
+    assert set(w["plan"]["dropped_chains"]) == {"Blob-2", "Blob-3"}  # the sink is unreachable
+    assert w["plan"]["lifetime_s"] > 0 and w["recorded"]["lifetime_s"] > 0
+    w2 = what_if(rec, at_s=100.0, energies={"r1": 1000.0}, disable=("Blob-3",), accounting="physical")
+    assert "Blob-3" not in w2["plan"]["allocation"] and w2["plan"]["bottleneck"] == "r1"
+    code, out, err = run_cli(capsys, path, "--json", "--what-if", "--at", 100, "--topology", "relay",
+                             "--policy", "static")
+    assert code == 0, err
+    doc = json.loads(out)["what_if"]
+    assert doc["at_s"] == 100.0 and doc["policy"]["name"] == "static" and doc["policy"]["lifetime_s"] > 0
+    code, out, err = run_cli(capsys, path, "--what-if", "--energy", "r9=5")
+    assert code == 2 and "r9" in err and "Traceback" not in err
+    code, out, err = run_cli(capsys, path, "--at", 5)
+    assert code == 2 and "--what-if" in err
+
+
+@pytest.mark.parametrize("kind", ["missing", "empty", "garbage", "truncated", "foreign"])
+def test_bad_files_get_one_clear_error(kind, simulated, tmp_path, capsys):
+    path = tmp_path / f"{kind}.rrd"
+    if kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "garbage":
+        path.write_bytes(os.urandom(4096))
+    elif kind == "truncated":
+        path.write_bytes(simulated[0].read_bytes()[:3000])
+    elif kind == "foreign":
+        import rerun as rr
+
+        stream = rr.RecordingStream("someone-else", recording_id="foreign")
+        stream.save(str(path))
+        stream.log("points", rr.Points2D([[0, 0]]))
+        stream.disconnect()
+    with pytest.raises(RecordingError) as info:
+        load(path)
+    assert str(path) in str(info.value) and isinstance(info.value, AutoPowerError)
+    code, out, err = run_cli(capsys, path, "--json")
+    assert code == 2 and out == ""
+    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_serve_opens_the_viewer_on_loopback_and_stops_it(simulated, capsys):
+    path, _ = simulated
+    code, out, err = run_cli(capsys, path, "--json", "--serve", "--serve-seconds", 0.5)
+    assert code == 0, err
+    json.loads(out)  # stdout stays one JSON object; the viewer's messages go to stderr
+    line = next(l for l in err.splitlines() if l.startswith("viewer: "))
+    assert line.startswith("viewer: http://127.0.0.1:")
+    pid = int(line.split("(pid ")[1].split(";")[0])
+    assert "viewer stopped" in err
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
+
+
+def test_a_real_process_exits_2_without_a_traceback(tmp_path):
+    import subprocess
+    import sys
+
+    bad = tmp_path / "corrupt.rrd"
+    bad.write_bytes(b"RRF2" + os.urandom(200))
+    done = subprocess.run([sys.executable, "-m", "autopower.deploy.replay_command", str(bad)], capture_output=True,
+                          text=True, timeout=60, env={**os.environ, "RERUN_ANALYTICS": "0"})
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.startswith(f"error: {bad}") and "Traceback" not in done.stderr
