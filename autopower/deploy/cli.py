@@ -13,6 +13,7 @@ import click
 from rich.console import Console
 from rich.table import Table
 
+from autopower.deploy.entry import run_command
 from autopower.errors import AutoPowerError
 from autopower.scenario import Scenario, builtin_scenarios, load_scenario
 
@@ -254,19 +255,7 @@ _register_commands()
 
 
 def main() -> None:
-    try:
-        cli(standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("aborted", err=True)
-        sys.exit(130)
-    except click.ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
-    except AutoPowerError as exc:
-        click.echo(f"error: {exc}", err=True)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        sys.exit(130)
+    run_command(cli, prog_name="autopower")
 
 
 if __name__ == "__main__":

@@ -12,11 +12,12 @@ import math
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import click
+
+from autopower.deploy.entry import run_command
 
 from autopower.errors import AutoPowerError
 
@@ -160,18 +161,7 @@ def serve_recording(path: str | Path, *, seconds: float | None = None, echo=prin
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m autopower.deploy.replay_command RUN.rrd ...`` (same error handling as ``autopower``)."""
-    try:
-        replay.main(args=argv, prog_name="autopower replay", standalone_mode=False)
-    except click.exceptions.Abort:
-        sys.exit(130)
-    except click.ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
-    except AutoPowerError as exc:
-        click.echo(f"error: {exc}", err=True)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        sys.exit(130)
+    run_command(replay, argv, "autopower replay")
 
 
 if __name__ == "__main__":
