@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 from autopower.errors import AutoPowerError, InfeasibleError
 from autopower.model import Evaluation, Network, evaluate
-from autopower.planner.exhaustive import MAX_COMBINATIONS, exhaustive
+from autopower.planner.exhaustive import exhaustive
 from autopower.planner.milp import solve_milp
 from autopower.planner.problem import PlanRequest, Problem, make_problem
 from autopower.planner.reasons import explain

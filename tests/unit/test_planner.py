@@ -1,6 +1,5 @@
 """The MILP equals exhaustive search; plans carry reasons; the time-sharing bound is an upper bound."""
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
