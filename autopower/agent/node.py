@@ -15,8 +15,10 @@ go to the new host). Sequence numbers make each stage run each input once and in
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
+from collections import deque
 import math
 import time
 import zlib
@@ -55,6 +57,7 @@ log = logging.getLogger(__name__)
 
 MAX_FORWARDS = 16  # a frame bounced more often than this between pointers is parked instead
 ORPHAN_LIMIT = 256  # frames held for a stage this node is about to host (a transient window)
+HELD_OUTPUT_LIMIT = 512  # results held for a sink out of reach (oldest dropped, counted)
 
 
 class Lifecycle(enum.Enum):
@@ -149,7 +152,17 @@ class NodeRuntime:
         self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
         self.weights: dict[str, float] = {}
         self._early_control: list[bytes] = []
+        # results whose sink is out of reach (the base station is cut off): kept, bounded,
+        # and delivered when a route to it exists again
+        self.held_outputs: deque[ChainFrame] = deque()
+        self.held_dropped = 0
+        # migration state with no route yet (an order overtook the plan that brings the route
+        # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
+        self.parked_transfers: list[tuple[str, bytes, str]] = []
         self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
+        # How a message for one node leaves: the process replaces it with its `Relayer.send`
+        # so that a node out of direct sight is still reached through other agents.
+        self.send_to: Callable[[str, str, bytes], object] = lambda dest, key, payload: self.bus.publish(key, payload)
 
     # ---- small helpers -----------------------------------------------------------------------
     def now(self) -> float:
@@ -184,12 +197,7 @@ class NodeRuntime:
                                       initial_j=plan.mission.energies_j.get(self.node),
                                       t0=max(0.0, self.clock.now()))
             self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
-        self.plan = plan
-        nodes = self.scenario.node_names()
-        links = [Link(a=l.a, b=l.b, medium=l.medium, group="runtime") for l in plan.links
-                 if l.a in nodes and l.b in nodes and l.medium in self.scenario.radios]
-        self.network = Network(nodes, self.scenario.basestation, links, "runtime")
-        self.meter.set_media(self.network.media_of(self.node), self.now())
+        self._set_plan(plan)
         # stages that have landed elsewhere: frames held here for them can go now
         for stage, frames in list(self.orphans.items()):
             host = plan.placement.get(stage)
@@ -198,9 +206,64 @@ class NodeRuntime:
                 for frame in frames:
                     self.send_frame(frame, host)
         self._sync_sources()
+        parked, self.parked_transfers = self.parked_transfers, []
+        for dest, body, chain in parked:
+            self.send_routed(dest, body, len(body), 1.0, "migration", chain)
+        self.flush_held_outputs()
         early, self._early_control = self._early_control, []
         for payload in early:
             self.on_control(payload)
+
+    def _set_plan(self, plan: PlanUpdate) -> None:
+        self.plan = plan
+        nodes = self.scenario.node_names()
+        links = [Link(a=l.a, b=l.b, medium=l.medium, group="runtime") for l in plan.links
+                 if l.a in nodes and l.b in nodes and l.medium in self.scenario.radios]
+        self.network = Network(nodes, self.scenario.basestation, links, "runtime")
+        self.meter.set_media(self.network.media_of(self.node), self.now())
+
+    def override_placement(self, placement: dict[str, str], unreachable: set[str]) -> None:
+        """A placement agreed without the base station (a subgroup commit): same epoch, our view.
+
+        Links to ``unreachable`` nodes leave the routing; the next plan from the base station
+        (a higher epoch) replaces all of it.
+        """
+        if self.plan is None:
+            return
+        links = tuple(l for l in self.plan.links if l.a not in unreachable and l.b not in unreachable)
+        self._set_plan(dataclasses.replace(self.plan, placement={**self.plan.placement, **placement}, links=links))
+        for stage, frames in list(self.orphans.items()):
+            host = self.plan.placement.get(stage)
+            if host is not None and host != self.node:
+                del self.orphans[stage]
+                for frame in frames:
+                    self.send_frame(frame, host)
+
+    def hold_output(self, frame: ChainFrame) -> None:
+        if len(self.held_outputs) >= HELD_OUTPUT_LIMIT:
+            self.held_outputs.popleft()
+            self.held_dropped += 1
+            self.tally("held-outputs-dropped")
+        self.held_outputs.append(frame)
+        if len(self.held_outputs) == 1:
+            log.info("%s: the sink of %s is out of reach; holding its results here (at most %d, oldest "
+                     "dropped) until it returns", self.node, frame.chain, HELD_OUTPUT_LIMIT)
+
+    def flush_held_outputs(self) -> None:
+        if not self.held_outputs or self.network is None:
+            return
+        held, self.held_outputs = self.held_outputs, deque()
+        sent = 0
+        for frame in held:
+            sink = self.chains[frame.chain].sink
+            if self.network.path(self.node, sink) is None:
+                self.held_outputs.append(frame)
+            else:
+                self.send_frame(frame, sink)
+                sent += 1
+        if sent:
+            log.info("%s: delivered %d held result(s)", self.node, sent)
+            self.tally("held-outputs-delivered", sent)
 
     def _sync_sources(self) -> None:
         running = self.plan.running if self.plan else {}
@@ -281,13 +344,26 @@ class NodeRuntime:
                     chain: str) -> bool:
         path = self.network.path(self.node, dest) if self.network else None
         if path is None:
+            if purpose == "migration":
+                self.parked_transfers.append((dest, body, chain))
+                log.info("%s: no route to %s yet for %s's state; parked until a plan routes it", self.node, dest,
+                         chain)
+                return False
+            if purpose == "chain" and chain in self.chains and dest == self.chains[chain].sink:
+                try:
+                    frame = decode(body, ChainFrame)
+                except ProtocolError:
+                    frame = None
+                if frame is not None and frame.target == len(self.chains[chain].stages):
+                    self.hold_output(frame)
+                    return False
             self.count("unroutable", f"no route from {self.node} to {dest}")
             return False
         media = tuple(self.network.medium_between(u, v) for u, v in zip(path, path[1:]))
         packet = Packet(path=tuple(path), media=media, hop=1, charge_bytes=charge_bytes, weight=weight,
                         purpose=purpose, chain=chain, body=body)
         self.meter.charge_radio("send", media[0], charge_bytes, weight, self.now(), purpose)
-        self.bus.publish(self.keys.node_data(path[1]), encode(packet))
+        self.send_to(path[1], self.keys.node_data(path[1]), encode(packet))
         return True
 
     # ---- receiving -----------------------------------------------------------------------------
@@ -311,7 +387,7 @@ class NodeRuntime:
                          chain=packet.chain, body=packet.body)
             self.meter.charge_radio("send", packet.media[packet.hop], packet.charge_bytes, packet.weight, now,
                                     packet.purpose)
-            self.bus.publish(self.keys.node_data(packet.path[packet.hop + 1]), encode(nxt))
+            self.send_to(packet.path[packet.hop + 1], self.keys.node_data(packet.path[packet.hop + 1]), encode(nxt))
             self.tally("forwarded")
             return
         body = decode(packet.body, (ChainFrame, StateTransfer))
@@ -430,7 +506,7 @@ class NodeRuntime:
         return self._make_component(stage.component, chain.source, chain_seed(self.scenario, chain))
 
     def _reply(self, msg) -> None:
-        self.bus.publish(self.keys.inbox, encode(msg))
+        self.send_to(self.scenario.basestation, self.keys.inbox, encode(msg))
 
     def on_assign(self, msg: Assign) -> None:
         chain, index = self.stage_index[msg.stage]
@@ -563,7 +639,8 @@ class NodeRuntime:
             links={n: n in self.alive for n in others},
             runs={n: h.runs for n, h in self.hosted.items() if h.runs},
             compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},
-            queue_depth=queue_depth, errors=dict(self.errors), counters=dict(self.counters),
+            queue_depth=queue_depth, errors=dict(self.errors),
+            counters={**self.counters, "held-outputs": len(self.held_outputs)},
             depleted=bool(self.meter and self.meter.depleted),
         )
 

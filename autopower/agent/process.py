@@ -18,7 +18,11 @@ from dataclasses import dataclass, field
 from autopower.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.agent.node import NodeRuntime
 from autopower.bus import Bus, ZenohBus, ZenohSettings
-from autopower.protocol import Keys, encode
+from autopower.errors import ProtocolError
+from autopower.protocol import Keys, NodeStatus, decode, encode
+from autopower.protocol import Assign, MigrateOut, SubgroupMove, SubgroupPropose
+from autopower.relay import Relayer
+from autopower.subgroup import SubgroupAgreement
 from autopower.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -33,6 +37,9 @@ class AgentConfig:
     status_period_s: float = 0.5  # wall seconds between status messages
     status_window_s: float = 2.0  # wall seconds the reported mean power covers
     parent_pid: int | None = None  # stop when this process is gone (no orphans)
+    subgroup: bool = True  # reallocate among the robots in reach when the base station is not
+    subgroup_settle_s: float = 0.3  # wall seconds the base must be out of reach before that
+    subgroup_timeout_s: float = 1.0  # a round not decided by then is aborted
 
 
 class Agent:
@@ -48,6 +55,12 @@ class Agent:
         self._handles: list = []
         self._runtime_kwargs = runtime_kwargs
         self.runtime: NodeRuntime | None = None
+        self.relayer: Relayer | None = None
+        self.agreement: SubgroupAgreement | None = None
+        self.statuses: dict = {}  # robot -> its last NodeStatus (battery for subgroup decisions)
+        self._base_lost_at: float | None = None
+        self._subgroup_done: tuple | None = None  # (members, epoch) already handled
+        self.subgroup_log: list[dict] = []
         self.stop_reason: str | None = None
 
     def __enter__(self) -> "Agent":
@@ -56,7 +69,13 @@ class Agent:
         bus, keys, robot = self._bus, self.keys, self.config.robot
         self.runtime = NodeRuntime(node=robot, scenario=self.config.scenario, bus=bus, keys=keys,
                                    **self._runtime_kwargs)
-        for key in (keys.node_data(robot), keys.node_control(robot), keys.plan):
+        self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count)
+        self.runtime.send_to = self.relayer.send
+        self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
+                                           on_commit=self._subgroup_commit,
+                                           timeout_s=self.config.subgroup_timeout_s)
+        for key in (keys.node_data(robot), keys.node_control(robot), keys.plan, keys.node_relay(robot),
+                    keys.status_all, keys.subgroup):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))
         # Presence last: once the base station sees us, everything we need is declared.
@@ -79,14 +98,150 @@ class Agent:
     def _handle(self, event) -> None:
         rt = self.runtime
         if isinstance(event, Received):
-            if not rt.on_message(event.key, event.payload):
-                rt.count("unexpected-key", event.key)
+            self._received(event.key, event.payload)
         elif isinstance(event, LivelinessChanged):
             node = self.keys.node_of_alive(event.key)
-            if node is not None:
+            if node is not None and node != self.config.robot:
                 rt.on_liveliness(node, event.alive)
+                self.relayer.on_liveliness(node, event.alive)
+                if not event.alive:
+                    self.agreement.on_member_lost(node)
+                # tell the others now, not at the next tick: the base station tells a dead
+                # robot from a cut link by what the other robots still see
+                self.publish_status()
         elif isinstance(event, OperatorRequest):
             event.request.close()
+
+    def _received(self, key: str, payload: bytes) -> None:
+        rt = self.runtime
+        if key == self.keys.node_relay(self.config.robot):
+            try:
+                inner = self.relayer.on_relay(payload)
+            except ProtocolError as exc:
+                rt.count("garbled", f"on {key}: {exc}")
+                return
+            if inner is None:
+                return
+            key, payload = inner
+        if key == self.keys.subgroup:
+            self.agreement.on_message(payload)
+            return
+        if self.keys.node_of_status(key) is not None:
+            try:
+                status = decode(payload, NodeStatus)
+                last = self.statuses.get(status.node)
+                if last is not None and status.t_unix <= last.t_unix:
+                    return  # a duplicate (direct and relayed) or an older one overtaken
+                self.relayer.on_status(status)
+                self.statuses[status.node] = status
+            except ProtocolError as exc:
+                rt.count("garbled", f"on {key}: {exc}")
+            return
+        epoch = rt.plan.epoch if rt.plan else -1
+        if not rt.on_message(key, payload):
+            rt.count("unexpected-key", key)
+        elif rt.plan is not None and rt.plan.epoch != epoch:
+            self.publish_status()  # acknowledges the new plan at once (reconfiguration is timed on it)
+
+    # ---- subgroup (no base station) ---------------------------------------------------------------
+    def _subgroup_tick(self) -> None:
+        """Base station out of reach for a while: the robots in reach reallocate among themselves."""
+        rt, cfg = self.runtime, self.config
+        self.agreement.on_timer()
+        if not cfg.subgroup or not rt.started or rt.plan is None:
+            return
+        base = cfg.scenario.basestation
+        if self.relayer.reachable(base):
+            self._base_lost_at = None
+            return
+        now = time.time()
+        if self._base_lost_at is None:
+            self._base_lost_at = now
+            return
+        robots = [r.name for r in cfg.scenario.robots]
+        members = tuple(sorted({cfg.robot} | {r for r in robots if self.relayer.reachable(r)}))
+        key = (members, rt.plan.epoch)
+        if (now - self._base_lost_at < cfg.subgroup_settle_s or members[0] != cfg.robot
+                or self.agreement.busy or self._subgroup_done == key):
+            return
+        self._subgroup_done = key
+        from autopower.policy import subgroup_reallocation
+
+        network = rt.network
+        for r in robots:
+            network = network.without_link(r, base) if network.medium_between(r, base) else network
+        energies = {}
+        for r in members:
+            battery = rt.meter.battery_j if r == cfg.robot else getattr(self.statuses.get(r), "battery_j", None)
+            energies[r] = max(1e-6, battery) if battery is not None else cfg.scenario.robot(r).energy_j
+        try:
+            proposal = subgroup_reallocation(cfg.scenario, network, members, dict(rt.plan.placement), energies,
+                                             accounting=rt.mission.accounting)
+        except Exception as exc:  # a decision that cannot be made must not stop the robot
+            log.warning("agent %s: subgroup %s: no reallocation: %s", cfg.robot, ",".join(members), exc)
+            return
+        for reason in proposal.reasons:
+            log.info("agent %s: subgroup: %s", cfg.robot, reason)
+        if not proposal.changes_anything:
+            return
+        member_set = set(members)
+        moves = tuple(SubgroupMove(stage=m.stage, from_node=m.from_node if m.from_node in member_set else None,
+                                   to_node=m.to_node) for m in proposal.moves)
+        moves += tuple(SubgroupMove(stage=s, from_node=None, to_node=proposal.allocation[s])
+                       for s in proposal.started)
+        placement = {m.stage: m.to_node for m in moves}
+        # above any generation the base station handed out; it jumps past these when it returns
+        generation = int(time.time() * 1000)
+        self.agreement.propose(members, placement, moves, generation, "; ".join(proposal.reasons[:1]))
+
+    def _subgroup_commit(self, proposal: SubgroupPropose) -> None:
+        rt, me = self.runtime, self.config.robot
+        base = self.config.scenario.basestation
+        for move in proposal.moves:
+            chain, _ = rt.stage_index[move.stage]
+            if move.from_node == me and move.to_node != me:
+                rt.on_migrate_out(MigrateOut(stage=move.stage, generation=proposal.generation, to_node=move.to_node))
+            elif move.from_node is None and move.to_node == me:
+                run = rt.plan.running.get(chain.name, 0)
+                rt.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
+                                    resume_seq=None))
+        rt.override_placement(dict(proposal.placement), {base})
+        if proposal.leader == me:
+            self._publish_subgroup_prediction(proposal)
+        rt.tally("subgroup-commits")
+        if proposal.leader == me and self.agreement.agreement_s:
+            rt.counters["subgroup-agreement-us"] = int(self.agreement.agreement_s[-1] * 1e6)
+        self.subgroup_log.append({"round": proposal.round_id, "members": list(proposal.members),
+                                  "moves": len(proposal.moves), "t_unix": time.time()})
+        log.info("agent %s: subgroup round %s committed: %s", me, proposal.round_id,
+                 ", ".join(f"{m.stage} {m.from_node or '(restart)'}->{m.to_node}" for m in proposal.moves))
+
+    def _publish_subgroup_prediction(self, proposal: SubgroupPropose) -> None:
+        """Say what the model predicts for the agreed placement (for the recording and replay).
+
+        Published as a `PlanUpdate` with the current epoch: agents ignore it (not newer than
+        what they run), recorders log the model's power per robot from it.
+        """
+        import dataclasses
+
+        from autopower.model import evaluate
+
+        rt = self.runtime
+        try:
+            placement = dict(rt.plan.placement)
+            from autopower.policy import effective_scenario
+
+            network = rt.network  # the base station's links are out of it already
+            scenario, _ = effective_scenario(self.config.scenario, network)
+            active = {rt.stage_index[s][0].name for s in placement}
+            disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
+            ev = evaluate(scenario, network, placement, accounting=rt.mission.accounting,
+                          disabled_chains=disabled)
+            update = dataclasses.replace(rt.plan, predicted_w={r: p.total_w for r, p in ev.robots.items()},
+                                         predicted_lifetime_s=None, plan_t_virtual=rt.now())
+            self._bus.publish(self.keys.plan, encode(update))
+        except Exception as exc:  # a prediction is telemetry: never worth stopping for
+            log.info("agent %s: no model prediction for the subgroup placement: %s", self.config.robot, exc)
 
     def publish_status(self) -> None:
         rt = self.runtime
@@ -94,7 +249,10 @@ class Agent:
             return
         window = self.config.status_window_s * rt.clock.speed
         status = rt.status(window, self.events.depth())
-        self._bus.publish(self.keys.status(self.config.robot), encode(status), reliable=False)
+        key, payload = self.keys.status(self.config.robot), encode(status)
+        self._bus.publish(key, payload, reliable=False)
+        # out of the base station's sight: through a robot that still sees it
+        self.relayer.send_beyond_sight([self.config.scenario.basestation], key, payload, reliable=False)
 
     def run(self, max_wall_s: float | None = None) -> str:
         """Run until stopped, depleted or ``max_wall_s``; return why it stopped."""
@@ -119,6 +277,7 @@ class Agent:
                     log.exception("agent %s: error handling %r", self.config.robot, type(event).__name__)
                     rt.count("internal-error")
             if rt.started:
+                self._subgroup_tick()
                 rt.on_timer()
                 rt.meter.advance(rt.now())
                 if rt.meter.depleted:

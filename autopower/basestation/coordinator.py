@@ -67,7 +67,9 @@ class CoordinatorConfig:
     migration_timeout_s: float = 10.0  # wall seconds before a stuck migration is abandoned
     start_grace_s: float = 30.0  # wall seconds to wait for every robot before starting without some
     plan_republish_s: float = 1.0  # wall seconds between repeats of the current plan (late joiners)
-    link_down_after_s: float = 3.0  # wall seconds a link must be reported down before it counts
+    link_down_after_s: float = 3.0  # wall seconds a never-seen-up link must be reported down before it counts
+    heal_hold_s: float = 2.0  # wall seconds a link must be back before plans may use it again (no flapping)
+    heal_min_gain: float = 0.01  # moving back after a heal must lengthen the lifetime by this much
 
 
 @dataclass
@@ -145,6 +147,18 @@ class Coordinator:
         self.aborted = 0
         self.replans = 0
         self.first_depletion: dict[str, float] | None = None
+        self._link_seen_up: set[frozenset[str]] = set()
+        self._link_up_since: dict[frozenset[str], float] = {}
+        # faults as the base station saw them: detection and when the team ran its new plan
+        self.faults: deque[dict] = deque(maxlen=100)
+        # robots back after an absence: their report of what they host (a subgroup may have
+        # reallocated without us) is the starting point, not our stale placement
+        self._awaiting_actual: dict[str, float] = {}
+        self.adopted = 0
+        # how messages leave (the process puts its `Relayer` here: robots out of sight are
+        # reached through other agents); defaults publish directly
+        self.send_to: Callable[[str, str, bytes], object] = lambda node, key, payload: self.bus.publish(key, payload)
+        self.also_relay: Callable[[list[str], str, bytes], object] = lambda nodes, key, payload: None
 
     # ---- helpers ----------------------------------------------------------------------------------
     def now(self) -> float:
@@ -165,7 +179,58 @@ class Coordinator:
             raise AutoPowerError(f"unknown node {node!r}; nodes: {', '.join(self.scenario.node_names())}")
 
     def _send(self, node: str, msg) -> None:
-        self.bus.publish(self.keys.node_control(node), encode(msg))
+        self.send_to(node, self.keys.node_control(node), encode(msg))
+
+    # ---- faults -------------------------------------------------------------------------------------
+    def record_fault(self, kind: str, target: str, detected_unix: float) -> None:
+        self.faults.append({"kind": kind, "target": target, "detected_unix": detected_unix,
+                            "decided_unix": self.wall(), "epoch": None, "reconfigured_unix": None})
+
+    def _mark_reconfigured(self) -> None:
+        """A fault is handled once its new plan runs: placed, and every robot in reach runs its epoch."""
+        open_faults = [f for f in self.faults if f["reconfigured_unix"] is None]
+        if not open_faults or not self.ready:
+            return
+        for fault in open_faults:
+            if fault["epoch"] is None:
+                fault["epoch"] = self.epoch
+        for fault in open_faults:
+            acked = all(self.statuses.get(r) is not None and self.statuses[r].plan_epoch >= fault["epoch"]
+                        for r in self.alive_nodes() if r in self.robots)
+            if acked:
+                fault["reconfigured_unix"] = self.wall()
+                self.note(f"{fault['kind']} {fault['target']}: reconfigured "
+                          f"{fault['reconfigured_unix'] - fault['detected_unix']:.3f} s after detection")
+
+    def link_lost(self, a: str, b: str, detected_unix: float | None = None) -> None:
+        """A link an end of which is this base station (seen by its own liveliness) went down."""
+        pair = frozenset((a, b))
+        self._link_up_since.pop(pair, None)
+        if pair in self.links_down:
+            return
+        self.links_down.add(pair)
+        self.record_fault("link-down", "-".join(sorted(pair)), detected_unix or self.wall())
+        self.note(f"link {a}-{b} is down")
+        self.replan("link change")
+
+    def link_seen(self, a: str, b: str) -> None:
+        """Evidence that a link works (its ends see each other)."""
+        pair = frozenset((a, b))
+        self._link_seen_up.add(pair)
+        self._link_reports.pop(pair, None)
+        if pair in self.links_down:
+            self._link_up_since.setdefault(pair, self.wall())
+
+    def _heal_links(self) -> None:
+        now = self.wall()
+        healed = [p for p, since in self._link_up_since.items()
+                  if p in self.links_down and now - since >= self.config.heal_hold_s]
+        for pair in healed:
+            self.links_down.discard(pair)
+            self._link_up_since.pop(pair, None)
+            self.note(f"link {'-'.join(sorted(pair))} is back (up for {self.config.heal_hold_s:g} s)")
+        if healed:
+            self.replan("links back", hold_placement_gain=self.config.heal_min_gain)
 
     @property
     def ready(self) -> bool:
@@ -207,15 +272,28 @@ class Coordinator:
         if base is None and self.config.media:
             base = self.scenario.network(topology=self.config.topology, media=self.config.media)
         if self.links_down:
-            base = base or self.plan_network
+            if base is None:
+                # the whole topology (with the media in use), minus what is down now: a link
+                # that came back is in it again
+                media = self.plan_obj.network.media_by_group() if self.plan_obj is not None else None
+                try:
+                    base = self.scenario.network(topology=self.config.topology, media=media)
+                except AutoPowerError:
+                    base = self.scenario.network(topology=self.config.topology)
             if base is not None:
                 for pair in self.links_down:
                     a, b = sorted(pair)
                     base = base.without_link(a, b)
         return base
 
-    def replan(self, reason: str, *, only_if_better: bool = False) -> bool:
+    def replan(self, reason: str, *, only_if_better: bool = False, hold_placement_gain: float | None = None) -> bool:
+        """Plan again; with ``hold_placement_gain`` the new network is adopted but components
+        move only if that lengthens the lifetime by more than this fraction (hysteresis)."""
         if self.mission is None:
+            return False
+        if self._awaiting_actual and "joined" not in reason:
+            # robots are back and have not said what they run yet: plan once they have
+            self.note(f"re-plan ({reason}) deferred until {', '.join(sorted(self._awaiting_actual))} report")
             return False
         unavailable = frozenset(r for r in self.robots if r not in self.alive_nodes())
         if len(unavailable) == len(self.robots):
@@ -241,10 +319,18 @@ class Coordinator:
             if current is not None and current.lifetime_s and new_life < current.lifetime_s * (1 + self.config.min_gain):
                 self._reset_baselines()
                 return False
+        target = dict(plan.allocation)
+        if hold_placement_gain is not None and self.target and target != self.target \
+                and set(target) == set(self.target):
+            current = self._evaluate(self.target, plan.network, energies)
+            new_life = plan.evaluation.lifetime_s or 0.0
+            if current is not None and current.lifetime_s and new_life < current.lifetime_s * (1 + hold_placement_gain):
+                self.note(f"{reason}: moving would gain {new_life / current.lifetime_s - 1:+.2%} "
+                          f"(< {hold_placement_gain:.0%}); components stay where they are")
+                target = dict(self.target)
         self.replans += 1
         self.plan_obj = plan
         self.plan_network = plan.network
-        target = dict(plan.allocation)
         for stage, node in self.pins.items():
             if stage in target and node in self.alive_nodes():
                 target[stage] = node
@@ -368,7 +454,7 @@ class Coordinator:
         self.placement.pop(stage, None)
 
     # ---- events --------------------------------------------------------------------------------------------
-    def on_liveliness(self, node: str, alive: bool) -> None:
+    def on_liveliness(self, node: str, alive: bool, detected_unix: float | None = None) -> None:
         if node == self.base or node not in self.robots:
             return
         if alive:
@@ -382,11 +468,12 @@ class Coordinator:
             if self.mission is None:
                 self.maybe_start()
             else:
-                self.replan(f"{node} joined")
+                self._awaiting_actual[node] = self.wall() + 1.0  # replan once it says what it hosts
         else:
             if node not in self.present:
                 return
             self.present.discard(node)
+            self.record_fault("node-left", node, detected_unix or self.wall())
             self.note(f"{node} left")
             self._node_lost(node)
             if self.mission is not None:
@@ -414,8 +501,30 @@ class Coordinator:
                 self._node_lost(status.node)
                 self.replan(f"{status.node} depleted")
             return
+        if status.node in self._awaiting_actual:
+            del self._awaiting_actual[status.node]
+            self._adopt_actual(status)
+            if not self._awaiting_actual:  # every robot that came back has said what it runs
+                self.replan(f"{status.node} joined (from what the robots report hosting)")
         self._check_links(status)
         self._check_drift(status)
+
+    def _adopt_actual(self, status: NodeStatus) -> None:
+        """Take the stages a returning robot runs as placed there (and stop our stale copies)."""
+        alive = self.alive_nodes()
+        for stage, state in status.hosted.items():
+            if state != "running" or stage not in self.chain_of or stage in self.migrations:
+                continue
+            previous = self.placement.get(stage)
+            if previous == status.node:
+                continue
+            # generations handed out without us are time-based: jump past them
+            self.generation = max(self.generation, int(self.wall() * 1000) + 1)
+            self.placement[stage] = status.node
+            self.adopted += 1
+            self.note(f"{stage} runs on {status.node} (agreed without the base station); adopted")
+            if previous is not None and previous in alive:
+                self._send(previous, Release(stage=stage, generation=self._next_generation()))
 
     def _topology_pairs(self) -> set[frozenset[str]]:
         network = self.scenario.network(topology=self.config.topology)
@@ -431,16 +540,20 @@ class Coordinator:
             pair = frozenset((status.node, peer))
             if pair not in pairs:
                 continue
-            if up or peer not in alive or status.node not in alive:
-                self._link_reports.pop(pair, None)
-                if up and pair in self.links_down:
-                    self.links_down.discard(pair)
-                    self.note(f"link {status.node}-{peer} is back")
-                    changed = True
+            if up:
+                self.link_seen(status.node, peer)
                 continue
+            if peer not in alive or status.node not in alive:
+                self._link_reports.pop(pair, None)
+                continue
+            self._link_up_since.pop(pair, None)
             since = self._link_reports.setdefault(pair, now)
-            if now - since >= self.config.link_down_after_s and pair not in self.links_down:
+            # an end that saw the link up and now reports it down has seen its lease expire:
+            # that is the detection; a link never seen up gets the start-up grace
+            wait = 0.0 if pair in self._link_seen_up else self.config.link_down_after_s
+            if now - since >= wait and pair not in self.links_down:
                 self.links_down.add(pair)
+                self.record_fault("link-down", "-".join(sorted(pair)), since)
                 self.note(f"link {status.node}-{peer} is down")
                 changed = True
         if changed:
@@ -468,6 +581,14 @@ class Coordinator:
     def on_timer(self) -> None:
         now_wall = self.wall()
         self.maybe_start()
+        if self.mission is not None:
+            late = [n for n, deadline in self._awaiting_actual.items() if now_wall >= deadline]
+            for node in late:
+                del self._awaiting_actual[node]
+            if late and not self._awaiting_actual:
+                self.replan(f"{', '.join(late)} joined (no report in time)")
+            self._heal_links()
+            self._mark_reconfigured()
         for stage, m in list(self.migrations.items()):
             if now_wall - m.started_unix > self.config.migration_timeout_s:
                 self._abort(stage, f"no answer in {self.config.migration_timeout_s:g} s")
@@ -496,7 +617,9 @@ class Coordinator:
         update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
                             running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
                             predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual)
-        self.bus.publish(self.keys.plan, encode(update))
+        payload = encode(update)
+        self.bus.publish(self.keys.plan, payload)
+        self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)
         self.next_republish = self.wall() + self.config.plan_republish_s
 
     # ---- operator ---------------------------------------------------------------------------------------------
@@ -592,6 +715,8 @@ class Coordinator:
             "migration_log": list(self.migration_log),
             "first_depletion": self.first_depletion,
             "events": list(self.events),
+            "faults": list(self.faults),
+            "adopted": self.adopted,
         }
 
 

@@ -31,6 +31,7 @@ from autopower.protocol import (
     decode,
     encode,
 )
+from autopower.relay import Relayer
 from autopower.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -64,6 +65,9 @@ class BaseStationConfig:
     status_period_s: float = 0.5
     status_window_s: float = 2.0
     parent_pid: int | None = None
+    # after losing sight of a robot, how long to wait for the other robots' word on it:
+    # still seen by one of them -> only our link is cut (relay through it); else it is gone
+    suspect_settle_s: float = 0.2
 
 
 class BaseStation:
@@ -84,6 +88,9 @@ class BaseStation:
         self.coordinator: Coordinator | None = None
         self.stop_reason: str | None = None
         self.garbled = 0
+        self.relayer: Relayer | None = None
+        self._suspects: dict[str, float] = {}  # robot out of direct sight -> when
+        self._status_t: dict[str, float] = {}  # node -> t_unix of its newest status seen
 
     def __enter__(self) -> "BaseStation":
         if self._bus is None:
@@ -92,8 +99,12 @@ class BaseStation:
         self.runtime = self._host_factory(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys)
         self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
                                        config=self.config.coordinator, planner=self._planner)
+        self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count)
+        self.runtime.send_to = self.relayer.send
+        self.coordinator.send_to = self.relayer.send
+        self.coordinator.also_relay = self.relayer.send_beyond_sight
         for key in (keys.node_data(self.node), keys.node_control(self.node), keys.plan, keys.inbox,
-                    keys.status_all):
+                    keys.status_all, keys.node_relay(self.node)):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.serve(keys.operator, self.events.on_request))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))
@@ -121,30 +132,85 @@ class BaseStation:
     def _handle(self, event) -> None:
         rt, co, keys = self.runtime, self.coordinator, self.keys
         if isinstance(event, Received):
-            if rt.on_message(event.key, event.payload):
+            key, payload = event.key, event.payload
+            if key == keys.node_relay(self.node):
+                try:
+                    inner = self.relayer.on_relay(payload)
+                except ProtocolError as exc:
+                    self._garbage(key, exc)
+                    return
+                if inner is None:
+                    return
+                key, payload = inner
+            self._received(key, payload)
+        elif isinstance(event, LivelinessChanged):
+            node = keys.node_of_alive(event.key)
+            if node is not None and node != self.node:
+                rt.on_liveliness(node, event.alive)
+                self.relayer.on_liveliness(node, event.alive)
+                if event.alive:
+                    self._suspects.pop(node, None)
+                    co.on_liveliness(node, True)
+                    co.link_seen(self.node, node)
+                elif node in co.robots:
+                    self._suspects[node] = time.time()
+                else:
+                    co.on_liveliness(node, False)
+        elif isinstance(event, OperatorRequest):
+            self._operator(event.request)
+
+    def _settle_suspects(self) -> None:
+        """Decide about robots we lost sight of: a cut link (relay) or a robot gone."""
+        co, now = self.coordinator, time.time()
+        for node, since in list(self._suspects.items()):
+            if now - since < self.config.suspect_settle_s:
+                continue
+            del self._suspects[node]
+            if self.relayer.reachable(node):
+                log.info("base station: %s out of sight but reachable via %s", node,
+                         "->".join(self.relayer.path_to(node)))
+                co.link_lost(self.node, node, detected_unix=since)
+            else:
+                co.on_liveliness(node, False, detected_unix=since)
+        # a robot kept through a relay whose relays no longer see it is gone too
+        for node in list(co.present):
+            if node not in self.relayer.direct and node not in self._suspects and not self.relayer.reachable(node):
+                co.on_liveliness(node, False)
+
+    def _received(self, key: str, payload: bytes) -> None:
+        rt, co, keys = self.runtime, self.coordinator, self.keys
+        if True:
+            if rt.on_message(key, payload):
                 return
+            event_key = key
             try:
-                if event.key == keys.inbox:
-                    msg = decode(event.payload, INBOX_MESSAGES)
+                if event_key == keys.inbox:
+                    msg = decode(payload, INBOX_MESSAGES)
                     if isinstance(msg, Prepared):
                         co.on_prepared(msg)
                     elif isinstance(msg, StageReady):
                         co.on_stage_ready(msg)
-                elif keys.node_of_status(event.key) is not None:
-                    status = decode(event.payload, NodeStatus)
+                elif keys.node_of_status(event_key) is not None:
+                    status = decode(payload, NodeStatus)
+                    # a status can come twice (direct and relayed) and out of order: the newest counts
+                    if status.t_unix <= self._status_t.get(status.node, 0.0):
+                        return
+                    self._status_t[status.node] = status.t_unix
                     if status.node != self.node:
-                        co.on_status(status)
+                        self.relayer.on_status(status)
+                        if (status.node in co.robots and status.node not in co.present
+                                and self.relayer.reachable(status.node)):
+                            co.on_liveliness(status.node, True)  # back, through a relay
+                        if status.node in co.present or status.node in self.relayer.direct:
+                            co.on_status(status)
                 else:
-                    rt.count("unexpected-key", event.key)
+                    rt.count("unexpected-key", event_key)
             except ProtocolError as exc:
-                self._garbage(event.key, exc)
-        elif isinstance(event, LivelinessChanged):
-            node = keys.node_of_alive(event.key)
-            if node is not None:
-                rt.on_liveliness(node, event.alive)
-                co.on_liveliness(node, event.alive)
-        elif isinstance(event, OperatorRequest):
-            request = event.request
+                self._garbage(event_key, exc)
+
+    def _operator(self, request) -> None:
+        keys, co = self.keys, self.coordinator
+        if True:
             try:
                 try:
                     cmd = decode(request.payload, OPERATOR_COMMANDS)
@@ -176,6 +242,7 @@ class BaseStation:
         while True:
             now = time.time()
             wake = [next_status, co.next_deadline_unix()]
+            wake += [t + self.config.suspect_settle_s for t in self._suspects.values()]
             if deadline is not None:
                 wake.append(deadline)
             if rt.started and (t := rt.next_deadline()) is not None:
@@ -190,6 +257,7 @@ class BaseStation:
                 except Exception:  # never let one bad event stop the coordinator
                     log.exception("base station: error handling %s", type(event).__name__)
                     rt.count("internal-error")
+            self._settle_suspects()
             co.on_timer()
             if rt.started:
                 rt.on_timer()

@@ -106,6 +106,10 @@ class TeamSpec:
     log_level: str = "info"
     extra_basestation_args: tuple[str, ...] = ()
     endpoint_overrides: dict[tuple[str, str], str] = field(default_factory=dict)
+    # one LinkProxy per link of the scenario's topology (a fault can cut it silently); pairs
+    # with no link get no connection at all, so relaying is done by the agents
+    proxied_links: bool = False
+    record_dir: Path | None = None  # every process writes its Rerun recording here (merge_run joins them)
 
 
 class LocalTeam:
@@ -120,7 +124,32 @@ class LocalTeam:
         self.nodes = [scenario.basestation] + [r.name for r in scenario.robots]  # base first: it listens first
         ports = free_ports(len(self.nodes))
         self.ports = dict(zip(self.nodes, ports))
-        self.connects = pair_endpoints(self.nodes, self.ports, spec.endpoint_overrides)
+        self.proxies: dict[frozenset[str], "LinkProxy"] = {}
+        if spec.proxied_links:
+            from autopower.deploy.linkproxy import LinkProxy
+
+            topology = scenario.network(topology=spec.topology)
+            pairs = {frozenset((l.a, l.b)) for l in topology.links}
+            self.connects = {}
+            for i, node in enumerate(self.nodes):
+                self.connects[node] = []
+                for peer in self.nodes[:i]:  # the later node connects to the earlier one
+                    pair = frozenset((node, peer))
+                    if pair not in pairs:
+                        continue
+                    taken = set(self.ports.values())
+                    proxy = LinkProxy(f"{peer}-{node}", self.ports[peer])
+                    for _ in range(20):  # port 0 may hand out a node's port (they were only reserved)
+                        if proxy.port not in taken:
+                            break
+                        retry = LinkProxy(f"{peer}-{node}", self.ports[peer])
+                        proxy.close()
+                        proxy = retry
+                    self.proxies[pair] = proxy
+                    self.connects[node].append(endpoint(proxy.port))
+        else:
+            self.connects = pair_endpoints(self.nodes, self.ports, spec.endpoint_overrides)
+        self.expected_exits: set[str] = set()  # children a fault killed on purpose
         self.children: dict[str, Child] = {}
         self.client: OperatorClient | None = None
         self.exit_codes: dict[str, int | None] = {}
@@ -136,6 +165,8 @@ class LocalTeam:
                 "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level]
         for ep in self.connects[node]:
             args += ["--connect", ep]
+        if self.spec.record_dir is not None:
+            args += ["--record-dir", str(self.spec.record_dir)]
         return args
 
     def _spawn(self, name: str, args: list[str]) -> None:
@@ -147,7 +178,21 @@ class LocalTeam:
                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
         self.children[name] = Child(name, proc, log_path)
 
+    def proxy(self, a: str, b: str):
+        """The LinkProxy of the link a-b; AutoPowerError if there is none."""
+        nodes = self.nodes
+        for n in (a, b):
+            if n not in nodes:
+                raise AutoPowerError(f"unknown node {n!r}; nodes of this team: {', '.join(nodes)}")
+        proxy = self.proxies.get(frozenset((a, b)))
+        if proxy is None:
+            links = ", ".join("-".join(sorted(p)) for p in self.proxies) or "none (started without link proxies)"
+            raise AutoPowerError(f"no link {a}-{b} in this team's topology; links: {links}")
+        return proxy
+
     def start(self) -> None:
+        for proxy in self.proxies.values():
+            proxy.start()
         spec, base = self.spec, self.scenario.basestation
         args = ["basestation", *self._common(base), "--speed", str(spec.speed)]
         for item in spec.energy:
@@ -173,6 +218,8 @@ class LocalTeam:
     def check_children(self) -> None:
         """Raise if a child exited on its own with an error."""
         for child in self.children.values():
+            if child.name in self.expected_exits:
+                continue
             rc = child.proc.poll()
             if rc not in (None, 0):
                 raise AutoPowerError(f"{child.name} exited with status {rc}; its log ({child.log_path}) ends:\n"
@@ -210,6 +257,7 @@ class LocalTeam:
             for child in procs:
                 if child.proc.poll() is None:
                     try:
+                        child.proc.send_signal(signal.SIGCONT)  # a frozen child must hear the SIGTERM
                         child.proc.send_signal(signal.SIGTERM)
                     except ProcessLookupError:
                         pass
@@ -222,7 +270,9 @@ class LocalTeam:
                     child.proc.kill()
                     child.proc.wait(timeout=5)
                 self.exit_codes[child.name] = child.proc.returncode
-        return dict(self.exit_codes)
+        for proxy in self.proxies.values():
+            proxy.close()
+        return {n: c for n, c in self.exit_codes.items() if n not in self.expected_exits}
 
     def __enter__(self) -> "LocalTeam":
         try:

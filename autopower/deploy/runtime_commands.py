@@ -108,6 +108,8 @@ def network_options(f):
     f = click.option("--status-period", default=0.5, show_default=True, help="Wall seconds between status messages.")(f)
     f = click.option("--duration", type=float, default=None, help="Stop after this many wall seconds.")(f)
     f = click.option("--parent-pid", type=int, default=None, hidden=True)(f)
+    f = click.option("--record-dir", type=click.Path(file_okay=False), default=None,
+                     help="Write this process's Rerun recording into DIR (the run's shared recording id).")(f)
     f = click.option("--log-level", default="info", show_default=True,
                      type=click.Choice(["debug", "info", "warning", "error"]))(f)
     return f
@@ -121,7 +123,8 @@ def network_options(f):
 @click.command("agent")
 @click.option("--robot", required=True, help="Which robot of the scenario this agent is.")
 @network_options
-def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level):
+def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
+          record_dir):
     """Run one robot's agent: host components, meter the battery, forward, publish status."""
     from autopower.agent.process import Agent, AgentConfig
 
@@ -130,9 +133,27 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
     config = AgentConfig(robot=robot, scenario=scenario, team=team,
                          zenoh=zenoh_settings(listen, connect, lease_ms),
                          status_period_s=status_period, parent_pid=parent_pid)
-    with Agent(config) as process:
-        reason = run_until_signalled(process, duration)
+    recorder, bus = _recording_bus(record_dir, robot, scenario, config.zenoh)
+    try:
+        with Agent(config, bus=bus) as process:
+            if recorder is not None:
+                recorder.attach(process.runtime)
+            reason = run_until_signalled(process, duration)
+    finally:
+        if bus is not None:
+            bus.close()  # flushes the recording: before os._exit
     exit_now(f"agent {robot} stopped: {reason}")
+
+
+def _recording_bus(record_dir, node: str, scenario, zenoh):
+    """(recorder, tapped bus) when recording, else (None, None): the process opens its own bus."""
+    if not record_dir:
+        return None, None
+    from autopower.bus import ZenohBus
+    from autopower.deploy.recording import open_recorder
+
+    recorder = open_recorder(record_dir, node, scenario=scenario)
+    return recorder, recorder.tap(ZenohBus(zenoh))
 
 
 @click.command("basestation")
@@ -153,7 +174,7 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
 @click.option("--start-grace", type=float, default=30.0, show_default=True,
               help="Wall seconds to wait for every robot before starting without the missing ones.")
 def basestation(scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
-                speed, energy, energy_scale, accounting, topology, media, pin, no_replan, replan_interval,
+                record_dir, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, replan_interval,
                 start_grace):
     """Run the base station: plan, place and migrate components; the operator's sink."""
     from autopower.agent.node import NodeRuntime
@@ -173,8 +194,15 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
                                     start_grace_s=start_grace)
     config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh_settings(listen, connect, lease_ms),
                                coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
-    with BaseStation(config, host_factory=NodeRuntime) as process:
-        reason = run_until_signalled(process, duration)
+    recorder, bus = _recording_bus(record_dir, scenario.basestation, scenario, config.zenoh)
+    try:
+        with BaseStation(config, host_factory=NodeRuntime, bus=bus) as process:
+            if recorder is not None:
+                recorder.attach(process.runtime)
+            reason = run_until_signalled(process, duration)
+    finally:
+        if bus is not None:
+            bus.close()
     exit_now(f"base station stopped: {reason}")
 
 
@@ -282,19 +310,23 @@ def render(snap: dict, speed: float):
               help="Fix a link group's medium, e.g. laptop-robot=gsm (default: the planner chooses).")
 @click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable).")
 @click.option("--no-replan", is_flag=True, help="No re-plans on battery drift or periodically.")
-@click.option("--lease-ms", default=1000, show_default=True)
+@click.option("--lease-ms", default=500, show_default=True,
+              help="Zenoh lease: a silent cut or a frozen robot is detected after about this long.")
+@click.option("--direct-links", is_flag=True,
+              help="Connect processes directly (no link proxies: `autopower fault cut` is unavailable).")
 @click.option("--ready-timeout", type=float, default=60.0, show_default=True)
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
               help="Where the children's logs go (default: a new temporary directory).")
 @click.option("--until-depleted", is_flag=True, help="Stop when the first robot's battery is empty.")
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
-       lease_ms, ready_timeout, log_dir, until_depleted):
+       lease_ms, direct_links, ready_timeout, log_dir, until_depleted):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
     prints a summary (placement, batteries against the model, missed periods, results).
     """
-    from autopower.basestation.operator import clear_session, write_session
+    from autopower.basestation.operator import clear_session, state_dir, write_session
+    from autopower.deploy.faults import SOCKET_NAME, FaultController, FaultServer
     from autopower.deploy.launcher import LocalTeam, TeamSpec
 
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting)  # fail fast on bad options
@@ -304,7 +336,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan,
-                    lease_ms=lease_ms, log_dir=log_dir)
+                    lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links)
 
     def on_term(signum, _frame):
         raise KeyboardInterrupt
@@ -317,11 +349,14 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     interrupted = False
     ready_after = None
     console = None
+    control = None
     try:
         team.start()
+        control = FaultServer(FaultController(team), state_dir() / f"{SOCKET_NAME}").__enter__()
         write_session({"team": team.team, "connect": [team.base_endpoint], "pid": os.getpid(),
                        "children": {n: c.proc.pid for n, c in team.children.items()},
-                       "scenario": scenario.name, "log_dir": str(team.log_dir)})
+                       "scenario": scenario.name, "log_dir": str(team.log_dir),
+                       "control": str(control.path)})
         if not as_json:
             from rich.console import Console
 
@@ -365,6 +400,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         except AutoPowerError:
             pass
     finally:
+        if control is not None:
+            control.close()
         codes = team.stop()
         clear_session(team.team)
         signal.signal(signal.SIGTERM, previous)
@@ -475,7 +512,10 @@ def status(team, connect, timeout, as_json):
         Console().print(render(snap, (snap.get("mission") or {}).get("speed", 1.0)))
 
 
-COMMANDS = (agent, basestation, up, chain, migrate, status)
+from autopower.deploy.demo import demo  # noqa: E402  (after the commands they sit beside)
+from autopower.deploy.faults import fault  # noqa: E402
+
+COMMANDS = (agent, basestation, up, chain, migrate, status, fault, demo)
 
 
 @click.group()

@@ -21,18 +21,23 @@ from autopower.protocol.messages import (
     PlanUpdate,
     Prepare,
     Prepared,
+    Relayed,
     Release,
     SinkStats,
     SnapshotRequest,
     SourceStats,
     StageReady,
     StateTransfer,
+    SubgroupDecision,
+    SubgroupMove,
+    SubgroupPropose,
+    SubgroupVote,
 )
 
 __all__ = [
     "CONTROL_MESSAGES", "INBOX_MESSAGES", "OPERATOR_COMMANDS", "PROTOCOL_VERSION",
     "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo",
     "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet",
-    "PlanUpdate", "Prepare", "Prepared", "Release", "SinkStats", "SnapshotRequest", "SourceStats",
-    "StageReady", "StateTransfer", "check_name", "decode", "encode", "message_kinds",
+    "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "SnapshotRequest", "SourceStats",
+    "StageReady", "StateTransfer", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",
 ]

@@ -40,6 +40,15 @@ class Keys:
     def node_control(self, node: str) -> str:
         return f"{self.prefix}/node/{check_name(node, 'node')}/control"
 
+    def node_relay(self, node: str) -> str:
+        """Control-plane messages another node asks this one to carry on (`Relayed`)."""
+        return f"{self.prefix}/node/{check_name(node, 'node')}/relay"
+
+    @property
+    def subgroup(self) -> str:
+        """Subgroup agreement rounds among robots (propose, votes, decision)."""
+        return f"{self.prefix}/subgroup"
+
     # presence
     def alive(self, node: str) -> str:
         return f"{self.prefix}/alive/{check_name(node, 'node')}"

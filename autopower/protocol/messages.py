@@ -326,6 +326,76 @@ class OperatorReply:
     snapshot: dict[str, Any] = field(default_factory=dict)
 
 
+# ---------------------------------------------------------------------------------------------
+# application-level relay (zenoh peers do not relay for each other)
+# ---------------------------------------------------------------------------------------------
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class Relayed:
+    """A control-plane message carried hop by hop through agents to a node with no direct link.
+
+    ``key`` and ``payload`` are what the origin would have published had the link been up; the
+    destination handles them exactly as if they had arrived on ``key``.
+    """
+
+    KIND = "relayed"
+    path: tuple[str, ...]  # origin ... destination
+    hop: int  # index in path of the node this copy is addressed to
+    key: str
+    payload: bytes
+
+    def __post_init__(self) -> None:
+        if len(self.path) < 2 or not 1 <= self.hop < len(self.path):
+            raise ValueError(f"relay path {self.path} with hop {self.hop} is not valid")
+
+
+# ---------------------------------------------------------------------------------------------
+# subgroup agreement among robots (no base station): propose -> accept -> commit
+# ---------------------------------------------------------------------------------------------
+
+
+@struct
+@dataclass(frozen=True, kw_only=True)
+class SubgroupMove:
+    stage: str
+    from_node: str | None  # None: started fresh here (its host is out of reach)
+    to_node: str
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class SubgroupPropose:
+    KIND = "sg-propose"
+    round_id: str
+    leader: str
+    members: tuple[str, ...]
+    placement: dict[str, str]  # stage -> node after the commit (the subgroup's stages)
+    moves: tuple[SubgroupMove, ...]
+    generation: int  # generation of every move of this round
+    reason: str
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class SubgroupVote:
+    KIND = "sg-vote"
+    round_id: str
+    node: str
+    accept: bool
+    reason: str
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class SubgroupDecision:
+    KIND = "sg-decision"
+    round_id: str
+    commit: bool
+    reason: str
+
+
 OPERATOR_COMMANDS = (ChainCommand, MigrateCommand, AutoCommand, LinkCommand, SnapshotRequest)
 CONTROL_MESSAGES = (Assign, Prepare, MigrateOut, Release)
 INBOX_MESSAGES = (Prepared, StageReady)

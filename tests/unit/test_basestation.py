@@ -86,6 +86,7 @@ def test_rejoining_robot_is_planned_again(sc):
     team.subscriptions["r3"] = [rt.bus.subscribe(k, lambda key, p, rt=rt: rt.on_message(key, p))
                                 for k in (keys.node_data("r3"), keys.node_control("r3"), keys.plan)]
     team.join(["r3"])
+    team.report_status()  # a returning robot is planned from what it reports hosting
     assert team.coordinator.placement == ALL_LAPTOP
 
 
@@ -147,7 +148,12 @@ def test_reported_link_down_replans_around_it(sc):
     assert team.nodes["r1"].counters.get("forwarded", 0) + team.nodes["r3"].counters.get("forwarded", 0) > 0
     team.nodes["r2"].alive.add("laptop")
     team.report_status()
+    assert co.links_down  # hysteresis: a link must stay up for heal_hold_s before plans use it
+    team.clock.advance(co.config.heal_hold_s + 0.5)
+    team.report_status()
+    co.on_timer()
     assert not co.links_down
+    assert [f["kind"] for f in co.faults] == ["link-down"]
 
 
 def test_battery_drift_triggers_a_replan(sc):
@@ -265,3 +271,49 @@ def test_snapshot_is_plain_data(sc):
     assert snap["robots"]["r1"]["status"]["battery_j"] < 64000
     reply = OperatorReply(ok=True, message="", snapshot=snap)
     assert decode(encode(reply)) == dataclasses.replace(reply)
+
+
+def test_cut_base_link_replans_at_once_and_heals_with_hysteresis(sc):
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0))
+    team.join()
+    co = team.coordinator
+    placement = dict(co.placement)
+    co.link_lost("laptop", "r1", detected_unix=team.clock.wall())
+    assert co.links_down == {frozenset({"laptop", "r1"})}
+    assert co.plan_network.medium_between("r1", "laptop") is None
+    assert co.faults[-1]["kind"] == "link-down" and co.faults[-1]["target"] == "laptop-r1"
+    team.pump()  # the new plan reaches the robots
+    team.report_status()  # ...which run it
+    co.on_timer()
+    assert co.faults[-1]["reconfigured_unix"] is not None
+    co.link_seen("laptop", "r1")
+    co.on_timer()
+    assert co.links_down  # not yet: the link must stay up for heal_hold_s
+    team.clock.advance(co.config.heal_hold_s + 0.1)
+    co.on_timer()
+    assert not co.links_down and co.plan_network.medium_between("r1", "laptop") is not None
+    assert co.placement == placement
+
+
+def test_a_returning_robot_is_planned_from_what_it_actually_runs(sc):
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0))
+    team.join()
+    co = team.coordinator
+    team.leave("r1")
+    # while away, r1 took Loc-1 over (a subgroup agreed it); it says so in its first status
+    rt = team.nodes["r1"]
+    from autopower.protocol import Assign
+
+    gen = int(team.clock.wall() * 1000) - 5  # subgroups hand out time-based generations
+    rt.on_assign(Assign(stage="Loc-1", generation=gen, chain="Loc-1", run=0, resume_seq=None))
+    keys = team.keys
+    team.subscriptions["r1"] = [rt.bus.subscribe(k, lambda key, p, rt=rt: rt.on_message(key, p))
+                                for k in (keys.node_data("r1"), keys.node_control("r1"), keys.plan)]
+    team.join(["r1"])
+    assert co._awaiting_actual  # no plan until it has reported
+    team.report_status()
+    assert co.adopted >= 1
+    assert co.generation > gen  # later orders win over the generation handed out without us
+    team.run_until(co.now() + 3.0)
+    assert co.placement["Loc-1"] == "laptop"  # and the planner moved it back, with its state
+    assert co.migrations_done >= 1

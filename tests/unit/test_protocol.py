@@ -28,6 +28,11 @@ from autopower.protocol import (
     PlanUpdate,
     Prepare,
     Prepared,
+    Relayed,
+    SubgroupDecision,
+    SubgroupMove,
+    SubgroupPropose,
+    SubgroupVote,
     Release,
     SinkStats,
     SnapshotRequest,
@@ -75,6 +80,11 @@ SAMPLES = [
     LinkCommand(node="r3", laptop_robot="gsm", robot_robot="bluetooth"),
     SnapshotRequest(),
     OperatorReply(ok=True, message="ok", snapshot={"a": [1, 2.5, None, {"b": "c"}]}),
+    Relayed(path=("laptop", "r2", "r1"), hop=1, key="autopower/t/node/r1/control", payload=b"x"),
+    SubgroupPropose(round_id="r1-1", leader="r1", members=("r1", "r2"), placement={"Loc-1": "r1"},
+                    moves=(SubgroupMove(stage="Loc-1", from_node=None, to_node="r1"),), generation=7, reason="x"),
+    SubgroupVote(round_id="r1-1", node="r2", accept=True, reason=""),
+    SubgroupDecision(round_id="r1-1", commit=True, reason="all accepted"),
 ]
 
 

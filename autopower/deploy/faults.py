@@ -1,0 +1,284 @@
+"""Fault injection into a running team: `autopower fault cut|heal|kill|freeze|thaw|radio`.
+
+The `up` supervisor owns the team's link proxies and child processes, so faults are carried
+out there. It serves a small local control channel — a Unix socket in the state directory,
+one JSON request per connection, one JSON reply — which works whatever the Zenoh links are
+doing (a cut link must not cut the operator off from un-cutting it). `session.json` says
+where the socket is.
+
+Every fault is recorded with its wall time (``t_unix``), so detection and reconfiguration can
+be measured against the base station's own record of when it noticed (its snapshot's
+``faults``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import socketserver
+import threading
+import time
+from pathlib import Path
+
+import click
+
+from autopower.errors import AutoPowerError
+
+log = logging.getLogger(__name__)
+
+SOCKET_NAME = "control.sock"
+MEDIA_CHOICES = ("802.11a", "gsm", "bluetooth")
+
+
+class FaultController:
+    """Carries out faults on a `LocalTeam` (thread-safe; used by the control server and the demo)."""
+
+    def __init__(self, team):
+        self.team = team
+        self.log: list[dict] = []
+        self._lock = threading.Lock()
+        self._mission: dict | None = None
+
+    def _robot(self, name: str) -> None:
+        robots = [r.name for r in self.team.scenario.robots]
+        if name not in robots:
+            raise AutoPowerError(f"unknown robot {name!r}; robots of this team: {', '.join(robots)}")
+
+    def _child(self, name: str):
+        self._robot(name)
+        child = self.team.children.get(name)
+        if child is None or child.proc.poll() is not None:
+            raise AutoPowerError(f"{name} is not running (already killed?)")
+        return child
+
+    def apply(self, request: dict) -> dict:
+        op = request.get("op")
+        with self._lock:
+            t = time.time()
+            if op in ("cut", "heal"):
+                a, b = request.get("a"), request.get("b")
+                proxy = self.team.proxy(a, b)
+                proxy.cut() if op == "cut" else proxy.heal()
+                target = f"{a}-{b}"
+            elif op in ("kill", "freeze", "thaw"):
+                name = request.get("robot")
+                child = self._child(name)
+                sig = {"kill": signal.SIGKILL, "freeze": signal.SIGSTOP, "thaw": signal.SIGCONT}[op]
+                if op == "kill":
+                    self.team.expected_exits.add(name)
+                t = time.time()
+                os.killpg(child.proc.pid, sig) if _own_group(child.proc.pid) else child.proc.send_signal(sig)
+                target = name
+            elif op == "radio":
+                from autopower.protocol import LinkCommand
+
+                name = request.get("robot")
+                self._robot(name)
+                laptop, robot = request.get("laptop"), request.get("robot_medium")
+                for medium in (laptop, robot):
+                    if medium is not None and medium not in MEDIA_CHOICES:
+                        raise AutoPowerError(f"unknown medium {medium!r}; media: {', '.join(MEDIA_CHOICES)}")
+                if laptop is None and robot is None:
+                    raise AutoPowerError("radio: give --laptop and/or --robot")
+                t = time.time()
+                reply = self.team.client.request(LinkCommand(node=name, laptop_robot=laptop, robot_robot=robot), 5.0)
+                if not reply.ok:
+                    raise AutoPowerError(f"the base station refused: {reply.message}")
+                target = name
+            elif op == "list":
+                return {"ok": True, "faults": list(self.log),
+                        "links": {"-".join(sorted(p)): ("cut" if x.is_cut else "up") for p, x in self.team.proxies.items()}}
+            else:
+                raise AutoPowerError(f"unknown fault operation {op!r}")
+            entry = {"kind": op, "target": target, "t_unix": t}
+            self.log.append(entry)
+            self._record(op, target, t)
+            log.info("fault: %s %s", op, target)
+            return {"ok": True, "fault": entry, "message": f"{op} {target} at {time.strftime('%H:%M:%S', time.localtime(t))}"}
+
+
+    def _record(self, op: str, target: str, t: float) -> None:
+        """Put the fault into the run's recording (when the team records), for replay."""
+        run_dir = getattr(self.team.spec, "record_dir", None)
+        if run_dir is None:
+            return
+        kind, phase = {"heal": ("cut", "healed"), "thaw": ("freeze", "healed")}.get(op, (op, "injected"))
+        try:
+            from autopower.recorder import record_fault_event
+
+            if self._mission is None:
+                self._mission = self.team.snapshot(timeout_s=2.0).get("mission")
+            record_fault_event(run_dir, kind=kind, target=target, phase=phase, mission=self._mission,
+                               wall_unix=t)
+        except Exception as exc:  # noqa: BLE001 - a recording problem must not stop the fault
+            log.warning("fault %s %s not recorded: %s", op, target, exc)
+
+
+def _own_group(pid: int) -> bool:
+    try:
+        return os.getpgid(pid) == pid
+    except OSError:
+        return False
+
+
+class FaultServer:
+    """The supervisor's side of the control channel (a context manager)."""
+
+    def __init__(self, controller: FaultController, path: Path):
+        self.controller = controller
+        self.path = Path(path)
+        if len(str(self.path)) > 100:  # AF_UNIX paths are limited to ~108 bytes
+            import tempfile
+
+            self.path = Path(tempfile.mkdtemp(prefix="autopower-")) / SOCKET_NAME
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            self.path.unlink()
+        controller_ = controller
+
+        class Handler(socketserver.StreamRequestHandler):
+            def handle(self) -> None:
+                try:
+                    request = json.loads(self.rfile.readline().decode() or "{}")
+                    reply = controller_.apply(request)
+                except AutoPowerError as exc:
+                    reply = {"ok": False, "message": str(exc)}
+                except Exception as exc:  # a bad request must not take the supervisor down
+                    log.exception("fault request failed")
+                    reply = {"ok": False, "message": f"internal error: {exc}"}
+                self.wfile.write((json.dumps(reply) + "\n").encode())
+
+        self._server = socketserver.ThreadingUnixStreamServer(str(self.path), Handler)
+        self._server.daemon_threads = True
+        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.1},
+                                        name="fault-server", daemon=True)
+
+    def __enter__(self) -> "FaultServer":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+        try:
+            self.path.unlink()
+        except FileNotFoundError:
+            pass
+
+
+def request_fault(request: dict, timeout_s: float = 10.0) -> dict:
+    """Send one request to the running team's supervisor (found through session.json)."""
+    from autopower.basestation.operator import read_session
+
+    session = read_session()
+    path = session.get("control")
+    if not path:
+        raise AutoPowerError("the running team was started without a fault control channel; "
+                             "restart it with `autopower up`")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout_s)
+        try:
+            sock.connect(path)
+        except OSError as exc:
+            raise AutoPowerError(f"cannot reach the team's supervisor at {path} ({exc}); "
+                                 "is `autopower up` still running?") from None
+        sock.sendall((json.dumps(request) + "\n").encode())
+        data = b""
+        while not data.endswith(b"\n"):
+            chunk = sock.recv(65536)
+            if not chunk:
+                break
+            data += chunk
+    try:
+        reply = json.loads(data.decode())
+    except json.JSONDecodeError:
+        raise AutoPowerError(f"the supervisor at {path} gave no answer") from None
+    if not reply.get("ok"):
+        raise AutoPowerError(reply.get("message", "fault failed"))
+    return reply
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------------------------
+
+
+def _run(request: dict, as_json: bool) -> None:
+    reply = request_fault(request)
+    click.echo(json.dumps(reply) if as_json else reply.get("message", "ok"))
+
+
+_json = click.option("--json", "as_json", is_flag=True, help="Print the reply as JSON.")
+
+
+@click.group("fault")
+def fault() -> None:
+    """Inject faults into the team started by `autopower up` (real, silent link cuts; signals)."""
+
+
+@fault.command("cut")
+@click.argument("a")
+@click.argument("b")
+@_json
+def fault_cut(a, b, as_json):
+    """Cut the radio link A-B silently (no FIN, no RST: only the Zenoh lease notices)."""
+    _run({"op": "cut", "a": a, "b": b}, as_json)
+
+
+@fault.command("heal")
+@click.argument("a")
+@click.argument("b")
+@_json
+def fault_heal(a, b, as_json):
+    """Bring the link A-B back."""
+    _run({"op": "heal", "a": a, "b": b}, as_json)
+
+
+@fault.command("kill")
+@click.argument("robot")
+@_json
+def fault_kill(robot, as_json):
+    """SIGKILL a robot's agent."""
+    _run({"op": "kill", "robot": robot}, as_json)
+
+
+@fault.command("freeze")
+@click.argument("robot")
+@_json
+def fault_freeze(robot, as_json):
+    """SIGSTOP a robot's agent (it stops answering; its lease expires)."""
+    _run({"op": "freeze", "robot": robot}, as_json)
+
+
+@fault.command("thaw")
+@click.argument("robot")
+@_json
+def fault_thaw(robot, as_json):
+    """SIGCONT a frozen robot's agent."""
+    _run({"op": "thaw", "robot": robot}, as_json)
+
+
+@fault.command("radio")
+@click.argument("robot")
+@click.option("--laptop", type=click.Choice(MEDIA_CHOICES), default=None, help="The robot's radio to the base.")
+@click.option("--robot", "robot_medium", type=click.Choice(MEDIA_CHOICES), default=None,
+              help="The robot's radio to other robots.")
+@_json
+def fault_radio(robot, laptop, robot_medium, as_json):
+    """A robot's radio hardware fails over (the paper's V.C fault): the base station replans."""
+    _run({"op": "radio", "robot": robot, "laptop": laptop, "robot_medium": robot_medium}, as_json)
+
+
+@fault.command("list")
+def fault_list():
+    """The faults injected so far and the state of every link, as JSON."""
+    click.echo(json.dumps(request_fault({"op": "list"}), indent=1))
+
+
+COMMANDS = [fault]

@@ -1,0 +1,126 @@
+"""Application-level relay of the control plane: plans, control, inbox replies and statuses.
+
+Zenoh peers do not relay for other peers (zenoh >= 1.9), and a robot whose radio link to the
+base station is cut is still in the team if another robot reaches both. So every process keeps
+a `Relayer`: it knows which nodes it sees directly (their liveliness tokens) and what every
+other node reports seeing (the ``links`` of their statuses), and sends a message either
+directly or wrapped in a `Relayed` along the shortest path of that reported graph. Each node
+on the way hands it to the next; the destination handles it as if it had arrived on its key.
+
+Pure logic over a `Bus`: no threads, no clock; the owning process feeds it liveliness changes,
+statuses and the relay messages addressed to it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from typing import Callable
+
+from autopower.bus import Bus
+from autopower.errors import ProtocolError
+from autopower.protocol import Keys, NodeStatus, Relayed, decode, encode
+
+log = logging.getLogger(__name__)
+
+MAX_HOPS = 8
+
+
+class Relayer:
+    """Send to a node directly when it is in sight, else through the nodes that reach it."""
+
+    def __init__(self, *, node: str, bus: Bus, keys: Keys, count: Callable[[str, str], None] | None = None):
+        self.node = node
+        self.bus = bus
+        self.keys = keys
+        self.direct: set[str] = set()
+        # nodes still "in sight" by our lease that have told us (by relaying to us) that we are
+        # not in theirs: our link to them is cut and our lease has not expired yet
+        self.shunned: set[str] = set()
+        self.views: dict[str, set[str]] = {}  # node -> the nodes it reported seeing, from its last status
+        self._count = count or (lambda what, detail="": None)
+        self.relayed_out = 0
+        self.forwarded = 0
+
+    # ---- what we know ----------------------------------------------------------------------------------
+    def on_liveliness(self, node: str, alive: bool) -> None:
+        if node == self.node:
+            return
+        self.shunned.discard(node)
+        if alive:
+            self.direct.add(node)
+        else:
+            self.direct.discard(node)
+
+    def on_status(self, status: NodeStatus) -> None:
+        if status.node != self.node:
+            self.views[status.node] = {n for n, up in status.links.items() if up}
+
+    def forget(self, node: str) -> None:
+        self.views.pop(node, None)
+
+    def path_to(self, dest: str) -> list[str] | None:
+        """Shortest path over direct links (ours) and reported ones (theirs); None if none."""
+        if dest == self.node:
+            return [dest]
+        prev: dict[str, str] = {self.node: ""}
+        todo = deque([self.node])
+        while todo:
+            u = todo.popleft()
+            nbrs = self.direct if u == self.node else self.views.get(u, set())
+            for v in sorted(nbrs):
+                if v in prev:
+                    continue
+                # a reported edge counts only if its far end is not ourselves going backwards
+                prev[v] = u
+                if v == dest:
+                    path = [v]
+                    while prev[path[-1]]:
+                        path.append(prev[path[-1]])
+                    return path[::-1]
+                todo.append(v)
+        return None
+
+    def reachable(self, dest: str) -> bool:
+        return self.path_to(dest) is not None
+
+    # ---- sending -----------------------------------------------------------------------------------------
+    def send(self, dest: str, key: str, payload: bytes, *, reliable: bool = True) -> bool:
+        """Publish ``payload`` on ``key`` for ``dest``: directly if in sight, else relayed."""
+        if dest == self.node or dest in self.direct:
+            self.bus.publish(key, payload, reliable=reliable)
+            return True
+        path = self.path_to(dest)
+        if path is None or len(path) > MAX_HOPS:
+            self._count("no-relay-path", f"{dest} is out of reach from {self.node}")
+            return False
+        msg = Relayed(path=tuple(path), hop=1, key=key, payload=payload)
+        self.bus.publish(self.keys.node_relay(path[1]), encode(msg), reliable=reliable)
+        self.relayed_out += 1
+        return True
+
+    def send_beyond_sight(self, dests, key: str, payload: bytes, *, reliable: bool = True) -> None:
+        """For a broadcast already published directly: also relay it to those out of sight."""
+        for dest in dests:
+            if dest != self.node and dest not in self.direct and self.reachable(dest):
+                self.send(dest, key, payload, reliable=reliable)  # best effort: no path, no error
+
+    def on_relay(self, payload: bytes) -> tuple[str, bytes] | None:
+        """A `Relayed` addressed to us: pass it on, or return (key, payload) if we are its end."""
+        msg = decode(payload, Relayed)
+        if msg.path[msg.hop] != self.node:
+            raise ProtocolError(f"relay for {msg.path[msg.hop]} reached {self.node}")
+        if msg.hop == len(msg.path) - 1:
+            origin = msg.path[0]
+            if origin in self.direct:
+                self.direct.discard(origin)
+                self.shunned.add(origin)
+            return msg.key, msg.payload
+        nxt = msg.path[msg.hop + 1]
+        if nxt not in self.direct:  # the planned next hop is gone; the origin resends what matters
+            self._count("relay-next-hop-gone", f"{nxt} on the way to {msg.path[-1]}")
+            return None
+        self.bus.publish(self.keys.node_relay(nxt),
+                         encode(Relayed(path=msg.path, hop=msg.hop + 1, key=msg.key, payload=msg.payload)))
+        self.forwarded += 1
+        return None

@@ -1,0 +1,73 @@
+"""The application-level relay: direct when in sight, else along the reported graph, hop by hop."""
+
+from __future__ import annotations
+
+from autopower.bus import InMemoryHub
+from autopower.protocol import Keys, NodeStatus, Relayed, decode, encode
+from autopower.relay import Relayer
+
+KEYS = Keys("t")
+
+
+def status(node: str, sees: list[str]) -> NodeStatus:
+    return NodeStatus(node=node, t_virtual=0.0, t_unix=0.0, plan_epoch=1, initial_j=None, battery_j=None,
+                      energy_j={}, power_w={}, cpu_utilisation=0.0, hosted={}, sources={}, sinks={},
+                      links={n: True for n in sees}, runs={}, compute_ms={}, queue_depth=0, errors={},
+                      counters={}, depleted=False)
+
+
+def make(hub, node, direct):
+    r = Relayer(node=node, bus=hub.bus(node), keys=KEYS)
+    for n in direct:
+        r.on_liveliness(n, True)
+    return r
+
+
+def test_direct_when_in_sight_relayed_through_a_robot_that_sees_the_destination():
+    hub = InMemoryHub(record=True)
+    base = make(hub, "laptop", ["r2", "r3"])  # the laptop-r1 link is cut
+    base.on_status(status("r2", ["laptop", "r1", "r3"]))
+    base.on_status(status("r3", ["laptop", "r2"]))
+    assert base.path_to("r1") == ["laptop", "r2", "r1"]
+    assert base.send("r2", KEYS.node_control("r2"), b"direct")
+    assert hub.published[-1][0] == KEYS.node_control("r2")
+    assert base.send("r1", KEYS.node_control("r1"), b"order")
+    key, payload, _ = hub.published[-1]
+    assert key == KEYS.node_relay("r2")
+    msg = decode(payload, Relayed)
+    assert msg.path == ("laptop", "r2", "r1") and msg.key == KEYS.node_control("r1")
+
+    # r2 passes it on; r1 is its end and gets the original key and payload
+    r2 = make(hub, "r2", ["laptop", "r1", "r3"])
+    assert r2.on_relay(payload) is None
+    key2, payload2, _ = hub.published[-1]
+    assert key2 == KEYS.node_relay("r1")
+    r1 = make(hub, "r1", ["r2", "r3", "laptop"])  # r1's lease has not expired yet
+    assert r1.on_relay(payload2) == (KEYS.node_control("r1"), b"order")
+    # ...but the relayed message told it the laptop no longer sees it: answer through r2 too
+    assert "laptop" not in r1.direct and "laptop" in r1.shunned
+    r1.on_status(status("r2", ["laptop", "r1"]))
+    assert r1.path_to("laptop") == ["r1", "r2", "laptop"]
+    r1.on_liveliness("laptop", True)  # the link is back for real
+    assert "laptop" in r1.direct
+
+
+def test_unreachable_is_counted_not_raised_and_a_gone_next_hop_is_dropped():
+    hub = InMemoryHub(record=True)
+    counted = []
+    lonely = Relayer(node="r1", bus=hub.bus("r1"), keys=KEYS, count=lambda what, detail="": counted.append(what))
+    assert not lonely.reachable("laptop")
+    assert lonely.send("laptop", KEYS.inbox, b"x") is False
+    assert counted == ["no-relay-path"]
+    payload = encode(Relayed(path=("laptop", "r1", "r3"), hop=1, key=KEYS.node_control("r3"), payload=b"y"))
+    assert lonely.on_relay(payload) is None  # r3 is not in sight: dropped (the origin resends what matters)
+    assert counted[-1] == "relay-next-hop-gone"
+
+
+def test_broadcast_reaches_those_out_of_sight():
+    hub = InMemoryHub(record=True)
+    base = make(hub, "laptop", ["r2"])
+    base.on_status(status("r2", ["r1", "r3", "laptop"]))
+    base.send_beyond_sight(["r1", "r2", "r3"], KEYS.plan, b"plan")
+    relayed = sorted(decode(p, Relayed).path[-1] for k, p, _ in hub.published if k == KEYS.node_relay("r2"))
+    assert relayed == ["r1", "r3"]
