@@ -8,6 +8,7 @@ They are plain click commands; the CLI root registers them (``cli.add_command(up
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import logging
 import os
 import signal
@@ -318,8 +319,10 @@ def render(snap: dict, speed: float):
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
               help="Where the children's logs go (default: a new temporary directory).")
 @click.option("--until-depleted", is_flag=True, help="Stop when the first robot's battery is empty.")
+@click.option("--record-dir", type=click.Path(file_okay=False), default=None,
+              help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
-       lease_ms, direct_links, ready_timeout, log_dir, until_depleted):
+       lease_ms, direct_links, ready_timeout, log_dir, until_depleted, record_dir):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
@@ -336,7 +339,10 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan,
-                    lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links)
+                    lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links,
+                    record_dir=Path(record_dir) if record_dir else None)
+    if record_dir:
+        Path(record_dir).mkdir(parents=True, exist_ok=True)
 
     def on_term(signum, _frame):
         raise KeyboardInterrupt
@@ -409,12 +415,22 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
     summary["failure"] = failure
+    summary["recording"] = None
+    if record_dir:
+        from autopower.deploy.recording import merge_run
+
+        try:
+            summary["recording"] = str(merge_run(Path(record_dir)))
+        except AutoPowerError as exc:  # the run itself is fine; say why there is no merged file
+            summary["recording_error"] = str(exc)
     bad = {n: c for n, c in codes.items() if c not in (0, None)}
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
     else:
         click.echo(f"stopped {len(codes)} processes ({'interrupted' if interrupted else 'done'}); "
                    f"logs in {team.log_dir}")
+        if summary["recording"]:
+            click.echo(f"recording: {summary['recording']} (autopower replay {summary['recording']})")
         if summary["missed_ratio"] > 0.01:
             click.echo(f"warning: {summary['periods_missed']} source periods missed "
                        f"({summary['missed_ratio']:.1%}); this machine cannot keep up with --speed {speed:g}. "

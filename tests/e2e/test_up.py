@@ -116,3 +116,21 @@ def test_no_orphans_when_up_is_terminated_or_killed(tmp_path, sig):
     proc.wait(timeout=30)
     # SIGTERM: `up` stops them itself; SIGKILL: they get SIGTERM from the kernel (PR_SET_PDEATHSIG)
     wait_until(lambda: not any(alive(p) for p in children.values()), 15, "every child to exit")
+
+
+def test_up_records_a_run_that_replay_reads(tmp_path):
+    """The user's path: run the team with --record-dir, then `autopower replay` the merged file."""
+    env = env_for(tmp_path)
+    run_dir = tmp_path / "runs" / "mine"
+    result = run_cli(["up", "paper-fig7", "--duration", "6", "--json", "--energy-scale", "0.01",
+                      "--record-dir", str(run_dir), "--log-dir", str(tmp_path / "logs")], env, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads(result.stdout)
+    assert summary["recording"] == str(run_dir / "run.rrd") and (run_dir / "run.rrd").stat().st_size > 0
+    replay = run_cli(["replay", summary["recording"], "--json"], env, timeout=120)
+    assert replay.returncode == 0, replay.stderr[-3000:]
+    data = json.loads(replay.stdout)
+    assert data["kind"] == "live" and data["scenario"] == "paper-fig7"
+    assert set(data["robots"]) == {"r1", "r2", "r3"}
+    assert data["duplicated_outputs"] == 0 and data["lost_outputs"] == 0  # no faults: exactly once
+    assert abs(data["energy_model_error_pct"]) <= 1.0
