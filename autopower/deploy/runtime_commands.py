@@ -544,18 +544,10 @@ for _command in COMMANDS:
 
 
 def main() -> None:
-    try:
-        runtime(standalone_mode=False)
-    except click.exceptions.Abort:
-        sys.exit(130)
-    except click.ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
-    except AutoPowerError as exc:
-        click.echo(f"error: {exc}", err=True)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        sys.exit(130)
+    """``python -m autopower.deploy.runtime_commands ...``: how `up` starts its children."""
+    from autopower.deploy.entry import run_command
+
+    run_command(runtime)
 
 
 if __name__ == "__main__":
