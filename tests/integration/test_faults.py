@@ -112,8 +112,12 @@ def test_subgroup_reallocates_without_the_base_station(tmp_path):
         time.sleep(1.0)  # the subgroup runs on its own for a while
         for r in robots:
             controller.apply({"op": "heal", "a": r, "b": "laptop"})
+        # A robot is "present" again as soon as its liveliness returns, before its first fresh
+        # status arrives: wait (bounded) for statuses that report the commit, not just presence.
         snap = wait_for(team, lambda s: s["ready"] and all(v["present"] for v in s["robots"].values())
-                        and not s["links_down"], 20, "the team back under the base station")
+                        and not s["links_down"]
+                        and all((s["robots"][r].get("status") or {}).get("counters", {}).get("subgroup-commits", 0) >= 1
+                                for r in robots), 20, "the team back under the base station, reporting the commit")
         assert snap["adopted"] >= 1  # it started from what the robots actually ran
         for r in robots:
             counters = snap["robots"][r]["status"]["counters"]
