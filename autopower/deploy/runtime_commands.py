@@ -157,19 +157,28 @@ def _recording_bus(record_dir, node: str, scenario, zenoh):
     return recorder, recorder.tap(ZenohBus(zenoh))
 
 
+def mission_options(f):
+    """The mission settings `basestation` and `up` share (one definition, so they cannot drift)."""
+    for option in reversed([
+        click.option("--energy", multiple=True, metavar="ROBOT=J", help="Starting energy of a robot (repeatable)."),
+        click.option("--energy-scale", type=float, default=None,
+                     help="Multiply every starting energy, e.g. 0.01 to watch a whole mission in a minute or two."),
+        click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None),
+        click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None),
+        click.option("--media", multiple=True, metavar="GROUP=MEDIUM",
+                     help="Fix a link group's medium, e.g. laptop-robot=gsm (default: the planner chooses)."),
+        click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable)."),
+        click.option("--no-replan", is_flag=True, help="No re-plans on battery drift or periodically."),
+    ]):
+        f = option(f)
+    return f
+
+
 @click.command("basestation")
 @network_options
 @click.option("--speed", type=float, default=DEFAULT_SPEED, show_default=True,
               help="Virtual seconds per wall second.")
-@click.option("--energy", multiple=True, metavar="ROBOT=J", help="Starting energy of a robot (repeatable).")
-@click.option("--energy-scale", type=float, default=None,
-              help="Multiply every robot's starting energy (short missions at a sustainable speed).")
-@click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None)
-@click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None)
-@click.option("--media", multiple=True, metavar="GROUP=MEDIUM",
-              help="Fix a link group's medium, e.g. laptop-robot=gsm (default: the planner chooses).")
-@click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable).")
-@click.option("--no-replan", is_flag=True, help="No re-plans on battery drift or periodically.")
+@mission_options
 @click.option("--replan-interval", type=float, default=600.0, show_default=True,
               help="Virtual seconds between re-plans with the remaining energies.")
 @click.option("--start-grace", type=float, default=30.0, show_default=True,
@@ -302,15 +311,7 @@ def render(snap: dict, speed: float):
               help="Virtual seconds per wall second (missed periods are reported if it is too fast).")
 @click.option("--duration", type=float, default=None, help="Stop after this many wall seconds (default: Ctrl-C).")
 @click.option("--json", "as_json", is_flag=True, help="No live table; print a JSON summary at the end.")
-@click.option("--energy", multiple=True, metavar="ROBOT=J", help="Starting energy of a robot (repeatable).")
-@click.option("--energy-scale", type=float, default=None,
-              help="Multiply every starting energy, e.g. 0.01 to watch a whole mission in a minute or two.")
-@click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None)
-@click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None)
-@click.option("--media", multiple=True, metavar="GROUP=MEDIUM",
-              help="Fix a link group's medium, e.g. laptop-robot=gsm (default: the planner chooses).")
-@click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable).")
-@click.option("--no-replan", is_flag=True, help="No re-plans on battery drift or periodically.")
+@mission_options
 @click.option("--lease-ms", default=500, show_default=True,
               help="Zenoh lease: a silent cut or a frozen robot is detected after about this long.")
 @click.option("--direct-links", is_flag=True,
