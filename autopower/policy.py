@@ -695,6 +695,10 @@ class RebalancePolicy:
         if best is None and stay is None:
             raise _no_placement(view)
         sched = self._schedule_option(view, best, stay)
+        if sched is not None and best is not None and not self._worth(sched.value_s, best.value_s):
+            # a schedule that barely beats the best fixed configuration is not worth its switches:
+            # its predicted few seconds are within what a switch can cost beyond the model
+            sched = None
         options = [o for o in (best, sched) if o is not None]
         choice = max(options, key=lambda o: o.value_s) if options else stay
         if stay is None:
@@ -705,7 +709,7 @@ class RebalancePolicy:
             # the schedule starts with what runs now: nothing moves, come back when its phase ends
             return self._emit(view, choice, stay, forced=False,
                               why=f"stopping {', '.join(stopped)}" if stopped else "", quiet=not stopped)
-        if choice.value_s > stay.value_s * (1 + self.min_gain) + self.min_gain_s and not same:
+        if self._worth(choice.value_s, stay.value_s) and not same:
             what = _what_happened(state)
             return self._emit(view, choice, stay, forced=False,
                               why=(f"after {what}: " if what else "") + "rebalancing")
@@ -715,6 +719,10 @@ class RebalancePolicy:
             return _decision(self.name, view, stay, forced=False, stay_value=stay.value_s,
                              reasons=[f"stopping {', '.join(stopped)}"])
         return None
+
+    def _worth(self, value_s: float, than_s: float) -> bool:
+        """Does ``value_s`` beat ``than_s`` by more than the hysteresis?"""
+        return value_s > than_s * (1 + self.min_gain) + self.min_gain_s
 
     # ---- the time-sharing schedule from the remaining energies ----------------------------------
     def _schedule_option(self, view: _View, best: _Option | None, stay: _Option | None) -> _Option | None:

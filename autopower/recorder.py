@@ -17,10 +17,12 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
 `PlanUpdate` seen, or from `clock=`):
 
 - own `NodeStatus` published -> ``robots/<r>/battery_j``, ``robots/<r>/power_w/<part>`` (and
-  ``total``), ``team/links/<a>-<b>/up`` when a neighbour's visibility changes, sink and source
+  ``total``), ``robots/<r>/overhead_j/migration|recovery`` (cumulative energy outside the model's
+  steady state, see `autopower.agent.meter`), ``team/links/<a>-<b>/up`` when a neighbour's visibility changes, sink and source
   counters under ``components/<chain>/sink|source/...``;
 - `PlanUpdate` published -> ``team/allocation`` and ``team/network`` graphs, the model's power
-  per robot ``robots/<r>/model_w`` and a decision text event (type ``plan``), at publication;
+  per robot ``robots/<r>/model_w`` and a decision text event (type ``plan``, with the policy and
+  its reasons), at publication;
 - `StageReady` published -> a migration text event with its downtime; control messages
   (``assign``, ``prepare``, ``migrate-out``, ``release``) -> migration text events (DEBUG), any
   other message a process publishes (e.g. subgroup rounds) -> a decision text event (DEBUG),
@@ -60,6 +62,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import msgpack
 
+from autopower.energy_parts import OVERHEAD_KINDS, overhead_kind
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION
 from autopower.telemetry import DECISIONS, MIGRATIONS, Telemetry, component_path, link_path
@@ -318,6 +321,13 @@ class Recorder:
             parts = dict(s.get("power_w") or {})
             parts.setdefault("total", sum(parts.values()))
             tel.power(t, node, parts)
+            overhead = {kind: 0.0 for kind in OVERHEAD_KINDS}
+            for name, joules in (s.get("energy_j") or {}).items():
+                kind = overhead_kind(name)
+                if kind is not None:
+                    overhead[kind] += float(joules)
+            for kind, joules in overhead.items():
+                tel.scalar(f"robots/{node}/overhead_j/{kind}", t, joules)
         for peer, up in (s.get("links") or {}).items():
             path = link_path(node, peer)
             if self._links_seen.get(path) != up:
@@ -349,9 +359,12 @@ class Recorder:
         for robot, watts in predicted.items():
             tel.scalar(f"robots/{robot}/model_w", t, watts)
         life = p.get("predicted_lifetime_s")
+        reasons = [str(r) for r in p.get("reasons") or ()]
         human = (f"plan epoch {epoch}: " + ", ".join(f"{s} → {h}" for s, h in sorted(placement.items()))
-                 + (f"; predicted lifetime {life:,.0f} s" if life is not None else ""))
-        tel.decision(t, tag_event(human, type="plan", epoch=epoch, placement=placement,
+                 + (f"; predicted lifetime {life:,.0f} s" if life is not None else "")
+                 + (f" ({p['policy']}: {'; '.join(reasons)})" if reasons and p.get("policy") else ""))
+        tel.decision(t, tag_event(human, type="plan", epoch=epoch, placement=placement, policy=p.get("policy") or None,
+                                  reasons=reasons,
                                   running=dict(p.get("running") or {}), predicted_w=predicted,
                                   predicted_lifetime_s=life, accounting=self._mission.accounting,
                                   links=[list(l) for l in links], energies_j=self._mission.energies_j,

@@ -52,6 +52,16 @@ class Relayer:
         else:
             self.direct.discard(node)
 
+    def on_direct(self, node: str) -> None:
+        """A message from ``node`` arrived directly, not relayed: our link to it works.
+
+        Undoes a shun: the relayed message that caused it may have been sent before the link came
+        back and arrived after (it went the long way), which must not cut us off from a node we see.
+        """
+        if node in self.shunned:
+            self.shunned.discard(node)
+            self.direct.add(node)
+
     def on_status(self, status: NodeStatus) -> None:
         if status.node != self.node:
             self.views[status.node] = {n for n, up in status.links.items() if up}

@@ -26,7 +26,9 @@ from the telemetry layout and the structured text events (`autopower.recorder.pa
                   # (no injection recorded: each first liveliness loss is a fault, t_s its detection,
                   #  detected_s null, reconfigured_s from the detection)
       "energy": {"metered_j": float, "model_j": float | null, "error_pct": float | null,
-                 "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null}}},
+                 "overhead_j": {"migration": float, "recovery": float},
+                 "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
+                                       "overhead_j": {"migration": float, "recovery": float}}}},
       "outputs": {"recorded": bool, "lost": int, "duplicated": int,
                   "chains": {chain: {"outputs": int, "distinct": int, "lost": int, "duplicated": int,
                                      "runs": [int]}}},
@@ -38,7 +40,10 @@ from the telemetry layout and the structured text events (`autopower.recorder.pa
 Times are mission seconds (timeline ``mission_time``). Energy "model" is the model's power for
 the recorded allocation and network (live: ``robots/<r>/model_w`` from each plan; simulation:
 ``robots/<r>/power_w/total``, which is the model) integrated over the recorded interval;
-"metered" is the battery drop actually recorded; error = (metered - model) / model.
+"metered" is the battery drop actually recorded; error = (metered - overheads - model) / model,
+where the overheads are the energy the model's steady state leaves out by design (migrations'
+state on the radios, recovery after silent losses: ``robots/<r>/overhead_j/...``), reported
+beside it.
 With ``--what-if`` the object gains ``"what_if"`` (see `what_if`).
 """
 
@@ -50,6 +55,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Mapping
 
+from autopower.energy_parts import OVERHEAD_KINDS
 from autopower.errors import AutoPowerError, RecordingError
 from autopower.recorder import parse_event
 from autopower.telemetry import ALLOCATION, DECISIONS, FAULTS, MIGRATIONS, NETWORK, Recording, read_recording
@@ -119,6 +125,13 @@ def _integrate_hold(times: list[float], values: list[float], t0: float, t1: floa
     return total
 
 
+def _growth(rec: Recording, entity: str, t0: float, t1: float) -> float:
+    """How much a cumulative series grew over [t0, t1] (0 if it was not recorded)."""
+    ts, vs = rec.series(entity)
+    inside = [v for t, v in zip(ts, vs) if t0 - _EPS <= t <= t1 + _EPS and math.isfinite(v)]
+    return max(0.0, inside[-1] - inside[0]) if len(inside) >= 2 else 0.0
+
+
 def _pct(measured: float, model: float | None) -> float | None:
     if model is None or abs(model) < 1e-12:
         return None
@@ -146,6 +159,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
     per_robot_energy: dict[str, Any] = {}
     increases: list[str] = []
     metered_sum = model_sum = 0.0
+    overhead_sum = {what: 0.0 for what in OVERHEAD_KINDS}
     model_known = True
     for r in robots:
         ts, bs = rec.series(f"robots/{r}/battery_j")
@@ -171,7 +185,14 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         if not mt:
             mt, mv = rec.series(f"robots/{r}/power_w/total")
         model = _integrate_hold(mt, mv, t0, dry if dry is not None else t1) if mt else None
-        per_robot_energy[r] = {"metered_j": used, "model_j": model, "error_pct": _pct(used, model)}
+        # what the model's steady state leaves out (migrations, recovery after silent losses) is
+        # reported beside it, and the model is checked against the rest
+        overhead = {what: _growth(rec, f"robots/{r}/overhead_j/{what}", t0, t1) for what in OVERHEAD_KINDS}
+        steady = used - sum(overhead.values())
+        per_robot_energy[r] = {"metered_j": used, "model_j": model, "error_pct": _pct(steady, model),
+                               "overhead_j": overhead}
+        for what, joules in overhead.items():
+            overhead_sum[what] += joules
         metered_sum += used
         if model is None:
             model_known = False
@@ -184,7 +205,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         first = {"robot": r, "at_s": life, "projected": robot_out[r]["_projected"]}
     for v in robot_out.values():
         v.pop("_projected")
-    error = _pct(metered_sum, model_sum) if model_known and robots else None
+    error = _pct(metered_sum - sum(overhead_sum.values()), model_sum) if model_known and robots else None
 
     # ---- decisions, migrations, faults
     decision_times, n_decisions = _decisions(rec)
@@ -217,7 +238,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         "recording_id": props.get("recording_id"),
         "kind": kind,
         "scenario": props.get("scenario"),
-        "policy": props.get("policy"),
+        "policy": props.get("policy") or _live_policy(rec),
         "accounting": props.get("accounting"),
         "topology": props.get("topology"),
         "mission": {"start_s": start, "end_s": end, "covered_s": end - start},
@@ -230,7 +251,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         "decisions": n_decisions,
         "faults": faults,
         "energy": {"metered_j": metered_sum, "model_j": model_sum if model_known else None, "error_pct": error,
-                   "per_robot": per_robot_energy},
+                   "overhead_j": overhead_sum, "per_robot": per_robot_energy},
         "outputs": outputs,
         "invariants": invariants,
         "ok": all(i["ok"] is not False for i in invariants),
@@ -239,6 +260,12 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         "energy_model_error_pct": error,
     }
     return out
+
+
+def _live_policy(rec: Recording) -> str | None:
+    """The policy a live base station decided with (its plans name it)."""
+    names = [p.get("policy") for _, _, p in _events(rec, DECISIONS) if p is not None and p.get("type") == "plan"]
+    return next((n for n in names if n), None)
 
 
 def _decisions(rec: Recording) -> tuple[list[float], int]:
@@ -543,13 +570,16 @@ def render_text(summary: dict[str, Any]) -> str:
         lines.append(f"  {mig['t_s']:>10,.1f} s  {mig['text']}")
     if len(m["list"]) > 20:
         lines.append(f"  ... {len(m['list']) - 20} more")
-    lines += ["", f"faults: {len(s['faults'])}"]
+    lines += ["", f"faults: {len(s['faults'])} (times in mission seconds: wall seconds × the speed-up)"]
     for f in s["faults"]:
         lines.append(f"  {f['t_s']:>10,.1f} s  {f['kind']:<10} {f['target']:<14} detected "
                      f"{_s(f['detected_s'], 's', 3)}, reconfigured {_s(f['reconfigured_s'], 's', 3)}  ({f['text']})")
     e = s["energy"]
+    over = e.get("overhead_j") or {}
     lines += ["", f"energy: metered {e['metered_j']:,.1f} J, model {_s(e['model_j'], 'J')}, error "
-              + ("—" if e["error_pct"] is None else f"{e['error_pct']:+.2f} %")]
+              + ("—" if e["error_pct"] is None else f"{e['error_pct']:+.2f} %")
+              + (" (metered minus overheads the model leaves out: "
+                 + ", ".join(f"{k} {v:,.2f} J" for k, v in over.items()) + ")" if any(over.values()) else "")]
     o = s["outputs"]
     if o["recorded"]:
         lines.append(f"outputs: {sum(c['outputs'] for c in o['chains'].values())} recorded, "

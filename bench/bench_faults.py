@@ -97,7 +97,26 @@ def _until(predicate, timeout_s: float) -> bool:
     return False
 
 
-def team_cuts(cuts: int, speed: float) -> tuple[list[float], list[float]]:
+def delivery(snap: dict) -> dict[str, float]:
+    """Exactly-once figures over the whole team: what custody resent, what the sinks still lack."""
+    statuses = [v["status"] for v in snap["robots"].values() if v.get("status")]
+    if snap.get("basestation"):
+        statuses.append(snap["basestation"])
+    sinks = [st for s in statuses for st in s["sinks"].values()]
+    counters = [s["counters"] for s in statuses]
+    return {
+        "outputs": sum(st["received_total"] for st in sinks),
+        "lost": sum(max(0, st["max_seq"] + 1 - st["received"]) for st in sinks),
+        "duplicated": sum(st["duplicates_total"] for st in sinks),
+        "redundant": sum(st.get("redundant_total", 0) for st in sinks),
+        "resent": sum(c.get("custody-resent", 0) for c in counters),
+        "second_inputs": sum(s["errors"].get("duplicate-input", 0) for s in statuses),
+        "recovered": sum(c.get("recovered-outputs", 0) for c in counters),
+        "latency_ms_max": max((st["latency_ms_max"] for st in sinks), default=0.0),
+    }
+
+
+def team_cuts(cuts: int, speed: float) -> tuple[list[float], list[float], dict]:
     from autopower.deploy.faults import FaultController
     from autopower.deploy.launcher import LocalTeam, TeamSpec
     from autopower.deploy.runtime_commands import build_scenario
@@ -127,7 +146,9 @@ def team_cuts(cuts: int, speed: float) -> tuple[list[float], list[float]]:
             end = time.monotonic() + 15
             while time.monotonic() < end and team.snapshot()["links_down"]:
                 time.sleep(0.05)
-    return detected, reconfigured
+        time.sleep(3.0)  # the last losses' reports and resends
+        figures = delivery(team.snapshot())
+    return detected, reconfigured, figures
 
 
 def subgroup_rounds(rounds: int, speed: float) -> list[float]:
@@ -188,13 +209,18 @@ def main() -> None:
     if not 1 <= args.cuts <= 200:
         raise SystemExit("--cuts must be within 1..200")
     base = baseline(args.baseline_cuts)
-    detected, reconfigured = team_cuts(args.cuts, args.speed)
+    detected, reconfigured, figures = team_cuts(args.cuts, args.speed)
     print(f"silent cuts of r1-laptop, lease {LEASE_MS} ms, speed {args.speed:g}x")
     print(_fmt("baseline: raw liveliness, idle", base))
     print(_fmt("team: detection", detected))
     print(_fmt("team: cut -> reconfigured", reconfigured))
     if base and detected:
         print(f"detection / baseline (median): {statistics.median(detected) / statistics.median(base):.2f}x")
+    print(f"delivery over the cuts: {figures['outputs']} outputs; {figures['resent']} frames resent from custody "
+          f"({figures['second_inputs']} of them, or their originals, arrived twice and were dropped by a stage; "
+          f"{figures['recovered']} outputs reached a sink only by a resend); lost at the sinks {figures['lost']}, "
+          f"duplicated {figures['duplicated']}, redundant copies dropped at sinks {figures['redundant']}; worst "
+          f"output latency {figures['latency_ms_max']:.0f} ms")
     if args.subgroup_rounds > 0:
         print(_fmt("subgroup agreement (2PC, 3 robots)", subgroup_rounds(min(args.subgroup_rounds, 20), args.speed)))
 

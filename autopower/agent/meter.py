@@ -12,6 +12,11 @@ What is charged, and why it reproduces `autopower.model.evaluate` for the same a
   virtual second it is not busy: sleep is charged for elapsed time and credited back for the
   busy airtime, which is the model's ``sleep_w * (1 - busy)``.
 - Mains-powered nodes (the base station) pay nothing.
+
+Work the model's steady state does not include is kept in parts of its own, so that a run can
+be checked against the model and its overheads reported beside it: migrations (the state on
+the radios) and recovery after a silent loss (resent frames; a stage restarted without state
+recomputing inputs): see `autopower.energy_parts`.
 """
 
 from __future__ import annotations
@@ -19,15 +24,12 @@ from __future__ import annotations
 from collections import deque
 from typing import Iterable, Mapping
 
+from autopower.energy_parts import CPU_BUSY, CPU_IDLE, CPU_RECOVERY, OVERHEAD_KINDS, overhead_kind
+from autopower.energy_parts import radio_part as part
 from autopower.model import airtime_s
 from autopower.scenario import Platform, Radio
 
-CPU_IDLE, CPU_BUSY = "cpu_idle", "cpu_busy"
-
-
-def part(medium: str, what: str) -> str:
-    """Name of a radio energy part: ``"<medium>:send"``, ``":receive"``, ``":sleep"``, ``":migration"``."""
-    return f"{medium}:{what}"
+__all__ = ["BatteryMeter", "CPU_BUSY", "CPU_IDLE", "CPU_RECOVERY", "part"]
 
 
 class BatteryMeter:
@@ -66,12 +68,12 @@ class BatteryMeter:
         self.media = frozenset(media)
 
     # ---- activity ------------------------------------------------------------------------------
-    def charge_run(self, latency_s: float, t: float) -> float:
+    def charge_run(self, latency_s: float, t: float, purpose: str = "chain") -> float:
         self.advance(t)
         if self.mains:
             return 0.0
         joules = (self.platform.busy_w - self.platform.idle_w) * latency_s
-        self._add(CPU_BUSY, joules)
+        self._add(CPU_BUSY if purpose == "chain" else CPU_RECOVERY, joules)
         self.cpu_busy_s += latency_s
         return joules
 
@@ -85,7 +87,7 @@ class BatteryMeter:
         busy = airtime_s(n_bytes, radio) * weight
         watts = radio.send_w if direction == "send" else radio.receive_w
         joules = watts * busy
-        bucket = direction if purpose == "chain" else "migration"
+        bucket = direction if purpose == "chain" else purpose  # "migration" | "recovery": overheads
         self._add(part(medium, bucket), joules)
         # A busy radio is not sleeping: credit back its sleep power for that airtime.
         self._add(part(medium, "sleep"), -radio.sleep_w * busy)
@@ -99,6 +101,15 @@ class BatteryMeter:
     @property
     def consumed_j(self) -> float:
         return sum(self.energy_j.values())
+
+    def overhead_j(self) -> dict[str, float]:
+        """Energy outside the model's steady state so far, by kind (migration, recovery)."""
+        out = {kind: 0.0 for kind in OVERHEAD_KINDS}
+        for name, joules in self.energy_j.items():
+            kind = overhead_kind(name)
+            if kind is not None:
+                out[kind] += joules
+        return out
 
     @property
     def battery_j(self) -> float | None:

@@ -11,6 +11,11 @@ Zenoh peers do not relay) forwards it to the next one and is charged send + rece
 Stage lifecycle (per node): STARTING (prepared for an incoming migration: inputs are buffered)
 -> RUNNING -> DRAINING (exporting its state) -> MIGRATED (a forwarding pointer: late inputs
 go to the new host). Sequence numbers make each stage run each input once and in order.
+
+Every frame a node produces (a source's input, a stage's output) stays in its custody
+(`autopower.agent.custody`) until the consumer's status reports it consumed; a report that
+still lacks it a while after it was sent gets it resent. That is what makes each output reach
+its sink exactly once even when a link is cut silently with frames in flight.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import zlib
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from autopower.agent.custody import Custody, Report, hop_key, parse_hop_key
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.sequencing import SequenceGate, SinkLedger
 from autopower.bus import Bus
@@ -34,6 +40,7 @@ from autopower.model import Link, Network, flow_weight
 from autopower.protocol import (
     Assign,
     ChainFrame,
+    Consumed,
     Keys,
     MigrateOut,
     MissionInfo,
@@ -160,6 +167,9 @@ class NodeRuntime:
         # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
         self.parked_transfers: list[tuple[str, bytes, str]] = []
         self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
+        self.custody = Custody()
+        self._next_custody_check = 0.0
+        self.wall: Callable[[], float] = time.time  # custody's clock (a test team sets its manual one)
         # How a message for one node leaves: the process replaces it with its `Relayer.send`
         # so that a node out of direct sight is still reached through other agents.
         self.send_to: Callable[[str, str, bytes], object] = lambda dest, key, payload: self.bus.publish(key, payload)
@@ -206,6 +216,8 @@ class NodeRuntime:
                 for frame in frames:
                     self.send_frame(frame, host)
         self._sync_sources()
+        for chain in {hop[0] for hop in self.custody.hops} - set(plan.running):
+            self.custody.forget_chain(chain)  # stopped: nobody will consume its frames
         parked, self.parked_transfers = self.parked_transfers, []
         for dest, body, chain in parked:
             self.send_routed(dest, body, len(body), 1.0, "migration", chain)
@@ -245,6 +257,7 @@ class NodeRuntime:
             self.held_dropped += 1
             self.tally("held-outputs-dropped")
         self.held_outputs.append(frame)
+        self.custody.mark(frame, None)  # not on the wire: no resend is due until it is
         if len(self.held_outputs) == 1:
             log.info("%s: the sink of %s is out of reach; holding its results here (at most %d, oldest "
                      "dropped) until it returns", self.node, frame.chain, HELD_OUTPUT_LIMIT)
@@ -260,6 +273,7 @@ class NodeRuntime:
                 self.held_outputs.append(frame)
             else:
                 self.send_frame(frame, sink)
+                self.custody.mark(frame, self.wall())
                 sent += 1
         if sent:
             log.info("%s: delivered %d held result(s)", self.node, sent)
@@ -299,6 +313,10 @@ class NodeRuntime:
         return min((r.next_t for r in self.sources.values()), default=None)
 
     def on_timer(self) -> None:
+        wall = self.wall()
+        if wall >= self._next_custody_check:
+            self._acknowledge(self.node, wall, self.consumed())  # what we consumed ourselves
+            self.resend_lost(wall)
         now = self.now()
         for runner in list(self.sources.values()):
             if runner.next_t > now:
@@ -329,16 +347,22 @@ class NodeRuntime:
                            t_unix=time.time(), payload_len=len(data), payload=payload)
         runner.seq += 1
         runner.produced_total += 1
-        self.send_frame(frame, host)
+        self.emit(frame, host)
 
     # ---- sending -----------------------------------------------------------------------------
-    def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0) -> None:
+    def emit(self, frame: ChainFrame, dest: str) -> None:
+        """Send a frame this node produced, keeping it until its consumer acknowledges it."""
+        frame = dataclasses.replace(frame, floor=self.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
+        self.custody.keep(frame, self.wall())
+        self.send_frame(frame, dest)
+
+    def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0, purpose: str = "chain") -> None:
         if dest == self.node:
             self.deliver_frame(frame, forwards)
             return
         chain = self.chains[frame.chain]
         self.send_routed(dest, encode(frame), chain.message_bytes[frame.target], self.weights[chain.name],
-                         "chain", chain.name)
+                         purpose, chain.name)
 
     def send_routed(self, dest: str, body: bytes, charge_bytes: int, weight: float, purpose: str,
                     chain: str) -> bool:
@@ -437,11 +461,14 @@ class NodeRuntime:
             self.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
                        logging.INFO)
             return
-        before = hosted.gate.duplicates
-        for ready in hosted.gate.offer(frame.seq, frame):
+        before, skipped = hosted.gate.duplicates, hosted.gate.skipped
+        for ready in hosted.gate.offer(frame.seq, frame, frame.floor):
             self._run(hosted, ready)
         if hosted.gate.duplicates != before:
             self.count("duplicate-input", f"{hosted.stage.name} seq {frame.seq}", logging.INFO)
+        if hosted.gate.skipped != skipped:
+            self.count("inputs-given-up", f"{hosted.stage.name}: {hosted.gate.skipped - skipped} input(s) before "
+                       f"seq {hosted.gate.next_seq} never arrived", logging.ERROR)
 
     def _run(self, hosted: HostedStage, frame: ChainFrame) -> None:
         chain, index = hosted.chain, hosted.index
@@ -453,8 +480,11 @@ class NodeRuntime:
             return
         hosted.compute_s += time.perf_counter() - started
         hosted.runs += 1
+        # a stage started without state recomputes what its lost predecessor may have sent already:
+        # an overhead of the failover, not the plan's steady work
+        recomputed = hosted.gate.catch_up_below is not None and frame.seq < hosted.gate.catch_up_below
         latency = self.scenario.components[hosted.stage.component].latency_s[self.platform.name]
-        self.meter.charge_run(latency, self.now())
+        self.meter.charge_run(latency, self.now(), "recovery" if recomputed else "chain")
         target = index + 1
         try:
             payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
@@ -462,12 +492,12 @@ class NodeRuntime:
             self.count("oversize-output", str(exc), logging.ERROR)
             return
         out = ChainFrame(chain=chain.name, run=frame.run, seq=frame.seq, target=target, t_virtual=frame.t_virtual,
-                         t_unix=frame.t_unix, payload_len=len(output), payload=payload)
+                         t_unix=frame.t_unix, payload_len=len(output), payload=payload, attempt=int(recomputed))
         dest = chain.sink if target == len(chain.stages) else self.plan.placement.get(chain.stages[target].name)
         if dest is None:
             self.count("unplaced-stage", f"{chain.stages[target].name} has no host")
             return
-        self.send_frame(out, dest)
+        self.emit(out, dest)
 
     def _sink(self, chain: Chain, frame: ChainFrame) -> None:
         if chain.sink != self.node:
@@ -475,9 +505,15 @@ class NodeRuntime:
             return
         ledger = self.sinks.setdefault(chain.name, SinkLedger())
         latency_ms = (time.time() - frame.t_unix) * 1000.0
-        if not ledger.record(frame.run, frame.seq, latency_ms, frame.data()):
+        redundant = ledger.redundant_total
+        if not ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt):
+            if ledger.redundant_total != redundant:
+                self.tally("redundant-output")  # a resent copy of what arrived late: dropped, as designed
+                return
             self.count("duplicate-output" if frame.run >= ledger.run else "stale-output",
                        f"{chain.name} run {frame.run} seq {frame.seq}", logging.ERROR)
+        elif frame.attempt:
+            self.tally("recovered-outputs")  # lost in flight, delivered by a resend
         self.last_output[chain.name] = frame.data()
         if self.on_output is not None:
             self.on_output(chain.name, frame.run, frame.seq, frame.data())
@@ -607,6 +643,53 @@ class NodeRuntime:
             del self.hosted[msg.stage]
         self.orphans.pop(msg.stage, None)
 
+    def on_peer_status(self, status: NodeStatus) -> None:
+        """Another node's status: what it consumed acknowledges what we sent it."""
+        if status.node == self.node:
+            return
+        now = self.wall()
+        # never newer than its arrival: a consumer whose clock runs ahead must not make
+        # frames still in flight look lost
+        self._acknowledge(status.node, min(status.t_unix, now), status.consumed)
+        self.resend_lost(now)
+
+    def consumed(self) -> dict[str, Consumed]:
+        """What this node's running stages and sinks have taken in, per hop."""
+        out = {}
+        for hosted in self.hosted.values():
+            if hosted.lifecycle is Lifecycle.RUNNING:
+                report = hosted.gate.report(hosted.run, hosted.generation)
+                if report is not None:
+                    out[hop_key(hosted.chain.name, hosted.index)] = report
+        for name, ledger in self.sinks.items():
+            report = ledger.report()
+            if report is not None and name in self.chains:
+                out[hop_key(name, len(self.chains[name].stages))] = report
+        return out
+
+    def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed]) -> None:
+        for key, report in consumed.items():
+            hop = parse_hop_key(key)
+            if hop is None or hop[0] not in self.chains:
+                self.count("garbled", f"{node} reports an unknown hop {key!r}")
+                continue
+            self.custody.on_report(hop[0], hop[1], Report(node=node, t_unix=t_unix, consumed=report))
+
+    def resend_lost(self, now: float) -> None:
+        """Resend what a consumer reported missing well after it was sent (throttled)."""
+        if now < self._next_custody_check or self.network is None:
+            return
+        self._next_custody_check = now + 0.1
+        for node, held in self.custody.due(now):
+            if node != self.node and self.network.path(self.node, node) is None:
+                continue  # no route yet: it stays due
+            frame = self.custody.resend(held, now)
+            self.tally("resent-frames")
+            if frame.attempt == 1:
+                log.info("%s: %s seq %d to stage %d was lost on the way to %s; resending", self.node, frame.chain,
+                         frame.seq, frame.target, node)
+            self.send_frame(frame, node, purpose="recovery")  # metered apart: not the plan's steady traffic
+
     # ---- liveliness ----------------------------------------------------------------------------------
     def on_liveliness(self, node: str, alive: bool) -> None:
         if alive:
@@ -624,7 +707,7 @@ class NodeRuntime:
         for name, stats in self.source_totals.items():
             sources.setdefault(name, stats)
         return NodeStatus(
-            node=self.node, t_virtual=now, t_unix=time.time(), plan_epoch=self.plan.epoch if self.plan else -1,
+            node=self.node, t_virtual=now, t_unix=self.wall(), plan_epoch=self.plan.epoch if self.plan else -1,
             initial_j=self.meter.initial_j if self.meter else None,
             battery_j=self.meter.battery_j if self.meter else None,
             energy_j=dict(self.meter.energy_j) if self.meter else {},
@@ -634,14 +717,16 @@ class NodeRuntime:
             sinks={n: SinkStats(run=l.run, received=l.received, duplicates=l.duplicates, contiguous=l.contiguous,
                                 max_seq=l.max_seq, stale=l.stale, latency_ms_p50=l.latency_ms_p50,
                                 latency_ms_max=l.latency_ms_max, received_total=l.received_total,
-                                duplicates_total=l.duplicates_total, digest=l.digest)
+                                duplicates_total=l.duplicates_total, digest=l.digest,
+                                redundant_total=l.redundant_total)
                    for n, l in self.sinks.items()},
             links={n: n in self.alive for n in others},
             runs={n: h.runs for n, h in self.hosted.items() if h.runs},
             compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},
             queue_depth=queue_depth, errors=dict(self.errors),
-            counters={**self.counters, "held-outputs": len(self.held_outputs)},
+            counters={**self.counters, "held-outputs": len(self.held_outputs), **self.custody.stats()},
             depleted=bool(self.meter and self.meter.depleted),
+            consumed=self.consumed(),
         )
 
     # ---- dispatch -----------------------------------------------------------------------------------------

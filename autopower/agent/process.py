@@ -114,7 +114,8 @@ class Agent:
 
     def _received(self, key: str, payload: bytes) -> None:
         rt = self.runtime
-        if key == self.keys.node_relay(self.config.robot):
+        relayed = key == self.keys.node_relay(self.config.robot)
+        if relayed:
             try:
                 inner = self.relayer.on_relay(payload)
             except ProtocolError as exc:
@@ -133,7 +134,10 @@ class Agent:
                 if last is not None and status.t_unix <= last.t_unix:
                     return  # a duplicate (direct and relayed) or an older one overtaken
                 self.relayer.on_status(status)
+                if not relayed:
+                    self.relayer.on_direct(status.node)
                 self.statuses[status.node] = status
+                rt.on_peer_status(status)  # what it consumed: acks for our custody buffer
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
             return
@@ -244,10 +248,14 @@ class Agent:
             log.info("agent %s: no model prediction for the subgroup placement: %s", self.config.robot, exc)
 
     def publish_status(self) -> None:
+        """Our status, to everyone in sight and (relayed) to the base station if it is not.
+
+        Also before the mission starts: with the relay topology the base station sees r2 and r3
+        only through r1's statuses (who it sees) and theirs (relayed), and starts the mission as
+        soon as every robot is known to be reachable rather than after the start grace.
+        """
         rt = self.runtime
-        if not rt.started:
-            return
-        window = self.config.status_window_s * rt.clock.speed
+        window = self.config.status_window_s * rt.clock.speed if rt.started else 0.0
         status = rt.status(window, self.events.depth())
         key, payload = self.keys.status(self.config.robot), encode(status)
         self._bus.publish(key, payload, reliable=False)

@@ -4,6 +4,9 @@ A chain's source numbers its frames 0, 1, 2, ... within a *run* (one activation 
 A stage instance keeps the next sequence number it must run: earlier ones are duplicates
 (dropped), later ones wait in a reorder buffer. Migration ships that number with the state, so
 the new host resumes exactly where the old one stopped, whatever order the inputs reach it in.
+
+Both report what they have consumed (`Consumed`): the acknowledgement the producers' custody
+buffers (`autopower.agent.custody`) act on, so a frame lost on a silently cut link is resent.
 """
 
 from __future__ import annotations
@@ -15,7 +18,23 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
+from autopower.protocol import Consumed
+
 T = TypeVar("T")
+
+MAX_MISSING = 256  # seqs listed as missing in one report (the lowest ones)
+GATE_MAX_PENDING = 64  # inputs waiting behind a gap before the gap is given up as lost
+
+
+def missing_between(low: int, high: int, have) -> tuple[int, ...]:
+    """Seqs in [low, high] not in ``have``, lowest first, at most MAX_MISSING."""
+    out = []
+    for seq in range(low, high + 1):
+        if seq not in have:
+            out.append(seq)
+            if len(out) == MAX_MISSING:
+                break
+    return tuple(out)
 
 
 @dataclass
@@ -25,16 +44,48 @@ class SequenceGate(Generic[T]):
     next_seq: int | None = None  # None: start at the first item offered
     pending: dict[int, T] = field(default_factory=dict)
     duplicates: int = 0
+    skipped: int = 0  # seqs given up as lost (a gap that stayed open too long)
+    consumed_elsewhere: int = 0  # seqs skipped because their producer says another instance had them
+    max_pending: int = GATE_MAX_PENDING
+    catch_up_below: int | None = None  # started without state below its first input: these are recomputed
 
-    def offer(self, seq: int, item: T) -> list[T]:
-        """Items now ready to run, in sequence order (possibly none)."""
+    def offer(self, seq: int, item: T, floor: int | None = None) -> list[T]:
+        """Items now ready to run, in sequence order (possibly none).
+
+        ``floor`` is the producer's lowest unacknowledged seq (see `ChainFrame.floor`): a gate
+        with no position starts there, and one waiting below it stops waiting.
+        """
         if self.next_seq is None:
-            self.next_seq = seq
+            self.next_seq = seq if floor is None else min(seq, floor)
+            if self.next_seq < seq:
+                self.catch_up_below = seq
+        elif floor is not None and floor > self.next_seq and not any(s < floor for s in self.pending):
+            # everything below the floor was acknowledged by some instance of this stage: it
+            # will not come here (a previous instance ran it)
+            self.consumed_elsewhere += floor - self.next_seq
+            self.next_seq = floor
         if seq < self.next_seq or seq in self.pending:
             self.duplicates += 1
             return []
         self.pending[seq] = item
-        return self.drain()
+        ready = self.drain()
+        if len(self.pending) > self.max_pending:
+            # The producers resend what is missing (custody); a gap still open after this many
+            # later inputs is lost for good (its producer died): stalling the stage forever
+            # would lose everything after it too.
+            first = min(self.pending)
+            self.skipped += first - self.next_seq
+            self.next_seq = first
+            ready += self.drain()
+        return ready
+
+    def report(self, run: int, generation: int) -> Consumed | None:
+        """What this gate has consumed (None before its first input: it starts wherever that is)."""
+        if self.next_seq is None:
+            return None
+        top = max(self.pending, default=self.next_seq - 1)
+        return Consumed(run=run, generation=generation, next_seq=self.next_seq, max_seq=top,
+                        missing=missing_between(self.next_seq, top, self.pending))
 
     def drain(self) -> list[T]:
         ready = []
@@ -77,9 +128,17 @@ class SinkLedger:
     latency_ms_max: float = 0.0
     digest: int = 0  # fold_digest over the outputs of seqs < contiguous
     _waiting: dict[int, bytes] = field(default_factory=dict)  # data of seqs above the prefix
+    redundant_total: int = 0  # second copies where a retransmission was involved (expected)
+    _resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first received as a resend
 
-    def record(self, run: int, seq: int, latency_ms: float | None = None, data: bytes = b"") -> bool:
-        """True if this output is new."""
+    def record(self, run: int, seq: int, latency_ms: float | None = None, data: bytes = b"",
+               attempt: int = 0) -> bool:
+        """True if this output is new.
+
+        A second copy is *redundant* when a retransmission is involved (either copy is one: the
+        first was only late); otherwise it is a *duplicate*, which means an output was produced
+        twice, and must never happen.
+        """
         if run < self.run:
             self.stale += 1
             return False
@@ -89,10 +148,16 @@ class SinkLedger:
             self.latency_ms_max = 0.0
             self.latencies_ms.clear()
             self.digest, self._waiting = 0, {}
+            self._resent.clear()
         if seq < self.contiguous or seq in self.above:
-            self.duplicates += 1
-            self.duplicates_total += 1
+            if attempt > 0 or seq in self._resent:
+                self.redundant_total += 1
+            else:
+                self.duplicates += 1
+                self.duplicates_total += 1
             return False
+        if attempt > 0:
+            self._resent.append(seq)
         self.above.add(seq)
         self._waiting[seq] = data
         while self.contiguous in self.above:
@@ -106,6 +171,13 @@ class SinkLedger:
             self.latencies_ms.append(latency_ms)
             self.latency_ms_max = max(self.latency_ms_max, latency_ms)
         return True
+
+    def report(self) -> Consumed | None:
+        """What this sink has received (None before its first output)."""
+        if self.run < 0:
+            return None
+        return Consumed(run=self.run, generation=0, next_seq=self.contiguous, max_seq=self.max_seq,
+                        missing=missing_between(self.contiguous, self.max_seq, self.above))
 
     @property
     def gaps(self) -> int:

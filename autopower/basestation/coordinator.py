@@ -1,6 +1,6 @@
-"""The base station's coordinator: tracks the team, plans, and moves components.
+"""The base station's coordinator: tracks the team, asks the policy, and moves components.
 
-It owns the *desired* placement (the planner's allocation, overridden by operator pins) and
+It owns the *desired* placement (the policy's allocation, overridden by operator pins) and
 the *confirmed* one (what nodes have acknowledged), and closes the gap one stage at a time:
 
 - a stage with no live host gets `Assign` (a fresh instance);
@@ -9,9 +9,20 @@ the *confirmed* one (what nodes have acknowledged), and closes the gap one stage
   confirms it. Migrations of one stage are never overlapped.
 
 Every change of the confirmed placement is published as a `PlanUpdate` (which also carries
-the mission clock), so sources and senders follow. Replanning happens when an agent joins or
-leaves, a link changes, a battery drifts from the plan's prediction, the operator enables or
-disables a chain, and periodically with the remaining energies (kept only if it gains).
+the mission clock), so sources and senders follow.
+
+What to run where is decided by the same code as in the simulator: `autopower.policy`
+(``CoordinatorConfig.policy``: static, reactive, rebalance or subgroup). The coordinator builds a
+`TeamState` from what it knows (mission time, the network in use with known-down links removed,
+what runs, the robots' measured batteries, cut links, the operator's radio changes and disabled
+chains, the schedule the last decision planned) plus the `MissionEvent` values that triggered the
+decision, calls ``policy.decide(state)`` and carries out the answer: None keeps the current
+configuration, a `Decision` becomes the target. It asks when an agent joins or leaves, a link
+goes down or comes back, a battery drifts from the prediction, the operator enables or disables
+a chain or changes a radio, at the time a decision asked to be revisited (a time-sharing
+schedule's next phase) and periodically. The hysteresis (a move must gain enough) is the
+policy's; what stays here is link-state debouncing, which is about facts, not decisions: a link
+counts as down after ``link_down_after_s`` and as back after ``heal_hold_s``.
 """
 
 from __future__ import annotations
@@ -27,7 +38,10 @@ from typing import Any, Callable
 from autopower.bus import Bus
 from autopower.clock import VirtualClock
 from autopower.errors import AutoPowerError
-from autopower.model import Network, evaluate
+from autopower.mission_events import MissionEvent
+from autopower.model import Network, evaluate, media_choices, round_lifetime
+from autopower.policy import POLICY_NAMES, Decision, MigrationCosts, Policy, SchedulePhase, TeamState, base_media, \
+    derive_network, make_policy
 from autopower.protocol import (
     Assign,
     AutoCommand,
@@ -57,11 +71,14 @@ log = logging.getLogger(__name__)
 class CoordinatorConfig:
     speed: float = 10.0
     topology: str | None = None  # None: the scenario's
-    media: dict[str, str] | None = None  # group -> medium, fixed; None: the planner chooses
+    media: dict[str, str] | None = None  # group -> medium, fixed; None: the policy chooses
     pins: dict[str, str] = field(default_factory=dict)  # stage -> node, fixed by the operator
-    auto_replan: bool = True  # replan on battery drift / periodically (joins, leaves, commands always)
-    replan_interval_s: float = 600.0  # virtual seconds between re-plans with remaining energies
-    min_gain: float = 0.01  # a re-plan must lengthen the lifetime by this much to move anything
+    policy: str = "rebalance"  # autopower.policy.POLICY_NAMES: what decides the placement
+    policy_params: dict[str, Any] = field(default_factory=dict)  # its parameters (e.g. min_gain, min_gain_s)
+    # ask the policy on battery drift, periodically and when a decision asked to be revisited
+    # (joins, leaves, link changes and operator commands always ask)
+    auto_replan: bool = True
+    replan_interval_s: float = 600.0  # virtual seconds between decisions with the remaining energies
     drift_tolerance: float = 0.03  # relative drift of a battery from the plan that triggers a re-plan
     drift_min_window_s: float = 60.0  # virtual seconds of a plan before drift is judged
     migration_timeout_s: float = 10.0  # wall seconds before a stuck migration is abandoned
@@ -69,7 +86,9 @@ class CoordinatorConfig:
     plan_republish_s: float = 1.0  # wall seconds between repeats of the current plan (late joiners)
     link_down_after_s: float = 3.0  # wall seconds a never-seen-up link must be reported down before it counts
     heal_hold_s: float = 2.0  # wall seconds a link must be back before plans may use it again (no flapping)
-    heal_min_gain: float = 0.01  # moving back after a heal must lengthen the lifetime by this much
+
+    def __post_init__(self) -> None:
+        _policy_from(self)  # a wrong policy name or parameter fails here, before anything starts
 
 
 @dataclass
@@ -93,18 +112,16 @@ class Baseline:
 
 class Coordinator:
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
-                 planner: Callable | None = None, wall_fn: Callable[[], float] = time.time):
-        if planner is None:
-            from autopower.planner import PlanRequest, plan
-
-            def planner(**kwargs):
-                return plan(PlanRequest(**kwargs))
+                 policy: Policy | None = None, wall_fn: Callable[[], float] = time.time):
+        """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it)."""
         self.scenario = scenario
         self.bus = bus
         self.keys = keys
         self.config = config
-        self.planner = planner
+        self.policy: Policy = policy if policy is not None else _policy_from(config)
         self.wall = wall_fn
+        self.topology = config.topology or scenario.network_spec.topology
+        self.migration_costs = MigrationCosts.from_scenario(scenario)
         self.base = scenario.basestation
         self.robots = [r.name for r in scenario.robots]
         self.chain_of = {s.name: c for c in scenario.chains for s in c.stages}
@@ -124,9 +141,18 @@ class Coordinator:
         self.running: dict[str, int] = {}
         self.runs: dict[str, int] = {}  # chain -> current run number
         self.run_live: dict[str, bool] = {}  # has the current run produced anything yet
-        self.plan_obj: Any = None
+        self.decision: Decision | None = None  # the policy's last decision (None: nothing decided yet)
+        self.chosen: dict[str, str] = {}  # the policy's allocation, before operator pins
+        self.stage_reasons: dict[str, str] = {}  # stage -> why it runs where it does (the planner's words)
+        self.decision_reasons: tuple[str, ...] = ()  # the newest decision that gave reasons (quiet ones do not)
+        self.schedule: tuple[SchedulePhase, ...] = ()  # the phases the last decision planned after its own
+        self.revisit_at_s: float | None = None  # virtual time the last decision asked to be asked again
+        self._pending_events: list[MissionEvent] = []  # what happened since the policy was last asked
+        # the base media the team uses (group -> medium); decisions may change them unless config.media
+        self.media: dict[str, str] = dict(config.media or media_choices(scenario, self.topology)[0])
         self.plan_network: Network | None = None
-        self.network_override: Network | None = None  # operator link commands
+        self.radio_faults: dict[str, tuple[str | None, str | None]] = {}  # operator radio commands
+        self.operator_cuts: set[frozenset[str]] = set()  # links the operator declared down
         self.links_down: set[frozenset[str]] = set()
         self._link_reports: dict[frozenset[str], float] = {}
         self.predicted_w: dict[str, float] = {}
@@ -149,6 +175,9 @@ class Coordinator:
         self.first_depletion: dict[str, float] | None = None
         self._link_seen_up: set[frozenset[str]] = set()
         self._link_up_since: dict[frozenset[str], float] = {}
+        # robots that came back (after a freeze, a cut, a restart): for a moment their links report
+        # what their sessions went through while they were away, not a new failure
+        self._rejoined_unix: dict[str, float] = {}
         # faults as the base station saw them: detection and when the team ran its new plan
         self.faults: deque[dict] = deque(maxlen=100)
         # robots back after an absence: their report of what they host (a subgroup may have
@@ -211,6 +240,7 @@ class Coordinator:
         self.links_down.add(pair)
         self.record_fault("link-down", "-".join(sorted(pair)), detected_unix or self.wall())
         self.note(f"link {a}-{b} is down")
+        self._event("link-cut", a=a, b=b)
         self.replan("link change")
 
     def link_seen(self, a: str, b: str) -> None:
@@ -229,13 +259,15 @@ class Coordinator:
             self.links_down.discard(pair)
             self._link_up_since.pop(pair, None)
             self.note(f"link {'-'.join(sorted(pair))} is back (up for {self.config.heal_hold_s:g} s)")
-        if healed:
-            self.replan("links back", hold_placement_gain=self.config.heal_min_gain)
+            a, b = sorted(pair)
+            self._event("link-heal", a=a, b=b)
+        if healed:  # whether moving back is worth it is the policy's hysteresis
+            self.replan("links back")
 
     @property
     def ready(self) -> bool:
         """The mission runs and every desired stage runs where the plan wants it."""
-        return (self.mission is not None and not self.migrations and self.plan_obj is not None
+        return (self.mission is not None and not self.migrations and self.plan_network is not None
                 and all(self.placement.get(s) == n for s, n in self.target.items()))
 
     # ---- mission start --------------------------------------------------------------------------------
@@ -252,11 +284,12 @@ class Coordinator:
                                    energies_j=self.scenario.energies_j())
         self.clock = VirtualClock(self.mission.epoch_unix, self.mission.speed, wall_fn=self.wall)
         self.next_periodic_replan = self.config.replan_interval_s
+        self.note(f"policy: {self.policy.name}")
         missing = set(self.robots) - self.present
         self.note("mission started" + (f" without {', '.join(sorted(missing))}" if missing else ""))
         self.replan("mission start")
 
-    # ---- planning --------------------------------------------------------------------------------------
+    # ---- deciding ---------------------------------------------------------------------------------------
     def remaining_energies(self) -> dict[str, float]:
         out = {}
         for robot in self.robots:
@@ -267,82 +300,130 @@ class Coordinator:
                 out[robot] = self.scenario.robot(robot).energy_j
         return out
 
-    def _network_for_request(self) -> Network | None:
-        base = self.network_override
-        if base is None and self.config.media:
-            base = self.scenario.network(topology=self.config.topology, media=self.config.media)
-        if self.links_down:
-            if base is None:
-                # the whole topology (with the media in use), minus what is down now: a link
-                # that came back is in it again
-                media = self.plan_obj.network.media_by_group() if self.plan_obj is not None else None
-                try:
-                    base = self.scenario.network(topology=self.config.topology, media=media)
-                except AutoPowerError:
-                    base = self.scenario.network(topology=self.config.topology)
-            if base is not None:
-                for pair in self.links_down:
-                    a, b = sorted(pair)
-                    base = base.without_link(a, b)
-        return base
+    def _unavailable(self) -> frozenset[str]:
+        return frozenset(r for r in self.robots if r not in self.alive_nodes())
 
-    def replan(self, reason: str, *, only_if_better: bool = False, hold_placement_gain: float | None = None) -> bool:
-        """Plan again; with ``hold_placement_gain`` the new network is adopted but components
-        move only if that lengthens the lifetime by more than this fraction (hysteresis)."""
+    def _cut_links(self) -> frozenset[frozenset[str]]:
+        return frozenset(self.links_down | self.operator_cuts)
+
+    def network_in_use(self) -> Network:
+        """The links the team uses now: the media in use, minus what is down, with the radio faults."""
+        return derive_network(self.scenario, self.topology, self.media, self._cut_links(), dict(self.radio_faults),
+                              self._unavailable())
+
+    def _current_allocation(self) -> dict[str, str]:
+        """What runs (or is being made to run): the target, where a stage is not on its way somewhere
+        else, corrected by where it is confirmed to run (e.g. adopted from a returning robot)."""
+        allocation = dict(self.target)
+        for stage, host in self.placement.items():
+            if stage in allocation and stage not in self.migrations:
+                allocation[stage] = host
+        return allocation
+
+    def team_state(self) -> TeamState:
+        """What the policy may know, from the coordinator's view of the team (see the module docstring)."""
+        alive = self.alive_nodes()
+        energies = self.remaining_energies()
+        return TeamState(
+            scenario=self.scenario, time_s=self.now(), network=self.network_in_use(),
+            allocation=self._current_allocation(),
+            energies_j={r: e for r, e in energies.items() if r in alive},
+            disabled_chains=frozenset(self.disabled), unavailable_nodes=self._unavailable(),
+            topology=self.topology, cut_links=self._cut_links(), radio_faults=dict(self.radio_faults),
+            media_locked=bool(self.config.media), accounting=self.scenario.accounting,
+            events=tuple(self._pending_events), migration=self.migration_costs, schedule=self.schedule)
+
+    def _event(self, kind: str, **fields) -> None:
+        """Something the next decision should hear about (`TeamState.events`)."""
+        self._pending_events.append(MissionEvent(at_s=self.now(), kind=kind, **fields))
+
+    def replan(self, reason: str, *, after_rejoin: bool = False) -> bool:
+        """Ask the policy what to run where now, and carry its answer out.
+
+        ``reason`` says why we ask (for the notes); what happened since the last decision travels
+        as events. True when the policy answered (a new configuration, or keep the current one);
+        False when it could not be asked (no mission, robots still to report) or found nothing.
+        """
         if self.mission is None:
             return False
-        if self._awaiting_actual and "joined" not in reason:
-            # robots are back and have not said what they run yet: plan once they have
-            self.note(f"re-plan ({reason}) deferred until {', '.join(sorted(self._awaiting_actual))} report")
+        if self._awaiting_actual and not after_rejoin:
+            # robots are back and have not said what they run yet: decide once they have
+            self.note(f"decision ({reason}) deferred until {', '.join(sorted(self._awaiting_actual))} report")
             return False
-        unavailable = frozenset(r for r in self.robots if r not in self.alive_nodes())
-        if len(unavailable) == len(self.robots):
-            self.note(f"no robot left ({reason}); nothing to plan")
-            self.target = {}
+        if len(self._unavailable()) == len(self.robots):
+            self.note(f"no robot left ({reason}); nothing to run")
+            self.target, self.chosen = {}, {}
+            self.schedule, self.revisit_at_s = (), None
+            self._pending_events.clear()
             self.reconcile()
             self.publish_plan()
             return False
-        energies = self.remaining_energies()
-        request = dict(scenario=self.scenario, network=self._network_for_request(), topology=self.config.topology,
-                       energies_j=energies, disabled_chains=frozenset(self.disabled),
-                       unavailable_nodes=unavailable)
+        state = self.team_state()
         try:
-            plan = self.planner(**request)
-        except AutoPowerError as exc:  # InfeasibleError, or a request the planner rejects
+            decision = self.policy.decide(state)
+        except AutoPowerError as exc:  # InfeasibleError, or a state the policy rejects
             self.plan_error = str(exc)
-            self.note(f"re-plan ({reason}) found nothing feasible: {exc}")
+            self.note(f"decision ({reason}) found nothing feasible: {exc}")
             return False
         self.plan_error = None
-        if only_if_better and self.plan_obj is not None:
-            current = self._evaluate(self.target, self.plan_network, energies)
-            new_life = plan.evaluation.lifetime_s or 0.0
-            if current is not None and current.lifetime_s and new_life < current.lifetime_s * (1 + self.config.min_gain):
-                self._reset_baselines()
-                return False
-        target = dict(plan.allocation)
-        if hold_placement_gain is not None and self.target and target != self.target \
-                and set(target) == set(self.target):
-            current = self._evaluate(self.target, plan.network, energies)
-            new_life = plan.evaluation.lifetime_s or 0.0
-            if current is not None and current.lifetime_s and new_life < current.lifetime_s * (1 + hold_placement_gain):
-                self.note(f"{reason}: moving would gain {new_life / current.lifetime_s - 1:+.2%} "
-                          f"(< {hold_placement_gain:.0%}); components stay where they are")
-                target = dict(self.target)
-        self.replans += 1
-        self.plan_obj = plan
-        self.plan_network = plan.network
-        for stage, node in self.pins.items():
-            if stage in target and node in self.alive_nodes():
-                target[stage] = node
+        self._pending_events.clear()
+        if decision is None:
+            self._keep(state, reason)
+        else:
+            self._carry_out(decision, reason)
+        return True
+
+    def _keep(self, state: TeamState, reason: str) -> None:
+        """The policy keeps what runs (as the simulator does: no schedule, no revisit)."""
+        self.schedule, self.revisit_at_s = (), None
+        # what the policy would run without the pins (where `migrate --auto` goes back to)
+        self.chosen = {s: self.chosen.get(s, h) if s in self.pins else h for s, h in state.allocation.items()}
+        target = self._with_pins(dict(state.allocation))
+        changed = target != self.target or state.network != self.plan_network
+        self.target, self.plan_network = target, state.network
+        self.note(f"decision ({reason}): policy {self.policy.name} keeps the configuration")
+        self._predict()
+        if changed:  # e.g. a link is gone from (or back in) the routes, nothing moves
+            self.reconcile()
+            self.publish_plan()
+
+    def _carry_out(self, decision: Decision, reason: str) -> None:
+        """The decision's allocation becomes the target (operator pins win), its network the plan's."""
+        self.decision = decision
+        self.schedule = tuple(decision.schedule)
+        at = decision.revisit_at_s
+        # without auto_replan nothing is decided by the clock: no revisit (the schedule still travels)
+        self.revisit_at_s = at if self.config.auto_replan and at is not None and at > self.now() + 1e-6 else None
+        if not self.config.media:
+            self.media.update(base_media(decision.network))
+        self.chosen = dict(decision.allocation)
+        target = self._with_pins(dict(decision.allocation))
         changed = {s for s in target if self.target.get(s) != target[s]} | (set(self.target) - set(target))
-        self.target = target
-        lifetime = plan.evaluation.lifetime_rounded_s
-        self.note(f"plan ({reason}): lifetime {lifetime} s, media {plan.network.media_by_group()}, "
-                  f"{len(changed)} stage(s) to place" + (f", dropped {', '.join(plan.dropped)}" if plan.dropped else ""))
+        network_changed = decision.network != self.plan_network
+        self.target, self.plan_network = target, decision.network
+        self.stage_reasons = {s: why for s, why in {**self.stage_reasons, **decision.stage_reasons}.items()
+                              if s in target}
+        if changed or network_changed:
+            self.replans += 1
+        if decision.reasons:
+            self.decision_reasons = tuple(decision.reasons)
+        for line in decision.reasons:
+            self.note(f"decision ({reason}): {line}")
+        planned = round_lifetime(decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
+        self.note(f"plan ({reason}, policy {decision.policy}): predicted lifetime {planned} s, media "
+                  f"{decision.network.media_by_group()}, {len(changed)} stage(s) to place"
+                  + (f", dropped {', '.join(decision.dropped)}" if decision.dropped else "")
+                  + (f", next decision at t={self.revisit_at_s:.1f}s" if self.revisit_at_s is not None else ""))
         self._predict()
         self.reconcile()
         self.publish_plan()
-        return True
+
+    def _with_pins(self, allocation: dict[str, str]) -> dict[str, str]:
+        alive = self.alive_nodes()
+        for stage, node in self.pins.items():
+            if stage in allocation and node in alive:
+                allocation[stage] = node
+        return allocation
 
     def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float]):
         if network is None or not allocation:
@@ -468,7 +549,9 @@ class Coordinator:
             if self.mission is None:
                 self.maybe_start()
             else:
-                self._awaiting_actual[node] = self.wall() + 1.0  # replan once it says what it hosts
+                self._rejoined_unix[node] = self.wall()
+                self._event("robot-join", robot=node)
+                self._awaiting_actual[node] = self.wall() + 1.0  # decide once it says what it hosts
         else:
             if node not in self.present:
                 return
@@ -477,6 +560,7 @@ class Coordinator:
             self.note(f"{node} left")
             self._node_lost(node)
             if self.mission is not None:
+                self._event("robot-leave", robot=node, note="left")
                 self.replan(f"{node} left")
 
     def _node_lost(self, node: str) -> None:
@@ -499,13 +583,14 @@ class Coordinator:
                     self.first_depletion = {"robot": status.node, "t_virtual": status.t_virtual}
                 self.note(f"{status.node} ran out of energy")
                 self._node_lost(status.node)
+                self._event("robot-leave", robot=status.node, note="depleted")
                 self.replan(f"{status.node} depleted")
             return
         if status.node in self._awaiting_actual:
             del self._awaiting_actual[status.node]
             self._adopt_actual(status)
             if not self._awaiting_actual:  # every robot that came back has said what it runs
-                self.replan(f"{status.node} joined (from what the robots report hosting)")
+                self.replan(f"{status.node} joined (from what the robots report hosting)", after_rejoin=True)
         self._check_links(status)
         self._check_drift(status)
 
@@ -549,12 +634,16 @@ class Coordinator:
             self._link_up_since.pop(pair, None)
             since = self._link_reports.setdefault(pair, now)
             # an end that saw the link up and now reports it down has seen its lease expire:
-            # that is the detection; a link never seen up gets the start-up grace
-            wait = 0.0 if pair in self._link_seen_up else self.config.link_down_after_s
+            # that is the detection; a link never seen up gets the start-up grace, and so does
+            # a link of a robot that has just come back (a thawed robot's sessions reconnect)
+            rejoined = max(self._rejoined_unix.get(status.node, -1.0), self._rejoined_unix.get(peer, -1.0))
+            settled = pair in self._link_seen_up and now - rejoined >= self.config.link_down_after_s
+            wait = 0.0 if settled else self.config.link_down_after_s
             if now - since >= wait and pair not in self.links_down:
                 self.links_down.add(pair)
                 self.record_fault("link-down", "-".join(sorted(pair)), since)
                 self.note(f"link {status.node}-{peer} is down")
+                self._event("link-cut", a=status.node, b=peer)
                 changed = True
         if changed:
             self.replan("link change")
@@ -575,7 +664,9 @@ class Coordinator:
         measured = base.battery_j - status.battery_j
         if predicted > 0 and abs(measured - predicted) > self.config.drift_tolerance * predicted:
             self.note(f"{status.node} drew {measured / elapsed:.3f} W, plan said {base.predicted_w:.3f} W")
-            if not self.replan(f"{status.node} battery drift", only_if_better=True):
+            # the battery is off the prediction by this much (negative: emptier than predicted)
+            self._event("energy-offset", robot=status.node, delta_j=predicted - measured)
+            if not self.replan(f"{status.node} battery drift"):
                 self._reset_baselines()
 
     def on_timer(self) -> None:
@@ -586,7 +677,7 @@ class Coordinator:
             for node in late:
                 del self._awaiting_actual[node]
             if late and not self._awaiting_actual:
-                self.replan(f"{', '.join(late)} joined (no report in time)")
+                self.replan(f"{', '.join(late)} joined (no report in time)", after_rejoin=True)
             self._heal_links()
             self._mark_reconfigured()
         for stage, m in list(self.migrations.items()):
@@ -596,16 +687,29 @@ class Coordinator:
                 self.publish_plan()
         if self.mission is None:
             return
-        if (self.config.auto_replan and self.next_periodic_replan is not None
-                and self.now() >= self.next_periodic_replan):
-            self.next_periodic_replan = self.now() + self.config.replan_interval_s
-            self.replan("periodic, remaining energies", only_if_better=True)
+        if self.config.auto_replan:
+            self._timed_decisions()
         if now_wall >= self.next_republish:
             self.publish_plan(repeat=True)
 
+    def _timed_decisions(self) -> None:
+        """The decision a schedule asked for at its phase's end, and the periodic one (no events)."""
+        now = self.now()
+        due_periodic = self.next_periodic_replan is not None and now >= self.next_periodic_replan
+        if self.revisit_at_s is not None and now >= self.revisit_at_s:
+            self.revisit_at_s = None
+            self.next_periodic_replan = now + self.config.replan_interval_s  # this one counts as it
+            self.replan(f"revisit at t={now:.1f}s, as the last decision asked")
+        elif due_periodic:
+            self.next_periodic_replan = now + self.config.replan_interval_s
+            self.replan("periodic, remaining energies")
+
     def next_deadline_unix(self) -> float:
-        return min([self.next_republish] + [m.started_unix + self.config.migration_timeout_s
-                                             for m in self.migrations.values()])
+        deadlines = [self.next_republish] + [m.started_unix + self.config.migration_timeout_s
+                                              for m in self.migrations.values()]
+        if self.clock is not None and self.revisit_at_s is not None:
+            deadlines.append(self.clock.wall_at(self.revisit_at_s))
+        return min(deadlines)
 
     def publish_plan(self, repeat: bool = False) -> None:
         if self.mission is None:
@@ -616,7 +720,8 @@ class Coordinator:
         links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
         update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
                             running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
-                            predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual)
+                            predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
+                            policy=self.policy.name, reasons=tuple(self.decision_reasons))
         payload = encode(update)
         self.bus.publish(self.keys.plan, payload)
         self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)
@@ -635,6 +740,7 @@ class Coordinator:
                 if cmd.enabled == (cmd.chain not in self.disabled):
                     return OperatorReply(ok=True, message=f"{cmd.chain} already {'enabled' if cmd.enabled else 'disabled'}")
                 (self.disabled.discard if cmd.enabled else self.disabled.add)(cmd.chain)
+                self._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
                 ok = self.replan(f"operator {'enabled' if cmd.enabled else 'disabled'} {cmd.chain}")
                 return OperatorReply(ok=ok, message=self._summary(ok))
             if isinstance(cmd, MigrateCommand):
@@ -650,33 +756,59 @@ class Coordinator:
                 self.publish_plan()
                 return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
             if isinstance(cmd, AutoCommand):
-                self.pins.clear()
+                self._clear_pins()
                 ok = self.replan("operator cleared pins")
                 return OperatorReply(ok=ok, message=self._summary(ok))
             if isinstance(cmd, LinkCommand):
-                network = self.network_override or self.plan_network
-                if network is None:
-                    return OperatorReply(ok=False, message="no network yet")
-                if cmd.down_peer is not None:
-                    network = network.without_link(cmd.node, cmd.down_peer)
-                else:
-                    network = network.with_node_media(cmd.node, laptop_robot=cmd.laptop_robot,
-                                                      robot_robot=cmd.robot_robot)
-                self.network_override = network
+                self._operator_link(cmd)
                 ok = self.replan(f"operator changed links of {cmd.node}")
                 return OperatorReply(ok=ok, message=self._summary(ok))
         except AutoPowerError as exc:
             return OperatorReply(ok=False, message=str(exc))
         return OperatorReply(ok=False, message=f"unsupported command {type(cmd).__name__}")
 
+    def _clear_pins(self) -> None:
+        """Back to what the policy chose (pinned stages migrate back), then the policy is asked again."""
+        self.pins.clear()
+        self.target = {s: self.chosen.get(s, h) for s, h in self.target.items()}
+        self.reconcile()
+
+    def _operator_link(self, cmd: LinkCommand) -> None:
+        """An operator's link command: a link declared down (a cut link) or a radio change (a radio fault)."""
+        nodes = self.scenario.node_names()
+        for node in (cmd.node, cmd.down_peer):
+            if node is not None and node not in nodes:
+                raise AutoPowerError(f"link command: unknown node {node!r}; nodes: {', '.join(nodes)}")
+        if cmd.down_peer is not None:
+            self.operator_cuts.add(frozenset((cmd.node, cmd.down_peer)))
+            self._event("link-cut", a=cmd.node, b=cmd.down_peer, note="operator")
+            return
+        for medium in (cmd.laptop_robot, cmd.robot_robot):
+            if medium is not None and medium not in self.scenario.radios:
+                raise AutoPowerError(f"link command for {cmd.node}: unknown medium {medium!r}; radios: "
+                                     f"{', '.join(self.scenario.radios)}")
+        if cmd.laptop_robot is None and cmd.robot_robot is None:
+            raise AutoPowerError(f"link command for {cmd.node}: give a medium for its links to the base station "
+                                 "and/or to the robots, or a peer whose link is down")
+        before = self.radio_faults.get(cmd.node, (None, None))
+        self.radio_faults[cmd.node] = (cmd.laptop_robot or before[0], cmd.robot_robot or before[1])
+        self._event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
+                    note="operator")
+
     def _summary(self, ok: bool) -> str:
         if not ok:
             return f"re-plan failed: {self.plan_error or 'no change'}"
-        life = self.plan_obj.evaluation.lifetime_rounded_s if self.plan_obj else None
-        return f"re-planned: lifetime {life} s; target " + ", ".join(f"{s}->{n}" for s, n in self.target.items())
+        planned = self.planned_lifetime_s()
+        return (f"re-planned ({self.policy.name}): lifetime {planned} s; target "
+                + ", ".join(f"{s}->{n}" for s, n in self.target.items()))
+
+    def planned_lifetime_s(self) -> float | None:
+        """The last decision's predicted lifetime from its time on (rounded as the scenario says)."""
+        if self.decision is None:
+            return None
+        return round_lifetime(self.decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
 
     def snapshot(self) -> dict[str, Any]:
-        plan = self.plan_obj
         robots = {}
         for name in self.robots:
             st = self.statuses.get(name)
@@ -699,12 +831,17 @@ class Coordinator:
             "running": dict(self.running),
             "disabled": sorted(self.disabled),
             "pins": dict(self.pins),
-            "media": plan.network.media_by_group() if plan else None,
+            "media": self.plan_network.media_by_group() if self.plan_network else None,
             "links": [[l.a, l.b, l.medium] for l in self.plan_network.links] if self.plan_network else [],
             "links_down": sorted(sorted(p) for p in self.links_down),
-            "planned_lifetime_s": plan.evaluation.lifetime_rounded_s if plan else None,
+            "planned_lifetime_s": self.planned_lifetime_s(),
             "predicted_lifetime_s": self.predicted_lifetime_s,
-            "reasons": dict(plan.reasons) if plan else {},
+            "reasons": dict(self.stage_reasons),  # stage -> why it runs there
+            "policy": self.policy.name,
+            "decision_reasons": list(self.decision_reasons),
+            "schedule": [{"duration_s": p.duration_s, "allocation": dict(p.allocation),
+                          "media": p.network.media_by_group()} for p in self.schedule],
+            "revisit_at_s": self.revisit_at_s,
             "plan_error": self.plan_error,
             "robots": robots,
             "migrations_done": self.migrations_done,
@@ -720,6 +857,14 @@ class Coordinator:
         }
 
 
+def _policy_from(config: CoordinatorConfig) -> Policy:
+    """The policy a configuration names; a clear error (at construction) for a wrong name or parameter."""
+    if config.policy not in POLICY_NAMES:
+        raise AutoPowerError(f"coordinator: unknown policy {config.policy!r}; choose one of "
+                             f"{', '.join(POLICY_NAMES)} (CoordinatorConfig.policy / --policy)")
+    return make_policy(config.policy, **dict(config.policy_params))
+
+
 def _stats(values: list[float]) -> dict[str, float] | None:
     if not values:
         return None
@@ -729,5 +874,13 @@ def _stats(values: list[float]) -> dict[str, float] | None:
 
 
 def _status_dict(st: NodeStatus) -> dict[str, Any]:
-    d = dataclasses.asdict(st)
-    return d
+    return _plain(dataclasses.asdict(st))
+
+
+def _plain(value: Any) -> Any:
+    """Tuples as lists, so that a snapshot is the same after a round trip through msgpack or JSON."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value

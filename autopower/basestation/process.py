@@ -20,6 +20,7 @@ from autopower.events import EventQueue, LivelinessChanged, OperatorRequest, Rec
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.bus import Bus, ZenohBus, ZenohSettings
 from autopower.errors import ProtocolError
+from autopower.policy import Policy
 from autopower.protocol import (
     INBOX_MESSAGES,
     OPERATOR_COMMANDS,
@@ -74,7 +75,8 @@ class BaseStation:
     """The base station (a context manager)."""
 
     def __init__(self, config: BaseStationConfig, *, host_factory: Callable[..., Host], bus: Bus | None = None,
-                 planner: Callable | None = None):
+                 policy: Policy | None = None):
+        """``policy`` overrides the one ``config.coordinator.policy`` names (for tests)."""
         self.config = config
         self.keys = Keys(config.team)
         self.node = config.scenario.basestation
@@ -82,7 +84,7 @@ class BaseStation:
         self._bus = bus
         self._owns_bus = bus is None
         self._handles: list = []
-        self._planner = planner
+        self._policy = policy
         self._host_factory = host_factory
         self.runtime: Host | None = None
         self.coordinator: Coordinator | None = None
@@ -98,7 +100,7 @@ class BaseStation:
         bus, keys = self._bus, self.keys
         self.runtime = self._host_factory(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys)
         self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
-                                       config=self.config.coordinator, planner=self._planner)
+                                       config=self.config.coordinator, policy=self._policy)
         self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count)
         self.runtime.send_to = self.relayer.send
         self.coordinator.send_to = self.relayer.send
@@ -142,7 +144,7 @@ class BaseStation:
                 if inner is None:
                     return
                 key, payload = inner
-            self._received(key, payload)
+            self._received(key, payload, relayed=event.key == keys.node_relay(self.node))
         elif isinstance(event, LivelinessChanged):
             node = keys.node_of_alive(event.key)
             if node is not None and node != self.node:
@@ -177,7 +179,7 @@ class BaseStation:
             if node not in self.relayer.direct and node not in self._suspects and not self.relayer.reachable(node):
                 co.on_liveliness(node, False)
 
-    def _received(self, key: str, payload: bytes) -> None:
+    def _received(self, key: str, payload: bytes, relayed: bool = False) -> None:
         rt, co, keys = self.runtime, self.coordinator, self.keys
         if True:
             if rt.on_message(key, payload):
@@ -198,10 +200,16 @@ class BaseStation:
                     self._status_t[status.node] = status.t_unix
                     if status.node != self.node:
                         self.relayer.on_status(status)
+                        if not relayed:
+                            self.relayer.on_direct(status.node)
+                        rt.on_peer_status(status)  # what it consumed: acks for our retransmit buffer
                         if (status.node in co.robots and status.node not in co.present
                                 and self.relayer.reachable(status.node)):
                             co.on_liveliness(status.node, True)  # back, through a relay
-                        if status.node in co.present or status.node in self.relayer.direct:
+                        # before it runs the mission (plan_epoch -1) a robot's status only says who
+                        # it sees (for the relay) and that it is there: its link view may predate
+                        # our token reaching it, so it must not count as a link going down
+                        if status.plan_epoch >= 0 and (status.node in co.present or status.node in self.relayer.direct):
                             co.on_status(status)
                 else:
                     rt.count("unexpected-key", event_key)
@@ -266,7 +274,11 @@ class BaseStation:
                 next_status = max(next_status + self.config.status_period_s, now)
                 if rt.started:
                     status = rt.status(self.config.status_window_s * rt.clock.speed, self.events.depth())
-                    self._bus.publish(self.keys.status(self.node), encode(status), reliable=False)
+                    key, payload = self.keys.status(self.node), encode(status)
+                    self._bus.publish(key, payload, reliable=False)
+                    # robots out of direct sight learn what our sinks received (their acks) via a relay
+                    self.relayer.send_beyond_sight([r for r in co.robots if r in co.alive_nodes()], key, payload,
+                                                   reliable=False)
                 if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                     self.stop_reason = "parent exited"
                     break

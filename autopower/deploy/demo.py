@@ -27,6 +27,7 @@ from pathlib import Path
 import click
 
 from autopower.errors import AutoPowerError
+from autopower.policy import POLICY_NAMES
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,7 @@ def _say(quiet: bool, text: str) -> None:
 
 
 def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Path, record: bool,
-             quiet: bool) -> dict:
+             quiet: bool, policy: str = "rebalance") -> dict:
     from autopower.deploy.faults import FaultController
     from autopower.deploy.launcher import LocalTeam, TeamSpec
     from autopower.deploy.runtime_commands import build_scenario
@@ -92,14 +93,14 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     # the recording id derives from the run directory's name: one name per run
     record_dir = log_dir / f"run-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}" if record else None
     spec = TeamSpec(scenario=SCENARIO, speed=speed, energy_scale=energy_scale, lease_ms=lease_ms,
-                    proxied_links=True, log_dir=log_dir, record_dir=record_dir)
+                    proxied_links=True, log_dir=log_dir, record_dir=record_dir, policy=policy)
     faults_out: list[dict] = []
     team = LocalTeam(spec, scenario)
     snap: dict = {}
     try:
         team.start()
         _say(quiet, f"demo: base station + {len(robots)} agents (team {team.team}, logs in {log_dir}), "
-                    f"speed {speed:g}x, mission ~{mission_wall_s:g} s")
+                    f"speed {speed:g}x, mission ~{mission_wall_s:g} s, policy {policy}")
         team.wait_ready(60)
         faults = FaultController(team)
         time.sleep(3.0)
@@ -214,7 +215,9 @@ def _recording(record_dir: Path, quiet: bool) -> dict:
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
               help="Where logs and the recording go (default: a new temporary directory).")
 @click.option("--no-record", is_flag=True, help="Do not write a Rerun recording.")
-def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record):
+@click.option("--policy", type=click.Choice(list(POLICY_NAMES)), default="rebalance", show_default=True,
+              help="What decides the placement at the base station (as in `autopower simulate`).")
+def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy):
     """Three agents + the base station: a cut, a heal, a subgroup without the base, the replay."""
     if not 10 <= mission_wall_s <= 600:
         raise AutoPowerError(f"--mission must be within 10..600 s, got {mission_wall_s:g}")
@@ -223,7 +226,7 @@ def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record):
     directory = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix="autopower-demo-"))
     directory.mkdir(parents=True, exist_ok=True)
     result = run_demo(speed=speed, mission_wall_s=mission_wall_s, lease_ms=lease_ms, log_dir=directory,
-                      record=not no_record, quiet=as_json)
+                      record=not no_record, quiet=as_json, policy=policy)
     if as_json:
         slim = {k: v for k, v in result.items() if k != "replay"}
         click.echo(json.dumps(slim, default=str))

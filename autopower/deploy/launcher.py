@@ -99,6 +99,7 @@ class TeamSpec:
     media: tuple[str, ...] = ()  # "laptop-robot=gsm"
     pins: tuple[str, ...] = ()  # "Loc-2=r1"
     auto_replan: bool = True
+    policy: str = "rebalance"  # the base station's --policy
     lease_ms: int = 1000
     status_period_s: float = 0.5
     team: str | None = None
@@ -209,6 +210,7 @@ class LocalTeam:
             args += ["--pin", pin]
         if not spec.auto_replan:
             args.append("--no-replan")
+        args += ["--policy", spec.policy]
         args += list(spec.extra_basestation_args)
         self._spawn(base, args)
         for robot in self.nodes[1:]:

@@ -18,6 +18,7 @@ import time
 import click
 
 from autopower.errors import AutoPowerError
+from autopower.policy import POLICY_NAMES
 from autopower.scenario import Scenario, load_scenario
 
 log = logging.getLogger("autopower.runtime")
@@ -168,7 +169,12 @@ def mission_options(f):
         click.option("--media", multiple=True, metavar="GROUP=MEDIUM",
                      help="Fix a link group's medium, e.g. laptop-robot=gsm (default: the planner chooses)."),
         click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable)."),
-        click.option("--no-replan", is_flag=True, help="No re-plans on battery drift or periodically."),
+        click.option("--no-replan", is_flag=True,
+                     help="No decisions on battery drift, periodically or when a schedule's phase ends."),
+        click.option("--policy", type=click.Choice(list(POLICY_NAMES)), default="rebalance", show_default=True,
+                     help="What decides the placement (the simulator's policies): static never moves by choice, "
+                          "reactive replans on events, rebalance follows a time-sharing schedule, subgroup "
+                          "reallocates within the parts of the team that reach each other."),
     ]):
         f = option(f)
     return f
@@ -184,8 +190,8 @@ def mission_options(f):
 @click.option("--start-grace", type=float, default=30.0, show_default=True,
               help="Wall seconds to wait for every robot before starting without the missing ones.")
 def basestation(scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
-                record_dir, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, replan_interval,
-                start_grace):
+                record_dir, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
+                replan_interval, start_grace):
     """Run the base station: plan, place and migrate components; the operator's sink."""
     from autopower.agent.node import NodeRuntime
     from autopower.basestation.coordinator import CoordinatorConfig
@@ -201,7 +207,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     coordinator = CoordinatorConfig(speed=speed, topology=topology, media=media_choice,
                                     pins=parse_pairs(pin, "--pin", "Loc-2=r1"),
                                     auto_replan=not no_replan, replan_interval_s=replan_interval,
-                                    start_grace_s=start_grace)
+                                    start_grace_s=start_grace, policy=policy)
     config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh_settings(listen, connect, lease_ms),
                                coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
     recorder, bus = _recording_bus(record_dir, scenario.basestation, scenario, config.zenoh)
@@ -247,6 +253,7 @@ def summarize(snap: dict, *, team: str, speed: float, ready_after_s: float, wall
     missed = sum(s.get("missed", 0) for r in robots.values() for s in r["sources"].values())
     return {
         "team": team, "scenario": snap.get("scenario"), "accounting": snap.get("accounting"), "speed": speed,
+        "policy": snap.get("policy"),
         "ready": snap.get("ready"), "ready_after_s": ready_after_s, "wall_s": wall_s,
         "t_virtual": snap.get("t_virtual"),
         "placement": snap.get("placement"), "target": snap.get("target"), "media": snap.get("media"),
@@ -271,9 +278,15 @@ def render(snap: dict, speed: float):
     from rich.table import Table
     from rich.text import Text
 
-    head = Text(f"{snap.get('scenario')} · {snap.get('accounting')} accounting · t = {snap.get('t_virtual', 0):.0f} s "
-                f"virtual (x{speed:g}) · planned lifetime {snap.get('planned_lifetime_s')} s · media {snap.get('media')}"
-                + ("" if snap.get("ready") else " · placing…"), style="bold")
+    revisit = snap.get("revisit_at_s")
+    parts = [f"{snap.get('scenario')}", f"{snap.get('accounting')} accounting",
+             f"t = {snap.get('t_virtual', 0):.0f} s virtual (x{speed:g})", f"policy {snap.get('policy')}",
+             f"planned lifetime {snap.get('planned_lifetime_s')} s", f"media {snap.get('media')}"]
+    if revisit is not None:  # a time-sharing schedule switches configuration then
+        parts.append(f"next phase at t = {revisit:.0f} s")
+    if not snap.get("ready"):
+        parts.append("placing…")
+    head = Text(" · ".join(parts), style="bold")
     robots = Table("robot", "battery", "power W (plan)", "CPU", "hosts", "sources (frames/missed)", "links",
                    title="robots", title_justify="left")
     for name, info in snap.get("robots", {}).items():
@@ -323,7 +336,7 @@ def render(snap: dict, speed: float):
 @click.option("--record-dir", type=click.Path(file_okay=False), default=None,
               help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
-       lease_ms, direct_links, ready_timeout, log_dir, until_depleted, record_dir):
+       policy, lease_ms, direct_links, ready_timeout, log_dir, until_depleted, record_dir):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
@@ -339,7 +352,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         scenario.network(topology=topology, media=parse_pairs(media, "--media", "laptop-robot=gsm"))
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
-                    auto_replan=not no_replan,
+                    auto_replan=not no_replan, policy=policy,
                     lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links,
                     record_dir=Path(record_dir) if record_dir else None)
     if record_dir:

@@ -24,6 +24,7 @@ from autopower.protocol.messages import (
     Relayed,
     Release,
     SinkStats,
+    Consumed,
     SnapshotRequest,
     SourceStats,
     StageReady,
@@ -38,6 +39,6 @@ __all__ = [
     "CONTROL_MESSAGES", "INBOX_MESSAGES", "OPERATOR_COMMANDS", "PROTOCOL_VERSION",
     "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo",
     "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet",
-    "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "SnapshotRequest", "SourceStats",
+    "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "Consumed", "SnapshotRequest", "SourceStats",
     "StageReady", "StateTransfer", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",
 ]

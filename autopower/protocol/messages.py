@@ -65,6 +65,23 @@ class SinkStats:
     received_total: int
     duplicates_total: int
     digest: int  # sequencing.fold_digest over the outputs of seqs < contiguous
+    redundant_total: int = 0  # copies of a retransmitted output that arrived twice (expected, dropped)
+
+
+@struct
+@dataclass(frozen=True, kw_only=True)
+class Consumed:
+    """What the consumer of one hop of a chain has taken in: a stage's input gate or a sink.
+
+    Published in every status, it acknowledges frames to whoever sent them (their custody
+    buffers drop what was consumed and resend what a later report still lacks).
+    """
+
+    run: int
+    generation: int  # of the stage instance (0 for a sink): the newest report wins
+    next_seq: int  # every seq below has been consumed
+    max_seq: int  # highest seq received so far, -1 for none
+    missing: tuple[int, ...]  # seqs in [next_seq, max_seq] not received, lowest first (bounded)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -83,7 +100,7 @@ class Packet:
     hop: int  # index in path of the node this copy is addressed to
     charge_bytes: int  # bytes the radios are charged for (the chain's declared message size)
     weight: float  # modelled messages this real message stands for (model.flow_weight)
-    purpose: str  # "chain" | "migration": which meter bucket pays
+    purpose: str  # "chain" | "migration" | "recovery" (a resent frame): which meter bucket pays
     chain: str
     body: bytes  # an encoded ChainFrame or StateTransfer
 
@@ -94,8 +111,8 @@ class Packet:
             raise ValueError(f"hop {self.hop} outside path of {len(self.path)} nodes")
         if self.charge_bytes < 0 or self.weight < 0:
             raise ValueError("charge_bytes and weight must be >= 0")
-        if self.purpose not in ("chain", "migration"):
-            raise ValueError(f"purpose {self.purpose!r} is not chain or migration")
+        if self.purpose not in ("chain", "migration", "recovery"):
+            raise ValueError(f"purpose {self.purpose!r} is not chain, migration or recovery")
 
 
 @message
@@ -112,10 +129,17 @@ class ChainFrame:
     t_unix: float  # wall time of production, for latency measurements
     payload_len: int  # real length; payload is zero-padded to the chain's declared size
     payload: bytes
+    # 0: the first copy; > 0: a copy that may repeat an earlier one (its producer's n-th resend, or
+    # a stage restarted without state recomputing inputs its lost predecessor may have run)
+    attempt: int = 0
+    # the lowest seq of this hop (chain, target, run) its producer still holds unacknowledged: all
+    # below were consumed by some instance of the consumer, so a gate waiting for them can move on,
+    # and a stage started without state starts here (the producer resends what it then lacks)
+    floor: int | None = None
 
     def __post_init__(self) -> None:
-        if self.seq < 0 or self.target < 0 or self.run < 0:
-            raise ValueError("seq, target and run must be >= 0")
+        if self.seq < 0 or self.target < 0 or self.run < 0 or self.attempt < 0:
+            raise ValueError("seq, target, run and attempt must be >= 0")
         if not 0 <= self.payload_len <= len(self.payload):
             raise ValueError(f"payload_len {self.payload_len} exceeds the {len(self.payload)} B payload")
 
@@ -236,6 +260,8 @@ class PlanUpdate:
     predicted_w: dict[str, float]  # the model's power per robot for this placement
     predicted_lifetime_s: float | None
     plan_t_virtual: float  # when this placement's prediction starts
+    policy: str = ""  # what decided it (autopower.policy's name)
+    reasons: tuple[str, ...] = ()  # why, in the policy's words (for the operator and the recording)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -266,6 +292,7 @@ class NodeStatus:
     errors: dict[str, int]  # dropped garbled messages, unroutable frames, ...
     counters: dict[str, int]  # normal events: forwarded packets, missed periods, ...
     depleted: bool
+    consumed: dict[str, Consumed] = field(default_factory=dict)  # "chain#target" -> what this node took in
 
 
 # ---------------------------------------------------------------------------------------------

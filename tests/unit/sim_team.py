@@ -15,7 +15,7 @@ from autopower.agent.node import NodeRuntime
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.bus import InMemoryHub
 from autopower.clock import ManualClock
-from autopower.protocol import INBOX_MESSAGES, Keys, Prepared, StageReady, decode
+from autopower.protocol import INBOX_MESSAGES, Keys, Packet, Prepared, StageReady, decode
 
 
 class FakeSource:
@@ -57,7 +57,7 @@ class FakeComponent:
 
 
 class SimTeam:
-    def __init__(self, scenario, *, config: CoordinatorConfig | None = None, planner=None, fake=True,
+    def __init__(self, scenario, *, config: CoordinatorConfig | None = None, policy=None, fake=True,
                  rng: random.Random | None = None, speed: float = 1.0):
         self.scenario = scenario
         self.clock = ManualClock(speed=speed, epoch_unix=1_000_000.0)
@@ -65,7 +65,7 @@ class SimTeam:
         self.keys = Keys("sim")
         self.rng = rng
         self.coordinator = Coordinator(scenario=scenario, bus=self.hub.bus("coordinator"), keys=self.keys,
-                                       config=config or CoordinatorConfig(speed=speed), planner=planner,
+                                       config=config or CoordinatorConfig(speed=speed), policy=policy,
                                        wall_fn=self.clock.wall)
         kwargs = dict(make_component=FakeComponent, make_source=FakeSource) if fake else {}
         self.nodes: dict[str, NodeRuntime] = {}
@@ -74,11 +74,45 @@ class SimTeam:
             bus = self.hub.bus(node)
             rt = NodeRuntime(node=node, scenario=scenario, bus=bus, keys=self.keys,
                              clock_factory=lambda mission: self.clock, **kwargs)
+            rt.wall = self.clock.wall  # custody ages frames on the test's clock
+            rt.send_to = lambda dest, key, payload, rt=rt, bus=bus: self._send(rt.node, dest, key, payload, bus)
             self.nodes[node] = rt
             self.subscriptions[node] = [
                 bus.subscribe(k, lambda key, payload, rt=rt: rt.on_message(key, payload))
                 for k in (self.keys.node_data(node), self.keys.node_control(node), self.keys.plan)]
         self.coordinator.bus.subscribe(self.keys.inbox, self._inbox)
+
+    # ---- silent cuts: what one node sends another vanishes, nobody is told ----------------------------
+    cut_links: frozenset = frozenset()  # (sender, receiver) pairs
+    lost_in_cuts = 0
+
+    cut_only_chain_frames = False  # spare migrations' state (a lost state is a cold restart, not this test's point)
+
+    def _send(self, sender: str, dest: str, key: str, payload: bytes, bus) -> None:
+        if (sender, dest) in self.cut_links and (not self.cut_only_chain_frames or (
+                key == self.keys.node_data(dest) and decode(payload, Packet).purpose == "chain")):
+            self.lost_in_cuts += 1
+            return
+        bus.publish(key, payload)
+
+    def cut_silently(self, a: str, b: str, one_way: bool = False) -> None:
+        """Drop what ``a`` sends ``b`` (and, unless ``one_way``, what ``b`` sends ``a``)."""
+        self.cut_links = self.cut_links | {(a, b)} | (set() if one_way else {(b, a)})
+
+    def heal_silently(self, a: str, b: str) -> None:
+        self.cut_links = self.cut_links - {(a, b), (b, a)}
+
+    def exchange_statuses(self, window_s: float = 10.0) -> None:
+        """Every node hears every other node's status (its custody acks), except across cuts."""
+        statuses = {name: rt.status(window_s) for name, rt in self.nodes.items()
+                    if rt.started and name in self.subscriptions}
+        for name, rt in self.nodes.items():
+            if name not in statuses:
+                continue
+            for other, status in statuses.items():
+                if other != name and (other, name) not in self.cut_links:
+                    rt.on_peer_status(status)
+        self.pump()
 
     def _inbox(self, key, payload):
         msg = decode(payload, INBOX_MESSAGES)

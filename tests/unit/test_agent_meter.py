@@ -43,6 +43,22 @@ def test_meter_arithmetic():
     assert util == pytest.approx(0.85 / 20.0)
 
 
+def test_overheads_the_model_leaves_out_are_metered_apart():
+    sc = load_scenario("paper-fig7")
+    radio = sc.radios["802.11a"]
+    m = BatteryMeter(platform=sc.platforms["sitsang"], radios=sc.radios, initial_j=100.0, t0=0.0,
+                     media=["802.11a"])
+    m.charge_run(0.85, 1.0)
+    m.charge_run(0.85, 1.0, purpose="recovery")  # a restarted stage recomputing a lost input
+    m.charge_radio("send", "802.11a", 1000, 1.0, 1.0, purpose="recovery")  # a resent frame
+    m.charge_radio("send", "802.11a", 2000, 1.0, 1.0, purpose="migration")
+    assert m.energy_j["cpu_busy"] == pytest.approx(m.energy_j["cpu_recovery"])
+    over = m.overhead_j()
+    assert over["recovery"] == pytest.approx(0.93 * 0.85 + radio.send_w * airtime_s(1000, radio))
+    assert over["migration"] == pytest.approx(radio.send_w * airtime_s(2000, radio))
+    assert m.battery_j == pytest.approx(100.0 - m.consumed_j)  # the battery pays for all of it
+
+
 def test_mains_meter_pays_nothing():
     sc = load_scenario("paper-fig7")
     m = BatteryMeter(platform=sc.platforms["laptop"], radios=sc.radios, initial_j=None, t0=0.0, media=["gsm"])

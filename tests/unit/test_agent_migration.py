@@ -163,3 +163,5 @@ def test_disable_and_enable_start_a_new_run():
     assert runner.run == 1 and runner.produced_total > produced_before
     ledger = team.nodes["laptop"].sinks["Blob-2"]
     assert ledger.run == 1 and ledger.contiguous == runner.seq and ledger.duplicates_total == 0
+    runs = sorted({run for run, _, _ in outputs["Blob-2"]})
+    assert runs == [0, 1] and sorted(seq for run, seq, _ in outputs["Blob-2"] if run == 1) == list(range(runner.seq))

@@ -71,3 +71,19 @@ def test_broadcast_reaches_those_out_of_sight():
     base.send_beyond_sight(["r1", "r2", "r3"], KEYS.plan, b"plan")
     relayed = sorted(decode(p, Relayed).path[-1] for k, p, _ in hub.published if k == KEYS.node_relay("r2"))
     assert relayed == ["r1", "r3"]
+
+
+def test_a_late_relayed_message_does_not_cut_off_a_node_that_is_seen_directly():
+    """A relayed copy sent while the link was cut may arrive after it is back: the next direct
+    message from that node proves the link works and undoes the shun."""
+    hub = InMemoryHub(record=True)
+    r1 = make(hub, "r1", ["r2", "laptop"])
+    late = encode(Relayed(path=("laptop", "r2", "r1"), hop=2, key=KEYS.plan, payload=b"old plan"))
+    assert r1.on_relay(late) == (KEYS.plan, b"old plan")
+    assert "laptop" not in r1.direct  # shunned: the laptop said (by relaying) it did not see us
+    r1.on_status(status("r2", ["r1"]))
+    assert not r1.reachable("laptop")
+    r1.on_direct("laptop")  # ...but its status just arrived on its own key, directly
+    assert "laptop" in r1.direct and r1.path_to("laptop") == ["r1", "laptop"]
+    r1.on_direct("r9")  # nothing to undo for a node we never shunned
+    assert "r9" not in r1.direct

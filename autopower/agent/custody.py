@@ -1,0 +1,196 @@
+"""Custody of sent frames: kept until their consumer reports them consumed, resent if lost.
+
+Zenoh delivers reliably *within* a session, but a link cut silently loses whatever is in
+flight on it until the lease expires (about 0.5 s), and nothing retransmits across sessions.
+So every producer (a chain's source, and every stage for its outputs) keeps each frame it
+emits in custody, keyed by (chain, target, run, seq), until the frame's consumer (the next
+stage's host, or the chain's sink) acknowledges it.
+
+The acknowledgement is the `Consumed` report every node already publishes in its status
+(per hop: run, the in-order prefix it has consumed, the highest seq seen and the seqs missing
+below it). A frame is resent when a report made at least ``resend_after_s`` after the frame
+was last sent still lacks it: the report, not a timer, decides, so a frame that is only
+slow (queued behind a migration) is not resent while its consumer keeps receiving. Consumers
+drop second copies (the stage's sequence gate, the sink's ledger), so resending is safe.
+
+Responsibility moves downstream hop by hop: once a stage has consumed an input, its output is
+that stage's host's to keep, so a frame lost after a stateful stage (MCL) is resent from that
+stage's output, never recomputed (which would run MCL twice on one input).
+
+Custody is bounded (frames per hop, bytes per node, age); what is evicted can no longer be
+resent and is counted, so a loss is visible instead of silent.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+
+from autopower.protocol import ChainFrame, Consumed
+
+RESEND_AFTER_S = 1.0  # wall seconds between a send and a report that may call the frame lost
+MAX_FRAMES_PER_HOP = 1024
+MAX_BYTES = 64 * 1024 * 1024  # camera frames are 230 kB: ~280 of them
+MAX_AGE_S = 300.0  # a frame nobody acknowledged for this long is given up
+MAX_ATTEMPTS = 20
+
+
+@dataclass
+class Held:
+    frame: ChainFrame
+    kept_unix: float
+    sent_unix: float | None  # None: not on the wire yet (no route to its consumer)
+
+
+@dataclass(frozen=True)
+class Report:
+    """A consumer's `Consumed`, with who made it and when."""
+
+    node: str
+    t_unix: float
+    consumed: Consumed
+
+
+Hop = tuple[str, int]  # (chain, target)
+
+
+def hop_key(chain: str, target: int) -> str:
+    """The key of a hop in `NodeStatus.consumed`."""
+    return f"{chain}#{target}"
+
+
+def parse_hop_key(key: str) -> Hop | None:
+    chain, sep, target = key.rpartition("#")
+    if not sep or not chain or not target.isdigit():
+        return None
+    return chain, int(target)
+
+
+def is_consumed(report: Consumed, run: int, seq: int) -> bool:
+    """Has the consumer taken this frame in (or moved past its run, making it obsolete)?"""
+    if run < report.run:
+        return True
+    if run > report.run:
+        return False
+    if seq < report.next_seq:
+        return True
+    if seq > report.max_seq:
+        return False
+    if seq in report.missing:
+        return False
+    # beyond a truncated missing list nothing is known; count it as received rather than
+    # risk resending many frames that were not lost
+    return True
+
+
+class Custody:
+    def __init__(self, *, resend_after_s: float = RESEND_AFTER_S, max_frames_per_hop: int = MAX_FRAMES_PER_HOP,
+                 max_bytes: int = MAX_BYTES, max_age_s: float = MAX_AGE_S, max_attempts: int = MAX_ATTEMPTS):
+        self.resend_after_s = resend_after_s
+        self.max_frames_per_hop = max_frames_per_hop
+        self.max_bytes = max_bytes
+        self.max_age_s = max_age_s
+        self.max_attempts = max_attempts
+        self.hops: dict[Hop, OrderedDict[tuple[int, int], Held]] = {}
+        self.reports: dict[Hop, Report] = {}
+        self.bytes = 0
+        self.kept = 0
+        self.acknowledged = 0
+        self.resent = 0
+        self.evicted = 0  # dropped unacknowledged (bounds, age, attempts): possibly lost
+
+    def __len__(self) -> int:
+        return sum(len(h) for h in self.hops.values())
+
+    # ---- producing --------------------------------------------------------------------------------
+    def keep(self, frame: ChainFrame, now: float, sent: bool = True) -> None:
+        hop = self.hops.setdefault((frame.chain, frame.target), OrderedDict())
+        key = (frame.run, frame.seq)
+        if key in hop:
+            return
+        hop[key] = Held(frame=frame, kept_unix=now, sent_unix=now if sent else None)
+        self.bytes += len(frame.payload)
+        self.kept += 1
+        while len(hop) > self.max_frames_per_hop:
+            self._drop(hop, next(iter(hop)), evicted=True)
+        while self.bytes > self.max_bytes:
+            oldest = min((h for h in self.hops.values() if h), key=lambda h: next(iter(h.values())).kept_unix)
+            self._drop(oldest, next(iter(oldest)), evicted=True)
+
+    def floor(self, chain: str, target: int, run: int, default: int) -> int:
+        """The lowest seq of a hop and run still held unacknowledged (``default`` if none is)."""
+        held = [seq for (r, seq) in self.hops.get((chain, target), {}) if r == run]
+        return min(held, default=default)
+
+    def mark(self, frame: ChainFrame, sent_unix: float | None) -> None:
+        """The frame went on the wire now (or was held back: None)."""
+        held = self.hops.get((frame.chain, frame.target), {}).get((frame.run, frame.seq))
+        if held is not None:
+            held.sent_unix = sent_unix
+
+    def _drop(self, hop: OrderedDict, key: tuple[int, int], evicted: bool) -> None:
+        held = hop.pop(key)
+        self.bytes -= len(held.frame.payload)
+        if evicted:
+            self.evicted += 1
+        else:
+            self.acknowledged += 1
+
+    def forget_chain(self, chain: str) -> None:
+        """The chain stopped: its frames have no consumer any more (not a loss)."""
+        for (name, target), hop in list(self.hops.items()):
+            if name == chain:
+                for key in list(hop):
+                    self._drop(hop, key, evicted=False)
+
+    # ---- acknowledgements --------------------------------------------------------------------------
+    def on_report(self, chain: str, target: int, report: Report) -> None:
+        """Remember the newest report for a hop (a newer stage generation, or the same one later)."""
+        hop = (chain, target)
+        known = self.reports.get(hop)
+        c = report.consumed
+        if known is not None:
+            k = known.consumed
+            if (c.generation, c.run) < (k.generation, k.run):
+                return
+            if (c.generation, c.run) == (k.generation, k.run) and report.t_unix <= known.t_unix:
+                return
+        self.reports[hop] = report
+        frames = self.hops.get(hop)
+        if frames:
+            for key in [k for k, held in frames.items() if is_consumed(c, held.frame.run, held.frame.seq)]:
+                self._drop(frames, key, evicted=False)
+
+    def due(self, now: float) -> list[tuple[str, Held]]:
+        """Frames to resend now, each with the node that lacks it (the consumer that reported).
+
+        Also gives up frames that are too old or were resent too often. Nothing changes for
+        the returned frames until the caller `resend`s them (a frame with no route yet stays
+        due and is tried again).
+        """
+        out = []
+        for hop, frames in self.hops.items():
+            report = self.reports.get(hop)
+            for key in list(frames):
+                held = frames[key]
+                if now - held.kept_unix > self.max_age_s or held.frame.attempt >= self.max_attempts:
+                    self._drop(frames, key, evicted=True)
+                    continue
+                if (report is None or held.sent_unix is None
+                        or report.t_unix < held.sent_unix + self.resend_after_s
+                        or held.frame.run != report.consumed.run
+                        or is_consumed(report.consumed, held.frame.run, held.frame.seq)):
+                    continue
+                out.append((report.node, held))
+        return out
+
+    def resend(self, held: Held, now: float) -> ChainFrame:
+        """The next copy of a held frame (its attempt number raised), as sent now."""
+        held.frame = replace(held.frame, attempt=held.frame.attempt + 1)
+        held.sent_unix = now
+        self.resent += 1
+        return held.frame
+
+    def stats(self) -> dict[str, int]:
+        return {"custody-frames": len(self), "custody-bytes": self.bytes, "custody-resent": self.resent,
+                "custody-evicted": self.evicted}

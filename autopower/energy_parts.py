@@ -1,0 +1,26 @@
+"""Names of the parts a node's metered energy is split into, shared by the meter and the recorder.
+
+CPU: ``cpu_idle``, ``cpu_busy`` (component runs of the plan); radios: ``"<medium>:send"``,
+``":receive"``, ``":sleep"``. The model's steady state covers exactly these. Overheads it does
+not cover have parts of their own: ``"<medium>:migration"`` (a migrated stage's state on the
+radios), ``"<medium>:recovery"`` (frames resent after a silent loss) and ``cpu_recovery`` (a
+stage restarted without state recomputing inputs its lost predecessor may have run).
+"""
+
+from __future__ import annotations
+
+CPU_IDLE, CPU_BUSY, CPU_RECOVERY = "cpu_idle", "cpu_busy", "cpu_recovery"
+OVERHEAD_KINDS = ("migration", "recovery")
+
+
+def radio_part(medium: str, what: str) -> str:
+    """Name of a radio energy part: ``"<medium>:send"``, ``":receive"``, ``":sleep"``, ``":migration"``..."""
+    return f"{medium}:{what}"
+
+
+def overhead_kind(part_name: str) -> str | None:
+    """``"migration"`` or ``"recovery"`` for a part outside the model's steady state, else None."""
+    if part_name == CPU_RECOVERY:
+        return "recovery"
+    kind = part_name.rpartition(":")[2]
+    return kind if kind in OVERHEAD_KINDS else None

@@ -1,0 +1,284 @@
+"""Custody: frames lost on a silently cut link are resent until their consumer has them.
+
+The team tests cut a link without telling anyone (what a pulled cable or a radio out of range
+does: the frames in flight vanish) and check that every output still reaches its sink exactly
+once, that a stateful stage never runs an input twice (the fake component raises if it does),
+and that it is the consumers' reports that bring the frames back.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from autopower.agent.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
+from autopower.agent.sequencing import MAX_MISSING, SequenceGate, SinkLedger
+from autopower.basestation.coordinator import CoordinatorConfig
+from autopower.protocol import ChainFrame, Consumed, NodeStatus, decode, encode
+from autopower.scenario import load_scenario
+from tests.unit.sim_team import SimTeam
+from tests.unit.test_agent_migration import FC, check_exactly_once, collect
+
+
+def frame(seq: int, run: int = 0, target: int = 0, chain: str = "Blob-2", size: int = 10) -> ChainFrame:
+    return ChainFrame(chain=chain, run=run, seq=seq, target=target, t_virtual=0.0, t_unix=0.0, payload_len=size,
+                      payload=bytes(size))
+
+
+def report(next_seq: int, max_seq: int, missing=(), run: int = 0, generation: int = 1, t: float = 10.0,
+           node: str = "laptop") -> Report:
+    return Report(node=node, t_unix=t, consumed=Consumed(run=run, generation=generation, next_seq=next_seq,
+                                                         max_seq=max_seq, missing=tuple(missing)))
+
+
+# ---- the pieces ------------------------------------------------------------------------------------
+
+
+def test_hop_keys_round_trip_and_reject_garbage():
+    assert parse_hop_key(hop_key("Loc-1", 1)) == ("Loc-1", 1)
+    assert parse_hop_key("a#b#2") == ("a#b", 2)
+    for bad in ("Loc-1", "#1", "Loc-1#", "Loc-1#-1", "Loc-1#x"):
+        assert parse_hop_key(bad) is None
+
+
+def test_consumed_means_below_the_prefix_or_seen_and_not_missing():
+    c = Consumed(run=1, generation=0, next_seq=5, max_seq=9, missing=(6, 8))
+    assert [s for s in range(12) if is_consumed(c, 1, s)] == [0, 1, 2, 3, 4, 5, 7, 9]
+    assert is_consumed(c, 0, 100)  # an older run: obsolete
+    assert not is_consumed(c, 2, 0)  # a newer run: the consumer has not started it
+
+
+def test_acknowledged_frames_leave_custody_and_lost_ones_are_resent_once_a_late_report_lacks_them():
+    custody = Custody(resend_after_s=1.0)
+    for seq in range(5):
+        custody.keep(frame(seq), now=0.0)
+    custody.on_report("Blob-2", 0, report(next_seq=2, max_seq=4, missing=(2,), t=0.5))
+    assert len(custody) == 1  # 0, 1, 3, 4 acknowledged; 2 still held
+    assert custody.due(now=0.6) == []  # the report is too early to call seq 2 lost
+    custody.on_report("Blob-2", 0, report(next_seq=2, max_seq=6, missing=(2,), t=1.2))
+    due = custody.due(now=1.3)
+    assert [(node, held.frame.seq) for node, held in due] == [("laptop", 2)]
+    resent = custody.resend(due[0][1], now=1.3)
+    assert resent.attempt == 1 and resent.seq == 2
+    assert custody.due(now=1.4) == []  # sent again just now: wait for a report after that
+    custody.on_report("Blob-2", 0, report(next_seq=7, max_seq=6, t=2.0))
+    assert len(custody) == 0 and custody.bytes == 0 and custody.evicted == 0
+
+
+def test_a_frame_not_on_the_wire_is_not_resent_and_reports_of_old_generations_are_ignored():
+    custody = Custody(resend_after_s=0.0)
+    custody.keep(frame(0), now=0.0)
+    custody.mark(frame(0), None)  # held back: no route to its consumer
+    custody.on_report("Blob-2", 0, report(next_seq=0, max_seq=3, missing=(0,), t=5.0, generation=2))
+    assert custody.due(now=5.0) == []
+    custody.mark(frame(0), 5.0)
+    custody.on_report("Blob-2", 0, report(next_seq=9, max_seq=9, t=9.0, generation=1))  # a stale instance
+    assert len(custody) == 1
+    custody.on_report("Blob-2", 0, report(next_seq=0, max_seq=3, missing=(0,), t=9.0, generation=2))
+    assert [held.frame.seq for _, held in custody.due(now=9.0)] == [0]
+
+
+def test_custody_is_bounded_and_counts_what_it_gives_up():
+    custody = Custody(max_frames_per_hop=3, max_bytes=10_000, max_age_s=60.0)
+    for seq in range(5):
+        custody.keep(frame(seq), now=0.0)
+    assert len(custody) == 3 and custody.evicted == 2
+    custody.keep(frame(0, chain="Blob-3", size=9_990), now=1.0)  # over the byte budget: the oldest go
+    assert custody.bytes == 10_000 and custody.evicted == 4 and len(custody) == 2
+    custody.due(now=100.0)  # too old to be worth resending
+    assert len(custody) == 0 and custody.evicted == 6
+    custody.keep(frame(7), now=200.0)
+    custody.forget_chain("Blob-2")  # the chain stopped: not a loss
+    assert len(custody) == 0 and custody.evicted == 6 and custody.acknowledged == 1
+
+
+def test_gate_reports_its_gaps_and_gives_up_a_gap_that_stays_open():
+    gate = SequenceGate(next_seq=0, max_pending=4)
+    assert gate.report(0, 3) == Consumed(run=0, generation=3, next_seq=0, max_seq=-1, missing=())
+    gate.offer(0, "a")
+    for seq in (2, 4):
+        gate.offer(seq, seq)
+    assert gate.report(0, 3) == Consumed(run=0, generation=3, next_seq=1, max_seq=4, missing=(1, 3))
+    assert gate.offer(3, 3) == [] and gate.offer(5, 5) == []
+    assert gate.offer(6, 6) == [2, 3, 4, 5, 6]  # seq 1 never came: given up after 4 waited behind it
+    assert gate.skipped == 1 and gate.next_seq == 7
+    assert SequenceGate().report(0, 1) is None  # starts wherever its first input is
+
+
+def test_sink_ledger_tells_redundant_resends_from_real_duplicates():
+    ledger = SinkLedger()
+    assert ledger.report() is None
+    assert ledger.record(0, 0) and ledger.record(0, 2, attempt=1)
+    assert ledger.report() == Consumed(run=0, generation=0, next_seq=1, max_seq=2, missing=(1,))
+    assert not ledger.record(0, 2)  # the late original of a resent output
+    assert not ledger.record(0, 0, attempt=1)  # a resend of one that had arrived
+    assert (ledger.redundant_total, ledger.duplicates_total) == (2, 0)
+    assert not ledger.record(0, 0)  # produced twice: a bug, counted as such
+    assert ledger.duplicates_total == 1
+    for seq in range(3, 3 + 2 * MAX_MISSING + 10, 2):
+        ledger.record(0, seq)
+    assert len(ledger.report().missing) == MAX_MISSING
+
+
+def test_consumed_reports_travel_in_the_status():
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False,
+                                                pins={"Blob-2": "laptop"}))
+    team.join()
+    team.run_until(3.0)
+    status = decode(encode(team.nodes["laptop"].status(10.0)), NodeStatus)
+    assert status.consumed[hop_key("Blob-2", 0)].next_seq == team.nodes["r2"].sources["Blob-2"].seq
+    assert status.consumed[hop_key("Blob-2", 1)].next_seq == team.nodes["r2"].sources["Blob-2"].seq
+
+
+# ---- a team with a silent cut ----------------------------------------------------------------------------
+
+
+def run_with_blackout(pins: dict[str, str], cut: tuple[str, str], *, acks: bool, until: float = 30.0,
+                      one_way: bool = False):
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins=pins))
+    outputs = collect(team)
+    team.join()
+    next_status = [0.5]
+
+    def tick(t: float) -> None:
+        if 10.0 <= t < 14.5:  # two MCL periods, eighteen camera frames
+            team.cut_silently(*cut, one_way=one_way)  # frames in flight vanish; nobody is told
+        else:
+            team.heal_silently(*cut)
+        if acks and t >= next_status[0]:
+            team.exchange_statuses()
+            next_status[0] = t + 0.5
+
+    team.run_until(until, on_tick=tick)
+    if acks:
+        for _ in range(6):  # the last reports after the last frames
+            team.clock.advance(0.5)
+            team.exchange_statuses()
+    return team, outputs
+
+
+@pytest.mark.parametrize("pins, what", [
+    ({"Blob-2": "laptop"}, "camera frames to an off-loaded blob finder"),
+    ({"Loc-2": "laptop"}, "scans to an off-loaded MCL and its poses back"),
+])
+def test_frames_lost_on_a_silent_cut_are_resent_and_arrive_exactly_once(pins, what):
+    team, outputs = run_with_blackout(pins, ("r2", "laptop"), acks=True)
+    assert team.lost_in_cuts > 0, f"the cut lost nothing ({what}): the test proves nothing"
+    check_exactly_once(team, outputs)  # the fake MCL raises if it ever runs an input twice or skips one
+    resent = sum(rt.custody.resent for rt in team.nodes.values())
+    assert resent >= 1
+    assert all(rt.custody.evicted == 0 for rt in team.nodes.values())
+    for rt in team.nodes.values():  # everything consumed has been acknowledged
+        assert len(rt.custody) <= 2, (rt.node, rt.custody.hops)
+
+
+def test_a_lost_mcl_pose_is_resent_from_custody_not_recomputed():
+    # only the poses going back to r2 are lost: the scans got through and MCL ran on them
+    team, outputs = run_with_blackout({"Loc-2": "laptop"}, ("laptop", "r2"), acks=True, one_way=True)
+    laptop = team.nodes["laptop"]
+    assert team.lost_in_cuts > 0
+    assert laptop.counters.get("resent-frames", 0) >= 1  # the laptop resent poses it had computed
+    assert team.nodes["r2"].counters.get("resent-frames", 0) == 0  # no scan was lost: none resent
+    assert laptop.hosted["Loc-2"].runs == team.nodes["r2"].sources["Loc-2"].seq  # each scan run once
+    check_exactly_once(team, outputs)
+
+
+def test_without_the_consumers_reports_the_cut_loses_outputs():
+    team, outputs = run_with_blackout({"Blob-2": "laptop"}, ("r2", "laptop"), acks=False)
+    ledger = team.nodes["laptop"].sinks["Blob-2"]
+    assert ledger.gaps > 0 or ledger.contiguous < team.nodes["r2"].sources["Blob-2"].seq
+
+
+@pytest.mark.parametrize("topology", ["fully-connected", "relay"])
+def test_random_migrations_under_random_silent_cuts_lose_and_duplicate_nothing(topology):
+    """Stages keep moving while random links drop chain frames for a while (in both directions)."""
+    import random
+
+    from autopower.protocol import MigrateCommand
+
+    rng = random.Random(7)
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, topology=topology, media=FC, auto_replan=False), rng=rng)
+    team.cut_only_chain_frames = True
+    outputs = collect(team)
+    team.join()
+    stages, nodes = sc.stage_names(), sc.node_names()
+    t, moves, next_status = 1.0, 0, 0.5
+    while moves < 80:
+        team.run_until(t)
+        if t >= next_status:
+            team.exchange_statuses()
+            next_status = t + 0.5
+        if rng.random() < 0.2:
+            a, b = rng.sample(nodes, 2)
+            team.cut_silently(a, b, one_way=rng.random() < 0.5)
+        if rng.random() < 0.15:
+            team.cut_links = frozenset()
+        if rng.random() < 0.3:
+            reply = team.coordinator.on_operator(MigrateCommand(stage=rng.choice(stages), to_node=rng.choice(nodes)))
+            assert reply.ok, reply.message
+            moves += 1
+        t += rng.choice([0.1, 0.25, 0.5])
+    team.cut_links = frozenset()
+    end = t + 15.0
+    while t < end:  # the reports catch up and the last losses are resent
+        team.run_until(t)
+        team.exchange_statuses()
+        t += 0.5
+    assert team.lost_in_cuts > 50
+    assert sum(rt.custody.resent for rt in team.nodes.values()) > 20
+    check_exactly_once(team, outputs)
+    assert all(rt.custody.evicted == 0 for rt in team.nodes.values())
+
+
+def test_a_gate_started_without_state_starts_at_the_producers_floor_and_marks_recomputed_seqs():
+    gate = SequenceGate()
+    assert gate.offer(10, 10, floor=7) == []  # 7, 8, 9 are still held by the producer: wait for them
+    assert gate.report(0, 1).missing == (7, 8, 9)
+    assert gate.offer(8, 8, floor=7) == [] and gate.offer(7, 7, floor=7) == [7, 8]
+    assert gate.offer(9, 9, floor=7) == [9, 10]
+    assert gate.catch_up_below == 10
+
+
+def test_a_gate_stops_waiting_for_what_its_producer_says_another_instance_consumed():
+    gate = SequenceGate(next_seq=5)
+    assert gate.offer(9, 9, floor=8) == []  # 5..7 were acknowledged by someone else; 8 is coming
+    assert gate.next_seq == 8 and gate.consumed_elsewhere == 3 and gate.skipped == 0
+    assert gate.offer(8, 8, floor=8) == [8, 9]
+
+
+def test_a_stage_restarted_without_state_catches_up_on_what_never_reached_its_old_host():
+    """What a subgroup does when the base station is cut off: restart the stage on a robot, cold."""
+    from autopower.protocol import Assign
+
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Loc-2": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    r2 = team.nodes["r2"]
+    next_status = [0.5]
+
+    def tick(t: float) -> None:
+        if 9.7 <= t < 14.5:
+            team.cut_silently("r2", "laptop", one_way=True)  # r2's scans (from t = 10) vanish
+        else:
+            team.heal_silently("r2", "laptop")
+        if t >= next_status[0]:
+            team.exchange_statuses()
+            next_status[0] = t + 0.5
+
+    team.run_until(11.0, on_tick=tick)
+    lost_scan = r2.sources["Loc-2"].seq - 1  # the t = 10 scan never reached the laptop
+    assert team.nodes["laptop"].hosted["Loc-2"].gate.next_seq == lost_scan
+    r2.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
+                        resume_seq=None))
+    r2.override_placement({"Loc-2": "r2"}, set())
+    team.run_until(30.0, on_tick=tick)
+    for _ in range(6):
+        team.clock.advance(0.5)
+        team.exchange_statuses()
+    produced = r2.sources["Loc-2"].seq
+    assert sorted(seq for _, seq, _ in outputs["Loc-2"]) == list(range(produced))  # the lost scan included
+    assert r2.hosted["Loc-2"].gate.catch_up_below == lost_scan + 1
+    assert r2.sinks["Loc-2"].duplicates_total == 0
