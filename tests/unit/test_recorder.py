@@ -113,6 +113,12 @@ def test_a_recorded_team_replays_with_migrations_outputs_and_energy(recorded_tea
     assert set(s["outputs"]["chains"]) == {c.name for c in team.scenario.chains}
     assert all(c["outputs"] >= 10 for c in s["outputs"]["chains"].values())  # Loc every 2 s, Blob 4 Hz
     assert s["energy_model_error_pct"] is not None and abs(s["energy_model_error_pct"]) < 1
+    # the move's state crossed the radios: metered apart from the model's steady state, and reported
+    over = s["energy"]["overhead_j"]
+    assert over["migration"] > 0 and over["recovery"] == 0
+    assert sum(v["overhead_j"]["migration"] for v in s["energy"]["per_robot"].values()) == pytest.approx(
+        over["migration"])
+    assert s["policy"] == "rebalance"  # the base station's plans say what decided them
     assert s["ok"], s["invariants"]
     assert "robots/r1/model_w" in rec.scalars and "team/allocation" in rec.graphs
 
