@@ -37,6 +37,7 @@ from typing import Any, Callable
 
 from autopower.bus import Bus
 from autopower.clock import VirtualClock
+from autopower.basestation.links import LinkStates, pair_name
 from autopower.errors import AutoPowerError
 from autopower.mission_events import MissionEvent
 from autopower.model import Network, evaluate, media_choices, round_lifetime
@@ -153,8 +154,9 @@ class Coordinator:
         self.plan_network: Network | None = None
         self.radio_faults: dict[str, tuple[str | None, str | None]] = {}  # operator radio commands
         self.operator_cuts: set[frozenset[str]] = set()  # links the operator declared down
-        self.links_down: set[frozenset[str]] = set()
-        self._link_reports: dict[frozenset[str], float] = {}
+        topology = scenario.network(topology=config.topology)
+        self.links = LinkStates({frozenset((l.a, l.b)) for l in topology.links},
+                                down_after_s=config.link_down_after_s, heal_hold_s=config.heal_hold_s)
         self.predicted_w: dict[str, float] = {}
         self.predicted_lifetime_s: float | None = None
         self.plan_t_virtual = 0.0
@@ -173,11 +175,6 @@ class Coordinator:
         self.aborted = 0
         self.replans = 0
         self.first_depletion: dict[str, float] | None = None
-        self._link_seen_up: set[frozenset[str]] = set()
-        self._link_up_since: dict[frozenset[str], float] = {}
-        # robots that came back (after a freeze, a cut, a restart): for a moment their links report
-        # what their sessions went through while they were away, not a new failure
-        self._rejoined_unix: dict[str, float] = {}
         # faults as the base station saw them: detection and when the team ran its new plan
         self.faults: deque[dict] = deque(maxlen=100)
         # robots back after an absence: their report of what they host (a subgroup may have
@@ -231,34 +228,31 @@ class Coordinator:
                 self.note(f"{fault['kind']} {fault['target']}: reconfigured "
                           f"{fault['reconfigured_unix'] - fault['detected_unix']:.3f} s after detection")
 
+    @property
+    def links_down(self) -> set[frozenset[str]]:
+        """Links known down now (see `LinkStates`)."""
+        return self.links.down
+
     def link_lost(self, a: str, b: str, detected_unix: float | None = None) -> None:
         """A link an end of which is this base station (seen by its own liveliness) went down."""
-        pair = frozenset((a, b))
-        self._link_up_since.pop(pair, None)
-        if pair in self.links_down:
-            return
-        self.links_down.add(pair)
-        self.record_fault("link-down", "-".join(sorted(pair)), detected_unix or self.wall())
-        self.note(f"link {a}-{b} is down")
-        self._event("link-cut", a=a, b=b)
-        self.replan("link change")
+        if self.links.lost(a, b):
+            self._link_down(frozenset((a, b)), detected_unix or self.wall())
+            self.replan("link change")
 
     def link_seen(self, a: str, b: str) -> None:
         """Evidence that a link works (its ends see each other)."""
-        pair = frozenset((a, b))
-        self._link_seen_up.add(pair)
-        self._link_reports.pop(pair, None)
-        if pair in self.links_down:
-            self._link_up_since.setdefault(pair, self.wall())
+        self.links.seen(a, b, self.wall())
+
+    def _link_down(self, pair: frozenset[str], since: float) -> None:
+        a, b = sorted(pair)
+        self.record_fault("link-down", pair_name(pair), since)
+        self.note(f"link {a}-{b} is down")
+        self._event("link-cut", a=a, b=b)
 
     def _heal_links(self) -> None:
-        now = self.wall()
-        healed = [p for p, since in self._link_up_since.items()
-                  if p in self.links_down and now - since >= self.config.heal_hold_s]
+        healed = self.links.healed(self.wall())
         for pair in healed:
-            self.links_down.discard(pair)
-            self._link_up_since.pop(pair, None)
-            self.note(f"link {'-'.join(sorted(pair))} is back (up for {self.config.heal_hold_s:g} s)")
+            self.note(f"link {pair_name(pair)} is back (up for {self.config.heal_hold_s:g} s)")
             a, b = sorted(pair)
             self._event("link-heal", a=a, b=b)
         if healed:  # whether moving back is worth it is the policy's hysteresis
@@ -549,7 +543,7 @@ class Coordinator:
             if self.mission is None:
                 self.maybe_start()
             else:
-                self._rejoined_unix[node] = self.wall()
+                self.links.rejoined(node, self.wall())
                 self._event("robot-join", robot=node)
                 self._awaiting_actual[node] = self.wall() + 1.0  # decide once it says what it hosts
         else:
@@ -611,41 +605,12 @@ class Coordinator:
             if previous is not None and previous in alive:
                 self._send(previous, Release(stage=stage, generation=self._next_generation()))
 
-    def _topology_pairs(self) -> set[frozenset[str]]:
-        network = self.scenario.network(topology=self.config.topology)
-        return {frozenset((l.a, l.b)) for l in network.links}
-
     def _check_links(self, status: NodeStatus) -> None:
-        """A link counts as down once an end has reported it so for ``link_down_after_s``."""
-        now = self.wall()
-        alive = self.alive_nodes()
-        pairs = self._topology_pairs()
-        changed = False
-        for peer, up in status.links.items():
-            pair = frozenset((status.node, peer))
-            if pair not in pairs:
-                continue
-            if up:
-                self.link_seen(status.node, peer)
-                continue
-            if peer not in alive or status.node not in alive:
-                self._link_reports.pop(pair, None)
-                continue
-            self._link_up_since.pop(pair, None)
-            since = self._link_reports.setdefault(pair, now)
-            # an end that saw the link up and now reports it down has seen its lease expire:
-            # that is the detection; a link never seen up gets the start-up grace, and so does
-            # a link of a robot that has just come back (a thawed robot's sessions reconnect)
-            rejoined = max(self._rejoined_unix.get(status.node, -1.0), self._rejoined_unix.get(peer, -1.0))
-            settled = pair in self._link_seen_up and now - rejoined >= self.config.link_down_after_s
-            wait = 0.0 if settled else self.config.link_down_after_s
-            if now - since >= wait and pair not in self.links_down:
-                self.links_down.add(pair)
-                self.record_fault("link-down", "-".join(sorted(pair)), since)
-                self.note(f"link {status.node}-{peer} is down")
-                self._event("link-cut", a=status.node, b=peer)
-                changed = True
-        if changed:
+        """A robot's view of its links: what it reports down may be a cut (`LinkStates` debounces)."""
+        gone = self.links.reported(status.node, status.links, self.alive_nodes(), self.wall())
+        for pair, since in gone:
+            self._link_down(pair, since)
+        if gone:
             self.replan("link change")
 
     def _check_drift(self, status: NodeStatus) -> None:
