@@ -134,3 +134,15 @@ def test_up_records_a_run_that_replay_reads(tmp_path):
     assert set(data["robots"]) == {"r1", "r2", "r3"}
     assert data["duplicated_outputs"] == 0 and data["lost_outputs"] == 0  # no faults: exactly once
     assert abs(data["energy_model_error_pct"]) <= 1.0
+
+
+def test_up_runs_the_policy_it_is_given(tmp_path):
+    """`--policy static`: the base station process decides with autopower.policy's static policy."""
+    result = run_cli(["up", "paper-fig7", "--policy", "static", "--duration", "6", "--json",
+                      "--log-dir", str(tmp_path / "logs")], env_for(tmp_path), timeout=90)
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads(result.stdout)
+    assert summary["policy"] == "static" and summary["ready"]
+    assert "policy: static" in (tmp_path / "logs" / "laptop.log").read_text()
+    bad = run_cli(["up", "--policy", "greedy", "--duration", "1"], env_for(tmp_path))
+    assert bad.returncode == 2 and "greedy" in bad.stderr and "static" in bad.stderr
