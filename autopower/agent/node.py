@@ -667,6 +667,20 @@ class NodeRuntime:
                 out[hop_key(name, len(self.chains[name].stages))] = report
         return out
 
+    def producers(self) -> set[str]:
+        """The nodes that send us frames now (a source or the previous stage's host): our status
+        acknowledges their frames, so it must reach them even when they are out of sight."""
+        placement = self.plan.placement if self.plan else {}
+        out = set()
+        for hosted in self.hosted.values():
+            chain, index = hosted.chain, hosted.index
+            out.add(chain.source if index == 0 else placement.get(chain.stages[index - 1].name))
+        for name in self.sinks:
+            chain = self.chains.get(name)
+            if chain is not None and chain.stages:
+                out.add(placement.get(chain.stages[-1].name))
+        return out - {None, self.node}
+
     def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed]) -> None:
         for key, report in consumed.items():
             hop = parse_hop_key(key)

@@ -259,8 +259,10 @@ class Agent:
         status = rt.status(window, self.events.depth())
         key, payload = self.keys.status(self.config.robot), encode(status)
         self._bus.publish(key, payload, reliable=False)
-        # out of the base station's sight: through a robot that still sees it
-        self.relayer.send_beyond_sight([self.config.scenario.basestation], key, payload, reliable=False)
+        # out of the base station's sight: through a robot that still sees it; and to the robots
+        # whose frames we consume, for whom the status is the acknowledgement
+        dests = {self.config.scenario.basestation} | rt.producers()
+        self.relayer.send_beyond_sight(sorted(dests), key, payload, reliable=False)
 
     def run(self, max_wall_s: float | None = None) -> str:
         """Run until stopped, depleted or ``max_wall_s``; return why it stopped."""

@@ -282,3 +282,15 @@ def test_a_stage_restarted_without_state_catches_up_on_what_never_reached_its_ol
     assert sorted(seq for _, seq, _ in outputs["Loc-2"]) == list(range(produced))  # the lost scan included
     assert r2.hosted["Loc-2"].gate.catch_up_below == lost_scan + 1
     assert r2.sinks["Loc-2"].duplicates_total == 0
+
+
+def test_a_node_knows_whose_frames_it_consumes_so_its_acks_reach_them():
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False,
+                                                pins={"Loc-1": "r2", "Blob-3": "laptop"}))
+    team.join()
+    team.run_until(3.0)
+    # r1's scans come to r2's Loc-1; r2's own poses come back from the laptop's Loc-2
+    assert team.nodes["r2"].producers() == {"r1", "laptop"}
+    assert team.nodes["r1"].producers() == {"r2"}  # r1 is Loc-1's sink: its poses come from r2
+    assert "r3" in team.nodes["laptop"].producers()  # r3's camera frames to the laptop's Blob-3
