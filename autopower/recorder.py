@@ -17,7 +17,8 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
 `PlanUpdate` seen, or from `clock=`):
 
 - own `NodeStatus` published -> ``robots/<r>/battery_j``, ``robots/<r>/power_w/<part>`` (and
-  ``total``), ``robots/<r>/overhead_j/migration|recovery`` (cumulative energy outside the model's
+  ``total``), ``custody/<node>/resent|held|evicted`` (frames resent after a silent loss, kept
+  until acknowledged, given up), ``robots/<r>/overhead_j/migration|recovery`` (cumulative energy outside the model's
   steady state, see `autopower.agent.meter`), ``team/links/<a>-<b>/up`` when a neighbour's visibility changes, sink and source
   counters under ``components/<chain>/sink|source/...``;
 - `PlanUpdate` published -> ``team/allocation`` and ``team/network`` graphs, the model's power
@@ -338,6 +339,10 @@ class Recorder:
             tel.scalar(component_path(chain, "sink/duplicates_total"), t, st["duplicates_total"])
         for chain, st in (s.get("sources") or {}).items():
             tel.scalar(component_path(chain, "source/produced_total"), t, st["produced_total"])
+        counters = s.get("counters") or {}
+        for name, what in (("custody-resent", "resent"), ("custody-frames", "held"), ("custody-evicted", "evicted")):
+            if name in counters:  # frames lost in flight and resent (see autopower.agent.custody)
+                tel.scalar(f"custody/{node}/{what}", t, counters[name])
 
     def _plan(self, p: dict) -> None:
         self._set_mission(p["mission"])

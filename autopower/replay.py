@@ -29,7 +29,7 @@ from the telemetry layout and the structured text events (`autopower.recorder.pa
                  "overhead_j": {"migration": float, "recovery": float},
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
                                        "overhead_j": {"migration": float, "recovery": float}}}},
-      "outputs": {"recorded": bool, "lost": int, "duplicated": int,
+      "outputs": {"recorded": bool, "lost": int, "duplicated": int, "resent": int, "given_up": int,
                   "chains": {chain: {"outputs": int, "distinct": int, "lost": int, "duplicated": int,
                                      "runs": [int]}}},
       "invariants": [{"name": str, "ok": bool | null, "detail": str}],   # null: not checkable here
@@ -385,7 +385,12 @@ def _outputs(rec: Recording) -> dict[str, Any]:
         dup_all += dup
     for c in chains.values():
         c["runs"].sort()
-    return {"recorded": bool(chains), "lost": lost_all, "duplicated": dup_all, "chains": dict(sorted(chains.items()))}
+    custody = {what: sum(values[-1] for e, (_, values) in rec.scalars.items()
+                         if e.startswith("custody/") and e.endswith(f"/{what}") and values)
+               for what in ("resent", "evicted")}
+    return {"recorded": bool(chains), "lost": lost_all, "duplicated": dup_all,
+            "resent": int(custody["resent"]), "given_up": int(custody["evicted"]),
+            "chains": dict(sorted(chains.items()))}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -583,7 +588,8 @@ def render_text(summary: dict[str, Any]) -> str:
     o = s["outputs"]
     if o["recorded"]:
         lines.append(f"outputs: {sum(c['outputs'] for c in o['chains'].values())} recorded, "
-                     f"{o['lost']} lost, {o['duplicated']} duplicated")
+                     f"{o['lost']} lost, {o['duplicated']} duplicated; {o.get('resent', 0)} frame(s) resent from "
+                     f"custody after silent losses" + (f", {o['given_up']} given up" if o.get("given_up") else ""))
     lines += ["", "invariants:"]
     for inv in s["invariants"]:
         mark = {True: "ok  ", False: "FAIL", None: "n/a "}[inv["ok"]]

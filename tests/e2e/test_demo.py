@@ -35,4 +35,5 @@ def test_demo_json(tmp_path):
     # recovery costs energy the model's steady state leaves out: metered apart, reported, and
     # the rest matches the model
     assert replay["energy"]["overhead_j"]["recovery"] > 0
+    assert replay["outputs"]["resent"] > 0 and replay["outputs"]["given_up"] == 0
     assert abs(out["energy_model_error_pct"]) <= 1.0
