@@ -306,6 +306,11 @@ def plan_moves(scenario: Scenario, network: Network, old: Mapping[str, str], new
     return out
 
 
+def beats(value_s: float, than_s: float, min_gain: float, min_gain_s: float) -> bool:
+    """The hysteresis every policy applies: ``value_s`` must exceed ``than_s`` by a fraction and a margin."""
+    return value_s > than_s * (1 + min_gain) + min_gain_s
+
+
 def total_energy(moves: Sequence[Move]) -> dict[str, float]:
     out: dict[str, float] = {}
     for m in moves:
@@ -665,7 +670,7 @@ class ReactivePolicy:
             return _decision(self.name, view, best, forced=True, stay_value=None,
                              reasons=[_forced_reason(view), "replanned from the remaining energies"])
         stopped = [s for s in state.allocation if s not in view.stages]
-        if best.value_s > stay.value_s * (1 + self.min_gain) + self.min_gain_s:
+        if beats(best.value_s, stay.value_s, self.min_gain, self.min_gain_s):
             return _decision(self.name, view, best, forced=False, stay_value=stay.value_s,
                              reasons=[f"after {_what_happened(state)}: replanned; predicted lifetime "
                                       f"{stay.value_s:,.0f} s → {best.value_s:,.0f} s "
@@ -695,7 +700,8 @@ class RebalancePolicy:
         if best is None and stay is None:
             raise _no_placement(view)
         sched = self._schedule_option(view, best, stay)
-        if sched is not None and best is not None and not self._worth(sched.value_s, best.value_s):
+        if sched is not None and best is not None and not beats(sched.value_s, best.value_s, self.min_gain,
+                                                                   self.min_gain_s):
             # a schedule that barely beats the best fixed configuration is not worth its switches:
             # its predicted few seconds are within what a switch can cost beyond the model
             sched = None
@@ -709,7 +715,7 @@ class RebalancePolicy:
             # the schedule starts with what runs now: nothing moves, come back when its phase ends
             return self._emit(view, choice, stay, forced=False,
                               why=f"stopping {', '.join(stopped)}" if stopped else "", quiet=not stopped)
-        if self._worth(choice.value_s, stay.value_s) and not same:
+        if beats(choice.value_s, stay.value_s, self.min_gain, self.min_gain_s) and not same:
             what = _what_happened(state)
             return self._emit(view, choice, stay, forced=False,
                               why=(f"after {what}: " if what else "") + "rebalancing")
@@ -719,10 +725,6 @@ class RebalancePolicy:
             return _decision(self.name, view, stay, forced=False, stay_value=stay.value_s,
                              reasons=[f"stopping {', '.join(stopped)}"])
         return None
-
-    def _worth(self, value_s: float, than_s: float) -> bool:
-        """Does ``value_s`` beat ``than_s`` by more than the hysteresis?"""
-        return value_s > than_s * (1 + self.min_gain) + self.min_gain_s
 
     # ---- the time-sharing schedule from the remaining energies ----------------------------------
     def _schedule_option(self, view: _View, best: _Option | None, stay: _Option | None) -> _Option | None:
@@ -978,7 +980,7 @@ def subgroup_reallocation(scenario: Scenario, network: Network, members: Sequenc
         proposal = _neighbourhood_search(view, net, movable, hosts, base_load, robots, life_of, max_rounds)
         search = "neighbourhood"
     after = life_of(proposal)
-    worth = after > -NEVER and (before == -NEVER or after > before * (1 + min_gain) + min_gain_s)
+    worth = after > -NEVER and (before == -NEVER or beats(after, before, min_gain, min_gain_s))
     final = dict(allocation)
     final.update(proposal if worth else {})
     moves = tuple(plan_moves(view.scenario, net, view.current, final, view.state.migration)) if worth else ()
