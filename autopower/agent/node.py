@@ -461,11 +461,13 @@ class NodeRuntime:
             self.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
                        logging.INFO)
             return
-        before, skipped = hosted.gate.duplicates, hosted.gate.skipped
-        for ready in hosted.gate.offer(frame.seq, frame, frame.floor):
+        before, redundant, skipped = hosted.gate.duplicates, hosted.gate.redundant, hosted.gate.skipped
+        for ready in hosted.gate.offer(frame.seq, frame, frame.floor, resent=frame.attempt > 0):
             self._run(hosted, ready)
         if hosted.gate.duplicates != before:
             self.count("duplicate-input", f"{hosted.stage.name} seq {frame.seq}", logging.INFO)
+        if hosted.gate.redundant != redundant:
+            self.tally("redundant-input")  # a resent copy of an input that was only late: dropped, as designed
         if hosted.gate.skipped != skipped:
             self.count("inputs-given-up", f"{hosted.stage.name}: {hosted.gate.skipped - skipped} input(s) before "
                        f"seq {hosted.gate.next_seq} never arrived", logging.ERROR)

@@ -44,16 +44,20 @@ class SequenceGate(Generic[T]):
     next_seq: int | None = None  # None: start at the first item offered
     pending: dict[int, T] = field(default_factory=dict)
     duplicates: int = 0
+    redundant: int = 0  # second copies where a resend was involved (expected, dropped)
     skipped: int = 0  # seqs given up as lost (a gap that stayed open too long)
     consumed_elsewhere: int = 0  # seqs skipped because their producer says another instance had them
     max_pending: int = GATE_MAX_PENDING
     catch_up_below: int | None = None  # started without state below its first input: these are recomputed
+    _resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first offered as a resend
 
-    def offer(self, seq: int, item: T, floor: int | None = None) -> list[T]:
+    def offer(self, seq: int, item: T, floor: int | None = None, resent: bool = False) -> list[T]:
         """Items now ready to run, in sequence order (possibly none).
 
         ``floor`` is the producer's lowest unacknowledged seq (see `ChainFrame.floor`): a gate
-        with no position starts there, and one waiting below it stops waiting.
+        with no position starts there, and one waiting below it stops waiting. A second copy is
+        *redundant* when a resend is involved (``resent``, now or the first time: the original
+        was only late), as at the sink (`SinkLedger.record`); otherwise it is a *duplicate*.
         """
         if self.next_seq is None:
             self.next_seq = seq if floor is None else min(seq, floor)
@@ -65,8 +69,13 @@ class SequenceGate(Generic[T]):
             self.consumed_elsewhere += floor - self.next_seq
             self.next_seq = floor
         if seq < self.next_seq or seq in self.pending:
-            self.duplicates += 1
+            if resent or seq in self._resent:
+                self.redundant += 1
+            else:
+                self.duplicates += 1
             return []
+        if resent:
+            self._resent.append(seq)
         self.pending[seq] = item
         ready = self.drain()
         if len(self.pending) > self.max_pending:

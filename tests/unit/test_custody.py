@@ -294,3 +294,14 @@ def test_a_node_knows_whose_frames_it_consumes_so_its_acks_reach_them():
     assert team.nodes["r2"].producers() == {"r1", "laptop"}
     assert team.nodes["r1"].producers() == {"r2"}  # r1 is Loc-1's sink: its poses come from r2
     assert "r3" in team.nodes["laptop"].producers()  # r3's camera frames to the laptop's Blob-3
+
+
+def test_a_gate_tells_redundant_resends_from_real_duplicates():
+    gate = SequenceGate(next_seq=0)
+    assert gate.offer(0, "a", resent=True) == ["a"]  # resent: the original was only late ...
+    assert gate.offer(0, "a") == []  # ... and arrives now
+    assert gate.offer(1, "b") == ["b"]
+    assert gate.offer(1, "b", resent=True) == []  # a resend of one that had arrived
+    assert (gate.redundant, gate.duplicates) == (2, 0)
+    assert gate.offer(1, "b") == []  # the same input twice with no resend involved: a bug
+    assert gate.duplicates == 1
