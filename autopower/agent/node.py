@@ -462,7 +462,7 @@ class NodeRuntime:
                        logging.INFO)
             return
         before, redundant, skipped = hosted.gate.duplicates, hosted.gate.redundant, hosted.gate.skipped
-        for ready in hosted.gate.offer(frame.seq, frame, frame.floor, resent=frame.attempt > 0):
+        for ready in hosted.gate.offer(frame.seq, frame, frame.floor, resent=frame.attempt > 0, now=self.wall()):
             self._run(hosted, ready)
         if hosted.gate.duplicates != before:
             self.count("duplicate-input", f"{hosted.stage.name} seq {frame.seq}", logging.INFO)
@@ -598,7 +598,8 @@ class NodeRuntime:
         pending = tuple(hosted.gate.take_pending())
         transfer = StateTransfer(stage=msg.stage, generation=msg.generation, chain=hosted.chain.name,
                                  run=hosted.run, state=state, next_seq=hosted.gate.next_seq, pending=pending,
-                                 t_export_unix=time.time(), from_node=self.node)
+                                 t_export_unix=time.time(), from_node=self.node,
+                                 resent=hosted.gate.recent_resends())
         body = encode(transfer)
         hosted.lifecycle = Lifecycle.MIGRATED
         hosted.forward_to = msg.to_node
@@ -632,6 +633,7 @@ class NodeRuntime:
         hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
                              gate=SequenceGate(next_seq=msg.next_seq))
+        hosted.gate.resent.extend(msg.resent)  # late originals of these are redundant here too
         self.hosted[msg.stage] = hosted
         self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=True,
                                resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3),
@@ -669,6 +671,13 @@ class NodeRuntime:
                 out[hop_key(name, len(self.chains[name].stages))] = report
         return out
 
+    def _consumer_of(self, frame: ChainFrame) -> str | None:
+        """Where the plan says the frame's consumer runs now (the next stage's host, or the sink)."""
+        chain = self.chains[frame.chain]
+        if frame.target >= len(chain.stages):
+            return chain.sink
+        return self.plan.placement.get(chain.stages[frame.target].name) if self.plan else None
+
     def producers(self) -> set[str]:
         """The nodes that send us frames now (a source or the previous stage's host): our status
         acknowledges their frames, so it must reach them even when they are out of sight."""
@@ -697,6 +706,8 @@ class NodeRuntime:
             return
         self._next_custody_check = now + 0.1
         for node, held in self.custody.due(now):
+            if node != self._consumer_of(held.frame):
+                continue  # the stage is moving: wait for its new host's report (it stays due)
             if node != self.node and self.network.path(self.node, node) is None:
                 continue  # no route yet: it stays due
             frame = self.custody.resend(held, now)

@@ -23,7 +23,8 @@ from autopower.protocol import Consumed
 T = TypeVar("T")
 
 MAX_MISSING = 256  # seqs listed as missing in one report (the lowest ones)
-GATE_MAX_PENDING = 64  # inputs waiting behind a gap before the gap is given up as lost
+GATE_MAX_GAP_S = 10.0  # wall seconds a gap may stay open (several resend rounds) before it is given up
+GATE_MAX_PENDING = 512  # inputs waiting behind a gap, at most (memory: camera frames are 230 kB)
 
 
 def missing_between(low: int, high: int, have) -> tuple[int, ...]:
@@ -48,10 +49,13 @@ class SequenceGate(Generic[T]):
     skipped: int = 0  # seqs given up as lost (a gap that stayed open too long)
     consumed_elsewhere: int = 0  # seqs skipped because their producer says another instance had them
     max_pending: int = GATE_MAX_PENDING
+    max_gap_s: float = GATE_MAX_GAP_S
+    _gap_since: float | None = None  # when the oldest open gap was first seen (wall seconds)
     catch_up_below: int | None = None  # started without state below its first input: these are recomputed
-    _resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first offered as a resend
+    resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first offered as a resend
 
-    def offer(self, seq: int, item: T, floor: int | None = None, resent: bool = False) -> list[T]:
+    def offer(self, seq: int, item: T, floor: int | None = None, resent: bool = False,
+              now: float | None = None) -> list[T]:
         """Items now ready to run, in sequence order (possibly none).
 
         ``floor`` is the producer's lowest unacknowledged seq (see `ChainFrame.floor`): a gate
@@ -69,19 +73,26 @@ class SequenceGate(Generic[T]):
             self.consumed_elsewhere += floor - self.next_seq
             self.next_seq = floor
         if seq < self.next_seq or seq in self.pending:
-            if resent or seq in self._resent:
+            if resent or seq in self.resent:
                 self.redundant += 1
             else:
                 self.duplicates += 1
             return []
         if resent:
-            self._resent.append(seq)
+            self.resent.append(seq)
         self.pending[seq] = item
         ready = self.drain()
-        if len(self.pending) > self.max_pending:
-            # The producers resend what is missing (custody); a gap still open after this many
-            # later inputs is lost for good (its producer died): stalling the stage forever
-            # would lose everything after it too.
+        if not self.pending:
+            self._gap_since = None
+            return ready
+        if self._gap_since is None:
+            self._gap_since = now
+        open_s = now - self._gap_since if now is not None and self._gap_since is not None else 0.0
+        if len(self.pending) > self.max_pending or open_s > self.max_gap_s:
+            # The producers resend what is missing (custody), and a migration can hold inputs up
+            # for seconds; a gap still open after this long is lost for good (its producer
+            # died): stalling the stage forever would lose everything after it too.
+            self._gap_since = None
             first = min(self.pending)
             self.skipped += first - self.next_seq
             self.next_seq = first
@@ -102,6 +113,11 @@ class SequenceGate(Generic[T]):
             ready.append(self.pending.pop(self.next_seq))
             self.next_seq += 1
         return ready
+
+    def recent_resends(self, window: int = 512) -> tuple[int, ...]:
+        """Seqs that first came as resends, near where the gate is (what a migration carries along)."""
+        low = (self.next_seq or 0) - window
+        return tuple(s for s in self.resent if s >= low)
 
     def take_pending(self) -> list[T]:
         """Everything waiting, in order (for a migration), leaving the gate empty."""

@@ -162,6 +162,7 @@ class StateTransfer:
     pending: tuple[ChainFrame, ...]  # inputs that reached the old host but were not run
     t_export_unix: float  # when the old host stopped it (downtime measurement)
     from_node: str
+    resent: tuple[int, ...] = ()  # recent seqs that first arrived as resends: their late originals are redundant
 
 
 # ---------------------------------------------------------------------------------------------

@@ -305,3 +305,44 @@ def test_a_gate_tells_redundant_resends_from_real_duplicates():
     assert (gate.redundant, gate.duplicates) == (2, 0)
     assert gate.offer(1, "b") == []  # the same input twice with no resend involved: a bug
     assert gate.duplicates == 1
+
+
+def test_a_gate_waits_for_a_late_gap_for_seconds_not_a_count_of_inputs():
+    """At 40 inputs a second a migration or a resend takes many inputs to arrive: time decides."""
+    gate = SequenceGate(next_seq=0)
+    for seq in range(1, 200):  # seq 0 is late: 199 inputs wait behind it for 5 s
+        assert gate.offer(seq, seq, now=seq * 0.025) == []
+    assert gate.offer(0, 0, now=5.0) == list(range(200)) and gate.skipped == 0
+    gate.offer(201, 201, now=10.0)  # seq 200 never comes
+    assert gate.offer(202, 202, now=15.0) == [] and gate.skipped == 0
+    assert gate.offer(203, 203, now=20.1) == [201, 202, 203] and gate.skipped == 1
+
+
+def test_a_migrated_stage_still_knows_which_inputs_came_as_resends():
+    """A resend reaches the old host, the stage moves, the late original reaches the new host:
+    the new host must see a redundant copy, not a duplicate."""
+    import dataclasses
+
+    import msgpack
+
+    from autopower.agent.node import pad
+    from autopower.protocol import MigrateCommand
+
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Blob-2": "laptop"}))
+    team.join()
+    team.run_until(2.0)
+    r2, laptop = team.nodes["r2"], team.nodes["laptop"]
+    seq = r2.sources["Blob-2"].seq  # the next frame r2's camera will take
+    chain = sc.chain("Blob-2")
+    data = msgpack.packb(["r2", seq])
+    resend = ChainFrame(chain="Blob-2", run=r2.sources["Blob-2"].run, seq=seq, target=0, t_virtual=0.0,
+                        t_unix=0.0, payload_len=len(data), payload=pad(data, chain.message_bytes[0], "x"), attempt=1)
+    laptop.deliver_frame(resend)  # the resend got there first
+    assert team.coordinator.on_operator(MigrateCommand(stage="Blob-2", to_node="r3")).ok
+    team.pump()
+    r3 = team.nodes["r3"]
+    assert r3.hosted["Blob-2"].gate.next_seq == seq + 1
+    r3.deliver_frame(dataclasses.replace(resend, attempt=0))  # the late original, at the new host
+    assert r3.hosted["Blob-2"].gate.redundant == 1 and r3.hosted["Blob-2"].gate.duplicates == 0
+    assert "duplicate-input" not in r3.errors
