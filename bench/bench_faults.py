@@ -61,7 +61,7 @@ def baseline(cuts: int) -> list[float]:
 
     import zenoh
 
-    from autopower.deploy.linkproxy import LinkProxy, free_port
+    from autopower.launch.linkproxy import LinkProxy, free_port
 
     port = free_port()
     near = zenoh.open(_zenoh_config(listen=port))
@@ -117,9 +117,9 @@ def delivery(snap: dict) -> dict[str, float]:
 
 
 def team_cuts(cuts: int, speed: float) -> tuple[list[float], list[float], dict]:
-    from autopower.deploy.faults import FaultController
-    from autopower.deploy.launcher import LocalTeam, TeamSpec
-    from autopower.deploy.runtime_commands import build_scenario
+    from autopower.cli.team import build_scenario
+    from autopower.launch.faults import FaultController
+    from autopower.launch.localhost import LocalTeam, TeamSpec
 
     scenario = build_scenario("paper-fig7")
     spec = TeamSpec(scenario="paper-fig7", speed=speed, lease_ms=LEASE_MS, proxied_links=True)
@@ -156,9 +156,9 @@ def subgroup_rounds(rounds: int, speed: float) -> list[float]:
 
     The figure is the leader's propose -> commit time (every member's vote in), as it reports it.
     """
-    from autopower.deploy.faults import FaultController
-    from autopower.deploy.launcher import LocalTeam, TeamSpec
-    from autopower.deploy.runtime_commands import build_scenario
+    from autopower.cli.team import build_scenario
+    from autopower.launch.faults import FaultController
+    from autopower.launch.localhost import LocalTeam, TeamSpec
 
     scenario = build_scenario("paper-fig7")
     spec = TeamSpec(scenario="paper-fig7", speed=speed, lease_ms=LEASE_MS, proxied_links=True)

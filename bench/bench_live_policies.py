@@ -40,8 +40,8 @@ def live(policy: str, args) -> dict:
 
 
 def simulated(policy: str, args) -> float:
-    from autopower.scenario import load_scenario
-    from autopower.simulator import simulate
+    from autopower.model.scenario import load_scenario
+    from autopower.simulation.simulator import simulate
 
     s = load_scenario("paper-fig7")
     s = s.with_energies({r.name: r.energy_j * args.energy_scale for r in s.robots})

@@ -6,13 +6,13 @@ are printed, with ratios, for the README and the notes.
 
 import time
 
+from autopower.model.scenario import load_scenario
 from autopower.planner import PlanRequest
 from autopower.planner.exhaustive import exhaustive
 from autopower.planner.greedy import greedy
 from autopower.planner.milp import solve_milp
 from autopower.planner.problem import make_problem
-from autopower.scenario import load_scenario
-from autopower.synthetic import fleet_scenario
+from autopower.simulation.synthetic import fleet_scenario
 
 
 def timed(fn):

@@ -16,11 +16,11 @@ import sys
 import time
 
 from autopower.errors import InfeasibleError
-from autopower.mission_events import load_events, random_events
-from autopower.policy import POLICY_NAMES
-from autopower.scenario import load_scenario
-from autopower.simulator import simulate, time_sharing_reference
-from autopower.synthetic import random_scenario
+from autopower.model.mission_events import load_events, random_events
+from autopower.model.scenario import load_scenario
+from autopower.policies.policy import POLICY_NAMES
+from autopower.simulation.simulator import simulate, time_sharing_reference
+from autopower.simulation.synthetic import random_scenario
 
 
 def paper_table() -> list[float]:

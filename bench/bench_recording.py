@@ -24,10 +24,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 
-from autopower.bus import InMemoryHub  # noqa: E402
 from autopower.protocol import Keys, NodeStatus, SinkStats, SourceStats, encode  # noqa: E402
-from autopower.recorder import Recorder  # noqa: E402
-from autopower.telemetry import Telemetry  # noqa: E402
+from autopower.recording.recorder import Recorder  # noqa: E402
+from autopower.recording.telemetry import Telemetry  # noqa: E402
+from autopower.runtime.bus import InMemoryHub  # noqa: E402
 
 
 class NoopTelemetry:

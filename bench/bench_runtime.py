@@ -19,11 +19,11 @@ import time
 from pathlib import Path
 
 from autopower.agent.node import NodeRuntime, chain_seed
-from autopower.bus import InMemoryHub, ZenohBus, ZenohSettings
 from autopower.chains import make_component, make_source
-from autopower.deploy.launcher import LocalTeam, TeamSpec, endpoint, free_ports
-from autopower.deploy.runtime_commands import build_scenario
-from autopower.model import flow_weight
+from autopower.cli.team import build_scenario
+from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint, free_ports
+from autopower.model.energy import flow_weight
+from autopower.model.scenario import load_scenario
 from autopower.protocol import (
     Assign,
     ChainFrame,
@@ -35,7 +35,7 @@ from autopower.protocol import (
     PlanUpdate,
     encode,
 )
-from autopower.scenario import load_scenario
+from autopower.runtime.bus import InMemoryHub, ZenohBus, ZenohSettings
 
 
 def pct(values: list[float], q: float) -> float:
@@ -125,7 +125,7 @@ def bench_overhead(runs: int = 300) -> None:
 
 ECHO = textwrap.dedent("""
     import sys, threading
-    from autopower.bus import ZenohBus, ZenohSettings
+    from autopower.runtime.bus import ZenohBus, ZenohSettings
     bus = ZenohBus(ZenohSettings(listen=(sys.argv[1],)))
     bus.subscribe("bench/ping", lambda k, p: bus.publish("bench/pong", p))
     print("ready", flush=True)
@@ -160,7 +160,7 @@ def bench_hop(n: int = 300) -> None:
     team = "bench-hop"
     keys = Keys(team)
     with tempfile.TemporaryDirectory() as tmp:
-        agent = subprocess.Popen([sys.executable, "-m", "autopower.deploy.runtime_commands", "agent", "--robot", "r1",
+        agent = subprocess.Popen([sys.executable, "-m", "autopower.cli.team", "agent", "--robot", "r1",
                                   "--team", team, "--listen", endpoint(port_agent), "--log-level", "warning"],
                                  stdout=open(Path(tmp) / "agent.log", "w"), stderr=subprocess.STDOUT)
         try:

@@ -2,6 +2,10 @@
 
 `NodeRuntime` (what every node does with chain data, also used by the base station for the
 laptop) is the logic; `Agent` is the process around it.
+
+May import: `autopower.errors`, `autopower.model`, `autopower.protocol`, `autopower.chains`,
+`autopower.runtime`, `autopower.planner` and `autopower.policies` (subgroup reallocation). Not the
+base station: the two talk only through messages.
 """
 
 from autopower.agent.meter import BatteryMeter

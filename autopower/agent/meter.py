@@ -1,6 +1,6 @@
 """Battery metering from real activity, with the energy model's prices.
 
-What is charged, and why it reproduces `autopower.model.evaluate` for the same allocation:
+What is charged, and why it reproduces `autopower.model.energy.evaluate` for the same allocation:
 - CPU: ``idle_w`` for every virtual second, plus ``(busy_w - idle_w) * latency`` for every
   component run actually executed here, with the component's *modelled* latency on this
   node's platform (the paper's Sitsang/laptop profile, not this machine's). Runs at 1/period
@@ -16,7 +16,7 @@ What is charged, and why it reproduces `autopower.model.evaluate` for the same a
 Work the model's steady state does not include is kept in parts of its own, so that a run can
 be checked against the model and its overheads reported beside it: migrations (the state on
 the radios) and recovery after a silent loss (resent frames; a stage restarted without state
-recomputing inputs): see `autopower.energy_parts`.
+recomputing inputs): see `autopower.model.parts`.
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ from __future__ import annotations
 from collections import deque
 from typing import Iterable, Mapping
 
-from autopower.energy_parts import CPU_BUSY, CPU_IDLE, CPU_RECOVERY, OVERHEAD_KINDS, overhead_kind
-from autopower.energy_parts import radio_part as part
-from autopower.model import airtime_s
-from autopower.scenario import Platform, Radio
+from autopower.model.energy import airtime_s
+from autopower.model.parts import CPU_BUSY, CPU_IDLE, CPU_RECOVERY, OVERHEAD_KINDS, overhead_kind
+from autopower.model.parts import radio_part as part
+from autopower.model.scenario import Platform, Radio
 
 __all__ = ["BatteryMeter", "CPU_BUSY", "CPU_IDLE", "CPU_RECOVERY", "part"]
 

@@ -23,20 +23,19 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
-from collections import deque
 import math
 import time
 import zlib
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from autopower.agent.custody import Custody, Report, hop_key, parse_hop_key
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.sequencing import SequenceGate, SinkLedger
-from autopower.bus import Bus
-from autopower.clock import Clock, VirtualClock
 from autopower.errors import AutoPowerError, ProtocolError
-from autopower.model import Link, Network, flow_weight
+from autopower.model.energy import Link, Network, flow_weight
+from autopower.model.scenario import Chain, Scenario, Stage
 from autopower.protocol import (
     Assign,
     ChainFrame,
@@ -58,7 +57,8 @@ from autopower.protocol import (
     encode,
 )
 from autopower.protocol.messages import CONTROL_MESSAGES
-from autopower.scenario import Chain, Scenario, Stage
+from autopower.runtime.bus import Bus
+from autopower.runtime.clock import Clock, VirtualClock
 
 log = logging.getLogger(__name__)
 

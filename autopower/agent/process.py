@@ -15,15 +15,14 @@ import os
 import time
 from dataclasses import dataclass, field
 
-from autopower.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.agent.node import NodeRuntime
-from autopower.bus import Bus, ZenohBus, ZenohSettings
 from autopower.errors import ProtocolError
-from autopower.protocol import Keys, NodeStatus, decode, encode
-from autopower.protocol import Assign, MigrateOut, SubgroupMove, SubgroupPropose
-from autopower.relay import Relayer
-from autopower.subgroup import SubgroupAgreement
-from autopower.scenario import Scenario
+from autopower.model.scenario import Scenario
+from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMove, SubgroupPropose, decode, encode
+from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
+from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
+from autopower.runtime.relay import Relayer
+from autopower.runtime.subgroup import SubgroupAgreement
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +168,7 @@ class Agent:
                 or self.agreement.busy or self._subgroup_done == key):
             return
         self._subgroup_done = key
-        from autopower.policy import subgroup_reallocation
+        from autopower.policies.policy import subgroup_reallocation
 
         network = rt.network
         for r in robots:
@@ -228,12 +227,12 @@ class Agent:
         """
         import dataclasses
 
-        from autopower.model import evaluate
+        from autopower.model.energy import evaluate
 
         rt = self.runtime
         try:
             placement = dict(rt.plan.placement)
-            from autopower.policy import effective_scenario
+            from autopower.policies.policy import effective_scenario
 
             network = rt.network  # the base station's links are out of it already
             scenario, _ = effective_scenario(self.config.scenario, network)

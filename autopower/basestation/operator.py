@@ -11,9 +11,9 @@ import os
 import time
 from pathlib import Path
 
-from autopower.bus import Bus, ZenohBus, ZenohSettings
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.protocol import Keys, OperatorReply, SnapshotRequest, decode, encode
+from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 
 SESSION_FILE = "session.json"
 

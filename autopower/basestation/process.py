@@ -16,11 +16,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
-from autopower.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
-from autopower.bus import Bus, ZenohBus, ZenohSettings
 from autopower.errors import ProtocolError
-from autopower.policy import Policy
+from autopower.model.scenario import Scenario
+from autopower.policies.policy import Policy
 from autopower.protocol import (
     INBOX_MESSAGES,
     OPERATOR_COMMANDS,
@@ -32,8 +31,9 @@ from autopower.protocol import (
     decode,
     encode,
 )
-from autopower.relay import Relayer
-from autopower.scenario import Scenario
+from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
+from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
+from autopower.runtime.relay import Relayer
 
 log = logging.getLogger(__name__)
 

@@ -8,6 +8,8 @@
 
 The runtime uses ``make_source``, ``make_component`` and ``score_output``; ``profile_components``
 measures latencies and message sizes on the current machine.
+
+May import: `autopower.errors` only. A component knows nothing of placement, radios or Zenoh.
 """
 
 from autopower.chains.base import (

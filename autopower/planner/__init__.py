@@ -3,6 +3,8 @@
 `plan(PlanRequest(scenario, ...))` chooses every stage's host and the media, maximising the
 team's lifetime, by exhaustive search (small problems, the paper's method) or the HiGHS MILP
 (anything larger). Both give the same optimum (a property test checks it).
+
+May import: `autopower.errors`, `autopower.model`.
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from autopower.errors import AutoPowerError, InfeasibleError
-from autopower.model import Evaluation, Network, evaluate
+from autopower.model.energy import Evaluation, Network, evaluate
 from autopower.planner.exhaustive import exhaustive
 from autopower.planner.milp import solve_milp
 from autopower.planner.problem import PlanRequest, Problem, make_problem

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from autopower.model import LoadSpace, Network
+from autopower.model.energy import LoadSpace, Network
 from autopower.planner.problem import Problem
 
 

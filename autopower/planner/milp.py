@@ -21,7 +21,7 @@ import dataclasses
 from dataclasses import dataclass
 from itertools import product
 
-from autopower.model import Link, Network, airtime_s, flow_rate_hz
+from autopower.model.energy import Link, Network, airtime_s, flow_rate_hz
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.problem import Problem
 
@@ -277,7 +277,7 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff):
 
 
 def _finish(problem: Problem, model: PlacementModel, t_col: int, sol, refine: bool, time_limit_s) -> MilpResult:
-    from autopower.model import evaluate
+    from autopower.model.energy import evaluate
 
     lp = model.lp
     columns, rows = len(lp.lower), len(lp.row_lower)

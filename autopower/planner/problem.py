@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 from itertools import product
 from typing import Mapping
 
-from autopower.model import Network, active_chains, build_network, media_choices
-from autopower.scenario import Chain, Scenario
+from autopower.model.energy import Network, active_chains, build_network, media_choices
+from autopower.model.scenario import Chain, Scenario
 
 
 @dataclass(frozen=True, kw_only=True)

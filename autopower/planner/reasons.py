@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from autopower.model import Evaluation, LoadSpace, Network, load_of
+from autopower.model.energy import Evaluation, LoadSpace, Network, load_of
 from autopower.planner.problem import Problem
 
 

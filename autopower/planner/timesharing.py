@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from autopower.model import LoadSpace, Network
+from autopower.model.energy import LoadSpace, Network
 from autopower.planner.exhaustive import MAX_COMBINATIONS, search_network
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.milp import PlacementModel
@@ -76,7 +76,7 @@ def _by_enumeration(problem: Problem, seeds=()) -> TimeSharingBound:
     configuration with the lowest dual-weighted power until none prices below 1. Only the few
     columns the LP uses are ever decoded, so 10^5 configurations cost a fraction of a second.
     """
-    from autopower.model import load_of
+    from autopower.model.energy import load_of
     from autopower.planner.exhaustive import decode
 
     blocks = []
@@ -129,7 +129,7 @@ def _by_column_generation(problem: Problem, seeds, max_rounds: int) -> TimeShari
 
     def add(network, allocation):
         space = LoadSpace(problem.scenario, network, problem.accounting, problem.energies_j)
-        from autopower.model import load_of
+        from autopower.model.energy import load_of
 
         p = space.total_power(load_of(space, problem.chains, allocation)[None, :])[0]
         configs.append((network, allocation, p))

@@ -1,4 +1,7 @@
-"""Wire protocol: messages, the strict msgpack codec, and the key expressions."""
+"""Wire protocol: messages, the strict msgpack codec, and the key expressions.
+
+May import: `autopower.errors` only: every process and the recorder decode the same bytes.
+"""
 
 from autopower.protocol.codec import PROTOCOL_VERSION, decode, encode, message_kinds
 from autopower.protocol.keys import Keys, check_name
@@ -10,6 +13,7 @@ from autopower.protocol.messages import (
     AutoCommand,
     ChainCommand,
     ChainFrame,
+    Consumed,
     LinkCommand,
     LinkInfo,
     MigrateCommand,
@@ -24,7 +28,6 @@ from autopower.protocol.messages import (
     Relayed,
     Release,
     SinkStats,
-    Consumed,
     SnapshotRequest,
     SourceStats,
     StageReady,

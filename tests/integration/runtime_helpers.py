@@ -8,7 +8,7 @@ from autopower.agent.node import chain_seed
 from autopower.agent.sequencing import fold_digest
 from autopower.chains import make_component, make_source
 from autopower.errors import AutoPowerError
-from autopower.scenario import Scenario
+from autopower.model.scenario import Scenario
 
 
 def sinks_of(snap: dict) -> dict[str, dict]:

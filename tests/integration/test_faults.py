@@ -12,10 +12,9 @@ import time
 
 import pytest
 
-from autopower.deploy.faults import FaultController
-from autopower.deploy.launcher import LocalTeam, TeamSpec
-from autopower.deploy.runtime_commands import build_scenario
-
+from autopower.cli.team import build_scenario
+from autopower.launch.faults import FaultController
+from autopower.launch.localhost import LocalTeam, TeamSpec
 from tests.integration.runtime_helpers import wait_for
 
 DETECT_S = 1.0

@@ -8,7 +8,7 @@ import time
 import pytest
 import zenoh
 
-from autopower.deploy.linkproxy import LinkProxy, free_port
+from autopower.launch.linkproxy import LinkProxy, free_port
 
 LEASE_MS = 500
 

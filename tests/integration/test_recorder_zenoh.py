@@ -8,9 +8,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from autopower.recorder import merge_run, run_recording_id
-from autopower.replay import load, summarize
-from autopower.telemetry import read_recording
+from autopower.recording.recorder import merge_run, run_recording_id
+from autopower.recording.replay import load, summarize
+from autopower.recording.telemetry import read_recording
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -12,12 +12,12 @@ import time
 
 import pytest
 
-from autopower.bus import ZenohBus, ZenohSettings
-from autopower.deploy.launcher import LocalTeam, TeamSpec, endpoint
-from autopower.deploy.runtime_commands import build_scenario
-from autopower.model import evaluate
+from autopower.cli.team import build_scenario
+from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint
+from autopower.model.energy import evaluate
 from autopower.planner import PlanRequest, plan
 from autopower.protocol import AutoCommand, Keys, MigrateCommand, SnapshotRequest, encode
+from autopower.runtime.bus import ZenohBus, ZenohSettings
 from tests.integration.runtime_helpers import (
     errors_of,
     measured_power,

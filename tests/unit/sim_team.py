@@ -13,9 +13,9 @@ import msgpack
 
 from autopower.agent.node import NodeRuntime
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
-from autopower.bus import InMemoryHub
-from autopower.clock import ManualClock
 from autopower.protocol import INBOX_MESSAGES, Keys, Packet, Prepared, StageReady, decode
+from autopower.runtime.bus import InMemoryHub
+from autopower.runtime.clock import ManualClock
 
 
 class FakeSource:

@@ -5,7 +5,7 @@ import signal
 import threading
 import time
 
-from autopower.events import EventQueue, LivelinessChanged, Received, StopRequested
+from autopower.runtime.events import EventQueue, LivelinessChanged, Received, StopRequested
 
 
 def test_urgent_events_overtake_bulk_data():

@@ -11,8 +11,8 @@ from autopower.agent.node import Lifecycle, pad
 from autopower.agent.sequencing import SequenceGate, SinkLedger
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.errors import ProtocolError
+from autopower.model.scenario import load_scenario
 from autopower.protocol import ChainCommand, MigrateCommand
-from autopower.scenario import load_scenario
 from tests.unit.sim_team import SimTeam
 
 FC = {"laptop-robot": "802.11a", "robot-robot": "802.11a"}

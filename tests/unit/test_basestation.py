@@ -10,8 +10,8 @@ import pytest
 from autopower.agent.node import NodeRuntime
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.basestation.process import BaseStation, BaseStationConfig
-from autopower.bus import InMemoryHub
-from autopower.events import StopRequested
+from autopower.model.energy import evaluate
+from autopower.model.scenario import load_scenario
 from autopower.protocol import (
     AutoCommand,
     ChainCommand,
@@ -23,8 +23,8 @@ from autopower.protocol import (
     decode,
     encode,
 )
-from autopower.model import evaluate
-from autopower.scenario import load_scenario
+from autopower.runtime.bus import InMemoryHub
+from autopower.runtime.events import StopRequested
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
 ALL_LAPTOP = {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "laptop", "Blob-2": "laptop", "Blob-3": "laptop"}

@@ -2,7 +2,7 @@
 
 import pytest
 
-from autopower.bus import InMemoryHub, ZenohSettings, key_matches
+from autopower.runtime.bus import InMemoryHub, ZenohSettings, key_matches
 
 
 @pytest.mark.parametrize("pattern, key, expected", [

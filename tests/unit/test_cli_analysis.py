@@ -3,19 +3,19 @@
 import json
 import subprocess
 import sys
+from importlib import resources
 
 import pytest
-
-from autopower.deploy.cli import cli
 from click.testing import CliRunner
-from importlib import resources
+
+from autopower.cli.main import cli
 
 PAPER = (resources.files('autopower.scenarios') / 'paper-fig7.toml').read_text()
 
 
 def run(*args):
     # the real entry point, as a user would call it: errors must be one line, no traceback
-    return subprocess.run([sys.executable, "-m", "autopower.deploy.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "autopower.cli.main", *args], capture_output=True, text=True, timeout=120)
 
 
 def test_analyze_json_schema_and_fig7_rows():
@@ -100,7 +100,7 @@ def test_profile_writes_a_file_the_planner_uses(tmp_path):
     text = out_file.read_text()
     assert "[latency_s]" in text and "Blob = " in text and "Loc = " in text
     # A platform as fast as this machine makes local computation cheap: the plan changes.
-    from autopower.scenario import load_scenario
+    from autopower.model.scenario import load_scenario
     s = load_scenario("paper-fig7").with_latency_profile(out_file, "sitsang")
     assert s.components["Loc"].latency_s["sitsang"] < 0.1
     res = CliRunner().invoke(cli, ["plan", "paper-fig7", "--latency-profile", str(out_file), "--as-platform", "sitsang", "--json", "--no-bound"])

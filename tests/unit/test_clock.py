@@ -2,7 +2,7 @@
 
 import pytest
 
-from autopower.clock import ManualClock, VirtualClock, WallClock
+from autopower.runtime.clock import ManualClock, VirtualClock, WallClock
 
 
 def test_virtual_clock_runs_speed_times_faster():

@@ -1,4 +1,4 @@
-"""The live base station decides through `autopower.policy`, exactly as the simulator does.
+"""The live base station decides through `autopower.policies.policy`, exactly as the simulator does.
 
 The team is `SimTeam` (coordinator + one NodeRuntime per node, in memory, on a manual clock).
 To put the team where a simulated mission would be at time T, the clock jumps to T and each
@@ -13,11 +13,11 @@ from click.testing import CliRunner
 
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.errors import AutoPowerError
-from autopower.mission_events import load_events
-from autopower.policy import POLICY_NAMES, make_policy
+from autopower.model.mission_events import load_events
+from autopower.model.scenario import load_scenario
+from autopower.policies.policy import POLICY_NAMES, make_policy
 from autopower.protocol import LinkCommand
-from autopower.scenario import load_scenario
-from autopower.simulator import simulate
+from autopower.simulation.simulator import simulate
 from tests.unit.sim_team import SimTeam
 
 FIG7 = load_scenario("paper-fig7")
@@ -271,8 +271,8 @@ def test_unknown_policy_or_parameter_is_a_clear_error_at_construction():
 
 
 def test_policy_option_on_the_runtime_commands():
-    from autopower.deploy.demo import demo
-    from autopower.deploy.runtime_commands import basestation, up
+    from autopower.cli.demo import demo
+    from autopower.cli.team import basestation, up
 
     for command in (basestation, up, demo):
         option = next(p for p in command.params if p.name == "policy")

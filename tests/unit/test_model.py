@@ -2,8 +2,8 @@
 
 import pytest
 
-from autopower.model import airtime_s, evaluate, flow_weight
-from autopower.scenario import load_scenario
+from autopower.model.energy import airtime_s, evaluate, flow_weight
+from autopower.model.scenario import load_scenario
 
 FIG7 = load_scenario("paper-fig7")
 PHYS = FIG7.with_accounting("physical")

@@ -2,9 +2,9 @@
 
 import pytest
 
-from autopower.model import evaluate
+from autopower.model.energy import evaluate
+from autopower.model.scenario import load_scenario
 from autopower.planner import PlanRequest, plan
-from autopower.scenario import load_scenario
 
 FIG7 = load_scenario("paper-fig7")
 FIG8 = load_scenario("paper-fig8")

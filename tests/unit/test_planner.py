@@ -5,13 +5,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from autopower.errors import InfeasibleError
-from autopower.model import evaluate
+from autopower.model.energy import evaluate
+from autopower.model.scenario import load_scenario
 from autopower.planner import PlanRequest, plan
 from autopower.planner.exhaustive import exhaustive
 from autopower.planner.milp import solve_milp
 from autopower.planner.problem import make_problem
-from autopower.scenario import load_scenario
-from autopower.synthetic import random_scenario
+from autopower.simulation.synthetic import random_scenario
 
 FIG7 = load_scenario("paper-fig7")
 
@@ -113,7 +113,7 @@ def test_greedy_is_feasible_and_never_beats_the_optimum():
 
 
 def test_thirty_robots_ninety_components_proven_optimal():
-    from autopower.synthetic import fleet_scenario
+    from autopower.simulation.synthetic import fleet_scenario
     p = plan(PlanRequest(scenario=fleet_scenario(30, 90, seed=1)))
     assert p.method == "milp" and p.proven_optimal and p.mip_gap <= 1e-6
     assert p.evaluation.feasible and len(p.allocation) == 90
@@ -121,7 +121,7 @@ def test_thirty_robots_ninety_components_proven_optimal():
 
 @pytest.mark.slow
 def test_hundred_robots_three_hundred_components_within_one_percent():
-    from autopower.synthetic import fleet_scenario
+    from autopower.simulation.synthetic import fleet_scenario
     p = plan(PlanRequest(scenario=fleet_scenario(100, 300, seed=3), mip_rel_gap=0.01, time_limit_s=600))
     assert p.evaluation.feasible and len(p.allocation) == 300
     assert p.mip_gap <= 0.01

@@ -6,11 +6,13 @@ import json
 import pytest
 
 from autopower.errors import AutoPowerError
-from autopower.model import airtime_s, evaluate
+from autopower.model.energy import airtime_s, evaluate
+from autopower.model.mission_events import MissionEvent
+from autopower.model.scenario import load_scenario
 from autopower.planner import PlanRequest, plan
-from autopower.planner.timesharing import time_sharing_bound
 from autopower.planner.problem import make_problem
-from autopower.policy import (
+from autopower.planner.timesharing import time_sharing_bound
+from autopower.policies.policy import (
     POLICY_NAMES,
     MigrationCosts,
     TeamState,
@@ -21,9 +23,7 @@ from autopower.policy import (
     subgroup_reallocation,
     subgroups,
 )
-from autopower.mission_events import MissionEvent
-from autopower.scenario import load_scenario
-from autopower.synthetic import random_scenario
+from autopower.simulation.synthetic import random_scenario
 
 FIG7 = load_scenario("paper-fig7")
 LAPTOP = {s: "laptop" for s in FIG7.stage_names()}

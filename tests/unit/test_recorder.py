@@ -7,9 +7,9 @@ import os
 import pytest
 
 from autopower.basestation.coordinator import CoordinatorConfig
-from autopower.bus import InMemoryBus, InMemoryHub
+from autopower.model.scenario import load_scenario
 from autopower.protocol import Keys, MigrateCommand, encode
-from autopower.recorder import (
+from autopower.recording.recorder import (
     EVENT_TAG,
     Recorder,
     merge_run,
@@ -19,9 +19,9 @@ from autopower.recorder import (
     run_recording_id,
     tag_event,
 )
-from autopower.replay import load, summarize
-from autopower.scenario import load_scenario
-from autopower.telemetry import Telemetry, read_recording
+from autopower.recording.replay import load, summarize
+from autopower.recording.telemetry import Telemetry, read_recording
+from autopower.runtime.bus import InMemoryBus, InMemoryHub
 from tests.unit import sim_team
 from tests.unit.sim_team import SimTeam
 
@@ -191,10 +191,10 @@ def test_recording_never_breaks_the_bus(tmp_path):
 
 
 def test_outputs_are_drawn_with_the_deploy_visualiser(tmp_path):
-    from autopower.chains import make_component, make_source
-    from autopower.deploy.recording import draw_output, open_recorder
-
     import rerun as rr
+
+    from autopower.chains import make_component, make_source
+    from autopower.recording.live import draw_output, open_recorder
 
     blob = make_component("Blob", "r2", 0).run(make_source("Blob", "r2", 0).produce(0))
     loc = make_component("Loc", "r1", 0).run(make_source("Loc", "r1", 0).produce(0))
@@ -210,7 +210,7 @@ def test_outputs_are_drawn_with_the_deploy_visualiser(tmp_path):
 
 
 def test_a_fault_tool_writes_its_own_file_of_the_run(tmp_path):
-    from autopower.recorder import record_fault_event
+    from autopower.recording.recorder import record_fault_event
 
     run_dir = tmp_path / "run-7"
     t = [0.0]

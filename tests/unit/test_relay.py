@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from autopower.bus import InMemoryHub
 from autopower.protocol import Keys, NodeStatus, Relayed, decode, encode
-from autopower.relay import Relayer
+from autopower.runtime.bus import InMemoryHub
+from autopower.runtime.relay import Relayer
 
 KEYS = Keys("t")
 

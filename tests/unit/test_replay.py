@@ -7,13 +7,13 @@ import os
 
 import pytest
 
-from autopower.deploy.replay_command import main as replay_main
+from autopower.cli.replay import main as replay_main
 from autopower.errors import AutoPowerError, RecordingError
-from autopower.mission_events import load_events
-from autopower.replay import load, recorded_state, summarize, what_if
-from autopower.scenario import load_scenario
-from autopower.simulator import simulate
-from autopower.telemetry import Telemetry
+from autopower.model.mission_events import load_events
+from autopower.model.scenario import load_scenario
+from autopower.recording.replay import load, recorded_state, summarize, what_if
+from autopower.recording.telemetry import Telemetry
+from autopower.simulation.simulator import simulate
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 
@@ -141,7 +141,7 @@ def test_a_real_process_exits_2_without_a_traceback(tmp_path):
 
     bad = tmp_path / "corrupt.rrd"
     bad.write_bytes(b"RRF2" + os.urandom(200))
-    done = subprocess.run([sys.executable, "-m", "autopower.deploy.replay_command", str(bad)], capture_output=True,
+    done = subprocess.run([sys.executable, "-m", "autopower.cli.replay", str(bad)], capture_output=True,
                           text=True, timeout=60, env={**os.environ, "RERUN_ANALYTICS": "0"})
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.startswith(f"error: {bad}") and "Traceback" not in done.stderr

@@ -5,7 +5,7 @@ from importlib import resources
 import pytest
 
 from autopower.errors import ScenarioError
-from autopower.scenario import builtin_scenarios, load_scenario, parse_scenario
+from autopower.model.scenario import builtin_scenarios, load_scenario, parse_scenario
 
 PAPER = (resources.files("autopower.scenarios") / "paper-fig7.toml").read_text()
 

@@ -7,12 +7,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from autopower.errors import InfeasibleError
-from autopower.mission_events import NO_EVENTS, load_events, parse_events, random_events
+from autopower.model.mission_events import NO_EVENTS, load_events, parse_events, random_events
+from autopower.model.scenario import load_scenario
 from autopower.planner import PlanRequest, plan
-from autopower.policy import POLICY_NAMES
-from autopower.scenario import load_scenario
-from autopower.simulator import simulate, time_sharing_reference
-from autopower.synthetic import random_scenario
+from autopower.policies.policy import POLICY_NAMES
+from autopower.simulation.simulator import simulate, time_sharing_reference
+from autopower.simulation.synthetic import random_scenario
 
 FIG7 = load_scenario("paper-fig7")
 FIG8 = load_scenario("paper-fig8")

@@ -5,10 +5,10 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from autopower.deploy.simulate_command import simulate as simulate_cmd
+from autopower.cli.simulate import simulate as simulate_cmd
 from autopower.errors import AutoPowerError, ScenarioError
-from autopower.mission_events import EventsError, builtin_events, load_events, parse_events
-from autopower.scenario import load_scenario
+from autopower.model.mission_events import EventsError, builtin_events, load_events, parse_events
+from autopower.model.scenario import load_scenario
 
 FIG7 = load_scenario("paper-fig7")
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from autopower.bus import InMemoryHub
 from autopower.protocol import Keys, SubgroupDecision, SubgroupMove, encode
-from autopower.subgroup import Phase, SubgroupAgreement
+from autopower.runtime.bus import InMemoryHub
+from autopower.runtime.subgroup import Phase, SubgroupAgreement
 
 KEYS = Keys("t")
 MOVES = (SubgroupMove(stage="Loc-1", from_node=None, to_node="r1"),

@@ -9,10 +9,9 @@ from pathlib import Path
 import pytest
 
 from autopower.errors import RecordingError
-from autopower.mission_events import load_events
-from autopower.scenario import load_scenario
-from autopower.simulator import simulate
-from autopower.telemetry import (
+from autopower.model.mission_events import load_events
+from autopower.model.scenario import load_scenario
+from autopower.recording.telemetry import (
     ALLOCATION,
     DECISIONS,
     FAULTS,
@@ -24,6 +23,7 @@ from autopower.telemetry import (
     power_path,
     read_recording,
 )
+from autopower.simulation.simulator import simulate
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 FIG7 = load_scenario("paper-fig7")
@@ -109,7 +109,7 @@ def test_a_failing_sink_never_stops_the_simulation(caplog):
     script = load_events("paper-vc-fault", FIG7)
     plain = simulate(FIG7, script, policy="reactive")
     tel = Telemetry(None, stream=_Broken())
-    with caplog.at_level(logging.WARNING, logger="autopower.telemetry"):
+    with caplog.at_level(logging.WARNING, logger="autopower.recording.telemetry"):
         logged = simulate(FIG7, script, policy="reactive", telemetry=tel)
         tel.close()
     assert logged.to_dict() == plain.to_dict()

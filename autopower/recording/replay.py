@@ -1,8 +1,8 @@
 """Replay an AutoPower recording: what happened, whether the invariants held, what else could have.
 
 `summarize(recording)` reads a recording written by the simulator (``autopower simulate
---record``) or by a live run (`autopower.recorder`, merged ``run.rrd``) and derives everything
-from the telemetry layout and the structured text events (`autopower.recorder.parse_event`).
+--record``) or by a live run (`autopower.recording.recorder`, merged ``run.rrd``) and derives everything
+from the telemetry layout and the structured text events (`autopower.recording.recorder.parse_event`).
 `what_if(recording, ...)` replans offline from the recorded state at a chosen time.
 
 ``autopower replay RUN.rrd --json`` prints one object::
@@ -55,10 +55,10 @@ import warnings
 from pathlib import Path
 from typing import Any, Mapping
 
-from autopower.energy_parts import OVERHEAD_KINDS
 from autopower.errors import AutoPowerError, RecordingError
-from autopower.recorder import parse_event
-from autopower.telemetry import ALLOCATION, DECISIONS, FAULTS, MIGRATIONS, NETWORK, Recording, read_recording
+from autopower.model.parts import OVERHEAD_KINDS
+from autopower.recording.recorder import parse_event
+from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MIGRATIONS, NETWORK, Recording, read_recording
 
 __all__ = ["load", "recorded_state", "render_text", "render_what_if", "replay_summary", "summarize", "what_if"]
 
@@ -453,9 +453,9 @@ def what_if(rec: Recording, *, at_s: float | None = None, accounting: str | None
     "recorded": {"allocation", "lifetime_s", "note"}, "plan": {"allocation", "media", "lifetime_s",
     "bottleneck", "reasons", "method", "dropped_chains"}, "gain_s", "policy": {...} | null}``.
     """
-    from autopower.model import Link, Network
+    from autopower.model.energy import Link, Network
+    from autopower.model.scenario import load_scenario
     from autopower.planner import PlanRequest, evaluate_in, make_problem, plan
-    from autopower.scenario import load_scenario
 
     if scenario is None:
         name = rec.properties.get("scenario")
@@ -529,8 +529,8 @@ def what_if(rec: Recording, *, at_s: float | None = None, accounting: str | None
         "policy": None,
     }
     if policy is not None:
-        from autopower.mission_events import EventScript
-        from autopower.simulator import simulate
+        from autopower.model.mission_events import EventScript
+        from autopower.simulation.simulator import simulate
 
         sc = scenario.with_energies({r: e for r, e in alive.items()}).with_accounting(request.accounting)
         script = EventScript(source_path="<replay what-if>", initially_absent=frozenset(dry))

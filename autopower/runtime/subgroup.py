@@ -1,7 +1,7 @@
 """Subgroup agreement without the base station: propose -> accept -> commit (two-phase commit).
 
 When robots cannot reach the base station, those that still reach each other form a subgroup;
-its leader (the lowest name) computes a reallocation (`autopower.policy.subgroup_reallocation`)
+its leader (the lowest name) computes a reallocation (`autopower.policies.policy.subgroup_reallocation`)
 and runs one round of this protocol:
 
 - the leader publishes `SubgroupPropose` (members, the placement after the round, the moves,
@@ -25,7 +25,6 @@ import logging
 from dataclasses import dataclass, field
 from typing import Callable
 
-from autopower.bus import Bus
 from autopower.errors import ProtocolError
 from autopower.protocol import (
     Keys,
@@ -36,6 +35,7 @@ from autopower.protocol import (
     decode,
     encode,
 )
+from autopower.runtime.bus import Bus
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ import networkx as nx
 import numpy as np
 
 from autopower.errors import ScenarioError
-from autopower.scenario import Chain, Radio, Scenario
+from autopower.model.scenario import Chain, Radio, Scenario
 
 UTILISATION_LIMIT = 1.0 + 1e-9  # float noise must not flip a 100 %-utilised plan to infeasible
 

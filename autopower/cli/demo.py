@@ -27,12 +27,12 @@ from pathlib import Path
 import click
 
 from autopower.errors import AutoPowerError
-from autopower.policy import POLICY_NAMES
+from autopower.policies.policy import POLICY_NAMES
 
 log = logging.getLogger(__name__)
 
 SCENARIO = "paper-fig7"
-_COMMIT = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) INFO autopower.subgroup: subgroup (\S+): round (\S+) committed")
+_COMMIT = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) INFO autopower.runtime.subgroup: subgroup (\S+): round (\S+) committed")
 
 
 def _wait(team, predicate, timeout_s: float, what: str) -> dict:
@@ -78,9 +78,9 @@ def _say(quiet: bool, text: str) -> None:
 
 def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Path, record: bool,
              quiet: bool, policy: str = "rebalance") -> dict:
-    from autopower.deploy.faults import FaultController
-    from autopower.deploy.launcher import LocalTeam, TeamSpec
-    from autopower.deploy.runtime_commands import build_scenario
+    from autopower.cli.team import build_scenario
+    from autopower.launch.faults import FaultController
+    from autopower.launch.localhost import LocalTeam, TeamSpec
     from autopower.planner import PlanRequest, plan
 
     started = time.monotonic()
@@ -161,7 +161,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         snap = team.snapshot()
     finally:
         codes = team.stop()
-    from autopower.deploy.runtime_commands import summarize
+    from autopower.cli.team import summarize
 
     summary = summarize(snap, team=team.team, speed=speed, ready_after_s=-1.0,
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(log_dir))
@@ -187,8 +187,8 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
 def _recording(record_dir: Path, quiet: bool) -> dict:
     out: dict = {}
     try:
-        from autopower.deploy.recording import merge_run
-        from autopower.replay import replay_summary
+        from autopower.recording.live import merge_run
+        from autopower.recording.replay import replay_summary
 
         merged = merge_run(record_dir)
         out["recording"] = str(merged)

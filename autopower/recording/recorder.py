@@ -2,7 +2,7 @@
 
 Each process (agent, base station) wraps its bus once::
 
-    recorder = open_recorder(run_dir, node, scenario=scenario)  # autopower.deploy.recording; or
+    recorder = open_recorder(run_dir, node, scenario=scenario)  # autopower.recording.live; or
                                                                # Recorder.open (no output drawings)
     bus = recorder.tap(ZenohBus(settings))   # a RecordingBus: same Bus surface -> runs/<run-id>/<node>.rrd
     ...
@@ -63,17 +63,17 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import msgpack
 
-from autopower.energy_parts import OVERHEAD_KINDS, overhead_kind
 from autopower.errors import AutoPowerError, ProtocolError
+from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
 from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION
-from autopower.telemetry import DECISIONS, MIGRATIONS, Telemetry, component_path, link_path
+from autopower.recording.telemetry import DECISIONS, MIGRATIONS, Telemetry, component_path, link_path
 
 log = logging.getLogger(__name__)
 
 EVENT_TAG = " ~ap"  # human text, then this tag, then one JSON object
 MERGED_NAME = "run.rrd"
 # (rerun module, chain, output bytes) -> [(sub-entity, archetype)]: how to draw a chain's output.
-# Injected by the deploy layer (`autopower.deploy.recording`), which may import the chains.
+# Injected by the deploy layer (`autopower.recording.live`), which may import the chains.
 Visualiser = Callable[[Any, str, bytes], list[tuple[str, Any]]]
 _RUN_NAMESPACE = uuid.UUID("5d1f4b7e-7c55-4c1e-9a0e-6a2f0b1f3a11")
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from autopower.basestation.operator import OperatorClient
 from autopower.errors import AutoPowerError
-from autopower.scenario import Scenario
+from autopower.model.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +127,7 @@ class LocalTeam:
         self.ports = dict(zip(self.nodes, ports))
         self.proxies: dict[frozenset[str], "LinkProxy"] = {}
         if spec.proxied_links:
-            from autopower.deploy.linkproxy import LinkProxy
+            from autopower.launch.linkproxy import LinkProxy
 
             topology = scenario.network(topology=spec.topology)
             pairs = {frozenset((l.a, l.b)) for l in topology.links}
@@ -172,7 +172,7 @@ class LocalTeam:
 
     def _spawn(self, name: str, args: list[str]) -> None:
         log_path = self.log_dir / f"{name}.log"
-        cmd = [sys.executable, "-m", "autopower.deploy.runtime_commands", *args]
+        cmd = [sys.executable, "-m", "autopower.cli.team", *args]
         with open(log_path, "wb") as out:
             proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                                     process_group=0, preexec_fn=_die_with_parent,

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from autopower.model import Evaluation, Network, build_network, evaluate, media_choices
+from autopower.model.energy import Evaluation, Network, build_network, evaluate, media_choices
+from autopower.model.scenario import LAPTOP_ROBOT, ROBOT_ROBOT, Scenario
 from autopower.planner import PlanRequest, plan
 from autopower.planner.exhaustive import exhaustive
 from autopower.planner.problem import make_problem
-from autopower.scenario import LAPTOP_ROBOT, ROBOT_ROBOT, Scenario
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 Register with ``cli.add_command(replay)``. A missing, empty, corrupt, truncated or foreign file
 is a `RecordingError` (one line on stderr, exit 2, through ``cli.main``); the JSON schema is in
-`autopower.replay`'s docstring.
+`autopower.recording.replay`'s docstring.
 """
 
 from __future__ import annotations
@@ -17,8 +17,7 @@ from pathlib import Path
 
 import click
 
-from autopower.deploy.entry import run_command
-
+from autopower.cli.entry import run_command
 from autopower.errors import AutoPowerError
 
 __all__ = ["replay", "serve_recording", "main"]
@@ -49,7 +48,7 @@ def _json_safe(value):
 
 @click.command("replay")
 @click.argument("recording", metavar="RUN.rrd", type=click.Path(dir_okay=False))
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (schema: autopower.replay).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object (schema: autopower.recording.replay).")
 @click.option("--what-if", "whatif", is_flag=True, help="Replan offline from the recorded state (see --at).")
 @click.option("--at", "at_s", type=float, default=None, metavar="SECONDS",
               help="Mission time of the state to replan from (default: the end of the recording).")
@@ -67,7 +66,7 @@ def _json_safe(value):
 def replay(recording, as_json, whatif, at_s, accounting, energy, policy, topology, disable, serve,
            serve_seconds) -> None:
     """Summarise a recorded run (simulated or live), check its invariants, replan what-ifs, view it."""
-    from autopower.replay import load, render_text, summarize, what_if
+    from autopower.recording.replay import load, render_text, summarize, what_if
 
     energies = _energy(energy)
     if not whatif and (at_s is not None or accounting or energies or policy or topology or disable):
@@ -110,7 +109,7 @@ def serve_recording(path: str | Path, *, seconds: float | None = None, echo=prin
                     ready_timeout_s: float = 20.0) -> int:
     """Serve `path` in the Rerun web viewer on 127.0.0.1 until Ctrl-C/SIGTERM or `seconds`; returns the
     viewer's exit status. The viewer is stopped by its own pid (SIGTERM, then SIGKILL after 5 s)."""
-    from autopower.recorder import rerun_binary, rerun_env
+    from autopower.recording.recorder import rerun_binary, rerun_env
 
     web, grpc = _free_port(), _free_port()
     cmd = [rerun_binary(), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web),
@@ -160,7 +159,7 @@ def serve_recording(path: str | Path, *, seconds: float | None = None, echo=prin
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``python -m autopower.deploy.replay_command RUN.rrd ...`` (same error handling as ``autopower``)."""
+    """``python -m autopower.cli.replay RUN.rrd ...`` (same error handling as ``autopower``)."""
     run_command(replay, argv, "autopower replay")
 
 

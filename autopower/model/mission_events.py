@@ -1,6 +1,6 @@
 """Mission events for the simulator: what happens to the team, and when.
 
-(Not to be confused with `autopower.events`, the runtime processes' event queue.)
+(Not to be confused with `autopower.runtime.events`, the runtime processes' event queue.)
 
 An events file is TOML, validated as strictly as a scenario (unknown keys, wrong types, names the
 scenario does not know, impossible sequences such as healing a link that is not cut: each error
@@ -31,7 +31,7 @@ and/or robot_robot), ``radio-repair`` (robot), ``chain-disable``/``chain-enable`
 carry a ``note``. Events at the same time apply in file order.
 
 `MissionEvent` values are also what the live base station hands to a policy
-(`autopower.policy.TeamState.events`), so both describe the world the same way.
+(`autopower.policies.policy.TeamState.events`), so both describe the world the same way.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from autopower.errors import ScenarioError
-from autopower.scenario import Scenario, _Parser
+from autopower.model.scenario import Scenario, _Parser
 
 KINDS = ("link-cut", "link-heal", "radio-fault", "radio-repair", "chain-disable", "chain-enable",
          "robot-leave", "robot-join", "energy-offset")

@@ -13,9 +13,9 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from autopower.deploy.entry import run_command
+from autopower.cli.entry import run_command
 from autopower.errors import AutoPowerError
-from autopower.scenario import Scenario, builtin_scenarios, load_scenario
+from autopower.model.scenario import Scenario, builtin_scenarios, load_scenario
 
 # Piped output (CI logs, `| less`) would otherwise be cut to 80 columns and truncate the tables.
 console = Console() if sys.stdout.isatty() else Console(width=200)
@@ -95,7 +95,7 @@ def list_scenarios() -> None:
 def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdown: bool, only: str,
             profile, as_platform) -> None:
     """Tabulate all-local, all-laptop and the optimum per topology and media pair (the paper's Fig 7)."""
-    from autopower.deploy.analysis import analyze as run
+    from autopower.planner.analysis import analyze as run
 
     s = scenario_from(scenario, energy, accounting, profile, as_platform)
     rows, normaliser = run(s, max_ties=ties)
@@ -241,9 +241,9 @@ def profile(runs: int, out: str | None, as_json: bool) -> None:
 
 def _register_commands() -> None:
     """Commands that live in their own modules (they import heavier parts lazily)."""
-    from autopower.deploy.runtime_commands import COMMANDS  # agent, basestation, up, chain, migrate, status
-    from autopower.deploy.replay_command import replay
-    from autopower.deploy.simulate_command import simulate
+    from autopower.cli.replay import replay
+    from autopower.cli.simulate import simulate
+    from autopower.cli.team import COMMANDS  # agent, basestation, up, chain, migrate, status
 
     cli.add_command(simulate)
     cli.add_command(replay)

@@ -1,6 +1,6 @@
 """Dynamic reallocation policies: when to move which component where, as pure functions.
 
-The simulator (`autopower.simulator`) and the live base station call the same code: build a
+The simulator (`autopower.simulation.simulator`) and the live base station call the same code: build a
 `TeamState` from what they know, call ``policy.decide(state)``, carry out the `Decision`.
 Nothing here reads a clock, a socket or a file; time is ``state.time_s``, and everything a policy
 must remember between calls travels in the state (``schedule``), so a restarted base station
@@ -45,12 +45,12 @@ import networkx as nx
 import numpy as np
 
 from autopower.errors import AutoPowerError, InfeasibleError
-from autopower.mission_events import MissionEvent
-from autopower.model import LoadSpace, Network, airtime_s, build_network, load_of, media_choices
+from autopower.model.energy import LoadSpace, Network, airtime_s, build_network, load_of, media_choices
+from autopower.model.mission_events import MissionEvent
+from autopower.model.scenario import Chain, Scenario
 from autopower.planner.exhaustive import TIE_REL
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.problem import PlanRequest, make_problem
-from autopower.scenario import Chain, Scenario
 
 EXHAUSTIVE_UP_TO = 20_000  # combinations (all media) enumerated exactly; beyond, the MILP decides
 NEVER = math.inf
@@ -411,7 +411,7 @@ class _View:
                     out.append(f"{stage.name} on {host} is cut off from {chain.source}"
                                + (f" or {chain.sink}" if chain.sink != chain.source else ""))
         if not out:
-            from autopower.model import evaluate
+            from autopower.model.energy import evaluate
 
             try:
                 ev = evaluate(self.scenario, net, self.current, accounting=self.accounting, energies_j=self.energies,

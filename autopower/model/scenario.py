@@ -202,7 +202,7 @@ class Scenario:
     def network(self, topology: str | None = None, media: Mapping[str, str] | None = None):
         """The concrete network for a topology (default: the scenario's) and media choice
         (group -> medium; default: each group's first candidate)."""
-        from autopower.model import build_network  # model imports scenario; avoid a cycle
+        from autopower.model.energy import build_network  # model imports scenario; avoid a cycle
 
         return build_network(self, topology=topology, media=media)
 
@@ -643,7 +643,7 @@ class _Parser:
 
     def check_routable(self, scenario: Scenario) -> None:
         """Every chain must be able to reach its sink on every topology `analyze` explores."""
-        from autopower.model import build_network
+        from autopower.model.energy import build_network
 
         for topology in dict.fromkeys((scenario.network_spec.topology, *scenario.network_spec.analyze_topologies)):
             network = build_network(scenario, topology=topology)

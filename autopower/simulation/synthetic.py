@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from autopower.scenario import (
+from autopower.model.scenario import (
     LAPTOP_ROBOT,
     ROBOT_ROBOT,
     Chain,

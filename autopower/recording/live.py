@@ -1,4 +1,4 @@
-"""Recording a live run: the deploy layer's glue between the processes and `autopower.recorder`.
+"""Recording a live run: the deploy layer's glue between the processes and `autopower.recording.recorder`.
 
 It lives here (not in the core) because drawing a component's output needs the chains'
 decoders. Processes call `open_recorder` once, wrap their bus with ``recorder.tap(bus)`` and
@@ -22,7 +22,7 @@ Integration recipe (what the `agent` / `basestation` commands and the launcher d
 3. Fault tools call ``record_fault_event(run_dir, kind="cut"|"kill"|"freeze"|"radio",
    target="r1-laptop"|"r2", mission=snapshot["mission"])`` after each injection (``phase="healed"``
    for heals), so replay can report detection and reconfiguration times.
-4. The demo reads ``autopower.replay.replay_summary(run_dir / "run.rrd")``: ``faults`` (kind, target,
+4. The demo reads ``autopower.recording.replay.replay_summary(run_dir / "run.rrd")``: ``faults`` (kind, target,
    detected_s, reconfigured_s), ``migrations["count"]``, ``lost_outputs``, ``duplicated_outputs``,
    ``energy_model_error_pct``. `tests/integration/recorder_node.py` runs this recipe.
 """
@@ -32,7 +32,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from autopower.recorder import MERGED_NAME, Recorder, merge_recordings, merge_run, run_recording_id
+from autopower.recording.recorder import MERGED_NAME, Recorder, merge_recordings, merge_run, run_recording_id
 
 __all__ = ["MERGED_NAME", "draw_output", "merge_recordings", "merge_run", "open_recorder", "run_recording_id"]
 

@@ -3,11 +3,11 @@
 Between two instants where something happens, every robot's power is constant (the energy model
 is a steady-state model), so the simulator jumps from instant to instant and drains batteries
 exactly: ``E_i -= P_i * dt``. The instants are the events of an events file
-(`autopower.events`), the times a policy asked to be consulted again (``revisit_at_s``) and the
+(`autopower.runtime.events`), the times a policy asked to be consulted again (``revisit_at_s``) and the
 moment the first robot runs dry, which ends the mission. A robot that has left the team is not
 metered.
 
-At every instant the policy gets a `autopower.policy.TeamState` (battery readings optionally
+At every instant the policy gets a `autopower.policies.policy.TeamState` (battery readings optionally
 noisy, seeded) and may return a `Decision`; the simulator charges its migrations as they would
 really cost (state bytes over the radios crossed, CPU on both hosts, missed periods) and switches
 configuration. Everything is a function of (scenario, events, policy, seed): the same inputs give
@@ -28,9 +28,11 @@ from typing import Mapping
 import numpy as np
 
 from autopower.errors import AutoPowerError, InfeasibleError
-from autopower.mission_events import NO_EVENTS, EventScript, MissionEvent
-from autopower.model import LoadSpace, Network, active_chains, load_of, media_choices
-from autopower.policy import (
+from autopower.model.energy import LoadSpace, Network, active_chains, load_of, media_choices
+from autopower.model.mission_events import NO_EVENTS, EventScript, MissionEvent
+from autopower.model.scenario import Scenario
+from autopower.planner.problem import PlanRequest, make_problem
+from autopower.policies.policy import (
     Decision,
     MigrationCosts,
     Move,
@@ -43,8 +45,6 @@ from autopower.policy import (
     make_policy,
     plan_moves,
 )
-from autopower.planner.problem import PlanRequest, make_problem
-from autopower.scenario import Scenario
 
 DEFAULT_HORIZON_S = 10 * 365 * 86400.0  # a mission where nobody runs dry stops here
 MAX_DECISIONS = 100_000
@@ -399,7 +399,7 @@ def simulate(scenario: Scenario, events: EventScript = NO_EVENTS, *, policy: str
              horizon_s: float = DEFAULT_HORIZON_S, policy_params: Mapping | None = None) -> SimulationResult:
     """Run one mission until the first robot runs dry; deterministic in (inputs, seed).
 
-    `telemetry` is an `autopower.telemetry.Telemetry` (or None); logging failures never stop the run.
+    `telemetry` is an `autopower.recording.telemetry.Telemetry` (or None); logging failures never stop the run.
     """
     if isinstance(policy, str):
         policy = make_policy(policy, **dict(policy_params or {}))

@@ -1,25 +1,25 @@
 """The runtime's commands: `agent`, `basestation`, `up`, `chain enable|disable`, `migrate`, `status`.
 
 They are plain click commands; the CLI root registers them (``cli.add_command(up)``, ...).
-``python -m autopower.deploy.runtime_commands ...`` runs them without the root, which is how
+``python -m autopower.cli.team ...`` runs them without the root, which is how
 `up` starts its children.
 """
 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 import logging
 import os
 import signal
 import sys
 import time
+from pathlib import Path
 
 import click
 
 from autopower.errors import AutoPowerError
-from autopower.policy import POLICY_NAMES
-from autopower.scenario import Scenario, load_scenario
+from autopower.model.scenario import Scenario, load_scenario
+from autopower.policies.policy import POLICY_NAMES
 
 log = logging.getLogger("autopower.runtime")
 
@@ -66,7 +66,7 @@ def setup_logging(level: str) -> None:
 
 
 def zenoh_settings(listen: tuple[str, ...], connect: tuple[str, ...], lease_ms: int):
-    from autopower.bus import ZenohSettings
+    from autopower.runtime.bus import ZenohSettings
 
     if lease_ms < 100:
         raise AutoPowerError(f"--lease-ms {lease_ms} is too short; use >= 100 ms")
@@ -151,8 +151,8 @@ def _recording_bus(record_dir, node: str, scenario, zenoh):
     """(recorder, tapped bus) when recording, else (None, None): the process opens its own bus."""
     if not record_dir:
         return None, None
-    from autopower.bus import ZenohBus
-    from autopower.deploy.recording import open_recorder
+    from autopower.recording.live import open_recorder
+    from autopower.runtime.bus import ZenohBus
 
     recorder = open_recorder(record_dir, node, scenario=scenario)
     return recorder, recorder.tap(ZenohBus(zenoh))
@@ -343,8 +343,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     prints a summary (placement, batteries against the model, missed periods, results).
     """
     from autopower.basestation.operator import clear_session, state_dir, write_session
-    from autopower.deploy.faults import SOCKET_NAME, FaultController, FaultServer
-    from autopower.deploy.launcher import LocalTeam, TeamSpec
+    from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
+    from autopower.launch.localhost import LocalTeam, TeamSpec
 
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting)  # fail fast on bad options
     parse_pairs(pin, "--pin", "Loc-2=r1")
@@ -431,7 +431,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     summary["failure"] = failure
     summary["recording"] = None
     if record_dir:
-        from autopower.deploy.recording import merge_run
+        from autopower.recording.live import merge_run
 
         try:
             summary["recording"] = str(merge_run(Path(record_dir)))
@@ -542,8 +542,8 @@ def status(team, connect, timeout, as_json):
         Console().print(render(snap, (snap.get("mission") or {}).get("speed", 1.0)))
 
 
-from autopower.deploy.demo import demo  # noqa: E402  (after the commands they sit beside)
-from autopower.deploy.faults import fault  # noqa: E402
+from autopower.cli.demo import demo  # noqa: E402  (after the commands they sit beside)
+from autopower.launch.faults import fault  # noqa: E402
 
 COMMANDS = (agent, basestation, up, chain, migrate, status, fault, demo)
 
@@ -558,8 +558,8 @@ for _command in COMMANDS:
 
 
 def main() -> None:
-    """``python -m autopower.deploy.runtime_commands ...``: how `up` starts its children."""
-    from autopower.deploy.entry import run_command
+    """``python -m autopower.cli.team ...``: how `up` starts its children."""
+    from autopower.cli.entry import run_command
 
     run_command(runtime)
 

@@ -16,7 +16,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Iterable
 
-from autopower.bus import Request
+from autopower.runtime.bus import Request
 
 
 @dataclass(frozen=True)

@@ -107,7 +107,7 @@ class FaultController:
             return
         kind, phase = {"heal": ("cut", "healed"), "thaw": ("freeze", "healed")}.get(op, (op, "injected"))
         try:
-            from autopower.recorder import record_fault_event
+            from autopower.recording.recorder import record_fault_event
 
             if self._mission is None:
                 self._mission = self.team.snapshot(timeout_s=2.0).get("mission")

@@ -17,9 +17,9 @@ import logging
 from collections import deque
 from typing import Callable
 
-from autopower.bus import Bus
 from autopower.errors import ProtocolError
 from autopower.protocol import Keys, NodeStatus, Relayed, decode, encode
+from autopower.runtime.bus import Bus
 
 log = logging.getLogger(__name__)
 

@@ -14,13 +14,13 @@ from pathlib import Path
 import click
 
 from autopower.errors import AutoPowerError
-from autopower.policy import POLICY_NAMES
+from autopower.policies.policy import POLICY_NAMES
 
 TOPOLOGIES = ["fully-connected", "relay", "explicit"]
 
 
 def _scenario(name: str, energy: tuple[str, ...], accounting: str | None):
-    from autopower.deploy.cli import scenario_from  # late: cli.py imports this module
+    from autopower.cli.main import scenario_from  # late: cli.py imports this module
 
     return scenario_from(name, energy, accounting)
 
@@ -57,8 +57,9 @@ def simulate(scenario, events_name, policy, seed, topology, accounting, energy, 
     every migration is charged. Without events the result is compared with the planner's
     time-sharing upper bound.
     """
-    from autopower.mission_events import NO_EVENTS, load_events
-    from autopower.simulator import simulate as run, time_sharing_reference
+    from autopower.model.mission_events import NO_EVENTS, load_events
+    from autopower.simulation.simulator import simulate as run
+    from autopower.simulation.simulator import time_sharing_reference
 
     s = _scenario(scenario, energy, accounting)
     script = load_events(events_name, s, topology=topology) if events_name else NO_EVENTS
@@ -74,7 +75,7 @@ def simulate(scenario, events_name, policy, seed, topology, accounting, energy, 
     telemetry = None
     for name in policies:
         if record is not None:
-            from autopower.telemetry import Telemetry
+            from autopower.recording.telemetry import Telemetry
 
             telemetry = Telemetry(record, kind="simulation", properties={
                 "scenario": s.name, "policy": name, "seed": seed, "events": script.source_path,
