@@ -18,7 +18,7 @@ import time
 from autopower.errors import InfeasibleError
 from autopower.model.mission_events import load_events, random_events
 from autopower.model.scenario import load_scenario
-from autopower.policies.policy import POLICY_NAMES
+from autopower.policies import POLICY_NAMES
 from autopower.simulation.simulator import simulate, time_sharing_reference
 from autopower.simulation.synthetic import random_scenario
 

@@ -168,7 +168,7 @@ class Agent:
                 or self.agreement.busy or self._subgroup_done == key):
             return
         self._subgroup_done = key
-        from autopower.policies.policy import subgroup_reallocation
+        from autopower.policies import subgroup_reallocation
 
         network = rt.network
         for r in robots:
@@ -232,7 +232,7 @@ class Agent:
         rt = self.runtime
         try:
             placement = dict(rt.plan.placement)
-            from autopower.policies.policy import effective_scenario
+            from autopower.policies import effective_scenario
 
             network = rt.network  # the base station's links are out of it already
             scenario, _ = effective_scenario(self.config.scenario, network)

@@ -11,7 +11,7 @@ the *confirmed* one (what nodes have acknowledged), and closes the gap one stage
 Every change of the confirmed placement is published as a `PlanUpdate` (which also carries
 the mission clock), so sources and senders follow.
 
-What to run where is decided by the same code as in the simulator: `autopower.policies.policy`
+What to run where is decided by the same code as in the simulator: `autopower.policies`
 (``CoordinatorConfig.policy``: static, reactive, rebalance or subgroup). The coordinator builds a
 `TeamState` from what it knows (mission time, the network in use with known-down links removed,
 what runs, the robots' measured batteries, cut links, the operator's radio changes and disabled
@@ -40,7 +40,7 @@ from autopower.errors import AutoPowerError
 from autopower.model.energy import Network, evaluate, media_choices, round_lifetime
 from autopower.model.mission_events import MissionEvent
 from autopower.model.scenario import Scenario
-from autopower.policies.policy import (
+from autopower.policies import (
     POLICY_NAMES,
     Decision,
     MigrationCosts,
@@ -83,7 +83,7 @@ class CoordinatorConfig:
     topology: str | None = None  # None: the scenario's
     media: dict[str, str] | None = None  # group -> medium, fixed; None: the policy chooses
     pins: dict[str, str] = field(default_factory=dict)  # stage -> node, fixed by the operator
-    policy: str = "rebalance"  # autopower.policies.policy.POLICY_NAMES: what decides the placement
+    policy: str = "rebalance"  # autopower.policies.POLICY_NAMES: what decides the placement
     policy_params: dict[str, Any] = field(default_factory=dict)  # its parameters (e.g. min_gain, min_gain_s)
     # ask the policy on battery drift, periodically and when a decision asked to be revisited
     # (joins, leaves, link changes and operator commands always ask)

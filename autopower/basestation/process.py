@@ -19,7 +19,7 @@ from typing import Any, Callable, Protocol
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
-from autopower.policies.policy import Policy
+from autopower.policies import Policy
 from autopower.protocol import (
     INBOX_MESSAGES,
     OPERATOR_COMMANDS,

@@ -14,7 +14,7 @@ from pathlib import Path
 import click
 
 from autopower.errors import AutoPowerError
-from autopower.policies.policy import POLICY_NAMES
+from autopower.policies import POLICY_NAMES
 
 TOPOLOGIES = ["fully-connected", "relay", "explicit"]
 

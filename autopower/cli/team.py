@@ -19,7 +19,7 @@ import click
 
 from autopower.errors import AutoPowerError
 from autopower.model.scenario import Scenario, load_scenario
-from autopower.policies.policy import POLICY_NAMES
+from autopower.policies import POLICY_NAMES
 
 log = logging.getLogger("autopower.runtime")
 

@@ -31,7 +31,7 @@ and/or robot_robot), ``radio-repair`` (robot), ``chain-disable``/``chain-enable`
 carry a ``note``. Events at the same time apply in file order.
 
 `MissionEvent` values are also what the live base station hands to a policy
-(`autopower.policies.policy.TeamState.events`), so both describe the world the same way.
+(`autopower.policies.TeamState.events`), so both describe the world the same way.
 """
 
 from __future__ import annotations

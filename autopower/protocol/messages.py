@@ -261,7 +261,7 @@ class PlanUpdate:
     predicted_w: dict[str, float]  # the model's power per robot for this placement
     predicted_lifetime_s: float | None
     plan_t_virtual: float  # when this placement's prediction starts
-    policy: str = ""  # what decided it (autopower.policies.policy's name)
+    policy: str = ""  # what decided it (autopower.policies's name)
     reasons: tuple[str, ...] = ()  # why, in the policy's words (for the operator and the recording)
 
 

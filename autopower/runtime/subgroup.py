@@ -1,7 +1,7 @@
 """Subgroup agreement without the base station: propose -> accept -> commit (two-phase commit).
 
 When robots cannot reach the base station, those that still reach each other form a subgroup;
-its leader (the lowest name) computes a reallocation (`autopower.policies.policy.subgroup_reallocation`)
+its leader (the lowest name) computes a reallocation (`autopower.policies.subgroup_reallocation`)
 and runs one round of this protocol:
 
 - the leader publishes `SubgroupPropose` (members, the placement after the round, the moves,

@@ -7,7 +7,7 @@ exactly: ``E_i -= P_i * dt``. The instants are the events of an events file
 moment the first robot runs dry, which ends the mission. A robot that has left the team is not
 metered.
 
-At every instant the policy gets a `autopower.policies.policy.TeamState` (battery readings optionally
+At every instant the policy gets a `autopower.policies.TeamState` (battery readings optionally
 noisy, seeded) and may return a `Decision`; the simulator charges its migrations as they would
 really cost (state bytes over the radios crossed, CPU on both hosts, missed periods) and switches
 configuration. Everything is a function of (scenario, events, policy, seed): the same inputs give
@@ -32,7 +32,7 @@ from autopower.model.energy import LoadSpace, Network, active_chains, load_of, m
 from autopower.model.mission_events import NO_EVENTS, EventScript, MissionEvent
 from autopower.model.scenario import Scenario
 from autopower.planner.problem import PlanRequest, make_problem
-from autopower.policies.policy import (
+from autopower.policies import (
     Decision,
     MigrationCosts,
     Move,

@@ -137,7 +137,7 @@ def test_up_records_a_run_that_replay_reads(tmp_path):
 
 
 def test_up_runs_the_policy_it_is_given(tmp_path):
-    """`--policy static`: the base station process decides with autopower.policies.policy's static policy."""
+    """`--policy static`: the base station process decides with autopower.policies's static policy."""
     result = run_cli(["up", "paper-fig7", "--policy", "static", "--duration", "6", "--json",
                       "--log-dir", str(tmp_path / "logs")], env_for(tmp_path), timeout=90)
     assert result.returncode == 0, result.stderr[-3000:]

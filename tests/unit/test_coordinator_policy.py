@@ -1,4 +1,4 @@
-"""The live base station decides through `autopower.policies.policy`, exactly as the simulator does.
+"""The live base station decides through `autopower.policies`, exactly as the simulator does.
 
 The team is `SimTeam` (coordinator + one NodeRuntime per node, in memory, on a manual clock).
 To put the team where a simulated mission would be at time T, the clock jumps to T and each
@@ -15,7 +15,7 @@ from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.errors import AutoPowerError
 from autopower.model.mission_events import load_events
 from autopower.model.scenario import load_scenario
-from autopower.policies.policy import POLICY_NAMES, make_policy
+from autopower.policies import POLICY_NAMES, make_policy
 from autopower.protocol import LinkCommand
 from autopower.simulation.simulator import simulate
 from tests.unit.sim_team import SimTeam

@@ -12,7 +12,7 @@ from autopower.model.scenario import load_scenario
 from autopower.planner import PlanRequest, plan
 from autopower.planner.problem import make_problem
 from autopower.planner.timesharing import time_sharing_bound
-from autopower.policies.policy import (
+from autopower.policies import (
     POLICY_NAMES,
     MigrationCosts,
     TeamState,

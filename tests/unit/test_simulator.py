@@ -10,7 +10,7 @@ from autopower.errors import InfeasibleError
 from autopower.model.mission_events import NO_EVENTS, load_events, parse_events, random_events
 from autopower.model.scenario import load_scenario
 from autopower.planner import PlanRequest, plan
-from autopower.policies.policy import POLICY_NAMES
+from autopower.policies import POLICY_NAMES
 from autopower.simulation.simulator import simulate, time_sharing_reference
 from autopower.simulation.synthetic import random_scenario
 

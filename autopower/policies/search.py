@@ -1,0 +1,312 @@
+"""One decision's view of the problem: configurations, their predicted value, and the search.
+
+`DecisionView` prices any (network, allocation) for the remaining energies, migrations paid;
+every policy searches through it, so they value options the same way.
+"""
+
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from autopower.errors import AutoPowerError, InfeasibleError
+from autopower.model.energy import LoadSpace, Network, load_of
+from autopower.model.scenario import Chain
+from autopower.planner.exhaustive import TIE_REL
+from autopower.planner.problem import PlanRequest, make_problem
+from autopower.policies.team import (
+    EXHAUSTIVE_UP_TO,
+    NEVER,
+    Decision,
+    Move,
+    SchedulePhase,
+    TeamState,
+    _move,
+    candidate_networks,
+    effective_scenario,
+    plan_moves,
+    total_energy,
+)
+
+# ---------------------------------------------------------------------------------------------
+# One decision's view: the problem, energies, configurations and their values
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Option:
+    network: Network
+    allocation: dict[str, str]
+    value_s: float  # predicted remaining lifetime, migrations paid
+    moves: list[Move]
+    spread: float = 0.0  # sum_i P_i / E_i: the planner's tie-breaker
+    label: str = ""
+    schedule: list[SchedulePhase] = field(default_factory=list)  # for schedule options: all phases
+
+
+class DecisionView:
+    def __init__(self, state: TeamState):
+        self.state = state
+        self.networks = candidate_networks(state)
+        if not self.networks:
+            raise InfeasibleError("no network is left to run on")
+        self.gone = frozenset(state.unavailable_nodes)
+        raw = state.scenario
+        self.scenario, self.degraded = effective_scenario(raw, self.networks[0])
+        self.accounting = state.accounting or raw.accounting
+        self.base = self.networks[0].basestation
+        self.robots = [n for n in self.networks[0].nodes if n != self.base]
+        energies = {r: float(state.energies_j.get(r, raw.robot(r).energy_j)) for r in self.robots}
+        self.energies = {r: max(e, 1e-9) for r, e in energies.items()}
+        self.energy = np.array([self.energies[r] for r in self.robots])
+        request = PlanRequest(scenario=self.scenario, network=self.networks[0], energies_j=self.energies,
+                              disabled_chains=frozenset(state.disabled_chains), unavailable_nodes=self.gone,
+                              accounting=self.accounting)
+        self.problem = make_problem(request)
+        self.problem.networks = list(self.networks)
+        self.stages = [s.name for c in self.problem.chains for s in c.stages]
+        self.current = {s: h for s, h in state.allocation.items() if s in self.stages}
+        self._spaces: dict[Network, LoadSpace] = {}
+
+    # ---- evaluation ------------------------------------------------------------------------------
+    def space(self, network: Network) -> LoadSpace:
+        space = self._spaces.get(network)
+        if space is None:
+            space = self._spaces[network] = LoadSpace(self.scenario, network, self.accounting, self.energies)
+        return space
+
+    def power(self, network: Network, allocation: Mapping[str, str]) -> tuple[np.ndarray, bool]:
+        space = self.space(network)
+        load = load_of(space, self.problem.chains, allocation)[None, :]
+        return space.total_power(load)[0], bool(space.feasible(load)[0])
+
+    def stay_network(self) -> Network:
+        """The network in use now, minus nodes that are gone and links known to be cut."""
+        net = self.state.network
+        extra = set(net.nodes) - set(self.networks[0].nodes)
+        if extra:
+            net = net.without_nodes(extra)
+        for pair in sorted(tuple(sorted(p)) for p in self.state.cut_links):
+            if net.medium_between(*pair) is not None:
+                net = net.without_link(*pair)
+        return net
+
+    def stay_valid(self) -> bool:
+        """Can the current configuration go on as it is (every stage placed, routable, feasible)?"""
+        if set(self.current) != set(self.stages):
+            return False
+        net = self.stay_network()
+        for chain in self.problem.chains:
+            for stage in chain.stages:
+                host = self.current[stage.name]
+                if host not in net.nodes or not (net.reachable(chain.source, host) and net.reachable(host, chain.sink)):
+                    return False
+                if stage.pin is not None and host != stage.pin:
+                    return False
+        return self.power(net, self.current)[1]
+
+    def stay_problems(self) -> list[str]:
+        """Why the current configuration cannot go on, in words."""
+        out = []
+        net = self.stay_network()
+        for chain in self.problem.chains:
+            for stage in chain.stages:
+                host = self.current.get(stage.name)
+                if host is None:
+                    out.append(f"{stage.name} is not running")
+                elif host not in net.nodes:
+                    out.append(f"{stage.name}'s host {host} is gone")
+                elif not (net.reachable(chain.source, host) and net.reachable(host, chain.sink)):
+                    out.append(f"{stage.name} on {host} is cut off from {chain.source}"
+                               + (f" or {chain.sink}" if chain.sink != chain.source else ""))
+        if not out:
+            from autopower.model.energy import evaluate
+
+            try:
+                ev = evaluate(self.scenario, net, self.current, accounting=self.accounting, energies_j=self.energies,
+                              disabled_chains=frozenset(c.name for c in self.scenario.chains)
+                              - {c.name for c in self.problem.chains})
+                out.extend(v.message for v in ev.violations)
+            except AutoPowerError as exc:
+                out.append(str(exc))
+        return out
+
+    def value(self, network: Network, allocation: Mapping[str, str], label: str = "") -> Option:
+        moves = plan_moves(self.scenario, network, self.current, allocation, self.state.migration)
+        power, feasible = self.power(network, allocation)
+        cost = total_energy(moves)
+        energy = self.energy - np.array([cost.get(r, 0.0) for r in self.robots])
+        life = float(np.min(np.maximum(energy, 0.0) / power)) if feasible and len(power) else -NEVER
+        if feasible and not len(power):
+            life = NEVER
+        return Option(network, dict(allocation), life, moves, float((power / self.energy).sum()), label)
+
+    def stay(self) -> Option | None:
+        if not self.stay_valid():
+            return None
+        return self.value(self.stay_network(), self.current, "stay")
+
+    # ---- search --------------------------------------------------------------------------------
+    def best_static(self, hosts: Mapping[str, Sequence[str]] | None = None) -> Option | None:
+        """The configuration with the longest predicted life, migrations paid (ties: fewest moves)."""
+        if not self.problem.chains:
+            return self.value(self.stay_network() if self.stay_network() in self.networks else self.networks[0],
+                              {}, "optimum")
+        if self.problem.combinations() <= EXHAUSTIVE_UP_TO:
+            return self._enumerate(hosts)
+        from autopower.planner.milp import solve_milp
+
+        result = solve_milp(self.problem, time_limit_s=30.0, mip_rel_gap=1e-6)
+        if result.allocation is None:
+            return None
+        # the MILP ignores migration costs; callers weigh its plan against staying, costs included
+        return self.value(result.network, result.allocation, "optimum")
+
+    def _enumerate(self, hosts: Mapping[str, Sequence[str]] | None = None) -> Option | None:
+        best: tuple | None = None
+        for network in self.networks:
+            found = enumerate_network(self, network, self.problem.chains, hosts or self.problem.hosts, self.current)
+            if found is None:
+                continue
+            key = (found[0], -found[1], -found[2])
+            if best is None or better_option(found[0], best[0][0], key, best[0]):
+                best = (key, network, found[3])
+        if best is None:
+            return None
+        return self.value(best[1], best[2], "optimum")
+
+    def explain(self, network: Network, allocation: Mapping[str, str], stages: Sequence[str]) -> dict[str, str]:
+        if not stages:
+            return {}
+        try:
+            from autopower.planner import evaluate_in
+            from autopower.planner.reasons import explain
+
+            problem = dataclasses.replace(self.problem, networks=[network])
+            why = explain(problem, network, dict(allocation), evaluate_in(problem, network, dict(allocation)))
+            return {s: why[s] for s in stages if s in why}
+        except AutoPowerError:  # pragma: no cover - explanations are a courtesy
+            return {}
+
+
+def better_option(value: float, best_value: float, key: tuple, best_key: tuple) -> bool:
+    if value > best_value * (1 + TIE_REL) + 1e-12:
+        return True
+    if value < best_value * (1 - TIE_REL) - 1e-12:
+        return False
+    return key[1:] > best_key[1:]
+
+
+def enumerate_network(view: DecisionView, network: Network, chains: Sequence[Chain], hosts: Mapping[str, Sequence[str]],
+                       current: Mapping[str, str], base_load: np.ndarray | None = None,
+                       lifetime_of: Sequence[str] | None = None):
+    """Exhaustive search on one network, migrations included: (value, moves, -spread, allocation)."""
+    space = view.space(network)
+    robots = space.robots
+    index = {r: i for i, r in enumerate(robots)}
+    loads = np.zeros((1, space.size)) if base_load is None else base_load[None, :].copy()
+    costs = np.zeros((1, len(robots)))
+    moves = np.zeros(1)
+    options = []
+    for chain in chains:
+        opts = list(itertools.product(*(hosts[s.name] for s in chain.stages)))
+        rows = np.array([space.chain_load(chain, o) for o in opts])
+        crow = np.zeros((len(opts), len(robots)))
+        mrow = np.zeros(len(opts))
+        for k, opt in enumerate(opts):
+            for stage, host in zip(chain.stages, opt):
+                old = current.get(stage.name)
+                if old is not None and old != host:
+                    mv = _move(view.scenario, network, chain, stage.name, stage.component, old, host,
+                               view.state.migration)
+                    mrow[k] += 1
+                    for robot, joules in mv.energy_j.items():
+                        if robot in index:
+                            crow[k, index[robot]] += joules
+        loads = (loads[:, None, :] + rows[None, :, :]).reshape(-1, space.size)
+        costs = (costs[:, None, :] + crow[None, :, :]).reshape(-1, len(robots))
+        moves = (moves[:, None] + mrow[None, :]).reshape(-1)
+        options.append(opts)
+    power = space.total_power(loads)
+    energy = np.maximum(space.energy_j[None, :] - costs, 0.0)
+    cols = list(range(len(robots))) if lifetime_of is None else [index[r] for r in lifetime_of if r in index]
+    life = (energy / power)[:, cols].min(axis=1) if cols else np.full(len(loads), NEVER)
+    life = np.where(space.feasible(loads), life, -np.inf)
+    best = life.max()
+    if not np.isfinite(best) and best < 0:
+        return None
+    ties = np.flatnonzero(life >= best * (1 - TIE_REL) - 1e-12)
+    spread = (power / space.energy_j).sum(axis=1)
+    k = int(min(ties, key=lambda j: (moves[j], spread[j], j)))
+    sizes = [len(o) for o in options]
+    picks = np.unravel_index(k, sizes) if sizes else ()
+    allocation = {}
+    for chain, opts, pick in zip(chains, options, picks):
+        for stage, host in zip(chain.stages, opts[int(pick)]):
+            allocation[stage.name] = host
+    return float(life[k]), float(moves[k]), float(spread[k]), allocation
+
+
+# ---------------------------------------------------------------------------------------------
+# Building decisions
+# ---------------------------------------------------------------------------------------------
+
+
+def make_decision(policy: str, view: DecisionView, option: Option, *, reasons: list[str], forced: bool,
+              stay_value: float | None, schedule: Sequence[SchedulePhase] = (), revisit_at_s: float | None = None,
+              predicted_s: float | None = None) -> Decision:
+    state = view.state
+    old = dict(state.allocation)
+    new = option.allocation
+    moves = tuple(plan_moves(view.scenario, option.network, view.current, new, state.migration))
+    started = tuple(s for s in new if s not in view.current)
+    stopped = tuple(s for s in old if s not in new)
+    predicted = option.value_s if predicted_s is None else predicted_s
+    gain = NEVER if stay_value is None else predicted - stay_value
+    for name, why in view.degraded.items():
+        if any(c.name == name for c in view.problem.chains):
+            reasons.append(why)
+    for name, why in view.problem.unroutable.items():
+        reasons.append(f"not running: {why}")
+    return Decision(
+        policy=policy, time_s=state.time_s, network=option.network, allocation=dict(new), moves=moves,
+        started=started, stopped=stopped, reasons=tuple(dict.fromkeys(r for r in reasons if r)),
+        stage_reasons=view.explain(option.network, new, [m.stage for m in moves] + list(started)),
+        predicted_lifetime_s=predicted, predicted_gain_s=gain, migration_energy_j=total_energy(moves),
+        forced=forced, schedule=tuple(schedule), revisit_at_s=revisit_at_s,
+        dropped=dict(view.problem.unroutable),
+        degraded={k: v for k, v in view.degraded.items() if any(c.name == k for c in view.problem.chains)},
+    )
+
+
+def what_happened(state: TeamState) -> str:
+    return "; ".join(e.describe() for e in state.events) if state.events else ""
+
+
+def forced_reason(view: DecisionView) -> str:
+    happened = what_happened(view.state)
+    if not view.state.allocation:
+        return "mission start"
+    problems = view.stay_problems()
+    return ("the current configuration cannot continue" + (f" after {happened}" if happened else "")
+            + (f": {'; '.join(problems)}" if problems else ""))
+
+
+def no_placement(view: DecisionView) -> InfeasibleError:
+    local = {s.name: c.source for c in view.problem.chains for s in c.stages}
+    why = ""
+    try:
+        space = view.space(view.networks[0])
+        load = load_of(space, view.problem.chains, local)[None, :]
+        if not space.feasible(load)[0]:
+            why = " (even running every stage locally exceeds a CPU or radio limit)"
+    except AutoPowerError:
+        pass
+    return InfeasibleError(f"at {view.state.time_s:.1f} s no allocation meets the CPU and radio limits{why}"
+                           + (f" after: {what_happened(view.state)}" if view.state.events else ""))
+
