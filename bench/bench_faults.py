@@ -117,7 +117,7 @@ def delivery(snap: dict) -> dict[str, float]:
 
 
 def team_cuts(cuts: int, speed: float) -> tuple[list[float], list[float], dict]:
-    from autopower.cli.team import build_scenario
+    from autopower.cli.options import build_scenario
     from autopower.launch.faults import FaultController
     from autopower.launch.localhost import LocalTeam, TeamSpec
 
@@ -156,7 +156,7 @@ def subgroup_rounds(rounds: int, speed: float) -> list[float]:
 
     The figure is the leader's propose -> commit time (every member's vote in), as it reports it.
     """
-    from autopower.cli.team import build_scenario
+    from autopower.cli.options import build_scenario
     from autopower.launch.faults import FaultController
     from autopower.launch.localhost import LocalTeam, TeamSpec
 

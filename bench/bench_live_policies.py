@@ -40,7 +40,7 @@ def live(policy: str, args) -> dict:
 
 
 def simulated(policy: str, args) -> float:
-    from autopower.model.scenario import load_scenario
+    from autopower.model.loading import load_scenario
     from autopower.simulation.simulator import simulate
 
     s = load_scenario("paper-fig7")

@@ -6,7 +6,7 @@ are printed, with ratios, for the README and the notes.
 
 import time
 
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
 from autopower.planner import PlanRequest
 from autopower.planner.exhaustive import exhaustive
 from autopower.planner.greedy import greedy

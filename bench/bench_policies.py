@@ -16,8 +16,8 @@ import sys
 import time
 
 from autopower.errors import InfeasibleError
+from autopower.model.loading import load_scenario
 from autopower.model.mission_events import load_events, random_events
-from autopower.model.scenario import load_scenario
 from autopower.policies import POLICY_NAMES
 from autopower.simulation.simulator import simulate, time_sharing_reference
 from autopower.simulation.synthetic import random_scenario

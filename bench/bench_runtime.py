@@ -20,10 +20,11 @@ from pathlib import Path
 
 from autopower.agent.node import NodeRuntime, chain_seed
 from autopower.chains import make_component, make_source
-from autopower.cli.team import build_scenario
+from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint, free_ports
 from autopower.model.energy import flow_weight
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
+from autopower.model.network import build_network
 from autopower.protocol import (
     Assign,
     ChainFrame,
@@ -49,7 +50,7 @@ def mission(scenario, speed=1.0) -> MissionInfo:
 
 
 def links(scenario) -> tuple[LinkInfo, ...]:
-    net = scenario.network(media={"laptop-robot": "802.11a", "robot-robot": "802.11a"})
+    net = build_network(scenario, media={"laptop-robot": "802.11a", "robot-robot": "802.11a"})
     return tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in net.links)
 
 
@@ -160,7 +161,7 @@ def bench_hop(n: int = 300) -> None:
     team = "bench-hop"
     keys = Keys(team)
     with tempfile.TemporaryDirectory() as tmp:
-        agent = subprocess.Popen([sys.executable, "-m", "autopower.cli.team", "agent", "--robot", "r1",
+        agent = subprocess.Popen([sys.executable, "-m", "autopower.cli.processes", "agent", "--robot", "r1",
                                   "--team", team, "--listen", endpoint(port_agent), "--log-level", "warning"],
                                  stdout=open(Path(tmp) / "agent.log", "w"), stderr=subprocess.STDOUT)
         try:

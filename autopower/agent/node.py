@@ -34,7 +34,8 @@ from autopower.agent.custody import Custody, Report, hop_key, parse_hop_key
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.sequencing import SequenceGate, SinkLedger
 from autopower.errors import AutoPowerError, ProtocolError
-from autopower.model.energy import Link, Network, flow_weight
+from autopower.model.energy import flow_weight
+from autopower.model.network import Link, Network
 from autopower.model.scenario import Chain, Scenario, Stage
 from autopower.protocol import (
     Assign,

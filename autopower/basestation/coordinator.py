@@ -37,8 +37,9 @@ from typing import Any, Callable
 
 from autopower.basestation.links import LinkStates, pair_name
 from autopower.errors import AutoPowerError
-from autopower.model.energy import Network, evaluate, media_choices, round_lifetime
+from autopower.model.energy import evaluate, round_lifetime
 from autopower.model.mission_events import MissionEvent
+from autopower.model.network import Network, build_network, media_choices
 from autopower.model.scenario import Scenario
 from autopower.policies import (
     POLICY_NAMES,
@@ -163,7 +164,7 @@ class Coordinator:
         self.plan_network: Network | None = None
         self.radio_faults: dict[str, tuple[str | None, str | None]] = {}  # operator radio commands
         self.operator_cuts: set[frozenset[str]] = set()  # links the operator declared down
-        topology = scenario.network(topology=config.topology)
+        topology = build_network(scenario, topology=config.topology)
         self.links = LinkStates({frozenset((l.a, l.b)) for l in topology.links},
                                 down_after_s=config.link_down_after_s, heal_hold_s=config.heal_hold_s)
         self.predicted_w: dict[str, float] = {}

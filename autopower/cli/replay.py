@@ -158,6 +158,9 @@ def serve_recording(path: str | Path, *, seconds: float | None = None, echo=prin
     return proc.returncode
 
 
+COMMANDS = (replay,)
+
+
 def main(argv: list[str] | None = None) -> None:
     """``python -m autopower.cli.replay RUN.rrd ...`` (same error handling as ``autopower``)."""
     run_command(replay, argv, "autopower replay")

@@ -13,16 +13,11 @@ from pathlib import Path
 
 import click
 
+from autopower.cli.options import build_scenario
 from autopower.errors import AutoPowerError
 from autopower.policies import POLICY_NAMES
 
 TOPOLOGIES = ["fully-connected", "relay", "explicit"]
-
-
-def _scenario(name: str, energy: tuple[str, ...], accounting: str | None):
-    from autopower.cli.main import scenario_from  # late: cli.py imports this module
-
-    return scenario_from(name, energy, accounting)
 
 
 def _check_record_path(path: str) -> None:
@@ -61,7 +56,7 @@ def simulate(scenario, events_name, policy, seed, topology, accounting, energy, 
     from autopower.simulation.simulator import simulate as run
     from autopower.simulation.simulator import time_sharing_reference
 
-    s = _scenario(scenario, energy, accounting)
+    s = build_scenario(scenario, energy, accounting=accounting)
     script = load_events(events_name, s, topology=topology) if events_name else NO_EVENTS
     policies = list(POLICY_NAMES) if policy == "all" else [policy]
     if record is not None:
@@ -139,3 +134,6 @@ def _print(s, script, results, bound, best, record) -> None:
         console.print(log)
         if record is not None:
             console.print(f"recording: {record}")
+
+
+COMMANDS = (simulate,)

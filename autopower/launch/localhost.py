@@ -28,6 +28,7 @@ from pathlib import Path
 
 from autopower.basestation.operator import OperatorClient
 from autopower.errors import AutoPowerError
+from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -129,7 +130,7 @@ class LocalTeam:
         if spec.proxied_links:
             from autopower.launch.linkproxy import LinkProxy
 
-            topology = scenario.network(topology=spec.topology)
+            topology = build_network(scenario, topology=spec.topology)
             pairs = {frozenset((l.a, l.b)) for l in topology.links}
             self.connects = {}
             for i, node in enumerate(self.nodes):
@@ -172,7 +173,8 @@ class LocalTeam:
 
     def _spawn(self, name: str, args: list[str]) -> None:
         log_path = self.log_dir / f"{name}.log"
-        cmd = [sys.executable, "-m", "autopower.cli.team", *args]
+        # the process entry points alone: a child does not import the rest of the CLI
+        cmd = [sys.executable, "-m", "autopower.cli.processes", *args]
         with open(log_path, "wb") as out:
             proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                                     process_group=0, preexec_fn=_die_with_parent,

@@ -8,3 +8,11 @@ names of the metered energy parts.
 May import: `autopower.errors` only. No sockets, threads, clocks or processes here: everything
 above (planner, policies, simulator, runtime) builds on this and it builds on nothing.
 """
+
+from autopower.model.energy import Evaluation, evaluate
+from autopower.model.loading import load_scenario, parse_scenario
+from autopower.model.network import Network, build_network
+from autopower.model.scenario import Chain, Scenario, Stage
+
+__all__ = ["Chain", "Evaluation", "Network", "Scenario", "Stage", "build_network", "evaluate", "load_scenario",
+           "parse_scenario"]

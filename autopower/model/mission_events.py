@@ -43,7 +43,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from autopower.errors import ScenarioError
-from autopower.model.scenario import Scenario, _Parser
+from autopower.model.loading import ScenarioParser
+from autopower.model.scenario import Scenario
 
 KINDS = ("link-cut", "link-heal", "radio-fault", "radio-repair", "chain-disable", "chain-enable",
          "robot-leave", "robot-join", "energy-offset")
@@ -152,7 +153,7 @@ def parse_events(text: str, scenario: Scenario, where: str = "<string>", topolog
     return _EventsParser(data, text, where).script(scenario, topology)
 
 
-class _EventsParser(_Parser):
+class _EventsParser(ScenarioParser):
     def fail(self, path: str, problem: str, expected: str) -> EventsError:
         line = self._line_of(path)
         at = f"{self.where}:{line}" if line else self.where

@@ -12,7 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from autopower.errors import AutoPowerError, InfeasibleError
-from autopower.model.energy import Evaluation, Network, evaluate
+from autopower.model.energy import Evaluation, evaluate
+from autopower.model.network import Network
 from autopower.planner.exhaustive import exhaustive
 from autopower.planner.milp import solve_milp
 from autopower.planner.problem import PlanRequest, Problem, make_problem

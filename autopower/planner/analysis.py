@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from autopower.model.energy import Evaluation, Network, build_network, evaluate, media_choices
+from autopower.model.energy import Evaluation, evaluate
+from autopower.model.network import Network, build_network, media_choices
 from autopower.model.scenario import LAPTOP_ROBOT, ROBOT_ROBOT, Scenario
 from autopower.planner import PlanRequest, plan
 from autopower.planner.exhaustive import exhaustive

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from autopower.errors import AutoPowerError
-from autopower.model.energy import LoadSpace, Network
+from autopower.model.energy import LoadSpace
+from autopower.model.network import Network
 from autopower.planner.problem import Problem
 
 MAX_COMBINATIONS = 2_000_000  # beyond this, use the MILP

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from autopower.model.energy import LoadSpace, Network
+from autopower.model.energy import LoadSpace
+from autopower.model.network import Network
 from autopower.planner.problem import Problem
 
 

@@ -21,7 +21,8 @@ import dataclasses
 from dataclasses import dataclass
 from itertools import product
 
-from autopower.model.energy import Link, Network, airtime_s, flow_rate_hz
+from autopower.model.energy import airtime_s, flow_rate_hz
+from autopower.model.network import Link, Network
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.problem import Problem
 

@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 from itertools import product
 from typing import Mapping
 
-from autopower.model.energy import Network, active_chains, build_network, media_choices
+from autopower.model.energy import active_chains
+from autopower.model.network import Network, build_network, media_choices
 from autopower.model.scenario import Chain, Scenario
 
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from autopower.model.energy import Evaluation, LoadSpace, Network, load_of
+from autopower.model.energy import Evaluation, LoadSpace, load_of
+from autopower.model.network import Network
 from autopower.planner.problem import Problem
 
 

@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from autopower.model.energy import LoadSpace, Network
+from autopower.model.energy import LoadSpace
+from autopower.model.network import Network
 from autopower.planner.exhaustive import MAX_COMBINATIONS, search_network
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.milp import PlacementModel

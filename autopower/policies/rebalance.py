@@ -11,7 +11,7 @@ from typing import Mapping
 import numpy as np
 
 from autopower.errors import AutoPowerError
-from autopower.model.energy import Network
+from autopower.model.network import Network
 from autopower.planner.lp import INF, LinearProgram
 from autopower.policies.search import DecisionView, Option, forced_reason, make_decision, no_placement, what_happened
 from autopower.policies.team import NEVER, Decision, Move, SchedulePhase, TeamState, beats, plan_moves, total_energy

@@ -15,7 +15,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from autopower.errors import AutoPowerError, InfeasibleError
-from autopower.model.energy import LoadSpace, Network, load_of
+from autopower.model.energy import LoadSpace, load_of
+from autopower.model.network import Network
 from autopower.model.scenario import Chain
 from autopower.planner.exhaustive import TIE_REL
 from autopower.planner.problem import PlanRequest, make_problem

@@ -17,7 +17,7 @@ import networkx as nx
 import numpy as np
 
 from autopower.errors import AutoPowerError
-from autopower.model.energy import Network
+from autopower.model.network import Network
 from autopower.model.scenario import Chain, Scenario
 from autopower.policies.search import DecisionView, enumerate_network, forced_reason, make_decision, no_placement
 from autopower.policies.team import (

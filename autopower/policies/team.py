@@ -13,8 +13,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Mapping, Protocol, Sequence
 
-from autopower.model.energy import Network, airtime_s, build_network, media_choices
+from autopower.model.energy import airtime_s
 from autopower.model.mission_events import MissionEvent
+from autopower.model.network import Network, build_network, media_choices
 from autopower.model.scenario import Chain, Scenario
 
 EXHAUSTIVE_UP_TO = 20_000  # combinations (all media) enumerated exactly; beyond, the MILP decides

@@ -453,8 +453,8 @@ def what_if(rec: Recording, *, at_s: float | None = None, accounting: str | None
     "recorded": {"allocation", "lifetime_s", "note"}, "plan": {"allocation", "media", "lifetime_s",
     "bottleneck", "reasons", "method", "dropped_chains"}, "gain_s", "policy": {...} | null}``.
     """
-    from autopower.model.energy import Link, Network
-    from autopower.model.scenario import load_scenario
+    from autopower.model.loading import load_scenario
+    from autopower.model.network import Link, Network
     from autopower.planner import PlanRequest, evaluate_in, make_problem, plan
 
     if scenario is None:

@@ -28,8 +28,9 @@ from typing import Mapping
 import numpy as np
 
 from autopower.errors import AutoPowerError, InfeasibleError
-from autopower.model.energy import LoadSpace, Network, active_chains, load_of, media_choices
+from autopower.model.energy import LoadSpace, active_chains, load_of
 from autopower.model.mission_events import NO_EVENTS, EventScript, MissionEvent
+from autopower.model.network import Network, media_choices
 from autopower.model.scenario import Scenario
 from autopower.planner.problem import PlanRequest, make_problem
 from autopower.policies import (

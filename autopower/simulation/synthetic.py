@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from autopower.model.loading import load_scenario
 from autopower.model.scenario import (
     LAPTOP_ROBOT,
     ROBOT_ROBOT,
@@ -20,7 +21,6 @@ from autopower.model.scenario import (
     Robot,
     Scenario,
     Stage,
-    load_scenario,
 )
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
 from autopower.planner import PlanRequest, plan
 
 AUTOPOWER = os.environ.get("AUTOPOWER_BIN") or str(Path(sys.executable).parent / "autopower")

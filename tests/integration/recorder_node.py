@@ -18,7 +18,7 @@ def main(role: str, run_dir: str, port: int, seconds: float) -> None:
     from autopower.agent.process import Agent, AgentConfig
     from autopower.basestation.coordinator import CoordinatorConfig
     from autopower.basestation.process import BaseStation, BaseStationConfig
-    from autopower.model.scenario import load_scenario
+    from autopower.model.loading import load_scenario
     from autopower.recording.live import open_recorder
     from autopower.runtime.bus import ZenohBus, ZenohSettings
 

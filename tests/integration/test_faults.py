@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from autopower.cli.team import build_scenario
+from autopower.cli.options import build_scenario
 from autopower.launch.faults import FaultController
 from autopower.launch.localhost import LocalTeam, TeamSpec
 from tests.integration.runtime_helpers import wait_for

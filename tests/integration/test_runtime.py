@@ -12,9 +12,10 @@ import time
 
 import pytest
 
-from autopower.cli.team import build_scenario
+from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint
 from autopower.model.energy import evaluate
+from autopower.model.network import build_network
 from autopower.planner import PlanRequest, plan
 from autopower.protocol import AutoCommand, Keys, MigrateCommand, SnapshotRequest, encode
 from autopower.runtime.bus import ZenohBus, ZenohSettings
@@ -84,7 +85,7 @@ def test_metered_energy_matches_the_model_within_1_percent(team):
         time.sleep(window_s)  # the measurement window itself (virtual time runs x10)
         s2 = team.snapshot()
         assert s2["epoch"] == s1["epoch"], "the placement changed during the measurement"
-        network = scenario.network(media=s2["media"])
+        network = build_network(scenario, media=s2["media"])
         ev = evaluate(scenario, network, s2["placement"])
         for robot in ROBOTS:
             measured = measured_power(s1, s2, robot)
@@ -156,7 +157,7 @@ def test_relay_forwarding_through_r1(tmp_path):
         forwarded = s2["robots"]["r1"]["status"]["counters"].get("forwarded", 0)
         assert forwarded > 100  # r2's and r3's images and poses went through r1's agent
         assert not s2["robots"]["r2"]["status"]["counters"].get("forwarded")
-        ev = evaluate(team.scenario, team.scenario.network(topology="relay", media=s2["media"]), s2["placement"])
+        ev = evaluate(team.scenario, build_network(team.scenario, topology="relay", media=s2["media"]), s2["placement"])
         for robot in ROBOTS:
             assert measured_power(s1, s2, robot) == pytest.approx(ev.robots[robot].total_w, rel=0.01), robot
         assert ev.robots["r1"].total_w > ev.robots["r2"].total_w  # the relay pays for forwarding

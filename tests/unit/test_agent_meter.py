@@ -11,7 +11,7 @@ import pytest
 from autopower.agent.meter import BatteryMeter, part
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.energy import airtime_s, evaluate
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
 from tests.unit.sim_team import SimTeam
 
 LAPTOP = {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "laptop", "Blob-2": "laptop", "Blob-3": "laptop"}

@@ -11,7 +11,7 @@ from autopower.agent.node import Lifecycle, pad
 from autopower.agent.sequencing import SequenceGate, SinkLedger
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.errors import ProtocolError
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
 from autopower.protocol import ChainCommand, MigrateCommand
 from tests.unit.sim_team import SimTeam
 

@@ -11,7 +11,7 @@ from autopower.agent.node import NodeRuntime
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.basestation.process import BaseStation, BaseStationConfig
 from autopower.model.energy import evaluate
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
 from autopower.protocol import (
     AutoCommand,
     ChainCommand,

@@ -9,6 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from autopower.cli.main import cli
+from autopower.model.loading import apply_latency_profile
 
 PAPER = (resources.files('autopower.scenarios') / 'paper-fig7.toml').read_text()
 
@@ -100,8 +101,8 @@ def test_profile_writes_a_file_the_planner_uses(tmp_path):
     text = out_file.read_text()
     assert "[latency_s]" in text and "Blob = " in text and "Loc = " in text
     # A platform as fast as this machine makes local computation cheap: the plan changes.
-    from autopower.model.scenario import load_scenario
-    s = load_scenario("paper-fig7").with_latency_profile(out_file, "sitsang")
+    from autopower.model.loading import load_scenario
+    s = apply_latency_profile(load_scenario("paper-fig7"), out_file, "sitsang")
     assert s.components["Loc"].latency_s["sitsang"] < 0.1
     res = CliRunner().invoke(cli, ["plan", "paper-fig7", "--latency-profile", str(out_file), "--as-platform", "sitsang", "--json", "--no-bound"])
     assert json.loads(res.output)["lifetime_s"] > 45715.2

@@ -13,8 +13,8 @@ from click.testing import CliRunner
 
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.errors import AutoPowerError
+from autopower.model.loading import load_scenario
 from autopower.model.mission_events import load_events
-from autopower.model.scenario import load_scenario
 from autopower.policies import POLICY_NAMES, make_policy
 from autopower.protocol import LinkCommand
 from autopower.simulation.simulator import simulate
@@ -272,7 +272,8 @@ def test_unknown_policy_or_parameter_is_a_clear_error_at_construction():
 
 def test_policy_option_on_the_runtime_commands():
     from autopower.cli.demo import demo
-    from autopower.cli.team import basestation, up
+    from autopower.cli.processes import basestation
+    from autopower.cli.team import up
 
     for command in (basestation, up, demo):
         option = next(p for p in command.params if p.name == "policy")

@@ -13,7 +13,7 @@ import pytest
 from autopower.agent.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
 from autopower.agent.sequencing import MAX_MISSING, SequenceGate, SinkLedger
 from autopower.basestation.coordinator import CoordinatorConfig
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
 from autopower.protocol import ChainFrame, Consumed, NodeStatus, decode, encode
 from tests.unit.sim_team import SimTeam
 from tests.unit.test_agent_migration import FC, check_exactly_once, collect

@@ -3,12 +3,13 @@
 import pytest
 
 from autopower.model.energy import airtime_s, evaluate, flow_weight
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
+from autopower.model.network import build_network
 
 FIG7 = load_scenario("paper-fig7")
 PHYS = FIG7.with_accounting("physical")
 LOCAL = {"Loc-1": "r1", "Loc-2": "r2", "Loc-3": "r3", "Blob-2": "r2", "Blob-3": "r3"}
-WIFI = FIG7.network("fully-connected", {"laptop-robot": "802.11a", "robot-robot": "802.11a"})
+WIFI = build_network(FIG7, "fully-connected", {"laptop-robot": "802.11a", "robot-robot": "802.11a"})
 R = FIG7.radios
 
 
@@ -35,7 +36,7 @@ def test_physical_all_laptop_by_hand():
 
 def test_physical_local_by_hand_gsm():
     """All local: CPU u = 0.85/2 + 0.115/0.25; the 200 B blob result goes 4x/s over GSM."""
-    net = PHYS.network("fully-connected", {"laptop-robot": "gsm", "robot-robot": "802.11a"})
+    net = build_network(PHYS, "fully-connected", {"laptop-robot": "gsm", "robot-robot": "802.11a"})
     ev = evaluate(PHYS, net, LOCAL)
     u = 0.85 / 2 + 0.115 / 0.25
     gsm = R["gsm"]
@@ -46,7 +47,7 @@ def test_physical_local_by_hand_gsm():
 
 
 def test_relay_pays_send_and_receive():
-    relay = FIG7.network("relay", {"laptop-robot": "802.11a", "robot-robot": "802.11a"})
+    relay = build_network(FIG7, "relay", {"laptop-robot": "802.11a", "robot-robot": "802.11a"})
     alloc = dict(LOCAL, **{"Blob-2": "laptop"})
     ev = evaluate(FIG7, relay, alloc)
     image = airtime_s(230415, R["802.11a"])
@@ -58,7 +59,7 @@ def test_relay_pays_send_and_receive():
 
 
 def test_infeasible_names_every_violation():
-    gsm = FIG7.network("fully-connected", {"laptop-robot": "gsm", "robot-robot": "802.11a"})
+    gsm = build_network(FIG7, "fully-connected", {"laptop-robot": "gsm", "robot-robot": "802.11a"})
     ev = evaluate(FIG7, gsm, {k: "laptop" for k in LOCAL})
     assert not ev.feasible and ev.lifetime_s is None
     nodes = {(v.node, v.resource) for v in ev.violations}

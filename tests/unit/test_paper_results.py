@@ -3,7 +3,8 @@
 import pytest
 
 from autopower.model.energy import evaluate
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
+from autopower.model.network import build_network
 from autopower.planner import PlanRequest, plan
 
 FIG7 = load_scenario("paper-fig7")
@@ -13,7 +14,7 @@ LAPTOP = {k: "laptop" for k in LOCAL}
 
 
 def net(scenario, topology, lr, rr):
-    return scenario.network(topology, {"laptop-robot": lr, "robot-robot": rr})
+    return build_network(scenario, topology, {"laptop-robot": lr, "robot-robot": rr})
 
 
 @pytest.mark.parametrize("index", range(16))

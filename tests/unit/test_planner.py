@@ -6,7 +6,8 @@ from hypothesis import strategies as st
 
 from autopower.errors import InfeasibleError
 from autopower.model.energy import evaluate
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
+from autopower.model.network import build_network
 from autopower.planner import PlanRequest, plan
 from autopower.planner.exhaustive import exhaustive
 from autopower.planner.milp import solve_milp
@@ -51,7 +52,7 @@ def test_reasons_for_every_stage_name_the_tradeoff():
 
 
 def test_time_sharing_bound_is_at_least_static_and_reachable():
-    relay = FIG7.network("relay", {"laptop-robot": "802.11a", "robot-robot": "802.11a"})
+    relay = build_network(FIG7, "relay", {"laptop-robot": "802.11a", "robot-robot": "802.11a"})
     p = plan(PlanRequest(scenario=FIG7, network=relay, with_bound=True))
     b = p.bound
     assert b.proven
@@ -84,7 +85,7 @@ def test_unavailable_robot_and_disabled_chain():
 
 
 def test_unroutable_chain_is_dropped_with_reason():
-    cut = FIG7.network("relay", {"laptop-robot": "802.11a", "robot-robot": "802.11a"}).without_link("r1", "laptop")
+    cut = build_network(FIG7, "relay", {"laptop-robot": "802.11a", "robot-robot": "802.11a"}).without_link("r1", "laptop")
     p = plan(PlanRequest(scenario=FIG7, network=cut))
     assert set(p.dropped) == {"Blob-2", "Blob-3"}
     assert "unreachable" in p.dropped["Blob-2"]
@@ -96,7 +97,7 @@ def test_infeasible_raises_with_hint():
     chains = tuple(dataclasses.replace(c, period_s=0.05) if c.name.startswith("Blob") else c for c in FIG7.chains)
     s = dataclasses.replace(FIG7, chains=chains)
     with pytest.raises(InfeasibleError, match="no allocation meets"):
-        plan(PlanRequest(scenario=s, network=FIG7.network("fully-connected", {"laptop-robot": "gsm", "robot-robot": "bluetooth"})))
+        plan(PlanRequest(scenario=s, network=build_network(FIG7, "fully-connected", {"laptop-robot": "gsm", "robot-robot": "bluetooth"})))
 
 
 def test_greedy_is_feasible_and_never_beats_the_optimum():

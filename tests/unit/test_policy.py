@@ -7,8 +7,9 @@ import pytest
 
 from autopower.errors import AutoPowerError
 from autopower.model.energy import airtime_s, evaluate
+from autopower.model.loading import load_scenario
 from autopower.model.mission_events import MissionEvent
-from autopower.model.scenario import load_scenario
+from autopower.model.network import build_network
 from autopower.planner import PlanRequest, plan
 from autopower.planner.problem import make_problem
 from autopower.planner.timesharing import time_sharing_bound
@@ -34,7 +35,7 @@ VC = MissionEvent(at_s=3600, kind="radio-fault", robot="r3", laptop_robot="gsm",
 
 
 def start_state(scenario=FIG7, topology=None, **kw):
-    return TeamState(scenario=scenario, time_s=0.0, network=scenario.network(topology), allocation={},
+    return TeamState(scenario=scenario, time_s=0.0, network=build_network(scenario, topology), allocation={},
                      energies_j=scenario.energies_j(), topology=topology, **kw)
 
 
@@ -42,7 +43,7 @@ def vc_state(**kw):
     """Fig. 7's optimum running, one hour in, when r3's 802.11a card fails (Section V.C)."""
     faults = {"r3": ("gsm", "bluetooth")}
     network = derive_network(FIG7, None, ALL_80211A, radio_faults=faults)
-    used = evaluate(FIG7, FIG7.network(None, ALL_80211A), LAPTOP)
+    used = evaluate(FIG7, build_network(FIG7, None, ALL_80211A), LAPTOP)
     energies = {r: FIG7.robot(r).energy_j - used.robots[r].total_w * 3600 for r in ("r1", "r2", "r3")}
     return TeamState(scenario=FIG7, time_s=3600.0, network=network, allocation=dict(LAPTOP), energies_j=energies,
                      radio_faults=faults, events=(VC,), **kw)
@@ -90,7 +91,7 @@ def test_static_reverts_to_local_computation_on_the_vc_fault():
 
 
 def test_cameras_off_gives_the_localisation_only_optimum():
-    relay = FIG7.network("relay", ALL_80211A)
+    relay = build_network(FIG7, "relay", ALL_80211A)
     energies = {"r1": 50_000.0, "r2": 52_000.0, "r3": 52_000.0}
     off = MissionEvent(at_s=14400, kind="chain-disable", chains=("Blob-2", "Blob-3"))
     state = TeamState(scenario=FIG7, time_s=14400.0, network=relay, allocation=dict(LAPTOP), energies_j=energies,
@@ -101,17 +102,17 @@ def test_cameras_off_gives_the_localisation_only_optimum():
                             disabled_chains=frozenset({"Blob-2", "Blob-3"})))
     assert dict(d.allocation) == want.allocation == {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "laptop"}
     # ... and, as V.C says, Bluetooth between the robots now carries that offloading too (within 0.2 %)
-    bt = evaluate(FIG7, FIG7.network("relay", {"laptop-robot": "802.11a", "robot-robot": "bluetooth"}), d.allocation,
+    bt = evaluate(FIG7, build_network(FIG7, "relay", {"laptop-robot": "802.11a", "robot-robot": "bluetooth"}), d.allocation,
                   energies_j=energies, disabled_chains=frozenset({"Blob-2", "Blob-3"}))
     assert bt.feasible and bt.lifetime_s > 0.998 * want.lifetime_s
-    with_blobs = evaluate(FIG7, FIG7.network("relay", {"laptop-robot": "802.11a", "robot-robot": "bluetooth"}),
+    with_blobs = evaluate(FIG7, build_network(FIG7, "relay", {"laptop-robot": "802.11a", "robot-robot": "bluetooth"}),
                           LAPTOP)
     assert not with_blobs.feasible  # before, Bluetooth could not carry the images
 
 
 def test_migration_cost_is_the_state_over_the_radios_crossed():
     costs = MigrationCosts(downtime_s=0.5, cpu_s=0.1, state_bytes={"Loc": 32_800, "Blob": 0})
-    relay = FIG7.network("relay", {"laptop-robot": "gsm", "robot-robot": "bluetooth"})
+    relay = build_network(FIG7, "relay", {"laptop-robot": "gsm", "robot-robot": "bluetooth"})
     # Loc-2 from the laptop to r2: laptop -> r1 over GSM, r1 -> r2 over Bluetooth
     [move] = plan_moves(FIG7, relay, {"Loc-2": "laptop"}, {"Loc-2": "r2"}, costs)
     gsm, bt = FIG7.radios["gsm"], FIG7.radios["bluetooth"]
@@ -173,7 +174,7 @@ def test_nothing_happens_without_a_reason(name):
 
 
 def test_candidate_networks_respect_faults_and_cuts():
-    state = TeamState(scenario=FIG7, time_s=0.0, network=FIG7.network(), allocation={}, energies_j={},
+    state = TeamState(scenario=FIG7, time_s=0.0, network=build_network(FIG7), allocation={}, energies_j={},
                       cut_links=frozenset({frozenset({"r1", "laptop"})}), radio_faults={"r3": ("gsm", None)})
     nets = candidate_networks(state)
     assert len(nets) == 4
@@ -193,18 +194,18 @@ def test_unknown_policy_is_a_clear_error():
 
 
 def test_subgroups_are_the_parts_that_reach_each_other():
-    cut = FIG7.network()
+    cut = build_network(FIG7)
     for r in ("r1", "r2", "r3"):
         cut = cut.without_link(r, "laptop")
     assert subgroups(cut) == [("r1", "r2", "r3")]
-    assert subgroups(FIG7.network()) == [("r1", "r2", "r3", "laptop")]
+    assert subgroups(build_network(FIG7)) == [("r1", "r2", "r3", "laptop")]
     apart = cut.without_link("r1", "r2").without_link("r1", "r3")
     assert subgroups(apart) == [("r1",), ("r2", "r3")]
 
 
 def test_subgroup_reallocation_is_the_exact_optimum_among_members():
     """With the whole team (base station included) and free migrations, it is the planner's optimum."""
-    network = FIG7.network()
+    network = build_network(FIG7)
     energies = {"r1": 30_000.0, "r2": 60_000.0, "r3": 64_000.0}
     local = {"Loc-1": "r1", "Loc-2": "r2", "Loc-3": "r3", "Blob-2": "r2", "Blob-3": "r3"}
     p = subgroup_reallocation(FIG7, network, network.nodes, local, energies, migration=FREE)
@@ -214,7 +215,7 @@ def test_subgroup_reallocation_is_the_exact_optimum_among_members():
 
 
 def test_subgroup_without_the_base_station_keeps_stages_among_members_and_buffers_blobs():
-    cut = FIG7.network()
+    cut = build_network(FIG7)
     for r in ("r1", "r2", "r3"):
         cut = cut.without_link(r, "laptop")
     energies = {"r1": 20_000.0, "r2": 60_000.0, "r3": 60_000.0}
@@ -247,7 +248,7 @@ def _pairwise_local_search(scenario, network, allocation, energies, hosts):
 @pytest.mark.parametrize("seed", [28, 52])
 def test_multi_party_moves_escape_the_pairwise_local_optimum(seed):
     s = random_scenario(seed, 3, 5, energy_spread=0.6)
-    network, robots, energies = s.network(), [r.name for r in s.robots], s.energies_j()
+    network, robots, energies = build_network(s), [r.name for r in s.robots], s.energies_j()
     local = {st.name: c.source for c in s.chains for st in c.stages}
     stuck = _pairwise_local_search(s, network, local, energies, robots)
     exact = subgroup_reallocation(s, network, robots, local, energies, migration=FREE, min_gain=0, min_gain_s=0)
@@ -262,7 +263,7 @@ def test_multi_party_moves_escape_the_pairwise_local_optimum(seed):
 
 def test_subgroup_rejects_a_member_not_on_the_network():
     with pytest.raises(AutoPowerError, match="subgroup member 'r9'"):
-        subgroup_reallocation(FIG7, FIG7.network(), ("r1", "r9"), LAPTOP, FIG7.energies_j())
+        subgroup_reallocation(FIG7, build_network(FIG7), ("r1", "r9"), LAPTOP, FIG7.energies_j())
 
 
 def test_subgroup_proposes_nothing_without_gain():

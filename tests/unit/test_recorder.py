@@ -7,7 +7,7 @@ import os
 import pytest
 
 from autopower.basestation.coordinator import CoordinatorConfig
-from autopower.model.scenario import load_scenario
+from autopower.model.loading import load_scenario
 from autopower.protocol import Keys, MigrateCommand, encode
 from autopower.recording.recorder import (
     EVENT_TAG,

@@ -9,8 +9,8 @@ import pytest
 
 from autopower.cli.replay import main as replay_main
 from autopower.errors import AutoPowerError, RecordingError
+from autopower.model.loading import load_scenario
 from autopower.model.mission_events import load_events
-from autopower.model.scenario import load_scenario
 from autopower.recording.replay import load, recorded_state, summarize, what_if
 from autopower.recording.telemetry import Telemetry
 from autopower.simulation.simulator import simulate

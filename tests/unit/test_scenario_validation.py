@@ -5,7 +5,8 @@ from importlib import resources
 import pytest
 
 from autopower.errors import ScenarioError
-from autopower.model.scenario import builtin_scenarios, load_scenario, parse_scenario
+from autopower.model.loading import builtin_scenarios, load_scenario, parse_scenario
+from autopower.model.network import build_network
 
 PAPER = (resources.files("autopower.scenarios") / "paper-fig7.toml").read_text()
 
@@ -100,7 +101,7 @@ def test_explicit_topology_loads_and_routes_multi_hop():
         + "".join(f'[[network.links]]\na = "{a}"\nb = "{b}"\nmedia = ["{m}"]\n'
                   for a, b, m in [("r1", "laptop", "802.11a"), ("r1", "r2", "802.11a"), ("r2", "r3", "802.11a")]))
     s = parse_scenario(text, "chain.toml")
-    network = s.network()
+    network = build_network(s)
     assert [hop[:2] for hop in network.route("r3", "laptop")] == [("r3", "r2"), ("r2", "r1"), ("r1", "laptop")]
 
 

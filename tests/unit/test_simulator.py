@@ -7,8 +7,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from autopower.errors import InfeasibleError
+from autopower.model.loading import load_scenario
 from autopower.model.mission_events import NO_EVENTS, load_events, parse_events, random_events
-from autopower.model.scenario import load_scenario
 from autopower.planner import PlanRequest, plan
 from autopower.policies import POLICY_NAMES
 from autopower.simulation.simulator import simulate, time_sharing_reference

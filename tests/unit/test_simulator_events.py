@@ -7,8 +7,8 @@ from click.testing import CliRunner
 
 from autopower.cli.simulate import simulate as simulate_cmd
 from autopower.errors import AutoPowerError, ScenarioError
+from autopower.model.loading import load_scenario
 from autopower.model.mission_events import EventsError, builtin_events, load_events, parse_events
-from autopower.model.scenario import load_scenario
 
 FIG7 = load_scenario("paper-fig7")
 

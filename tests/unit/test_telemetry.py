@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from autopower.errors import RecordingError
+from autopower.model.loading import load_scenario
 from autopower.model.mission_events import load_events
-from autopower.model.scenario import load_scenario
 from autopower.recording.telemetry import (
     ALLOCATION,
     DECISIONS,

@@ -1,0 +1,84 @@
+"""`autopower fault cut|heal|kill|freeze|thaw|radio|list`: inject faults into the running team."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from autopower.launch.faults import MEDIA_CHOICES, request_fault
+
+
+def _run(request: dict, as_json: bool) -> None:
+    reply = request_fault(request)
+    click.echo(json.dumps(reply) if as_json else reply.get("message", "ok"))
+
+
+_json = click.option("--json", "as_json", is_flag=True, help="Print the reply as JSON.")
+
+
+@click.group("fault")
+def fault() -> None:
+    """Inject faults into the team started by `autopower up` (real, silent link cuts; signals)."""
+
+
+@fault.command("cut")
+@click.argument("a")
+@click.argument("b")
+@_json
+def fault_cut(a, b, as_json):
+    """Cut the radio link A-B silently (no FIN, no RST: only the Zenoh lease notices)."""
+    _run({"op": "cut", "a": a, "b": b}, as_json)
+
+
+@fault.command("heal")
+@click.argument("a")
+@click.argument("b")
+@_json
+def fault_heal(a, b, as_json):
+    """Bring the link A-B back."""
+    _run({"op": "heal", "a": a, "b": b}, as_json)
+
+
+@fault.command("kill")
+@click.argument("robot")
+@_json
+def fault_kill(robot, as_json):
+    """SIGKILL a robot's agent."""
+    _run({"op": "kill", "robot": robot}, as_json)
+
+
+@fault.command("freeze")
+@click.argument("robot")
+@_json
+def fault_freeze(robot, as_json):
+    """SIGSTOP a robot's agent (it stops answering; its lease expires)."""
+    _run({"op": "freeze", "robot": robot}, as_json)
+
+
+@fault.command("thaw")
+@click.argument("robot")
+@_json
+def fault_thaw(robot, as_json):
+    """SIGCONT a frozen robot's agent."""
+    _run({"op": "thaw", "robot": robot}, as_json)
+
+
+@fault.command("radio")
+@click.argument("robot")
+@click.option("--laptop", type=click.Choice(MEDIA_CHOICES), default=None, help="The robot's radio to the base.")
+@click.option("--robot", "robot_medium", type=click.Choice(MEDIA_CHOICES), default=None,
+              help="The robot's radio to other robots.")
+@_json
+def fault_radio(robot, laptop, robot_medium, as_json):
+    """A robot's radio hardware fails over (the paper's V.C fault): the base station replans."""
+    _run({"op": "radio", "robot": robot, "laptop": laptop, "robot_medium": robot_medium}, as_json)
+
+
+@fault.command("list")
+def fault_list():
+    """The faults injected so far and the state of every link, as JSON."""
+    click.echo(json.dumps(request_fault({"op": "list"}), indent=1))
+
+
+COMMANDS = [fault]

@@ -1,0 +1,49 @@
+"""The live status table `up` and `status` draw (rich)."""
+
+from __future__ import annotations
+
+
+def render(snap: dict, speed: float):
+    """The live status table of `autopower up`."""
+    from rich.console import Group
+    from rich.table import Table
+    from rich.text import Text
+
+    revisit = snap.get("revisit_at_s")
+    parts = [f"{snap.get('scenario')}", f"{snap.get('accounting')} accounting",
+             f"t = {snap.get('t_virtual', 0):.0f} s virtual (x{speed:g})", f"policy {snap.get('policy')}",
+             f"planned lifetime {snap.get('planned_lifetime_s')} s", f"media {snap.get('media')}"]
+    if revisit is not None:  # a time-sharing schedule switches configuration then
+        parts.append(f"next phase at t = {revisit:.0f} s")
+    if not snap.get("ready"):
+        parts.append("placing…")
+    head = Text(" · ".join(parts), style="bold")
+    robots = Table("robot", "battery", "power W (plan)", "CPU", "hosts", "sources (frames/missed)", "links",
+                   title="robots", title_justify="left")
+    for name, info in snap.get("robots", {}).items():
+        st = info.get("status")
+        if not st:
+            robots.add_row(name, "joining" if info.get("present") else "absent", "", "", "", "", "")
+            continue
+        battery = st["battery_j"]
+        pct = battery / st["initial_j"] * 100 if st["initial_j"] else 0
+        power = sum(st["power_w"].values())
+        plan_w = info.get("predicted_w")
+        sources = ", ".join(f"{c} {s['produced_total']}/{s['missed']}" for c, s in st["sources"].items())
+        links = " ".join(f"{p}{'✓' if up else '✗'}" for p, up in st["links"].items())
+        robots.add_row(name, f"{battery:,.0f} J ({pct:.1f}%)" + (" DEPLETED" if st["depleted"] else ""),
+                       f"{power:.3f} ({plan_w:.3f})" if plan_w else f"{power:.3f}",
+                       f"{st['cpu_utilisation']:.0%}", ", ".join(st["hosted"]) or "-", sources or "-", links)
+    stages = Table("stage", "runs on", "planned", "why", title="components", title_justify="left")
+    for stage, want in snap.get("target", {}).items():
+        have = snap.get("placement", {}).get(stage, "-")
+        moving = snap.get("migrating", {}).get(stage)
+        stages.add_row(stage, have + (f" → {moving['to']}" if moving else ""), want,
+                       (snap.get("reasons") or {}).get(stage, ""))
+    sinks = []
+    base = snap.get("basestation") or {}
+    for chain, s in (base.get("sinks") or {}).items():
+        sinks.append(f"{chain}: {s['received_total']} results, p50 {s['latency_ms_p50']:.1f} ms")
+    foot = Text("operator sink: " + ("; ".join(sinks) or "nothing yet") + "\n" +
+                "\n".join((snap.get("events") or [])[-4:]), style="dim")
+    return Group(head, robots, stages, foot)

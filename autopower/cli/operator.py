@@ -1,0 +1,89 @@
+"""Operator commands against the running team: `status`, `chain enable|disable`, `migrate`."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from autopower.cli.live_table import render
+from autopower.cli.options import operator_options
+from autopower.errors import AutoPowerError
+
+
+def _client(team: str | None, connect: tuple[str, ...]):
+    from autopower.basestation.operator import OperatorClient, read_session
+
+    if not team or not connect:
+        session = read_session()
+        team = team or session["team"]
+        connect = connect or tuple(session["connect"])
+    return OperatorClient(team, connect=connect)
+
+
+def _send(command, team, connect, timeout) -> dict:
+    with _client(team, connect) as client:
+        reply = client.request(command, timeout)
+    if not reply.ok:
+        raise AutoPowerError(reply.message)
+    click.echo(reply.message)
+    return reply.snapshot
+
+
+@click.group("chain")
+def chain() -> None:
+    """Switch an application chain on or off in the running team (the base station replans)."""
+
+
+@chain.command("enable")
+@click.argument("name")
+@operator_options
+def chain_enable(name, team, connect, timeout):
+    """Run chain NAME again."""
+    from autopower.protocol import ChainCommand
+
+    _send(ChainCommand(chain=name, enabled=True), team, connect, timeout)
+
+
+@chain.command("disable")
+@click.argument("name")
+@operator_options
+def chain_disable(name, team, connect, timeout):
+    """Stop chain NAME (e.g. Blob-2 once the victims are found)."""
+    from autopower.protocol import ChainCommand
+
+    _send(ChainCommand(chain=name, enabled=False), team, connect, timeout)
+
+
+@click.command("migrate")
+@click.argument("stage", required=False)
+@click.argument("node", required=False)
+@click.option("--auto", "auto", is_flag=True, help="Clear every pin: placement follows the planner again.")
+@operator_options
+def migrate(stage, node, auto, team, connect, timeout):
+    """Pin STAGE to NODE: a live migration that holds until `migrate --auto`."""
+    from autopower.protocol import AutoCommand, MigrateCommand
+
+    if auto == bool(stage or node) or (not auto and not (stage and node)):
+        raise AutoPowerError("use `autopower migrate STAGE NODE` or `autopower migrate --auto`")
+    command = AutoCommand() if auto else MigrateCommand(stage=stage, to_node=node)
+    _send(command, team, connect, timeout)
+
+
+@click.command("status")
+@operator_options
+@click.option("--json", "as_json", is_flag=True)
+def status(team, connect, timeout, as_json):
+    """Show the running team's status once."""
+    with _client(team, connect) as client:
+        snap = client.snapshot(timeout)
+    if as_json:
+        click.echo(json.dumps(snap, indent=2, default=str))
+    else:
+        from rich.console import Console
+
+        Console().print(render(snap, (snap.get("mission") or {}).get("speed", 1.0)))
+
+
+
+COMMANDS = (status, chain, migrate)

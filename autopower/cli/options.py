@@ -1,0 +1,141 @@
+"""Options and argument parsing every command group shares (one definition, so they cannot drift)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import click
+from rich.console import Console
+
+from autopower.errors import AutoPowerError
+from autopower.model.loading import apply_latency_profile, load_scenario
+from autopower.model.scenario import Scenario
+from autopower.policies import POLICY_NAMES
+
+DEFAULT_SPEED = 10.0  # two 4 Hz blob chains at 10x = 80 frames of 230 KB a second: what 2 cores keep up with
+
+# Piped output (CI logs, `| less`) would otherwise be cut to 80 columns and truncate the tables.
+console = Console() if sys.stdout.isatty() else Console(width=200)
+
+
+def parse_energies(values: tuple[str, ...]) -> dict[str, float]:
+    out = {}
+    for item in values:
+        name, sep, joules = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[name.strip()] = float(joules)
+        except ValueError:
+            raise AutoPowerError(f"--energy {item!r}: expected ROBOT=JOULES, e.g. --energy r1=32000") from None
+    return out
+
+
+
+def parse_pairs(values: tuple[str, ...], what: str, example: str) -> dict[str, str]:
+    out = {}
+    for item in values:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip() or not value.strip():
+            raise AutoPowerError(f"{what} {item!r}: expected NAME=VALUE, e.g. {what} {example}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+
+def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float | None = None,
+                   accounting: str | None = None, profile: str | None = None,
+                   as_platform: str | None = None) -> Scenario:
+    """The scenario with a latency profile, energy overrides (absolute, then scaled) and an accounting mode."""
+    scenario = load_scenario(name)
+    if profile:
+        scenario = apply_latency_profile(scenario, profile, as_platform or scenario.basestation_platform)
+    if energy:
+        scenario = scenario.with_energies(parse_energies(energy))
+    if energy_scale is not None:
+        if not energy_scale > 0:
+            raise AutoPowerError(f"--energy-scale must be > 0, got {energy_scale}")
+        scenario = scenario.with_energies({r.name: r.energy_j * energy_scale for r in scenario.robots})
+    return scenario.with_accounting(accounting)
+
+
+def setup_logging(level: str) -> None:
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def zenoh_settings(listen: tuple[str, ...], connect: tuple[str, ...], lease_ms: int):
+    from autopower.runtime.bus import ZenohSettings
+
+    if lease_ms < 100:
+        raise AutoPowerError(f"--lease-ms {lease_ms} is too short; use >= 100 ms")
+    return ZenohSettings(listen=tuple(listen), connect=tuple(connect), lease_ms=lease_ms)
+
+
+
+SCENARIO_ARG = click.argument("scenario", default="paper-fig7", metavar="SCENARIO")
+ENERGY_OPT = click.option("--energy", multiple=True, metavar="ROBOT=J", help="Override a robot's starting energy (repeatable).")
+ACCOUNTING_OPT = click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None,
+                              help="Message accounting (default: the scenario's).")
+def profile_opts(f):
+    f = click.option("--latency-profile", "profile", default=None, metavar="FILE",
+                     help="Latencies measured by `autopower profile` ...")(f)
+    return click.option("--as-platform", default=None, metavar="PLATFORM",
+                        help="... applied to this platform (default: the base station's).")(f)
+
+
+JSON_OPT = click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
+
+
+def network_options(f):
+    f = click.option("--scenario", "scenario_name", default="paper-fig7", show_default=True,
+                     help="Built-in scenario name or path to a .toml file.")(f)
+    f = click.option("--team", default="default", show_default=True,
+                     help="Team name: every key is under autopower/<team>/.")(f)
+    f = click.option("--listen", multiple=True, metavar="ENDPOINT",
+                     help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable).")(f)
+    f = click.option("--connect", multiple=True, metavar="ENDPOINT",
+                     help="Zenoh endpoint of a peer to connect to (repeatable; peers do not relay).")(f)
+    f = click.option("--lease-ms", default=1000, show_default=True,
+                     help="Zenoh lease: a frozen peer or cut link is noticed after about this long.")(f)
+    f = click.option("--status-period", default=0.5, show_default=True, help="Wall seconds between status messages.")(f)
+    f = click.option("--duration", type=float, default=None, help="Stop after this many wall seconds.")(f)
+    f = click.option("--parent-pid", type=int, default=None, hidden=True)(f)
+    f = click.option("--record-dir", type=click.Path(file_okay=False), default=None,
+                     help="Write this process's Rerun recording into DIR (the run's shared recording id).")(f)
+    f = click.option("--log-level", default="info", show_default=True,
+                     type=click.Choice(["debug", "info", "warning", "error"]))(f)
+    return f
+
+
+def mission_options(f):
+    """The mission settings `basestation` and `up` share (one definition, so they cannot drift)."""
+    for option in reversed([
+        click.option("--energy", multiple=True, metavar="ROBOT=J", help="Starting energy of a robot (repeatable)."),
+        click.option("--energy-scale", type=float, default=None,
+                     help="Multiply every starting energy, e.g. 0.01 to watch a whole mission in a minute or two."),
+        click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None),
+        click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None),
+        click.option("--media", multiple=True, metavar="GROUP=MEDIUM",
+                     help="Fix a link group's medium, e.g. laptop-robot=gsm (default: the planner chooses)."),
+        click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable)."),
+        click.option("--no-replan", is_flag=True,
+                     help="No decisions on battery drift, periodically or when a schedule's phase ends."),
+        click.option("--policy", type=click.Choice(list(POLICY_NAMES)), default="rebalance", show_default=True,
+                     help="What decides the placement (the simulator's policies): static never moves by choice, "
+                          "reactive replans on events, rebalance follows a time-sharing schedule, subgroup "
+                          "reallocates within the parts of the team that reach each other."),
+    ]):
+        f = option(f)
+    return f
+
+
+def operator_options(f):
+    f = click.option("--team", default=None, help="Team name (default: the last `autopower up`).")(f)
+    f = click.option("--connect", multiple=True, metavar="ENDPOINT",
+                     help="The base station's endpoint (default: the last `autopower up`).")(f)
+    f = click.option("--timeout", type=float, default=5.0, show_default=True)(f)
+    return f
+
+

@@ -1,0 +1,150 @@
+"""The team's processes: `autopower agent` and `autopower basestation`.
+
+``python -m autopower.cli.processes agent|basestation ...`` runs them without the rest of the CLI;
+this is how `up` starts its children.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+
+import click
+
+from autopower.cli.options import (
+    DEFAULT_SPEED,
+    build_scenario,
+    mission_options,
+    network_options,
+    parse_pairs,
+    setup_logging,
+    zenoh_settings,
+)
+from autopower.errors import AutoPowerError
+from autopower.model.loading import load_scenario
+
+
+def run_until_signalled(process, duration: float | None) -> str:
+    def on_signal(signum, _frame):
+        process.request_stop(signal.Signals(signum).name)
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    return process.run(duration)
+
+
+def exit_now(message: str) -> None:
+    """Leave without interpreter teardown once the session is closed.
+
+    Teardown resets signal handlers (a SIGTERM from `up` arriving then would kill the process
+    with -15 instead of a clean 0) and can wait on the transport's threads; there is nothing
+    left to clean up at this point.
+    """
+    click.echo(message, err=True)
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
+
+
+@click.command("agent")
+@click.option("--robot", required=True, help="Which robot of the scenario this agent is.")
+@network_options
+def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
+          record_dir):
+    """Run one robot's agent: host components, meter the battery, forward, publish status."""
+    from autopower.agent.process import Agent, AgentConfig
+
+    setup_logging(log_level)
+    scenario = load_scenario(scenario_name)
+    config = AgentConfig(robot=robot, scenario=scenario, team=team,
+                         zenoh=zenoh_settings(listen, connect, lease_ms),
+                         status_period_s=status_period, parent_pid=parent_pid)
+    recorder, bus = _recording_bus(record_dir, robot, scenario, config.zenoh)
+    try:
+        with Agent(config, bus=bus) as process:
+            if recorder is not None:
+                recorder.attach(process.runtime)
+            reason = run_until_signalled(process, duration)
+    finally:
+        if bus is not None:
+            bus.close()  # flushes the recording: before os._exit
+    exit_now(f"agent {robot} stopped: {reason}")
+
+
+def _recording_bus(record_dir, node: str, scenario, zenoh):
+    """(recorder, tapped bus) when recording, else (None, None): the process opens its own bus."""
+    if not record_dir:
+        return None, None
+    from autopower.recording.live import open_recorder
+    from autopower.runtime.bus import ZenohBus
+
+    recorder = open_recorder(record_dir, node, scenario=scenario)
+    return recorder, recorder.tap(ZenohBus(zenoh))
+
+
+@click.command("basestation")
+@network_options
+@click.option("--speed", type=float, default=DEFAULT_SPEED, show_default=True,
+              help="Virtual seconds per wall second.")
+@mission_options
+@click.option("--replan-interval", type=float, default=600.0, show_default=True,
+              help="Virtual seconds between re-plans with the remaining energies.")
+@click.option("--start-grace", type=float, default=30.0, show_default=True,
+              help="Wall seconds to wait for every robot before starting without the missing ones.")
+def basestation(scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
+                record_dir, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
+                replan_interval, start_grace):
+    """Run the base station: plan, place and migrate components; the operator's sink."""
+    from autopower.agent.node import NodeRuntime
+    from autopower.basestation.coordinator import CoordinatorConfig
+    from autopower.basestation.process import BaseStation, BaseStationConfig
+
+    setup_logging(log_level)
+    if not speed > 0:
+        raise AutoPowerError(f"--speed must be > 0, got {speed}")
+    scenario = build_scenario(scenario_name, energy, energy_scale, accounting)
+    media_choice = parse_pairs(media, "--media", "laptop-robot=gsm") or None
+    if media_choice:
+        scenario.network(topology=topology, media=media_choice)  # unknown group or medium -> ScenarioError
+    coordinator = CoordinatorConfig(speed=speed, topology=topology, media=media_choice,
+                                    pins=parse_pairs(pin, "--pin", "Loc-2=r1"),
+                                    auto_replan=not no_replan, replan_interval_s=replan_interval,
+                                    start_grace_s=start_grace, policy=policy)
+    config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh_settings(listen, connect, lease_ms),
+                               coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
+    recorder, bus = _recording_bus(record_dir, scenario.basestation, scenario, config.zenoh)
+    try:
+        with BaseStation(config, host_factory=NodeRuntime, bus=bus) as process:
+            if recorder is not None:
+                recorder.attach(process.runtime)
+            reason = run_until_signalled(process, duration)
+    finally:
+        if bus is not None:
+            bus.close()
+    exit_now(f"base station stopped: {reason}")
+
+
+COMMANDS = (agent, basestation)
+
+
+@click.group()
+def processes() -> None:
+    """One process of a team (normally reached through `autopower`)."""
+
+
+for _command in COMMANDS:
+    processes.add_command(_command)
+
+
+def main() -> None:
+    """``python -m autopower.cli.processes ...``: how `up` starts its children."""
+    from autopower.cli.entry import run_command
+
+    run_command(processes)
+
+
+if __name__ == "__main__":
+    main()

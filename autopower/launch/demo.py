@@ -1,0 +1,202 @@
+"""`autopower demo`: the whole story in one command.
+
+Three agents and the base station on this machine (the same launcher as `autopower up`, every
+link through its own LinkProxy), the paper's mission with time acceleration and a battery small
+enough to end in about a minute, then:
+
+1. cut r1's link to the base station silently: the team detects it and reconfigures (r1 stays
+   in the team through another robot's agent); heal;
+2. cut every robot from the base station: the robots form a subgroup and agree on a
+   reallocation among themselves (propose -> accept -> commit); heal: the base station adopts
+   what they run;
+3. run until the first robot's battery is empty, stop, merge the recording and print the
+   replay summary (``--json``: one object).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+from autopower.errors import AutoPowerError
+from autopower.launch.summary import run_summary
+
+log = logging.getLogger(__name__)
+
+SCENARIO = "paper-fig7"
+_COMMIT = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) INFO autopower.runtime.subgroup: subgroup (\S+): round (\S+) committed")
+
+
+def _wait(team, predicate, timeout_s: float, what: str) -> dict:
+    deadline = time.monotonic() + timeout_s
+    snap: dict = {}
+    while time.monotonic() < deadline:
+        team.check_children()
+        try:
+            snap = team.snapshot(timeout_s=2.0)
+        except AutoPowerError:
+            continue
+        if predicate(snap):
+            return snap
+        time.sleep(0.05)
+    raise AutoPowerError(f"demo: timed out after {timeout_s:g} s waiting for {what} (logs in {team.log_dir})")
+
+
+def _handled(snap: dict, before: int, kind: str, target: str | None = None) -> list[dict]:
+    return [f for f in snap.get("faults", [])[before:]
+            if f["kind"] == kind and (target is None or f["target"] == target) and f["reconfigured_unix"]]
+
+
+def _commits(log_dir: Path, robots: list[str]) -> list[tuple[float, str, str]]:
+    """(wall time, node, round) of every subgroup commit in the agents' logs."""
+    out = []
+    for robot in robots:
+        try:
+            lines = (log_dir / f"{robot}.log").read_text(errors="replace").splitlines()
+        except OSError:
+            continue
+        for line in lines:
+            m = _COMMIT.match(line)
+            if m:
+                t = datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp()
+                out.append((t, m.group(2), m.group(3)))
+    return sorted(out)
+
+
+def _say(quiet: bool, text: str) -> None:
+    if not quiet:
+        print(text, file=sys.stderr, flush=True)
+
+
+def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Path, record: bool,
+             quiet: bool, policy: str = "rebalance") -> dict:
+    from autopower.launch.faults import FaultController
+    from autopower.launch.localhost import LocalTeam, TeamSpec
+    from autopower.model.loading import load_scenario
+    from autopower.planner import PlanRequest, plan
+
+    started = time.monotonic()
+    full = load_scenario(SCENARIO)
+    lifetime = plan(PlanRequest(scenario=full)).evaluation.lifetime_s
+    energy_scale = mission_wall_s * speed / lifetime  # the planned mission lasts about mission_wall_s
+    scenario = full.with_energies({r.name: r.energy_j * energy_scale for r in full.robots})
+    robots = [r.name for r in scenario.robots]
+    base = scenario.basestation
+    # the recording id derives from the run directory's name: one name per run
+    record_dir = log_dir / f"run-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}" if record else None
+    spec = TeamSpec(scenario=SCENARIO, speed=speed, energy_scale=energy_scale, lease_ms=lease_ms,
+                    proxied_links=True, log_dir=log_dir, record_dir=record_dir, policy=policy)
+    faults_out: list[dict] = []
+    team = LocalTeam(spec, scenario)
+    snap: dict = {}
+    try:
+        team.start()
+        _say(quiet, f"demo: base station + {len(robots)} agents (team {team.team}, logs in {log_dir}), "
+                    f"speed {speed:g}x, mission ~{mission_wall_s:g} s, policy {policy}")
+        team.wait_ready(60)
+        faults = FaultController(team)
+        time.sleep(3.0)
+
+        # 1. one silent cut: detection, replanning around it (relay), heal
+        before = len(team.snapshot()["faults"])
+        t_cut = faults.apply({"op": "cut", "a": "r1", "b": base})["fault"]["t_unix"]
+        _say(quiet, f"demo: cut r1-{base}")
+        snap = _wait(team, lambda s: _handled(s, before, "link-down"), 10, "the cut to be handled")
+        fault = _handled(snap, before, "link-down")[0]
+        faults_out.append({"kind": "cut", "target": f"r1-{base}", "detected_s": fault["detected_unix"] - t_cut,
+                           "reconfigured_s": fault["reconfigured_unix"] - t_cut})
+        _say(quiet, f"demo:   detected after {faults_out[-1]['detected_s']:.3f} s, reconfigured after "
+                    f"{faults_out[-1]['reconfigured_s']:.3f} s; r1 present: {snap['robots']['r1']['present']}")
+        time.sleep(1.5)
+        faults.apply({"op": "heal", "a": "r1", "b": base})
+        _wait(team, lambda s: not s["links_down"] and s["ready"], 15, "the healed link back in the plan")
+        _say(quiet, "demo: healed r1-" + base)
+        time.sleep(1.0)
+
+        # 2. every robot cut from the base station: subgroup agreement without it
+        commits_before = len(_commits(log_dir, robots))
+        before = len(team.snapshot()["faults"])
+        t_cut = time.time()
+        for r in robots:
+            faults.apply({"op": "cut", "a": r, "b": base})
+        _say(quiet, "demo: cut every robot from the base station")
+        deadline = time.monotonic() + 10
+        commits = []
+        while time.monotonic() < deadline:
+            commits = _commits(log_dir, robots)[commits_before:]
+            if {node for _, node, _ in commits} >= set(robots):
+                break
+            time.sleep(0.1)
+        if not commits:
+            raise AutoPowerError(f"demo: no subgroup agreement within 10 s (logs in {log_dir})")
+        snap = team.snapshot()
+        lost = [f for f in snap["faults"][before:] if f["kind"] == "node-left"]
+        detected = max((f["detected_unix"] for f in lost), default=None)
+        faults_out.append({"kind": "cut-all", "target": ",".join(robots) + f"-{base}",
+                           "detected_s": (detected - t_cut) if detected else None,
+                           "reconfigured_s": max(t for t, _, _ in commits) - t_cut,
+                           "subgroup_round": commits[0][2]})
+        _say(quiet, f"demo:   subgroup {commits[0][2]} committed by {len({n for _, n, _ in commits})} robots "
+                    f"{faults_out[-1]['reconfigured_s']:.3f} s after the cut")
+        time.sleep(2.0)
+        for r in robots:
+            faults.apply({"op": "heal", "a": r, "b": base})
+        snap = _wait(team, lambda s: s["ready"] and all(v["present"] for v in s["robots"].values())
+                     and not s["links_down"], 20, "the team back under the base station")
+        _say(quiet, f"demo: healed; the base station adopted {snap.get('adopted', 0)} stage(s) the subgroup ran")
+
+        # 3. the rest of the mission
+        remaining = max(5.0, mission_wall_s + 15 - (time.monotonic() - started))
+        snap = _wait(team, lambda s: bool(s.get("first_depletion")), remaining, "the first robot to run dry")
+        _say(quiet, f"demo: {snap['first_depletion']['robot']} ran dry at t={snap['first_depletion']['t_virtual']:.0f} s")
+        time.sleep(0.6)  # its last status and the base's reaction
+        snap = team.snapshot()
+    finally:
+        codes = team.stop()
+
+    summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=-1.0,
+                        wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(log_dir))
+    sinks = dict(summary["basestation"]["sinks"])
+    for info in summary["robots"].values():
+        sinks.update(info["sinks"])
+    duplicated = sum(s.get("duplicates_total", 0) for s in sinks.values())
+    lost_outputs = sum(max(0, s["max_seq"] + 1 - s["received"]) for s in sinks.values())
+    # energy: metered consumption of each robot against the model's power for the plan it ran
+    errors = [abs(r["power_error"]) for r in summary["robots"].values() if r["power_error"] is not None]
+    result = {
+        "agents": len(robots), "faults": faults_out, "migrations": snap.get("migrations_done", 0),
+        "lost_outputs": lost_outputs, "duplicated_outputs": duplicated, "recording": None,
+        "energy_model_error_pct": (max(errors) * 100.0) if errors else None,
+        "wall_s": time.monotonic() - started, "first_depletion": snap.get("first_depletion"),
+        "adopted": snap.get("adopted", 0), "log_dir": str(log_dir),
+    }
+    if record_dir is not None:
+        result.update(_recording(record_dir, quiet))
+    return result
+
+
+def _recording(record_dir: Path, quiet: bool) -> dict:
+    out: dict = {}
+    try:
+        from autopower.recording.live import merge_run
+        from autopower.recording.replay import replay_summary
+
+        merged = merge_run(record_dir)
+        out["recording"] = str(merged)
+        replay = replay_summary(merged)
+        out["replay"] = replay
+        for key in ("lost_outputs", "duplicated_outputs", "energy_model_error_pct"):
+            if replay.get(key) is not None:
+                out[key] = replay[key]
+        migrations = replay.get("migrations")
+        if isinstance(migrations, dict) and migrations.get("count") is not None:
+            out["migrations"] = migrations["count"]
+    except Exception as exc:  # noqa: BLE001 - the demo's live figures stand without the recording
+        _say(quiet, f"demo: recording/replay unavailable: {exc}")
+        out["recording_error"] = str(exc)
+    return out

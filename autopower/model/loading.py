@@ -1,0 +1,463 @@
+"""Scenario files: a complete, validated description of one mission.
+
+A scenario is TOML (see README "Scenario format"). `load_scenario` turns it into frozen
+dataclasses and rejects anything it does not understand: every error names the file, the field,
+the line where it can be found, what was found and what was expected.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from autopower.errors import ScenarioError
+from autopower.model.network import build_network
+from autopower.model.scenario import (
+    ACCOUNTING_MODES,
+    TOPOLOGIES,
+    Chain,
+    ComponentSpec,
+    LinkSpec,
+    NetworkSpec,
+    Platform,
+    Radio,
+    ReferenceRow,
+    Robot,
+    Scenario,
+    Stage,
+)
+
+
+def builtin_scenarios() -> list[str]:
+    """Names of the scenarios shipped with AutoPower (usable instead of a path)."""
+    folder = resources.files("autopower.scenarios")
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+def resolve_scenario_path(name_or_path: str | Path) -> tuple[str, str]:
+    """Return (display path, TOML text) for a built-in name or a file path."""
+    text_name = str(name_or_path)
+    path = Path(text_name)
+    if path.suffix == ".toml" or path.exists() or "/" in text_name:
+        if not path.is_file():
+            raise ScenarioError(
+                f"{text_name}: no such scenario file. Give a path to a .toml file or one of the "
+                f"built-in names: {', '.join(builtin_scenarios())}"
+            )
+        return str(path), path.read_text(encoding="utf-8")
+    resource = resources.files("autopower.scenarios") / f"{text_name}.toml"
+    if not resource.is_file():
+        raise ScenarioError(
+            f"{text_name!r} is neither a scenario file nor a built-in scenario; built-in: "
+            f"{', '.join(builtin_scenarios())}"
+        )
+    return f"<built-in {text_name}>", resource.read_text(encoding="utf-8")
+
+
+def apply_latency_profile(scenario: Scenario, path: str | Path, platform: str) -> Scenario:
+    """`scenario` with the latencies of a profile file written by `autopower profile` on `platform`."""
+    where, text = resolve_scenario_path(path)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{where}: not valid TOML: {exc}") from None
+    measured = data.get("latency_s")
+    if not isinstance(measured, dict) or not measured:
+        raise ScenarioError(f"{where}: no [latency_s] table; write one with `autopower profile --out FILE`")
+    return scenario.with_latencies(measured, platform, where)
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load and validate a scenario by built-in name (``paper-fig7``) or path."""
+    where, text = resolve_scenario_path(name_or_path)
+    return parse_scenario(text, where)
+
+
+def parse_scenario(text: str, where: str = "<string>") -> Scenario:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{where}: not valid TOML: {exc}. Fix the syntax at that position.") from None
+    return ScenarioParser(data, text, where).scenario()
+
+
+class ScenarioParser:
+    """Walks the TOML tree; every accessor knows its dotted path for error messages."""
+
+    def __init__(self, data: dict, text: str, where: str):
+        self.data = data
+        self.lines = text.splitlines()
+        self.where = where
+
+    # ---- error reporting -------------------------------------------------------------------
+    def fail(self, path: str, problem: str, expected: str) -> ScenarioError:
+        line = self._line_of(path)
+        at = f"{self.where}:{line}" if line else self.where
+        return ScenarioError(f"{at}: {path}: {problem}; expected {expected}")
+
+    def _line_of(self, path: str) -> int | None:
+        """Best-effort line of a dotted path like ``chains[2].period_s`` (tomllib keeps none)."""
+        parts = re.findall(r"([^.\[\]]+)(?:\[(\d+)\])?", path)
+        line = 0
+        for i, (key, index) in enumerate(parts):
+            header = ".".join(k for k, _ in parts[: i + 1])
+            quoted = ".".join(f'"{k}"' if not re.fullmatch(r"[A-Za-z0-9_-]+", k) else k for k, _ in parts[: i + 1])
+            if index:
+                found = self._nth_line(rf"^\s*\[\[\s*{re.escape(header)}\s*\]\]", int(index), line)
+            else:
+                found = self._nth_line(rf"^\s*\[\s*({re.escape(header)}|{re.escape(quoted)})\s*\]", 0, line)
+                if found is None:
+                    found = self._nth_line(rf'^\s*"?{re.escape(key)}"?\s*=', 0, line)
+            if found is not None:
+                line = found
+        return line + 1 if line or parts else None
+
+    def _nth_line(self, pattern: str, n: int, start: int) -> int | None:
+        rx = re.compile(pattern)
+        count = 0
+        for i in range(start, len(self.lines)):
+            if rx.search(self.lines[i]):
+                if count == n:
+                    return i
+                count += 1
+        return None
+
+    # ---- typed accessors ------------------------------------------------------------------
+    def table(self, obj: Any, path: str, allowed: Iterable[str], required: Iterable[str] = ()) -> dict:
+        if not isinstance(obj, dict):
+            raise self.fail(path, f"found {type(obj).__name__} {obj!r}", "a table")
+        allowed = set(allowed)
+        for key in obj:
+            if key not in allowed:
+                raise self.fail(
+                    f"{path}.{key}" if path else key,
+                    "unknown key",
+                    f"one of {', '.join(sorted(allowed))} (check the spelling)",
+                )
+        missing = [key for key in required if key not in obj]
+        if missing:
+            names = ", ".join(repr(k) for k in missing)
+            raise self.fail(path or "(top level)", f"missing required key{'s' if len(missing) > 1 else ''} {names}",
+                            "every one of them (see README, Scenario format)")
+        return obj
+
+    def number(self, obj: dict, key: str, path: str, *, minimum: float | None = None,
+               positive: bool = False, default: float | None = None) -> float:
+        if key not in obj:
+            if default is not None:
+                return default
+            raise self.fail(path, f"missing required key {key!r}", f"{key} = <number>")
+        value = obj[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(f"{path}.{key}", f"found {value!r}", "a number")
+        if positive and not value > 0:
+            raise self.fail(f"{path}.{key}", f"found {value}", "a number > 0")
+        if minimum is not None and value < minimum:
+            raise self.fail(f"{path}.{key}", f"found {value}", f"a number >= {minimum}")
+        return float(value)
+
+    def string(self, obj: dict, key: str, path: str, *, choices: Iterable[str] | None = None,
+               default: str | None = None) -> str:
+        if key not in obj:
+            if default is not None:
+                return default
+            raise self.fail(path, f"missing required key {key!r}", f"{key} = \"...\"")
+        value = obj[key]
+        if not isinstance(value, str) or not value:
+            raise self.fail(f"{path}.{key}", f"found {value!r}", "a non-empty string")
+        if choices is not None and value not in choices:
+            raise self.fail(f"{path}.{key}", f"found {value!r}", f"one of {', '.join(choices)}")
+        return value
+
+    def strings(self, obj: dict, key: str, path: str, *, choices: Iterable[str] | None = None,
+                default: tuple[str, ...] = ()) -> tuple[str, ...]:
+        value = obj.get(key, list(default))
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise self.fail(f"{path}.{key}", f"found {value!r}", "a list of strings")
+        if choices is not None:
+            choices = list(choices)
+            for v in value:
+                if v not in choices:
+                    raise self.fail(f"{path}.{key}", f"found {v!r}", f"one of {', '.join(choices)}")
+        return tuple(value)
+
+    # ---- sections --------------------------------------------------------------------------
+    def scenario(self) -> Scenario:
+        top = self.table(
+            self.data, "",
+            ["scenario", "platforms", "radios", "robots", "basestation", "network", "components",
+             "chains", "reference_rows", "migration"],
+            ["scenario", "platforms", "radios", "robots", "basestation", "network", "components", "chains"],
+        )
+        head = self.table(top["scenario"], "scenario",
+                          ["name", "description", "accounting", "lifetime_rounding_s"], ["name"])
+        platforms = self.platforms(top["platforms"])
+        radios = self.radios(top["radios"])
+        base = self.table(top["basestation"], "basestation", ["name", "platform"], ["name", "platform"])
+        base_name = self.string(base, "name", "basestation")
+        base_platform = self.string(base, "platform", "basestation", choices=list(platforms))
+        robots = self.robots(top["robots"], platforms, base_name)
+        nodes = [r.name for r in robots] + [base_name]
+        network = self.network(top["network"], radios, robots, base_name)
+        components = self.components(top["components"], platforms)
+        chains = self.chains(top["chains"], components, robots, nodes, base_name)
+        rows = self.reference_rows(top.get("reference_rows", []), radios, chains, nodes)
+        migration = self.migration(top.get("migration", {}), components)
+        scenario = Scenario(
+            name=self.string(head, "name", "scenario"),
+            description=str(head.get("description", "")),
+            source_path=self.where,
+            accounting=self.string(head, "accounting", "scenario", choices=ACCOUNTING_MODES, default="paper"),
+            lifetime_rounding_s=self.number(head, "lifetime_rounding_s", "scenario", minimum=0.0, default=0.8),
+            platforms=platforms,
+            radios=radios,
+            robots=robots,
+            basestation=base_name,
+            basestation_platform=base_platform,
+            network_spec=network,
+            components=components,
+            chains=chains,
+            reference_rows=rows,
+            migration=migration,
+        )
+        self.check_routable(scenario)
+        return scenario
+
+    def platforms(self, obj: Any) -> dict[str, Platform]:
+        obj = self.table(obj, "platforms", obj.keys() if isinstance(obj, dict) else [])
+        if not obj:
+            raise self.fail("platforms", "no platform defined", "at least one [platforms.NAME] table")
+        out = {}
+        for name, spec in obj.items():
+            path = f"platforms.{name}"
+            spec = self.table(spec, path, ["idle_w", "busy_w", "mains"])
+            mains = spec.get("mains", False)
+            if not isinstance(mains, bool):
+                raise self.fail(f"{path}.mains", f"found {mains!r}", "true or false")
+            idle = self.number(spec, "idle_w", path, minimum=0.0, default=0.0 if mains else None)
+            busy = self.number(spec, "busy_w", path, minimum=0.0, default=idle if mains else None)
+            if busy < idle:
+                raise self.fail(f"{path}.busy_w", f"busy_w {busy} < idle_w {idle}", "busy_w >= idle_w")
+            out[name] = Platform(name=name, idle_w=idle, busy_w=busy, mains=mains)
+        return out
+
+    def radios(self, obj: Any) -> dict[str, Radio]:
+        obj = self.table(obj, "radios", obj.keys() if isinstance(obj, dict) else [])
+        out = {}
+        for name, spec in obj.items():
+            path = f"radios.{name}"
+            spec = self.table(spec, path, ["kbps", "sleep_w", "send_w", "receive_w"],
+                              ["kbps", "sleep_w", "send_w", "receive_w"])
+            radio = Radio(
+                name=name,
+                kbps=self.number(spec, "kbps", path, positive=True),
+                sleep_w=self.number(spec, "sleep_w", path, minimum=0.0),
+                send_w=self.number(spec, "send_w", path, minimum=0.0),
+                receive_w=self.number(spec, "receive_w", path, minimum=0.0),
+            )
+            # The planner's MILP relies on active power >= sleep power (a radio never saves
+            # energy by transmitting); every real radio satisfies it.
+            for key in ("send_w", "receive_w"):
+                if getattr(radio, key) < radio.sleep_w:
+                    raise self.fail(f"{path}.{key}", f"{key} {getattr(radio, key)} < sleep_w {radio.sleep_w}",
+                                    f"{key} >= sleep_w")
+            out[name] = radio
+        if not out:
+            raise self.fail("radios", "no radio defined", "at least one [radios.NAME] table")
+        return out
+
+    def robots(self, obj: Any, platforms: dict[str, Platform], base: str) -> tuple[Robot, ...]:
+        if not isinstance(obj, list) or not obj:
+            raise self.fail("robots", f"found {obj!r}", "one or more [[robots]] tables")
+        out, seen = [], set()
+        for i, spec in enumerate(obj):
+            path = f"robots[{i}]"
+            spec = self.table(spec, path, ["name", "platform", "energy_j", "sensors"],
+                              ["name", "platform", "energy_j"])
+            name = self.string(spec, "name", path)
+            if name in seen or name == base:
+                raise self.fail(f"{path}.name", f"duplicate node name {name!r}", "unique robot names")
+            seen.add(name)
+            platform = self.string(spec, "platform", path, choices=list(platforms))
+            if platforms[platform].mains:
+                raise self.fail(f"{path}.platform", f"{platform!r} is mains-powered",
+                                "a battery platform for a robot")
+            out.append(Robot(
+                name=name,
+                platform=platform,
+                energy_j=self.number(spec, "energy_j", path, positive=True),
+                sensors=frozenset(self.strings(spec, "sensors", path)),
+            ))
+        return tuple(out)
+
+    def network(self, obj: Any, radios: dict[str, Radio], robots: tuple[Robot, ...], base: str) -> NetworkSpec:
+        path = "network"
+        obj = self.table(obj, path, ["topology", "relay", "laptop_robot_media", "robot_robot_media",
+                                     "links", "analyze_topologies"], ["topology"])
+        topology = self.string(obj, "topology", path, choices=TOPOLOGIES)
+        names = [r.name for r in robots]
+        relay = obj.get("relay")
+        if relay is not None:
+            relay = self.string(obj, "relay", path, choices=names)
+        media = list(radios)
+        lr = self.strings(obj, "laptop_robot_media", path, choices=media)
+        rr = self.strings(obj, "robot_robot_media", path, choices=media)
+        links: list[LinkSpec] = []
+        if topology == "explicit":
+            raw = obj.get("links")
+            if not isinstance(raw, list) or not raw:
+                raise self.fail("network.links", f"found {raw!r}", "[[network.links]] tables for an explicit topology")
+            nodes = names + [base]
+            for i, spec in enumerate(raw):
+                lpath = f"network.links[{i}]"
+                spec = self.table(spec, lpath, ["a", "b", "media", "group"], ["a", "b", "media"])
+                a = self.string(spec, "a", lpath, choices=nodes)
+                b = self.string(spec, "b", lpath, choices=nodes)
+                if a == b:
+                    raise self.fail(lpath, f"link from {a} to itself", "two different nodes")
+                link_media = self.strings(spec, "media", lpath, choices=media)
+                if not link_media:
+                    raise self.fail(f"{lpath}.media", "empty list", "at least one medium")
+                group = self.string(spec, "group", lpath, default=f"{a}-{b}")
+                links.append(LinkSpec(a=a, b=b, media=link_media, group=group))
+            by_group: dict[str, tuple[str, ...]] = {}
+            for i, link in enumerate(links):
+                if by_group.setdefault(link.group, link.media) != link.media:
+                    raise self.fail(f"network.links[{i}].media", f"group {link.group!r} has different media lists",
+                                    "the same candidate media on every link of a group")
+        else:
+            for key, value in (("laptop_robot_media", lr), ("robot_robot_media", rr)):
+                if not value:
+                    raise self.fail(path, f"missing {key}", f"{key} = [\"802.11a\", ...] for topology {topology}")
+        analyze = self.strings(obj, "analyze_topologies", path, choices=TOPOLOGIES, default=(topology,))
+        if "explicit" in analyze and topology != "explicit":
+            raise self.fail("network.analyze_topologies", "explicit listed without links", "named topologies only")
+        return NetworkSpec(topology=topology, relay=relay, laptop_robot_media=lr, robot_robot_media=rr,
+                           links=tuple(links), analyze_topologies=analyze)
+
+    def components(self, obj: Any, platforms: dict[str, Platform]) -> dict[str, ComponentSpec]:
+        obj = self.table(obj, "components", obj.keys() if isinstance(obj, dict) else [])
+        out = {}
+        for name, spec in obj.items():
+            path = f"components.{name}"
+            spec = self.table(spec, path, ["latency_s"], ["latency_s"])
+            lat = self.table(spec["latency_s"], f"{path}.latency_s", platforms)
+            missing = [p for p in platforms if p not in lat]
+            if missing:
+                raise self.fail(f"{path}.latency_s", f"no latency for platform(s) {', '.join(missing)}",
+                                "a latency for every platform (it may run anywhere)")
+            out[name] = ComponentSpec(
+                name=name, latency_s={p: self.number(lat, p, f"{path}.latency_s", positive=True) for p in lat}
+            )
+        return out
+
+    def chains(self, obj: Any, components: dict[str, ComponentSpec], robots: tuple[Robot, ...],
+               nodes: list[str], base: str) -> tuple[Chain, ...]:
+        if not isinstance(obj, list):
+            raise self.fail("chains", f"found {obj!r}", "[[chains]] tables")
+        robot_by_name = {r.name: r for r in robots}
+        out, stage_names = [], set()
+        for i, spec in enumerate(obj):
+            path = f"chains[{i}]"
+            spec = self.table(spec, path, ["name", "source", "sink", "period_s", "component", "stages",
+                                           "message_bytes", "requires", "pin", "hosts"],
+                              ["name", "source", "period_s", "message_bytes"])
+            name = self.string(spec, "name", path)
+            source = self.string(spec, "source", path, choices=list(robot_by_name))
+            sink = self.string(spec, "sink", path, default="source")
+            sink = {"source": source, "operator": base}.get(sink, sink)
+            if sink not in nodes:
+                raise self.fail(f"{path}.sink", f"found {sink!r}",
+                                f"\"source\", \"operator\" or a node: {', '.join(nodes)}")
+            period = self.number(spec, "period_s", path, positive=True)
+            stages = self.stages(spec, path, name, components, nodes)
+            for st in stages:
+                if st.name in stage_names:
+                    raise self.fail(path, f"duplicate stage/chain name {st.name!r}", "unique names")
+                stage_names.add(st.name)
+            sizes = spec["message_bytes"]
+            if (not isinstance(sizes, list) or len(sizes) != len(stages) + 1
+                    or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in sizes)):
+                raise self.fail(f"{path}.message_bytes", f"found {sizes!r}",
+                                f"{len(stages) + 1} non-negative integers (source->first stage, ..., last stage->sink)")
+            requires = frozenset(self.strings(spec, "requires", path))
+            lacking = requires - robot_by_name[source].sensors
+            if lacking:
+                raise self.fail(f"{path}.requires", f"source robot {source} lacks {', '.join(sorted(lacking))}",
+                                f"a source with those sensors (it has {', '.join(sorted(robot_by_name[source].sensors)) or 'none'})")
+            out.append(Chain(name=name, source=source, sink=sink, period_s=period, stages=stages,
+                             message_bytes=tuple(sizes), requires=requires))
+        return tuple(out)
+
+    def stages(self, spec: dict, path: str, chain_name: str, components: dict, nodes: list[str]) -> tuple[Stage, ...]:
+        if ("component" in spec) == ("stages" in spec):
+            raise self.fail(path, "needs exactly one of 'component' or 'stages'",
+                            "component = \"Loc\" for a one-stage chain, or stages = [{name, component}, ...]")
+        if "component" in spec:
+            raw = [{"name": chain_name, "component": spec["component"],
+                    **{k: spec[k] for k in ("pin", "hosts") if k in spec}}]
+        else:
+            raw = spec["stages"]
+            if not isinstance(raw, list) or not raw:
+                raise self.fail(f"{path}.stages", f"found {raw!r}", "a non-empty list of {name, component}")
+            for key in ("pin", "hosts"):
+                if key in spec:
+                    raise self.fail(f"{path}.{key}", "set on a multi-stage chain", f"{key} inside each stage")
+        out = []
+        for j, st in enumerate(raw):
+            spath = f"{path}.stages[{j}]" if "stages" in spec else path
+            st = self.table(st, spath, ["name", "component", "pin", "hosts"], ["name", "component"])
+            pin = st.get("pin")
+            if pin is not None:
+                pin = self.string(st, "pin", spath, choices=nodes)
+            hosts = tuple(self.strings(st, "hosts", spath, choices=nodes)) if "hosts" in st else None
+            out.append(Stage(name=self.string(st, "name", spath),
+                             component=self.string(st, "component", spath, choices=list(components)),
+                             pin=pin, hosts=hosts))
+        return tuple(out)
+
+    def reference_rows(self, obj: Any, radios: dict, chains: tuple[Chain, ...], nodes: list[str]) -> tuple[ReferenceRow, ...]:
+        if not isinstance(obj, list):
+            raise self.fail("reference_rows", f"found {obj!r}", "[[reference_rows]] tables")
+        stages = [s.name for c in chains for s in c.stages]
+        out = []
+        for i, spec in enumerate(obj):
+            path = f"reference_rows[{i}]"
+            spec = self.table(spec, path, ["topology", "laptop_robot", "robot_robot", "allocation", "paper_lifetime_s"],
+                              ["topology", "laptop_robot", "robot_robot", "allocation"])
+            alloc = self.table(spec["allocation"], f"{path}.allocation", stages, stages)
+            for stage, host in alloc.items():
+                if host not in nodes:
+                    raise self.fail(f"{path}.allocation.{stage}", f"found {host!r}", f"one of {', '.join(nodes)}")
+            out.append(ReferenceRow(
+                topology=self.string(spec, "topology", path, choices=TOPOLOGIES[:2]),
+                laptop_robot=self.string(spec, "laptop_robot", path, choices=list(radios)),
+                robot_robot=self.string(spec, "robot_robot", path, choices=list(radios)),
+                allocation=dict(alloc),
+                paper_lifetime_s=(self.number(spec, "paper_lifetime_s", path, positive=True)
+                                  if "paper_lifetime_s" in spec else None),
+            ))
+        return tuple(out)
+
+    def migration(self, obj: Any, components: Mapping[str, ComponentSpec]) -> dict[str, Any]:
+        """What moving a component costs: downtime, CPU, and state bytes per component type."""
+        obj = self.table(obj, "migration", ["downtime_s", "cpu_s", "state_bytes_default", "state_bytes"])
+        out: dict[str, Any] = {k: self.number(obj, k, "migration", minimum=0.0) for k in obj if k != "state_bytes"}
+        if "state_bytes" in obj:
+            sizes = self.table(obj["state_bytes"], "migration.state_bytes", components)
+            out["state_bytes"] = {k: self.number(sizes, k, "migration.state_bytes", minimum=0.0) for k in sizes}
+        return out
+
+    def check_routable(self, scenario: Scenario) -> None:
+        """Every chain must be able to reach its sink on every topology `analyze` explores."""
+        for topology in dict.fromkeys((scenario.network_spec.topology, *scenario.network_spec.analyze_topologies)):
+            network = build_network(scenario, topology=topology)
+            for chain in scenario.chains:
+                if not network.reachable(chain.source, chain.sink):
+                    raise ScenarioError(
+                        f"{self.where}: chain {chain.name}: its sink {chain.sink} cannot be reached from "
+                        f"{chain.source} on the {topology} topology; add a link or change the sink"
+                    )
