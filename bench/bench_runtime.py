@@ -18,7 +18,8 @@ import threading
 import time
 from pathlib import Path
 
-from autopower.agent.node import NodeRuntime, chain_seed
+from autopower.agent.node import NodeRuntime
+from autopower.agent.stages import chain_seed
 from autopower.chains import make_component, make_source
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint, free_ports

@@ -9,9 +9,10 @@ base station: the two talk only through messages.
 """
 
 from autopower.agent.meter import BatteryMeter
-from autopower.agent.node import Lifecycle, NodeRuntime
+from autopower.agent.node import NodeRuntime
 from autopower.agent.process import Agent, AgentConfig
 from autopower.agent.sequencing import SequenceGate, SinkLedger, fold_digest
+from autopower.agent.stages import Lifecycle
 
 __all__ = ["Agent", "AgentConfig", "BatteryMeter", "Lifecycle", "NodeRuntime", "SequenceGate", "SinkLedger",
            "fold_digest"]

@@ -23,21 +23,25 @@ a chain or changes a radio, at the time a decision asked to be revisited (a time
 schedule's next phase) and periodically. The hysteresis (a move must gain enough) is the
 policy's; what stays here is link-state debouncing, which is about facts, not decisions: a link
 counts as down after ``link_down_after_s`` and as back after ``heal_hold_s``.
+
+This module holds the state and the event handlers; the class is assembled from three parts that
+use that state: `deciding.py` (team view -> policy -> target), `placing.py` (target -> assignments
+and migrations, plan updates) and `operating.py` (operator commands, the snapshot).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
-import statistics
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from autopower.basestation.deciding import Baseline, Deciding
 from autopower.basestation.links import LinkStates, pair_name
+from autopower.basestation.operating import Operating
+from autopower.basestation.placing import Migration, Placing
 from autopower.errors import AutoPowerError
-from autopower.model.energy import evaluate, round_lifetime
 from autopower.model.mission_events import MissionEvent
 from autopower.model.network import Network, build_network, media_choices
 from autopower.model.scenario import Scenario
@@ -47,29 +51,13 @@ from autopower.policies import (
     MigrationCosts,
     Policy,
     SchedulePhase,
-    TeamState,
-    base_media,
-    derive_network,
     make_policy,
 )
 from autopower.protocol import (
-    Assign,
-    AutoCommand,
-    ChainCommand,
     Keys,
-    LinkCommand,
-    LinkInfo,
-    MigrateCommand,
-    MigrateOut,
     MissionInfo,
     NodeStatus,
-    OperatorReply,
-    PlanUpdate,
-    Prepare,
-    Prepared,
     Release,
-    SnapshotRequest,
-    StageReady,
     encode,
 )
 from autopower.runtime.bus import Bus
@@ -102,26 +90,7 @@ class CoordinatorConfig:
         _policy_from(self)  # a wrong policy name or parameter fails here, before anything starts
 
 
-@dataclass
-class Migration:
-    stage: str
-    generation: int
-    to_node: str
-    from_node: str | None  # None: a fresh assignment
-    phase: str  # "assigning" | "preparing" | "transferring"
-    started_unix: float
-
-
-@dataclass
-class Baseline:
-    """What the plan predicts for one robot's battery from a starting point."""
-
-    t_virtual: float
-    battery_j: float
-    predicted_w: float
-
-
-class Coordinator:
+class Coordinator(Deciding, Placing, Operating):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time):
         """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it)."""
@@ -294,249 +263,27 @@ class Coordinator:
         self.replan("mission start")
 
     # ---- deciding ---------------------------------------------------------------------------------------
-    def remaining_energies(self) -> dict[str, float]:
-        out = {}
-        for robot in self.robots:
-            status = self.statuses.get(robot)
-            if status is not None and status.battery_j is not None:
-                out[robot] = max(status.battery_j, 1e-6)
-            else:
-                out[robot] = self.scenario.robot(robot).energy_j
-        return out
 
-    def _unavailable(self) -> frozenset[str]:
-        return frozenset(r for r in self.robots if r not in self.alive_nodes())
 
-    def _cut_links(self) -> frozenset[frozenset[str]]:
-        return frozenset(self.links_down | self.operator_cuts)
 
-    def network_in_use(self) -> Network:
-        """The links the team uses now: the media in use, minus what is down, with the radio faults."""
-        return derive_network(self.scenario, self.topology, self.media, self._cut_links(), dict(self.radio_faults),
-                              self._unavailable())
 
-    def _current_allocation(self) -> dict[str, str]:
-        """What runs (or is being made to run): the target, where a stage is not on its way somewhere
-        else, corrected by where it is confirmed to run (e.g. adopted from a returning robot)."""
-        allocation = dict(self.target)
-        for stage, host in self.placement.items():
-            if stage in allocation and stage not in self.migrations:
-                allocation[stage] = host
-        return allocation
 
-    def team_state(self) -> TeamState:
-        """What the policy may know, from the coordinator's view of the team (see the module docstring)."""
-        alive = self.alive_nodes()
-        energies = self.remaining_energies()
-        return TeamState(
-            scenario=self.scenario, time_s=self.now(), network=self.network_in_use(),
-            allocation=self._current_allocation(),
-            energies_j={r: e for r, e in energies.items() if r in alive},
-            disabled_chains=frozenset(self.disabled), unavailable_nodes=self._unavailable(),
-            topology=self.topology, cut_links=self._cut_links(), radio_faults=dict(self.radio_faults),
-            media_locked=bool(self.config.media), accounting=self.scenario.accounting,
-            events=tuple(self._pending_events), migration=self.migration_costs, schedule=self.schedule)
 
-    def _event(self, kind: str, **fields) -> None:
-        """Something the next decision should hear about (`TeamState.events`)."""
-        self._pending_events.append(MissionEvent(at_s=self.now(), kind=kind, **fields))
 
-    def replan(self, reason: str, *, after_rejoin: bool = False) -> bool:
-        """Ask the policy what to run where now, and carry its answer out.
 
-        ``reason`` says why we ask (for the notes); what happened since the last decision travels
-        as events. True when the policy answered (a new configuration, or keep the current one);
-        False when it could not be asked (no mission, robots still to report) or found nothing.
-        """
-        if self.mission is None:
-            return False
-        if self._awaiting_actual and not after_rejoin:
-            # robots are back and have not said what they run yet: decide once they have
-            self.note(f"decision ({reason}) deferred until {', '.join(sorted(self._awaiting_actual))} report")
-            return False
-        if len(self._unavailable()) == len(self.robots):
-            self.note(f"no robot left ({reason}); nothing to run")
-            self.target, self.chosen = {}, {}
-            self.schedule, self.revisit_at_s = (), None
-            self._pending_events.clear()
-            self.reconcile()
-            self.publish_plan()
-            return False
-        state = self.team_state()
-        try:
-            decision = self.policy.decide(state)
-        except AutoPowerError as exc:  # InfeasibleError, or a state the policy rejects
-            self.plan_error = str(exc)
-            self.note(f"decision ({reason}) found nothing feasible: {exc}")
-            return False
-        self.plan_error = None
-        self._pending_events.clear()
-        if decision is None:
-            self._keep(state, reason)
-        else:
-            self._carry_out(decision, reason)
-        return True
 
-    def _keep(self, state: TeamState, reason: str) -> None:
-        """The policy keeps what runs (as the simulator does: no schedule, no revisit)."""
-        self.schedule, self.revisit_at_s = (), None
-        # what the policy would run without the pins (where `migrate --auto` goes back to)
-        self.chosen = {s: self.chosen.get(s, h) if s in self.pins else h for s, h in state.allocation.items()}
-        target = self._with_pins(dict(state.allocation))
-        changed = target != self.target or state.network != self.plan_network
-        self.target, self.plan_network = target, state.network
-        self.note(f"decision ({reason}): policy {self.policy.name} keeps the configuration")
-        self._predict()
-        if changed:  # e.g. a link is gone from (or back in) the routes, nothing moves
-            self.reconcile()
-            self.publish_plan()
 
-    def _carry_out(self, decision: Decision, reason: str) -> None:
-        """The decision's allocation becomes the target (operator pins win), its network the plan's."""
-        self.decision = decision
-        self.schedule = tuple(decision.schedule)
-        at = decision.revisit_at_s
-        # without auto_replan nothing is decided by the clock: no revisit (the schedule still travels)
-        self.revisit_at_s = at if self.config.auto_replan and at is not None and at > self.now() + 1e-6 else None
-        if not self.config.media:
-            self.media.update(base_media(decision.network))
-        self.chosen = dict(decision.allocation)
-        target = self._with_pins(dict(decision.allocation))
-        changed = {s for s in target if self.target.get(s) != target[s]} | (set(self.target) - set(target))
-        network_changed = decision.network != self.plan_network
-        self.target, self.plan_network = target, decision.network
-        self.stage_reasons = {s: why for s, why in {**self.stage_reasons, **decision.stage_reasons}.items()
-                              if s in target}
-        if changed or network_changed:
-            self.replans += 1
-        if decision.reasons:
-            self.decision_reasons = tuple(decision.reasons)
-        for line in decision.reasons:
-            self.note(f"decision ({reason}): {line}")
-        planned = round_lifetime(decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
-        self.note(f"plan ({reason}, policy {decision.policy}): predicted lifetime {planned} s, media "
-                  f"{decision.network.media_by_group()}, {len(changed)} stage(s) to place"
-                  + (f", dropped {', '.join(decision.dropped)}" if decision.dropped else "")
-                  + (f", next decision at t={self.revisit_at_s:.1f}s" if self.revisit_at_s is not None else ""))
-        self._predict()
-        self.reconcile()
-        self.publish_plan()
 
-    def _with_pins(self, allocation: dict[str, str]) -> dict[str, str]:
-        alive = self.alive_nodes()
-        for stage, node in self.pins.items():
-            if stage in allocation and node in alive:
-                allocation[stage] = node
-        return allocation
 
-    def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float]):
-        if network is None or not allocation:
-            return None
-        active = {self.chain_of[s].name for s in allocation}
-        disabled = frozenset(c.name for c in self.scenario.chains if c.name not in active)
-        try:
-            return evaluate(self.scenario, network.without_nodes(
-                {r for r in self.robots if r not in self.alive_nodes()}), allocation,
-                energies_j=energies, disabled_chains=disabled)
-        except AutoPowerError:
-            return None
 
-    def _predict(self) -> None:
-        ev = self._evaluate(self.target, self.plan_network, self.remaining_energies())
-        self.predicted_w = {r: p.total_w for r, p in ev.robots.items()} if ev else {}
-        self.predicted_lifetime_s = ev.lifetime_s if ev else None
-        self.plan_t_virtual = self.now()
-        self._reset_baselines()
-
-    def _reset_baselines(self) -> None:
-        self.baselines.clear()  # re-anchored from the next status that reflects the settled plan
 
     # ---- placement -------------------------------------------------------------------------------------
-    def _next_generation(self) -> int:
-        self.generation += 1
-        return self.generation
 
-    def reconcile(self) -> None:
-        alive = self.alive_nodes()
-        for stage in list(self.placement):
-            if stage not in self.target and stage not in self.migrations:
-                node = self.placement.pop(stage)
-                if node in alive:
-                    self._send(node, Release(stage=stage, generation=self._next_generation()))
-        for stage, want in self.target.items():
-            if stage in self.migrations or self.placement.get(stage) == want or want not in alive:
-                continue
-            have = self.placement.get(stage)
-            chain = self.chain_of[stage]
-            gen = self._next_generation()
-            if have is None or have not in alive:
-                self.placement.pop(stage, None)
-                run, resume = self._run_for(chain)
-                self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.wall())
-                self._send(want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))
-            else:
-                self.migrations[stage] = Migration(stage, gen, want, have, "preparing", self.wall())
-                self._send(want, Prepare(stage=stage, generation=gen, from_node=have))
-        self._update_running()
 
-    def _run_for(self, chain) -> tuple[int, int | None]:
-        """The run a fresh stage instance joins, and the seq it starts at.
 
-        A chain that had stopped entirely (disabled, or its only host died) starts a new run at
-        seq 0; a stage replacing a dead host in a chain that keeps running continues the run
-        from the first input it sees.
-        """
-        names = {s.name for s in chain.stages}
-        busy = any(s in self.placement or s in self.migrations for s in names)
-        if not busy and chain.name not in self.running:
-            self.runs[chain.name] = self.runs.get(chain.name, -1) + 1
-            self.run_live[chain.name] = False
-        return self.runs[chain.name], (None if self.run_live.get(chain.name) else 0)
 
-    def _update_running(self) -> None:
-        running = {}
-        for chain in self.scenario.chains:
-            names = [s.name for s in chain.stages]
-            if names and all(s in self.target and s in self.placement for s in names):
-                running[chain.name] = self.runs[chain.name]
-                self.run_live[chain.name] = True
-        self.running = running
 
-    def on_prepared(self, msg: Prepared) -> None:
-        m = self.migrations.get(msg.stage)
-        if m is None or m.generation != msg.generation or m.phase != "preparing" or msg.node != m.to_node:
-            return
-        m.phase = "transferring"
-        self._send(m.from_node, MigrateOut(stage=msg.stage, generation=m.generation, to_node=m.to_node))
 
-    def on_stage_ready(self, msg: StageReady) -> None:
-        m = self.migrations.get(msg.stage)
-        if m is None or m.generation != msg.generation or msg.node != m.to_node:
-            return
-        del self.migrations[msg.stage]
-        self.placement[msg.stage] = msg.node
-        if m.from_node is None:
-            self.assignments_done += 1
-        else:
-            self.migrations_done += 1
-            self.downtimes_ms.append(msg.downtime_ms)
-            self.migration_log.append({"stage": msg.stage, "from": m.from_node, "to": msg.node,
-                                       "downtime_ms": msg.downtime_ms, "held_inputs": msg.buffered,
-                                       "total_ms": (self.wall() - m.started_unix) * 1e3})
-            log.info("coordinator: %s moved %s -> %s in %.1f ms (%d inputs held)", msg.stage, m.from_node,
-                     msg.node, msg.downtime_ms, msg.buffered)
-        self.reconcile()
-        self.publish_plan()
-
-    def _abort(self, stage: str, why: str) -> None:
-        m = self.migrations.pop(stage)
-        self.aborted += 1
-        self.note(f"{stage}: {m.phase} to {m.to_node} abandoned ({why}); restarting it without state")
-        gen = self._next_generation()
-        for node in {m.to_node, m.from_node} - {None}:
-            if node in self.alive_nodes():
-                self._send(node, Release(stage=stage, generation=gen))
-        self.placement.pop(stage, None)
 
     # ---- events --------------------------------------------------------------------------------------------
     def on_liveliness(self, node: str, alive: bool, detected_unix: float | None = None) -> None:
@@ -623,26 +370,6 @@ class Coordinator:
         if gone:
             self.replan("link change")
 
-    def _check_drift(self, status: NodeStatus) -> None:
-        if not self.config.auto_replan or status.battery_j is None or not self.ready:
-            return
-        if status.plan_epoch != self.epoch or status.node not in self.predicted_w:
-            return
-        base = self.baselines.get(status.node)
-        if base is None:
-            self.baselines[status.node] = Baseline(status.t_virtual, status.battery_j, self.predicted_w[status.node])
-            return
-        elapsed = status.t_virtual - base.t_virtual
-        if elapsed < self.config.drift_min_window_s:
-            return
-        predicted = base.predicted_w * elapsed
-        measured = base.battery_j - status.battery_j
-        if predicted > 0 and abs(measured - predicted) > self.config.drift_tolerance * predicted:
-            self.note(f"{status.node} drew {measured / elapsed:.3f} W, plan said {base.predicted_w:.3f} W")
-            # the battery is off the prediction by this much (negative: emptier than predicted)
-            self._event("energy-offset", robot=status.node, delta_j=predicted - measured)
-            if not self.replan(f"{status.node} battery drift"):
-                self._reset_baselines()
 
     def on_timer(self) -> None:
         now_wall = self.wall()
@@ -667,17 +394,6 @@ class Coordinator:
         if now_wall >= self.next_republish:
             self.publish_plan(repeat=True)
 
-    def _timed_decisions(self) -> None:
-        """The decision a schedule asked for at its phase's end, and the periodic one (no events)."""
-        now = self.now()
-        due_periodic = self.next_periodic_replan is not None and now >= self.next_periodic_replan
-        if self.revisit_at_s is not None and now >= self.revisit_at_s:
-            self.revisit_at_s = None
-            self.next_periodic_replan = now + self.config.replan_interval_s  # this one counts as it
-            self.replan(f"revisit at t={now:.1f}s, as the last decision asked")
-        elif due_periodic:
-            self.next_periodic_replan = now + self.config.replan_interval_s
-            self.replan("periodic, remaining energies")
 
     def next_deadline_unix(self) -> float:
         deadlines = [self.next_republish] + [m.started_unix + self.config.migration_timeout_s
@@ -686,150 +402,13 @@ class Coordinator:
             deadlines.append(self.clock.wall_at(self.revisit_at_s))
         return min(deadlines)
 
-    def publish_plan(self, repeat: bool = False) -> None:
-        if self.mission is None:
-            return
-        if not repeat:
-            self.epoch += 1
-        network = self.plan_network
-        links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
-        update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
-                            running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
-                            predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
-                            policy=self.policy.name, reasons=tuple(self.decision_reasons))
-        payload = encode(update)
-        self.bus.publish(self.keys.plan, payload)
-        self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)
-        self.next_republish = self.wall() + self.config.plan_republish_s
 
     # ---- operator ---------------------------------------------------------------------------------------------
-    def on_operator(self, cmd) -> OperatorReply:
-        try:
-            if isinstance(cmd, SnapshotRequest):
-                return OperatorReply(ok=True, message="snapshot", snapshot=self.snapshot())
-            if self.mission is None:
-                return OperatorReply(ok=False, message="the mission has not started yet (waiting for agents)",
-                                     snapshot=self.snapshot())
-            if isinstance(cmd, ChainCommand):
-                self.scenario.chain(cmd.chain)
-                if cmd.enabled == (cmd.chain not in self.disabled):
-                    return OperatorReply(ok=True, message=f"{cmd.chain} already {'enabled' if cmd.enabled else 'disabled'}")
-                (self.disabled.discard if cmd.enabled else self.disabled.add)(cmd.chain)
-                self._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
-                ok = self.replan(f"operator {'enabled' if cmd.enabled else 'disabled'} {cmd.chain}")
-                return OperatorReply(ok=ok, message=self._summary(ok))
-            if isinstance(cmd, MigrateCommand):
-                self._check_pin(cmd.stage, cmd.to_node)
-                if cmd.to_node not in self.alive_nodes():
-                    return OperatorReply(ok=False, message=f"{cmd.to_node} is not in the team now")
-                if cmd.stage not in self.target:
-                    return OperatorReply(ok=False, message=f"{cmd.stage} does not run now (chain disabled or dropped)")
-                self.pins[cmd.stage] = cmd.to_node
-                self.target[cmd.stage] = cmd.to_node
-                self._predict()
-                self.reconcile()
-                self.publish_plan()
-                return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
-            if isinstance(cmd, AutoCommand):
-                self._clear_pins()
-                ok = self.replan("operator cleared pins")
-                return OperatorReply(ok=ok, message=self._summary(ok))
-            if isinstance(cmd, LinkCommand):
-                self._operator_link(cmd)
-                ok = self.replan(f"operator changed links of {cmd.node}")
-                return OperatorReply(ok=ok, message=self._summary(ok))
-        except AutoPowerError as exc:
-            return OperatorReply(ok=False, message=str(exc))
-        return OperatorReply(ok=False, message=f"unsupported command {type(cmd).__name__}")
 
-    def _clear_pins(self) -> None:
-        """Back to what the policy chose (pinned stages migrate back), then the policy is asked again."""
-        self.pins.clear()
-        self.target = {s: self.chosen.get(s, h) for s, h in self.target.items()}
-        self.reconcile()
 
-    def _operator_link(self, cmd: LinkCommand) -> None:
-        """An operator's link command: a link declared down (a cut link) or a radio change (a radio fault)."""
-        nodes = self.scenario.node_names()
-        for node in (cmd.node, cmd.down_peer):
-            if node is not None and node not in nodes:
-                raise AutoPowerError(f"link command: unknown node {node!r}; nodes: {', '.join(nodes)}")
-        if cmd.down_peer is not None:
-            self.operator_cuts.add(frozenset((cmd.node, cmd.down_peer)))
-            self._event("link-cut", a=cmd.node, b=cmd.down_peer, note="operator")
-            return
-        for medium in (cmd.laptop_robot, cmd.robot_robot):
-            if medium is not None and medium not in self.scenario.radios:
-                raise AutoPowerError(f"link command for {cmd.node}: unknown medium {medium!r}; radios: "
-                                     f"{', '.join(self.scenario.radios)}")
-        if cmd.laptop_robot is None and cmd.robot_robot is None:
-            raise AutoPowerError(f"link command for {cmd.node}: give a medium for its links to the base station "
-                                 "and/or to the robots, or a peer whose link is down")
-        before = self.radio_faults.get(cmd.node, (None, None))
-        self.radio_faults[cmd.node] = (cmd.laptop_robot or before[0], cmd.robot_robot or before[1])
-        self._event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
-                    note="operator")
 
-    def _summary(self, ok: bool) -> str:
-        if not ok:
-            return f"re-plan failed: {self.plan_error or 'no change'}"
-        planned = self.planned_lifetime_s()
-        return (f"re-planned ({self.policy.name}): lifetime {planned} s; target "
-                + ", ".join(f"{s}->{n}" for s, n in self.target.items()))
 
-    def planned_lifetime_s(self) -> float | None:
-        """The last decision's predicted lifetime from its time on (rounded as the scenario says)."""
-        if self.decision is None:
-            return None
-        return round_lifetime(self.decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
 
-    def snapshot(self) -> dict[str, Any]:
-        robots = {}
-        for name in self.robots:
-            st = self.statuses.get(name)
-            robots[name] = {
-                "present": name in self.present, "departed": name in self.departed,
-                "status": _status_dict(st) if st else None,
-                "predicted_w": self.predicted_w.get(name),
-            }
-        return {
-            "scenario": self.scenario.name,
-            "accounting": self.scenario.accounting,
-            "ready": self.ready,
-            "mission": dataclasses.asdict(self.mission) if self.mission else None,
-            "t_virtual": self.now(),
-            "epoch": self.epoch,
-            "placement": dict(self.placement),
-            "target": dict(self.target),
-            "migrating": {s: {"from": m.from_node, "to": m.to_node, "phase": m.phase}
-                          for s, m in self.migrations.items()},
-            "running": dict(self.running),
-            "disabled": sorted(self.disabled),
-            "pins": dict(self.pins),
-            "media": self.plan_network.media_by_group() if self.plan_network else None,
-            "links": [[l.a, l.b, l.medium] for l in self.plan_network.links] if self.plan_network else [],
-            "links_down": sorted(sorted(p) for p in self.links_down),
-            "planned_lifetime_s": self.planned_lifetime_s(),
-            "predicted_lifetime_s": self.predicted_lifetime_s,
-            "reasons": dict(self.stage_reasons),  # stage -> why it runs there
-            "policy": self.policy.name,
-            "decision_reasons": list(self.decision_reasons),
-            "schedule": [{"duration_s": p.duration_s, "allocation": dict(p.allocation),
-                          "media": p.network.media_by_group()} for p in self.schedule],
-            "revisit_at_s": self.revisit_at_s,
-            "plan_error": self.plan_error,
-            "robots": robots,
-            "migrations_done": self.migrations_done,
-            "assignments_done": self.assignments_done,
-            "aborted": self.aborted,
-            "replans": self.replans,
-            "downtime_ms": _stats(self.downtimes_ms),
-            "migration_log": list(self.migration_log),
-            "first_depletion": self.first_depletion,
-            "events": list(self.events),
-            "faults": list(self.faults),
-            "adopted": self.adopted,
-        }
 
 
 def _policy_from(config: CoordinatorConfig) -> Policy:
@@ -840,22 +419,7 @@ def _policy_from(config: CoordinatorConfig) -> Policy:
     return make_policy(config.policy, **dict(config.policy_params))
 
 
-def _stats(values: list[float]) -> dict[str, float] | None:
-    if not values:
-        return None
-    ordered = sorted(values)
-    return {"n": len(values), "mean": statistics.fmean(values), "p50": ordered[len(ordered) // 2],
-            "max": ordered[-1]}
 
 
-def _status_dict(st: NodeStatus) -> dict[str, Any]:
-    return _plain(dataclasses.asdict(st))
 
 
-def _plain(value: Any) -> Any:
-    """Tuples as lists, so that a snapshot is the same after a round trip through msgpack or JSON."""
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value

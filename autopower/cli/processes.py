@@ -24,6 +24,7 @@ from autopower.cli.options import (
 )
 from autopower.errors import AutoPowerError
 from autopower.model.loading import load_scenario
+from autopower.model.network import build_network
 
 
 def run_until_signalled(process, duration: float | None) -> str:
@@ -108,7 +109,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting)
     media_choice = parse_pairs(media, "--media", "laptop-robot=gsm") or None
     if media_choice:
-        scenario.network(topology=topology, media=media_choice)  # unknown group or medium -> ScenarioError
+        build_network(scenario, topology=topology, media=media_choice)  # unknown group or medium -> ScenarioError
     coordinator = CoordinatorConfig(speed=speed, topology=topology, media=media_choice,
                                     pins=parse_pairs(pin, "--pin", "Loc-2=r1"),
                                     auto_replan=not no_replan, replan_interval_s=replan_interval,

@@ -66,7 +66,9 @@ def _json_safe(value):
 def replay(recording, as_json, whatif, at_s, accounting, energy, policy, topology, disable, serve,
            serve_seconds) -> None:
     """Summarise a recorded run (simulated or live), check its invariants, replan what-ifs, view it."""
-    from autopower.recording.replay import load, render_text, summarize, what_if
+    from autopower.recording.replay import load, summarize
+    from autopower.recording.report import render_text
+    from autopower.recording.what_if import what_if
 
     energies = _energy(energy)
     if not whatif and (at_s is not None or accounting or energies or policy or topology or disable):
@@ -109,7 +111,7 @@ def serve_recording(path: str | Path, *, seconds: float | None = None, echo=prin
                     ready_timeout_s: float = 20.0) -> int:
     """Serve `path` in the Rerun web viewer on 127.0.0.1 until Ctrl-C/SIGTERM or `seconds`; returns the
     viewer's exit status. The viewer is stopped by its own pid (SIGTERM, then SIGKILL after 5 s)."""
-    from autopower.recording.recorder import rerun_binary, rerun_env
+    from autopower.recording.merge import rerun_binary, rerun_env
 
     web, grpc = _free_port(), _free_port()
     cmd = [rerun_binary(), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web),

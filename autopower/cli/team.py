@@ -14,6 +14,7 @@ from autopower.cli.live_table import render
 from autopower.cli.options import DEFAULT_SPEED, build_scenario, mission_options, parse_pairs
 from autopower.errors import AutoPowerError
 from autopower.launch.summary import run_summary
+from autopower.model.network import build_network
 
 
 @click.command("up")
@@ -47,7 +48,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting)  # fail fast on bad options
     parse_pairs(pin, "--pin", "Loc-2=r1")
     if media:
-        scenario.network(topology=topology, media=parse_pairs(media, "--media", "laptop-robot=gsm"))
+        build_network(scenario, topology=topology, media=parse_pairs(media, "--media", "laptop-robot=gsm"))
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan, policy=policy,

@@ -32,7 +32,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from autopower.recording.recorder import MERGED_NAME, Recorder, merge_recordings, merge_run, run_recording_id
+from autopower.recording.merge import merge_recordings, merge_run
+from autopower.recording.recorder import MERGED_NAME, Recorder, run_recording_id
 
 __all__ = ["MERGED_NAME", "draw_output", "merge_recordings", "merge_run", "open_recorder", "run_recording_id"]
 

@@ -51,15 +51,12 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
-import subprocess
-import sys
 import threading
 import time
 import uuid
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Callable, Mapping
 
 import msgpack
 
@@ -69,6 +66,7 @@ from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION
 from autopower.recording.telemetry import DECISIONS, MIGRATIONS, Telemetry, component_path, link_path
 
 log = logging.getLogger(__name__)
+
 
 EVENT_TAG = " ~ap"  # human text, then this tag, then one JSON object
 MERGED_NAME = "run.rrd"
@@ -514,73 +512,7 @@ class RecordingBus:
 # ---------------------------------------------------------------------------------------------
 
 
-def rerun_binary() -> str:
-    """The ``rerun`` executable of this environment.
-
-    Prefers the real binary shipped in ``rerun_cli`` over the venv's ``rerun`` (a Python wrapper
-    next to the interpreter, which survives SIGTERM without stopping its child): a process we
-    start must be one we can stop by its own pid. Then the wrapper, then PATH.
-    """
-    try:
-        import rerun_cli
-
-        exe = Path(rerun_cli.__file__).with_name("rerun")
-        if exe.is_file() and os.access(exe, os.X_OK):
-            return str(exe)
-    except ImportError:
-        pass
-    here = Path(sys.executable).parent / "rerun"
-    if here.is_file():
-        return str(here)
-    found = shutil.which("rerun")
-    if found is None:
-        raise AutoPowerError("the 'rerun' command is not installed next to Python or on PATH; "
-                             "install rerun-sdk in this environment")
-    return found
 
 
-def rerun_env() -> dict[str, str]:
-    return {**os.environ, "RERUN_ANALYTICS": "0"}
-
-
-def merge_recordings(files: Iterable[str | Path], out: str | Path, *, timeout_s: float = 60.0) -> Path:
-    """Merge per-process files of one run into `out` with ``rerun rrd merge``.
-
-    Missing or empty files are skipped (a process that died before writing anything); raises
-    `RecordingError` if nothing is left or the merge fails.
-    """
-    from autopower.errors import RecordingError
-
-    out = Path(out)
-    inputs = [str(f) for f in files if Path(f).is_file() and Path(f).stat().st_size > 0
-              and Path(f).resolve() != out.resolve()]
-    if not inputs:
-        raise RecordingError(f"{out}: no per-process recording to merge; check that the processes were "
-                             "started with a recording directory")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".part")
-    cmd = [rerun_binary(), "rrd", "merge", "--continue-on-error", "-o", str(tmp), *inputs]
-    try:
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, env=rerun_env(),
-                              stdin=subprocess.DEVNULL)
-    except subprocess.TimeoutExpired:
-        tmp.unlink(missing_ok=True)
-        raise RecordingError(f"{out}: 'rerun rrd merge' took more than {timeout_s:.0f} s") from None
-    if done.returncode != 0 or not tmp.is_file():
-        tmp.unlink(missing_ok=True)
-        raise RecordingError(f"{out}: 'rerun rrd merge' failed ({done.returncode}): "
-                             f"{(done.stderr or done.stdout).strip()[-400:]}")
-    os.replace(tmp, out)
-    return out
-
-
-def merge_run(run_dir: str | Path) -> Path:
-    """Merge every ``<node>.rrd`` of `run_dir` into ``<run_dir>/run.rrd``."""
-    run_dir = Path(run_dir)
-    files: Sequence[Path] = sorted(p for p in run_dir.glob("*.rrd") if p.name != MERGED_NAME)
-    return merge_recordings(files, run_dir / MERGED_NAME)
-
-
-__all__ = ["EVENT_TAG", "MERGED_NAME", "Recorder", "RecordingBus", "merge_recordings", "merge_run",
-           "output_path", "parse_event", "record_fault", "record_fault_event", "rerun_binary", "run_recording_id",
-           "tag_event"]
+__all__ = ["EVENT_TAG", "MERGED_NAME", "Recorder", "RecordingBus", "output_path", "parse_event", "record_fault",
+           "record_fault_event", "run_recording_id", "tag_event"]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import time
 
-from autopower.agent.node import chain_seed
 from autopower.agent.sequencing import fold_digest
+from autopower.agent.stages import chain_seed
 from autopower.chains import make_component, make_source
 from autopower.errors import AutoPowerError
 from autopower.model.scenario import Scenario

@@ -8,7 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from autopower.recording.recorder import merge_run, run_recording_id
+from autopower.recording.merge import merge_run
+from autopower.recording.recorder import run_recording_id
 from autopower.recording.replay import load, summarize
 from autopower.recording.telemetry import read_recording
 

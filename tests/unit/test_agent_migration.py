@@ -7,8 +7,8 @@ import random
 import msgpack
 import pytest
 
-from autopower.agent.node import Lifecycle, pad
 from autopower.agent.sequencing import SequenceGate, SinkLedger
+from autopower.agent.stages import Lifecycle, pad
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.errors import ProtocolError
 from autopower.model.loading import load_scenario

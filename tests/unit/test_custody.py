@@ -325,7 +325,7 @@ def test_a_migrated_stage_still_knows_which_inputs_came_as_resends():
 
     import msgpack
 
-    from autopower.agent.node import pad
+    from autopower.agent.stages import pad
     from autopower.protocol import MigrateCommand
 
     sc = load_scenario("paper-fig7")

@@ -9,10 +9,10 @@ import pytest
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
 from autopower.protocol import Keys, MigrateCommand, encode
+from autopower.recording.merge import merge_run
 from autopower.recording.recorder import (
     EVENT_TAG,
     Recorder,
-    merge_run,
     output_path,
     parse_event,
     record_fault,

@@ -11,8 +11,9 @@ from autopower.cli.replay import main as replay_main
 from autopower.errors import AutoPowerError, RecordingError
 from autopower.model.loading import load_scenario
 from autopower.model.mission_events import load_events
-from autopower.recording.replay import load, recorded_state, summarize, what_if
+from autopower.recording.replay import load, summarize
 from autopower.recording.telemetry import Telemetry
+from autopower.recording.what_if import recorded_state, what_if
 from autopower.simulation.simulator import simulate
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")

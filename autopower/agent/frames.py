@@ -1,0 +1,200 @@
+"""Frames: sending chain data along the model's routes, receiving it, running stages, sinking results.
+
+A sender takes the shortest-hop route of the current network and puts it in the frame's header;
+every node on the way forwards it and is charged for it. A stage runs each input once, in order
+(its sequence gate); a sink counts each output once (its ledger).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+from autopower.agent.sequencing import SinkLedger
+from autopower.agent.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
+from autopower.errors import ProtocolError
+from autopower.model.scenario import Chain
+from autopower.protocol import (
+    ChainFrame,
+    Packet,
+    StateTransfer,
+    decode,
+    encode,
+)
+
+log = logging.getLogger("autopower.agent.node")  # one logger for the node's parts
+
+
+class Frames:
+    """The node's data plane. Mixed into `NodeRuntime`, whose state it uses."""
+
+    def emit(self, frame: ChainFrame, dest: str) -> None:
+        """Send a frame this node produced, keeping it until its consumer acknowledges it."""
+        frame = dataclasses.replace(frame, floor=self.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
+        self.custody.keep(frame, self.wall())
+        self.send_frame(frame, dest)
+
+    def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0, purpose: str = "chain") -> None:
+        if dest == self.node:
+            self.deliver_frame(frame, forwards)
+            return
+        chain = self.chains[frame.chain]
+        self.send_routed(dest, encode(frame), chain.message_bytes[frame.target], self.weights[chain.name],
+                         purpose, chain.name)
+
+    def send_routed(self, dest: str, body: bytes, charge_bytes: int, weight: float, purpose: str,
+                    chain: str) -> bool:
+        path = self.network.path(self.node, dest) if self.network else None
+        if path is None:
+            if purpose == "migration":
+                self.parked_transfers.append((dest, body, chain))
+                log.info("%s: no route to %s yet for %s's state; parked until a plan routes it", self.node, dest,
+                         chain)
+                return False
+            if purpose == "chain" and chain in self.chains and dest == self.chains[chain].sink:
+                try:
+                    frame = decode(body, ChainFrame)
+                except ProtocolError:
+                    frame = None
+                if frame is not None and frame.target == len(self.chains[chain].stages):
+                    self.hold_output(frame)
+                    return False
+            self.count("unroutable", f"no route from {self.node} to {dest}")
+            return False
+        media = tuple(self.network.medium_between(u, v) for u, v in zip(path, path[1:]))
+        packet = Packet(path=tuple(path), media=media, hop=1, charge_bytes=charge_bytes, weight=weight,
+                        purpose=purpose, chain=chain, body=body)
+        self.meter.charge_radio("send", media[0], charge_bytes, weight, self.now(), purpose)
+        self.send_to(path[1], self.keys.node_data(path[1]), encode(packet))
+        return True
+
+    def on_data(self, payload: bytes) -> None:
+        packet = decode(payload, Packet)
+        if not self.started:
+            self.count("data-before-mission")
+            return
+        if packet.path[packet.hop] != self.node:
+            self.count("misaddressed", f"packet for {packet.path[packet.hop]}")
+            return
+        for medium in packet.media:
+            if medium not in self.scenario.radios:
+                raise ProtocolError(f"packet names unknown medium {medium!r}")
+        now = self.now()
+        self.meter.charge_radio("receive", packet.media[packet.hop - 1], packet.charge_bytes, packet.weight, now,
+                                packet.purpose)
+        if packet.hop < len(packet.path) - 1:  # a relay: pass it on, untouched
+            nxt = Packet(path=packet.path, media=packet.media, hop=packet.hop + 1,
+                         charge_bytes=packet.charge_bytes, weight=packet.weight, purpose=packet.purpose,
+                         chain=packet.chain, body=packet.body)
+            self.meter.charge_radio("send", packet.media[packet.hop], packet.charge_bytes, packet.weight, now,
+                                    packet.purpose)
+            self.send_to(packet.path[packet.hop + 1], self.keys.node_data(packet.path[packet.hop + 1]), encode(nxt))
+            self.tally("forwarded")
+            return
+        body = decode(packet.body, (ChainFrame, StateTransfer))
+        if isinstance(body, StateTransfer):
+            self.on_state(body)
+        else:
+            self.deliver_frame(body)
+
+    def deliver_frame(self, frame: ChainFrame, forwards: int = 0) -> None:
+        chain = self.chains.get(frame.chain)
+        if chain is None or frame.target > len(chain.stages):
+            self.count("unknown-chain", f"{frame.chain} target {frame.target}")
+            return
+        if frame.target == len(chain.stages):
+            self._sink(chain, frame)
+            return
+        stage = chain.stages[frame.target]
+        hosted = self.hosted.get(stage.name)
+        if hosted is None:
+            host = self.plan.placement.get(stage.name) if self.plan else None
+            if host is not None and host != self.node and forwards < MAX_FORWARDS:
+                self.tally("rerouted")
+                self.send_frame(frame, host, forwards + 1)
+            elif host is None and (self.plan is None or frame.chain not in self.plan.running):
+                self.count("inactive-chain", f"{frame.chain} seq {frame.seq} arrived after its chain stopped",
+                           logging.INFO)
+            else:
+                held = self.orphans.setdefault(stage.name, [])
+                if len(held) >= ORPHAN_LIMIT:
+                    self.count("orphan-overflow", f"{stage.name}: dropped seq {frame.seq}", logging.ERROR)
+                    return
+                held.append(frame)
+            return
+        if hosted.lifecycle is Lifecycle.STARTING:
+            hosted.buffer.append(frame)
+        elif hosted.lifecycle is Lifecycle.MIGRATED:
+            if forwards >= MAX_FORWARDS:
+                self.orphans.setdefault(stage.name, []).append(frame)
+                return
+            self.tally("pointer-forwarded")
+            self.send_frame(frame, hosted.forward_to, forwards + 1)
+        else:
+            self._admit(hosted, frame)
+
+    def _admit(self, hosted: HostedStage, frame: ChainFrame) -> None:
+        if frame.run != hosted.run:
+            self.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
+                       logging.INFO)
+            return
+        before, redundant, skipped = hosted.gate.duplicates, hosted.gate.redundant, hosted.gate.skipped
+        for ready in hosted.gate.offer(frame.seq, frame, frame.floor, resent=frame.attempt > 0, now=self.wall()):
+            self._run(hosted, ready)
+        if hosted.gate.duplicates != before:
+            self.count("duplicate-input", f"{hosted.stage.name} seq {frame.seq}", logging.INFO)
+        if hosted.gate.redundant != redundant:
+            self.tally("redundant-input")  # a resent copy of an input that was only late: dropped, as designed
+        if hosted.gate.skipped != skipped:
+            self.count("inputs-given-up", f"{hosted.stage.name}: {hosted.gate.skipped - skipped} input(s) before "
+                       f"seq {hosted.gate.next_seq} never arrived", logging.ERROR)
+
+    def _run(self, hosted: HostedStage, frame: ChainFrame) -> None:
+        chain, index = hosted.chain, hosted.index
+        started = time.perf_counter()
+        try:
+            output = hosted.component.run(frame.data())
+        except Exception as exc:  # a bad input must not kill the agent
+            self.count("run-error", f"{hosted.stage.name} seq {frame.seq}: {exc}", logging.ERROR)
+            return
+        hosted.compute_s += time.perf_counter() - started
+        hosted.runs += 1
+        # a stage started without state recomputes what its lost predecessor may have sent already:
+        # an overhead of the failover, not the plan's steady work
+        recomputed = hosted.gate.catch_up_below is not None and frame.seq < hosted.gate.catch_up_below
+        latency = self.scenario.components[hosted.stage.component].latency_s[self.platform.name]
+        self.meter.charge_run(latency, self.now(), "recovery" if recomputed else "chain")
+        target = index + 1
+        try:
+            payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
+        except ProtocolError as exc:
+            self.count("oversize-output", str(exc), logging.ERROR)
+            return
+        out = ChainFrame(chain=chain.name, run=frame.run, seq=frame.seq, target=target, t_virtual=frame.t_virtual,
+                         t_unix=frame.t_unix, payload_len=len(output), payload=payload, attempt=int(recomputed))
+        dest = chain.sink if target == len(chain.stages) else self.plan.placement.get(chain.stages[target].name)
+        if dest is None:
+            self.count("unplaced-stage", f"{chain.stages[target].name} has no host")
+            return
+        self.emit(out, dest)
+
+    def _sink(self, chain: Chain, frame: ChainFrame) -> None:
+        if chain.sink != self.node:
+            self.count("wrong-sink", f"{chain.name} output reached {self.node}")
+            return
+        ledger = self.sinks.setdefault(chain.name, SinkLedger())
+        latency_ms = (time.time() - frame.t_unix) * 1000.0
+        redundant = ledger.redundant_total
+        if not ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt):
+            if ledger.redundant_total != redundant:
+                self.tally("redundant-output")  # a resent copy of what arrived late: dropped, as designed
+                return
+            self.count("duplicate-output" if frame.run >= ledger.run else "stale-output",
+                       f"{chain.name} run {frame.run} seq {frame.seq}", logging.ERROR)
+        elif frame.attempt:
+            self.tally("recovered-outputs")  # lost in flight, delivered by a resend
+        self.last_output[chain.name] = frame.data()
+        if self.on_output is not None:
+            self.on_output(chain.name, frame.run, frame.seq, frame.data())
+

@@ -1,0 +1,70 @@
+"""What a node hosts: stage instances, source runners, their lifecycle, and frame padding."""
+
+from __future__ import annotations
+
+import enum
+import zlib
+from dataclasses import dataclass, field
+from typing import Any
+
+from autopower.agent.sequencing import SequenceGate
+from autopower.errors import ProtocolError
+from autopower.model.scenario import Chain, Scenario, Stage
+from autopower.protocol import (
+    ChainFrame,
+)
+
+MAX_FORWARDS = 16  # a frame bounced more often than this between pointers is parked instead
+ORPHAN_LIMIT = 256  # frames held for a stage this node is about to host (a transient window)
+HELD_OUTPUT_LIMIT = 512  # results held for a sink out of reach (oldest dropped, counted)
+
+
+class Lifecycle(enum.Enum):
+    STARTING = "starting"
+    RUNNING = "running"
+    DRAINING = "draining"
+    MIGRATED = "migrated"
+
+
+def chain_seed(scenario: Scenario, chain: Chain) -> int:
+    """The same seed on every node, so a source and its component agree on the world."""
+    return zlib.crc32(f"{scenario.name}/{chain.name}".encode())
+
+
+def pad(payload: bytes, size: int, what: str) -> bytes:
+    """Zero-pad a real payload to the chain's declared message size.
+
+    The radios are charged for the declared sizes (the model's), so the bytes on the wire are
+    made exactly that long too; a payload longer than declared is a scenario error.
+    """
+    if len(payload) > size:
+        raise ProtocolError(f"{what}: a real payload of {len(payload)} B exceeds the chain's declared "
+                            f"message_bytes {size}; raise message_bytes in the scenario")
+    return payload + bytes(size - len(payload))
+
+
+@dataclass
+class HostedStage:
+    stage: Stage
+    chain: Chain
+    index: int
+    generation: int
+    lifecycle: Lifecycle
+    run: int = 0
+    component: Any = None
+    gate: SequenceGate = field(default_factory=SequenceGate)
+    buffer: list[ChainFrame] = field(default_factory=list)  # inputs held while STARTING
+    forward_to: str | None = None  # MIGRATED: where late inputs go
+    runs: int = 0
+    compute_s: float = 0.0
+
+
+@dataclass
+class SourceRunner:
+    chain: Chain
+    source: Any
+    run: int
+    next_t: float
+    seq: int = 0
+    missed: int = 0
+    produced_total: int = 0

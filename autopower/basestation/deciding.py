@@ -1,0 +1,233 @@
+"""Deciding: what the policy may know, asking it, and turning its answer into the target placement.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from autopower.errors import AutoPowerError
+from autopower.model.energy import evaluate, round_lifetime
+from autopower.model.mission_events import MissionEvent
+from autopower.model.network import Network
+from autopower.policies import (
+    Decision,
+    TeamState,
+    base_media,
+    derive_network,
+)
+from autopower.protocol import (
+    NodeStatus,
+)
+
+log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
+
+
+@dataclass
+class Baseline:
+    """The coordinator's deciding part: team view -> policy -> target placement. Mixed into `Coordinator`, whose state it uses."""
+
+    t_virtual: float
+    battery_j: float
+    predicted_w: float
+
+
+class Deciding:
+    """Deciding: what the policy may know, asking it, and turning its answer into the target placement. (a part of `Coordinator`)."""
+
+    def remaining_energies(self) -> dict[str, float]:
+        out = {}
+        for robot in self.robots:
+            status = self.statuses.get(robot)
+            if status is not None and status.battery_j is not None:
+                out[robot] = max(status.battery_j, 1e-6)
+            else:
+                out[robot] = self.scenario.robot(robot).energy_j
+        return out
+
+    def _unavailable(self) -> frozenset[str]:
+        return frozenset(r for r in self.robots if r not in self.alive_nodes())
+
+    def _cut_links(self) -> frozenset[frozenset[str]]:
+        return frozenset(self.links_down | self.operator_cuts)
+
+    def network_in_use(self) -> Network:
+        """The links the team uses now: the media in use, minus what is down, with the radio faults."""
+        return derive_network(self.scenario, self.topology, self.media, self._cut_links(), dict(self.radio_faults),
+                              self._unavailable())
+
+    def _current_allocation(self) -> dict[str, str]:
+        """What runs (or is being made to run): the target, where a stage is not on its way somewhere
+        else, corrected by where it is confirmed to run (e.g. adopted from a returning robot)."""
+        allocation = dict(self.target)
+        for stage, host in self.placement.items():
+            if stage in allocation and stage not in self.migrations:
+                allocation[stage] = host
+        return allocation
+
+    def team_state(self) -> TeamState:
+        """What the policy may know, from the coordinator's view of the team (see the module docstring)."""
+        alive = self.alive_nodes()
+        energies = self.remaining_energies()
+        return TeamState(
+            scenario=self.scenario, time_s=self.now(), network=self.network_in_use(),
+            allocation=self._current_allocation(),
+            energies_j={r: e for r, e in energies.items() if r in alive},
+            disabled_chains=frozenset(self.disabled), unavailable_nodes=self._unavailable(),
+            topology=self.topology, cut_links=self._cut_links(), radio_faults=dict(self.radio_faults),
+            media_locked=bool(self.config.media), accounting=self.scenario.accounting,
+            events=tuple(self._pending_events), migration=self.migration_costs, schedule=self.schedule)
+
+    def _event(self, kind: str, **fields) -> None:
+        """Something the next decision should hear about (`TeamState.events`)."""
+        self._pending_events.append(MissionEvent(at_s=self.now(), kind=kind, **fields))
+
+    def replan(self, reason: str, *, after_rejoin: bool = False) -> bool:
+        """Ask the policy what to run where now, and carry its answer out.
+
+        ``reason`` says why we ask (for the notes); what happened since the last decision travels
+        as events. True when the policy answered (a new configuration, or keep the current one);
+        False when it could not be asked (no mission, robots still to report) or found nothing.
+        """
+        if self.mission is None:
+            return False
+        if self._awaiting_actual and not after_rejoin:
+            # robots are back and have not said what they run yet: decide once they have
+            self.note(f"decision ({reason}) deferred until {', '.join(sorted(self._awaiting_actual))} report")
+            return False
+        if len(self._unavailable()) == len(self.robots):
+            self.note(f"no robot left ({reason}); nothing to run")
+            self.target, self.chosen = {}, {}
+            self.schedule, self.revisit_at_s = (), None
+            self._pending_events.clear()
+            self.reconcile()
+            self.publish_plan()
+            return False
+        state = self.team_state()
+        try:
+            decision = self.policy.decide(state)
+        except AutoPowerError as exc:  # InfeasibleError, or a state the policy rejects
+            self.plan_error = str(exc)
+            self.note(f"decision ({reason}) found nothing feasible: {exc}")
+            return False
+        self.plan_error = None
+        self._pending_events.clear()
+        if decision is None:
+            self._keep(state, reason)
+        else:
+            self._carry_out(decision, reason)
+        return True
+
+    def _keep(self, state: TeamState, reason: str) -> None:
+        """The policy keeps what runs (as the simulator does: no schedule, no revisit)."""
+        self.schedule, self.revisit_at_s = (), None
+        # what the policy would run without the pins (where `migrate --auto` goes back to)
+        self.chosen = {s: self.chosen.get(s, h) if s in self.pins else h for s, h in state.allocation.items()}
+        target = self._with_pins(dict(state.allocation))
+        changed = target != self.target or state.network != self.plan_network
+        self.target, self.plan_network = target, state.network
+        self.note(f"decision ({reason}): policy {self.policy.name} keeps the configuration")
+        self._predict()
+        if changed:  # e.g. a link is gone from (or back in) the routes, nothing moves
+            self.reconcile()
+            self.publish_plan()
+
+    def _carry_out(self, decision: Decision, reason: str) -> None:
+        """The decision's allocation becomes the target (operator pins win), its network the plan's."""
+        self.decision = decision
+        self.schedule = tuple(decision.schedule)
+        at = decision.revisit_at_s
+        # without auto_replan nothing is decided by the clock: no revisit (the schedule still travels)
+        self.revisit_at_s = at if self.config.auto_replan and at is not None and at > self.now() + 1e-6 else None
+        if not self.config.media:
+            self.media.update(base_media(decision.network))
+        self.chosen = dict(decision.allocation)
+        target = self._with_pins(dict(decision.allocation))
+        changed = {s for s in target if self.target.get(s) != target[s]} | (set(self.target) - set(target))
+        network_changed = decision.network != self.plan_network
+        self.target, self.plan_network = target, decision.network
+        self.stage_reasons = {s: why for s, why in {**self.stage_reasons, **decision.stage_reasons}.items()
+                              if s in target}
+        if changed or network_changed:
+            self.replans += 1
+        if decision.reasons:
+            self.decision_reasons = tuple(decision.reasons)
+        for line in decision.reasons:
+            self.note(f"decision ({reason}): {line}")
+        planned = round_lifetime(decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
+        self.note(f"plan ({reason}, policy {decision.policy}): predicted lifetime {planned} s, media "
+                  f"{decision.network.media_by_group()}, {len(changed)} stage(s) to place"
+                  + (f", dropped {', '.join(decision.dropped)}" if decision.dropped else "")
+                  + (f", next decision at t={self.revisit_at_s:.1f}s" if self.revisit_at_s is not None else ""))
+        self._predict()
+        self.reconcile()
+        self.publish_plan()
+
+    def _with_pins(self, allocation: dict[str, str]) -> dict[str, str]:
+        alive = self.alive_nodes()
+        for stage, node in self.pins.items():
+            if stage in allocation and node in alive:
+                allocation[stage] = node
+        return allocation
+
+    def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float]):
+        if network is None or not allocation:
+            return None
+        active = {self.chain_of[s].name for s in allocation}
+        disabled = frozenset(c.name for c in self.scenario.chains if c.name not in active)
+        try:
+            return evaluate(self.scenario, network.without_nodes(
+                {r for r in self.robots if r not in self.alive_nodes()}), allocation,
+                energies_j=energies, disabled_chains=disabled)
+        except AutoPowerError:
+            return None
+
+    def _predict(self) -> None:
+        ev = self._evaluate(self.target, self.plan_network, self.remaining_energies())
+        self.predicted_w = {r: p.total_w for r, p in ev.robots.items()} if ev else {}
+        self.predicted_lifetime_s = ev.lifetime_s if ev else None
+        self.plan_t_virtual = self.now()
+        self._reset_baselines()
+
+    def _reset_baselines(self) -> None:
+        self.baselines.clear()  # re-anchored from the next status that reflects the settled plan
+
+    def _check_drift(self, status: NodeStatus) -> None:
+        if not self.config.auto_replan or status.battery_j is None or not self.ready:
+            return
+        if status.plan_epoch != self.epoch or status.node not in self.predicted_w:
+            return
+        base = self.baselines.get(status.node)
+        if base is None:
+            self.baselines[status.node] = Baseline(status.t_virtual, status.battery_j, self.predicted_w[status.node])
+            return
+        elapsed = status.t_virtual - base.t_virtual
+        if elapsed < self.config.drift_min_window_s:
+            return
+        predicted = base.predicted_w * elapsed
+        measured = base.battery_j - status.battery_j
+        if predicted > 0 and abs(measured - predicted) > self.config.drift_tolerance * predicted:
+            self.note(f"{status.node} drew {measured / elapsed:.3f} W, plan said {base.predicted_w:.3f} W")
+            # the battery is off the prediction by this much (negative: emptier than predicted)
+            self._event("energy-offset", robot=status.node, delta_j=predicted - measured)
+            if not self.replan(f"{status.node} battery drift"):
+                self._reset_baselines()
+
+    def _timed_decisions(self) -> None:
+        """The decision a schedule asked for at its phase's end, and the periodic one (no events)."""
+        now = self.now()
+        due_periodic = self.next_periodic_replan is not None and now >= self.next_periodic_replan
+        if self.revisit_at_s is not None and now >= self.revisit_at_s:
+            self.revisit_at_s = None
+            self.next_periodic_replan = now + self.config.replan_interval_s  # this one counts as it
+            self.replan(f"revisit at t={now:.1f}s, as the last decision asked")
+        elif due_periodic:
+            self.next_periodic_replan = now + self.config.replan_interval_s
+            self.replan("periodic, remaining energies")
+
+    def planned_lifetime_s(self) -> float | None:
+        """The last decision's predicted lifetime from its time on (rounded as the scenario says)."""
+        if self.decision is None:
+            return None
+        return round_lifetime(self.decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
+

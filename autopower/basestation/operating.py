@@ -1,0 +1,167 @@
+"""Operating: the operator's commands (chains, pins, link and radio changes) and the team snapshot.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+from typing import Any
+
+from autopower.errors import AutoPowerError
+from autopower.protocol import (
+    AutoCommand,
+    ChainCommand,
+    LinkCommand,
+    MigrateCommand,
+    NodeStatus,
+    OperatorReply,
+    SnapshotRequest,
+)
+
+
+class Operating:
+    """The coordinator's operator part: commands and the snapshot `status` shows. Mixed into `Coordinator`, whose state it uses."""
+
+    def on_operator(self, cmd) -> OperatorReply:
+        try:
+            if isinstance(cmd, SnapshotRequest):
+                return OperatorReply(ok=True, message="snapshot", snapshot=self.snapshot())
+            if self.mission is None:
+                return OperatorReply(ok=False, message="the mission has not started yet (waiting for agents)",
+                                     snapshot=self.snapshot())
+            if isinstance(cmd, ChainCommand):
+                self.scenario.chain(cmd.chain)
+                if cmd.enabled == (cmd.chain not in self.disabled):
+                    return OperatorReply(ok=True, message=f"{cmd.chain} already {'enabled' if cmd.enabled else 'disabled'}")
+                (self.disabled.discard if cmd.enabled else self.disabled.add)(cmd.chain)
+                self._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
+                ok = self.replan(f"operator {'enabled' if cmd.enabled else 'disabled'} {cmd.chain}")
+                return OperatorReply(ok=ok, message=self._summary(ok))
+            if isinstance(cmd, MigrateCommand):
+                self._check_pin(cmd.stage, cmd.to_node)
+                if cmd.to_node not in self.alive_nodes():
+                    return OperatorReply(ok=False, message=f"{cmd.to_node} is not in the team now")
+                if cmd.stage not in self.target:
+                    return OperatorReply(ok=False, message=f"{cmd.stage} does not run now (chain disabled or dropped)")
+                self.pins[cmd.stage] = cmd.to_node
+                self.target[cmd.stage] = cmd.to_node
+                self._predict()
+                self.reconcile()
+                self.publish_plan()
+                return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
+            if isinstance(cmd, AutoCommand):
+                self._clear_pins()
+                ok = self.replan("operator cleared pins")
+                return OperatorReply(ok=ok, message=self._summary(ok))
+            if isinstance(cmd, LinkCommand):
+                self._operator_link(cmd)
+                ok = self.replan(f"operator changed links of {cmd.node}")
+                return OperatorReply(ok=ok, message=self._summary(ok))
+        except AutoPowerError as exc:
+            return OperatorReply(ok=False, message=str(exc))
+        return OperatorReply(ok=False, message=f"unsupported command {type(cmd).__name__}")
+
+    def _clear_pins(self) -> None:
+        """Back to what the policy chose (pinned stages migrate back), then the policy is asked again."""
+        self.pins.clear()
+        self.target = {s: self.chosen.get(s, h) for s, h in self.target.items()}
+        self.reconcile()
+
+    def _operator_link(self, cmd: LinkCommand) -> None:
+        """An operator's link command: a link declared down (a cut link) or a radio change (a radio fault)."""
+        nodes = self.scenario.node_names()
+        for node in (cmd.node, cmd.down_peer):
+            if node is not None and node not in nodes:
+                raise AutoPowerError(f"link command: unknown node {node!r}; nodes: {', '.join(nodes)}")
+        if cmd.down_peer is not None:
+            self.operator_cuts.add(frozenset((cmd.node, cmd.down_peer)))
+            self._event("link-cut", a=cmd.node, b=cmd.down_peer, note="operator")
+            return
+        for medium in (cmd.laptop_robot, cmd.robot_robot):
+            if medium is not None and medium not in self.scenario.radios:
+                raise AutoPowerError(f"link command for {cmd.node}: unknown medium {medium!r}; radios: "
+                                     f"{', '.join(self.scenario.radios)}")
+        if cmd.laptop_robot is None and cmd.robot_robot is None:
+            raise AutoPowerError(f"link command for {cmd.node}: give a medium for its links to the base station "
+                                 "and/or to the robots, or a peer whose link is down")
+        before = self.radio_faults.get(cmd.node, (None, None))
+        self.radio_faults[cmd.node] = (cmd.laptop_robot or before[0], cmd.robot_robot or before[1])
+        self._event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
+                    note="operator")
+
+    def _summary(self, ok: bool) -> str:
+        if not ok:
+            return f"re-plan failed: {self.plan_error or 'no change'}"
+        planned = self.planned_lifetime_s()
+        return (f"re-planned ({self.policy.name}): lifetime {planned} s; target "
+                + ", ".join(f"{s}->{n}" for s, n in self.target.items()))
+
+    def snapshot(self) -> dict[str, Any]:
+        robots = {}
+        for name in self.robots:
+            st = self.statuses.get(name)
+            robots[name] = {
+                "present": name in self.present, "departed": name in self.departed,
+                "status": _status_dict(st) if st else None,
+                "predicted_w": self.predicted_w.get(name),
+            }
+        return {
+            "scenario": self.scenario.name,
+            "accounting": self.scenario.accounting,
+            "ready": self.ready,
+            "mission": dataclasses.asdict(self.mission) if self.mission else None,
+            "t_virtual": self.now(),
+            "epoch": self.epoch,
+            "placement": dict(self.placement),
+            "target": dict(self.target),
+            "migrating": {s: {"from": m.from_node, "to": m.to_node, "phase": m.phase}
+                          for s, m in self.migrations.items()},
+            "running": dict(self.running),
+            "disabled": sorted(self.disabled),
+            "pins": dict(self.pins),
+            "media": self.plan_network.media_by_group() if self.plan_network else None,
+            "links": [[l.a, l.b, l.medium] for l in self.plan_network.links] if self.plan_network else [],
+            "links_down": sorted(sorted(p) for p in self.links_down),
+            "planned_lifetime_s": self.planned_lifetime_s(),
+            "predicted_lifetime_s": self.predicted_lifetime_s,
+            "reasons": dict(self.stage_reasons),  # stage -> why it runs there
+            "policy": self.policy.name,
+            "decision_reasons": list(self.decision_reasons),
+            "schedule": [{"duration_s": p.duration_s, "allocation": dict(p.allocation),
+                          "media": p.network.media_by_group()} for p in self.schedule],
+            "revisit_at_s": self.revisit_at_s,
+            "plan_error": self.plan_error,
+            "robots": robots,
+            "migrations_done": self.migrations_done,
+            "assignments_done": self.assignments_done,
+            "aborted": self.aborted,
+            "replans": self.replans,
+            "downtime_ms": _stats(self.downtimes_ms),
+            "migration_log": list(self.migration_log),
+            "first_depletion": self.first_depletion,
+            "events": list(self.events),
+            "faults": list(self.faults),
+            "adopted": self.adopted,
+        }
+
+
+def _stats(values: list[float]) -> dict[str, float] | None:
+    if not values:
+        return None
+    ordered = sorted(values)
+    return {"n": len(values), "mean": statistics.fmean(values), "p50": ordered[len(ordered) // 2],
+            "max": ordered[-1]}
+
+
+def _status_dict(st: NodeStatus) -> dict[str, Any]:
+    return _plain(dataclasses.asdict(st))
+
+
+def _plain(value: Any) -> Any:
+    """Tuples as lists, so that a snapshot is the same after a round trip through msgpack or JSON."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+

@@ -1,0 +1,141 @@
+"""Placing: closing the gap between the target placement and what nodes confirm, one stage at a time.
+
+Assign a stage with no live host; Prepare -> MigrateOut -> StageReady for a stage that moves;
+abort a migration whose ends vanish. Every confirmed change is published as a PlanUpdate.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+from autopower.protocol import (
+    Assign,
+    LinkInfo,
+    MigrateOut,
+    PlanUpdate,
+    Prepare,
+    Prepared,
+    Release,
+    StageReady,
+    encode,
+)
+
+log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
+
+
+@dataclass
+class Migration:
+    stage: str
+    generation: int
+    to_node: str
+    from_node: str | None  # None: a fresh assignment
+    phase: str  # "assigning" | "preparing" | "transferring"
+    started_unix: float
+
+
+class Placing:
+    """The coordinator's placing part: target placement -> assignments and migrations. Mixed into `Coordinator`, whose state it uses."""
+
+    def _next_generation(self) -> int:
+        self.generation += 1
+        return self.generation
+
+    def reconcile(self) -> None:
+        alive = self.alive_nodes()
+        for stage in list(self.placement):
+            if stage not in self.target and stage not in self.migrations:
+                node = self.placement.pop(stage)
+                if node in alive:
+                    self._send(node, Release(stage=stage, generation=self._next_generation()))
+        for stage, want in self.target.items():
+            if stage in self.migrations or self.placement.get(stage) == want or want not in alive:
+                continue
+            have = self.placement.get(stage)
+            chain = self.chain_of[stage]
+            gen = self._next_generation()
+            if have is None or have not in alive:
+                self.placement.pop(stage, None)
+                run, resume = self._run_for(chain)
+                self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.wall())
+                self._send(want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))
+            else:
+                self.migrations[stage] = Migration(stage, gen, want, have, "preparing", self.wall())
+                self._send(want, Prepare(stage=stage, generation=gen, from_node=have))
+        self._update_running()
+
+    def _run_for(self, chain) -> tuple[int, int | None]:
+        """The run a fresh stage instance joins, and the seq it starts at.
+
+        A chain that had stopped entirely (disabled, or its only host died) starts a new run at
+        seq 0; a stage replacing a dead host in a chain that keeps running continues the run
+        from the first input it sees.
+        """
+        names = {s.name for s in chain.stages}
+        busy = any(s in self.placement or s in self.migrations for s in names)
+        if not busy and chain.name not in self.running:
+            self.runs[chain.name] = self.runs.get(chain.name, -1) + 1
+            self.run_live[chain.name] = False
+        return self.runs[chain.name], (None if self.run_live.get(chain.name) else 0)
+
+    def _update_running(self) -> None:
+        running = {}
+        for chain in self.scenario.chains:
+            names = [s.name for s in chain.stages]
+            if names and all(s in self.target and s in self.placement for s in names):
+                running[chain.name] = self.runs[chain.name]
+                self.run_live[chain.name] = True
+        self.running = running
+
+    def on_prepared(self, msg: Prepared) -> None:
+        m = self.migrations.get(msg.stage)
+        if m is None or m.generation != msg.generation or m.phase != "preparing" or msg.node != m.to_node:
+            return
+        m.phase = "transferring"
+        self._send(m.from_node, MigrateOut(stage=msg.stage, generation=m.generation, to_node=m.to_node))
+
+    def on_stage_ready(self, msg: StageReady) -> None:
+        m = self.migrations.get(msg.stage)
+        if m is None or m.generation != msg.generation or msg.node != m.to_node:
+            return
+        del self.migrations[msg.stage]
+        self.placement[msg.stage] = msg.node
+        if m.from_node is None:
+            self.assignments_done += 1
+        else:
+            self.migrations_done += 1
+            self.downtimes_ms.append(msg.downtime_ms)
+            self.migration_log.append({"stage": msg.stage, "from": m.from_node, "to": msg.node,
+                                       "downtime_ms": msg.downtime_ms, "held_inputs": msg.buffered,
+                                       "total_ms": (self.wall() - m.started_unix) * 1e3})
+            log.info("coordinator: %s moved %s -> %s in %.1f ms (%d inputs held)", msg.stage, m.from_node,
+                     msg.node, msg.downtime_ms, msg.buffered)
+        self.reconcile()
+        self.publish_plan()
+
+    def _abort(self, stage: str, why: str) -> None:
+        m = self.migrations.pop(stage)
+        self.aborted += 1
+        self.note(f"{stage}: {m.phase} to {m.to_node} abandoned ({why}); restarting it without state")
+        gen = self._next_generation()
+        for node in {m.to_node, m.from_node} - {None}:
+            if node in self.alive_nodes():
+                self._send(node, Release(stage=stage, generation=gen))
+        self.placement.pop(stage, None)
+
+    def publish_plan(self, repeat: bool = False) -> None:
+        if self.mission is None:
+            return
+        if not repeat:
+            self.epoch += 1
+        network = self.plan_network
+        links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
+        update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
+                            running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
+                            predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
+                            policy=self.policy.name, reasons=tuple(self.decision_reasons))
+        payload = encode(update)
+        self.bus.publish(self.keys.plan, payload)
+        self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)
+        self.next_republish = self.wall() + self.config.plan_republish_s
+

@@ -1,0 +1,82 @@
+"""Text renderings of a replay summary and a what-if answer (what `autopower replay` prints).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def _s(x: float | None, unit: str = "s", digits: int = 1) -> str:
+    return "—" if x is None else f"{x:,.{digits}f} {unit}"
+
+
+def render_text(summary: dict[str, Any]) -> str:
+    s = summary
+    lines = [f"recording {s['recording']} ({s['kind']}, scenario {s['scenario'] or '?'}, "
+             f"policy {s['policy'] or '—'})",
+             f"mission time {s['mission']['start_s']:,.1f} s → {s['mission']['end_s']:,.1f} s "
+             f"({s['mission']['covered_s']:,.1f} s)", ""]
+    lines.append(f"{'robot':<8}{'initial J':>12}{'final J':>12}{'power W':>10}{'lifetime':>16}")
+    for r, v in s["robots"].items():
+        life = _s(v["lifetime_s"]) + ("" if v["ran_dry_at_s"] is not None else "*")
+        lines.append(f"{r:<8}{v['initial_j']:>12,.0f}{v['final_j']:>12,.0f}"
+                     f"{(v['power_w'] or 0):>10.3f}{life:>16}")
+    fd = s["first_dry"]
+    if fd:
+        lines.append(f"first to run dry: {fd['robot']} at {fd['at_s']:,.1f} s"
+                     + (" (projected at the recorded mean power)" if fd["projected"] else ""))
+    lines.append("* projected")
+    m = s["migrations"]
+    lines += ["", f"decisions: {s['decisions']}; migrations: {m['count']}"
+              + (f", downtime total {m['downtime_ms_total']:.1f} ms, worst {m['downtime_ms_max']:.1f} ms"
+                 if m["downtime_ms_total"] is not None else "")]
+    for mig in m["list"][:20]:
+        lines.append(f"  {mig['t_s']:>10,.1f} s  {mig['text']}")
+    if len(m["list"]) > 20:
+        lines.append(f"  ... {len(m['list']) - 20} more")
+    lines += ["", f"faults: {len(s['faults'])} (times in mission seconds: wall seconds × the speed-up)"]
+    for f in s["faults"]:
+        lines.append(f"  {f['t_s']:>10,.1f} s  {f['kind']:<10} {f['target']:<14} detected "
+                     f"{_s(f['detected_s'], 's', 3)}, reconfigured {_s(f['reconfigured_s'], 's', 3)}  ({f['text']})")
+    e = s["energy"]
+    over = e.get("overhead_j") or {}
+    lines += ["", f"energy: metered {e['metered_j']:,.1f} J, model {_s(e['model_j'], 'J')}, error "
+              + ("—" if e["error_pct"] is None else f"{e['error_pct']:+.2f} %")
+              + (" (metered minus overheads the model leaves out: "
+                 + ", ".join(f"{k} {v:,.2f} J" for k, v in over.items()) + ")" if any(over.values()) else "")]
+    o = s["outputs"]
+    if o["recorded"]:
+        lines.append(f"outputs: {sum(c['outputs'] for c in o['chains'].values())} recorded, "
+                     f"{o['lost']} lost, {o['duplicated']} duplicated; {o.get('resent', 0)} frame(s) resent from "
+                     f"custody after silent losses" + (f", {o['given_up']} given up" if o.get("given_up") else ""))
+    lines += ["", "invariants:"]
+    for inv in s["invariants"]:
+        mark = {True: "ok  ", False: "FAIL", None: "n/a "}[inv["ok"]]
+        lines.append(f"  [{mark}] {inv['name']}: {inv['detail']}")
+    if "what_if" in s:
+        lines += ["", render_what_if(s["what_if"])]
+    return "\n".join(lines)
+
+
+def render_what_if(w: dict[str, Any]) -> str:
+    lines = [f"what if, from the recorded state at {w['at_s']:,.1f} s "
+             f"(settings: {', '.join(f'{k}={v}' for k, v in w['settings'].items() if v)}):"]
+    lines.append("  recorded energies: " + ", ".join(f"{r} {e:,.0f} J" for r, e in w["state"]["energies_j"].items())
+                 + (f"; unavailable: {', '.join(w['unavailable'])}" if w.get("unavailable") else ""))
+    rec, plan_ = w["recorded"], w["plan"]
+    stages = sorted(set(rec["allocation"]) | set(plan_["allocation"]))
+    lines.append(f"  {'stage':<10}{'run did':<12}{'plan':<12}")
+    for st in stages:
+        a, b = rec["allocation"].get(st, "—"), plan_["allocation"].get(st, "—")
+        lines.append(f"  {st:<10}{a:<12}{b:<12}" + ("" if a == b else "  ← moves"))
+    lines.append(f"  lifetime from here: run's allocation {_s(rec['lifetime_s'])}, plan {_s(plan_['lifetime_s'])}"
+                 + ("" if w["gain_s"] is None else f" (gain {w['gain_s']:+,.1f} s)"))
+    if rec["note"]:
+        lines.append(f"  note: {rec['note']}")
+    for chain, why in plan_["dropped_chains"].items():
+        lines.append(f"  dropped {chain}: {why}")
+    if w.get("policy"):
+        p = w["policy"]
+        lines.append(f"  policy {p['name']}: lifetime {_s(p['lifetime_s'])}, first dry {p['first_dry']}, "
+                     f"{p['decisions']} decision(s), {p['migrations']} migration(s) ({p['note']})")
+    return "\n".join(lines)
