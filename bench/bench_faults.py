@@ -99,14 +99,16 @@ def _until(predicate, timeout_s: float) -> bool:
 
 def delivery(snap: dict) -> dict[str, float]:
     """Exactly-once figures over the whole team: what custody resent, what the sinks still lack."""
+    from autopower.launch.summary import lost_outputs, team_sinks
+
     statuses = [v["status"] for v in snap["robots"].values() if v.get("status")]
     if snap.get("basestation"):
         statuses.append(snap["basestation"])
-    sinks = [st for s in statuses for st in s["sinks"].values()]
+    sinks = team_sinks(snap)
     counters = [s["counters"] for s in statuses]
     return {
         "outputs": sum(st["received_total"] for st in sinks),
-        "lost": sum(max(0, st["max_seq"] + 1 - st["received"]) for st in sinks),
+        "lost": lost_outputs(sinks),
         "duplicated": sum(st["duplicates_total"] for st in sinks),
         "redundant": sum(st.get("redundant_total", 0) for st in sinks),
         "resent": sum(c.get("custody-resent", 0) for c in counters),

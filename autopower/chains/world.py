@@ -241,10 +241,6 @@ class LocSource:
         """Ground-truth pose ``[x_m, y_m, theta_rad]`` at step ``seq``."""
         return self.path.pose_at(check_seq(seq) * STEP_M)
 
-    def start_pose(self) -> np.ndarray:
-        """Where the robot starts (pose at seq 0); a localiser may be told this, roughly."""
-        return self.true_pose(0)
-
     def odometry(self, seq: int) -> np.ndarray:
         """Noisy integrated odometry pose at step ``seq`` in the odometry frame (origin = start)."""
         check_seq(seq)

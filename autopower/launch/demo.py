@@ -24,7 +24,7 @@ from datetime import datetime
 from pathlib import Path
 
 from autopower.errors import AutoPowerError
-from autopower.launch.summary import run_summary
+from autopower.launch.summary import lost_outputs, run_summary
 
 log = logging.getLogger(__name__)
 
@@ -165,12 +165,12 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     for info in summary["robots"].values():
         sinks.update(info["sinks"])
     duplicated = sum(s.get("duplicates_total", 0) for s in sinks.values())
-    lost_outputs = sum(max(0, s["max_seq"] + 1 - s["received"]) for s in sinks.values())
+    lost = lost_outputs(sinks.values())
     # energy: metered consumption of each robot against the model's power for the plan it ran
     errors = [abs(r["power_error"]) for r in summary["robots"].values() if r["power_error"] is not None]
     result = {
         "agents": len(robots), "faults": faults_out, "migrations": snap.get("migrations_done", 0),
-        "lost_outputs": lost_outputs, "duplicated_outputs": duplicated, "recording": None,
+        "lost_outputs": lost, "duplicated_outputs": duplicated, "recording": None,
         "energy_model_error_pct": (max(errors) * 100.0) if errors else None,
         "wall_s": time.monotonic() - started, "first_depletion": snap.get("first_depletion"),
         "adopted": snap.get("adopted", 0), "log_dir": str(log_dir),

@@ -46,3 +46,17 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
         "replans": snap.get("replans"), "first_depletion": snap.get("first_depletion"),
         "events": snap.get("events"), "exit_codes": exit_codes or {}, "log_dir": log_dir,
     }
+
+
+def team_sinks(snap: dict) -> list[dict]:
+    """Every sink ledger in a base-station snapshot: the robots' (results held for an unreachable
+    operator) and the base station's."""
+    statuses = [v["status"] for v in snap.get("robots", {}).values() if v.get("status")]
+    if snap.get("basestation"):
+        statuses.append(snap["basestation"])
+    return [ledger for status in statuses for ledger in status.get("sinks", {}).values()]
+
+
+def lost_outputs(sinks) -> int:
+    """Outputs a sink never received: every seq up to the highest one seen should have arrived once."""
+    return sum(max(0, ledger["max_seq"] + 1 - ledger["received"]) for ledger in sinks)

@@ -27,6 +27,25 @@ class Candidate:
     allocation: dict[str, str]
 
 
+def combine(acc: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Every sum of an accumulated row and a new chain's row, in C order: (K, ...) + (M, ...) -> (K*M, ...).
+
+    Adding chains one by one this way enumerates the product of their options; `decode_allocation`
+    turns a flat index of the result back into the options it sums."""
+    return (acc[:, None, ...] + rows[None, ...]).reshape(-1, *acc.shape[1:])
+
+
+def decode_allocation(chains, options: list[list[tuple[str, ...]]], flat_index: int) -> dict[str, str]:
+    """Index into the C-ordered product of per-chain options -> allocation (stage -> host)."""
+    sizes = [len(o) for o in options]
+    picks = np.unravel_index(flat_index, sizes) if sizes else ()
+    allocation = {}
+    for chain, opts, pick in zip(chains, options, picks):
+        for stage, host in zip(chain.stages, opts[int(pick)]):
+            allocation[stage.name] = host
+    return allocation
+
+
 def search_network(problem: Problem, network: Network) -> tuple[LoadSpace, np.ndarray, list[list[tuple[str, ...]]]]:
     """All combinations on one network: (space, loads (K, D), per-chain option lists)."""
     space = LoadSpace(problem.scenario, network, problem.accounting, problem.energies_j)
@@ -35,20 +54,9 @@ def search_network(problem: Problem, network: Network) -> tuple[LoadSpace, np.nd
     for chain in problem.chains:
         opts = problem.options(chain)
         rows = np.array([space.chain_load(chain, o) for o in opts])
-        loads = (loads[:, None, :] + rows[None, :, :]).reshape(-1, space.size)
+        loads = combine(loads, rows)
         options.append(opts)
     return space, loads, options
-
-
-def decode(problem: Problem, options: list[list[tuple[str, ...]]], flat_index: int) -> dict[str, str]:
-    """Index into the C-ordered product of per-chain options -> allocation."""
-    sizes = [len(o) for o in options]
-    picks = np.unravel_index(flat_index, sizes) if sizes else ()
-    allocation = {}
-    for chain, opts, pick in zip(problem.chains, options, picks):
-        for stage, host in zip(chain.stages, opts[int(pick)]):
-            allocation[stage.name] = host
-    return allocation
 
 
 def exhaustive(problem: Problem, max_ties: int = 8) -> list[Candidate]:
@@ -67,7 +75,7 @@ def exhaustive(problem: Problem, max_ties: int = 8) -> list[Candidate]:
             continue
         spread = (space.total_power(loads) / space.energy_j).sum(axis=1)
         for k in np.flatnonzero(life >= best * (1 - TIE_REL)):
-            found.append(Candidate(float(life[k]), float(spread[k]), network, decode(problem, options, int(k))))
+            found.append(Candidate(float(life[k]), float(spread[k]), network, decode_allocation(problem.chains, options, int(k))))
     if not found:
         return []
     top = max(c.lifetime_s for c in found)

@@ -78,7 +78,7 @@ def _by_enumeration(problem: Problem, seeds=()) -> TimeSharingBound:
     columns the LP uses are ever decoded, so 10^5 configurations cost a fraction of a second.
     """
     from autopower.model.energy import load_of
-    from autopower.planner.exhaustive import decode
+    from autopower.planner.exhaustive import decode_allocation
 
     blocks = []
     robots, energies = None, None
@@ -118,7 +118,7 @@ def _by_enumeration(problem: Problem, seeds=()) -> TimeSharingBound:
     for k in chosen:
         block, flat = where[k]
         network, options = blocks[block][0], blocks[block][1]
-        configs.append((network, decode(problem, options, flat), powers[k]))
+        configs.append((network, decode_allocation(problem.chains, options, flat), powers[k]))
     bound = achieved if converged else max(upper, achieved)
     return TimeSharingBound(bound, achieved, converged, _schedule(sol.values, configs, robots), "enumeration")
 

@@ -18,7 +18,7 @@ from autopower.errors import AutoPowerError, InfeasibleError
 from autopower.model.energy import LoadSpace, load_of
 from autopower.model.network import Network
 from autopower.model.scenario import Chain
-from autopower.planner.exhaustive import TIE_REL
+from autopower.planner.exhaustive import TIE_REL, combine, decode_allocation
 from autopower.planner.problem import PlanRequest, make_problem
 from autopower.policies.team import (
     EXHAUSTIVE_UP_TO,
@@ -229,9 +229,9 @@ def enumerate_network(view: DecisionView, network: Network, chains: Sequence[Cha
                     for robot, joules in mv.energy_j.items():
                         if robot in index:
                             crow[k, index[robot]] += joules
-        loads = (loads[:, None, :] + rows[None, :, :]).reshape(-1, space.size)
-        costs = (costs[:, None, :] + crow[None, :, :]).reshape(-1, len(robots))
-        moves = (moves[:, None] + mrow[None, :]).reshape(-1)
+        loads = combine(loads, rows)
+        costs = combine(costs, crow)
+        moves = combine(moves, mrow)
         options.append(opts)
     power = space.total_power(loads)
     energy = np.maximum(space.energy_j[None, :] - costs, 0.0)
@@ -244,13 +244,7 @@ def enumerate_network(view: DecisionView, network: Network, chains: Sequence[Cha
     ties = np.flatnonzero(life >= best * (1 - TIE_REL) - 1e-12)
     spread = (power / space.energy_j).sum(axis=1)
     k = int(min(ties, key=lambda j: (moves[j], spread[j], j)))
-    sizes = [len(o) for o in options]
-    picks = np.unravel_index(k, sizes) if sizes else ()
-    allocation = {}
-    for chain, opts, pick in zip(chains, options, picks):
-        for stage, host in zip(chain.stages, opts[int(pick)]):
-            allocation[stage.name] = host
-    return float(life[k]), float(moves[k]), float(spread[k]), allocation
+    return float(life[k]), float(moves[k]), float(spread[k]), decode_allocation(chains, options, k)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -221,11 +221,6 @@ class Recorder:
             runtime.on_output = both
 
     # ---- time --------------------------------------------------------------------------------------
-    def set_mission(self, mission: Mapping[str, Any]) -> None:
-        """Use this mission clock (``epoch_unix``, ``speed``) before the first plan is seen."""
-        with self._lock:
-            self._set_mission(dict(mission))
-
     def now(self) -> float:
         """Mission time (virtual seconds); 0 until the mission clock is known."""
         if self._clock is not None:

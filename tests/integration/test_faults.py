@@ -15,6 +15,7 @@ import pytest
 from autopower.cli.options import build_scenario
 from autopower.launch.faults import FaultController
 from autopower.launch.localhost import LocalTeam, TeamSpec
+from autopower.launch.summary import lost_outputs, team_sinks
 from tests.integration.runtime_helpers import wait_for
 
 DETECT_S = 1.0
@@ -40,13 +41,8 @@ def _fault(team, controller, request, kind, target):
     return snap, fault["detected_unix"] - t0, fault["reconfigured_unix"] - t0
 
 
-def _sinks(snap) -> list[dict]:
-    statuses = [v["status"] for v in snap["robots"].values() if v.get("status")] + [snap["basestation"]]
-    return [st for status in statuses if status for st in status["sinks"].values()]
-
-
 def _missing_outputs(snap) -> int:
-    return sum(max(0, st["max_seq"] + 1 - st["received"]) for st in _sinks(snap))
+    return lost_outputs(team_sinks(snap))
 
 
 def test_cut_heal_kill_freeze(team):
@@ -70,7 +66,7 @@ def test_cut_heal_kill_freeze(team):
     assert any("is back" in e for e in snap["events"])
     # what was in flight into the dead link was resent from custody: no sink misses an output
     snap = wait_for(team, lambda s: _missing_outputs(s) == 0, 10, "every output of the cut delivered")
-    assert all(st["duplicates_total"] == 0 for st in _sinks(snap))
+    assert all(st["duplicates_total"] == 0 for st in team_sinks(snap))
 
     # SIGKILL: the socket closes, the others say so at once
     snap, detected, reconfigured = _fault(team, controller, {"op": "kill", "robot": "r2"}, "node-left", "r2")
