@@ -171,7 +171,17 @@ def bench_hop(n: int = 300) -> None:
             with ZenohBus(settings) as bus:
                 plan = PlanUpdate(epoch=1, mission=mission(scenario), placement={}, running={},
                                   links=links(scenario), predicted_w={}, predicted_lifetime_s=None, plan_t_virtual=0.0)
-                time.sleep(1.0)  # sessions connect
+                # wait until the agent publishes its status: it is up and connected (a fixed sleep
+                # was too short on a loaded machine, and a plan sent before it is up is never seen)
+                # the agent sends only to nodes it sees (else it relays): be the laptop, alive
+                alive = bus.declare_token(keys.alive("laptop"))  # held until the session closes
+                up = threading.Event()
+                sub = bus.subscribe(keys.status("r1"), lambda k, p: up.set())
+                try:
+                    if not up.wait(60.0):
+                        raise RuntimeError(f"agent r1 sent no status in 60 s; see {tmp}/agent.log")
+                finally:
+                    sub.close()
                 bus.publish(keys.plan, encode(plan))
                 time.sleep(0.3)
                 print(f"{'payload':>9} {'raw p50 ms':>11} {'raw p99':>8} {'agent p50 ms':>13} {'agent p99':>10} "
