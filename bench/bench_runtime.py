@@ -174,7 +174,7 @@ def bench_hop(n: int = 300) -> None:
                 # wait until the agent publishes its status: it is up and connected (a fixed sleep
                 # was too short on a loaded machine, and a plan sent before it is up is never seen)
                 # the agent sends only to nodes it sees (else it relays): be the laptop, alive
-                alive = bus.declare_token(keys.alive("laptop"))  # held until the session closes
+                _laptop_alive = bus.declare_token(keys.alive("laptop"))  # held until the session closes
                 up = threading.Event()
                 sub = bus.subscribe(keys.status("r1"), lambda k, p: up.set())
                 try:
