@@ -160,7 +160,7 @@ class PlacementModel:
         for node in self.nodes:
             if cpu[node]:
                 self.lp.row(cpu[node], -INF, 1.0)
-        radio_limited = self.robots + ([base.basestation] if self.scenario.basestation_radio_limit else [])
+        radio_limited = self.robots + ([self.structure.basestation] if self.scenario.basestation_radio_limit else [])
         for node in radio_limited:
             for medium in self.scenario.radios:
                 key = (node, medium)
