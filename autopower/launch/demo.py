@@ -143,7 +143,10 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         faults_out.append({"kind": "cut", "target": ",".join(f"{r}-{base}" for r in robots),
                            "parts": [f"{r}-{base}" for r in robots],
                            "detected_wall_s": (detected - t_cut) if detected else None,
-                           "reconfigured_wall_s": max(t for t, _, _ in commits) - t_cut,
+                           # the commit point of the two-phase commit: the leader's decision (the
+                           # first "committed" line); members apply it as it reaches them
+                           "reconfigured_wall_s": min(t for t, _, _ in commits) - t_cut,
+                           "applied_by_every_member_wall_s": max(t for t, _, _ in commits) - t_cut,
                            "reconfigured_by": f"subgroup round {commits[0][2]}"})
         _say(quiet, f"demo:   subgroup {commits[0][2]} committed by {len({n for _, n, _ in commits})} robots "
                     f"{faults_out[-1]['reconfigured_wall_s']:.3f} s after the cut")

@@ -39,15 +39,23 @@ def test_demo_json(tmp_path):
     assert shown.returncode == 0, shown.stderr[-3000:]
     replay = json.loads(shown.stdout)
     # the replay of the recording tells the story the demo measured live: the same faults, each
-    # seen and handled at the same wall time within 0.1 s (the recording stamps an event when a
-    # process's recorder sees it, the live figures when the base station's loop handles it)
+    # seen and handled at the same wall time. Detection (the base station losing a robot's
+    # liveliness) and a subgroup's commit (the leader's decision) are stamped by the same process
+    # in both: within 0.1 s. A replan is done when the last robot acknowledges it: the recording
+    # stamps the acknowledgement where it is sent, the live figure when the base station has
+    # heard it (relayed through another robot for r1), so the live one is later by that delivery.
     speed = replay["speed"]
     assert speed == 5.0
     for told, seen in zip(replay["faults"], out["live"]["faults"], strict=True):
         assert told["parts"] == seen["parts"]
         assert told["reconfigured_by"].split()[0] == seen["reconfigured_by"].split()[0]
+        assert abs(told["detected_wall_s"] - seen["detected_wall_s"]) <= 0.1, (told, seen)
+        late = seen["reconfigured_wall_s"] - told["reconfigured_wall_s"]
+        if told["reconfigured_by"].startswith("subgroup"):
+            assert abs(late) <= 0.1, (told, seen)
+        else:
+            assert -0.02 <= late <= 0.3, (told, seen)
         for key in ("detected", "reconfigured"):
-            assert abs(told[f"{key}_wall_s"] - seen[f"{key}_wall_s"]) <= 0.1, (key, told, seen)
             assert told[f"{key}_mission_s"] == pytest.approx(told[f"{key}_wall_s"] * speed)
     # every move is a migration with its real ends: the subgroup's restarts on the robots (from the
     # base station they lost), then the moves back once the base station returns
