@@ -56,7 +56,7 @@ def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdow
     if only == "paper":
         rows = [r for r in rows if r.label.startswith("paper-row-")]
     elif only == "optimal":
-        rows = [r for r in rows if r.label == "optimal"]
+        rows = [r for r in rows if r.label in ("optimal", "infeasible")]  # one row per media pair
     if markdown:
         click.echo(markdown_table(s, rows, normaliser))
         return

@@ -54,8 +54,11 @@ def human_summary(result: dict) -> str:
         what = f"{f['kind']} {parts[0]}" if len(parts) == 1 else f"{f['kind']} {', '.join(parts)} together"
         how = (f["reconfigured_by"] or "").split(" ")[0]
         done = "subgroup committed" if how == "subgroup" else "reconfigured"
+        mission = ""
+        if f.get("detected_mission_s") is not None and f.get("reconfigured_mission_s") is not None:
+            mission = f"; mission time {f['detected_mission_s']:.1f} s, {f['reconfigured_mission_s']:.1f} s"
         lines.append(f"  {what}: detected {_secs(f['detected_wall_s'])}, {done} {_secs(f['reconfigured_wall_s'])} "
-                     f"after the cut (wall clock)")
+                     f"after the cut (wall clock{mission})")
     outputs = f"{result['outputs']} outputs, " if result.get("outputs") is not None else ""
     lines.append(f"  {result['migrations']} migrations; {outputs}{result['lost_outputs']} lost, "
                  f"{result['duplicated_outputs']} duplicated")

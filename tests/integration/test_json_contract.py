@@ -167,3 +167,21 @@ def test_infeasible_pinned_plan_says_what_breaks(env, tmp_path):
     assert result.returncode == 2
     assert "laptop-robot=gsm" in obj["error"] and "r2 radio:gsm utilisation" in obj["error"]
     assert "any media choice" not in obj["error"]
+
+
+def test_analyze_shows_an_infeasible_media_pair_with_its_reason(env, tmp_path):
+    from tests.unit.test_model_options import TINY
+
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY.format(base_extra="limit_radios = true", up_media='["bluetooth", "802.11a"]',
+                                pin='pin = "laptop"', rows=""))
+    result, obj = run(["analyze", str(path), "--json", "--only", "optimal"], env)
+    assert result.returncode == 0, result.stderr
+    rows = {row["media"]["uplink"]: row for row in obj["rows"]}
+    assert rows["bluetooth"]["label"] == "infeasible" and rows["bluetooth"]["lifetime_s"] is None
+    assert "laptop radio:bluetooth utilisation 120.0%" in rows["bluetooth"]["reason"]
+    assert rows["802.11a"]["label"] == "optimal" and rows["802.11a"]["feasible"]
+    text = subprocess.run([AUTOPOWER, "analyze", str(path)], env=env, capture_output=True, text=True, timeout=60)
+    assert text.returncode == 0
+    said = " ".join(text.stdout.split())  # the console wraps long lines
+    assert "explicit uplink=bluetooth, cam-amy=802.11a, cam-zed=802.11a: infeasible: no allocation meets" in said
