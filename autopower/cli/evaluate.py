@@ -42,6 +42,10 @@ def placement(scenario: Scenario, network: Network, given: dict[str, str]) -> tu
             elif stage.pin:
                 host = stage.pin
                 notes.append(f"{stage.name}: not given; runs on {host}, where the scenario pins it")
+            elif stage.hosts and chain.source not in stage.hosts:
+                host = stage.hosts[0]
+                notes.append(f"{stage.name}: not given; runs on {host}, the first host the scenario allows "
+                             f"(its source {chain.source} is not among them)")
             else:
                 host = chain.source
                 notes.append(f"{stage.name}: not given; runs at its source {host}")
