@@ -56,7 +56,7 @@ def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdow
     if only == "paper":
         rows = [r for r in rows if r.label.startswith("paper-row-")]
     elif only == "optimal":
-        rows = [r for r in rows if r.label == "optimal"]
+        rows = [r for r in rows if r.label in ("optimal", "infeasible")]  # one row per media pair
     if markdown:
         click.echo(markdown_table(s, rows, normaliser))
         return
@@ -79,8 +79,16 @@ def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdow
         paper = f"{row.paper_lifetime_s:.1f}" if row.paper_lifetime_s else ""
         style = "bold green" if d["label"] == "optimal" else None
         table.add_row(d["topology"], d["laptop_robot_medium"] or "-", d["robot_robot_medium"] or "-", d["label"],
-                      life, norm, *[d["allocation"][st] for st in stages], d["bottleneck"] or "-", paper, style=style)
+                      life, norm, *[d["allocation"].get(st, "-") for st in stages], d["bottleneck"] or "-", paper,
+                      style=style)
     console.print(table)
+    for row in rows:
+        if row.reason:
+            console.print(f"{row.topology} {_media_text(row.media)}: infeasible: {row.reason}")
+
+
+def _media_text(media: dict[str, str]) -> str:
+    return ", ".join(f"{g}={m}" for g, m in media.items())
 
 
 def markdown_table(s: Scenario, rows, normaliser) -> str:
@@ -93,7 +101,7 @@ def markdown_table(s: Scenario, rows, normaliser) -> str:
         d = row.to_dict(normaliser)
         cells = [d["topology"], d["laptop_robot_medium"] or "-", d["robot_robot_medium"] or "-", d["label"],
                  f"{d['lifetime_s']:.1f}" if d["lifetime_s"] else "infeasible",
-                 f"{d['normalized']:.2f}" if d["normalized"] else "", *[d["allocation"][st] for st in stages],
+                 f"{d['normalized']:.2f}" if d["normalized"] else "", *[d["allocation"].get(st, "-") for st in stages],
                  d["bottleneck"] or "-"]
         if "paper (s)" in head:
             cells.append(f"{row.paper_lifetime_s:.1f}" if row.paper_lifetime_s else "")

@@ -35,19 +35,48 @@ def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy):
     result = run_demo(speed=speed, mission_wall_s=mission_wall_s, lease_ms=lease_ms, log_dir=directory,
                       record=not no_record, quiet=as_json, policy=policy)
     if as_json:
-        slim = {k: v for k, v in result.items() if k != "replay"}
+        slim = {k: v for k, v in result.items() if k != "replay"}  # the full replay: `autopower replay`
         click.echo(json.dumps(slim, default=str))
         return
-    click.echo(f"demo finished in {result['wall_s']:.1f} s; logs in {result['log_dir']}")
+    click.echo(human_summary(result))
+
+
+def _secs(x: float | None, digits: int = 2) -> str:
+    return "—" if x is None else f"{x:.{digits}f} s"
+
+
+def human_summary(result: dict) -> str:
+    """A few readable lines: what happened, rounded to what matters."""
+    source = "the replay of its recording" if result["source"] == "recording" else "live measurements"
+    lines = [f"demo finished in {result['wall_s']:.0f} s (summary from {source}; logs in {result['log_dir']})"]
     for f in result["faults"]:
-        click.echo(f"  {f['kind']:<8} {f['target']:<22} detected {f['detected_s'] or float('nan'):.3f} s  "
-                   f"reconfigured {f['reconfigured_s']:.3f} s")
-    click.echo(f"  migrations {result['migrations']}, lost outputs {result['lost_outputs']}, duplicated "
-               f"{result['duplicated_outputs']}, energy model error {result['energy_model_error_pct']}")
+        parts = f["parts"]
+        what = f"{f['kind']} {parts[0]}" if len(parts) == 1 else f"{f['kind']} {', '.join(parts)} together"
+        how = (f["reconfigured_by"] or "").split(" ")[0]
+        done = "subgroup committed" if how == "subgroup" else "reconfigured"
+        mission = ""
+        if f.get("detected_mission_s") is not None and f.get("reconfigured_mission_s") is not None:
+            mission = f"; mission time {f['detected_mission_s']:.1f} s, {f['reconfigured_mission_s']:.1f} s"
+        lines.append(f"  {what}: detected {_secs(f['detected_wall_s'])}, {done} {_secs(f['reconfigured_wall_s'])} "
+                     f"after the cut (wall clock{mission})")
+    outputs = f"{result['outputs']} outputs, " if result.get("outputs") is not None else ""
+    lines.append(f"  {result['migrations']} migrations; {outputs}{result['lost_outputs']} lost, "
+                 f"{result['duplicated_outputs']} duplicated")
+    error = result.get("energy_model_error_pct")
+    if error is not None:
+        recovery = result.get("recovery_j")
+        lines.append(f"  energy: metered within {abs(error):.1f} % of the model"
+                     + (f" (recovery after the cuts: {recovery:.0f} J, set apart)" if recovery else ""))
+    dry = result.get("first_dry")
+    if dry:
+        lines.append(f"  first to run dry: {dry['robot']} at {dry['at_s']:.0f} s mission time"
+                     + (" (projected)" if dry.get("projected") else ""))
     if result.get("recording"):
-        click.echo(f"  recording: {result['recording']}  (autopower replay {result['recording']})")
-    if result.get("replay"):
-        click.echo(json.dumps(result["replay"], indent=1, default=str))
+        lines.append(f"  recording: {result['recording']}")
+        lines.append(f"  full story: autopower replay {result['recording']}")
+    elif result.get("recording_error"):
+        lines.append(f"  recording unavailable: {result['recording_error']}")
+    return "\n".join(lines)
 
 
 COMMANDS = [demo]

@@ -1,7 +1,14 @@
-"""How every `autopower` entry point reports errors: one line, exit 2, never a traceback."""
+"""How every `autopower` entry point reports errors: one line, exit 2, never a traceback.
+
+The JSON contract (README "JSON output"): a command run with `--json` prints exactly one JSON
+object on stdout, also when it fails. On failure that object is `{"error": "<the one line>",
+"exit_code": N}`; the same line goes to stderr as `error: ...` and the exit status is the
+usual one (2 for bad input, 130 when interrupted, 1 for a bug, whose traceback stays on stderr).
+"""
 
 from __future__ import annotations
 
+import json
 import sys
 
 import click
@@ -9,18 +16,34 @@ import click
 from autopower.errors import AutoPowerError
 
 
+def _json_error(wanted: bool, message: str, exit_code: int) -> None:
+    if wanted:
+        click.echo(json.dumps({"error": message, "exit_code": exit_code}))
+
+
 def run_command(command: click.Command, args: list[str] | None = None, prog_name: str | None = None) -> None:
     """Run a click command the way users meet it: AutoPowerError -> "error: ..." and exit 2."""
+    argv = list(sys.argv[1:] if args is None else args)
+    # Options after "--" are arguments, not flags.
+    as_json = "--json" in (argv[:argv.index("--")] if "--" in argv else argv)
     try:
-        command.main(args=args, prog_name=prog_name, standalone_mode=False)
+        command.main(args=argv, prog_name=prog_name, standalone_mode=False)
     except click.exceptions.Abort:
+        _json_error(as_json, "aborted", 130)
         click.echo("aborted", err=True)
         sys.exit(130)
     except click.ClickException as exc:
+        _json_error(as_json, exc.format_message(), exc.exit_code)
         exc.show()
         sys.exit(exc.exit_code)
     except AutoPowerError as exc:
+        _json_error(as_json, str(exc), 2)
         click.echo(f"error: {exc}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:
+        _json_error(as_json, "interrupted", 130)
         sys.exit(130)
+    except Exception as exc:
+        # A bug: the traceback is for the developer (stderr), the object for whoever parses stdout.
+        _json_error(as_json, f"internal error: {type(exc).__name__}: {exc}", 1)
+        raise

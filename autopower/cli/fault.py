@@ -76,7 +76,9 @@ def fault_radio(robot, laptop, robot_medium, as_json):
 
 
 @fault.command("list")
-def fault_list():
+@click.option("--json", "as_json", is_flag=True, help="Accepted for uniformity: the answer is always JSON "
+                                                        "(with it, a failure is JSON on stdout too).")
+def fault_list(as_json):
     """The faults injected so far and the state of every link, as JSON."""
     click.echo(json.dumps(request_fault({"op": "list"}), indent=1))
 

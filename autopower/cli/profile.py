@@ -47,7 +47,7 @@ def profile(runs: int, out: str | None, as_json: bool) -> None:
         lines += [f"{name} = [{r['input_bytes_max']}, {r['output_bytes_max']}]" for name, r in result.items()]
         with open(out, "w", encoding="utf-8") as fh:
             fh.write("\n".join(lines) + "\n")
-        console.print(f"wrote {out}")
+        click.echo(f"wrote {out}", err=as_json)
 
 
 COMMANDS = (profile,)

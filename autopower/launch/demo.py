@@ -99,6 +99,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         _say(quiet, f"demo: base station + {len(robots)} agents (team {team.team}, logs in {log_dir}), "
                     f"speed {speed:g}x, mission ~{mission_wall_s:g} s, policy {policy}")
         team.wait_ready(60)
+        mission_started = time.monotonic()  # batteries drain from here; start-up under load varies
         faults = FaultController(team)
         time.sleep(3.0)
 
@@ -108,10 +109,12 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         _say(quiet, f"demo: cut r1-{base}")
         snap = _wait(team, lambda s: _handled(s, before, "link-down"), 10, "the cut to be handled")
         fault = _handled(snap, before, "link-down")[0]
-        faults_out.append({"kind": "cut", "target": f"r1-{base}", "detected_s": fault["detected_unix"] - t_cut,
-                           "reconfigured_s": fault["reconfigured_unix"] - t_cut})
-        _say(quiet, f"demo:   detected after {faults_out[-1]['detected_s']:.3f} s, reconfigured after "
-                    f"{faults_out[-1]['reconfigured_s']:.3f} s; r1 present: {snap['robots']['r1']['present']}")
+        faults_out.append({"kind": "cut", "target": f"r1-{base}", "parts": [f"r1-{base}"],
+                           "detected_wall_s": fault["detected_unix"] - t_cut,
+                           "reconfigured_wall_s": fault["reconfigured_unix"] - t_cut,
+                           "reconfigured_by": f"plan epoch {fault['epoch']}"})
+        _say(quiet, f"demo:   detected after {faults_out[-1]['detected_wall_s']:.3f} s, reconfigured after "
+                    f"{faults_out[-1]['reconfigured_wall_s']:.3f} s; r1 present: {snap['robots']['r1']['present']}")
         time.sleep(1.5)
         faults.apply({"op": "heal", "a": "r1", "b": base})
         _wait(team, lambda s: not s["links_down"] and s["ready"], 15, "the healed link back in the plan")
@@ -137,12 +140,16 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         snap = team.snapshot()
         lost = [f for f in snap["faults"][before:] if f["kind"] == "node-left"]
         detected = max((f["detected_unix"] for f in lost), default=None)
-        faults_out.append({"kind": "cut-all", "target": ",".join(robots) + f"-{base}",
-                           "detected_s": (detected - t_cut) if detected else None,
-                           "reconfigured_s": max(t for t, _, _ in commits) - t_cut,
-                           "subgroup_round": commits[0][2]})
+        faults_out.append({"kind": "cut", "target": ",".join(f"{r}-{base}" for r in robots),
+                           "parts": [f"{r}-{base}" for r in robots],
+                           "detected_wall_s": (detected - t_cut) if detected else None,
+                           # the commit point of the two-phase commit: the leader's decision (the
+                           # first "committed" line); members apply it as it reaches them
+                           "reconfigured_wall_s": min(t for t, _, _ in commits) - t_cut,
+                           "applied_by_every_member_wall_s": max(t for t, _, _ in commits) - t_cut,
+                           "reconfigured_by": f"subgroup round {commits[0][2]}"})
         _say(quiet, f"demo:   subgroup {commits[0][2]} committed by {len({n for _, n, _ in commits})} robots "
-                    f"{faults_out[-1]['reconfigured_s']:.3f} s after the cut")
+                    f"{faults_out[-1]['reconfigured_wall_s']:.3f} s after the cut")
         time.sleep(2.0)
         for r in robots:
             faults.apply({"op": "heal", "a": r, "b": base})
@@ -151,7 +158,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         _say(quiet, f"demo: healed; the base station adopted {snap.get('adopted', 0)} stage(s) the subgroup ran")
 
         # 3. the rest of the mission
-        remaining = max(5.0, mission_wall_s + 15 - (time.monotonic() - started))
+        remaining = max(5.0, mission_wall_s + 15 - (time.monotonic() - mission_started))
         snap = _wait(team, lambda s: bool(s.get("first_depletion")), remaining, "the first robot to run dry")
         _say(quiet, f"demo: {snap['first_depletion']['robot']} ran dry at t={snap['first_depletion']['t_virtual']:.0f} s")
         time.sleep(0.6)  # its last status and the base's reaction
@@ -168,12 +175,17 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     lost = lost_outputs(sinks.values())
     # energy: metered consumption of each robot against the model's power for the plan it ran
     errors = [abs(r["power_error"]) for r in summary["robots"].values() if r["power_error"] is not None]
+    live = {"faults": faults_out, "migrations": snap.get("migrations_done", 0), "lost_outputs": lost,
+            "duplicated_outputs": duplicated,
+            "energy_model_error_pct": (max(errors) * 100.0) if errors else None,
+            "first_depletion": snap.get("first_depletion")}
     result = {
-        "agents": len(robots), "faults": faults_out, "migrations": snap.get("migrations_done", 0),
-        "lost_outputs": lost, "duplicated_outputs": duplicated, "recording": None,
-        "energy_model_error_pct": (max(errors) * 100.0) if errors else None,
-        "wall_s": time.monotonic() - started, "first_depletion": snap.get("first_depletion"),
-        "adopted": snap.get("adopted", 0), "log_dir": str(log_dir),
+        "agents": len(robots), "wall_s": time.monotonic() - started, "log_dir": str(log_dir),
+        "adopted": snap.get("adopted", 0), "first_depletion": snap.get("first_depletion"), "live": live,
+        # without a recording the live measurements are all there is
+        "source": "live", "recording": None, "faults": faults_out, "migrations": live["migrations"],
+        "lost_outputs": lost, "duplicated_outputs": duplicated,
+        "energy_model_error_pct": live["energy_model_error_pct"],
     }
     if record_dir is not None:
         result.update(_recording(record_dir, quiet))
@@ -181,6 +193,8 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
 
 
 def _recording(record_dir: Path, quiet: bool) -> dict:
+    """The run's story as the replay of its recording tells it (one source of truth for the
+    summary, the same code as `autopower replay`)."""
     out: dict = {}
     try:
         from autopower.recording.live import merge_run
@@ -189,14 +203,30 @@ def _recording(record_dir: Path, quiet: bool) -> dict:
         merged = merge_run(record_dir)
         out["recording"] = str(merged)
         replay = replay_summary(merged)
-        out["replay"] = replay
-        for key in ("lost_outputs", "duplicated_outputs", "energy_model_error_pct"):
-            if replay.get(key) is not None:
-                out[key] = replay[key]
-        migrations = replay.get("migrations")
-        if isinstance(migrations, dict) and migrations.get("count") is not None:
-            out["migrations"] = migrations["count"]
     except Exception as exc:  # noqa: BLE001 - the demo's live figures stand without the recording
         _say(quiet, f"demo: recording/replay unavailable: {exc}")
         out["recording_error"] = str(exc)
+        return out
+    out.update(story_from_replay(replay))
+    out["replay"] = replay
     return out
+
+
+def story_from_replay(replay: dict) -> dict:
+    """The demo's summary fields, computed from a replay summary."""
+    dry = replay.get("first_dry")
+    return {
+        "source": "recording",
+        "faults": [{key: f[key] for key in ("kind", "target", "parts", "at_mission_s", "detected_wall_s",
+                                            "reconfigured_wall_s", "detected_mission_s", "reconfigured_mission_s",
+                                            "reconfigured_by")}
+                   for f in replay["faults"]],
+        "migrations": replay["migrations"]["count"],
+        "migration_downtime_ms_max": replay["migrations"]["downtime_ms_max"],
+        "lost_outputs": replay["lost_outputs"],
+        "duplicated_outputs": replay["duplicated_outputs"],
+        "outputs": sum(c["outputs"] for c in replay["outputs"]["chains"].values()),
+        "energy_model_error_pct": replay["energy_model_error_pct"],
+        "recovery_j": replay["energy"]["overhead_j"].get("recovery"),
+        "first_dry": dry,
+    }

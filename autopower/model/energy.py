@@ -7,7 +7,8 @@ Rules (../shared/paper/model-notes.md, which reproduce the paper's Fig. 7 exactl
   nothing (mains).
 - A node has one radio per medium among its links; each draws sleep_w * (1 - busy) plus its
   send/receive energy. u > 1 or busy > 1 makes an allocation infeasible.
-- Lifetime = min over robots of energy / power, rounded to the scenario's 0.8 s.
+- Lifetime = min over robots of energy / power, rounded to the nearest multiple of the
+  scenario's 0.8 s, halves up (`round_lifetime`); the raw value is kept beside it.
 - "paper" accounting charges every flow one message per second (the paper's quirk);
   "physical" charges 1/period messages per second.
 
@@ -17,7 +18,9 @@ turns a batch of load vectors into power, and both `evaluate` and the planners u
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from decimal import ROUND_HALF_UP, Decimal
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -49,9 +52,17 @@ def flow_weight(chain: Chain, accounting: str) -> float:
 
 
 def round_lifetime(lifetime_s: float, quantum_s: float) -> float:
+    """The nearest multiple of quantum_s; a lifetime exactly halfway rounds up (away from zero).
+
+    The division is done in decimal on the numbers as written (repr), so a half stays a half:
+    2.0 s to 0.8 s is 2.5 quanta -> 2.4 s (binary floats would see 2.4999... and Python's
+    `round` would send halves to the even multiple). quantum_s <= 0 means no rounding.
+    """
     if quantum_s <= 0 or not np.isfinite(lifetime_s):
         return lifetime_s
-    return round(round(lifetime_s / quantum_s) * quantum_s, 6)
+    quanta = (Decimal(repr(float(lifetime_s))) / Decimal(repr(float(quantum_s)))).quantize(
+        Decimal(1), rounding=ROUND_HALF_UP)
+    return float(quanta * Decimal(repr(float(quantum_s))))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -79,6 +90,11 @@ class LoadSpace:
         self.size = n + 2 * n * m
         self._send0, self._recv0 = n, n + n * m
         self.robot_rows = np.array([self.node_index[r] for r in self.robots], dtype=int)
+        # Nodes whose radios may be at most 100 % busy: the robots, and the base station too when
+        # the scenario limits its radios (off by default: the paper leaves them unlimited).
+        limited = self.robots + ([network.basestation] if scenario.basestation_radio_limit
+                                 and network.basestation in self.node_index else [])
+        self.radio_limited_rows = np.array([self.node_index[n] for n in limited], dtype=int)
         self.energy_j = np.array([float(energies_j[r]) for r in self.robots])
         platforms = [scenario.platform_of(r) for r in self.robots]
         self.idle_w = np.array([p.idle_w for p in platforms])
@@ -153,10 +169,16 @@ class LoadSpace:
         }
 
     def feasible(self, loads: np.ndarray) -> np.ndarray:
+        return self.peak_utilisation(loads) <= UTILISATION_LIMIT
+
+    def peak_utilisation(self, loads: np.ndarray) -> np.ndarray:
+        """Per load row, the most loaded limited resource (CPU of any node, a limited radio)."""
         cpu, send, recv = self.split(loads)
-        ok = (cpu <= UTILISATION_LIMIT).all(axis=1)
-        busy = (send + recv)[:, self.robot_rows, :]
-        return ok & (busy <= UTILISATION_LIMIT).all(axis=(1, 2))
+        busy = (send + recv)[:, self.radio_limited_rows, :]
+        peak = cpu.max(axis=1)
+        if busy.size:
+            peak = np.maximum(peak, busy.max(axis=(1, 2)))
+        return peak
 
     def total_power(self, loads: np.ndarray) -> np.ndarray:
         parts = self.breakdown(loads)
@@ -206,7 +228,12 @@ class Violation:
 
     @property
     def message(self) -> str:
-        return f"{self.node} {self.resource} utilisation {self.value:.1%} exceeds {self.limit:.0%}"
+        return (f"{self.node} {self.resource} utilisation {self.value:.1%} exceeds {self.limit:.0%} "
+                f"(by {(self.value - self.limit) * 100:.1f} points)")
+
+    def to_dict(self) -> dict:
+        return {"node": self.node, "resource": self.resource, "value": self.value, "limit": self.limit,
+                "excess": self.value - self.limit, "message": self.message}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -218,6 +245,7 @@ class Evaluation:
     utilisation: Mapping[str, float]  # CPU utilisation of every node, the base station too
     violations: tuple[Violation, ...]
     bottleneck: str | None
+    basestation_radio_busy: Mapping[str, float] = dataclasses.field(default_factory=dict)  # medium -> busy
     lifetime_s: float | None  # raw; None when infeasible
     lifetime_rounded_s: float | None
 
@@ -314,6 +342,16 @@ def evaluate(
         robots[robot] = RobotPower(robot=robot, energy_j=space.energy_j[i], cpu_w=float(parts["cpu_w"][i]),
                                    cpu_utilisation=float(parts["cpu_u"][i]), radios=radios, total_w=total,
                                    lifetime_s=space.energy_j[i] / total)
+    base_radios = {}
+    if space.network.basestation in space.node_index:
+        b = space.node_index[space.network.basestation]
+        for medium in sorted(space.network.media_of(space.network.basestation), key=space.medium_index.get):
+            j = space.medium_index[medium]
+            busy = float(send_air[b, j] + recv_air[b, j])
+            base_radios[medium] = busy
+            if scenario.basestation_radio_limit and busy > UTILISATION_LIMIT:
+                violations.append(Violation(node=space.network.basestation, resource=f"radio:{medium}",
+                                            value=busy, limit=1.0))
     feasible = not violations
     bottleneck = min(robots, key=lambda r: robots[r].lifetime_s) if robots else None
     lifetime = robots[bottleneck].lifetime_s if (feasible and bottleneck) else None
@@ -324,6 +362,7 @@ def evaluate(
         robots=robots,
         utilisation={n: float(cpu_u[space.node_index[n]]) for n in space.nodes},
         violations=tuple(violations),
+        basestation_radio_busy=base_radios,
         bottleneck=bottleneck if feasible else (violations[0].node if violations else None),
         lifetime_s=lifetime,
         lifetime_rounded_s=round_lifetime(lifetime, scenario.lifetime_rounding_s) if lifetime else None,

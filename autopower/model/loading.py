@@ -196,7 +196,10 @@ class ScenarioParser:
                           ["name", "description", "accounting", "lifetime_rounding_s"], ["name"])
         platforms = self.platforms(top["platforms"])
         radios = self.radios(top["radios"])
-        base = self.table(top["basestation"], "basestation", ["name", "platform"], ["name", "platform"])
+        base = self.table(top["basestation"], "basestation", ["name", "platform", "limit_radios"], ["name", "platform"])
+        limit_radios = base.get("limit_radios", False)
+        if not isinstance(limit_radios, bool):
+            raise self.fail("basestation.limit_radios", f"found {limit_radios!r}", "true or false")
         base_name = self.string(base, "name", "basestation")
         base_platform = self.string(base, "platform", "basestation", choices=list(platforms))
         robots = self.robots(top["robots"], platforms, base_name)
@@ -204,7 +207,7 @@ class ScenarioParser:
         network = self.network(top["network"], radios, robots, base_name)
         components = self.components(top["components"], platforms)
         chains = self.chains(top["chains"], components, robots, nodes, base_name)
-        rows = self.reference_rows(top.get("reference_rows", []), radios, chains, nodes)
+        rows = self.reference_rows(top.get("reference_rows", []), radios, chains, nodes, network)
         migration = self.migration(top.get("migration", {}), components)
         scenario = Scenario(
             name=self.string(head, "name", "scenario"),
@@ -222,6 +225,7 @@ class ScenarioParser:
             chains=chains,
             reference_rows=rows,
             migration=migration,
+            basestation_radio_limit=limit_radios,
         )
         self.check_routable(scenario)
         return scenario
@@ -419,23 +423,48 @@ class ScenarioParser:
                              pin=pin, hosts=hosts))
         return tuple(out)
 
-    def reference_rows(self, obj: Any, radios: dict, chains: tuple[Chain, ...], nodes: list[str]) -> tuple[ReferenceRow, ...]:
+    def reference_rows(self, obj: Any, radios: dict, chains: tuple[Chain, ...], nodes: list[str],
+                       network: NetworkSpec) -> tuple[ReferenceRow, ...]:
         if not isinstance(obj, list):
             raise self.fail("reference_rows", f"found {obj!r}", "[[reference_rows]] tables")
         stages = [s.name for c in chains for s in c.stages]
+        groups = {link.group: link.media for link in network.links}
         out = []
         for i, spec in enumerate(obj):
             path = f"reference_rows[{i}]"
-            spec = self.table(spec, path, ["topology", "laptop_robot", "robot_robot", "allocation", "paper_lifetime_s"],
-                              ["topology", "laptop_robot", "robot_robot", "allocation"])
+            spec = self.table(spec, path, ["topology", "laptop_robot", "robot_robot", "media", "allocation",
+                                           "paper_lifetime_s"], ["topology", "allocation"])
             alloc = self.table(spec["allocation"], f"{path}.allocation", stages, stages)
             for stage, host in alloc.items():
                 if host not in nodes:
                     raise self.fail(f"{path}.allocation.{stage}", f"found {host!r}", f"one of {', '.join(nodes)}")
+            topology = self.string(spec, "topology", path, choices=TOPOLOGIES)
+            media: dict[str, str] = {}
+            if topology == "explicit":
+                # an explicit row names each link group's medium: media = { uplink = "gsm", ... }
+                if network.topology != "explicit":
+                    raise self.fail(f"{path}.topology", "explicit without [[network.links]]",
+                                    "fully-connected or relay, or an explicit [network]")
+                for key in ("laptop_robot", "robot_robot"):
+                    if key in spec:
+                        raise self.fail(f"{path}.{key}", "set on an explicit row", "media = { GROUP = MEDIUM, ... }")
+                media = dict(self.table(spec.get("media", {}), f"{path}.media", groups))
+                for group, medium in media.items():
+                    if medium not in groups[group]:
+                        raise self.fail(f"{path}.media.{group}", f"found {medium!r}",
+                                        f"one of the group's media: {', '.join(groups[group])}")
+                media = {g: media.get(g, m[0]) for g, m in groups.items()}
+                lr = rr = None
+            else:
+                if "media" in spec:
+                    raise self.fail(f"{path}.media", "set on a named topology", "laptop_robot and robot_robot")
+                for key in ("laptop_robot", "robot_robot"):
+                    if key not in spec:
+                        raise self.fail(path, f"missing required key {key!r}", f"{key} = \"<medium>\"")
+                lr = self.string(spec, "laptop_robot", path, choices=list(radios))
+                rr = self.string(spec, "robot_robot", path, choices=list(radios))
             out.append(ReferenceRow(
-                topology=self.string(spec, "topology", path, choices=TOPOLOGIES[:2]),
-                laptop_robot=self.string(spec, "laptop_robot", path, choices=list(radios)),
-                robot_robot=self.string(spec, "robot_robot", path, choices=list(radios)),
+                topology=topology, laptop_robot=lr, robot_robot=rr, media=media,
                 allocation=dict(alloc),
                 paper_lifetime_s=(self.number(spec, "paper_lifetime_s", path, positive=True)
                                   if "paper_lifetime_s" in spec else None),

@@ -49,10 +49,20 @@ class Network:
 
     @cached_property
     def graph(self) -> nx.Graph:
+        """The links as a graph whose every adjacency list is in node order.
+
+        Routing tie-break (README "The model"): among routes with the fewest hops, the one whose
+        nodes come first compared hop by hop in node order (the robots as the scenario lists
+        them, then the base station), never by name. networkx's BFS visits neighbours in
+        adjacency order, level by level, so adding each node's links in node order makes the
+        first route found the first in that order.
+        """
+        order = {n: i for i, n in enumerate(self.nodes)}
         graph = nx.Graph()
-        graph.add_nodes_from(self.nodes)  # insertion order makes BFS ties deterministic
-        for link in sorted(self.links, key=lambda l: (l.a, l.b)):
-            graph.add_edge(link.a, link.b, medium=link.medium)
+        graph.add_nodes_from(self.nodes)
+        ends = [tuple(sorted((l.a, l.b), key=order.__getitem__)) + (l,) for l in self.links]
+        for a, b, link in sorted(ends, key=lambda e: (order[e[0]], order[e[1]])):
+            graph.add_edge(a, b, medium=link.medium)
         return graph
 
     @cached_property

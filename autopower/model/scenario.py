@@ -90,10 +90,16 @@ class ReferenceRow:
     """A configuration the source paper tabulates, kept to compare against."""
 
     topology: str
-    laptop_robot: str
-    robot_robot: str
+    laptop_robot: str | None  # named topologies: the two media groups
+    robot_robot: str | None
     allocation: Mapping[str, str]
     paper_lifetime_s: float | None = None
+    media: Mapping[str, str] = field(default_factory=dict)  # explicit topologies: group -> medium
+
+    def media_by_group(self) -> dict[str, str]:
+        if self.topology == "explicit":
+            return dict(self.media)
+        return {LAPTOP_ROBOT: self.laptop_robot, ROBOT_ROBOT: self.robot_robot}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -113,6 +119,8 @@ class Scenario:
     chains: tuple[Chain, ...]
     reference_rows: tuple[ReferenceRow, ...] = ()
     migration: Mapping[str, Any] = field(default_factory=dict)  # downtime_s, cpu_s, state_bytes_default, state_bytes
+    # [basestation] limit_radios: its radios may be at most 100 % busy like a robot's (off: the paper)
+    basestation_radio_limit: bool = False
 
     # ---- lookups -------------------------------------------------------------------------
     def node_names(self) -> list[str]:

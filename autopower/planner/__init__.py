@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from autopower.errors import AutoPowerError, InfeasibleError
 from autopower.model.energy import Evaluation, evaluate
 from autopower.model.network import Network
@@ -22,7 +24,7 @@ from autopower.planner.timesharing import TimeSharingBound, time_sharing_bound
 
 EXHAUSTIVE_UP_TO = 20_000  # combinations; beyond it "auto" switches to the MILP
 
-__all__ = ["Plan", "PlanRequest", "TimeSharingBound", "plan", "make_problem", "evaluate_in"]
+__all__ = ["Plan", "PlanRequest", "TimeSharingBound", "plan", "make_problem", "evaluate_in", "infeasible_error"]
 
 
 @dataclass
@@ -92,7 +94,7 @@ def plan(request: PlanRequest) -> Plan:
     if method == "exhaustive":
         candidates = exhaustive(problem, max_ties=request.max_ties)
         if not candidates:
-            raise _infeasible(problem)
+            raise infeasible_error(problem)
         best = candidates[0]
         network, allocation, proven, gap = best.network, best.allocation, True, 0.0
         ties = [(c.network, c.allocation) for c in candidates[1:]]
@@ -100,7 +102,7 @@ def plan(request: PlanRequest) -> Plan:
         result = solve_milp(problem, time_limit_s=request.time_limit_s, mip_rel_gap=request.mip_rel_gap)
         if result.allocation is None:
             if "Infeasible" in result.status:
-                raise _infeasible(problem)
+                raise infeasible_error(problem)
             raise AutoPowerError(f"the MILP found no plan ({result.status}); raise --time-limit")
         network, allocation, proven, gap = result.network, result.allocation, result.optimal, result.mip_gap
         ties = []
@@ -115,16 +117,53 @@ def plan(request: PlanRequest) -> Plan:
     return out
 
 
-def _infeasible(problem: Problem) -> InfeasibleError:
-    local = {s.name: c.source for c in problem.chains for s in c.stages}
+def infeasible_error(problem: Problem) -> InfeasibleError:
+    """Why nothing fits: the media tried and, for the closest allocation, the resources that break.
+
+    "Closest" is the allocation (within the request's pins and hosts) whose most loaded resource
+    is least over its limit; small problems search every combination for it, large ones take each
+    stage at its pin or source (else its first allowed host).
+    """
+    tried = [_media_text(n) for n in problem.networks]
+    if len(tried) == 1:
+        where = f"with the media fixed ({tried[0]})"
+    else:
+        where = f"on any of the {len(tried)} media choices tried ({'; '.join(tried)})"
+    closest = _closest(problem)
     hint = ""
-    try:
-        ev = evaluate_in(problem, problem.networks[0], local)
-        if ev.violations:
-            hint = f" (running everything locally: {'; '.join(v.message for v in ev.violations)})"
-    except AutoPowerError:
-        pass
+    if closest is not None:
+        network, allocation, ev = closest
+        placed = ", ".join(f"{s}→{h}" for s, h in allocation.items())
+        hint = (f"; the closest allocation ({placed}{'' if len(tried) == 1 else ' with ' + _media_text(network)}) "
+                f"still breaks: {'; '.join(v.message for v in ev.violations)}")
     return InfeasibleError(
-        "no allocation meets the CPU and radio limits on any media choice" + hint
-        + ". Lower the chains' rates, disable a chain, or allow faster media."
+        f"no allocation meets the CPU and radio limits {where}{hint}. "
+        "Lower the chains' rates, disable a chain, or allow faster media."
     )
+
+
+def _media_text(network: Network) -> str:
+    return ", ".join(f"{g}={m}" for g, m in network.media_by_group().items()) or "no links"
+
+
+def _closest(problem: Problem) -> tuple[Network, dict[str, str], Evaluation] | None:
+    best = None
+    for network in problem.networks:
+        try:
+            if problem.combinations() <= EXHAUSTIVE_UP_TO:
+                from autopower.planner.exhaustive import decode, search_network
+
+                space, loads, options = search_network(problem, network)
+                k = int(np.argmin(space.peak_utilisation(loads)))
+                allocation = decode(problem, options, k)
+            else:
+                allocation = {s.name: (s.pin or (c.source if c.source in problem.hosts[s.name]
+                                                 else problem.hosts[s.name][0]))
+                              for c in problem.chains for s in c.stages}
+            ev = evaluate_in(problem, network, allocation)
+        except AutoPowerError:
+            continue
+        peak = max((v.value / v.limit for v in ev.violations), default=0.0)
+        if ev.violations and (best is None or peak < best[0]):
+            best = (peak, network, allocation, ev)
+    return best[1:] if best else None

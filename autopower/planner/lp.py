@@ -6,12 +6,54 @@ so rows are collected as plain lists and handed to HiGHS as one CSR matrix.
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
 from dataclasses import dataclass, field
 
 import highspy
 import numpy as np
 
 INF = highspy.kHighsInf
+
+_banner_lock = threading.Lock()
+_banner_done = False
+
+
+def new_highs() -> highspy.Highs:
+    """A silent HiGHS instance; the only place AutoPower creates one.
+
+    HiGHS writes its banner ("Running HiGHS ...") to the C-level stdout while the *first* Highs
+    object of the process is constructed, before any option can switch output off; that broke
+    every `--json` reader. The first construction therefore runs with file descriptor 1 pointed
+    at stderr (where logs and banners belong), then output is switched off for good.
+    """
+    global _banner_done
+    with _banner_lock:
+        if _banner_done:
+            h = highspy.Highs()
+        else:
+            sys.stdout.flush()
+            saved = os.dup(1)
+            try:
+                os.dup2(2, 1)
+                h = highspy.Highs()
+                _flush_c_stdio()  # a pipe makes C stdio buffer the banner: flush it while fd 1 is stderr
+            finally:
+                os.dup2(saved, 1)
+                os.close(saved)
+            _banner_done = True
+    h.setOptionValue("output_flag", False)
+    return h
+
+
+def _flush_c_stdio() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):  # no C library to reach (exotic platform): nothing buffered there
+        pass
 
 
 @dataclass
@@ -48,8 +90,7 @@ class LinearProgram:
 
     def solve(self, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
               threads: int | None = None, objective_cutoff: float | None = None) -> "Solution":
-        h = highspy.Highs()
-        h.setOptionValue("output_flag", False)
+        h = new_highs()
         h.setOptionValue("mip_rel_gap", mip_rel_gap)
         # The objective is a power in watts (~1): absolute gaps of 1e-6 W would stop too early.
         h.setOptionValue("mip_abs_gap", 0.0)

@@ -160,9 +160,10 @@ class PlacementModel:
         for node in self.nodes:
             if cpu[node]:
                 self.lp.row(cpu[node], -INF, 1.0)
-        for robot in self.robots:
+        radio_limited = self.robots + ([self.structure.basestation] if self.scenario.basestation_radio_limit else [])
+        for node in radio_limited:
             for medium in self.scenario.radios:
-                key = (robot, medium)
+                key = (node, medium)
                 busy = dict(send[key])
                 for col, coef in recv[key].items():
                     busy[col] = busy.get(col, 0.0) + coef

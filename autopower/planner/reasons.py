@@ -83,7 +83,7 @@ def _violations(space: LoadSpace, load: np.ndarray) -> str:
     for node, i in space.node_index.items():
         if cpu[i] > 1:
             out.append(f"{node} CPU at {cpu[i]:.0%}")
-        if node in space.robots:
+        if i in space.radio_limited_rows:
             for medium, j in space.medium_index.items():
                 busy = send[i, j] + recv[i, j]
                 if busy > 1:

@@ -22,9 +22,9 @@ Integration recipe (what the `agent` / `basestation` commands and the launcher d
 3. Fault tools call ``record_fault_event(run_dir, kind="cut"|"kill"|"freeze"|"radio",
    target="r1-laptop"|"r2", mission=snapshot["mission"])`` after each injection (``phase="healed"``
    for heals), so replay can report detection and reconfiguration times.
-4. The demo reads ``autopower.recording.replay.replay_summary(run_dir / "run.rrd")``: ``faults`` (kind, target,
-   detected_s, reconfigured_s), ``migrations["count"]``, ``lost_outputs``, ``duplicated_outputs``,
-   ``energy_model_error_pct``. `tests/integration/recorder_node.py` runs this recipe.
+4. The demo's summary is ``autopower.recording.replay.replay_summary(run_dir / "run.rrd")``: ``faults``
+   (kind, target, parts, detected/reconfigured in ``_wall_s`` and ``_mission_s``), ``migrations``,
+   ``lost_outputs``, ``duplicated_outputs``, ``energy_model_error_pct``. `tests/integration/recorder_node.py` runs this recipe.
 """
 
 from __future__ import annotations

@@ -184,6 +184,7 @@ class Recorder:
         self._last_visual: dict[str, float] = {}
         self._last_epoch = -1
         self._links_seen: dict[str, bool] = {}
+        self._epochs_seen: dict[str, int] = {}
         self._all_links: dict[frozenset, SimpleNamespace] = {}
         self._lost: set[str] = set()
         self._owns = owns_telemetry
@@ -322,6 +323,10 @@ class Recorder:
                     overhead[kind] += float(joules)
             for kind, joules in overhead.items():
                 tel.scalar(f"robots/{node}/overhead_j/{kind}", t, joules)
+        if s.get("plan_epoch") is not None and self._epochs_seen.get(node) != s["plan_epoch"]:
+            # when each robot runs a plan: replay's "reconfigured" is when every robot runs it
+            self._epochs_seen[node] = s["plan_epoch"]
+            tel.scalar(f"robots/{node}/plan_epoch", t, float(s["plan_epoch"]))
         for peer, up in (s.get("links") or {}).items():
             path = link_path(node, peer)
             if self._links_seen.get(path) != up:
@@ -365,6 +370,7 @@ class Recorder:
                                   reasons=reasons,
                                   running=dict(p.get("running") or {}), predicted_w=predicted,
                                   predicted_lifetime_s=life, accounting=self._mission.accounting,
+                                  speed=self._mission.speed, epoch_unix=self._mission.epoch_unix,
                                   links=[list(l) for l in links], energies_j=self._mission.energies_j,
                                   by=self.node))
 

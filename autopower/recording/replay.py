@@ -19,12 +19,26 @@ from the telemetry layout and the structured text events (`autopower.recording.r
       "migrations": {"count": int, "downtime_ms_total": float | null, "downtime_ms_max": float | null,
                      "list": [{"t_s": float, "stage": str, "from": str | null, "to": str | null,
                                "downtime_ms": float | null, "text": str}]},
+                     # every move between nodes: stage-ready notices and committed subgroup rounds
+                     # (a subgroup restart's "from" is the unreachable host that ran it before)
+      "speed": float | null,                        # mission seconds per wall second (live runs)
       "decisions": int,
-      "faults": [{"t_s": float, "kind": str, "target": str, "text": str,
-                  "detected_s": float | null,       # injection -> first detection (s, mission time)
-                  "reconfigured_s": float | null}], # injection -> last stage running after the replan
-                  # (no injection recorded: each first liveliness loss is a fault, t_s its detection,
-                  #  detected_s null, reconfigured_s from the detection)
+      "faults": [{"at_mission_s": float,             # when it was injected, mission seconds
+                  "at_wall_unix": float | null,       # ... and on the wall clock (live runs)
+                  "kind": str, "target": str,         # target: the parts joined by ","
+                  "parts": [str],                     # faults of one kind injected within 0.5 s wall
+                                                      # of each other are one fault, e.g. every robot
+                                                      # cut from the base station
+                  "text": str,
+                  "detected_mission_s": float | null, # injection -> seen (each part as the base station
+                  "detected_wall_s": float | null,    # saw it, else as any node did; the last part)
+                  "reconfigured_mission_s": float | null,  # injection -> the team runs a new
+                  "reconfigured_wall_s": float | null,     # configuration (see reconfigured_by)
+                  "reconfigured_by": str | null}],    # "subgroup round ID" | "plan epoch N" (every robot
+                  # of its network runs it) | "replan" (simulations) | "kept" (simulation: no change)
+                  # (no injection recorded: each first liveliness loss is a fault, at its detection,
+                  #  detected_* null, reconfigured_* from the detection)
+                  # *_wall_s = *_mission_s / the run's speed-up; null in simulations (no wall clock)
       "energy": {"metered_j": float, "model_j": float | null, "error_pct": float | null,
                  "overhead_j": {"migration": float, "recovery": float},
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
@@ -37,7 +51,7 @@ from the telemetry layout and the structured text events (`autopower.recording.r
       "lost_outputs": int, "duplicated_outputs": int, "energy_model_error_pct": float | null
     }
 
-Times are mission seconds (timeline ``mission_time``). Energy "model" is the model's power for
+Times are mission seconds (timeline ``mission_time``) unless a key says ``wall``. Energy "model" is the model's power for
 the recorded allocation and network (live: ``robots/<r>/model_w`` from each plan; simulation:
 ``robots/<r>/power_w/total``, which is the model) integrated over the recorded interval;
 "metered" is the battery drop actually recorded; error = (metered - overheads - model) / model,
@@ -64,6 +78,7 @@ _OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/seq$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
 _SIM_MOVE = re.compile(r"^(?P<stage>\S+): (?P<src>\S+) → (?P<dst>\S+),")
 _EPS = 1e-6
+GROUP_WINDOW_WALL_S = 0.5  # faults of one kind injected this close together (wall) are one fault
 
 
 def load(path: str | Path) -> Recording:
@@ -246,6 +261,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
                        "downtime_ms_total": sum(downtimes) if downtimes else None,
                        "downtime_ms_max": max(downtimes) if downtimes else None,
                        "list": migrations},
+        "speed": mission_clock(rec)[0],
         "decisions": n_decisions,
         "faults": faults,
         "energy": {"metered_j": metered_sum, "model_j": model_sum if model_known else None, "error_pct": error,
@@ -282,15 +298,60 @@ def _decisions(rec: Recording) -> tuple[list[float], int]:
     return sorted(epochs.values()), len(epochs)
 
 
+def mission_clock(rec: Recording) -> tuple[float | None, float | None]:
+    """(speed, epoch_unix) of a live run, from its plans; (None, None) for a simulation (no wall clock)."""
+    for _, _, p in _events(rec, DECISIONS):
+        if p is not None and p.get("type") == "plan" and p.get("speed"):
+            epoch = p.get("epoch_unix")
+            return float(p["speed"]), (float(epoch) if epoch is not None else None)
+    return None, None
+
+
+def _subgroup_commits(rec: Recording) -> list[tuple[float, str, list[dict]]]:
+    """(time, round id, moves) of every committed subgroup round (robots agreeing without the base)."""
+    proposals: dict[str, list[dict]] = {}
+    out = []
+    for t, _text, p in _events(rec, DECISIONS):
+        if p is None:
+            continue
+        if p.get("type") == "sg-propose":
+            proposals[str(p.get("round_id"))] = list(p.get("moves") or [])
+        elif p.get("type") == "sg-decision" and p.get("commit"):
+            round_id = str(p.get("round_id"))
+            if all(r != round_id for _, r, _ in out):  # every member may announce it; count it once
+                out.append((t, round_id, proposals.get(round_id, [])))
+    return out
+
+
 def _migrations(rec: Recording) -> list[dict[str, Any]]:
+    """Every move of a stage between nodes, with its real source and destination.
+
+    Moves come from stage-ready notices (live: the new host runs it), from committed subgroup
+    rounds (live: robots restart or move stages without the base station; a restart's source is
+    the host that ran the stage before, out of reach) and from a simulation's migration texts.
+    """
     out = []
     host: dict[str, str] = {}
-    for t, text, p in _events(rec, MIGRATIONS):
+    timeline = [(t, "ready", text, p) for t, text, p in _events(rec, MIGRATIONS)]
+    timeline += [(t, "subgroup", round_id, moves) for t, round_id, moves in _subgroup_commits(rec)]
+    timeline.sort(key=lambda e: e[0])
+    for t, what, text, p in timeline:
+        if what == "subgroup":
+            for move in p:
+                stage, dst = move.get("stage"), move.get("to_node")
+                src = move.get("from_node") or host.get(stage)
+                how = "moved" if move.get("from_node") else "restarted"
+                host[stage] = dst
+                if src != dst:
+                    out.append({"t_s": t, "stage": stage, "from": src, "to": dst, "downtime_ms": None,
+                                "text": f"{how} by subgroup round {text}"})
+            continue
         if p is not None and p.get("type") == "stage-ready":
             stage, node = p.get("stage"), p.get("node")
             before = host.get(stage)
             host[stage] = node
-            if p.get("imported_state") or (before is not None and before != node):
+            # a move: to another node, or state imported from a host this recording never saw
+            if (before is not None and before != node) or (before is None and p.get("imported_state")):
                 out.append({"t_s": t, "stage": stage, "from": before, "to": node,
                             "downtime_ms": p.get("downtime_ms"), "text": text})
             continue
@@ -302,7 +363,53 @@ def _migrations(rec: Recording) -> list[dict[str, Any]]:
     return out
 
 
+def _plans(rec: Recording) -> list[tuple[float, int, list[str]]]:
+    """(time, epoch, robots of its network) of each live plan, first publication only."""
+    seen: dict[int, tuple[float, list[str]]] = {}
+    for t, _text, p in _events(rec, DECISIONS):
+        if p is not None and p.get("type") == "plan":
+            epoch = int(p.get("epoch", -1))
+            if epoch not in seen:
+                nodes = {x for link in p.get("links") or [] for x in link[:2]} | set((p.get("placement") or {}).values())
+                seen[epoch] = (t, sorted(nodes))
+    return sorted((t, epoch, nodes) for epoch, (t, nodes) in seen.items())
+
+
+def _all_run_epoch(rec: Recording, robots: list[str], epoch: int, t_from: float) -> float | None:
+    """When the last of `robots` reported running plan `epoch` (or later); None if one never did."""
+    latest = t_from
+    for robot in robots:
+        ts, vs = rec.series(f"robots/{robot}/plan_epoch")
+        if not ts:
+            continue  # not a robot, or its statuses were not recorded
+        t = next((t for t, v in zip(ts, vs) if v >= epoch and t >= t_from - 1.0), None)
+        if t is None:
+            return None
+        latest = max(latest, t)
+    return latest
+
+
+def _group(injected: list[dict], window_s: float) -> list[dict]:
+    """Faults of one kind injected within `window_s` (mission seconds) of each other are one fault."""
+    groups: list[dict] = []
+    for fault in sorted(injected, key=lambda f: f["t_s"]):
+        last = groups[-1] if groups else None
+        if (last is not None and not fault.get("_from_detection") and last["kind"] == fault["kind"]
+                and fault["t_s"] - last["_last_t"] <= window_s):
+            last["parts"].append(fault["target"])
+            last["text"] += "; " + fault["text"]
+            last["_last_t"] = fault["t_s"]
+            continue
+        groups.append({**fault, "parts": [fault["target"]], "_last_t": fault["t_s"]})
+    for g in groups:
+        g["target"] = ",".join(g["parts"])
+        del g["_last_t"]
+    return groups
+
+
 def _faults(rec: Recording, kind: str, raw, decision_times: list[float], migrations) -> list[dict[str, Any]]:
+    speed, epoch_unix = mission_clock(rec)
+    base = rec.properties.get("basestation")
     injected, detected = [], []
     for t, text, p in raw:
         if p is not None and p.get("type") == "fault":
@@ -311,7 +418,7 @@ def _faults(rec: Recording, kind: str, raw, decision_times: list[float], migrati
                 injected.append({"t_s": t, "kind": p.get("kind", "fault"), "target": p.get("target", ""),
                                  "text": text})
             elif phase == "detected":
-                detected.append((t, p.get("target", ""), text))
+                detected.append((t, p.get("target", ""), p.get("observer")))
             continue
         if p is None:
             m = _SIM_LINK.search(text)
@@ -323,42 +430,83 @@ def _faults(rec: Recording, kind: str, raw, decision_times: list[float], migrati
                              "target": f"{m[1]}-{m[2]}" if m else "", "text": text})
     if not injected:  # a live run without a fault tool: each first detection is a fault
         seen = set()
-        for t, target, text in detected:
+        for t, target, observer in detected:
             if target not in seen:
                 seen.add(target)
-                injected.append({"t_s": t, "kind": "node-lost", "target": target, "text": text, "_from_detection": True})
-    injected.sort(key=lambda f: f["t_s"])
+                injected.append({"t_s": t, "kind": "node-lost", "target": target,
+                                 "text": f"{observer} lost {target}", "_from_detection": True})
+    # injected together (one command per link, a few ms apart in wall time) = one fault
+    faults = _group(injected, GROUP_WINDOW_WALL_S * speed if speed else _EPS)
     stage_ready = sorted(m["t_s"] for m in migrations)
-    for i, fault in enumerate(injected):
+    plans = _plans(rec)
+    commits = _subgroup_commits(rec)
+    out = []
+    for i, fault in enumerate(faults):
         t_f = fault["t_s"]
-        t_next = min((f["t_s"] for f in injected[i + 1:] if f["t_s"] > t_f + _EPS), default=math.inf)
-        names = set(fault["target"].split("-")) if fault["target"] else set()
+        t_next = min((f["t_s"] for f in faults[i + 1:] if f["t_s"] > t_f + _EPS), default=math.inf)
         if fault.pop("_from_detection", False):
-            t_det = t_f
-            fault["detected_s"] = None  # injection time unknown
+            t_det, det = t_f, None  # injection time unknown
         else:
-            hits = [t for t, target, _ in detected if t_f - _EPS <= t < t_next and (not names or target in names)]
-            if hits:
-                t_det = min(hits)
-            elif kind == "simulation":
+            t_det = _detection(fault["parts"], detected, t_f, t_next, base)
+            if t_det is None and kind == "simulation":
                 t_det = t_f  # the simulator reacts to events the moment they happen
-            else:
-                t_det = None
-            fault["detected_s"] = None if t_det is None else max(0.0, t_det - t_f)
-        fault["reconfigured_s"] = None
-        if t_det is None:  # not seen by liveliness (a radio fault): the replan tells when it was handled
-            t_det = t_f
-        replans = [t for t in decision_times if t_det - _EPS <= t < t_next - _EPS]
-        if not replans:
-            if kind == "simulation":  # the policy was asked at once and kept the configuration
-                fault["reconfigured_s"] = fault["detected_s"]
-            continue
-        t_plan = replans[0]
-        later = [t for t in decision_times if t > t_plan + _EPS]
-        horizon = min(t_next, later[0] if later else math.inf)
-        landed = [t for t in stage_ready if t_plan - _EPS <= t < horizon]
-        fault["reconfigured_s"] = max(0.0, max([t_plan, *landed]) - t_f)
-    return injected
+            det = None if t_det is None else max(0.0, t_det - t_f)
+        t_ref = t_f if t_det is None else t_det  # a radio fault is not seen by liveliness: its replan is
+        reconf, how = _reconfiguration(rec, kind, t_ref, t_next, plans, commits, decision_times, stage_ready)
+        if reconf is None and kind == "simulation" and not [t for t in decision_times if t_ref - _EPS <= t < t_next - _EPS]:
+            reconf, how = t_ref, "kept"  # the policy was asked at once and kept the configuration
+        reconf_s = None if reconf is None else max(0.0, reconf - t_f)
+        out.append({
+            "at_mission_s": t_f,
+            "at_wall_unix": (epoch_unix + t_f / speed) if (speed and epoch_unix is not None) else None,
+            "kind": fault["kind"], "target": fault["target"], "parts": fault["parts"], "text": fault["text"],
+            "detected_mission_s": det, "reconfigured_mission_s": reconf_s,
+            "detected_wall_s": (det / speed) if (det is not None and speed) else None,
+            "reconfigured_wall_s": (reconf_s / speed) if (reconf_s is not None and speed) else None,
+            "reconfigured_by": how,
+        })
+    return out
+
+
+def _detection(parts: list[str], detected, t_f: float, t_next: float, base: str | None) -> float | None:
+    """When a fault was seen: each part (link or node) when the base station saw it (else when any
+    node did); a fault of several parts when its last part was seen. None if no part was seen."""
+    seen = []
+    for target in parts:
+        names = set(target.split("-")) if target else set()
+        hits = [(t, observer) for t, who, observer in detected
+                if t_f - _EPS <= t < t_next and (not names or who in names)]
+        if hits:
+            by_base = [t for t, observer in hits if observer == base]
+            seen.append(min(by_base or [t for t, _ in hits]))
+    return max(seen) if seen else None
+
+
+def _reconfiguration(rec, kind, t_ref, t_next, plans, commits, decision_times, stage_ready):
+    """(time, how) the team ran a new configuration after a fault seen at t_ref; (None, None) if never.
+
+    A subgroup round committed in the window wins (the robots reallocated without the base
+    station); else the base station's first plan after the fault, once every robot of its network
+    reports running it (statuses), or, in recordings without those, once its moved stages run.
+    """
+    for t, round_id, _moves in commits:
+        if t_ref - _EPS <= t < t_next:
+            return t, f"subgroup round {round_id}"
+    live_plans = [(t, epoch, nodes) for t, epoch, nodes in plans if t_ref - _EPS <= t < t_next - _EPS]
+    if live_plans:
+        t_plan, epoch, nodes = live_plans[0]
+        robots = [n for n in nodes if n != rec.properties.get("basestation")]
+        if any(rec.series(f"robots/{r}/plan_epoch")[0] for r in robots):
+            t_run = _all_run_epoch(rec, robots, epoch, t_plan)
+            return (t_run, f"plan epoch {epoch}") if t_run is not None else (None, None)
+    replans = [t for t in decision_times if t_ref - _EPS <= t < t_next - _EPS]
+    if not replans:
+        return None, None
+    t_plan = replans[0]
+    later = [t for t in decision_times if t > t_plan + _EPS]
+    horizon = min(t_next, later[0] if later else math.inf)
+    landed = [t for t in stage_ready if t_plan - _EPS <= t < horizon]
+    return max([t_plan, *landed]), "replan"
 
 
 def _outputs(rec: Recording) -> dict[str, Any]:

@@ -31,13 +31,21 @@ def render_text(summary: dict[str, Any]) -> str:
               + (f", downtime total {m['downtime_ms_total']:.1f} ms, worst {m['downtime_ms_max']:.1f} ms"
                  if m["downtime_ms_total"] is not None else "")]
     for mig in m["list"][:20]:
-        lines.append(f"  {mig['t_s']:>10,.1f} s  {mig['text']}")
+        move = f"{mig['stage']} {mig['from'] or '?'} → {mig['to'] or '?'}: " if mig.get("stage") else ""
+        lines.append(f"  {mig['t_s']:>10,.1f} s  {move}{mig['text']}")
     if len(m["list"]) > 20:
         lines.append(f"  ... {len(m['list']) - 20} more")
-    lines += ["", f"faults: {len(s['faults'])} (times in mission seconds: wall seconds × the speed-up)"]
+    wall = s.get("speed") is not None
+    lines += ["", f"faults: {len(s['faults'])} (at: mission time; after the injection: "
+              + ("wall seconds, what the operator saw, then mission seconds)" if wall else "mission seconds)")]
     for f in s["faults"]:
-        lines.append(f"  {f['t_s']:>10,.1f} s  {f['kind']:<10} {f['target']:<14} detected "
-                     f"{_s(f['detected_s'], 's', 3)}, reconfigured {_s(f['reconfigured_s'], 's', 3)}  ({f['text']})")
+        def after(key: str) -> str:
+            if not wall:
+                return _s(f[f"{key}_mission_s"], "s", 3)
+            return f"{_s(f[f'{key}_wall_s'], 's wall', 3)} ({_s(f[f'{key}_mission_s'], 's mission', 2)})"
+        by = f" by {f['reconfigured_by']}" if f.get("reconfigured_by") else ""
+        lines.append(f"  {f['at_mission_s']:>10,.1f} s  {f['kind']:<10} {f['target']:<14} detected {after('detected')}, "
+                     f"reconfigured {after('reconfigured')}{by}  ({f['text']})")
     e = s["energy"]
     over = e.get("overhead_j") or {}
     lines += ["", f"energy: metered {e['metered_j']:,.1f} J, model {_s(e['model_j'], 'J')}, error "

@@ -170,7 +170,7 @@ def test_faults_detection_and_reconfiguration(tmp_path):
     s = summarize(load(tmp_path / "laptop.rrd"))
     [fault] = s["faults"]
     assert fault["kind"] == "cut" and fault["target"] == "r1-laptop"
-    assert fault["detected_s"] == pytest.approx(0.8) and fault["reconfigured_s"] == pytest.approx(1.3)
+    assert fault["detected_mission_s"] == pytest.approx(0.8) and fault["reconfigured_mission_s"] == pytest.approx(1.3)
     assert s["migrations"]["count"] == 1 and s["migrations"]["downtime_ms_max"] == 120.0
 
 
@@ -229,5 +229,5 @@ def test_a_fault_tool_writes_its_own_file_of_the_run(tmp_path):
         record_fault_event(run_dir, kind="kill", target="r2")
     s = summarize(load(merge_run(run_dir)))
     [fault] = s["faults"]
-    assert (fault["kind"], fault["target"], fault["t_s"]) == ("cut", "r1-laptop", 100.0)
-    assert fault["detected_s"] == pytest.approx(0.4) and fault["reconfigured_s"] == pytest.approx(0.6)
+    assert (fault["kind"], fault["target"], fault["at_mission_s"]) == ("cut", "r1-laptop", 100.0)
+    assert fault["detected_mission_s"] == pytest.approx(0.4) and fault["reconfigured_mission_s"] == pytest.approx(0.6)
