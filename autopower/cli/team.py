@@ -11,7 +11,14 @@ from pathlib import Path
 import click
 
 from autopower.cli.live_table import render
-from autopower.cli.options import DEFAULT_SPEED, build_scenario, mission_options, parse_pairs
+from autopower.cli.options import (
+    DEFAULT_SPEED,
+    LEASE_MS,
+    POSITIVE,
+    build_scenario,
+    mission_options,
+    parse_pairs,
+)
 from autopower.errors import AutoPowerError
 from autopower.launch.summary import run_summary
 from autopower.model.network import build_network
@@ -19,16 +26,16 @@ from autopower.model.network import build_network
 
 @click.command("up")
 @click.argument("scenario_name", default="paper-fig7", metavar="[SCENARIO]")
-@click.option("--speed", type=float, default=DEFAULT_SPEED, show_default=True,
+@click.option("--speed", type=POSITIVE, default=DEFAULT_SPEED, show_default=True,
               help="Virtual seconds per wall second (missed periods are reported if it is too fast).")
-@click.option("--duration", type=float, default=None, help="Stop after this many wall seconds (default: Ctrl-C).")
+@click.option("--duration", type=POSITIVE, default=None, help="Stop after this many wall seconds (default: Ctrl-C).")
 @click.option("--json", "as_json", is_flag=True, help="No live table; print a JSON summary at the end.")
 @mission_options
-@click.option("--lease-ms", default=500, show_default=True,
+@click.option("--lease-ms", default=500, show_default=True, type=LEASE_MS,
               help="Zenoh lease: a silent cut or a frozen robot is detected after about this long.")
 @click.option("--direct-links", is_flag=True,
               help="Connect processes directly (no link proxies: `autopower fault cut` is unavailable).")
-@click.option("--ready-timeout", type=float, default=60.0, show_default=True)
+@click.option("--ready-timeout", type=POSITIVE, default=60.0, show_default=True)
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
               help="Where the children's logs go (default: a new temporary directory).")
 @click.option("--until-depleted", is_flag=True, help="Stop when the first robot's battery is empty.")
