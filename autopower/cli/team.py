@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -20,8 +21,12 @@ from autopower.cli.options import (
     parse_pairs,
 )
 from autopower.errors import AutoPowerError
-from autopower.launch.summary import run_summary
+from autopower.launch.summary import every_robot_depleted, run_summary, status_line
 from autopower.model.network import build_network
+
+
+SNAPSHOT_EVERY_S = 1.0  # how often `up` without a live table asks the base station how things are
+STATUS_LINE_EVERY_S = 5.0  # how often it prints a plain status line to a pipe or a log
 
 
 @click.command("up")
@@ -74,6 +79,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     failure = None
     interrupted = False
     ready_after = None
+    all_depleted = False
     console = None
     control = None
     try:
@@ -91,19 +97,26 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                           f"(team {team.team}, logs in {team.log_dir}) …")
         snap = team.wait_ready(ready_timeout)
         ready_after = time.monotonic() - started
-        run_started = time.monotonic()
+        run_started = last_poll = time.monotonic()
 
         def done() -> bool:
+            nonlocal all_depleted
             if duration is not None and time.monotonic() - run_started >= duration:
                 return True
-            return bool(until_depleted and snap.get("first_depletion"))
+            all_depleted = every_robot_depleted(snap)  # the mission is over: nothing left to watch
+            return all_depleted or bool(until_depleted and snap.get("first_depletion"))
 
-        if as_json:
+        if as_json or not sys.stdout.isatty():  # a pipe or a log: no live table, a plain line now and then
+            last_line = time.monotonic()
             while not done():
                 time.sleep(0.25)
                 team.check_children()
-                if until_depleted:
-                    snap = team.snapshot()
+                now = time.monotonic()
+                if now - last_poll >= SNAPSHOT_EVERY_S:
+                    snap, last_poll = team.snapshot(), now
+                if not as_json and now - last_line >= STATUS_LINE_EVERY_S:
+                    click.echo(status_line(snap, speed))
+                    last_line = now
         else:
             from rich.live import Live
 
@@ -134,6 +147,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
+    summary["all_depleted"] = all_depleted
     summary["failure"] = failure
     summary["recording"] = None
     if record_dir:
@@ -147,14 +161,12 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
     else:
-        click.echo(f"stopped {len(codes)} processes ({'interrupted' if interrupted else 'done'}); "
-                   f"logs in {team.log_dir}")
+        why = "interrupted" if interrupted else "every robot depleted" if all_depleted else "done"
+        click.echo(f"stopped {len(codes)} processes ({why}); logs in {team.log_dir}")
         if summary["recording"]:
             click.echo(f"recording: {summary['recording']} (autopower replay {summary['recording']})")
-        if summary["missed_ratio"] > 0.01:
-            click.echo(f"warning: {summary['periods_missed']} source periods missed "
-                       f"({summary['missed_ratio']:.1%}); this machine cannot keep up with --speed {speed:g}. "
-                       "Lower --speed (and use --energy-scale for shorter missions).", err=True)
+        for warning in summary["warnings"]:
+            click.echo(f"warning: {warning}", err=True)
     if bad:
         raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")
     if failure:
