@@ -220,7 +220,8 @@ def mission_options(f):
 
 
 def operator_options(f):
-    f = click.option("--team", default=None, type=TEAM_NAME, help="Team name (default: the last `autopower up`).")(f)
+    f = click.option("--team", default=None, type=TEAM_NAME,
+                     help="Team name (default: the only team `autopower up` runs on this machine).")(f)
     f = click.option("--connect", multiple=True, metavar="ENDPOINT", type=ENDPOINT,
                      help="The base station's endpoint (default: the last `autopower up`).")(f)
     f = click.option("--timeout", type=POSITIVE, default=5.0, show_default=True)(f)

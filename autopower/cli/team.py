@@ -16,6 +16,7 @@ from autopower.cli.options import (
     DEFAULT_SPEED,
     LEASE_MS,
     POSITIVE,
+    TEAM_NAME,
     build_scenario,
     mission_options,
     parse_pairs,
@@ -40,6 +41,8 @@ STATUS_LINE_EVERY_S = 5.0  # how often it prints a plain status line to a pipe o
               help="Zenoh lease: a silent cut or a frozen robot is detected after about this long.")
 @click.option("--direct-links", is_flag=True,
               help="Connect processes directly (no link proxies: `autopower fault cut` is unavailable).")
+@click.option("--team", "team_name", default=None, type=TEAM_NAME,
+              help="Name the team (default: a new name); commands pick it with --team.")
 @click.option("--ready-timeout", type=POSITIVE, default=60.0, show_default=True)
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
               help="Where the children's logs go (default: a new temporary directory).")
@@ -47,14 +50,18 @@ STATUS_LINE_EVERY_S = 5.0  # how often it prints a plain status line to a pipe o
 @click.option("--record-dir", type=click.Path(file_okay=False), default=None,
               help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
-       policy, lease_ms, direct_links, ready_timeout, log_dir, until_depleted, record_dir):
+       policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
     prints a summary (placement, batteries against the model, missed periods, results).
     """
-    from autopower.basestation.operator import clear_session, state_dir, write_session
+    from autopower.basestation.operator import clear_session, running_sessions, team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
+
+    if team_name is not None and team_name in running_sessions():
+        raise AutoPowerError(f"team {team_name!r} is already running on this machine; "
+                             "choose another --team name or stop that one")
     from autopower.launch.localhost import LocalTeam, TeamSpec
 
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting)  # fail fast on bad options
@@ -64,7 +71,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan, policy=policy,
-                    lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links,
+                    lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
                     record_dir=Path(record_dir) if record_dir else None)
     if record_dir:
         Path(record_dir).mkdir(parents=True, exist_ok=True)
@@ -84,7 +91,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     control = None
     try:
         team.start()
-        control = FaultServer(FaultController(team), state_dir() / f"{SOCKET_NAME}").__enter__()
+        control = FaultServer(FaultController(team), team_dir(team.team) / SOCKET_NAME).__enter__()
         write_session({"team": team.team, "connect": [team.base_endpoint], "pid": os.getpid(),
                        "children": {n: c.proc.pid for n, c in team.children.items()},
                        "scenario": scenario.name, "log_dir": str(team.log_dir),

@@ -68,21 +68,21 @@ def test_up_reaches_the_planned_placement(tmp_path):
     for robot, info in summary["robots"].items():
         # over the whole run, startup included, the battery follows the model to within 2 %
         assert abs(info["power_error"]) < 0.02, (robot, info["mean_power_w"], info["predicted_w"])
-    assert not (tmp_path / "state" / "session.json").exists()
+    assert not list((tmp_path / "state").glob("teams/*"))  # a team that exits leaves nothing behind
 
 
-def start_up(tmp_path: Path) -> tuple[subprocess.Popen, dict, dict]:
-    env = env_for(tmp_path)
-    proc = subprocess.Popen([AUTOPOWER, "up", "paper-fig7", "--log-dir", str(tmp_path / "logs")], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    session_file = tmp_path / "state" / "session.json"
+def start_up(tmp_path: Path, team: str = "t1", env: dict | None = None) -> tuple[subprocess.Popen, dict, dict]:
+    env = env or env_for(tmp_path)
+    proc = subprocess.Popen([AUTOPOWER, "up", "paper-fig7", "--team", team, "--log-dir", str(tmp_path / f"logs-{team}")],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    session_file = Path(env["AUTOPOWER_STATE_DIR"]) / "teams" / team / "session.json"
     session = wait_until(lambda: session_file.exists() and json.loads(session_file.read_text()), 30,
                          "up to write its session file")
 
     def ready():
         if proc.poll() is not None:
             raise AssertionError(f"up exited early: {proc.stderr.read()[-2000:]}")
-        status = run_cli(["status", "--json", "--timeout", "2"], env)
+        status = run_cli(["status", "--team", team, "--json", "--timeout", "2"], env)
         return status.returncode == 0 and json.loads(status.stdout).get("ready")
 
     wait_until(ready, 60, "the team to be ready")
@@ -161,3 +161,31 @@ def test_up_on_a_pipe_prints_status_lines_and_ends_when_every_robot_is_depleted(
     assert status, result.stdout  # stdout is a pipe: plain lines, no live table
     assert any("every robot depleted" in l for l in lines), result.stdout[-2000:]
     assert "\x1b[" not in result.stdout  # no terminal control codes in a log
+
+
+@pytest.mark.slow
+def test_two_teams_on_one_machine_keep_their_own_state(tmp_path):
+    env = env_for(tmp_path)
+    first, _, _ = start_up(tmp_path, "t1", env)
+    second = None
+    try:
+        second, session2, _ = start_up(tmp_path, "t2", env)
+        which = run_cli(["status", "--json"], env)
+        assert which.returncode == 2 and which.stderr.strip() == \
+            "error: 2 teams are running (t1, t2); choose one with --team NAME"
+        assert json.loads(run_cli(["status", "--team", "t2", "--json"], env).stdout)["ready"]
+        links = run_cli(["fault", "--team", "t2", "list"], env)
+        assert links.returncode == 0, links.stderr
+        first.send_signal(signal.SIGINT)
+        first.wait(timeout=30)
+        assert first.returncode == 0
+        assert (tmp_path / "state" / "teams" / "t2" / "session.json").exists()  # t1 took only its own files
+        assert not (tmp_path / "state" / "teams" / "t1").exists()
+        alone = run_cli(["status", "--json"], env)  # the only team left needs no --team
+        assert alone.returncode == 0 and json.loads(alone.stdout)["ready"], alone.stderr
+        assert Path(session2["control"]).stat().st_mode & 0o777 == 0o600
+    finally:
+        for proc in (first, second):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                proc.wait(timeout=30)
