@@ -23,6 +23,8 @@ def render(snap: dict, speed: float):
     warning = keep_up_warning(snap, speed)
     if warning:
         head.append(f"\nwarning: {warning}", style="bold red")
+    if snap.get("recording_error"):
+        head.append(f"\nRECORDING FAILED: {snap['recording_error']} (stopping the team)", style="bold red")
     robots = Table("robot", "battery", "power W (plan)", "CPU", "hosts", "sources (frames/missed)", "links",
                    title="robots", title_justify="left")
     for name, info in snap.get("robots", {}).items():

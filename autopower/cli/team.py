@@ -28,6 +28,7 @@ from autopower.model.network import build_network
 
 SNAPSHOT_EVERY_S = 1.0  # how often `up` without a live table asks the base station how things are
 STATUS_LINE_EVERY_S = 5.0  # how often it prints a plain status line to a pipe or a log
+RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still being written
 
 
 @click.command("up")
@@ -74,7 +75,9 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
                     record_dir=Path(record_dir) if record_dir else None)
     if record_dir:
-        Path(record_dir).mkdir(parents=True, exist_ok=True)
+        from autopower.recording.health import check_record_dir
+
+        check_record_dir(record_dir)  # refused here, in one line, before any process starts
 
     def on_term(signum, _frame):
         raise KeyboardInterrupt
@@ -87,6 +90,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     interrupted = False
     ready_after = None
     all_depleted = False
+    recording_failure = None
     console = None
     control = None
     try:
@@ -102,14 +106,26 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
             console = Console(stderr=False)
             console.print(f"starting {scenario.name}: base station + {len(scenario.robots)} agents "
                           f"(team {team.team}, logs in {team.log_dir}) …")
+        if record_dir and not as_json:
+            click.echo(f"recording into {record_dir}; if this run is cut short, "
+                       f"`autopower recording merge {record_dir}` builds {Path(record_dir) / 'run.rrd'}")
         snap = team.wait_ready(ready_timeout)
         ready_after = time.monotonic() - started
-        run_started = last_poll = time.monotonic()
+        run_started = last_poll = last_record_check = time.monotonic()
+        nodes = [scenario.basestation] + [r.name for r in scenario.robots]
 
         def done() -> bool:
-            nonlocal all_depleted
+            nonlocal all_depleted, recording_failure, last_record_check
             if duration is not None and time.monotonic() - run_started >= duration:
                 return True
+            if record_dir and time.monotonic() - last_record_check >= RECORDING_CHECK_EVERY_S:
+                from autopower.recording.health import recording_problem
+
+                last_record_check = time.monotonic()
+                recording_failure = recording_problem(record_dir, nodes)
+                if recording_failure:  # stop cleanly now rather than run on without a record
+                    snap["recording_error"] = recording_failure
+                    return True
             all_depleted = every_robot_depleted(snap)  # the mission is over: nothing left to watch
             return all_depleted or bool(until_depleted and snap.get("first_depletion"))
 
@@ -133,6 +149,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     team.check_children()
                     snap = team.snapshot()
                     live.update(render(snap, speed))
+                live.update(render(snap, speed))
             console.print()
         snap = team.snapshot()
     except AutoPowerError as exc:
@@ -157,27 +174,36 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     summary["all_depleted"] = all_depleted
     summary["failure"] = failure
     summary["recording"] = None
+    summary["recording_error"] = f"recording failed during the run: {recording_failure}" if recording_failure else None
     if record_dir:
         from autopower.recording.live import merge_run
 
         try:
             summary["recording"] = str(merge_run(Path(record_dir)))
-        except AutoPowerError as exc:  # the run itself is fine; say why there is no merged file
-            summary["recording_error"] = str(exc)
+        except (AutoPowerError, OSError) as exc:  # the run itself is fine; say why there is no merged file
+            summary["recording_error"] = "; ".join(filter(None, [summary["recording_error"], str(exc)]))
     bad = {n: c for n, c in codes.items() if c not in (0, None)}
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
     else:
-        why = "interrupted" if interrupted else "every robot depleted" if all_depleted else "done"
+        why = ("interrupted" if interrupted else "recording failed" if recording_failure
+               else "every robot depleted" if all_depleted else "done")
         click.echo(f"stopped {len(codes)} processes ({why}); logs in {team.log_dir}")
         if summary["recording"]:
             click.echo(f"recording: {summary['recording']} (autopower replay {summary['recording']})")
+        if summary["recording_error"]:
+            click.echo(f"recording: NOT complete: {summary['recording_error']}", err=True)
+            if not summary["recording"]:
+                click.echo(f"recording: what the processes wrote is in {record_dir}; "
+                           f"`autopower recording merge {record_dir}` builds run.rrd from it", err=True)
         for warning in summary["warnings"]:
             click.echo(f"warning: {warning}", err=True)
     if bad:
         raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")
     if failure:
         raise AutoPowerError(f"{failure} (logs in {team.log_dir})")
+    if recording_failure:
+        raise AutoPowerError(f"the recording failed ({recording_failure}); the team was stopped cleanly")
 
 
 COMMANDS = (up,)

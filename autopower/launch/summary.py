@@ -43,6 +43,8 @@ def status_line(snap: dict, speed: float) -> str:
     line = (f"t={snap.get('t_virtual') or 0:.0f}s virtual (x{speed:g}) {'ready' if snap.get('ready') else 'placing'}; "
             f"batteries: {', '.join(batteries) or '-'}; operator results {results}; missed {missed} ({pct:.1f} %)")
     warning = keep_up_warning(snap, speed)
+    if snap.get("recording_error"):
+        line += f"; RECORDING FAILED: {snap['recording_error']}"
     return line + (f"; warning: {warning}" if warning else "")
 
 
