@@ -136,7 +136,11 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                 team.check_children()
                 now = time.monotonic()
                 if now - last_poll >= SNAPSHOT_EVERY_S:
-                    snap, last_poll = team.snapshot(), now
+                    last_poll = now
+                    try:
+                        snap = team.snapshot()
+                    except AutoPowerError:  # a busy base station answers late: keep the last one
+                        pass
                 if not as_json and now - last_line >= STATUS_LINE_EVERY_S:
                     click.echo(status_line(snap, speed))
                     last_line = now
