@@ -60,7 +60,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     from autopower.basestation.operator import clear_session, running_sessions, team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
 
-    if team_name is not None and team_name in running_sessions():
+    if team_name in running_sessions():  # (which also removes the files of teams whose `up` died)
         raise AutoPowerError(f"team {team_name!r} is already running on this machine; "
                              "choose another --team name or stop that one")
     from autopower.launch.localhost import LocalTeam, TeamSpec
