@@ -32,6 +32,7 @@ and migrations, plan updates) and `operating.py` (operator commands, the snapsho
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -396,11 +397,16 @@ class Coordinator(Deciding, Placing, Operating):
 
 
     def next_deadline_unix(self) -> float:
-        deadlines = [self.next_republish] + [m.started_unix + self.config.migration_timeout_s
-                                              for m in self.migrations.values()]
+        """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
+        deadlines = [m.started_unix + self.config.migration_timeout_s for m in self.migrations.values()]
+        if self.mission is not None:
+            deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
+        elif self.first_seen_unix is not None:
+            deadlines.append(self.first_seen_unix + self.config.start_grace_s)  # a late start
+        # nothing else is timed before the first robot appears: the next event wakes us
         if self.clock is not None and self.revisit_at_s is not None:
             deadlines.append(self.clock.wall_at(self.revisit_at_s))
-        return min(deadlines)
+        return min(deadlines, default=math.inf)
 
 
     # ---- operator ---------------------------------------------------------------------------------------------

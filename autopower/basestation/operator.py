@@ -13,46 +13,126 @@ from pathlib import Path
 
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.protocol import Keys, OperatorReply, SnapshotRequest, decode, encode
+from autopower.protocol.keys import check_name
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 
 SESSION_FILE = "session.json"
+TEAMS_DIR = "teams"  # one directory per running team: its session file and control socket
 
 
 def state_dir() -> Path:
-    """Where `autopower up` records how to reach the running team (AUTOPOWER_STATE_DIR overrides)."""
+    """Where `autopower up` records how to reach its team (AUTOPOWER_STATE_DIR overrides)."""
     env = os.environ.get("AUTOPOWER_STATE_DIR")
     if env:
         return Path(env)
     return Path(os.environ.get("XDG_STATE_HOME", Path.home() / ".local" / "state")) / "autopower"
 
 
+def private_dir(path: Path) -> Path:
+    """`path` (and missing parents) as a directory only this user can enter: 0700 whatever the umask."""
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if path.stat().st_uid != os.getuid():
+        raise AutoPowerError(f"{path} belongs to another user; set AUTOPOWER_STATE_DIR to a directory of your own")
+    os.chmod(path, 0o700)
+    return path
+
+
+def team_dir(team: str) -> Path:
+    """The directory of one team's state files (created 0700)."""
+    check_name(team, "team")
+    root = private_dir(state_dir())
+    return private_dir(private_dir(root / TEAMS_DIR) / team)
+
+
 def write_session(info: dict) -> Path:
-    path = state_dir() / SESSION_FILE
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Record how to reach `info["team"]` (its own directory; the file 0600)."""
+    path = team_dir(info["team"]) / SESSION_FILE
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(info, indent=2))
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(json.dumps(info, indent=2))
+    os.chmod(tmp, 0o600)
     tmp.replace(path)
     return path
 
 
-def read_session() -> dict:
-    path = state_dir() / SESSION_FILE
+def _alive(pid) -> bool:
+    if not isinstance(pid, int) or pid <= 0:
+        return False
     try:
-        return json.loads(path.read_text())
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:  # a zombie has exited
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def running_sessions(clean_stale: bool = True) -> dict[str, dict]:
+    """Team name -> session of every team whose `up` is still alive; a dead team's files are removed."""
+    root = state_dir() / TEAMS_DIR
+    out: dict[str, dict] = {}
+    try:
+        folders = sorted(p for p in root.iterdir() if p.is_dir())
     except FileNotFoundError:
-        raise AutoPowerError(f"no running team found ({path} is missing); start one with `autopower up`, "
-                             "or pass --connect ENDPOINT --team TEAM") from None
-    except json.JSONDecodeError as exc:
-        raise AutoPowerError(f"{path} is corrupt ({exc}); remove it and pass --connect/--team") from None
+        return out
+    for folder in folders:
+        try:
+            session = json.loads((folder / SESSION_FILE).read_text())
+        except FileNotFoundError:
+            session = None
+        except (json.JSONDecodeError, OSError, UnicodeDecodeError):
+            session = {}
+        if isinstance(session, dict) and session.get("team") == folder.name and _alive(session.get("pid")):
+            out[folder.name] = session
+        elif clean_stale and session is not None:  # its `up` died without cleaning up (SIGKILL, a crash)
+            remove_team_files(folder.name)
+    return out
 
 
-def clear_session(team: str) -> None:
-    path = state_dir() / SESSION_FILE
+def read_session(team: str | None = None) -> dict:
+    """The session of `team`, or of the only running team; a clear error naming the running ones."""
+    sessions = running_sessions()
+    names = ", ".join(sessions) or "none"
+    if team is not None:
+        if team not in sessions:
+            raise AutoPowerError(f"no running team {team!r} on this machine (running: {names}); start it with "
+                                 "`autopower up`, or pass --connect ENDPOINT to reach a base station elsewhere")
+        return sessions[team]
+    if not sessions:
+        raise AutoPowerError(f"no running team found (nothing in {state_dir() / TEAMS_DIR}); start one with "
+                             "`autopower up`, or pass --connect ENDPOINT --team TEAM")
+    if len(sessions) > 1:
+        raise AutoPowerError(f"{len(sessions)} teams are running ({names}); choose one with --team NAME")
+    return next(iter(sessions.values()))
+
+
+def remove_team_files(team: str) -> None:
+    """Remove one team's session file, control socket and directory; nothing of any other team."""
+    folder = state_dir() / TEAMS_DIR / check_name(team, "team")
+    for name in (SESSION_FILE, SESSION_FILE.replace(".json", ".tmp"), "control.sock"):
+        try:
+            (folder / name).unlink()
+        except FileNotFoundError:
+            pass
     try:
-        if json.loads(path.read_text()).get("team") == team:
-            path.unlink()
-    except (FileNotFoundError, json.JSONDecodeError):
+        folder.rmdir()
+    except OSError:  # not empty (something we did not put there) or already gone
         pass
+
+
+def clear_session(team: str, pid: int | None = None) -> None:
+    """Remove `team`'s files if they are this process's (`pid`, default ours)."""
+    path = state_dir() / TEAMS_DIR / check_name(team, "team") / SESSION_FILE
+    try:
+        owner = json.loads(path.read_text()).get("pid")
+    except (FileNotFoundError, json.JSONDecodeError, OSError):
+        owner = None
+    if owner in (None, pid or os.getpid()):
+        remove_team_files(team)
 
 
 class OperatorClient:

@@ -11,6 +11,7 @@ from autopower.cli.options import (
     ACCOUNTING_OPT,
     ENERGY_OPT,
     JSON_OPT,
+    POSITIVE,
     SCENARIO_ARG,
     build_scenario,
     console,
@@ -118,7 +119,7 @@ def markdown_table(s: Scenario, rows, normaliser) -> str:
 @click.option("--method", type=click.Choice(["auto", "exhaustive", "milp"]), default="auto", show_default=True)
 @click.option("--disable", multiple=True, metavar="CHAIN", help="Plan without this chain (repeatable).")
 @click.option("--without", multiple=True, metavar="ROBOT", help="Plan as if this robot were gone (repeatable).")
-@click.option("--time-limit", type=float, default=None, help="MILP time limit in seconds.")
+@click.option("--time-limit", type=POSITIVE, default=None, help="MILP time limit in seconds.")
 @click.option("--no-bound", is_flag=True, help="Skip the time-sharing bound.")
 @profile_opts
 def plan_cmd(scenario, energy, accounting, as_json, topology, method, disable, without, time_limit, no_bound,

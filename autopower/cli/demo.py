@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from autopower.cli.options import LEASE_MS, POSITIVE
 from autopower.errors import AutoPowerError
 from autopower.launch.demo import run_demo
 from autopower.policies import POLICY_NAMES
@@ -15,10 +16,10 @@ from autopower.policies import POLICY_NAMES
 
 @click.command("demo")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (and nothing else on stdout).")
-@click.option("--speed", type=float, default=5.0, show_default=True, help="Virtual seconds per wall second.")
-@click.option("--mission", "mission_wall_s", type=float, default=35.0, show_default=True,
+@click.option("--speed", type=POSITIVE, default=5.0, show_default=True, help="Virtual seconds per wall second.")
+@click.option("--mission", "mission_wall_s", type=POSITIVE, default=35.0, show_default=True,
               help="Wall seconds the planned mission lasts (sets the battery size).")
-@click.option("--lease-ms", default=500, show_default=True)
+@click.option("--lease-ms", default=500, show_default=True, type=LEASE_MS)
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
               help="Where logs and the recording go (default: a new temporary directory).")
 @click.option("--no-record", is_flag=True, help="Do not write a Rerun recording.")

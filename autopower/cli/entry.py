@@ -32,6 +32,10 @@ def run_command(command: click.Command, args: list[str] | None = None, prog_name
         _json_error(as_json, "aborted", 130)
         click.echo("aborted", err=True)
         sys.exit(130)
+    except click.UsageError as exc:  # one line, like every other mistake, with where to look
+        where = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+        click.echo(f"error: {exc.format_message()}{where}", err=True)
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
         _json_error(as_json, exc.format_message(), exc.exit_code)
         exc.show()

@@ -6,11 +6,12 @@ import json
 
 import click
 
+from autopower.cli.options import TEAM_NAME
 from autopower.launch.faults import MEDIA_CHOICES, request_fault
 
 
 def _run(request: dict, as_json: bool) -> None:
-    reply = request_fault(request)
+    reply = request_fault(request, team=click.get_current_context().find_root().meta.get("fault_team"))
     click.echo(json.dumps(reply) if as_json else reply.get("message", "ok"))
 
 
@@ -18,8 +19,12 @@ _json = click.option("--json", "as_json", is_flag=True, help="Print the reply as
 
 
 @click.group("fault")
-def fault() -> None:
-    """Inject faults into the team started by `autopower up` (real, silent link cuts; signals)."""
+@click.option("--team", default=None, type=TEAM_NAME,
+              help="Which running team (default: the only one on this machine).")
+@click.pass_context
+def fault(ctx, team) -> None:
+    """Inject faults into a team started by `autopower up` (real, silent link cuts; signals)."""
+    ctx.find_root().meta["fault_team"] = team
 
 
 @fault.command("cut")
@@ -80,7 +85,8 @@ def fault_radio(robot, laptop, robot_medium, as_json):
                                                         "(with it, a failure is JSON on stdout too).")
 def fault_list(as_json):
     """The faults injected so far and the state of every link, as JSON."""
-    click.echo(json.dumps(request_fault({"op": "list"}), indent=1))
+    team = click.get_current_context().find_root().meta.get("fault_team")
+    click.echo(json.dumps(request_fault({"op": "list"}, team=team), indent=1))
 
 
 COMMANDS = [fault]

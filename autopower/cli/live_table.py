@@ -9,6 +9,8 @@ def render(snap: dict, speed: float):
     from rich.table import Table
     from rich.text import Text
 
+    from autopower.launch.summary import keep_up_warning
+
     revisit = snap.get("revisit_at_s")
     parts = [f"{snap.get('scenario')}", f"{snap.get('accounting')} accounting",
              f"t = {snap.get('t_virtual', 0):.0f} s virtual (x{speed:g})", f"policy {snap.get('policy')}",
@@ -18,6 +20,11 @@ def render(snap: dict, speed: float):
     if not snap.get("ready"):
         parts.append("placing…")
     head = Text(" · ".join(parts), style="bold")
+    warning = keep_up_warning(snap, speed)
+    if warning:
+        head.append(f"\nwarning: {warning}", style="bold red")
+    if snap.get("recording_error"):
+        head.append(f"\nRECORDING FAILED: {snap['recording_error']} (stopping the team)", style="bold red")
     robots = Table("robot", "battery", "power W (plan)", "CPU", "hosts", "sources (frames/missed)", "links",
                    title="robots", title_justify="left")
     for name, info in snap.get("robots", {}).items():

@@ -8,7 +8,19 @@ from __future__ import annotations
 
 import click
 
-from autopower.cli import analysis, demo, evaluate, fault, operator, processes, profile, replay, simulate, team
+from autopower.cli import (
+    analysis,
+    demo,
+    evaluate,
+    fault,
+    operator,
+    processes,
+    profile,
+    recording,
+    replay,
+    simulate,
+    team,
+)
 from autopower.cli.entry import run_command
 
 
@@ -20,7 +32,7 @@ def cli() -> None:
     """
 
 
-for _module in (analysis, evaluate, profile, simulate, replay, processes, team, operator, fault, demo):
+for _module in (analysis, evaluate, profile, simulate, replay, recording, processes, team, operator, fault, demo):
     for _command in _module.COMMANDS:
         cli.add_command(_command)
 

@@ -14,8 +14,8 @@ from autopower.errors import AutoPowerError
 def _client(team: str | None, connect: tuple[str, ...]):
     from autopower.basestation.operator import OperatorClient, read_session
 
-    if not team or not connect:
-        session = read_session()
+    if not team or not connect:  # an endpoint and a team name reach any base station; else a local team
+        session = read_session(team)
         team = team or session["team"]
         connect = connect or tuple(session["connect"])
     return OperatorClient(team, connect=connect)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import math
+import re
 import sys
 
 import click
@@ -17,6 +19,92 @@ DEFAULT_SPEED = 10.0  # two 4 Hz blob chains at 10x = 80 frames of 230 KB a seco
 
 # Piped output (CI logs, `| less`) would otherwise be cut to 80 columns and truncate the tables.
 console = Console() if sys.stdout.isatty() else Console(width=200)
+
+
+class FiniteFloat(click.ParamType):
+    """A finite number, > 0 (or >= 0): `inf` and `nan` parse as floats but break every clock."""
+
+    name = "number"
+
+    def __init__(self, allow_zero: bool = False):
+        self.allow_zero = allow_zero
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            number = float(value)
+        else:
+            try:
+                number = float(str(value).strip())
+            except ValueError:
+                self.fail(f"{value!r} is not a number", param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        if number < 0 or (number == 0 and not self.allow_zero):
+            self.fail(f"{value!r}: expected a number {'>= 0' if self.allow_zero else '> 0'}", param, ctx)
+        if number > MAX_OPTION_NUMBER:
+            self.fail(f"{value!r} is too large (at most {MAX_OPTION_NUMBER:g})", param, ctx)
+        return number
+
+
+MAX_OPTION_NUMBER = 1e9  # a billion seconds (or times faster) is already far past any mission
+POSITIVE = FiniteFloat()
+NON_NEGATIVE = FiniteFloat(allow_zero=True)
+
+
+class TeamName(click.ParamType):
+    """A team name: one chunk of a Zenoh key expression and a directory name."""
+
+    name = "team"
+
+    def convert(self, value, param, ctx):
+        from autopower.protocol.keys import check_name
+
+        if len(str(value)) > 64:
+            self.fail(f"{value!r} is longer than 64 characters", param, ctx)
+        try:
+            return check_name(str(value), "team name")
+        except ValueError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+TEAM_NAME = TeamName()
+
+# Zenoh's locator protocols; a typo here would otherwise surface as a zenoh.ZError traceback.
+_IP_PROTOCOLS = {"tcp", "udp", "tls", "quic", "ws"}
+_PATH_PROTOCOLS = {"unixsock-stream", "unixpipe", "serial", "vsock"}
+_HOST = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)$")
+
+
+def check_endpoint(endpoint: str) -> str:
+    """`endpoint` if it is a Zenoh locator such as tcp/127.0.0.1:7447, else ValueError saying why."""
+    locator = endpoint.split("#", 1)[0].split("?", 1)[0]
+    protocol, sep, address = locator.partition("/")
+    if not sep or not address:
+        raise ValueError(f"{endpoint!r} is not an endpoint; expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447")
+    if protocol in _PATH_PROTOCOLS:
+        return endpoint
+    if protocol not in _IP_PROTOCOLS:
+        raise ValueError(f"{endpoint!r}: unknown protocol {protocol!r}; use one of "
+                         f"{', '.join(sorted(_IP_PROTOCOLS | _PATH_PROTOCOLS))}")
+    host, sep, port = address.rpartition(":")
+    if not sep or not _HOST.match(host) or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"{endpoint!r}: expected {protocol}/HOST:PORT with a port 0-65535, "
+                         f"e.g. {protocol}/127.0.0.1:7447")
+    return endpoint
+
+
+class Endpoint(click.ParamType):
+    name = "endpoint"
+
+    def convert(self, value, param, ctx):
+        try:
+            return check_endpoint(str(value))
+        except ValueError as exc:
+            self.fail(str(exc), param, ctx)
+
+
+ENDPOINT = Endpoint()
+LEASE_MS = click.IntRange(100, 3_600_000)  # below 100 ms a busy machine looks like a dead peer
 
 
 def parse_energies(values: tuple[str, ...]) -> dict[str, float]:
@@ -91,16 +179,16 @@ JSON_OPT = click.option("--json", "as_json", is_flag=True, help="Print one JSON 
 def network_options(f):
     f = click.option("--scenario", "scenario_name", default="paper-fig7", show_default=True,
                      help="Built-in scenario name or path to a .toml file.")(f)
-    f = click.option("--team", default="default", show_default=True,
+    f = click.option("--team", default="default", show_default=True, type=TEAM_NAME,
                      help="Team name: every key is under autopower/<team>/.")(f)
-    f = click.option("--listen", multiple=True, metavar="ENDPOINT",
+    f = click.option("--listen", multiple=True, metavar="ENDPOINT", type=ENDPOINT,
                      help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable).")(f)
-    f = click.option("--connect", multiple=True, metavar="ENDPOINT",
+    f = click.option("--connect", multiple=True, metavar="ENDPOINT", type=ENDPOINT,
                      help="Zenoh endpoint of a peer to connect to (repeatable; peers do not relay).")(f)
-    f = click.option("--lease-ms", default=1000, show_default=True,
+    f = click.option("--lease-ms", default=1000, show_default=True, type=LEASE_MS,
                      help="Zenoh lease: a frozen peer or cut link is noticed after about this long.")(f)
-    f = click.option("--status-period", default=0.5, show_default=True, help="Wall seconds between status messages.")(f)
-    f = click.option("--duration", type=float, default=None, help="Stop after this many wall seconds.")(f)
+    f = click.option("--status-period", default=0.5, type=POSITIVE, show_default=True, help="Wall seconds between status messages.")(f)
+    f = click.option("--duration", type=POSITIVE, default=None, help="Stop after this many wall seconds.")(f)
     f = click.option("--parent-pid", type=int, default=None, hidden=True)(f)
     f = click.option("--record-dir", type=click.Path(file_okay=False), default=None,
                      help="Write this process's Rerun recording into DIR (the run's shared recording id).")(f)
@@ -113,7 +201,7 @@ def mission_options(f):
     """The mission settings `basestation` and `up` share (one definition, so they cannot drift)."""
     for option in reversed([
         click.option("--energy", multiple=True, metavar="ROBOT=J", help="Starting energy of a robot (repeatable)."),
-        click.option("--energy-scale", type=float, default=None,
+        click.option("--energy-scale", type=POSITIVE, default=None,
                      help="Multiply every starting energy, e.g. 0.01 to watch a whole mission in a minute or two."),
         click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None),
         click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None),
@@ -132,10 +220,11 @@ def mission_options(f):
 
 
 def operator_options(f):
-    f = click.option("--team", default=None, help="Team name (default: the last `autopower up`).")(f)
-    f = click.option("--connect", multiple=True, metavar="ENDPOINT",
+    f = click.option("--team", default=None, type=TEAM_NAME,
+                     help="Team name (default: the only team `autopower up` runs on this machine).")(f)
+    f = click.option("--connect", multiple=True, metavar="ENDPOINT", type=ENDPOINT,
                      help="The base station's endpoint (default: the last `autopower up`).")(f)
-    f = click.option("--timeout", type=float, default=5.0, show_default=True)(f)
+    f = click.option("--timeout", type=POSITIVE, default=5.0, show_default=True)(f)
     return f
 
 

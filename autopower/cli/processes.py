@@ -15,6 +15,8 @@ import click
 
 from autopower.cli.options import (
     DEFAULT_SPEED,
+    NON_NEGATIVE,
+    POSITIVE,
     build_scenario,
     mission_options,
     network_options,
@@ -88,12 +90,12 @@ def _recording_bus(record_dir, node: str, scenario, zenoh):
 
 @click.command("basestation")
 @network_options
-@click.option("--speed", type=float, default=DEFAULT_SPEED, show_default=True,
+@click.option("--speed", type=POSITIVE, default=DEFAULT_SPEED, show_default=True,
               help="Virtual seconds per wall second.")
 @mission_options
-@click.option("--replan-interval", type=float, default=600.0, show_default=True,
+@click.option("--replan-interval", type=POSITIVE, default=600.0, show_default=True,
               help="Virtual seconds between re-plans with the remaining energies.")
-@click.option("--start-grace", type=float, default=30.0, show_default=True,
+@click.option("--start-grace", type=NON_NEGATIVE, default=30.0, show_default=True,
               help="Wall seconds to wait for every robot before starting without the missing ones.")
 def basestation(scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
                 record_dir, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,

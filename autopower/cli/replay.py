@@ -18,6 +18,7 @@ from pathlib import Path
 import click
 
 from autopower.cli.entry import run_command
+from autopower.cli.options import NON_NEGATIVE, POSITIVE
 from autopower.errors import AutoPowerError
 
 __all__ = ["replay", "serve_recording", "main"]
@@ -50,7 +51,7 @@ def _json_safe(value):
 @click.argument("recording", metavar="RUN.rrd", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object (schema: autopower.recording.replay).")
 @click.option("--what-if", "whatif", is_flag=True, help="Replan offline from the recorded state (see --at).")
-@click.option("--at", "at_s", type=float, default=None, metavar="SECONDS",
+@click.option("--at", "at_s", type=NON_NEGATIVE, default=None, metavar="SECONDS",
               help="Mission time of the state to replan from (default: the end of the recording).")
 @click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None,
               help="What-if: message accounting.")
@@ -61,7 +62,7 @@ def _json_safe(value):
               help="What-if: plan on this topology (default: the recorded network).")
 @click.option("--disable", multiple=True, metavar="CHAIN", help="What-if: switch a chain off (repeatable).")
 @click.option("--serve", is_flag=True, help="Open the Rerun web viewer on the file (bound to 127.0.0.1).")
-@click.option("--serve-seconds", type=float, default=None, metavar="S",
+@click.option("--serve-seconds", type=POSITIVE, default=None, metavar="S",
               help="With --serve: stop the viewer after S seconds (default: at Ctrl-C).")
 def replay(recording, as_json, whatif, at_s, accounting, energy, policy, topology, disable, serve,
            serve_seconds) -> None:

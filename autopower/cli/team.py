@@ -5,44 +5,64 @@ from __future__ import annotations
 import json
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
 import click
 
 from autopower.cli.live_table import render
-from autopower.cli.options import DEFAULT_SPEED, build_scenario, mission_options, parse_pairs
+from autopower.cli.options import (
+    DEFAULT_SPEED,
+    LEASE_MS,
+    POSITIVE,
+    TEAM_NAME,
+    build_scenario,
+    mission_options,
+    parse_pairs,
+)
 from autopower.errors import AutoPowerError
-from autopower.launch.summary import run_summary
+from autopower.launch.summary import every_robot_depleted, run_summary, status_line
 from autopower.model.network import build_network
+
+
+SNAPSHOT_EVERY_S = 1.0  # how often `up` without a live table asks the base station how things are
+STATUS_LINE_EVERY_S = 5.0  # how often it prints a plain status line to a pipe or a log
+RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still being written
 
 
 @click.command("up")
 @click.argument("scenario_name", default="paper-fig7", metavar="[SCENARIO]")
-@click.option("--speed", type=float, default=DEFAULT_SPEED, show_default=True,
+@click.option("--speed", type=POSITIVE, default=DEFAULT_SPEED, show_default=True,
               help="Virtual seconds per wall second (missed periods are reported if it is too fast).")
-@click.option("--duration", type=float, default=None, help="Stop after this many wall seconds (default: Ctrl-C).")
+@click.option("--duration", type=POSITIVE, default=None, help="Stop after this many wall seconds (default: Ctrl-C).")
 @click.option("--json", "as_json", is_flag=True, help="No live table; print a JSON summary at the end.")
 @mission_options
-@click.option("--lease-ms", default=500, show_default=True,
+@click.option("--lease-ms", default=500, show_default=True, type=LEASE_MS,
               help="Zenoh lease: a silent cut or a frozen robot is detected after about this long.")
 @click.option("--direct-links", is_flag=True,
               help="Connect processes directly (no link proxies: `autopower fault cut` is unavailable).")
-@click.option("--ready-timeout", type=float, default=60.0, show_default=True)
+@click.option("--team", "team_name", default=None, type=TEAM_NAME,
+              help="Name the team (default: a new name); commands pick it with --team.")
+@click.option("--ready-timeout", type=POSITIVE, default=60.0, show_default=True)
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None,
               help="Where the children's logs go (default: a new temporary directory).")
 @click.option("--until-depleted", is_flag=True, help="Stop when the first robot's battery is empty.")
 @click.option("--record-dir", type=click.Path(file_okay=False), default=None,
               help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
-       policy, lease_ms, direct_links, ready_timeout, log_dir, until_depleted, record_dir):
+       policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
     prints a summary (placement, batteries against the model, missed periods, results).
     """
-    from autopower.basestation.operator import clear_session, state_dir, write_session
+    from autopower.basestation.operator import clear_session, running_sessions, team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
+
+    if team_name in running_sessions():  # (which also removes the files of teams whose `up` died)
+        raise AutoPowerError(f"team {team_name!r} is already running on this machine; "
+                             "choose another --team name or stop that one")
     from autopower.launch.localhost import LocalTeam, TeamSpec
 
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting)  # fail fast on bad options
@@ -52,10 +72,12 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan, policy=policy,
-                    lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links,
+                    lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
                     record_dir=Path(record_dir) if record_dir else None)
     if record_dir:
-        Path(record_dir).mkdir(parents=True, exist_ok=True)
+        from autopower.recording.health import check_record_dir
+
+        check_record_dir(record_dir)  # refused here, in one line, before any process starts
 
     def on_term(signum, _frame):
         raise KeyboardInterrupt
@@ -67,11 +89,13 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     failure = None
     interrupted = False
     ready_after = None
+    all_depleted = False
+    recording_failure = None
     console = None
     control = None
     try:
         team.start()
-        control = FaultServer(FaultController(team), state_dir() / f"{SOCKET_NAME}").__enter__()
+        control = FaultServer(FaultController(team), team_dir(team.team) / SOCKET_NAME).__enter__()
         write_session({"team": team.team, "connect": [team.base_endpoint], "pid": os.getpid(),
                        "children": {n: c.proc.pid for n, c in team.children.items()},
                        "scenario": scenario.name, "log_dir": str(team.log_dir),
@@ -82,21 +106,44 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
             console = Console(stderr=False)
             console.print(f"starting {scenario.name}: base station + {len(scenario.robots)} agents "
                           f"(team {team.team}, logs in {team.log_dir}) …")
+        if record_dir and not as_json:
+            click.echo(f"recording into {record_dir}; if this run is cut short, "
+                       f"`autopower recording merge {record_dir}` builds {Path(record_dir) / 'run.rrd'}")
         snap = team.wait_ready(ready_timeout)
         ready_after = time.monotonic() - started
-        run_started = time.monotonic()
+        run_started = last_poll = last_record_check = time.monotonic()
+        nodes = [scenario.basestation] + [r.name for r in scenario.robots]
 
         def done() -> bool:
+            nonlocal all_depleted, recording_failure, last_record_check
             if duration is not None and time.monotonic() - run_started >= duration:
                 return True
-            return bool(until_depleted and snap.get("first_depletion"))
+            if record_dir and time.monotonic() - last_record_check >= RECORDING_CHECK_EVERY_S:
+                from autopower.recording.health import recording_problem
 
-        if as_json:
+                last_record_check = time.monotonic()
+                recording_failure = recording_problem(record_dir, nodes)
+                if recording_failure:  # stop cleanly now rather than run on without a record
+                    snap["recording_error"] = recording_failure
+                    return True
+            all_depleted = every_robot_depleted(snap)  # the mission is over: nothing left to watch
+            return all_depleted or bool(until_depleted and snap.get("first_depletion"))
+
+        if as_json or not sys.stdout.isatty():  # a pipe or a log: no live table, a plain line now and then
+            last_line = time.monotonic()
             while not done():
                 time.sleep(0.25)
                 team.check_children()
-                if until_depleted:
-                    snap = team.snapshot()
+                now = time.monotonic()
+                if now - last_poll >= SNAPSHOT_EVERY_S:
+                    last_poll = now
+                    try:
+                        snap = team.snapshot()
+                    except AutoPowerError:  # a busy base station answers late: keep the last one
+                        pass
+                if not as_json and now - last_line >= STATUS_LINE_EVERY_S:
+                    click.echo(status_line(snap, speed))
+                    last_line = now
         else:
             from rich.live import Live
 
@@ -106,6 +153,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     team.check_children()
                     snap = team.snapshot()
                     live.update(render(snap, speed))
+                live.update(render(snap, speed))
             console.print()
         snap = team.snapshot()
     except AutoPowerError as exc:
@@ -127,31 +175,39 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
+    summary["all_depleted"] = all_depleted
     summary["failure"] = failure
     summary["recording"] = None
+    summary["recording_error"] = f"recording failed during the run: {recording_failure}" if recording_failure else None
     if record_dir:
         from autopower.recording.live import merge_run
 
         try:
             summary["recording"] = str(merge_run(Path(record_dir)))
-        except AutoPowerError as exc:  # the run itself is fine; say why there is no merged file
-            summary["recording_error"] = str(exc)
+        except (AutoPowerError, OSError) as exc:  # the run itself is fine; say why there is no merged file
+            summary["recording_error"] = "; ".join(filter(None, [summary["recording_error"], str(exc)]))
     bad = {n: c for n, c in codes.items() if c not in (0, None)}
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
     else:
-        click.echo(f"stopped {len(codes)} processes ({'interrupted' if interrupted else 'done'}); "
-                   f"logs in {team.log_dir}")
+        why = ("interrupted" if interrupted else "recording failed" if recording_failure
+               else "every robot depleted" if all_depleted else "done")
+        click.echo(f"stopped {len(codes)} processes ({why}); logs in {team.log_dir}")
         if summary["recording"]:
             click.echo(f"recording: {summary['recording']} (autopower replay {summary['recording']})")
-        if summary["missed_ratio"] > 0.01:
-            click.echo(f"warning: {summary['periods_missed']} source periods missed "
-                       f"({summary['missed_ratio']:.1%}); this machine cannot keep up with --speed {speed:g}. "
-                       "Lower --speed (and use --energy-scale for shorter missions).", err=True)
+        if summary["recording_error"]:
+            click.echo(f"recording: NOT complete: {summary['recording_error']}", err=True)
+            if not summary["recording"]:
+                click.echo(f"recording: what the processes wrote is in {record_dir}; "
+                           f"`autopower recording merge {record_dir}` builds run.rrd from it", err=True)
+        for warning in summary["warnings"]:
+            click.echo(f"warning: {warning}", err=True)
     if bad:
         raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")
     if failure:
         raise AutoPowerError(f"{failure} (logs in {team.log_dir})")
+    if recording_failure:
+        raise AutoPowerError(f"the recording failed ({recording_failure}); the team was stopped cleanly")
 
 
 COMMANDS = (up,)

@@ -1,9 +1,10 @@
 """Fault injection into a running team: `autopower fault cut|heal|kill|freeze|thaw|radio`.
 
 The `up` supervisor owns the team's link proxies and child processes, so faults are carried
-out there. It serves a small local control channel — a Unix socket in the state directory,
-one JSON request per connection, one JSON reply — which works whatever the Zenoh links are
-doing (a cut link must not cut the operator off from un-cutting it). `session.json` says
+out there. It serves a small local control channel — a Unix socket in the team's own state
+directory (0600 in a 0700 directory; the server also checks the caller's uid), one JSON
+request per connection, one JSON reply — which works whatever the Zenoh links are doing (a
+cut link must not cut the operator off from un-cutting it). The team's `session.json` says
 where the socket is.
 
 Every fault is recorded with its wall time (``t_unix``), so detection and reconfiguration can
@@ -19,6 +20,7 @@ import os
 import signal
 import socket
 import socketserver
+import struct
 import threading
 import time
 from pathlib import Path
@@ -122,17 +124,27 @@ def _own_group(pid: int) -> bool:
         return False
 
 
+def peer_uid(sock: socket.socket) -> int:
+    """The user id of the process at the other end of a Unix socket (SO_PEERCRED: from the kernel)."""
+    creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    _pid, uid, _gid = struct.unpack("3i", creds)
+    return uid
+
+
 class FaultServer:
     """The supervisor's side of the control channel (a context manager)."""
 
     def __init__(self, controller: FaultController, path: Path):
         self.controller = controller
         self.path = Path(path)
+        self._own_dir = False
         if len(str(self.path)) > 100:  # AF_UNIX paths are limited to ~108 bytes
             import tempfile
 
-            self.path = Path(tempfile.mkdtemp(prefix="autopower-")) / SOCKET_NAME
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path = Path(tempfile.mkdtemp(prefix="autopower-")) / SOCKET_NAME  # 0700, ours to remove
+            self._own_dir = True
+        self.path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        os.chmod(self.path.parent, 0o700)  # whatever the umask: only this user may reach the socket
         if self.path.exists():
             self.path.unlink()
         controller_ = controller
@@ -140,6 +152,13 @@ class FaultServer:
         class Handler(socketserver.StreamRequestHandler):
             def handle(self) -> None:
                 try:
+                    uid = peer_uid(self.request)
+                    if uid != os.getuid():  # the modes keep others out; this is the second lock
+                        log.warning("control request from uid %s refused (this team belongs to uid %s)",
+                                    uid, os.getuid())
+                        reply = {"ok": False, "message": "refused: this team belongs to another user"}
+                        self.wfile.write((json.dumps(reply) + "\n").encode())
+                        return
                     request = json.loads(self.rfile.readline().decode() or "{}")
                     reply = controller_.apply(request)
                 except AutoPowerError as exc:
@@ -149,7 +168,12 @@ class FaultServer:
                     reply = {"ok": False, "message": f"internal error: {exc}"}
                 self.wfile.write((json.dumps(reply) + "\n").encode())
 
-        self._server = socketserver.ThreadingUnixStreamServer(str(self.path), Handler)
+        previous = os.umask(0o177)  # the socket is born 0600: no window in which others may connect
+        try:
+            self._server = socketserver.ThreadingUnixStreamServer(str(self.path), Handler)
+        finally:
+            os.umask(previous)
+        os.chmod(self.path, 0o600)
         self._server.daemon_threads = True
         self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.1},
                                         name="fault-server", daemon=True)
@@ -168,13 +192,18 @@ class FaultServer:
             self.path.unlink()
         except FileNotFoundError:
             pass
+        if self._own_dir:
+            try:
+                self.path.parent.rmdir()
+            except OSError:
+                pass
 
 
-def request_fault(request: dict, timeout_s: float = 10.0) -> dict:
-    """Send one request to the running team's supervisor (found through session.json)."""
+def request_fault(request: dict, timeout_s: float = 10.0, team: str | None = None) -> dict:
+    """Send one request to a running team's supervisor (`team`, default the only one; its session file)."""
     from autopower.basestation.operator import read_session
 
-    session = read_session()
+    session = read_session(team)
     path = session.get("control")
     if not path:
         raise AutoPowerError("the running team was started without a fault control channel; "

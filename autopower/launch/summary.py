@@ -3,6 +3,51 @@
 from __future__ import annotations
 
 
+KEEP_UP_THRESHOLD_PCT = 1.0  # source periods missed beyond startup jitter: the speed-up is too fast
+
+
+def missed_periods(snap: dict) -> tuple[int, int, float]:
+    """(frames produced, periods missed, missed %) over every robot's sources in a snapshot."""
+    sources = [s for info in (snap.get("robots") or {}).values()
+               for s in ((info.get("status") or {}).get("sources") or {}).values()]
+    produced = sum(s.get("produced_total", 0) for s in sources)
+    missed = sum(s.get("missed", 0) for s in sources)
+    return produced, missed, (100.0 * missed / (produced + missed) if produced + missed else 0.0)
+
+
+def keep_up_warning(snap: dict, speed: float) -> str | None:
+    """What to tell the user when this machine cannot keep up with the chosen speed-up, else None."""
+    _, missed, pct = missed_periods(snap)
+    if pct <= KEEP_UP_THRESHOLD_PCT:
+        return None
+    return (f"{missed} source periods missed ({pct:.1f} %): this machine cannot keep up with --speed {speed:g}; "
+            "lower --speed (and use --energy-scale for shorter missions)")
+
+
+def every_robot_depleted(snap: dict) -> bool:
+    robots = (snap.get("robots") or {}).values()
+    return bool(robots) and all((info.get("status") or {}).get("depleted") for info in robots)
+
+
+def status_line(snap: dict, speed: float) -> str:
+    """One plain line for a log or a pipe: virtual time, batteries, results, misses."""
+    batteries = []
+    for name, info in (snap.get("robots") or {}).items():
+        st = info.get("status") or {}
+        if st.get("initial_j"):
+            batteries.append(f"{name} {max(0.0, st['battery_j'] / st['initial_j']):.0%}" + (" depleted" if st.get("depleted") else ""))
+        else:
+            batteries.append(f"{name} {'joining' if info.get('present') else 'absent'}")
+    results = sum(s.get("received_total", 0) for s in ((snap.get("basestation") or {}).get("sinks") or {}).values())
+    _, missed, pct = missed_periods(snap)
+    line = (f"t={snap.get('t_virtual') or 0:.0f}s virtual (x{speed:g}) {'ready' if snap.get('ready') else 'placing'}; "
+            f"batteries: {', '.join(batteries) or '-'}; operator results {results}; missed {missed} ({pct:.1f} %)")
+    warning = keep_up_warning(snap, speed)
+    if snap.get("recording_error"):
+        line += f"; RECORDING FAILED: {snap['recording_error']}"
+    return line + (f"; warning: {warning}" if warning else "")
+
+
 def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wall_s: float,
               exit_codes: dict | None = None, log_dir: str = "") -> dict:
     """The JSON summary of a run: placement, batteries vs the model, sources, sinks, errors."""
@@ -25,8 +70,8 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
             "energy_by_part_j": st.get("energy_j", {}),
         }
     base = snap.get("basestation") or {}
-    produced = sum(s.get("produced_total", 0) for r in robots.values() for s in r["sources"].values())
-    missed = sum(s.get("missed", 0) for r in robots.values() for s in r["sources"].values())
+    produced, missed, missed_pct = missed_periods(snap)
+    warning = keep_up_warning(snap, speed)
     return {
         "team": team, "scenario": snap.get("scenario"), "accounting": snap.get("accounting"), "speed": speed,
         "policy": snap.get("policy"),
@@ -42,6 +87,8 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
                         "compute_ms": base.get("compute_ms", {})},
         "frames_produced": produced, "periods_missed": missed,
         "missed_ratio": missed / (produced + missed) if produced + missed else 0.0,
+        "missed_periods_pct": round(missed_pct, 2),
+        "warnings": [warning] if warning else [],
         "migrations_done": snap.get("migrations_done"), "downtime_ms": snap.get("downtime_ms"),
         "replans": snap.get("replans"), "first_depletion": snap.get("first_depletion"),
         "events": snap.get("events"), "exit_codes": exit_codes or {}, "log_dir": log_dir,

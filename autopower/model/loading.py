@@ -7,6 +7,7 @@ the line where it can be found, what was found and what was expected.
 
 from __future__ import annotations
 
+import math
 import re
 import tomllib
 from importlib import resources
@@ -14,7 +15,8 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 from autopower.errors import ScenarioError
-from autopower.model.network import build_network
+import networkx as nx
+
 from autopower.model.scenario import (
     ACCOUNTING_MODES,
     TOPOLOGIES,
@@ -31,6 +33,12 @@ from autopower.model.scenario import (
 )
 
 
+MAX_SCENARIO_BYTES = 64 * 2**20  # a 2,000-robot fleet is well under 1 MB
+MAX_INTEGER = 2**53  # beyond this a float loses integers, and nothing physical is that large
+MAX_MESSAGE_BYTES = 2**30  # one message of a gigabyte is already far past any radio here
+MAX_NESTING = 100  # real scenarios nest 4 levels; TOML parsers recurse per level (brackets in strings count too)
+
+
 def builtin_scenarios() -> list[str]:
     """Names of the scenarios shipped with AutoPower (usable instead of a path)."""
     folder = resources.files("autopower.scenarios")
@@ -41,15 +49,19 @@ def resolve_scenario_path(name_or_path: str | Path) -> tuple[str, str]:
     """Return (display path, TOML text) for a built-in name or a file path."""
     text_name = str(name_or_path)
     path = Path(text_name)
-    if path.suffix == ".toml" or path.exists() or "/" in text_name:
-        if not path.is_file():
+    try:
+        exists, is_file = path.exists(), path.is_file()
+    except OSError:  # e.g. a name longer than the file system allows
+        exists = is_file = False
+    if path.suffix == ".toml" or exists or "/" in text_name:
+        if not is_file:
             raise ScenarioError(
                 f"{text_name}: no such scenario file. Give a path to a .toml file or one of the "
                 f"built-in names: {', '.join(builtin_scenarios())}"
             )
-        return str(path), path.read_text(encoding="utf-8")
+        return str(path), _read_text(path, text_name)
     resource = resources.files("autopower.scenarios") / f"{text_name}.toml"
-    if not resource.is_file():
+    if not _NAME.fullmatch(text_name) or not resource.is_file():
         raise ScenarioError(
             f"{text_name!r} is neither a scenario file nor a built-in scenario; built-in: "
             f"{', '.join(builtin_scenarios())}"
@@ -57,13 +69,49 @@ def resolve_scenario_path(name_or_path: str | Path) -> tuple[str, str]:
     return f"<built-in {text_name}>", resource.read_text(encoding="utf-8")
 
 
+_NAME = re.compile(r"[A-Za-z0-9_.-]{1,100}")
+
+
+def _read_text(path: Path, shown: str) -> str:
+    """The file's text; a clear error for one that is unreadable, huge or not UTF-8."""
+    try:
+        if path.stat().st_size > MAX_SCENARIO_BYTES:
+            raise ScenarioError(f"{shown}: larger than {MAX_SCENARIO_BYTES // 2**20} MB; not a scenario file")
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ScenarioError(f"{shown}: cannot read it ({exc.strerror or exc}); check the path and permissions") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ScenarioError(f"{shown}:{line}: not UTF-8 text (byte {exc.start}); save the file as UTF-8") from None
+
+
+def load_toml(text: str, where: str) -> dict:
+    """Parse TOML text; errors (syntax, nesting too deep for a scenario) as one ScenarioError."""
+    depth, deepest = 0, 0
+    for char in text:  # brackets also count inside strings: an over-estimate, never an under-one
+        if char in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in "]}":
+            depth = max(0, depth - 1)
+    if deepest > MAX_NESTING:
+        raise ScenarioError(f"{where}: nested {deepest} levels deep (at most {MAX_NESTING}); not a scenario file")
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{where}: not valid TOML: {exc}. Fix the syntax at that position.") from None
+    except RecursionError:
+        raise ScenarioError(f"{where}: nested too deep; not a scenario file") from None
+    except ValueError as exc:  # e.g. an integer literal of thousands of digits
+        raise ScenarioError(f"{where}: not a usable TOML value: {exc}") from None
+
+
 def apply_latency_profile(scenario: Scenario, path: str | Path, platform: str) -> Scenario:
     """`scenario` with the latencies of a profile file written by `autopower profile` on `platform`."""
     where, text = resolve_scenario_path(path)
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{where}: not valid TOML: {exc}") from None
+    data = load_toml(text, where)
     measured = data.get("latency_s")
     if not isinstance(measured, dict) or not measured:
         raise ScenarioError(f"{where}: no [latency_s] table; write one with `autopower profile --out FILE`")
@@ -77,10 +125,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
 
 
 def parse_scenario(text: str, where: str = "<string>") -> Scenario:
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{where}: not valid TOML: {exc}. Fix the syntax at that position.") from None
+    data = load_toml(text, where)
     return ScenarioParser(data, text, where).scenario()
 
 
@@ -96,6 +141,8 @@ class ScenarioParser:
     def fail(self, path: str, problem: str, expected: str) -> ScenarioError:
         line = self._line_of(path)
         at = f"{self.where}:{line}" if line else self.where
+        if len(problem) > 200:  # a whole mangled table in one line helps nobody
+            problem = problem[:200] + " …"
         return ScenarioError(f"{at}: {path}: {problem}; expected {expected}")
 
     def _line_of(self, path: str) -> int | None:
@@ -153,6 +200,10 @@ class ScenarioParser:
         value = obj[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.fail(f"{path}.{key}", f"found {value!r}", "a number")
+        if isinstance(value, int) and abs(value) > MAX_INTEGER:
+            raise self.fail(f"{path}.{key}", f"found {value}", f"a number of magnitude at most {MAX_INTEGER}")
+        if not math.isfinite(value):
+            raise self.fail(f"{path}.{key}", f"found {value}", "a finite number")
         if positive and not value > 0:
             raise self.fail(f"{path}.{key}", f"found {value}", "a number > 0")
         if minimum is not None and value < minimum:
@@ -384,9 +435,11 @@ class ScenarioParser:
                 stage_names.add(st.name)
             sizes = spec["message_bytes"]
             if (not isinstance(sizes, list) or len(sizes) != len(stages) + 1
-                    or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in sizes)):
+                    or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_MESSAGE_BYTES
+                               for s in sizes)):
                 raise self.fail(f"{path}.message_bytes", f"found {sizes!r}",
-                                f"{len(stages) + 1} non-negative integers (source->first stage, ..., last stage->sink)")
+                                f"{len(stages) + 1} non-negative integers of at most {MAX_MESSAGE_BYTES} "
+                                "(source->first stage, ..., last stage->sink)")
             requires = frozenset(self.strings(spec, "requires", path))
             lacking = requires - robot_by_name[source].sensors
             if lacking:
@@ -481,12 +534,22 @@ class ScenarioParser:
         return out
 
     def check_routable(self, scenario: Scenario) -> None:
-        """Every chain must be able to reach its sink on every topology `analyze` explores."""
-        for topology in dict.fromkeys((scenario.network_spec.topology, *scenario.network_spec.analyze_topologies)):
-            network = build_network(scenario, topology=topology)
-            for chain in scenario.chains:
-                if not network.reachable(chain.source, chain.sink):
-                    raise ScenarioError(
-                        f"{self.where}: chain {chain.name}: its sink {chain.sink} cannot be reached from "
-                        f"{chain.source} on the {topology} topology; add a link or change the sink"
-                    )
+        """Every chain must be able to reach its sink on every topology `analyze` explores.
+
+        The named topologies connect every node by construction (each robot to the base station
+        or to the relay, which reaches it); only explicit links can leave a node unreachable.
+        Linear in the links listed: a fleet's N^2/2 implied robot-robot links are never built.
+        """
+        spec = scenario.network_spec
+        if "explicit" not in (spec.topology, *spec.analyze_topologies):
+            return
+        graph = nx.Graph()
+        graph.add_nodes_from(scenario.node_names())
+        graph.add_edges_from((link.a, link.b) for link in spec.links)
+        part = {node: i for i, nodes in enumerate(nx.connected_components(graph)) for node in nodes}
+        for chain in scenario.chains:
+            if part[chain.source] != part[chain.sink]:
+                raise ScenarioError(
+                    f"{self.where}: chain {chain.name}: its sink {chain.sink} cannot be reached from "
+                    f"{chain.source} on the explicit topology; add a link or change the sink"
+                )

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -160,8 +161,8 @@ class Scenario:
         """A copy with some robots' starting energy replaced (e.g. ``--energy r1=32000``)."""
         for name, joules in energies_j.items():
             self.robot(name)  # unknown robot -> ScenarioError
-            if not joules > 0:
-                raise ScenarioError(f"energy for {name} must be > 0 J, got {joules}")
+            if not 0 < joules < math.inf:
+                raise ScenarioError(f"energy for {name} must be > 0 J (and finite), got {joules}")
         robots = tuple(
             dataclasses.replace(r, energy_j=float(energies_j.get(r.name, r.energy_j)))
             for r in self.robots
@@ -187,8 +188,8 @@ class Scenario:
         for name, seconds in measured.items():
             if name not in components:
                 continue  # a profile may cover more component types than this mission uses
-            if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not seconds > 0:
-                raise ScenarioError(f"{where}: latency_s.{name}: found {seconds!r}; expected a number > 0")
+            if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0 < seconds < math.inf:
+                raise ScenarioError(f"{where}: latency_s.{name}: found {seconds!r}; expected a finite number > 0")
             spec = components[name]
             components[name] = dataclasses.replace(spec, latency_s={**spec.latency_s, platform: float(seconds)})
         return dataclasses.replace(self, components=components)

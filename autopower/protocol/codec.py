@@ -2,7 +2,7 @@
 
 Wire form: a msgpack array ``[b"AP", version, kind, {field: value, ...}]``. Decoding checks the
 magic, the protocol version, the kind, the exact set of fields and every field's type (nested
-structs, tuples, dicts included); anything else raises ProtocolError, which the processes log
+structs, tuples, dicts included; numbers finite: NaN and ±inf are refused both ways); anything else raises ProtocolError, which the processes log
 and drop. Nothing here trusts the sender.
 """
 
@@ -60,6 +60,8 @@ def message_kinds() -> dict[str, type]:
 
 
 def _to_wire(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"non-finite number {value}")  # the receiver would refuse it: fail at the sender
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: _to_wire(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, (tuple, list)):
@@ -123,9 +125,12 @@ def _from_wire(value: Any, hint: Any, where: str) -> Any:
         raise _fail(where, f"expected int, got {type(value).__name__}")
     if hint is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            value = float(value)
-            if math.isnan(value):
-                raise _fail(where, "NaN is not a number we accept")
+            try:
+                value = float(value)
+            except OverflowError:  # an int too large for a float
+                raise _fail(where, "number out of range") from None
+            if not math.isfinite(value):
+                raise _fail(where, f"{value} is not a finite number (NaN and ±inf are refused)")
             return value
         raise _fail(where, f"expected float, got {type(value).__name__}")
     if hint is str:

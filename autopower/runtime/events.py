@@ -10,6 +10,8 @@ node still answers the operator, obeys migrations and stops on Ctrl-C.
 
 from __future__ import annotations
 
+import logging
+import math
 import threading
 import time
 from collections import deque
@@ -17,6 +19,8 @@ from dataclasses import dataclass
 from typing import Iterable
 
 from autopower.runtime.bus import Request
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -47,20 +51,61 @@ Event = Received | LivelinessChanged | OperatorRequest | StopRequested
 SIGNAL_SLICE_S = 0.1
 
 
-class EventQueue:
-    """A thread-safe two-level FIFO of `Event`s, with the callbacks the Bus needs."""
+# What a queue may hold before it refuses messages: a flood (of garbage or of real data faster
+# than the loop takes it) must cost a bounded amount of memory, not grow until the OOM killer.
+# 128 MB of bulk is ~7 s of two 4 Hz camera chains at 10x; control messages are small.
+BULK_LIMIT = (100_000, 128 * 2**20)  # events, payload bytes
+URGENT_LIMIT = (20_000, 32 * 2**20)
+DROP_LOG_EVERY_S = 10.0
 
-    def __init__(self, bulk_keys: Iterable[str] = ()) -> None:
+
+class EventQueue:
+    """A thread-safe two-level FIFO of `Event`s, with the callbacks the Bus needs.
+
+    Each level is bounded in events and in payload bytes; a message that does not fit is
+    dropped (counted in `dropped`, logged at most every few seconds). Stop requests are never
+    dropped.
+    """
+
+    def __init__(self, bulk_keys: Iterable[str] = (), *, bulk_limit: tuple[int, int] = BULK_LIMIT,
+                 urgent_limit: tuple[int, int] = URGENT_LIMIT) -> None:
         # Re-entrant: a signal handler may post while the loop's thread holds the lock.
         self._cond = threading.Condition(threading.RLock())
         self._urgent: deque[Event] = deque()
         self._bulk: deque[Event] = deque()
+        self._bytes = {False: 0, True: 0}  # payload bytes queued, by bulk
+        self._limits = {False: urgent_limit, True: bulk_limit}
         self.bulk_keys = set(bulk_keys)
+        self.dropped = 0
+        self._drop_logged_at = -math.inf
 
     def post(self, event: Event, *, bulk: bool = False) -> None:
+        size = len(event.payload) if isinstance(event, Received) else 0
         with self._cond:
-            (self._bulk if bulk else self._urgent).append(event)
+            queue = self._bulk if bulk else self._urgent
+            max_events, max_bytes = self._limits[bulk]
+            if not isinstance(event, StopRequested) and (
+                    len(queue) >= max_events or self._bytes[bulk] + size > max_bytes):
+                self._drop(event, bulk)
+                return
+            queue.append(event)
+            self._bytes[bulk] += size
             self._cond.notify()
+
+    def _drop(self, event: Event, bulk: bool) -> None:
+        self.dropped += 1
+        now = time.monotonic()
+        if now - self._drop_logged_at >= DROP_LOG_EVERY_S:
+            self._drop_logged_at = now
+            log.warning("event queue full (%s): dropping %s (%d dropped so far); the process cannot keep up "
+                        "with what it is sent", "bulk" if bulk else "urgent",
+                        getattr(event, "key", type(event).__name__), self.dropped)
+
+    def _take(self, queue: deque, bulk: bool) -> Event:
+        event = queue.popleft()
+        if isinstance(event, Received):
+            self._bytes[bulk] -= len(event.payload)
+        return event
 
     def get(self, timeout_s: float | None) -> Event | None:
         """The next event, urgent ones first; None after ``timeout_s`` without any."""
@@ -74,9 +119,9 @@ class EventQueue:
                 # handler when this thread returns to the interpreter.
                 self._cond.wait(left)
             if self._urgent:
-                return self._urgent.popleft()
+                return self._take(self._urgent, False)
             if self._bulk:
-                return self._bulk.popleft()
+                return self._take(self._bulk, True)
             return None
 
     def depth(self) -> int:

@@ -43,3 +43,20 @@ def test_a_signal_handler_can_post_while_the_loop_waits():
         assert time.monotonic() - started < 1.0
     finally:
         signal.signal(signal.SIGUSR1, previous)
+
+
+def test_a_flood_is_bounded_in_bytes_and_events_and_stop_still_gets_through():
+    q = EventQueue(bulk_keys=["data"], bulk_limit=(1000, 10_000), urgent_limit=(5, 1_000_000))
+    for _ in range(50):
+        q.on_message("data", b"x" * 1000)  # 50 KB offered, 10 KB fit
+    assert q.depth() == 10 and q.dropped == 40
+    for _ in range(8):
+        q.on_message("control", b"c")  # 5 events fit
+    assert q.depth() == 15 and q.dropped == 43
+    q.post(StopRequested("ctrl-c"))  # never dropped
+    assert q.get(0) == Received("control", b"c")
+    for _ in range(15):  # 4 control, the stop, 10 data
+        q.get(0)
+    assert q.get(0) is None
+    q.on_message("data", b"y" * 10_000)  # the budget is given back as events are taken
+    assert q.depth() == 1 and q.dropped == 43

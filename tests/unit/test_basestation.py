@@ -62,6 +62,18 @@ def test_starts_without_missing_robots_after_the_grace_period(sc):
     assert set(co.target) == {"Loc-1"}  # r2's and r3's chains cannot run without them
 
 
+def test_a_waiting_base_station_sleeps_until_the_grace_period_ends(sc):
+    """Before the first plan nothing is due (a deadline of 0 made its loop spin at 100 % of a core)."""
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, start_grace_s=5.0))
+    co = team.coordinator
+    assert co.next_deadline_unix() == float("inf")  # nobody yet: only an event can wake it
+    team.join(["r1"])
+    assert co.mission is None
+    assert co.next_deadline_unix() == pytest.approx(co.first_seen_unix + 5.0)
+    team.join(["r2", "r3"])
+    assert co.mission is not None and co.next_deadline_unix() > team.clock.wall()
+
+
 def test_a_robot_leaving_drops_its_chains_and_rehosts_what_it_ran(sc):
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, pins={"Loc-1": "r2"}))
     team.join()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import msgpack
@@ -121,6 +122,8 @@ def _fields(msg) -> dict:
     (_raw("release", {"stage": "x", "generation": True}), "expected int"),
     (_raw("release", {"stage": 5, "generation": 1}), "expected str"),
     (_raw("stage-ready", {**_fields(SAMPLES[8]), "downtime_ms": math.nan}), "NaN"),
+    (_raw("stage-ready", {**_fields(SAMPLES[8]), "downtime_ms": math.inf}), "not a finite number"),
+    (_raw("stage-ready", {**_fields(SAMPLES[8]), "downtime_ms": -math.inf}), "not a finite number"),
     (_raw("packet", {**_fields(SAMPLES[1]), "hop": 5}), "hop"),
     (_raw("packet", {**_fields(SAMPLES[1]), "media": ["bluetooth"]}), "medium per hop"),
     (_raw("frame", {**_fields(FRAME), "payload_len": 99}), "exceeds"),
@@ -130,6 +133,12 @@ def _fields(msg) -> dict:
 def test_strict_rejection(data, match):
     with pytest.raises(ProtocolError, match=match):
         decode(data)
+
+
+def test_non_finite_numbers_are_refused_at_the_sender_too():
+    bad = dataclasses.replace(SAMPLES[8], downtime_ms=math.inf)
+    with pytest.raises(ProtocolError, match="non-finite"):
+        encode(bad)
 
 
 def test_expect_limits_kinds():

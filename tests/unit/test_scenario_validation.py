@@ -108,3 +108,44 @@ def test_explicit_topology_loads_and_routes_multi_hop():
 def test_duplicate_robot():
     msg = error_of(broken('name = "r2"', 'name = "r1"'))
     assert "duplicate node name 'r1'" in msg
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "+nan"])
+@pytest.mark.parametrize("old", ["energy_j = 64000", "idle_w = 1.34", "kbps = ", "period_s = "])
+def test_non_finite_numbers_refused_with_file_line_and_field(old, value):
+    if old.endswith("= "):  # replace the whole value after the key
+        line = next(l for l in PAPER.splitlines() if l.strip().startswith(old))
+        old, text = line, PAPER.replace(line, line.split("=")[0] + f"= {value}", 1)
+    else:
+        text = PAPER.replace(old, old.split("=")[0] + f"= {value}", 1)
+    msg = error_of(text)
+    assert "a finite number" in msg or "a number > 0" in msg, msg
+    where = int(msg.split("mission.toml:")[1].split(":")[0])
+    assert value in text.splitlines()[where - 1]
+
+
+def test_huge_integers_refused_not_overflowing():
+    msg = error_of(broken("energy_j = 64000", "energy_j = " + "9" * 400))
+    assert "robots[0].energy_j" in msg and "magnitude at most" in msg
+    msg = error_of(broken("message_bytes = [1059, 805]", "message_bytes = [1059, " + "9" * 30 + "]"))
+    assert "message_bytes" in msg and "at most" in msg
+
+
+def test_non_utf8_file_refused_with_its_line(tmp_path):
+    path = tmp_path / "m.toml"
+    path.write_bytes(PAPER.encode().replace(b'name = "r2"', b'name = "r\xff2"', 1))
+    with pytest.raises(ScenarioError, match=r"m.toml:\d+: not UTF-8 text"):
+        load_scenario(path)
+
+
+def test_over_deep_nesting_refused():
+    for nested in ("x = " + "[" * 5000 + "]" * 5000, "x = " + "{a=" * 400 + "1" + "}" * 400):
+        msg = error_of(PAPER + "\n" + nested + "\n")
+        assert "nested" in msg and "deep" in msg
+
+
+def test_a_directory_or_unreadable_path_is_one_clear_error(tmp_path):
+    with pytest.raises(ScenarioError, match="no such scenario file"):
+        load_scenario(tmp_path)
+    with pytest.raises(ScenarioError, match="neither a scenario file nor a built-in"):
+        load_scenario("x" * 5000)

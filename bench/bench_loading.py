@@ -1,0 +1,116 @@
+"""Scenario loading at fleet scale: `autopower check` of N robots, time and peak memory.
+
+    .venv/bin/python bench/bench_loading.py [ROBOTS ...]   (default: 250 2000)
+
+Not a timed test. Each fleet (N robots, one localisation chain per robot, fully connected with
+relay analysis, as in paper-fig7) is written as a TOML file and checked by the installed
+command in a subprocess, so the figures are what a user waits for: wall time and the
+process's peak RSS. The smallest fleet is the baseline: the ratio of time per robot against
+it says whether loading grows linearly (about 1x) or worse (the N^2/2 implied robot-robot
+links once made 2,000 robots take 78 s and 1.8 GB).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+AUTOPOWER = str(Path(sys.executable).parent / "autopower")
+
+HEAD = """\
+[scenario]
+name = "fleet-{n}"
+
+[platforms.sitsang]
+idle_w = 1.34
+busy_w = 2.27
+
+[platforms.laptop]
+mains = true
+
+[radios."802.11a"]
+kbps = 54000
+sleep_w = 0.010
+send_w = 1.498
+receive_w = 1.2
+
+[radios.bluetooth]
+kbps = 1500
+sleep_w = 0.000036
+send_w = 0.095
+receive_w = 0.095
+
+[basestation]
+name = "laptop"
+platform = "laptop"
+
+[network]
+topology = "fully-connected"
+relay = "r1"
+laptop_robot_media = ["802.11a"]
+robot_robot_media = ["802.11a", "bluetooth"]
+analyze_topologies = ["fully-connected", "relay"]
+
+[components.Loc]
+latency_s = {{ sitsang = 0.85, laptop = 0.0035 }}
+"""
+
+ROBOT = """
+[[robots]]
+name = "r{i}"
+platform = "sitsang"
+energy_j = 64000
+sensors = ["laser", "odometry"]
+"""
+
+CHAIN = """
+[[chains]]
+name = "Loc-{i}"
+source = "r{i}"
+sink = "source"
+component = "Loc"
+period_s = 2.0
+message_bytes = [1059, 805]
+"""
+
+
+def fleet_toml(n: int) -> str:
+    return HEAD.format(n=n) + "".join(ROBOT.format(i=i) for i in range(1, n + 1)) + "".join(
+        CHAIN.format(i=i) for i in range(1, n + 1))
+
+
+def check(path: Path) -> tuple[float, float]:
+    """(wall seconds, peak RSS in MB) of `autopower check PATH`."""
+    started = time.monotonic()
+    proc = subprocess.Popen([AUTOPOWER, "check", str(path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env={**os.environ, "RERUN_ANALYTICS": "0"})
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.monotonic() - started
+    if os.waitstatus_to_exitcode(status) != 0:
+        raise SystemExit(f"check of {path} failed: {proc.stderr.read().decode()[-500:]}")
+    return wall, usage.ru_maxrss / 1024  # Linux reports KiB
+
+
+def main(sizes: list[int]) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        results = []
+        for n in sizes:
+            path = Path(tmp) / f"fleet-{n}.toml"
+            path.write_text(fleet_toml(n))
+            wall, rss = check(path)
+            results.append((n, wall, rss, path.stat().st_size))
+        base_n, base_wall, base_rss, _ = results[0]
+        print(f"{'robots':>7} {'file':>9} {'check s':>8} {'peak MB':>8} {'s/robot vs ' + str(base_n):>16}")
+        for n, wall, rss, size in results:
+            ratio = (wall / n) / (base_wall / base_n)
+            print(f"{n:>7} {size / 1024:>7.0f}KB {wall:>8.2f} {rss:>8.0f} {ratio:>15.2f}x")
+        print("(time includes the CLI's start-up, which the smallest fleet is mostly made of; "
+              "a ratio at or below 1x means loading grows no faster than linearly)")
+
+
+if __name__ == "__main__":
+    main([int(a) for a in sys.argv[1:]] or [250, 2000])
