@@ -35,6 +35,7 @@ from typing import Callable
 from autopower.agent.acknowledging import Acknowledging
 from autopower.agent.custody import Custody
 from autopower.agent.frames import Frames
+from autopower.agent.guard import GuardedCalls
 from autopower.agent.hosting import Hosting
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.sequencing import SinkLedger
@@ -109,6 +110,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.parked_transfers: list[tuple[str, bytes, str]] = []
         self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
         self.custody = Custody()
+        self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
+        self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
         self._next_custody_check = 0.0
         self.wall: Callable[[], float] = time.time  # custody's clock (a test team sets its manual one)
         # How a message for one node leaves: the process replaces it with its `Relayer.send`
@@ -352,6 +355,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             counters={**self.counters, "held-outputs": len(self.held_outputs), **self.custody.stats()},
             depleted=bool(self.meter and self.meter.depleted),
             consumed=self.consumed(),
+            failed=dict(self.failed),
         )
 
     # ---- dispatch -----------------------------------------------------------------------------------------

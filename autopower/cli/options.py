@@ -8,6 +8,7 @@ import sys
 import click
 from rich.console import Console
 
+from autopower.chains.plugins import register_scenario_components
 from autopower.errors import AutoPowerError
 from autopower.model.loading import apply_latency_profile, load_scenario
 from autopower.model.scenario import Scenario
@@ -47,8 +48,13 @@ def parse_pairs(values: tuple[str, ...], what: str, example: str) -> dict[str, s
 def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float | None = None,
                    accounting: str | None = None, profile: str | None = None,
                    as_platform: str | None = None) -> Scenario:
-    """The scenario with a latency profile, energy overrides (absolute, then scaled) and an accounting mode."""
+    """The scenario with a latency profile, energy overrides (absolute, then scaled) and an accounting mode.
+
+    Its plug-in components are imported and checked here, before anything starts (a one-line
+    `ScenarioError` naming the file and line otherwise), and registered for this process.
+    """
     scenario = load_scenario(name)
+    register_scenario_components(scenario.components)
     if profile:
         scenario = apply_latency_profile(scenario, profile, as_platform or scenario.basestation_platform)
     if energy:

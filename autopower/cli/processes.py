@@ -23,7 +23,6 @@ from autopower.cli.options import (
     zenoh_settings,
 )
 from autopower.errors import AutoPowerError
-from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
 
 
@@ -59,7 +58,7 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
     from autopower.agent.process import Agent, AgentConfig
 
     setup_logging(log_level)
-    scenario = load_scenario(scenario_name)
+    scenario = build_scenario(scenario_name)  # imports and registers its plug-in components
     config = AgentConfig(robot=robot, scenario=scenario, team=team,
                          zenoh=zenoh_settings(listen, connect, lease_ms),
                          status_period_s=status_period, parent_pid=parent_pid)
