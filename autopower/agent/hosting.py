@@ -137,14 +137,25 @@ class Hosting:
         if current is not None and current.generation > msg.generation:
             self.count("stale-state", f"{msg.stage} generation {msg.generation}")
             return
+        imported = True
         try:
             component = self._new_component(chain, stage)
             self._import(component, msg.state, chain)
         except Exception as exc:
+            # It imported on the old host (checked before it was shipped), so this host runs other
+            # code. The old instance is gone: go on here without the state, from where it stopped.
             self.count("import-failed", f"{msg.stage}: {exc}", logging.ERROR)
             self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="import-failed",
-                                    detail=_bounded(f"import_state: {type(exc).__name__}: {exc}"), running=False))
-            return
+                                    detail=_bounded(f"state from {msg.from_node} did not import, started without "
+                                                    f"it: import_state: {type(exc).__name__}: {exc}"), running=True))
+            imported = False
+            try:
+                component = self._new_component(chain, stage)
+            except Exception as exc:
+                self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
+                self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="raised",
+                                        detail=_bounded(f"constructor: {type(exc).__name__}: {exc}"), running=False))
+                return
         held = list(msg.pending)
         if current is not None and current.lifecycle is Lifecycle.STARTING:
             held += current.buffer
@@ -155,7 +166,7 @@ class Hosting:
         hosted.gate.resent.extend(msg.resent)  # late originals of these are redundant here too
         self.failed.pop(msg.stage, None)
         self.hosted[msg.stage] = hosted
-        self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=True,
+        self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
                                resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3),
                                buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):
@@ -167,8 +178,8 @@ class Hosting:
         The check runs here, before this node gives its instance up: a state that does not import
         (a bug in ``import_state``, a format change) refuses the migration and the stage keeps
         running where it was. The new host runs the same code, so it imports there too; if it
-        still fails there (different code installed), that host reports it and the base station
-        restarts the stage without state.
+        still fails there (different code installed), that host starts it without the state from
+        where it stopped (no input lost or repeated) and says so.
         """
         component, chain, limit = hosted.component, hosted.chain, self.hang_limit_s(hosted.chain)
         if not callable(getattr(component, "export_state", None)):

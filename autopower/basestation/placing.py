@@ -121,7 +121,7 @@ class Placing:
         runs and is pinned there (moving it again would fail the same way). A stopped component:
         its chain is stopped, as ``autopower chain --disable`` would, and the policy re-plans the
         rest; enabling the chain again restarts it with a fresh instance. A state that imported on
-        its old host but not on the new one: restarted there without state.
+        its old host but not on the new one: the new host runs it without, `StageReady` follows.
         """
         chain = self.chain_of.get(msg.stage)
         if chain is None:
@@ -130,7 +130,8 @@ class Placing:
         current = m is not None and m.generation == msg.generation
         why = f"{msg.what}: {msg.detail}"
         if msg.running:
-            if not current or msg.node != m.from_node:
+            if not current or msg.node != m.from_node:  # the new host runs it without its state
+                self.note(f"{msg.stage} on {msg.node}: {why}")
                 return
             del self.migrations[msg.stage]
             self.aborted += 1
@@ -141,11 +142,6 @@ class Placing:
             self.note(f"{msg.stage}: migration {msg.node} -> {m.to_node} refused ({why}); it keeps running on "
                       f"{msg.node}, pinned there")
             self._predict()
-            self.reconcile()
-            self.publish_plan()
-            return
-        if current and msg.node == m.to_node and m.phase == "transferring":
-            self._abort(msg.stage, f"{msg.node}: {why}")  # its state did not import there: restart it fresh
             self.reconcile()
             self.publish_plan()
             return

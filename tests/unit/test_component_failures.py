@@ -165,3 +165,30 @@ def test_a_state_that_cannot_move_keeps_the_stage_where_it_runs(bad_cls, what):
     produced = team.nodes["r2"].sources[BAD].seq
     assert sorted(outputs[BAD]) == list(range(produced))  # exactly once, the count carried on (FakeComponent)
     assert_others_unharmed(team, outputs)
+
+
+def test_a_state_that_imports_at_home_but_not_on_the_new_host_goes_on_there_without_it():
+    """Different code on the new host (the check on the old one passed): it starts there without the
+    state, from the seq where the old host stopped: no input lost or run twice."""
+    team = team_with(FakeComponent, pins={BAD: "r2"})
+    team.nodes["r3"]._make_component = lambda kind, robot, seed: (StateDoesNotImport if kind == "Blob" else
+                                                                   FakeComponent)(kind, robot, seed)
+    outputs: dict[str, list[tuple[int, bytes]]] = {}
+    for rt in team.nodes.values():
+        rt.on_output = lambda chain, run, seq, data: outputs.setdefault(chain, []).append((seq, data))
+    team.join()
+    team.run_until(5.0)
+    co = team.coordinator
+    assert co.on_operator(MigrateCommand(stage=BAD, to_node="r3")).ok
+    team.pump()
+    assert co.placement[BAD] == "r3" and co.migrations_done == 1 and not co.aborted
+    assert team.nodes["r3"].errors["import-failed"] == 1
+    assert any("r3: import-failed: state from r2 did not import, started without it: import_state: ValueError"
+               in note for note in co.events)
+    team.run_until(20.0)
+    produced = team.nodes["r2"].sources[BAD].seq
+    assert sorted(seq for seq, _ in outputs[BAD]) == list(range(produced))  # exactly once
+    counts = [msgpack.unpackb(data)[1] for _, data in sorted(outputs[BAD])]
+    restart = counts.index(1, 1)  # the fresh instance counts from 1 again: nothing else changed
+    assert counts == list(range(1, restart + 1)) + list(range(1, produced - restart + 1))
+    assert "Blob-2" not in co.disabled
