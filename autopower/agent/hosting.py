@@ -103,6 +103,7 @@ class Hosting:
             return
         # The current run has finished: runs are synchronous in this loop.
         hosted.lifecycle = Lifecycle.DRAINING
+        stopped_unix = time.time()  # downtime counts from here: checking the state is part of it
         refused = self._exportable_state(hosted)
         if isinstance(refused, tuple):  # the stage keeps running here; the base station is told
             what, detail = refused
@@ -115,7 +116,7 @@ class Hosting:
         pending = tuple(hosted.gate.take_pending())
         transfer = StateTransfer(stage=msg.stage, generation=msg.generation, chain=hosted.chain.name,
                                  run=hosted.run, state=state, next_seq=hosted.gate.next_seq, pending=pending,
-                                 t_export_unix=time.time(), from_node=self.node,
+                                 t_export_unix=stopped_unix, from_node=self.node,
                                  resent=hosted.gate.recent_resends())
         body = encode(transfer)
         hosted.lifecycle = Lifecycle.MIGRATED
