@@ -38,13 +38,15 @@ from autopower.errors import ScenarioError
 ENTRY_POINT_GROUP = "autopower.components"
 
 
-def register_scenario_components(components: Mapping[str, Any]) -> list[str]:
+def register_scenario_components(components: Mapping[str, Any], *, require_code: bool = False) -> list[str]:
     """Import, check and register every plug-in among a scenario's ``components``.
 
     ``components`` maps names to `autopower.model.scenario.ComponentSpec`-like objects
     (``name``, ``implementation``, ``source``, ``defined_at``). A name that is already registered
     (a built-in, or the same plug-in registered before) is left as it is unless the scenario
-    names a different implementation for it, which is an error. Returns the names registered now.
+    names a different implementation for it, which is an error. A name with no code anywhere is
+    fine for planning (synthetic scenarios), an error with ``require_code`` (a team to run).
+    Returns the names registered now.
     """
     registered = []
     for name, spec in components.items():
@@ -55,6 +57,11 @@ def register_scenario_components(components: Mapping[str, Any]) -> list[str]:
                 continue
             found = _from_entry_point(name, where.get("latency_s", "scenario"))
             if found is None:
+                if require_code:
+                    raise ScenarioError(
+                        f"{where.get('latency_s', 'scenario')}: components.{name}: no code for this component: "
+                        f"not built in ({', '.join(component_types())}), no implementation = \"pkg.mod:Class\" "
+                        f"line, and no installed package declares it in {ENTRY_POINT_GROUP}")
                 continue  # planning-only component types (synthetic scenarios) need no code
             component_cls, source_cls, origin = found
         else:

@@ -45,7 +45,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
     from autopower.launch.localhost import LocalTeam, TeamSpec
 
-    scenario = build_scenario(scenario_name, energy, energy_scale, accounting)  # fail fast on bad options
+    scenario = build_scenario(scenario_name, energy, energy_scale, accounting, to_run=True)  # fail fast on bad options
     parse_pairs(pin, "--pin", "Loc-2=r1")
     if media:
         build_network(scenario, topology=topology, media=parse_pairs(media, "--media", "laptop-robot=gsm"))

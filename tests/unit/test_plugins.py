@@ -174,13 +174,19 @@ def test_half_a_plugin_and_a_malformed_path_fail_at_load(plugs):
 
 def test_the_cli_refuses_a_bad_plugin_before_starting_anything(plugs):
     path = scenario_with(plugs, "myplugs.bad_ctor:Detector")
-    for command in (["plan", str(path)], ["up", str(path), "--duration", "5"]):
+    for command in (["plan", str(path)], ["check", str(path)], ["up", str(path), "--duration", "5"]):
         out = run_cli(*command, pythonpath=plugs)
         assert out.returncode == 2, (command, out.stderr)
         assert out.stdout == ""
         [line] = out.stderr.strip().splitlines()
         assert line.startswith(f"error: {path}:{line_of(path, 'implementation =')}: components.Motion.implementation")
     assert run_cli("plan", str(scenario_with(plugs, "myplugs.good:Detector")), pythonpath=plugs).returncode == 0
+    # a component with no code at all: fine to plan, refused to run
+    nameless = scenario_with(plugs, None, source=None)
+    assert run_cli("plan", str(nameless), pythonpath=plugs).returncode == 0
+    out = run_cli("up", str(nameless), "--duration", "5", pythonpath=plugs)
+    assert out.returncode == 2 and out.stderr.startswith(f"error: {nameless}:{line_of(nameless, 'latency_s =')}: "
+                                                         f"components.Motion: no code for this component")
 
 
 def test_an_installed_package_registers_by_entry_point(plugs):
