@@ -145,7 +145,10 @@ class Placing:
             self.reconcile()
             self.publish_plan()
             return
-        if current and msg.node == m.to_node:
+        if msg.what == "source-hung":
+            if msg.node != chain.source:
+                return
+        elif current and msg.node == m.to_node:
             del self.migrations[msg.stage]  # a fresh instance that failed to start
         elif self.placement.get(msg.stage) != msg.node:
             return  # about an instance that is gone already

@@ -249,13 +249,15 @@ class StageReady:
 class StageFailed:
     """A stage's component failed here: it raised, returned something that is not bytes, wrote more
     than the chain declares, or hung (``what``); or its state would not import into a new instance
-    (``what = "import-failed"``: the migration is refused and the stage keeps running here)."""
+    (``what = "import-failed"``: the migration is refused and the stage keeps running here); or the
+    source of the chain whose first stage is ``stage`` hung on ``node`` (``what = "source-hung"``,
+    ``generation`` -1)."""
 
     KIND = "stage-failed"
     stage: str
     generation: int
     node: str
-    what: str  # "raised" | "not-bytes" | "oversize" | "hung" | "export-failed" | "import-failed"
+    what: str  # "raised" | "not-bytes" | "oversize" | "hung" | "export-failed" | "import-failed" | "source-hung"
     detail: str  # the exception text (one line, bounded)
     running: bool  # the stage still runs on `node` (a refused migration) or it has stopped
 

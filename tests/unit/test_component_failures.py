@@ -192,3 +192,26 @@ def test_a_state_that_imports_at_home_but_not_on_the_new_host_goes_on_there_with
     restart = counts.index(1, 1)  # the fresh instance counts from 1 again: nothing else changed
     assert counts == list(range(1, restart + 1)) + list(range(1, produced - restart + 1))
     assert "Blob-2" not in co.disabled
+
+
+def test_a_hung_source_stops_its_chain_not_its_robot(monkeypatch):
+    monkeypatch.setattr(guard, "HANG_MIN_WALL_S", 0.2)
+
+    class HungCamera(FakeSource):
+        def produce(self, seq):
+            if seq == 4:
+                RELEASE.wait(60)
+            return super().produce(seq)
+
+    team = team_with(FakeComponent, speed=10.0)
+    team.nodes["r2"]._make_source = lambda kind, robot, seed: (HungCamera if kind == "Blob" else FakeSource)(
+        kind, robot, seed)
+    outputs = outputs_of(team)
+    team.join()
+    team.run_until(20.0)
+    r2, co = team.nodes["r2"], team.coordinator
+    assert r2.status(10.0).failed == {"Blob-2 source": "hung: produce(seq 4): no result after 0.2 s"}
+    assert "Blob-2" not in r2.sources and r2.status(10.0).sources["Blob-2"].produced == 4
+    assert "Blob-2" in co.disabled and "source-hung" in co.failed_stages[BAD]
+    assert sorted(outputs[BAD]) == [0, 1, 2, 3]
+    assert_others_unharmed(team, outputs)  # r2's Loc-2 source and stage went on
