@@ -51,33 +51,34 @@ def register_scenario_components(components: Mapping[str, Any], *, require_code:
     registered = []
     for name, spec in components.items():
         where = dict(getattr(spec, "defined_at", {}) or {})
+        table = where.get("latency_s", "scenario")  # the [components.NAME] table's line
         implementation = getattr(spec, "implementation", None)
         if implementation is None:
             if name in component_types():
                 continue
-            found = _from_entry_point(name, where.get("latency_s", "scenario"))
+            found = _from_entry_point(name, table)
             if found is None:
                 if require_code:
                     raise ScenarioError(
-                        f"{where.get('latency_s', 'scenario')}: components.{name}: no code for this component: "
-                        f"not built in ({', '.join(component_types())}), no implementation = \"pkg.mod:Class\" "
-                        f"line, and no installed package declares it in {ENTRY_POINT_GROUP}")
+                        f"{table}: components.{name}: no code for this component: not built in "
+                        f"({', '.join(component_types())}), no implementation = \"pkg.mod:Class\" line, and no "
+                        f"installed package declares it in {ENTRY_POINT_GROUP}")
                 continue  # planning-only component types (synthetic scenarios) need no code
             component_cls, source_cls, origin = found
+            what_component = what_source = f"{table}: components.{name} (entry point {origin!r})"
         else:
-            component_cls = load_class(implementation, f"{where.get('implementation', 'scenario')}: "
-                                                        f"components.{name}.implementation")
-            source_cls = load_class(spec.source, f"{where.get('source', 'scenario')}: components.{name}.source")
+            what_component = f"{where.get('implementation', table)}: components.{name}.implementation"
+            what_source = f"{where.get('source', table)}: components.{name}.source"
+            component_cls = load_class(implementation, what_component)
+            source_cls = load_class(spec.source, what_source)
             origin = implementation
-        check_component_class(component_cls, f"{where.get('implementation', where.get('latency_s', 'scenario'))}: "
-                                              f"components.{name}.implementation")
-        check_source_class(source_cls, f"{where.get('source', where.get('latency_s', 'scenario'))}: "
-                                       f"components.{name}.source")
+        check_component_class(component_cls, what_component)
+        check_source_class(source_cls, what_source)
         existing = get_component_type(name) if name in component_types() else None
         if existing is not None:
             if getattr(existing, "origin", None) == (component_cls, source_cls):
                 continue
-            raise ScenarioError(f"{where.get('implementation', 'scenario')}: components.{name}: the name {name!r} is "
+            raise ScenarioError(f"{where.get('implementation', table)}: components.{name}: the name {name!r} is "
                                 f"already a component type ({existing.description or 'built in'}); give yours "
                                 f"another name")
         register_component_type(plugin_type(name, component_cls, source_cls, origin))

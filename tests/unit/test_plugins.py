@@ -234,3 +234,11 @@ def test_a_failed_stage_is_in_the_recording_with_its_text(tmp_path):
     [(text, payload)] = [(t, p) for t, p in events if p and p.get("type") == "stage-failed"]
     assert text == "Motion-2 failed on r2 (raised: run(seq 10): ValueError: frame 10); stopped"
     assert payload["detail"] == "run(seq 10): ValueError: frame 10" and payload["running"] is False
+
+
+def test_a_plugin_cannot_take_a_builtin_name(plugs):
+    path = scenario_with(plugs, "myplugs.good:Detector")
+    path.write_text(path.read_text().replace("Motion", "Blob"))
+    with pytest.raises(ScenarioError, match=rf"^{path}:\d+: components.Blob: the name 'Blob' is already a component "
+                                            r"type \(CMVision-style colour blob finder.*\); give yours another name"):
+        register_scenario_components(load_scenario(path).components)
