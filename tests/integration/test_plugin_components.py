@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from autopower.chains.registry import component_types, unregister_component_type
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec
 from autopower.model.energy import evaluate
@@ -41,13 +42,17 @@ ROBOTS = ("r1", "r2")
 
 @pytest.fixture(scope="module")
 def plugin_path():
-    """The example package importable here and in every child process (PYTHONPATH)."""
+    """The example package importable here and in every child process (PYTHONPATH); the component
+    types this module registers in this process are unregistered after it (other tests' registry)."""
     before = os.environ.get("PYTHONPATH")
+    types = set(component_types())
     os.environ["PYTHONPATH"] = os.pathsep.join([str(EXAMPLE), str(REPO)] + ([before] if before else []))
     sys.path.insert(0, str(EXAMPLE))
     try:
         yield
     finally:
+        for name in set(component_types()) - types:
+            unregister_component_type(name)
         sys.path.remove(str(EXAMPLE))
         if before is None:
             del os.environ["PYTHONPATH"]
