@@ -8,18 +8,16 @@ and, when it keeps state, ``export_state() -> bytes`` / ``import_state(bytes)``
 (`ScoredSource`). Name them in a scenario (``[components.X] implementation = "pkg.mod:Class"``,
 ``source = "pkg.mod:Class"``) or register them from a package's entry point
 (group ``autopower.components``); `register_component_type` does it from code.
+
+The component API is imported on first use: every AutoPower process and command imports this
+package, and most of them (the CLI's operator commands, link proxies) never touch a component.
 """
 
-from autopower.chains.base import (
-    Component,
-    ComponentStateError,
-    MalformedInputError,
-    ScoredSource,
-    Source,
-    StatefulComponent,
-)
-from autopower.chains.plugins import ENTRY_POINT_GROUP, register_scenario_components
-from autopower.chains.registry import ComponentType, make_component, make_source, register_component_type
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from autopower.errors import (
     AutoPowerError,
     InfeasibleError,
@@ -28,22 +26,51 @@ from autopower.errors import (
     ScenarioError,
 )
 
+if TYPE_CHECKING:
+    from autopower.chains.base import (
+        Component,
+        ComponentStateError,
+        MalformedInputError,
+        ScoredSource,
+        Source,
+        StatefulComponent,
+    )
+    from autopower.chains.plugins import ENTRY_POINT_GROUP, register_scenario_components
+    from autopower.chains.registry import ComponentType, make_component, make_source, register_component_type
+
+_COMPONENT_API = {
+    "Component": "autopower.chains.base",
+    "ComponentStateError": "autopower.chains.base",
+    "MalformedInputError": "autopower.chains.base",
+    "ScoredSource": "autopower.chains.base",
+    "Source": "autopower.chains.base",
+    "StatefulComponent": "autopower.chains.base",
+    "ENTRY_POINT_GROUP": "autopower.chains.plugins",
+    "register_scenario_components": "autopower.chains.plugins",
+    "ComponentType": "autopower.chains.registry",
+    "make_component": "autopower.chains.registry",
+    "make_source": "autopower.chains.registry",
+    "register_component_type": "autopower.chains.registry",
+}
+
 __all__ = [
-    "ENTRY_POINT_GROUP",
     "AutoPowerError",
-    "Component",
-    "ComponentStateError",
-    "ComponentType",
     "InfeasibleError",
-    "MalformedInputError",
     "ProtocolError",
     "RecordingError",
     "ScenarioError",
-    "ScoredSource",
-    "Source",
-    "StatefulComponent",
-    "make_component",
-    "make_source",
-    "register_component_type",
-    "register_scenario_components",
+    *sorted(_COMPONENT_API),
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _COMPONENT_API.get(name)
+    if module is None:
+        raise AttributeError(f"module 'autopower' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_COMPONENT_API))

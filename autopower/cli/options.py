@@ -8,7 +8,6 @@ import sys
 import click
 from rich.console import Console
 
-from autopower.chains.plugins import register_scenario_components
 from autopower.errors import AutoPowerError
 from autopower.model.loading import apply_latency_profile, load_scenario
 from autopower.model.scenario import Scenario
@@ -52,10 +51,15 @@ def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float 
 
     Its plug-in components are imported and checked here, before anything starts (a one-line
     `ScenarioError` naming the file and line otherwise), and registered for this process;
-    ``to_run``: every component must have code (a team runs it, not only the planner).
+    ``to_run``: every component must have code (a team runs it, not only the planner), including
+    those an installed package declares (entry points; planning does not look for them).
     """
     scenario = load_scenario(name)
-    register_scenario_components(scenario.components, require_code=to_run)
+    if to_run or any(spec.implementation for spec in scenario.components.values()):
+        # imported here: the components' imports are heavy, and planning alone needs no code
+        from autopower.chains.plugins import register_scenario_components
+
+        register_scenario_components(scenario.components, require_code=to_run)
     if profile:
         scenario = apply_latency_profile(scenario, profile, as_platform or scenario.basestation_platform)
     if energy:
