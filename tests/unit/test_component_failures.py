@@ -9,7 +9,9 @@ stage as failed with the exception text, and tell the base station, which stops 
 
 from __future__ import annotations
 
+import re
 import threading
+import time
 
 import msgpack
 import pytest
@@ -133,12 +135,14 @@ def test_a_hung_component_is_abandoned_after_the_stated_limit(monkeypatch):
     assert guard.hang_limit_s(period_s=0.25, speed=1.0) == guard.HANG_MIN_WALL_S  # 3 periods < 2 s
     assert guard.hang_limit_s(period_s=2.0, speed=1.0) == 6.0  # 3 periods of a slow chain
     monkeypatch.setattr(guard, "HANG_MIN_WALL_S", 0.2)  # the test's patience, not the product's
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.1)
     team = team_with(Hangs, speed=10.0)  # Blob-2: 0.25 s period at x10 -> 3 periods = 75 ms wall
     outputs = outputs_of(team)
     team.join()
     team.run_until(20.0)
     r2 = team.nodes["r2"]
-    assert r2.status(10.0).failed[BAD] == "hung: run(seq 2): no result after 0.2 s"
+    assert re.fullmatch(r"hung: run\(seq 2\): no result after [\d.]+ s \(blocked; limit 0\.2 s\)",
+                        r2.status(10.0).failed[BAD])
     assert r2.guard.abandoned == 1
     assert "Blob-2" in team.coordinator.disabled
     assert_others_unharmed(team, outputs)  # Loc-2 on the same node ran on a fresh worker
@@ -196,6 +200,7 @@ def test_a_state_that_imports_at_home_but_not_on_the_new_host_goes_on_there_with
 
 def test_a_hung_source_stops_its_chain_not_its_robot(monkeypatch):
     monkeypatch.setattr(guard, "HANG_MIN_WALL_S", 0.2)
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.1)
 
     class HungCamera(FakeSource):
         def produce(self, seq):
@@ -210,8 +215,50 @@ def test_a_hung_source_stops_its_chain_not_its_robot(monkeypatch):
     team.join()
     team.run_until(20.0)
     r2, co = team.nodes["r2"], team.coordinator
-    assert r2.status(10.0).failed == {"Blob-2 source": "hung: produce(seq 4): no result after 0.2 s"}
+    [(what, why)] = r2.status(10.0).failed.items()
+    assert what == "Blob-2 source"
+    assert re.fullmatch(r"hung: produce\(seq 4\): no result after [\d.]+ s \(blocked; limit 0\.2 s\)", why)
     assert "Blob-2" not in r2.sources and r2.status(10.0).sources["Blob-2"].produced == 4
     assert "Blob-2" in co.disabled and "source-hung" in co.failed_stages[BAD]
     assert sorted(outputs[BAD]) == [0, 1, 2, 3]
     assert_others_unharmed(team, outputs)  # r2's Loc-2 source and stage went on
+
+
+# ---- the hang verdict itself ----------------------------------------------------------------------------
+
+
+def _spin(seconds: float) -> str:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and not RELEASE.is_set():
+        pass
+    return "done"
+
+
+def test_a_blocked_call_is_hung_soon_after_its_limit(monkeypatch):
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.1)
+    calls = guard.GuardedCalls()
+    started = time.monotonic()
+    with pytest.raises(guard.ComponentHung, match=r"\(blocked; limit 0\.2 s\)"):
+        calls.call(RELEASE.wait, 60, timeout_s=0.2)
+    # the limit and a probe at least; a blocked call never waits for the spin limit (10 x 0.2 s)
+    assert 0.3 <= time.monotonic() - started < 2.0
+    assert calls.call(lambda: "next", timeout_s=0.2) == "next"  # on a new worker
+    assert calls.abandoned == 1
+
+
+def test_a_slow_call_that_computes_is_not_hung(monkeypatch):
+    # what a saturated machine looks like: past the limit, still using CPU -> waited for
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.25)
+    calls = guard.GuardedCalls()
+    assert calls.call(_spin, 0.6, timeout_s=0.2) == "done"
+    assert calls.abandoned == 0
+
+
+def test_a_spinning_call_is_hung_after_the_spin_limit(monkeypatch):
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.1)
+    monkeypatch.setattr(guard, "SPIN_FACTOR", 4)
+    calls = guard.GuardedCalls()
+    started = time.monotonic()
+    with pytest.raises(guard.ComponentHung, match=r"\(still running; limit 0\.2 s\)"):
+        calls.call(_spin, 60, timeout_s=0.2)
+    assert 0.8 <= time.monotonic() - started < 1.5
