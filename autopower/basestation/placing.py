@@ -23,6 +23,8 @@ from autopower.protocol import (
 )
 
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
+# what a node may report in `StageFailed.what` (anything else is ignored)
+STAGE_FAILURES = ("raised", "not-bytes", "oversize", "hung", "export-failed", "import-failed", "source-hung")
 
 
 @dataclass
@@ -124,11 +126,11 @@ class Placing:
         its old host but not on the new one: the new host runs it without, `StageReady` follows.
         """
         chain = self.chain_of.get(msg.stage)
-        if chain is None:
+        if chain is None or msg.what not in STAGE_FAILURES:
             return
         m = self.migrations.get(msg.stage)
         current = m is not None and m.generation == msg.generation
-        why = f"{msg.what}: {msg.detail}"
+        why = f"{msg.what}: {msg.detail[:300]}"  # a network message: bounded before it is kept
         if msg.running:
             if not current or msg.node != m.from_node:  # the new host runs it without its state
                 self.note(f"{msg.stage} on {msg.node}: {why}")
