@@ -262,3 +262,17 @@ def test_a_spinning_call_is_hung_after_the_spin_limit(monkeypatch):
     with pytest.raises(guard.ComponentHung, match=r"\(still running; limit 0\.2 s\)"):
         calls.call(_spin, 60, timeout_s=0.2)
     assert 0.8 <= time.monotonic() - started < 1.5
+
+
+def test_builtin_components_run_on_the_loop_thread_plugins_on_the_worker():
+    class Plugin:
+        def run(self, payload):
+            return threading.get_ident()
+
+    class Shipped(Plugin):
+        pass
+
+    Shipped.__module__ = "autopower.chains.blobfinder"  # as the built-in components are
+    calls = guard.GuardedCalls()
+    assert calls.call(Shipped().run, b"", timeout_s=1.0) == threading.get_ident()
+    assert calls.call(Plugin().run, b"", timeout_s=1.0) != threading.get_ident()
