@@ -11,6 +11,7 @@ import dataclasses
 import logging
 import time
 
+from autopower.agent.guard import ComponentHung
 from autopower.agent.sequencing import SinkLedger
 from autopower.agent.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
 from autopower.errors import ProtocolError
@@ -123,7 +124,10 @@ class Frames:
                     return
                 held.append(frame)
             return
-        if hosted.lifecycle is Lifecycle.STARTING:
+        if hosted.lifecycle is Lifecycle.FAILED:
+            self.count("failed-stage-input", f"{stage.name} seq {frame.seq}: its component has failed here",
+                       logging.INFO)
+        elif hosted.lifecycle is Lifecycle.STARTING:
             hosted.buffer.append(frame)
         elif hosted.lifecycle is Lifecycle.MIGRATED:
             if forwards >= MAX_FORWARDS:
@@ -152,11 +156,25 @@ class Frames:
 
     def _run(self, hosted: HostedStage, frame: ChainFrame) -> None:
         chain, index = hosted.chain, hosted.index
+        if hosted.lifecycle is Lifecycle.FAILED:
+            return  # inputs already admitted in this batch when it failed
+        target = index + 1
         started = time.perf_counter()
+        # The component is code we do not control: whatever it does wrong stops this stage only.
         try:
-            output = hosted.component.run(frame.data())
-        except Exception as exc:  # a bad input must not kill the agent
-            self.count("run-error", f"{hosted.stage.name} seq {frame.seq}: {exc}", logging.ERROR)
+            output = self.guard.call(hosted.component.run, frame.data(), timeout_s=self.hang_limit_s(chain))
+        except ComponentHung as exc:
+            self.fail_stage(hosted, "hung", f"run(seq {frame.seq}): {exc}")
+            return
+        except Exception as exc:
+            self.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {type(exc).__name__}: {exc}")
+            return
+        if not isinstance(output, bytes):
+            self.fail_stage(hosted, "not-bytes", f"run(seq {frame.seq}) returned {type(output).__name__}, not bytes")
+            return
+        if len(output) > chain.message_bytes[target]:
+            self.fail_stage(hosted, "oversize", f"run(seq {frame.seq}) returned {len(output)} B; the chain declares "
+                            f"message_bytes {chain.message_bytes[target]} for this hop (raise it in the scenario)")
             return
         hosted.compute_s += time.perf_counter() - started
         hosted.runs += 1
@@ -165,12 +183,7 @@ class Frames:
         recomputed = hosted.gate.catch_up_below is not None and frame.seq < hosted.gate.catch_up_below
         latency = self.scenario.components[hosted.stage.component].latency_s[self.platform.name]
         self.meter.charge_run(latency, self.now(), "recovery" if recomputed else "chain")
-        target = index + 1
-        try:
-            payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
-        except ProtocolError as exc:
-            self.count("oversize-output", str(exc), logging.ERROR)
-            return
+        payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
         out = ChainFrame(chain=chain.name, run=frame.run, seq=frame.seq, target=target, t_virtual=frame.t_virtual,
                          t_unix=frame.t_unix, payload_len=len(output), payload=payload, attempt=int(recomputed))
         dest = chain.sink if target == len(chain.stages) else self.plan.placement.get(chain.stages[target].name)

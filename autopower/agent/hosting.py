@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 
+from autopower.agent.guard import hang_limit_s
 from autopower.agent.sequencing import SequenceGate
 from autopower.agent.stages import HostedStage, Lifecycle, chain_seed
 from autopower.model.scenario import Chain, Stage
@@ -19,6 +20,7 @@ from autopower.protocol import (
     Prepare,
     Prepared,
     Release,
+    StageFailed,
     StageReady,
     StateTransfer,
     decode,
@@ -65,7 +67,10 @@ class Hosting:
             component = self._new_component(chain, stage)
         except Exception as exc:
             self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
+            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="raised",
+                                    detail=_bounded(f"constructor: {type(exc).__name__}: {exc}"), running=False))
             return
+        self.failed.pop(msg.stage, None)
         hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
                              gate=SequenceGate(next_seq=msg.resume_seq))
@@ -98,16 +103,20 @@ class Hosting:
             return
         # The current run has finished: runs are synchronous in this loop.
         hosted.lifecycle = Lifecycle.DRAINING
-        try:
-            state = hosted.component.export_state()
-        except Exception as exc:
-            self.count("export-failed", f"{msg.stage}: {exc}", logging.ERROR)
+        stopped_unix = time.time()  # downtime counts from here: checking the state is part of it
+        refused = self._exportable_state(hosted)
+        if isinstance(refused, tuple):  # the stage keeps running here; the base station is told
+            what, detail = refused
             hosted.lifecycle = Lifecycle.RUNNING
+            self.count(what, f"{msg.stage}: {detail}", logging.ERROR)
+            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what=what,
+                                    detail=_bounded(f"migration to {msg.to_node} refused: {detail}"), running=True))
             return
+        state = refused
         pending = tuple(hosted.gate.take_pending())
         transfer = StateTransfer(stage=msg.stage, generation=msg.generation, chain=hosted.chain.name,
                                  run=hosted.run, state=state, next_seq=hosted.gate.next_seq, pending=pending,
-                                 t_export_unix=time.time(), from_node=self.node,
+                                 t_export_unix=stopped_unix, from_node=self.node,
                                  resent=hosted.gate.recent_resends())
         body = encode(transfer)
         hosted.lifecycle = Lifecycle.MIGRATED
@@ -129,12 +138,25 @@ class Hosting:
         if current is not None and current.generation > msg.generation:
             self.count("stale-state", f"{msg.stage} generation {msg.generation}")
             return
+        imported = True
         try:
             component = self._new_component(chain, stage)
-            component.import_state(msg.state)
+            self._import(component, msg.state, chain)
         except Exception as exc:
+            # It imported on the old host (checked before it was shipped), so this host runs other
+            # code. The old instance is gone: go on here without the state, from where it stopped.
             self.count("import-failed", f"{msg.stage}: {exc}", logging.ERROR)
-            return
+            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="import-failed",
+                                    detail=_bounded(f"state from {msg.from_node} did not import, started without "
+                                                    f"it: import_state: {type(exc).__name__}: {exc}"), running=True))
+            imported = False
+            try:
+                component = self._new_component(chain, stage)
+            except Exception as exc:
+                self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
+                self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="raised",
+                                        detail=_bounded(f"constructor: {type(exc).__name__}: {exc}"), running=False))
+                return
         held = list(msg.pending)
         if current is not None and current.lifecycle is Lifecycle.STARTING:
             held += current.buffer
@@ -143,12 +165,60 @@ class Hosting:
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
                              gate=SequenceGate(next_seq=msg.next_seq))
         hosted.gate.resent.extend(msg.resent)  # late originals of these are redundant here too
+        self.failed.pop(msg.stage, None)
         self.hosted[msg.stage] = hosted
-        self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=True,
+        self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
                                resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3),
                                buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):
             self._admit(hosted, frame)
+
+    def _exportable_state(self, hosted: HostedStage) -> bytes | tuple[str, str]:
+        """The state to ship, checked to import into a fresh instance; or (what, why) it cannot move.
+
+        The check runs here, before this node gives its instance up: a state that does not import
+        (a bug in ``import_state``, a format change) refuses the migration and the stage keeps
+        running where it was. The new host runs the same code, so it imports there too; if it
+        still fails there (different code installed), that host starts it without the state from
+        where it stopped (no input lost or repeated) and says so.
+        """
+        component, chain, limit = hosted.component, hosted.chain, self.hang_limit_s(hosted.chain)
+        if not callable(getattr(component, "export_state", None)):
+            return b""  # a stateless component: restarted fresh on its new host
+        try:
+            state = self.guard.call(component.export_state, timeout_s=limit)
+        except Exception as exc:
+            return "export-failed", f"export_state: {type(exc).__name__}: {exc}"
+        if not isinstance(state, bytes):
+            return "export-failed", f"export_state returned {type(state).__name__}, not bytes"
+        try:
+            probe = self._new_component(chain, hosted.stage)
+            self.guard.call(probe.import_state, state, timeout_s=limit)
+        except Exception as exc:
+            return "import-failed", f"import_state: {type(exc).__name__}: {exc}"
+        return state
+
+    def _import(self, component, state: bytes, chain: Chain) -> None:
+        if state or callable(getattr(component, "import_state", None)):
+            self.guard.call(component.import_state, state, timeout_s=self.hang_limit_s(chain))
+
+    def hang_limit_s(self, chain: Chain) -> float:
+        return hang_limit_s(chain.period_s, self.mission.speed if self.mission else 1.0)
+
+    def fail_stage(self, hosted: HostedStage, what: str, detail: str) -> None:
+        """Stop a stage whose component misbehaved; the node and its other stages go on.
+
+        The stage stays here as FAILED (its inputs are dropped and counted) until the base
+        station releases it; the failure is in every status (``failed``) until the stage is
+        assigned here again, and the base station is told at once.
+        """
+        name = hosted.stage.name
+        text = _bounded(f"{what}: {detail}")
+        hosted.lifecycle, hosted.failure, hosted.component = Lifecycle.FAILED, text, None
+        self.failed[name] = text
+        self.count("stage-failed", f"{name}: {text}", logging.ERROR)
+        self._reply(StageFailed(stage=name, generation=hosted.generation, node=self.node, what=what,
+                                detail=_bounded(detail), running=False))
 
     def on_release(self, msg: Release) -> None:
         hosted = self.hosted.get(msg.stage)
@@ -156,3 +226,8 @@ class Hosting:
             del self.hosted[msg.stage]
         self.orphans.pop(msg.stage, None)
 
+
+def _bounded(text: str, limit: int = 300) -> str:
+    """One line of at most ``limit`` characters (an exception text travels in status and messages)."""
+    line = " ".join(str(text).split())
+    return line if len(line) <= limit else line[: limit - 1] + "…"

@@ -35,6 +35,7 @@ from typing import Callable
 from autopower.agent.acknowledging import Acknowledging
 from autopower.agent.custody import Custody
 from autopower.agent.frames import Frames
+from autopower.agent.guard import ComponentHung, GuardedCalls
 from autopower.agent.hosting import Hosting
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.sequencing import SinkLedger
@@ -51,6 +52,7 @@ from autopower.protocol import (
     PlanUpdate,
     SinkStats,
     SourceStats,
+    StageFailed,
     decode,
 )
 from autopower.runtime.bus import Bus
@@ -109,6 +111,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.parked_transfers: list[tuple[str, bytes, str]] = []
         self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
         self.custody = Custody()
+        self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
+        self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
+        self.hung_sources: dict[str, int] = {}  # chain -> the run whose source hung here (not restarted)
         self._next_custody_check = 0.0
         self.wall: Callable[[], float] = time.time  # custody's clock (a test team sets its manual one)
         # How a message for one node leaves: the process replaces it with its `Relayer.send`
@@ -227,7 +232,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
                 self._retire_source(runner)
         for name, run in running.items():
             chain = self.chains.get(name)
-            if chain is None or chain.source != self.node or name in self.sources:
+            if chain is None or chain.source != self.node or name in self.sources or self.hung_sources.get(name) == run:
                 continue
             try:
                 source = self._make_source(chain.stages[0].component, chain.source, chain_seed(self.scenario, chain))
@@ -275,8 +280,11 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
     def _produce(self, runner: SourceRunner, t_tick: float) -> None:
         chain = runner.chain
         try:
-            data = runner.source.produce(runner.seq)
+            data = self.guard.call(runner.source.produce, runner.seq, timeout_s=self.hang_limit_s(chain))
             payload = pad(data, chain.message_bytes[0], f"{chain.name} source")
+        except ComponentHung as exc:
+            self._source_hung(runner, f"produce(seq {runner.seq}): {exc}")
+            return
         except Exception as exc:
             self.count("source-error", f"{chain.name}: {exc}", logging.ERROR)
             return
@@ -289,6 +297,16 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         runner.seq += 1
         runner.produced_total += 1
         self.emit(frame, host)
+
+    def _source_hung(self, runner: SourceRunner, detail: str) -> None:
+        """A source that hangs is stopped (one that raises only loses that frame, counted)."""
+        chain = runner.chain
+        self._retire_source(runner)
+        self.hung_sources[chain.name] = runner.run  # not restarted in this run
+        self.failed[f"{chain.name} source"] = f"hung: {detail}"
+        self.count("source-failed", f"{chain.name}: hung: {detail}", logging.ERROR)
+        self._reply(StageFailed(stage=chain.stages[0].name, generation=-1, node=self.node, what="source-hung",
+                                detail=detail, running=False))
 
     # ---- sending -----------------------------------------------------------------------------
 
@@ -352,6 +370,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             counters={**self.counters, "held-outputs": len(self.held_outputs), **self.custody.stats()},
             depleted=bool(self.meter and self.meter.depleted),
             consumed=self.consumed(),
+            failed=dict(self.failed),
         )
 
     # ---- dispatch -----------------------------------------------------------------------------------------

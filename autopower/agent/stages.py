@@ -24,6 +24,7 @@ class Lifecycle(enum.Enum):
     RUNNING = "running"
     DRAINING = "draining"
     MIGRATED = "migrated"
+    FAILED = "failed"  # its component raised, returned garbage or hung: stopped here, inputs dropped
 
 
 def chain_seed(scenario: Scenario, chain: Chain) -> int:
@@ -57,6 +58,7 @@ class HostedStage:
     forward_to: str | None = None  # MIGRATED: where late inputs go
     runs: int = 0
     compute_s: float = 0.0
+    failure: str | None = None  # FAILED: why
 
 
 @dataclass

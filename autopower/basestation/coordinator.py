@@ -119,6 +119,7 @@ class Coordinator(Deciding, Placing, Operating):
         self.migrations: dict[str, Migration] = {}
         self.pins: dict[str, str] = dict(config.pins)
         self.disabled: set[str] = set()
+        self.failed_stages: dict[str, str] = {}  # stage -> "node: what: why" its component was stopped
         self.running: dict[str, int] = {}
         self.runs: dict[str, int] = {}  # chain -> current run number
         self.run_live: dict[str, bool] = {}  # has the current run produced anything yet

@@ -34,6 +34,9 @@ class Operating:
                 if cmd.enabled == (cmd.chain not in self.disabled):
                     return OperatorReply(ok=True, message=f"{cmd.chain} already {'enabled' if cmd.enabled else 'disabled'}")
                 (self.disabled.discard if cmd.enabled else self.disabled.add)(cmd.chain)
+                if cmd.enabled:  # a fresh start for a chain stopped by a failed component
+                    for stage in self.scenario.chain(cmd.chain).stages:
+                        self.failed_stages.pop(stage.name, None)
                 self._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
                 ok = self.replan(f"operator {'enabled' if cmd.enabled else 'disabled'} {cmd.chain}")
                 return OperatorReply(ok=ok, message=self._summary(ok))
@@ -118,6 +121,7 @@ class Operating:
                           for s, m in self.migrations.items()},
             "running": dict(self.running),
             "disabled": sorted(self.disabled),
+            "failed_stages": dict(self.failed_stages),
             "pins": dict(self.pins),
             "media": self.plan_network.media_by_group() if self.plan_network else None,
             "links": [[l.a, l.b, l.medium] for l in self.plan_network.links] if self.plan_network else [],

@@ -17,11 +17,14 @@ from autopower.protocol import (
     Prepare,
     Prepared,
     Release,
+    StageFailed,
     StageReady,
     encode,
 )
 
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
+# what a node may report in `StageFailed.what` (anything else is ignored)
+STAGE_FAILURES = ("raised", "not-bytes", "oversize", "hung", "export-failed", "import-failed", "source-hung")
 
 
 @dataclass
@@ -112,6 +115,52 @@ class Placing:
                      msg.node, msg.downtime_ms, msg.buffered)
         self.reconcile()
         self.publish_plan()
+
+    def on_stage_failed(self, msg: StageFailed) -> None:
+        """A node stopped a stage's component, or refused to migrate it (see `StageFailed`).
+
+        A refused migration (``running``): the migration is abandoned, the stage stays where it
+        runs and is pinned there (moving it again would fail the same way). A stopped component:
+        its chain is stopped, as ``autopower chain --disable`` would, and the policy re-plans the
+        rest; enabling the chain again restarts it with a fresh instance. A state that imported on
+        its old host but not on the new one: the new host runs it without, `StageReady` follows.
+        """
+        chain = self.chain_of.get(msg.stage)
+        if chain is None or msg.what not in STAGE_FAILURES:
+            return
+        m = self.migrations.get(msg.stage)
+        current = m is not None and m.generation == msg.generation
+        why = f"{msg.what}: {msg.detail[:300]}"  # a network message: bounded before it is kept
+        if msg.running:
+            if not current or msg.node != m.from_node:  # the new host runs it without its state
+                self.note(f"{msg.stage} on {msg.node}: {why}")
+                return
+            del self.migrations[msg.stage]
+            self.aborted += 1
+            if m.to_node in self.alive_nodes():
+                self._send(m.to_node, Release(stage=msg.stage, generation=self._next_generation()))
+            self.pins[msg.stage] = msg.node
+            self.target[msg.stage] = msg.node
+            self.note(f"{msg.stage}: migration {msg.node} -> {m.to_node} refused ({why}); it keeps running on "
+                      f"{msg.node}, pinned there")
+            self._predict()
+            self.reconcile()
+            self.publish_plan()
+            return
+        if msg.what == "source-hung":
+            if msg.node != chain.source:
+                return
+        elif current and msg.node == m.to_node:
+            del self.migrations[msg.stage]  # a fresh instance that failed to start
+        elif self.placement.get(msg.stage) != msg.node:
+            return  # about an instance that is gone already
+        self.failed_stages[msg.stage] = f"{msg.node}: {why}"
+        if chain.name in self.disabled:
+            return
+        self.disabled.add(chain.name)
+        self._event("chain-disable", chains=(chain.name,))
+        self.note(f"{msg.stage} failed on {msg.node} ({why}); chain {chain.name} stopped (enable it to restart)")
+        self.replan(f"{msg.stage} failed")
 
     def _abort(self, stage: str, why: str) -> None:
         m = self.migrations.pop(stage)

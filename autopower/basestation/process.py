@@ -27,6 +27,7 @@ from autopower.protocol import (
     NodeStatus,
     OperatorReply,
     Prepared,
+    StageFailed,
     StageReady,
     decode,
     encode,
@@ -192,6 +193,8 @@ class BaseStation:
                         co.on_prepared(msg)
                     elif isinstance(msg, StageReady):
                         co.on_stage_ready(msg)
+                    elif isinstance(msg, StageFailed):
+                        co.on_stage_failed(msg)
                 elif keys.node_of_status(event_key) is not None:
                     status = decode(payload, NodeStatus)
                     # a status can come twice (direct and relayed) and out of order: the newest counts

@@ -7,7 +7,8 @@
   migrated mid-run through ``export_state``/``import_state``.
 
 The runtime uses ``make_source``, ``make_component`` and ``score_output``; ``profile_components``
-measures latencies and message sizes on the current machine.
+measures latencies and message sizes on the current machine. Components of your own (plug-ins
+named in a scenario or by an entry point) are imported and registered by ``plugins``.
 
 May import: `autopower.errors` only. A component knows nothing of placement, radios or Zenoh.
 """
@@ -16,12 +17,15 @@ from autopower.chains.base import (
     Component,
     ComponentStateError,
     MalformedInputError,
+    ScoredSource,
     Source,
+    StatefulComponent,
     UnknownComponentTypeError,
 )
 from autopower.chains.blobfinder import BlobFinder, decode_report
 from autopower.chains.camera import CameraSource, SyntheticCamera
 from autopower.chains.mcl import MonteCarloLocaliser, decode_estimate
+from autopower.chains.plugins import ENTRY_POINT_GROUP, register_scenario_components
 from autopower.chains.profile import profile_components
 from autopower.chains.registry import (
     ComponentType,
@@ -36,6 +40,7 @@ from autopower.chains.registry import (
 from autopower.chains.world import LocSource
 
 __all__ = [
+    "ENTRY_POINT_GROUP",
     "BlobFinder",
     "CameraSource",
     "Component",
@@ -44,7 +49,9 @@ __all__ = [
     "LocSource",
     "MalformedInputError",
     "MonteCarloLocaliser",
+    "ScoredSource",
     "Source",
+    "StatefulComponent",
     "SyntheticCamera",
     "UnknownComponentTypeError",
     "component_types",
@@ -55,6 +62,7 @@ __all__ = [
     "make_source",
     "profile_components",
     "register_component_type",
+    "register_scenario_components",
     "score_output",
     "unregister_component_type",
 ]

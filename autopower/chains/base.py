@@ -38,14 +38,21 @@ class UnknownComponentTypeError(AutoPowerError, KeyError):
 
 @runtime_checkable
 class Source(Protocol):
-    """Produces the input message of one robot's chain, deterministically in (robot, seed, seq)."""
+    """Produces the input message of one robot's chain, on that robot, once per period.
 
-    component_type: str
-    robot: str
+    Constructed as ``Cls(robot, seed)``: ``robot`` is the robot that owns the chain (its sensor),
+    ``seed`` is the same on every node for that chain. ``produce(seq)`` must be deterministic in
+    (robot, seed, seq): a chain's outputs are compared against an offline re-run.
+    """
 
     def produce(self, seq: int) -> bytes:
-        """Return the input message for step ``seq`` (``seq >= 0``)."""
+        """Return the input message for step ``seq`` (``seq >= 0``, increasing by one per period)."""
         ...
+
+
+@runtime_checkable
+class ScoredSource(Source, Protocol):
+    """A source that also knows the truth, so a chain's outputs can be scored (optional)."""
 
     def ground_truth(self, seq: int) -> dict[str, Any]:
         """Return what a perfect component would report for step ``seq`` (plain msgpack-able data)."""
@@ -54,21 +61,37 @@ class Source(Protocol):
 
 @runtime_checkable
 class Component(Protocol):
-    """A placeable piece of robot software: one input message in, one output message out."""
+    """A placeable piece of robot software: one input message in, one output message out.
 
-    component_type: str
-    robot: str
+    Constructed as ``Cls(robot, seed)`` on whichever node the planner places it (``robot`` is the
+    chain's source robot, not the host). ``run`` is called once per input, in sequence order, never
+    concurrently; its result must be ``bytes`` no longer than the chain's declared ``message_bytes``
+    for that hop. A component that raises, returns anything else, or takes longer than a few of
+    its chain's periods is stopped (see README "Your own components": failures are contained).
+    """
 
     def run(self, payload: bytes) -> bytes:
         """Process one input message and return the output message."""
         ...
+
+
+@runtime_checkable
+class StatefulComponent(Component, Protocol):
+    """A component that remembers something between runs and can be migrated with it.
+
+    A component without these two methods migrates too, restarted fresh on its new host.
+    """
 
     def export_state(self) -> bytes:
         """Serialise everything the next ``run`` depends on."""
         ...
 
     def import_state(self, state: bytes) -> None:
-        """Replace this instance's state with one produced by ``export_state``."""
+        """Replace this instance's state with one produced by ``export_state`` (of another instance).
+
+        Raise (``ComponentStateError``, or anything) if ``state`` is not usable: the migration is
+        then abandoned and the component keeps running where it was.
+        """
         ...
 
 

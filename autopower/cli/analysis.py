@@ -24,8 +24,8 @@ from autopower.model.scenario import Scenario
 @click.command()
 @SCENARIO_ARG
 def check(scenario: str) -> None:
-    """Validate a scenario file and summarise it."""
-    s = load_scenario(scenario)
+    """Validate a scenario file (and import its plug-in components) and summarise it."""
+    s = build_scenario(scenario)
     console.print(f"[green]ok[/green] {s.source_path}: {s.name} — {len(s.robots)} robots, "
                   f"{len(s.chains)} chains, {len(s.stage_names())} stages, accounting {s.accounting}")
 

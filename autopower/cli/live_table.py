@@ -53,4 +53,8 @@ def render(snap: dict, speed: float):
         sinks.append(f"{chain}: {s['received_total']} results, p50 {s['latency_ms_p50']:.1f} ms")
     foot = Text("operator sink: " + ("; ".join(sinks) or "nothing yet") + "\n" +
                 "\n".join((snap.get("events") or [])[-4:]), style="dim")
+    failed = snap.get("failed_stages") or {}
+    if failed:  # components stopped for misbehaving, and why (their chains are stopped)
+        warn = Text("\n".join(f"FAILED {stage} on {why}" for stage, why in failed.items()), style="bold red")
+        return Group(head, robots, stages, warn, foot)
     return Group(head, robots, stages, foot)

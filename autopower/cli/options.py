@@ -134,9 +134,20 @@ def parse_pairs(values: tuple[str, ...], what: str, example: str) -> dict[str, s
 
 def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float | None = None,
                    accounting: str | None = None, profile: str | None = None,
-                   as_platform: str | None = None) -> Scenario:
-    """The scenario with a latency profile, energy overrides (absolute, then scaled) and an accounting mode."""
+                   as_platform: str | None = None, *, to_run: bool = False) -> Scenario:
+    """The scenario with a latency profile, energy overrides (absolute, then scaled) and an accounting mode.
+
+    Its plug-in components are imported and checked here, before anything starts (a one-line
+    `ScenarioError` naming the file and line otherwise), and registered for this process;
+    ``to_run``: every component must have code (a team runs it, not only the planner), including
+    those an installed package declares (entry points; planning does not look for them).
+    """
     scenario = load_scenario(name)
+    if to_run or any(spec.implementation for spec in scenario.components.values()):
+        # imported here: the components' imports are heavy, and planning alone needs no code
+        from autopower.chains.plugins import register_scenario_components
+
+        register_scenario_components(scenario.components, require_code=to_run)
     if profile:
         scenario = apply_latency_profile(scenario, profile, as_platform or scenario.basestation_platform)
     if energy:

@@ -25,7 +25,6 @@ from autopower.cli.options import (
     zenoh_settings,
 )
 from autopower.errors import AutoPowerError
-from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
 
 
@@ -61,7 +60,7 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
     from autopower.agent.process import Agent, AgentConfig
 
     setup_logging(log_level)
-    scenario = load_scenario(scenario_name)
+    scenario = build_scenario(scenario_name, to_run=True)  # imports and registers its plug-in components
     config = AgentConfig(robot=robot, scenario=scenario, team=team,
                          zenoh=zenoh_settings(listen, connect, lease_ms),
                          status_period_s=status_period, parent_pid=parent_pid)
@@ -108,7 +107,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     setup_logging(log_level)
     if not speed > 0:
         raise AutoPowerError(f"--speed must be > 0, got {speed}")
-    scenario = build_scenario(scenario_name, energy, energy_scale, accounting)
+    scenario = build_scenario(scenario_name, energy, energy_scale, accounting, to_run=True)
     media_choice = parse_pairs(media, "--media", "laptop-robot=gsm") or None
     if media_choice:
         build_network(scenario, topology=topology, media=media_choice)  # unknown group or medium -> ScenarioError

@@ -65,7 +65,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                              "choose another --team name or stop that one")
     from autopower.launch.localhost import LocalTeam, TeamSpec
 
-    scenario = build_scenario(scenario_name, energy, energy_scale, accounting)  # fail fast on bad options
+    scenario = build_scenario(scenario_name, energy, energy_scale, accounting, to_run=True)  # fail fast on bad options
     parse_pairs(pin, "--pin", "Loc-2=r1")
     if media:
         build_network(scenario, topology=topology, media=parse_pairs(media, "--media", "laptop-robot=gsm"))

@@ -32,6 +32,8 @@ from autopower.model.scenario import (
     Stage,
 )
 
+IMPORT_PATH = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
+
 
 MAX_SCENARIO_BYTES = 64 * 2**20  # a 2,000-robot fleet is well under 1 MB
 MAX_INTEGER = 2**53  # beyond this a float loses integers, and nothing physical is that large
@@ -398,16 +400,34 @@ class ScenarioParser:
         out = {}
         for name, spec in obj.items():
             path = f"components.{name}"
-            spec = self.table(spec, path, ["latency_s"], ["latency_s"])
+            spec = self.table(spec, path, ["latency_s", "implementation", "source"], ["latency_s"])
             lat = self.table(spec["latency_s"], f"{path}.latency_s", platforms)
             missing = [p for p in platforms if p not in lat]
             if missing:
                 raise self.fail(f"{path}.latency_s", f"no latency for platform(s) {', '.join(missing)}",
                                 "a latency for every platform (it may run anywhere)")
+            plugin = {key: self.import_path(spec, key, path) for key in ("implementation", "source") if key in spec}
+            if len(plugin) == 1:
+                have, lacking = next(iter(plugin)), ({"implementation", "source"} - set(plugin)).pop()
+                raise self.fail(f"{path}.{have}", f"{have} without {lacking}",
+                                f'both implementation = "pkg.mod:Component" and source = "pkg.mod:Source"')
             out[name] = ComponentSpec(
-                name=name, latency_s={p: self.number(lat, p, f"{path}.latency_s", positive=True) for p in lat}
+                name=name, latency_s={p: self.number(lat, p, f"{path}.latency_s", positive=True) for p in lat},
+                implementation=plugin.get("implementation"), source=plugin.get("source"),
+                defined_at={key: self.position(f"{path}.{key}") for key in ("latency_s", *plugin)},
             )
         return out
+
+    def import_path(self, obj: dict, key: str, path: str) -> str:
+        """A "package.module:Class" string (imported later, by `autopower.chains.plugins`)."""
+        value = self.string(obj, key, path)
+        if not IMPORT_PATH.fullmatch(value):
+            raise self.fail(f"{path}.{key}", f"found {value!r}", '"package.module:ClassName"')
+        return value
+
+    def position(self, path: str) -> str:
+        line = self._line_of(path)
+        return f"{self.where}:{line}" if line else self.where
 
     def chains(self, obj: Any, components: dict[str, ComponentSpec], robots: tuple[Robot, ...],
                nodes: list[str], base: str) -> tuple[Chain, ...]:

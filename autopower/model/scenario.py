@@ -47,6 +47,11 @@ class Robot:
 class ComponentSpec:
     name: str
     latency_s: Mapping[str, float]  # platform name -> seconds per run
+    # a plug-in (see README "Your own components"): "pkg.mod:Class" of the component and of its
+    # chain's source; None: a built-in type or one an installed package registers (entry point)
+    implementation: str | None = None
+    source: str | None = None
+    defined_at: Mapping[str, str] = field(default_factory=dict)  # key -> "file:line", for import errors
 
 
 @dataclass(frozen=True, kw_only=True)

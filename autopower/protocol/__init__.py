@@ -30,6 +30,7 @@ from autopower.protocol.messages import (
     SinkStats,
     SnapshotRequest,
     SourceStats,
+    StageFailed,
     StageReady,
     StateTransfer,
     SubgroupDecision,
@@ -43,5 +44,5 @@ __all__ = [
     "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo",
     "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet",
     "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "Consumed", "SnapshotRequest", "SourceStats",
-    "StageReady", "StateTransfer", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",
+    "StageFailed", "StageReady", "StateTransfer", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",
 ]

@@ -3,7 +3,7 @@
 Data plane (``node/<n>/data``, CongestionControl.BLOCK): `Packet`, carrying an encoded
 `ChainFrame` or `StateTransfer` hop by hop along a source route.
 Coordinator -> node (``node/<n>/control``, BLOCK): `Assign`, `Prepare`, `MigrateOut`, `Release`.
-Node -> coordinator (``base/inbox``, BLOCK): `Prepared`, `StageReady`.
+Node -> coordinator (``base/inbox``, BLOCK): `Prepared`, `StageReady`, `StageFailed`.
 Coordinator -> everyone (``base/plan``, BLOCK): `PlanUpdate`.
 Telemetry (``agent/<r>/status``, ``base/status``, DROP): `NodeStatus`.
 Operator -> coordinator (query on ``base/operator``): `ChainCommand`, `MigrateCommand`,
@@ -244,6 +244,24 @@ class StageReady:
     buffered: int  # inputs held during the move
 
 
+@message
+@dataclass(frozen=True, kw_only=True)
+class StageFailed:
+    """A stage's component failed here: it raised, returned something that is not bytes, wrote more
+    than the chain declares, or hung (``what``); or its state would not import into a new instance
+    (``what = "import-failed"``: the migration is refused and the stage keeps running here); or the
+    source of the chain whose first stage is ``stage`` hung on ``node`` (``what = "source-hung"``,
+    ``generation`` -1)."""
+
+    KIND = "stage-failed"
+    stage: str
+    generation: int
+    node: str
+    what: str  # "raised" | "not-bytes" | "oversize" | "hung" | "export-failed" | "import-failed" | "source-hung"
+    detail: str  # the exception text (one line, bounded)
+    running: bool  # the stage still runs on `node` (a refused migration) or it has stopped
+
+
 # ---------------------------------------------------------------------------------------------
 # coordinator -> everyone
 # ---------------------------------------------------------------------------------------------
@@ -294,6 +312,7 @@ class NodeStatus:
     counters: dict[str, int]  # normal events: forwarded packets, missed periods, ...
     depleted: bool
     consumed: dict[str, Consumed] = field(default_factory=dict)  # "chain#target" -> what this node took in
+    failed: dict[str, str] = field(default_factory=dict)  # stage -> why its component was stopped here
 
 
 # ---------------------------------------------------------------------------------------------
@@ -426,4 +445,4 @@ class SubgroupDecision:
 
 OPERATOR_COMMANDS = (ChainCommand, MigrateCommand, AutoCommand, LinkCommand, SnapshotRequest)
 CONTROL_MESSAGES = (Assign, Prepare, MigrateOut, Release)
-INBOX_MESSAGES = (Prepared, StageReady)
+INBOX_MESSAGES = (Prepared, StageReady, StageFailed)

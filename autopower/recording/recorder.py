@@ -276,6 +276,8 @@ class Recorder:
             kind, fields = _peek(payload)
             if kind == "stage-ready":
                 self._stage_ready(fields)
+            elif kind == "stage-failed":
+                self._stage_failed(fields)
         else:  # control messages and whatever else a process announces (e.g. subgroup rounds)
             kind, fields = _peek(payload)
             self._other(key, kind, fields)
@@ -382,6 +384,13 @@ class Recorder:
             human, type="stage-ready", stage=m["stage"], node=m["node"], generation=m["generation"],
             imported_state=m["imported_state"], downtime_ms=m["downtime_ms"], buffered=m["buffered"],
             resume_seq=m.get("resume_seq")))
+
+    def _stage_failed(self, m: dict) -> None:
+        after = "it keeps running there" if m["running"] else "stopped"
+        human = f"{m['stage']} failed on {m['node']} ({m['what']}: {m['detail']}); {after}"
+        self.telemetry.migration(self.now(), tag_event(
+            human, type="stage-failed", stage=m["stage"], node=m["node"], generation=m["generation"],
+            what=m["what"], detail=m["detail"], running=m["running"]))
 
     def _other(self, key: str, kind: str | None, fields: dict) -> None:
         brief = {k: v for k, v in fields.items() if not isinstance(v, (bytes, bytearray))

@@ -13,7 +13,7 @@ import msgpack
 
 from autopower.agent.node import NodeRuntime
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
-from autopower.protocol import INBOX_MESSAGES, Keys, Packet, Prepared, StageReady, decode
+from autopower.protocol import INBOX_MESSAGES, Keys, Packet, Prepared, StageFailed, StageReady, decode
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.clock import ManualClock
 
@@ -120,6 +120,8 @@ class SimTeam:
             self.coordinator.on_prepared(msg)
         elif isinstance(msg, StageReady):
             self.coordinator.on_stage_ready(msg)
+        elif isinstance(msg, StageFailed):
+            self.coordinator.on_stage_failed(msg)
 
     def pump(self) -> None:
         while self.hub.pending:

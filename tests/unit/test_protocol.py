@@ -34,6 +34,7 @@ from autopower.protocol import (
     SinkStats,
     SnapshotRequest,
     SourceStats,
+    StageFailed,
     StageReady,
     StateTransfer,
     SubgroupDecision,
@@ -86,6 +87,8 @@ SAMPLES = [
                     moves=(SubgroupMove(stage="Loc-1", from_node=None, to_node="r1"),), generation=7, reason="x"),
     SubgroupVote(round_id="r1-1", node="r2", accept=True, reason=""),
     SubgroupDecision(round_id="r1-1", commit=True, reason="all accepted"),
+    StageFailed(stage="Motion-1", generation=3, node="r2", what="raised", detail="run(seq 7): ValueError: bad frame",
+                running=False),
 ]
 
 
