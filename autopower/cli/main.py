@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import click
 
-from autopower.cli import analysis, demo, fault, operator, processes, profile, replay, simulate, team
+from autopower.cli import analysis, demo, deploy, fault, operator, processes, profile, replay, simulate, team
 from autopower.cli.entry import run_command
 
 
@@ -20,7 +20,7 @@ def cli() -> None:
     """
 
 
-for _module in (analysis, profile, simulate, replay, processes, team, operator, fault, demo):
+for _module in (analysis, profile, simulate, replay, processes, team, operator, fault, demo, deploy):
     for _command in _module.COMMANDS:
         cli.add_command(_command)
 
