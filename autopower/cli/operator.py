@@ -33,7 +33,7 @@ def operator_session_settings(session: dict, connect: tuple[str, ...]):
     tls = session.get("operator_tls")
     if not tls:
         return None
-    return ZenohSettings(mode="client", connect=tuple(connect), tls=TlsFiles(**tls))
+    return ZenohSettings(connect=tuple(connect), tls=TlsFiles(**tls))
 
 
 def _send(command, team, connect, timeout) -> dict:

@@ -142,7 +142,7 @@ def node_settings(fleet: Fleet, scenario: Scenario, node: str, tls: TlsFiles, *,
 
 
 def operator_settings(fleet: Fleet, scenario: Scenario, tls: TlsFiles) -> ZenohSettings:
-    """The operator CLI: a client of the base station only (no listener, nothing to protect)."""
+    """The operator CLI: connects to the base station only and listens on nothing."""
     base = scenario.basestation
-    return ZenohSettings(mode="client", connect=(fleet.endpoint(OPERATOR, base),), tls=tls,
+    return ZenohSettings(connect=(fleet.endpoint(OPERATOR, base),), tls=tls,
                          lease_ms=fleet.lease_ms)

@@ -46,7 +46,7 @@ class LocalIdentities:
         return identity_in(self.directory, node)
 
     def operator_settings(self, base_endpoint: str) -> ZenohSettings:
-        return ZenohSettings(mode="client", connect=(base_endpoint,), tls=self.files(OPERATOR))
+        return ZenohSettings(connect=(base_endpoint,), tls=self.files(OPERATOR))
 
     def remove(self) -> None:
         shutil.rmtree(self.directory, ignore_errors=True)

@@ -48,3 +48,21 @@ class TeamAccess:
 
     def may_query_operator(self, identity: str) -> bool:
         return identity == OPERATOR
+
+
+MAX_CLOCK_AHEAD_S = 5.0  # a status stamped further in the future is not believed (hosts run NTP)
+
+
+def status_problem(keys: Keys, key: str, node: str, t_unix: float, now_unix: float) -> str | None:
+    """Why a status read from ``key`` must be dropped, or None.
+
+    Zenoh's access control only lets robot r put on ``status/r``; the status must then also name
+    r (a robot cannot speak for another through its own key), and must not be stamped in the
+    future: statuses are ordered by ``t_unix``, so one forged far ahead would mask every real one.
+    """
+    owner = keys.node_of_status(key)
+    if owner != node:
+        return f"a status naming {node!r} on {owner!r}'s key"
+    if t_unix > now_unix + MAX_CLOCK_AHEAD_S:
+        return f"{node}'s status is stamped {t_unix - now_unix:.0f} s in the future"
+    return None
