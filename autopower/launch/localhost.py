@@ -183,10 +183,13 @@ class LocalTeam:
             args += ["--tls", str(self.identities.directory)]
         return args
 
+    def _command(self, name: str, args: list[str]) -> list[str]:
+        # the process entry points alone: a child does not import the rest of the CLI
+        return [sys.executable, "-m", "autopower.cli.processes", *args]
+
     def _spawn(self, name: str, args: list[str]) -> None:
         log_path = self.log_dir / f"{name}.log"
-        # the process entry points alone: a child does not import the rest of the CLI
-        cmd = [sys.executable, "-m", "autopower.cli.processes", *args]
+        cmd = self._command(name, args)
         with open(log_path, "wb") as out:
             proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                                     process_group=0, preexec_fn=_die_with_parent,
