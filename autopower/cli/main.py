@@ -8,7 +8,19 @@ from __future__ import annotations
 
 import click
 
-from autopower.cli import analysis, demo, deploy, fault, operator, processes, profile, replay, simulate, team
+from autopower.cli import (
+    analysis,
+    demo,
+    deploy,
+    fault,
+    operator,
+    processes,
+    profile,
+    replay,
+    simulate,
+    team,
+    testbed,
+)
 from autopower.cli.entry import run_command
 
 
@@ -20,7 +32,7 @@ def cli() -> None:
     """
 
 
-for _module in (analysis, profile, simulate, replay, processes, team, operator, fault, demo, deploy):
+for _module in (analysis, profile, simulate, replay, processes, team, operator, fault, demo, deploy, testbed):
     for _command in _module.COMMANDS:
         cli.add_command(_command)
 
