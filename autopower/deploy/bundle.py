@@ -56,7 +56,8 @@ def _tls(directory: Path, node: str, relative: bool) -> TlsFiles:
 
 def _settings_json(settings: ZenohSettings) -> dict:
     return {"mode": settings.mode, "listen": list(settings.listen), "connect": list(settings.connect),
-            "lease_ms": settings.lease_ms, "access_control": settings.access_control}
+            "lease_ms": settings.lease_ms, "access_control": settings.access_control,
+            "shared_memory": settings.shared_memory}
 
 
 def write_bundle(out: Path, scenario_name: str, fleet: Fleet, *, topology: str | None = None,
@@ -128,6 +129,7 @@ def load_bundle(fleet_dir: Path, node: str | None = None) -> NodeBundle:
         scenario = str(directory / SCENARIO_COPY)
     settings = ZenohSettings(mode=z["mode"], listen=tuple(z["listen"]), connect=tuple(z["connect"]),
                              lease_ms=int(z["lease_ms"]), access_control=z["access_control"],
+                             shared_memory=z.get("shared_memory"),
                              tls=_tls(directory.resolve(), info["node"], relative=False))
     return NodeBundle(directory=directory, team=info["team"], node=info["node"], role=info["role"],
                       scenario=scenario, zenoh=settings)

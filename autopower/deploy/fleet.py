@@ -138,7 +138,8 @@ def node_settings(fleet: Fleet, scenario: Scenario, node: str, tls: TlsFiles, *,
     listen = (f"tls/{_host(me.listen_host or me.address)}:{me.port}",)
     connect = tuple(fleet.endpoint(node, peer) for late, peer in linked_pairs(scenario, topology) if late == node)
     return ZenohSettings(listen=listen, connect=connect, lease_ms=lease_ms or fleet.lease_ms, tls=tls,
-                         access_control=zenoh_access_control(team_access(scenario, fleet.team)))
+                         access_control=zenoh_access_control(team_access(scenario, fleet.team)),
+                         shared_memory=False)  # separate hosts: every byte crosses the link
 
 
 def operator_settings(fleet: Fleet, scenario: Scenario, tls: TlsFiles) -> ZenohSettings:

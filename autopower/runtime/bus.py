@@ -96,6 +96,10 @@ class ZenohSettings:
     tls: TlsFiles | None = None
     access_control: dict | None = None  # Zenoh's access_control section (default deny)
     mode: str = "peer"
+    # Zenoh moves every put over 3 KB into shared memory when both ends share a machine, so the
+    # bytes never cross the link: False for nodes that stand for separate hosts (the testbed,
+    # a fleet), where the link must carry what a radio would. None keeps Zenoh's default.
+    shared_memory: bool | None = None
 
     def entries(self) -> list[tuple[str, object]]:
         """The configuration as (path, value) pairs: what `to_config` inserts, what a json5 file holds."""
@@ -123,6 +127,8 @@ class ZenohSettings:
             }))
         if self.access_control is not None:
             out.append(("access_control", self.access_control))
+        if self.shared_memory is not None:
+            out.append(("transport/shared_memory/enabled", self.shared_memory))
         return out
 
     def to_dict(self) -> dict:
