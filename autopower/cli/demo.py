@@ -26,7 +26,9 @@ from autopower.policies import POLICY_NAMES
 @click.option("--policy", type=click.Choice(list(POLICY_NAMES)), default="rebalance", show_default=True,
               help="What decides the placement at the base station (as in `autopower simulate`).")
 @INSECURE_OPT
-def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure):
+@click.option("--testbed", is_flag=True,
+              help="Run the story in the testbed (root): network namespaces, links shaped like their radios.")
+def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure, testbed):
     """Three agents + the base station: a cut, a heal, a subgroup without the base, the replay."""
     if not 10 <= mission_wall_s <= 600:
         raise AutoPowerError(f"--mission must be within 10..600 s, got {mission_wall_s:g}")
@@ -37,7 +39,7 @@ def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, i
     directory.mkdir(parents=True, exist_ok=True)
     result = run_demo(speed=speed, mission_wall_s=mission_wall_s, lease_ms=lease_ms, log_dir=directory,
                       record=not no_record, quiet=as_json, policy=policy,
-                      secure=not insecure)
+                      secure=not insecure, testbed=testbed)
     if as_json:
         slim = {k: v for k, v in result.items() if k != "replay"}
         click.echo(json.dumps(slim, default=str))
