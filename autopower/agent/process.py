@@ -19,6 +19,7 @@ from autopower.agent.node import NodeRuntime
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMove, SubgroupPropose, decode, encode
+from autopower.protocol.access import TeamAccess, status_problem
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.runtime.relay import Relayer
@@ -68,7 +69,9 @@ class Agent:
         bus, keys, robot = self._bus, self.keys, self.config.robot
         self.runtime = NodeRuntime(node=robot, scenario=self.config.scenario, bus=bus, keys=keys,
                                    **self._runtime_kwargs)
-        self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count)
+        scenario = self.config.scenario
+        access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
+        self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count, access=access)
         self.runtime.send_to = self.relayer.send
         self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
                                            on_commit=self._subgroup_commit,
@@ -129,6 +132,10 @@ class Agent:
         if self.keys.node_of_status(key) is not None:
             try:
                 status = decode(payload, NodeStatus)
+                problem = status_problem(self.keys, key, status.node, status.t_unix, time.time())
+                if problem is not None:
+                    rt.count("forged", problem)
+                    return
                 last = self.statuses.get(status.node)
                 if last is not None and status.t_unix <= last.t_unix:
                     return  # a duplicate (direct and relayed) or an older one overtaken

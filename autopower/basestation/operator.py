@@ -138,10 +138,14 @@ def clear_session(team: str, pid: int | None = None) -> None:
 class OperatorClient:
     """A Zenoh session that talks to one team's base station (a context manager)."""
 
-    def __init__(self, team: str, connect: tuple[str, ...] = (), bus: Bus | None = None):
+    def __init__(self, team: str, connect: tuple[str, ...] = (), bus: Bus | None = None,
+                 settings: ZenohSettings | None = None):
+        """``settings`` replaces the plain session to ``connect`` (e.g. mutual TLS as the operator)."""
         self.keys = Keys(team)
         self._owns = bus is None
-        self.bus = bus if bus is not None else ZenohBus(ZenohSettings(connect=tuple(connect)))
+        if bus is None:
+            bus = ZenohBus(settings if settings is not None else ZenohSettings(connect=tuple(connect)))
+        self.bus = bus
 
     def __enter__(self) -> "OperatorClient":
         return self

@@ -32,6 +32,7 @@ from autopower.protocol import (
     decode,
     encode,
 )
+from autopower.protocol.access import TeamAccess, status_problem
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.runtime.relay import Relayer
@@ -102,7 +103,9 @@ class BaseStation:
         self.runtime = self._host_factory(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys)
         self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
                                        config=self.config.coordinator, policy=self._policy)
-        self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count)
+        scenario = self.config.scenario
+        access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
+        self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count, access=access)
         self.runtime.send_to = self.relayer.send
         self.coordinator.send_to = self.relayer.send
         self.coordinator.also_relay = self.relayer.send_beyond_sight
@@ -197,6 +200,10 @@ class BaseStation:
                         co.on_stage_failed(msg)
                 elif keys.node_of_status(event_key) is not None:
                     status = decode(payload, NodeStatus)
+                    problem = status_problem(keys, event_key, status.node, status.t_unix, time.time())
+                    if problem is not None:
+                        rt.count("forged", problem)
+                        return
                     # a status can come twice (direct and relayed) and out of order: the newest counts
                     if status.t_unix <= self._status_t.get(status.node, 0.0):
                         return

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from autopower.cli.options import LEASE_MS, POSITIVE
+from autopower.cli.options import INSECURE_OPT, LEASE_MS, POSITIVE, warn_insecure
 from autopower.errors import AutoPowerError
 from autopower.launch.demo import run_demo
 from autopower.policies import POLICY_NAMES
@@ -25,16 +25,21 @@ from autopower.policies import POLICY_NAMES
 @click.option("--no-record", is_flag=True, help="Do not write a Rerun recording.")
 @click.option("--policy", type=click.Choice(list(POLICY_NAMES)), default="rebalance", show_default=True,
               help="What decides the placement at the base station (as in `autopower simulate`).")
-def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy):
+@INSECURE_OPT
+@click.option("--testbed", is_flag=True,
+              help="Run the story in the testbed (root): network namespaces, links shaped like their radios.")
+def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure, testbed):
     """Three agents + the base station: a cut, a heal, a subgroup without the base, the replay."""
     if not 10 <= mission_wall_s <= 600:
         raise AutoPowerError(f"--mission must be within 10..600 s, got {mission_wall_s:g}")
     if not speed > 0:
         raise AutoPowerError(f"--speed must be > 0, got {speed:g}")
+    warn_insecure(insecure)
     directory = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix="autopower-demo-"))
     directory.mkdir(parents=True, exist_ok=True)
     result = run_demo(speed=speed, mission_wall_s=mission_wall_s, lease_ms=lease_ms, log_dir=directory,
-                      record=not no_record, quiet=as_json, policy=policy)
+                      record=not no_record, quiet=as_json, policy=policy,
+                      secure=not insecure, testbed=testbed)
     if as_json:
         slim = {k: v for k, v in result.items() if k != "replay"}  # the full replay: `autopower replay`
         click.echo(json.dumps(slim, default=str))

@@ -11,6 +11,7 @@ import click
 from autopower.cli import (
     analysis,
     demo,
+    deploy,
     evaluate,
     fault,
     operator,
@@ -20,6 +21,7 @@ from autopower.cli import (
     replay,
     simulate,
     team,
+    testbed,
 )
 from autopower.cli.entry import run_command
 
@@ -32,7 +34,8 @@ def cli() -> None:
     """
 
 
-for _module in (analysis, evaluate, profile, simulate, replay, recording, processes, team, operator, fault, demo):
+for _module in (analysis, evaluate, profile, simulate, replay, recording, processes, team, operator, fault, demo,
+                deploy, testbed):
     for _command in _module.COMMANDS:
         cli.add_command(_command)
 

@@ -13,12 +13,28 @@ from autopower.errors import AutoPowerError
 
 def _client(team: str | None, connect: tuple[str, ...]):
     from autopower.basestation.operator import OperatorClient, read_session
+    from autopower.cli.options import fleet_dir
 
-    if not team or not connect:  # an endpoint and a team name reach any base station; else a local team
-        session = read_session(team)
-        team = team or session["team"]
-        connect = connect or tuple(session["connect"])
-    return OperatorClient(team, connect=connect)
+    if fleet_dir() is not None:
+        from autopower.deploy.bundle import load_bundle
+
+        bundle = load_bundle(fleet_dir(), "operator")
+        return OperatorClient(team or bundle.team, settings=bundle.zenoh)
+    # an endpoint and a team name reach any base station; else a local team
+    session = read_session(team) if not team or not connect else {}
+    team = team or session["team"]
+    connect = connect or tuple(session["connect"])
+    return OperatorClient(team, connect=connect, settings=operator_session_settings(session, connect))
+
+
+def operator_session_settings(session: dict, connect: tuple[str, ...]):
+    """The operator's mutual-TLS client settings when the running team (`up`) is secure, else None."""
+    from autopower.runtime.bus import TlsFiles, ZenohSettings
+
+    tls = session.get("operator_tls")
+    if not tls:
+        return None
+    return ZenohSettings(connect=tuple(connect), tls=TlsFiles(**tls))
 
 
 def _send(command, team, connect, timeout) -> dict:

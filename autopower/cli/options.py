@@ -173,6 +173,18 @@ def zenoh_settings(listen: tuple[str, ...], connect: tuple[str, ...], lease_ms: 
 
 
 
+INSECURE_OPT = click.option("--insecure", is_flag=True,
+                            help="Plain tcp, no certificates, no access control: anyone who reaches a port "
+                                 "controls the team. Default: mutual TLS and default-deny access control.")
+
+
+def warn_insecure(insecure: bool) -> None:
+    """Said on every insecure start, on stderr (so --json output stays one object)."""
+    if insecure:
+        click.echo("warning: --insecure: no TLS and no access control; anyone who can reach this team's "
+                   "ports can read its data and command it", err=True)
+
+
 SCENARIO_ARG = click.argument("scenario", default="paper-fig7", metavar="SCENARIO")
 ENERGY_OPT = click.option("--energy", multiple=True, metavar="ROBOT=J", help="Override a robot's starting energy (repeatable).")
 ACCOUNTING_OPT = click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None,
@@ -187,7 +199,51 @@ def profile_opts(f):
 JSON_OPT = click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 
 
+def _remember(ctx: click.Context, param: click.Parameter, value):
+    """Keep a security option in the context instead of every command's signature."""
+    if value is not None:
+        ctx.meta[f"autopower.{param.name}"] = value
+    return value
+
+
+FLEET_HELP = "A directory `autopower deploy init` wrote (or one node's copy of it): team, scenario, mTLS, ACL."
+
+
+def security_options(f):
+    """--fleet DIR (a deployed node) and --tls DIR (an identity for endpoints given on the command line)."""
+    f = click.option("--fleet", type=click.Path(file_okay=False), default=None, expose_value=False,
+                     callback=_remember, metavar="DIR", help=FLEET_HELP)(f)
+    return click.option("--tls", "tls_dir", type=click.Path(file_okay=False), default=None, expose_value=False,
+                        callback=_remember, metavar="DIR", hidden=True,
+                        help="Mutual TLS with the identity in DIR (ca.pem, NODE.pem, NODE.key) and the "
+                             "team's access control (what `up` passes its children).")(f)
+
+
+def fleet_dir() -> str | None:
+    return click.get_current_context().meta.get("autopower.fleet")
+
+
+def tls_dir() -> str | None:
+    return click.get_current_context().meta.get("autopower.tls_dir")
+
+
+def secure(settings, node: str, scenario: Scenario, team: str):
+    """``settings`` with mutual TLS and the team's access control when --tls DIR was given."""
+    import dataclasses
+
+    directory = tls_dir()
+    if directory is None:
+        return settings
+    from autopower.deploy.fleet import team_access
+    from autopower.deploy.pki import identity_in
+    from autopower.runtime.access_control import zenoh_access_control
+
+    return dataclasses.replace(settings, tls=identity_in(directory, node),
+                               access_control=zenoh_access_control(team_access(scenario, team)))
+
+
 def network_options(f):
+    f = security_options(f)
     f = click.option("--scenario", "scenario_name", default="paper-fig7", show_default=True,
                      help="Built-in scenario name or path to a .toml file.")(f)
     f = click.option("--team", default="default", show_default=True, type=TEAM_NAME,
@@ -231,6 +287,7 @@ def mission_options(f):
 
 
 def operator_options(f):
+    f = security_options(f)
     f = click.option("--team", default=None, type=TEAM_NAME,
                      help="Team name (default: the only team `autopower up` runs on this machine).")(f)
     f = click.option("--connect", multiple=True, metavar="ENDPOINT", type=ENDPOINT,

@@ -20,7 +20,9 @@ from autopower.cli.options import (
     build_scenario,
     mission_options,
     network_options,
+    fleet_dir,
     parse_pairs,
+    secure,
     setup_logging,
     zenoh_settings,
 )
@@ -52,7 +54,8 @@ def exit_now(message: str) -> None:
 
 
 @click.command("agent")
-@click.option("--robot", required=True, help="Which robot of the scenario this agent is.")
+@click.option("--robot", "--node", "robot", default=None,
+              help="Which robot of the scenario this agent is (with --fleet: which node directory).")
 @network_options
 def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
           record_dir):
@@ -60,9 +63,12 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
     from autopower.agent.process import Agent, AgentConfig
 
     setup_logging(log_level)
+    robot, scenario_name, team, zenoh = _joining(robot, scenario_name, team, listen, connect, lease_ms, "robot")
+    if robot is None:
+        raise AutoPowerError("which robot? pass --robot NAME (or --fleet DIR --node NAME)")
     scenario = build_scenario(scenario_name, to_run=True)  # imports and registers its plug-in components
     config = AgentConfig(robot=robot, scenario=scenario, team=team,
-                         zenoh=zenoh_settings(listen, connect, lease_ms),
+                         zenoh=secure(zenoh, robot, scenario, team),
                          status_period_s=status_period, parent_pid=parent_pid)
     recorder, bus = _recording_bus(record_dir, robot, scenario, config.zenoh)
     try:
@@ -74,6 +80,21 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
         if bus is not None:
             bus.close()  # flushes the recording: before os._exit
     exit_now(f"agent {robot} stopped: {reason}")
+
+
+def _joining(node, scenario_name, team, listen, connect, lease_ms, role: str):
+    """(node, scenario, team, Zenoh settings): from --fleet DIR when given, else the command line."""
+    fleet = fleet_dir()
+    if fleet is None:
+        return node, scenario_name, team, zenoh_settings(listen, connect, lease_ms)
+    from autopower.deploy.bundle import load_bundle
+
+    bundle = load_bundle(fleet, node)
+    if bundle.role != role:
+        raise AutoPowerError(f"{bundle.directory} is the {bundle.role} {bundle.node!r}, not a {role}")
+    if listen or connect:
+        raise AutoPowerError("--listen/--connect come from --fleet DIR; edit the fleet file and run deploy init again")
+    return bundle.node, bundle.scenario, bundle.team, bundle.zenoh
 
 
 def _recording_bus(record_dir, node: str, scenario, zenoh):
@@ -89,6 +110,7 @@ def _recording_bus(record_dir, node: str, scenario, zenoh):
 
 @click.command("basestation")
 @network_options
+@click.option("--node", default=None, help="With --fleet: which node directory (the base station's name).")
 @click.option("--speed", type=POSITIVE, default=DEFAULT_SPEED, show_default=True,
               help="Virtual seconds per wall second.")
 @mission_options
@@ -97,7 +119,7 @@ def _recording_bus(record_dir, node: str, scenario, zenoh):
 @click.option("--start-grace", type=NON_NEGATIVE, default=30.0, show_default=True,
               help="Wall seconds to wait for every robot before starting without the missing ones.")
 def basestation(scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
-                record_dir, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
+                record_dir, node, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
                 replan_interval, start_grace):
     """Run the base station: plan, place and migrate components; the operator's sink."""
     from autopower.agent.node import NodeRuntime
@@ -107,7 +129,9 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     setup_logging(log_level)
     if not speed > 0:
         raise AutoPowerError(f"--speed must be > 0, got {speed}")
+    _, scenario_name, team, zenoh = _joining(node, scenario_name, team, listen, connect, lease_ms, "basestation")
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting, to_run=True)
+    zenoh = secure(zenoh, scenario.basestation, scenario, team)
     media_choice = parse_pairs(media, "--media", "laptop-robot=gsm") or None
     if media_choice:
         build_network(scenario, topology=topology, media=media_choice)  # unknown group or medium -> ScenarioError
@@ -115,7 +139,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
                                     pins=parse_pairs(pin, "--pin", "Loc-2=r1"),
                                     auto_replan=not no_replan, replan_interval_s=replan_interval,
                                     start_grace_s=start_grace, policy=policy)
-    config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh_settings(listen, connect, lease_ms),
+    config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh,
                                coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
     recorder, bus = _recording_bus(record_dir, scenario.basestation, scenario, config.zenoh)
     try:

@@ -14,12 +14,14 @@ import click
 from autopower.cli.live_table import render
 from autopower.cli.options import (
     DEFAULT_SPEED,
+    INSECURE_OPT,
     LEASE_MS,
     POSITIVE,
     TEAM_NAME,
     build_scenario,
     mission_options,
     parse_pairs,
+    warn_insecure,
 )
 from autopower.errors import AutoPowerError
 from autopower.launch.summary import every_robot_depleted, run_summary, status_line
@@ -50,8 +52,9 @@ RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still
 @click.option("--until-depleted", is_flag=True, help="Stop when the first robot's battery is empty.")
 @click.option("--record-dir", type=click.Path(file_okay=False), default=None,
               help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
+@INSECURE_OPT
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
-       policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir):
+       policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir, insecure):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
@@ -73,7 +76,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan, policy=policy,
                     lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
-                    record_dir=Path(record_dir) if record_dir else None)
+                    record_dir=Path(record_dir) if record_dir else None, secure=not insecure)
+    warn_insecure(insecure)
     if record_dir:
         from autopower.recording.health import check_record_dir
 
@@ -99,7 +103,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         write_session({"team": team.team, "connect": [team.base_endpoint], "pid": os.getpid(),
                        "children": {n: c.proc.pid for n, c in team.children.items()},
                        "scenario": scenario.name, "log_dir": str(team.log_dir),
-                       "control": str(control.path)})
+                       "control": str(control.path), **team.session_security()})
         if not as_json:
             from rich.console import Console
 

@@ -25,10 +25,12 @@ CHUNK = 1 << 16
 class LinkProxy:
     """Forward 127.0.0.1:<port> to a target address until cut; see the module docstring."""
 
-    def __init__(self, name: str, target_port: int, *, listen_port: int = 0, target_host: str = "127.0.0.1"):
+    def __init__(self, name: str, target_port: int, *, listen_port: int = 0, target_host: str = "127.0.0.1",
+                 server: socket.socket | None = None):
+        """``server``: accept on this listening socket instead (e.g. one bound in another namespace)."""
         self.name = name
         self.target = (target_host, target_port)
-        self._server = socket.create_server(("127.0.0.1", listen_port), reuse_port=False)
+        self._server = server or socket.create_server(("127.0.0.1", listen_port), reuse_port=False)
         self._server.settimeout(0.2)
         self.port = self._server.getsockname()[1]
         self._cut = threading.Event()

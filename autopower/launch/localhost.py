@@ -50,12 +50,12 @@ def free_ports(n: int, host: str = HOST) -> list[int]:
             s.close()
 
 
-def endpoint(port: int, host: str = HOST) -> str:
-    return f"tcp/{host}:{port}"
+def endpoint(port: int, host: str = HOST, scheme: str = "tcp") -> str:
+    return f"{scheme}/{host}:{port}"
 
 
 def pair_endpoints(nodes: list[str], ports: dict[str, int],
-                   overrides: dict[tuple[str, str], str] | None = None) -> dict[str, list[str]]:
+                   overrides: dict[tuple[str, str], str] | None = None, scheme: str = "tcp") -> dict[str, list[str]]:
     """For each node, the endpoints it connects to: one per earlier node (one link per pair).
 
     ``overrides[(node, peer)]`` replaces the endpoint ``node`` uses to reach ``peer`` (a proxy).
@@ -63,7 +63,7 @@ def pair_endpoints(nodes: list[str], ports: dict[str, int],
     overrides = overrides or {}
     out: dict[str, list[str]] = {}
     for i, node in enumerate(nodes):
-        out[node] = [overrides.get((node, peer), endpoint(ports[peer])) for peer in nodes[:i]]
+        out[node] = [overrides.get((node, peer), endpoint(ports[peer], scheme=scheme)) for peer in nodes[:i]]
     return out
 
 
@@ -112,6 +112,10 @@ class TeamSpec:
     # with no link get no connection at all, so relaying is done by the agents
     proxied_links: bool = False
     record_dir: Path | None = None  # every process writes its Rerun recording here (merge_run joins them)
+    # mutual TLS and default-deny access control, as on real hosts (`autopower.launch.identities`);
+    # False is `--insecure`: plain tcp, anyone who reaches a port controls the team
+    secure: bool = True
+    tls_dir: Path | None = None  # where the team's CA and identities go (default: under the state dir)
 
 
 class LocalTeam:
@@ -124,6 +128,12 @@ class LocalTeam:
         self.log_dir = Path(spec.log_dir) if spec.log_dir else Path(tempfile.mkdtemp(prefix="autopower-up-"))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.nodes = [scenario.basestation] + [r.name for r in scenario.robots]  # base first: it listens first
+        self.identities = None
+        if spec.secure:
+            from autopower.launch.identities import LocalIdentities
+
+            self.identities = LocalIdentities.create(self.team, self.nodes, spec.tls_dir)
+        self.scheme = "tls" if spec.secure else "tcp"
         ports = free_ports(len(self.nodes))
         self.ports = dict(zip(self.nodes, ports))
         self.proxies: dict[frozenset[str], "LinkProxy"] = {}
@@ -148,9 +158,9 @@ class LocalTeam:
                         proxy.close()
                         proxy = retry
                     self.proxies[pair] = proxy
-                    self.connects[node].append(endpoint(proxy.port))
+                    self.connects[node].append(endpoint(proxy.port, scheme=self.scheme))
         else:
-            self.connects = pair_endpoints(self.nodes, self.ports, spec.endpoint_overrides)
+            self.connects = pair_endpoints(self.nodes, self.ports, spec.endpoint_overrides, self.scheme)
         self.expected_exits: set[str] = set()  # children a fault killed on purpose
         self.children: dict[str, Child] = {}
         self.client: OperatorClient | None = None
@@ -158,23 +168,28 @@ class LocalTeam:
 
     @property
     def base_endpoint(self) -> str:
-        return endpoint(self.ports[self.scenario.basestation])
+        return endpoint(self.ports[self.scenario.basestation], scheme=self.scheme)
 
     def _common(self, node: str) -> list[str]:
         args = ["--scenario", self.spec.scenario, "--team", self.team,
-                "--listen", endpoint(self.ports[node]), "--lease-ms", str(self.spec.lease_ms),
+                "--listen", endpoint(self.ports[node], scheme=self.scheme), "--lease-ms", str(self.spec.lease_ms),
                 "--status-period", str(self.spec.status_period_s),
                 "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level]
         for ep in self.connects[node]:
             args += ["--connect", ep]
         if self.spec.record_dir is not None:
             args += ["--record-dir", str(self.spec.record_dir)]
+        if self.identities is not None:
+            args += ["--tls", str(self.identities.directory)]
         return args
+
+    def _command(self, name: str, args: list[str]) -> list[str]:
+        # the process entry points alone: a child does not import the rest of the CLI
+        return [sys.executable, "-m", "autopower.cli.processes", *args]
 
     def _spawn(self, name: str, args: list[str]) -> None:
         log_path = self.log_dir / f"{name}.log"
-        # the process entry points alone: a child does not import the rest of the CLI
-        cmd = [sys.executable, "-m", "autopower.cli.processes", *args]
+        cmd = self._command(name, args)
         with open(log_path, "wb") as out:
             proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                                     process_group=0, preexec_fn=_die_with_parent,
@@ -217,7 +232,20 @@ class LocalTeam:
         self._spawn(base, args)
         for robot in self.nodes[1:]:
             self._spawn(robot, ["agent", "--robot", robot, *self._common(robot)])
-        self.client = OperatorClient(self.team, connect=(self.base_endpoint,))
+        self.client = OperatorClient(self.team, connect=(self.base_endpoint,), settings=self.operator_settings())
+
+    def session_security(self) -> dict:
+        """What session.json needs for `autopower status` etc. to join as the operator (paths only)."""
+        if self.identities is None:
+            return {"insecure": True}
+        files = self.identities.files("operator")
+        return {"operator_tls": {"ca": files.ca, "cert": files.cert, "key": files.key}}
+
+    def operator_settings(self):
+        """How an operator reaches this team's base station (None: a plain session to base_endpoint)."""
+        if self.identities is None:
+            return None
+        return self.identities.operator_settings(self.base_endpoint)
 
     def check_children(self) -> None:
         """Raise if a child exited on its own with an error."""
@@ -276,6 +304,8 @@ class LocalTeam:
                 self.exit_codes[child.name] = child.proc.returncode
         for proxy in self.proxies.values():
             proxy.close()
+        if self.identities is not None:
+            self.identities.remove()  # a stopped team's keys are of no use to anyone
         return {n: c for n, c in self.exit_codes.items() if n not in self.expected_exits}
 
     def __enter__(self) -> "LocalTeam":

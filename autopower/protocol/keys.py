@@ -20,6 +20,22 @@ def check_name(name: str, what: str = "name") -> str:
     return name
 
 
+def key_matches(pattern: str, key: str) -> bool:
+    """Whether a concrete key matches a key expression with ``*`` and ``**`` chunks."""
+    p, k = pattern.split("/"), key.split("/")
+
+    def go(i: int, j: int) -> bool:
+        if i == len(p):
+            return j == len(k)
+        if p[i] == "**":
+            return any(go(i + 1, jj) for jj in range(j, len(k) + 1))
+        if j == len(k):
+            return False
+        return (p[i] == "*" or p[i] == k[j]) and go(i + 1, j + 1)
+
+    return go(0, 0)
+
+
 @dataclass(frozen=True)
 class Keys:
     """Key expressions of one team."""

@@ -22,6 +22,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
+from autopower.protocol.keys import key_matches  # noqa: F401  (the in-memory bus matches with it)
+
 log = logging.getLogger(__name__)
 
 MessageCallback = Callable[[str, bytes], None]
@@ -59,30 +61,31 @@ class Bus(Protocol):
     def close(self) -> None: ...
 
 
-def key_matches(pattern: str, key: str) -> bool:
-    """Whether a concrete key matches a key expression with ``*`` and ``**`` chunks."""
-    p, k = pattern.split("/"), key.split("/")
-
-    def go(i: int, j: int) -> bool:
-        if i == len(p):
-            return j == len(k)
-        if p[i] == "**":
-            return any(go(i + 1, jj) for jj in range(j, len(k) + 1))
-        if j == len(k):
-            return False
-        return (p[i] == "*" or p[i] == k[j]) and go(i + 1, j + 1)
-
-    return go(0, 0)
-
-
 # ---------------------------------------------------------------------------------------------
 # Zenoh
 # ---------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True, kw_only=True)
+class TlsFiles:
+    """A node's mutual-TLS material: the team CA, its certificate, its private key (paths)."""
+
+    ca: str
+    cert: str
+    key: str
+
+
+@dataclass(frozen=True, kw_only=True)
 class ZenohSettings:
-    """How one process joins Zenoh. Endpoints are explicit; nothing is discovered."""
+    """How one process joins Zenoh. Endpoints are explicit; nothing is discovered.
+
+    With ``tls`` every link is mutual TLS against the team CA (endpoints are ``tls/...``): the
+    listener refuses a peer without a certificate of that CA, and each side learns the other's
+    certificate name, which ``access_control`` (Zenoh's section, see `runtime.access_control`)
+    uses to decide what that peer may put, declare or query here. Zenoh traps handled: the
+    connecting side must set ``enable_mtls`` too or it never sends its certificate; an ACL only
+    holds when nobody can reach the node around it, hence scouting off.
+    """
 
     listen: tuple[str, ...] = ()
     connect: tuple[str, ...] = ()
@@ -90,24 +93,61 @@ class ZenohSettings:
     keep_alive: int = 4
     retry_init_ms: int = 100
     retry_max_ms: int = 500
+    tls: TlsFiles | None = None
+    access_control: dict | None = None  # Zenoh's access_control section (default deny)
+    mode: str = "peer"
+    # Zenoh moves every put over 3 KB into shared memory when both ends share a machine, so the
+    # bytes never cross the link: False for nodes that stand for separate hosts (the testbed,
+    # a fleet), where the link must carry what a radio would. None keeps Zenoh's default.
+    shared_memory: bool | None = None
+
+    def entries(self) -> list[tuple[str, object]]:
+        """The configuration as (path, value) pairs: what `to_config` inserts, what a json5 file holds."""
+        retry = {"period_init_ms": self.retry_init_ms, "period_max_ms": self.retry_max_ms,
+                 "period_increase_factor": 2}
+        out: list[tuple[str, object]] = [
+            ("mode", self.mode),
+            ("listen/endpoints", list(self.listen)),
+            ("connect/endpoints", list(self.connect)),
+            ("scouting/multicast/enabled", False),
+            ("scouting/gossip/enabled", False),
+            ("transport/link/tx/lease", int(self.lease_ms)),
+            ("transport/link/tx/keep_alive", int(self.keep_alive)),
+            ("connect/retry", retry),
+            # Keep retrying a peer that is not up yet instead of failing the open.
+            ("connect/timeout_ms", -1),
+            ("connect/exit_on_failure", False),
+        ]
+        if self.tls is not None:
+            out.append(("transport/link/tls", {
+                "root_ca_certificate": self.tls.ca,
+                "listen_certificate": self.tls.cert, "listen_private_key": self.tls.key,
+                "connect_certificate": self.tls.cert, "connect_private_key": self.tls.key,
+                "enable_mtls": True, "verify_name_on_connect": True,
+            }))
+        if self.access_control is not None:
+            out.append(("access_control", self.access_control))
+        if self.shared_memory is not None:
+            out.append(("transport/shared_memory/enabled", self.shared_memory))
+        return out
+
+    def to_dict(self) -> dict:
+        """The nested configuration (for a json5 file a node starts from)."""
+        root: dict = {}
+        for path, value in self.entries():
+            *parents, leaf = path.split("/")
+            node = root
+            for part in parents:
+                node = node.setdefault(part, {})
+            node[leaf] = value
+        return root
 
     def to_config(self):
         import zenoh
 
         cfg = zenoh.Config()
-        cfg.insert_json5("mode", json.dumps("peer"))
-        cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        cfg.insert_json5("scouting/gossip/enabled", "false")
-        cfg.insert_json5("transport/link/tx/lease", str(int(self.lease_ms)))
-        cfg.insert_json5("transport/link/tx/keep_alive", str(int(self.keep_alive)))
-        retry = {"period_init_ms": self.retry_init_ms, "period_max_ms": self.retry_max_ms,
-                 "period_increase_factor": 2}
-        cfg.insert_json5("connect/retry", json.dumps(retry))
-        # Keep retrying a peer that is not up yet instead of failing the open.
-        cfg.insert_json5("connect/timeout_ms", "-1")
-        cfg.insert_json5("connect/exit_on_failure", "false")
+        for path, value in self.entries():
+            cfg.insert_json5(path, json.dumps(value))
         return cfg
 
 

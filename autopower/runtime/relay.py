@@ -19,6 +19,7 @@ from typing import Callable
 
 from autopower.errors import ProtocolError
 from autopower.protocol import Keys, NodeStatus, Relayed, decode, encode
+from autopower.protocol.access import TeamAccess
 from autopower.runtime.bus import Bus
 
 log = logging.getLogger(__name__)
@@ -29,8 +30,11 @@ MAX_HOPS = 8
 class Relayer:
     """Send to a node directly when it is in sight, else through the nodes that reach it."""
 
-    def __init__(self, *, node: str, bus: Bus, keys: Keys, count: Callable[[str, str], None] | None = None):
+    def __init__(self, *, node: str, bus: Bus, keys: Keys, count: Callable[[str, str], None] | None = None,
+                 access: TeamAccess | None = None):
+        """With ``access``, a relayed message is delivered only if its origin may put on its key."""
         self.node = node
+        self.access = access
         self.bus = bus
         self.keys = keys
         self.direct: set[str] = set()
@@ -122,6 +126,10 @@ class Relayer:
             raise ProtocolError(f"relay for {msg.path[msg.hop]} reached {self.node}")
         if msg.hop == len(msg.path) - 1:
             origin = msg.path[0]
+            if self.access is not None and not self.access.may_put(origin, msg.key):
+                # Zenoh's access control saw only the relay key; the inner key gets the same rule
+                self._count("forged", f"{origin} may not put on {msg.key} (relayed via {msg.path[-2]})")
+                return None
             if origin in self.direct:
                 self.direct.discard(origin)
                 self.shunned.add(origin)

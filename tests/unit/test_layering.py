@@ -1,7 +1,7 @@
 """The package layout is the architecture: imports go down the layers, never up, never in a circle.
 
     errors  <-  model | protocol | chains  <-  planner | runtime  <-  policies  <-  simulation
-            <-  agent | basestation | recording  <-  launch  <-  cli
+            <-  agent | basestation | recording | deploy  <-  launch  <-  cli
 
 Packages on one level are peers and do not import each other. Every import counts, including the
 ones inside functions: a lazy import hides a cycle from Python, not from a reader.
@@ -19,7 +19,7 @@ LEVELS = {
     "planner": 2, "runtime": 2,
     "policies": 3,
     "simulation": 4,
-    "agent": 5, "basestation": 5, "recording": 5,
+    "agent": 5, "basestation": 5, "recording": 5, "deploy": 5,
     "launch": 6,
     "cli": 7,
 }

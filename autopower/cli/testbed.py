@@ -1,0 +1,125 @@
+"""`autopower testbed up|down`: the team in network namespaces over links shaped like its radios."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+
+import click
+
+from autopower.cli.live_table import render
+from autopower.cli.options import DEFAULT_SPEED, build_scenario, parse_pairs
+from autopower.errors import AutoPowerError
+from autopower.launch.summary import run_summary
+
+
+@click.group("testbed")
+def testbed() -> None:
+    """Each node in its own network namespace, each link a veth pair shaped to its radio (needs root)."""
+
+
+@testbed.command("up")
+@click.argument("scenario_name", default="paper-fig7", metavar="[SCENARIO]")
+@click.option("--speed", type=float, default=DEFAULT_SPEED, show_default=True,
+              help="Virtual seconds per wall second; every link is shaped to its medium's rate x this.")
+@click.option("--duration", type=float, default=None, help="Stop after this many wall seconds (default: Ctrl-C).")
+@click.option("--json", "as_json", is_flag=True, help="No live table; print a JSON summary at the end.")
+@click.option("--lease-ms", default=1000, show_default=True, help="Zenoh lease on every node.")
+@click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None)
+@click.option("--media", multiple=True, metavar="GROUP=MEDIUM", help="Fix a link group's medium, e.g. laptop-robot=gsm.")
+@click.option("--pin", multiple=True, metavar="STAGE=NODE", help="Keep a stage on a node (repeatable).")
+@click.option("--no-shaping", is_flag=True, help="Links at full veth speed (for comparison).")
+@click.option("--ready-timeout", type=float, default=90.0, show_default=True)
+@click.option("--log-dir", type=click.Path(file_okay=False), default=None)
+def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, media, pin, no_shaping, ready_timeout,
+               log_dir):
+    """Start the team in the testbed and watch it; Ctrl-C (or --duration) removes every namespace and link.
+
+    `autopower status`, `chain`, `migrate`, `fault cut|heal|kill|freeze|thaw` and `replay` work on
+    it as on `autopower up`; a cut drops the link's packets silently.
+    """
+    from autopower.basestation.operator import clear_session, state_dir, write_session
+    from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
+    from autopower.launch.localhost import TeamSpec
+    from autopower.launch.netns import require_root
+    from autopower.launch.testbed import TestbedTeam
+
+    require_root()
+    scenario = build_scenario(scenario_name)
+    parse_pairs(pin, "--pin", "Loc-2=r1")
+    parse_pairs(media, "--media", "laptop-robot=gsm")
+    spec = TeamSpec(scenario=scenario_name, speed=speed, topology=topology, media=tuple(media), pins=tuple(pin),
+                    lease_ms=lease_ms, log_dir=log_dir)
+
+    def on_term(signum, _frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    team = TestbedTeam(spec, scenario, shaping=not no_shaping)
+    started, snap, ready_after, control, interrupted = time.monotonic(), {}, None, None, False
+    try:
+        team.start()
+        control = FaultServer(FaultController(team), state_dir() / SOCKET_NAME).__enter__()
+        write_session({"team": team.team, "connect": [team.base_endpoint], "pid": os.getpid(),
+                       "children": {n: c.proc.pid for n, c in team.children.items()}, "scenario": scenario.name,
+                       "log_dir": str(team.log_dir), "control": str(control.path), **team.session_security()})
+        if not as_json:
+            click.echo(f"testbed {team.net.run_id}: {len(team.nodes)} namespaces, {len(team.net.links)} links "
+                       f"({'shaped to rate x ' + format(speed, 'g') if not no_shaping else 'unshaped'}), "
+                       f"mutual TLS + access control; team {team.team}, logs in {team.log_dir}")
+        snap = team.wait_ready(ready_timeout)
+        ready_after = time.monotonic() - started
+        run_started = time.monotonic()
+        if as_json:
+            while duration is None or time.monotonic() - run_started < duration:
+                time.sleep(0.25)
+                team.check_children()
+        else:
+            from rich.console import Console
+            from rich.live import Live
+
+            with Live(render(snap, speed), console=Console(), refresh_per_second=4) as live:
+                while duration is None or time.monotonic() - run_started < duration:
+                    time.sleep(0.5)
+                    team.check_children()
+                    snap = team.snapshot()
+                    live.update(render(snap, speed))
+        snap = team.snapshot()
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        if control is not None:
+            control.close()
+        codes = team.stop()
+        clear_session(team.team)
+        signal.signal(signal.SIGTERM, previous)
+    summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
+                          wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
+    summary.update(interrupted=interrupted, testbed=team.net.run_id, shaped=not no_shaping,
+                   links={f"{l.a}-{l.b}": {"medium": l.medium, "kbit_s": team.net.rate_kbit(l)} for l in team.net.links})
+    if as_json:
+        click.echo(json.dumps(summary, indent=2, default=str))
+    else:
+        click.echo(f"stopped; namespaces and links removed; logs in {team.log_dir}")
+    bad = {n: c for n, c in codes.items() if c not in (0, None)}
+    if bad:
+        raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")
+
+
+@testbed.command("down")
+@click.option("--json", "as_json", is_flag=True)
+def testbed_down(as_json):
+    """Remove the namespaces and links a killed `testbed up` left (never those of a running one)."""
+    from autopower.basestation.operator import state_dir
+    from autopower.launch.netns import cleanup_stale
+
+    removed = cleanup_stale(state_dir())
+    if as_json:
+        click.echo(json.dumps({"removed": removed}))
+    else:
+        click.echo(f"removed {len(removed)} namespace(s)" + (f": {', '.join(removed)}" if removed else ""))
+
+
+COMMANDS = (testbed,)

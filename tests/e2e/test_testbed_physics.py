@@ -1,0 +1,66 @@
+"""With links shaped like their radios, an allocation the model calls infeasible really falls behind.
+
+paper-fig7 with GSM between the laptop and the robots: the model says running both Blob finders
+on the laptop needs each robot's GSM radio busy 1564 % of the time (every 230 KB camera frame
+crosses it), while the optimum (Blob finders on their robots) keeps the radio nearly idle. On
+loopback both run alike; in the testbed the infeasible one misses periods and its frames arrive
+seconds late, while the optimum keeps up. One run each, same machine, same speed.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from autopower.cli.options import build_scenario
+from autopower.launch.localhost import TeamSpec
+from autopower.launch.netns import PREFIX, list_namespaces
+from autopower.launch.testbed import TestbedTeam
+from autopower.model.loading import load_scenario
+from autopower.model.energy import evaluate
+from autopower.model.network import build_network
+from tests.integration.runtime_helpers import sinks_of, sources_of
+
+pytestmark = pytest.mark.slow
+MEDIA = ("laptop-robot=gsm",)
+INFEASIBLE = ("Blob-2=laptop", "Blob-3=laptop")
+RUN_S = 15.0
+
+
+def blob_figures(pins, tmp_path) -> dict:
+    spec = TeamSpec(scenario="paper-fig7", speed=5.0, media=MEDIA, pins=pins, lease_ms=3000,
+                    log_dir=tmp_path / ("infeasible" if pins else "optimal"))
+    with TestbedTeam(spec, build_scenario("paper-fig7")) as team:
+        team.wait_ready(120)
+        time.sleep(RUN_S)
+        snap = team.snapshot()
+    sources, sinks = sources_of(snap), sinks_of(snap)
+    out = {}
+    for chain in ("Blob-2", "Blob-3"):
+        produced, missed = sources[chain]["produced_total"], sources[chain]["missed"]
+        out[chain] = {"placement": snap["placement"][chain], "produced": produced,
+                      "missed_ratio": missed / max(1, produced + missed),
+                      "latency_ms_p50": sinks[chain]["latency_ms_p50"]}
+    return out
+
+
+def test_an_infeasible_allocation_falls_behind_while_the_optimum_keeps_up(tmp_path):
+    if os.geteuid() != 0:
+        pytest.fail("the testbed needs root (network namespaces); CI runs it as root")
+    scenario = load_scenario("paper-fig7")
+    network = build_network(scenario, media={"laptop-robot": "gsm"})
+    laptop_all = {s: "laptop" for s in ("Loc-1", "Loc-2", "Loc-3", "Blob-2", "Blob-3")}
+    assert not evaluate(scenario, network, laptop_all).feasible, "the model must call it infeasible"
+    before = {n for n in list_namespaces() if n.startswith(PREFIX)}
+    optimal = blob_figures((), tmp_path)
+    infeasible = blob_figures(INFEASIBLE, tmp_path)
+    print("optimal", optimal, "\ninfeasible", infeasible)
+    assert {n for n in list_namespaces() if n.startswith(PREFIX)} == before
+    for chain in ("Blob-2", "Blob-3"):
+        good, bad = optimal[chain], infeasible[chain]
+        assert good["placement"] != "laptop" and bad["placement"] == "laptop"
+        assert good["latency_ms_p50"] < 500 and good["missed_ratio"] < 0.15, good
+        assert bad["latency_ms_p50"] > 1000, bad  # frames wait behind the radio
+        assert bad["missed_ratio"] > 0.2 and bad["produced"] < good["produced"] / 2, bad
