@@ -151,11 +151,11 @@ def _closest(problem: Problem) -> tuple[Network, dict[str, str], Evaluation] | N
     for network in problem.networks:
         try:
             if problem.combinations() <= EXHAUSTIVE_UP_TO:
-                from autopower.planner.exhaustive import decode, search_network
+                from autopower.planner.exhaustive import decode_allocation, search_network
 
                 space, loads, options = search_network(problem, network)
                 k = int(np.argmin(space.peak_utilisation(loads)))
-                allocation = decode(problem, options, k)
+                allocation = decode_allocation(problem.chains, options, k)
             else:
                 allocation = {s.name: (s.pin or (c.source if c.source in problem.hosts[s.name]
                                                  else problem.hosts[s.name][0]))
