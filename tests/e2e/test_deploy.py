@@ -141,3 +141,23 @@ def test_a_fleet_started_from_its_directories_runs_and_answers_the_operator(flee
                 p.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+def test_up_insecure_says_so_on_start_and_keeps_stdout_one_object(tmp_path):
+    result = run_cli(["up", "--insecure", "--duration", "1", "--json", "--log-dir", str(tmp_path / "logs")],
+                     env_for(tmp_path), timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "warning: --insecure: no TLS and no access control" in result.stderr
+    json.loads(result.stdout)  # the warning went to stderr: stdout is still one JSON object
+    assert not (tmp_path / "state" / "tls").exists() or not any((tmp_path / "state" / "tls").iterdir())
+
+
+def test_up_by_default_generates_certificates_and_removes_them_at_the_end(tmp_path):
+    result = run_cli(["up", "--duration", "1", "--json", "--log-dir", str(tmp_path / "logs")],
+                     env_for(tmp_path), timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "--insecure" not in result.stderr
+    logs = " ".join(p.read_text() for p in (tmp_path / "logs").glob("*.log"))
+    assert "PRIVATE KEY" not in logs and "PRIVATE KEY" not in result.stdout + result.stderr
+    tls = tmp_path / "state" / "tls"
+    assert tls.is_dir() and mode(tls) == 0o700 and not any(tls.iterdir()), "the team's keys outlived it"
