@@ -42,11 +42,16 @@ __all__ = ["design", "blueprint_views", "INFO_LEVELS"]
 INFO_LEVELS = ["CRITICAL", "ERROR", "WARN", "INFO"]
 
 
-def _plot(rrb, name: str, contents: list[str], *, y: tuple[float, float] | None = None, legend: bool = True):
+def _plot(rrb, name: str, contents: list[str], *, span: tuple[float, float] | None,
+          y: tuple[float, float] | None = None, legend: bool = True):
+    # the whole mission, not the viewer's default window around the time cursor (an infinite range
+    # draws nothing in 0.41)
+    whole = None if span is None else rrb.TimeAxis(view_range=rrb.TimeRange(
+        start=rrb.TimeRangeBoundary.absolute(seconds=span[0]), end=rrb.TimeRangeBoundary.absolute(seconds=span[1])))
     return rrb.TimeSeriesView(
-        name=name, origin="/", contents=[f"+ /{e}" for e in contents],
+        name=name, origin="/", contents=[f"+ /{e}" for e in contents], axis_x=whole,
         axis_y=rrb.ScalarAxis(range=y, zoom_lock=False) if y is not None else None,
-        plot_legend=rrb.PlotLegend(corner="LeftBottom", visible=legend))
+        plot_legend=rrb.PlotLegend(corner="RightTop", visible=legend))
 
 
 def _tabs(rrb, views: list, **kwargs):
@@ -72,12 +77,13 @@ def design(layout: Layout) -> Any:
     robots = layout.robots()
     has = layout.entities.__contains__
     top_pad = 1.05
+    span = (layout.start_s, layout.end_s) if layout.end_s > layout.start_s else None
 
     battery = [e for r in robots for e in (battery_path(r), predicted_path(r), depletion_path(r)) if has(e)]
-    battery_view = _plot(rrb, "Battery (J): measured, model's prediction, predicted empty", battery,
+    battery_view = _plot(rrb, "Battery (J): measured, model's prediction, predicted empty", battery, span=span,
                          y=(0.0, layout.battery_max_j * top_pad) if layout.battery_max_j > 0 else None) \
         if battery else None
-    power_views = [_plot(rrb, f"{r}: power by part (W)", [e for e in layout.under(f"robots/{r}/power_w")],
+    power_views = [_plot(rrb, f"{r}: power by part (W)", [e for e in layout.under(f"robots/{r}/power_w")], span=span,
                          y=(0.0, layout.power_max_w * top_pad) if layout.power_max_w > 0 else None)
                    for r in robots if layout.under(f"robots/{r}/power_w")]
 
@@ -85,7 +91,7 @@ def design(layout: Layout) -> Any:
               rrb.GraphView(origin=f"/{NETWORK}", name="Network links in use") if has(NETWORK) else None]
     steps = [e for e in layout.under(LINKS) if e.endswith("/up")] + [alive_path(r) for r in robots
                                                                      if has(alive_path(r))]
-    steps_view = _plot(rrb, "Links up (1) or cut (0), robots alive", steps, y=(-0.1, 1.1)) if steps else None
+    steps_view = _plot(rrb, "Links up (1) or cut (0), robots alive", steps, span=span, y=(-0.1, 1.1)) if steps else None
     lanes = [e for e in layout.under(LINKS) if e.endswith("/state")] + layout.under(HOSTS)
     lanes_view = rrb.StateTimelineView(name="Link media and stage hosts over time", origin="/",
                                        contents=[f"+ /{e}" for e in lanes]) if lanes else None
@@ -95,9 +101,9 @@ def design(layout: Layout) -> Any:
     latency = [e for c in chains for e in layout.under(f"components/{c}/sink") if "/latency_ms" in e]
     losses = [e for c in chains for e in layout.under(f"components/{c}/sink")
               if e.endswith(("/duplicates_total", "/missing"))]
-    chain_views = [_plot(rrb, "Outputs received per chain", outputs) if outputs else None,
-                   _plot(rrb, "End-to-end latency per chain (ms)", latency) if latency else None,
-                   _plot(rrb, "Missing and duplicated outputs per chain", losses) if losses else None]
+    chain_views = [_plot(rrb, "Outputs received per chain", outputs, span=span) if outputs else None,
+                   _plot(rrb, "End-to-end latency per chain (ms)", latency, span=span) if latency else None,
+                   _plot(rrb, "Missing and duplicated outputs per chain", losses, span=span) if losses else None]
     cameras = [rrb.Spatial2DView(origin=f"/components/{c}", name=f"{c}: camera (1/2 size) and blobs found",
                                  contents=["+ $origin/camera", "+ $origin/blobs"])
                for c in chains if has(f"components/{c}/camera") or has(f"components/{c}/blobs")]
@@ -124,7 +130,7 @@ def design(layout: Layout) -> Any:
 
 
 def blueprint_views(path: str | Path) -> list[dict[str, Any]]:
-    """The views of the default blueprint stored in an .rrd: name, kind, origin and contents (tests, tools)."""
+    """The views of the blueprint(s) stored in an .rrd: name, kind, origin, contents, y_range (tests, tools)."""
     from rerun.chunk import RrdReader
 
     reader = RrdReader(str(path))
@@ -136,9 +142,11 @@ def blueprint_views(path: str | Path) -> list[dict[str, Any]]:
                 continue
             view_id = entity.split("/")[2]
             batch = chunk.to_record_batch()
-            view = views.setdefault(view_id, {"name": None, "kind": None, "origin": None, "contents": []})
+            view = views.setdefault(view_id, {"name": None, "kind": None, "origin": None, "contents": [],
+                                              "y_range": None})
             for column, key in (("ViewBlueprint:display_name", "name"), ("ViewBlueprint:class_identifier", "kind"),
-                                ("ViewBlueprint:space_origin", "origin"), ("ViewContents:query", "contents")):
+                                ("ViewBlueprint:space_origin", "origin"), ("ViewContents:query", "contents"),
+                                ("ScalarAxis:range", "y_range")):
                 if column in batch.schema.names:
                     value = batch.column(column).to_pylist()[-1]
                     if key == "contents":

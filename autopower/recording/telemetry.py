@@ -186,9 +186,13 @@ class Layout:
     entities: set[str] = field(default_factory=set)
     battery_max_j: float = 0.0
     power_max_w: float = 0.0
+    start_s: float = math.inf  # mission time span of the scalar series
+    end_s: float = -math.inf
 
-    def note(self, entity: str, values: Sequence[float] = ()) -> None:
+    def note(self, entity: str, values: Sequence[float] = (), times: Sequence[float] = ()) -> None:
         self.entities.add(entity)
+        if times:
+            self.start_s, self.end_s = min(self.start_s, min(times)), max(self.end_s, max(times))
         finite = [v for v in values if v is not None and math.isfinite(v)]
         if not finite:
             return
@@ -201,6 +205,7 @@ class Layout:
         self.entities |= other.entities
         self.battery_max_j = max(self.battery_max_j, other.battery_max_j)
         self.power_max_w = max(self.power_max_w, other.power_max_w)
+        self.start_s, self.end_s = min(self.start_s, other.start_s), max(self.end_s, other.end_s)
 
     def under(self, prefix: str) -> list[str]:
         """Entities at or below `prefix`, sorted."""
@@ -424,7 +429,7 @@ class Telemetry:
         rr = self.rr
         for entity, (times, values) in scalars.items():
             try:
-                self.layout.note(entity, values)
+                self.layout.note(entity, values, times)
                 self._style(entity)
                 self.stream.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=times)],
                                          columns=rr.Scalars.columns(scalars=values))
@@ -552,7 +557,7 @@ def read_recording(path: str | Path) -> Recording:
             series = scalars.setdefault(entity, ([], []))
             series[0].extend(times)
             series[1].extend(values)
-            layout.note(entity, values)
+            layout.note(entity, values, times)
         if "TextLog:text" in names:
             lines = batch.column("TextLog:text").to_pylist()
             levels = batch.column("TextLog:level").to_pylist() if "TextLog:level" in names else [None] * len(lines)
