@@ -37,16 +37,30 @@ done
 url="http://127.0.0.1:$web/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A$grpc%2Fproxy&renderer=webgl"
 echo "viewer: $url" >&2
 # Chromium runs in a real (virtual) X display, not --headless: the headless screenshot is taken
-# before the wasm viewer has drawn anything. After WAIT_S the display is grabbed with Pillow.
+# before the wasm viewer has drawn anything. The display is grabbed (Pillow) every 15 s until
+# WAIT_S; the last grab that shows more than a blank page is kept (software WebGL on a busy
+# machine can take minutes to load a recording).
 export CHROMIUM_FLAGS="--no-sandbox --test-type --user-data-dir=$profile --no-first-run --disable-infobars \
   --use-angle=swiftshader --enable-unsafe-swiftshader --ignore-gpu-blocklist \
+  --disable-backgrounding-occluded-windows --disable-renderer-backgrounding --disable-background-timer-throttling \
   --window-position=0,0 --window-size=$width,$height --app=$url"
-export OUT=$(realpath -m "$out") WAIT_S=$wait_s PY=$PWD/.venv/bin/python
+export OUT=$(realpath -m "$out") WAIT_S=$wait_s PY=$PWD/.venv/bin/python LOG=$profile/chromium.log
 timeout $((wait_s + 60)) xvfb-run -a -s "-screen 0 ${width}x${height}x24 -nolisten tcp" bash -c '
-  chromium $CHROMIUM_FLAGS >/dev/null 2>&1 &
+  chromium $CHROMIUM_FLAGS >"$LOG" 2>&1 &
   browser=$!
-  sleep "$WAIT_S"
-  "$PY" -c "import os; from PIL import ImageGrab; ImageGrab.grab(xdisplay=os.environ[\"DISPLAY\"]).save(os.environ[\"OUT\"], optimize=True)"
+  "$PY" - <<"PY"
+import os, time
+from PIL import ImageGrab
+end = time.monotonic() + float(os.environ["WAIT_S"])
+while True:
+    time.sleep(max(0.0, min(15.0, end - time.monotonic())))
+    shot = ImageGrab.grab(xdisplay=os.environ["DISPLAY"])
+    colours = shot.convert("RGB").resize((400, 250)).getcolors(maxcolors=1 << 16)
+    if colours is None or len(colours) > 200:  # a drawn view, not a blank or loading page
+        shot.save(os.environ["OUT"], optimize=True)
+    if time.monotonic() >= end:
+        break
+PY
   kill $browser; wait $browser 2>/dev/null || true'
-[ -s "$out" ] || { echo "error: no screenshot written to $out" >&2; exit 1; }
+[ -s "$out" ] || { echo "error: the viewer showed nothing in ${wait_s} s; try a longer WAIT_S" >&2; exit 1; }
 echo "$out"

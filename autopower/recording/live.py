@@ -37,7 +37,8 @@ from pathlib import Path
 from autopower.recording.merge import merge_recordings, merge_run
 from autopower.recording.recorder import MERGED_NAME, Recorder, run_recording_id
 
-__all__ = ["MERGED_NAME", "OutputDrawer", "draw_output", "merge_recordings", "merge_run", "open_recorder", "run_recording_id"]
+__all__ = ["MERGED_NAME", "OutputDrawer", "draw_output", "merge_recordings", "merge_run", "open_recorder",
+           "run_recording_id"]
 
 
 CAMERA_DOWNSCALE = 2  # the camera frame is logged at 160x120 (JPEG): victims visible, a few KB each

@@ -172,7 +172,8 @@ def series_style(rr, entity: str):
     return None
 
 
-_PART_NAMES = {"cpu": "CPU", "cpu_idle": "CPU idle", "cpu_busy": "CPU busy (components)", "cpu_recovery": "CPU recovery"}
+_PART_NAMES = {"cpu": "CPU", "cpu_idle": "CPU idle", "cpu_busy": "CPU busy (components)",
+               "cpu_recovery": "CPU recovery"}
 
 
 def new_recording_id() -> str:
