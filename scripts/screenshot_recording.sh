@@ -5,10 +5,12 @@
 #   scripts/screenshot_recording.sh RUN.rrd OUT.png [WIDTH HEIGHT WAIT_S]
 #
 # Needs (Debian/Ubuntu):  apt-get update && apt-get install -y chromium xvfb xauth
-# and the project's .venv (Pillow, from rerun-sdk's dependencies, grabs the screen) (./run tests tests/unit/test_layering.py -q builds it).
+# and the project's .venv (./run tests tests/unit/test_layering.py -q builds it; its Pillow, a
+# rerun-sdk dependency, grabs the screen).
 # Chromium renders WebGL with SwiftShader (software) and the viewer is asked for its WebGL
 # renderer (&renderer=webgl): its default WebGPU renderer fails on a machine without a GPU.
-# Everything binds to 127.0.0.1; the viewer is stopped by its own pid on exit.
+# Everything binds to 127.0.0.1; the viewer is stopped by its own pid on exit. CHROMIUM_LOG=FILE
+# keeps the browser's log.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 rrd=${1:?usage: scripts/screenshot_recording.sh RUN.rrd OUT.png [WIDTH HEIGHT WAIT_S]}
@@ -44,7 +46,7 @@ export CHROMIUM_FLAGS="--no-sandbox --test-type --user-data-dir=$profile --no-fi
   --use-angle=swiftshader --enable-unsafe-swiftshader --ignore-gpu-blocklist \
   --disable-backgrounding-occluded-windows --disable-renderer-backgrounding --disable-background-timer-throttling \
   --window-position=0,0 --window-size=$width,$height --app=$url"
-export OUT=$(realpath -m "$out") WAIT_S=$wait_s PY=$PWD/.venv/bin/python LOG=$profile/chromium.log
+export OUT=$(realpath -m "$out") WAIT_S=$wait_s PY=$PWD/.venv/bin/python LOG=${CHROMIUM_LOG:-/dev/null}
 timeout $((wait_s + 60)) xvfb-run -a -s "-screen 0 ${width}x${height}x24 -nolisten tcp" bash -c '
   chromium $CHROMIUM_FLAGS >"$LOG" 2>&1 &
   browser=$!
