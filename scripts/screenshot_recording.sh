@@ -8,7 +8,9 @@
 # and the project's .venv (./run tests tests/unit/test_layering.py -q builds it; its Pillow, a
 # rerun-sdk dependency, grabs the screen).
 # Chromium renders WebGL with SwiftShader (software) and the viewer is asked for its WebGL
-# renderer (&renderer=webgl): its default WebGPU renderer fails on a machine without a GPU.
+# renderer (&renderer=webgl): its default WebGPU renderer fails on a machine without a GPU. The
+# GPU watchdog is off: software rendering on a busy machine is slow enough for it to kill the
+# GPU process (the page then goes black).
 # Everything binds to 127.0.0.1; the viewer is stopped by its own pid on exit. CHROMIUM_LOG=FILE
 # keeps the browser's log.
 set -euo pipefail
@@ -43,7 +45,7 @@ echo "viewer: $url" >&2
 # WAIT_S; the last grab that shows more than a blank page is kept (software WebGL on a busy
 # machine can take minutes to load a recording).
 export CHROMIUM_FLAGS="--no-sandbox --test-type --user-data-dir=$profile --no-first-run --disable-infobars \
-  --use-angle=swiftshader --enable-unsafe-swiftshader --ignore-gpu-blocklist \
+  --use-angle=swiftshader --enable-unsafe-swiftshader --ignore-gpu-blocklist --disable-gpu-watchdog \
   --disable-backgrounding-occluded-windows --disable-renderer-backgrounding --disable-background-timer-throttling \
   --window-position=0,0 --window-size=$width,$height --app=$url"
 export OUT=$(realpath -m "$out") WAIT_S=$wait_s PY=$PWD/.venv/bin/python LOG=${CHROMIUM_LOG:-/dev/null}

@@ -29,6 +29,7 @@ from autopower.recording.telemetry import (
     LINKS,
     MIGRATIONS,
     NETWORK,
+    READABLE,
     TIMELINE,
     Layout,
     alive_path,
@@ -110,7 +111,8 @@ def design(layout: Layout) -> Any:
     maps = [rrb.Spatial2DView(origin=f"/components/{c}", name=f"{c}: MCL particles and pose on the map",
                               contents=["+ $origin/map", "+ $origin/particles", "+ $origin/pose"])
             for c in chains if has(f"components/{c}/particles")]
-    events = [e for e in (FAULTS, DECISIONS, MIGRATIONS) if has(e)]
+    # live events carry a JSON tail for replay; their readable copies are what a person wants
+    events = layout.under(READABLE) or [e for e in (FAULTS, DECISIONS, MIGRATIONS) if has(e)]
     events_view = rrb.TextLogView(name="Faults, decisions and migrations", origin="/",
                                   contents=[f"+ /{e}" for e in events],
                                   rows=rrb.TextLogRows(filter_by_log_level=INFO_LEVELS)) if events else None

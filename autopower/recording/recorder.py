@@ -25,7 +25,8 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
   per robot ``robots/<r>/model_w`` and a decision text event (type ``plan``, with the policy and
   its reasons), at publication;
 - a plan received -> this node's predicted battery line from its next status (the plan's
-  ``predicted_w`` for it: ``robots/<r>/predicted_j`` and ``predicted_empty``, see `Telemetry.prediction`);
+  ``predicted_w`` for it: ``predicted/<r>/battery_j`` and ``predicted/<r>/empty``, see
+  `Telemetry.prediction`);
 - `StageReady` published -> a migration text event with its downtime; control messages
   (``assign``, ``prepare``, ``migrate-out``, ``release``) and any other message a process
   publishes (relayed hops, subgroup rounds) -> ``events/messages`` (DEBUG), typed by KIND, kept
@@ -69,6 +70,7 @@ from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
 from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION
 from autopower.recording.telemetry import (
+    EVENT_TAG,
     MESSAGES,
     Telemetry,
     alive_path,
@@ -79,7 +81,6 @@ from autopower.recording.telemetry import (
 log = logging.getLogger(__name__)
 
 
-EVENT_TAG = " ~ap"  # human text, then this tag, then one JSON object
 MERGED_NAME = "run.rrd"
 # (rerun module, chain, seq, output bytes) -> [(sub-entity, archetype)] or (sub-entity, archetype,
 # True) for static data (a map): how to draw a chain's output. Injected by the deploy layer

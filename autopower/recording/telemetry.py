@@ -31,6 +31,8 @@ entity path                        archetype                   what
 ``events/migrations``              TextLog (INFO)              each move: stage, hosts, bytes, joules,
                                                                missed periods
 ``events/decisions``               TextLog (INFO)              every policy decision's reasons
+``events/readable/<kind>``         TextLog                     faults, decisions, migrations without the
+                                                               JSON tail replay parses: the events view
 ``events/messages``                TextLog (DEBUG)             protocol chatter (control, relay, subgroup
                                                                rounds): kept off the events timeline
 ``components/<stage>/...``         see the recorder            component outputs (blobs on a downscaled
@@ -76,6 +78,8 @@ FAULTS = "events/faults"
 MIGRATIONS = "events/migrations"
 DECISIONS = "events/decisions"
 MESSAGES = "events/messages"
+READABLE = "events/readable"  # the same events without their machine-readable tail: what the view shows
+EVENT_TAG = " ~ap"  # human text, then this tag, then one JSON object (see recorder.tag_event)
 EVENTS = "events"
 HOSTS = "team/hosts"
 PREDICTED = "predicted"
@@ -298,6 +302,10 @@ class Telemetry:
             texts.append(str(text))
             levels.append(level)
             self._count()
+            human, tag, _ = str(text).rpartition(EVENT_TAG)
+            if tag and entity in (FAULTS, DECISIONS, MIGRATIONS):
+                # a person reads the event without the JSON a replay parses
+                self.text(f"{READABLE}/{entity.rpartition('/')[2]}", t_s, human, level)
         except Exception as exc:  # noqa: BLE001
             self._fail("text", exc)
 

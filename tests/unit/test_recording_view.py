@@ -20,8 +20,10 @@ from autopower.recording.live import CAMERA_DOWNSCALE, OutputDrawer, open_record
 from autopower.recording.merge import merge_run
 from autopower.recording.telemetry import (
     DECISIONS,
+    EVENT_TAG,
     MESSAGES,
     MIGRATIONS,
+    READABLE,
     Telemetry,
     alive_path,
     battery_path,
@@ -214,6 +216,12 @@ def test_protocol_chatter_stays_off_the_events_timeline(live_run):
     assert rec.log(MESSAGES) and {level for _, _, level in rec.log(MESSAGES)} == {"DEBUG"}
     for entity in (DECISIONS, MIGRATIONS):
         assert all(level != "DEBUG" for _, _, level in rec.log(entity))
+    # the events view shows them without the JSON tail replay parses (which stays in events/*)
+    readable = rec.log(f"{READABLE}/decisions")
+    assert readable and all(EVENT_TAG not in line for _, line, _ in readable)
+    assert len(readable) == len(rec.log(DECISIONS)) and EVENT_TAG in rec.log(DECISIONS)[0][1]
+    events_view = _views(merged)["Faults, decisions and migrations"]
+    assert f"{READABLE}/decisions" in _shown(events_view) and DECISIONS not in _shown(events_view)
 
 
 def test_the_drawer_uses_the_agents_chain_seed():
