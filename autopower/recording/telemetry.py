@@ -160,7 +160,7 @@ def series_style(rr, entity: str):
         if what == "battery_j":
             return rr.SeriesLines(names=f"{robot} measured", colors=[colour], widths=[2.0])
         if what == "alive":
-            return rr.SeriesLines(names=f"{robot} alive", colors=[colour], interpolation_mode="StepAfter")
+            return rr.SeriesLines(names=f"{robot} alive", colors=[colour], **_STEPS)
         if what.startswith("power_w/"):
             part = what[len("power_w/"):]
             return rr.SeriesLines(names="total" if part == "total" else _PART_NAMES.get(part, part.replace("/", " ")),
@@ -169,13 +169,14 @@ def series_style(rr, entity: str):
             return rr.SeriesLines(names=f"{robot} model", colors=[_lighter(colour)])
         return None
     if entity.endswith(STATE_SUFFIXES):
-        return rr.SeriesLines(names=f"{parts[-2]} up" if entity.endswith("/up") else parts[-2],
-                              interpolation_mode="StepAfter")
+        return rr.SeriesLines(names=f"{parts[-2]} up" if entity.endswith("/up") else parts[-2], **_STEPS)
     if parts[0] == "components" and len(parts) >= 4 and parts[2] in ("sink", "source"):
         return rr.SeriesLines(names=f"{parts[1]} {parts[3].replace('_total', '').replace('_', ' ')}")
     return None
 
 
+# a state holds until the next change; zoomed out, a 0 and a 1 in one pixel must not average to 0.5
+_STEPS = {"interpolation_mode": "StepAfter", "aggregation_policy": "Off"}
 _PART_NAMES = {"cpu": "CPU", "cpu_idle": "CPU idle", "cpu_busy": "CPU busy (components)",
                "cpu_recovery": "CPU recovery"}
 
