@@ -31,7 +31,7 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
   (``assign``, ``prepare``, ``migrate-out``, ``release``) and any other message a process
   publishes (relayed hops, subgroup rounds) -> ``events/messages`` (DEBUG), typed by KIND, kept
   out of the events timeline;
-- own first status -> ``robots/<r>/alive`` 1; liveliness lost / regained -> ``alive`` 0 / 1 (steps)
+- own first status -> ``team/alive/<r>`` 1; liveliness lost / regained -> ``alive`` 0 / 1 (steps)
   and fault text events (phase ``detected`` / ``restored``);
 - sink stats in a status -> ``components/<chain>/sink/received_total``, ``duplicates_total``,
   ``missing`` (seqs below the highest seen not arrived yet), ``latency_ms_p50|max`` (end to end);

@@ -21,7 +21,7 @@ entity path                        archetype                   what
 ``predicted/<robot>/battery_j``    Scalars                     the model's predicted battery line: from each
                                                                prediction (plan, configuration change) on
 ``predicted/<robot>/empty``        Scalars (points at 0 J)     where each prediction runs the battery dry
-``robots/<robot>/alive``           Scalars (steps)             1 while the robot is seen, 0 once lost
+``team/alive/<robot>``             Scalars (steps)             1 while the robot is seen, 0 once lost
 ``team/hosts/<stage>``             StateChange                 the node a stage runs on, at every change
 ``team/links/<a>-<b>/up``          Scalars (steps)             1 while the link exists, 0 while cut
 ``team/links/<a>-<b>/state``       StateChange                 the medium it uses, or ``down``
@@ -39,8 +39,8 @@ entity path                        archetype                   what
                                                                camera frame, MCL particles on the map)
 =================================  ==========================  ===========================================
 
-States (``.../up``, ``.../alive``) carry a static ``SeriesLines(interpolation_mode=StepAfter)`` so
-they plot as steps, and every series a static name (and colour per robot) the legend shows.
+States (``.../up``, ``team/alive/...``) carry a static ``SeriesLines(interpolation_mode=StepAfter)``
+so they plot as steps, and every series a static name (and colour per robot) the legend shows.
 The view a recording opens on (its blueprint) is designed in `autopower.recording.blueprint`
 from the `Layout` of what was logged; a writer given ``blueprint=`` sends it when it closes.
 
@@ -83,9 +83,10 @@ EVENT_TAG = " ~ap"  # human text, then this tag, then one JSON object (see recor
 EVENTS = "events"
 HOSTS = "team/hosts"
 PREDICTED = "predicted"
+ALIVE = "team/alive"
 LINKS = "team/links"
-# suffixes of 0/1 state series: plotted as steps, not ramps
-STATE_SUFFIXES = ("/up", "/alive")
+# suffix of the links' 0/1 state series (and ALIVE's): plotted as steps, not ramps
+STATE_SUFFIXES = ("/up",)
 
 
 def _part(name: str) -> str:
@@ -119,7 +120,8 @@ def depletion_path(robot: str) -> str:
 
 
 def alive_path(robot: str) -> str:
-    return f"robots/{robot}/alive"
+    # not under robots/: an observer logs a loss at its own time, which must not stretch the mission
+    return f"{ALIVE}/{robot}"
 
 
 def host_path(stage: str) -> str:
@@ -159,8 +161,6 @@ def series_style(rr, entity: str):
         colour = robot_colour(robot)
         if what == "battery_j":
             return rr.SeriesLines(names=f"{robot} measured", colors=[colour], widths=[2.0])
-        if what == "alive":
-            return rr.SeriesLines(names=f"{robot} alive", colors=[colour], **_STEPS)
         if what.startswith("power_w/"):
             part = what[len("power_w/"):]
             return rr.SeriesLines(names="total" if part == "total" else _PART_NAMES.get(part, part.replace("/", " ")),
@@ -168,6 +168,8 @@ def series_style(rr, entity: str):
         if what == "model_w":
             return rr.SeriesLines(names=f"{robot} model", colors=[_lighter(colour)])
         return None
+    if parts[0:2] == ALIVE.split("/") and len(parts) == 3:
+        return rr.SeriesLines(names=f"{parts[2]} alive", colors=[robot_colour(parts[2])], **_STEPS)
     if entity.endswith(STATE_SUFFIXES):
         return rr.SeriesLines(names=f"{parts[-2]} up" if entity.endswith("/up") else parts[-2], **_STEPS)
     if parts[0] == "components" and len(parts) >= 4 and parts[2] in ("sink", "source"):

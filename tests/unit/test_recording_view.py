@@ -192,6 +192,7 @@ def test_a_merged_live_run_carries_one_view_with_chains_camera_and_map(live_run)
         assert f"components/Loc-1/{name}" in entities
     for r in ROBOTS:
         assert alive_path(r) in entities and predicted_path(r) in entities
+        assert _components(merged, alive_path(r))["SeriesLines:interpolation_mode"][0] == [2]  # steps
     assert "components/Blob-2/sink/latency_ms_p50" in entities
 
 
