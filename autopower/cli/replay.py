@@ -61,7 +61,8 @@ def _json_safe(value):
 @click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None,
               help="What-if: plan on this topology (default: the recorded network).")
 @click.option("--disable", multiple=True, metavar="CHAIN", help="What-if: switch a chain off (repeatable).")
-@click.option("--serve", is_flag=True, help="Open the Rerun web viewer on the file (bound to 127.0.0.1).")
+@click.option("--serve", is_flag=True, help="Open the Rerun web viewer on the file (bound to 127.0.0.1, WebGL: "
+                                           "works without a GPU); prints its URL.")
 @click.option("--serve-seconds", type=POSITIVE, default=None, metavar="S",
               help="With --serve: stop the viewer after S seconds (default: at Ctrl-C).")
 def replay(recording, as_json, whatif, at_s, accounting, energy, policy, topology, disable, serve,
@@ -134,7 +135,9 @@ def serve_recording(path: str | Path, *, seconds: float | None = None, echo=prin
                 raise AutoPowerError(f"the Rerun viewer did not listen on 127.0.0.1:{web} within "
                                      f"{ready_timeout_s:.0f} s")
             time.sleep(0.05)
-        url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy"
+        # WebGL: the viewer's default WebGPU renderer fails on a machine without a GPU (a server,
+        # a VM); WebGL runs anywhere, in software if need be
+        url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy&renderer=webgl"
         echo(f"viewer: {url}  (pid {proc.pid}; Ctrl-C to stop)")
         end = None if seconds is None else time.monotonic() + seconds
         while proc.poll() is None:

@@ -70,9 +70,10 @@ def simulate(scenario, events_name, policy, seed, topology, accounting, energy, 
     telemetry = None
     for name in policies:
         if record is not None:
+            from autopower.recording.blueprint import design
             from autopower.recording.telemetry import Telemetry
 
-            telemetry = Telemetry(record, kind="simulation", properties={
+            telemetry = Telemetry(record, kind="simulation", blueprint=design, properties={
                 "scenario": s.name, "policy": name, "seed": seed, "events": script.source_path,
                 "accounting": s.accounting, "topology": topology or s.network_spec.topology})
         try:

@@ -29,17 +29,25 @@ Integration recipe (what the `agent` / `basestation` commands and the launcher d
 
 from __future__ import annotations
 
+import math
+import time
+import zlib
 from pathlib import Path
-from typing import Any
 
 from autopower.recording.merge import merge_recordings, merge_run
 from autopower.recording.recorder import MERGED_NAME, Recorder, run_recording_id
 
-__all__ = ["MERGED_NAME", "draw_output", "merge_recordings", "merge_run", "open_recorder", "run_recording_id"]
+__all__ = ["MERGED_NAME", "OutputDrawer", "draw_output", "merge_recordings", "merge_run", "open_recorder",
+           "run_recording_id"]
 
 
-def draw_output(rr, chain: str, data: bytes) -> list[tuple[str, Any]]:
-    """Blobs as boxes on the camera image's pixel frame; MCL particles and pose on the map (m)."""
+CAMERA_DOWNSCALE = 2  # the camera frame is logged at 160x120 (JPEG): victims visible, a few KB each
+CAMERA_EVERY_S = 2.0  # wall seconds between camera frames of one chain (boxes come with their frame)
+
+
+def draw_output(rr, chain: str, data: bytes, *, seq: int | None = None, scenario=None) -> list[tuple]:
+    """Blobs as boxes on the camera image's pixel frame at 1/`CAMERA_DOWNSCALE` size, with that frame
+    when `scenario` and `seq` say which; MCL particles and pose on the map (m), with the map."""
     from autopower.chains import decode_estimate, decode_report
 
     try:
@@ -47,20 +55,92 @@ def draw_output(rr, chain: str, data: bytes) -> list[tuple[str, Any]]:
     except Exception:  # noqa: BLE001 - not a blob report: try the next kind
         report = None
     if report is not None:
+        k = CAMERA_DOWNSCALE
         blobs = report.blobs
-        return [("blobs", rr.Boxes2D(
-            mins=[(b.bbox_px[0], b.bbox_px[1]) for b in blobs],
-            sizes=[(b.bbox_px[2] - b.bbox_px[0] + 1, b.bbox_px[3] - b.bbox_px[1] + 1) for b in blobs],
-            labels=[b.colour for b in blobs]))]
+        drawn = [("blobs", rr.Boxes2D(
+            mins=[(b.bbox_px[0] / k, b.bbox_px[1] / k) for b in blobs],
+            sizes=[((b.bbox_px[2] - b.bbox_px[0] + 1) / k, (b.bbox_px[3] - b.bbox_px[1] + 1) / k) for b in blobs],
+            labels=[b.colour for b in blobs], colors=(255, 255, 255)))]  # white: visible on any victim
+        frame = _camera_frame(scenario, chain, seq)
+        if frame is not None:
+            drawn.insert(0, ("camera", rr.Image(frame).compress(jpeg_quality=75)))
+        return drawn
     try:
         est = decode_estimate(data)
     except Exception:  # noqa: BLE001 - an output kind we do not draw
         return []
-    return [("particles", rr.Points2D(est.particles[:, :2], radii=0.05)),
-            ("pose", rr.Points2D([est.pose[:2]], radii=0.15))]
+    drawn = [("particles", rr.Points2D(est.particles[:, :2], radii=0.05, colors=(120, 170, 255))),
+             ("pose", rr.Points2D([est.pose[:2]], radii=0.25, colors=(255, 80, 40), labels=["estimate"]))]
+    occupied = _map_points(scenario, chain)
+    if occupied is not None:
+        drawn.insert(0, ("map", rr.Points2D(occupied, radii=0.05, colors=(150, 150, 150)), True))
+    return drawn
+
+
+def _chain_seed(scenario, chain) -> int:
+    # the agents' seed (autopower.agent.stages.chain_seed; an upward import from here): a test checks they agree
+    return zlib.crc32(f"{scenario.name}/{chain.name}".encode())
+
+
+def _chain(scenario, name: str):
+    if scenario is None:
+        return None
+    return next((c for c in scenario.chains if c.name == name), None)
+
+
+def _camera_frame(scenario, name: str, seq: int | None):
+    """The frame the chain's camera took at `seq`, downscaled (the source is deterministic in seq)."""
+    chain = _chain(scenario, name)
+    if chain is None or seq is None or chain.stages[0].component != "Blob":
+        return None
+    from autopower.chains import make_source
+
+    image = make_source("Blob", chain.source, _chain_seed(scenario, chain)).camera.render(int(seq))
+    k = CAMERA_DOWNSCALE
+    h, w = image.shape[0] // k * k, image.shape[1] // k * k
+    return image[:h, :w].reshape(h // k, k, w // k, k, 3).mean(axis=(1, 3)).astype("uint8")
+
+
+def _map_points(scenario, name: str):
+    """Centres (m) of the occupied cells of the building the chain's robot localises in."""
+    chain = _chain(scenario, name)
+    if chain is None or chain.stages[0].component != "Loc":
+        return None
+    import numpy as np
+
+    from autopower.chains.world import make_building
+
+    building = make_building(_chain_seed(scenario, chain))
+    rows, cols = np.nonzero(building.occupied)
+    return np.column_stack([(cols + 0.5) * building.resolution_m, (rows + 0.5) * building.resolution_m])
+
+
+class OutputDrawer:
+    """The recorder's `Visualiser` for a scenario: `draw_output`, a camera frame every `camera_every_s`
+    per chain (its boxes with it, so they match), the map once per chain."""
+
+    def __init__(self, scenario=None, camera_every_s: float = CAMERA_EVERY_S):
+        self.scenario = scenario
+        self.camera_every_s = camera_every_s
+        self._camera_at: dict[str, float] = {}
+        self._mapped: set[str] = set()
+
+    def __call__(self, rr, chain: str, seq: int, data: bytes) -> list[tuple]:
+        spec = _chain(self.scenario, chain)
+        kind = spec.stages[0].component if spec is not None else None
+        if kind == "Blob":
+            now = time.monotonic()
+            if now - self._camera_at.get(chain, -math.inf) < self.camera_every_s:
+                return []
+            self._camera_at[chain] = now
+        drawn = draw_output(rr, chain, data, seq=seq, scenario=self.scenario if chain not in self._mapped
+                            or kind == "Blob" else None)
+        if kind == "Loc" and any(what == "map" for what, *_ in drawn):
+            self._mapped.add(chain)
+        return drawn
 
 
 def open_recorder(run_dir: str | Path, node: str, *, scenario=None, **kwargs) -> Recorder:
     """A `Recorder` writing ``<run_dir>/<node>.rrd`` (the run's shared recording id), drawing outputs."""
-    kwargs.setdefault("visualise", draw_output)
+    kwargs.setdefault("visualise", OutputDrawer(scenario))
     return Recorder.open(run_dir, node, scenario=scenario, **kwargs)

@@ -24,17 +24,23 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
 - `PlanUpdate` published -> ``team/allocation`` and ``team/network`` graphs, the model's power
   per robot ``robots/<r>/model_w`` and a decision text event (type ``plan``, with the policy and
   its reasons), at publication;
+- a plan received -> this node's predicted battery line from its next status (the plan's
+  ``predicted_w`` for it: ``predicted/<r>/battery_j`` and ``predicted/<r>/empty``, see
+  `Telemetry.prediction`);
 - `StageReady` published -> a migration text event with its downtime; control messages
-  (``assign``, ``prepare``, ``migrate-out``, ``release``) -> migration text events (DEBUG), any
-  other message a process publishes (e.g. subgroup rounds) -> a decision text event (DEBUG),
-  each typed by its KIND;
-- liveliness lost / regained -> fault text events (phase ``detected`` / ``restored``);
+  (``assign``, ``prepare``, ``migrate-out``, ``release``) and any other message a process
+  publishes (relayed hops, subgroup rounds) -> ``events/messages`` (DEBUG), typed by KIND, kept
+  out of the events timeline;
+- own first status -> ``team/alive/<r>`` 1; liveliness lost / regained -> ``alive`` 0 / 1 (steps)
+  and fault text events (phase ``detected`` / ``restored``);
+- sink stats in a status -> ``components/<chain>/sink/received_total``, ``duplicates_total``,
+  ``missing`` (seqs below the highest seen not arrived yet), ``latency_ms_p50|max`` (end to end);
 - outputs reaching this node as their sink (`on_output`) -> ``components/<chain>/run/<run>/seq``
   (one scalar per output: replay checks exactly-once per (chain, run, seq)) and, at most every
-  `visual_every_s`, what the injected `visualise` draws (the deploy layer's draws blobs as
-  ``Boxes2D`` on ``components/<chain>/blobs``, MCL particles and pose as ``Points2D`` on
-  ``components/<chain>/particles`` and ``.../pose``; chains are single-stage, so <chain> is
-  also the stage);
+  `visual_every_s`, what the injected `visualise` draws (the deploy layer's draws a downscaled
+  camera frame on ``components/<chain>/camera`` with the blobs as ``Boxes2D`` on ``.../blobs``,
+  MCL particles and pose as ``Points2D`` on ``components/<chain>/particles`` and ``.../pose``
+  over the map (static, ``.../map``); chains are single-stage, so <chain> is also the stage);
 - `record_fault(...)` / `record_fault_event(run_dir, ...)` for tools that inject faults
   (``phase="injected"``): replay measures detection and reconfiguration from them.
 
@@ -63,16 +69,23 @@ import msgpack
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
 from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION
-from autopower.recording.telemetry import DECISIONS, MIGRATIONS, Telemetry, component_path, link_path
+from autopower.recording.telemetry import (
+    EVENT_TAG,
+    MESSAGES,
+    Telemetry,
+    alive_path,
+    component_path,
+    link_path,
+)
 
 log = logging.getLogger(__name__)
 
 
-EVENT_TAG = " ~ap"  # human text, then this tag, then one JSON object
 MERGED_NAME = "run.rrd"
-# (rerun module, chain, output bytes) -> [(sub-entity, archetype)]: how to draw a chain's output.
-# Injected by the deploy layer (`autopower.recording.live`), which may import the chains.
-Visualiser = Callable[[Any, str, bytes], list[tuple[str, Any]]]
+# (rerun module, chain, seq, output bytes) -> [(sub-entity, archetype)] or (sub-entity, archetype,
+# True) for static data (a map): how to draw a chain's output. Injected by the deploy layer
+# (`autopower.recording.live`), which may import the chains.
+Visualiser = Callable[[Any, str, int, bytes], list[tuple]]
 _RUN_NAMESPACE = uuid.UUID("5d1f4b7e-7c55-4c1e-9a0e-6a2f0b1f3a11")
 
 
@@ -187,6 +200,9 @@ class Recorder:
         self._epochs_seen: dict[str, int] = {}
         self._all_links: dict[frozenset, SimpleNamespace] = {}
         self._lost: set[str] = set()
+        self._alive: set[str] = set()
+        self._predicted: tuple[int, float] | None = None  # (plan epoch, this node's predicted W) to log
+        self._predicted_epoch = -1
         self._owns = owns_telemetry
         self.visualise = visualise
         self.errors = 0
@@ -283,15 +299,22 @@ class Recorder:
             self._other(key, kind, fields)
 
     def on_receive(self, key: str, payload: bytes) -> None:
-        """What this process receives: only plans matter (they carry the mission clock)."""
-        if self._mission is not None or not key.endswith("/base/plan"):
+        """What this process receives: only plans matter (the mission clock, this node's predicted power)."""
+        if not key.endswith("/base/plan"):
             return
         self._guard("receive", self._received_plan, key, payload)
 
     def _received_plan(self, key: str, payload: bytes) -> None:
         kind, fields = _peek(payload)
-        if kind == "plan":
+        if kind != "plan":
+            return
+        if self._mission is None:
             self._set_mission(fields["mission"])
+        epoch, watts = int(fields["epoch"]), (fields.get("predicted_w") or {}).get(self.node)
+        if watts is not None and epoch > self._predicted_epoch:
+            # drawn from this node's next status, which has the battery to start the line from
+            self._predicted_epoch = epoch
+            self._predicted = (epoch, float(watts))
 
     def _set_mission(self, mission: dict) -> None:
         self._mission = SimpleNamespace(epoch_unix=float(mission["epoch_unix"]), speed=float(mission["speed"]),
@@ -313,8 +336,14 @@ class Recorder:
     # ---- handlers ----------------------------------------------------------------------------------------
     def _status(self, s: dict) -> None:
         tel, t, node = self.telemetry, float(s["t_virtual"]), s["node"]
+        if node not in self._alive:
+            self._alive.add(node)
+            tel.scalar(alive_path(node), t, 1.0)
         if s.get("battery_j") is not None:
             tel.battery(t, node, s["battery_j"])
+            if self._predicted is not None:
+                tel.prediction(t, node, s["battery_j"], self._predicted[1])
+                self._predicted = None
             parts = dict(s.get("power_w") or {})
             parts.setdefault("total", sum(parts.values()))
             tel.power(t, node, parts)
@@ -337,6 +366,11 @@ class Recorder:
         for chain, st in (s.get("sinks") or {}).items():
             tel.scalar(component_path(chain, "sink/received_total"), t, st["received_total"])
             tel.scalar(component_path(chain, "sink/duplicates_total"), t, st["duplicates_total"])
+            # seqs of the current run below the highest seen that have not arrived (yet)
+            tel.scalar(component_path(chain, "sink/missing"), t, max(0, int(st["max_seq"]) + 1 - int(st["received"])))
+            if st["received"]:
+                tel.scalar(component_path(chain, "sink/latency_ms_p50"), t, st["latency_ms_p50"])
+                tel.scalar(component_path(chain, "sink/latency_ms_max"), t, st["latency_ms_max"])
         for chain, st in (s.get("sources") or {}).items():
             tel.scalar(component_path(chain, "source/produced_total"), t, st["produced_total"])
         counters = s.get("counters") or {}
@@ -399,8 +433,8 @@ class Recorder:
         target = key.rsplit("/", 2)[-2] if control else key
         human = f"{self.node} → {target}: {kind} " + ", ".join(f"{k}={v}" for k, v in brief.items()
                                                                if isinstance(v, (str, int, float)))
-        entity = MIGRATIONS if control else DECISIONS
-        self.telemetry.text(entity, self.now(), tag_event(human.strip(), type=str(kind), key=key, by=self.node,
+        # protocol chatter (control steps, relayed hops, subgroup rounds): its own entity, off the events view
+        self.telemetry.text(MESSAGES, self.now(), tag_event(human.strip(), type=str(kind), key=key, by=self.node,
                                                           **{k: v for k, v in brief.items()
                                                              if k not in ("type", "key", "by")}), "DEBUG")
 
@@ -411,10 +445,12 @@ class Recorder:
             return
         if not alive and node not in self._lost:
             self._lost.add(node)
+            self.telemetry.scalar(alive_path(node), self.now(), 0.0)
             record_fault(self.telemetry, self.now(), kind="node-lost", target=node, phase="detected",
                          reason=f"{self.node} lost {node}'s liveliness", observer=self.node)
         elif alive and node in self._lost:
             self._lost.discard(node)
+            self.telemetry.scalar(alive_path(node), self.now(), 1.0)
             record_fault(self.telemetry, self.now(), kind="node-lost", target=node, phase="restored",
                          reason=f"{self.node} sees {node} again", observer=self.node)
 
@@ -426,13 +462,13 @@ class Recorder:
         if last is not None and wall - last < self.visual_every_s:
             return
         self._last_visual[chain] = wall
-        self._visual(chain, t, data)
+        self._visual(chain, t, seq, data)
 
-    def _visual(self, chain: str, t: float, data: bytes) -> None:
+    def _visual(self, chain: str, t: float, seq: int, data: bytes) -> None:
         if self.visualise is None or self.telemetry.rr is None:
             return
-        for what, archetype in self.visualise(self.telemetry.rr, chain, data):
-            self.telemetry.log(component_path(chain, what), t, archetype)
+        for what, archetype, *static in self.visualise(self.telemetry.rr, chain, seq, data):
+            self.telemetry.log(component_path(chain, what), None if static and static[0] else t, archetype)
 
     # ---- flushing ------------------------------------------------------------------------------------------
     def _maybe_flush(self) -> None:

@@ -18,15 +18,31 @@ entity path                        archetype                   what
 ``team/allocation``                GraphNodes + GraphEdges     nodes and stages; a directed edge
                                                                stage → host, logged at every change
 ``team/network``                   GraphNodes + GraphEdges     the links in use (undirected)
-``team/links/<a>-<b>/up``          Scalars                     1 while the link exists, 0 while cut
+``predicted/<robot>/battery_j``    Scalars                     the model's predicted battery line: from each
+                                                               prediction (plan, configuration change) on
+``predicted/<robot>/empty``        Scalars (points at 0 J)     where each prediction runs the battery dry
+``team/alive/<robot>``             Scalars (steps)             1 while the robot is seen, 0 once lost
+``team/hosts/<stage>``             StateChange                 the node a stage runs on, at every change
+``team/links/<a>-<b>/up``          Scalars (steps)             1 while the link exists, 0 while cut
+``team/links/<a>-<b>/state``       StateChange                 the medium it uses, or ``down``
 ``team/links/<a>-<b>/medium``      TextLog                     the medium it uses, at every change
 ``events/faults``                  TextLog (WARN)              link cuts/heals, radio faults, chains on/off,
                                                                robots joining/leaving, energy offsets
 ``events/migrations``              TextLog (INFO)              each move: stage, hosts, bytes, joules,
                                                                missed periods
 ``events/decisions``               TextLog (INFO)              every policy decision's reasons
-``components/<stage>/...``         (reserved)                  component outputs (blobs, particles)
+``events/readable/<kind>``         TextLog                     faults, decisions, migrations without the
+                                                               JSON tail replay parses: the events view
+``events/messages``                TextLog (DEBUG)             protocol chatter (control, relay, subgroup
+                                                               rounds): kept off the events timeline
+``components/<stage>/...``         see the recorder            component outputs (blobs on a downscaled
+                                                               camera frame, MCL particles on the map)
 =================================  ==========================  ===========================================
+
+States (``.../up``, ``team/alive/...``) carry a static ``SeriesLines(interpolation_mode=StepAfter)``
+so they plot as steps, and every series a static name (and colour per robot) the legend shows.
+The view a recording opens on (its blueprint) is designed in `autopower.recording.blueprint`
+from the `Layout` of what was logged; a writer given ``blueprint=`` sends it when it closes.
 
 The recording's property ``autopower`` (``/__properties/autopower``) holds ``kind``
 (``simulation`` | ``live``), ``layout`` (`LAYOUT_VERSION`) and whatever the writer was given
@@ -43,8 +59,10 @@ from __future__ import annotations
 import logging
 import math
 import uuid
+import zlib
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from autopower.errors import RecordingError
 
@@ -59,6 +77,16 @@ NETWORK = "team/network"
 FAULTS = "events/faults"
 MIGRATIONS = "events/migrations"
 DECISIONS = "events/decisions"
+MESSAGES = "events/messages"
+READABLE = "events/readable"  # the same events without their machine-readable tail: what the view shows
+EVENT_TAG = " ~ap"  # human text, then this tag, then one JSON object (see recorder.tag_event)
+EVENTS = "events"
+HOSTS = "team/hosts"
+PREDICTED = "predicted"
+ALIVE = "team/alive"
+LINKS = "team/links"
+# suffix of the links' 0/1 state series (and ALIVE's): plotted as steps, not ramps
+STATE_SUFFIXES = ("/up",)
 
 
 def _part(name: str) -> str:
@@ -82,16 +110,141 @@ def component_path(stage: str, what: str) -> str:
     return f"components/{stage}/{_part(what)}"
 
 
+# predictions reach into the future: kept out of ``robots/`` (whose last sample ends the mission)
+def predicted_path(robot: str) -> str:
+    return f"{PREDICTED}/{robot}/battery_j"
+
+
+def depletion_path(robot: str) -> str:
+    return f"{PREDICTED}/{robot}/empty"
+
+
+def alive_path(robot: str) -> str:
+    # not under robots/: an observer logs a loss at its own time, which must not stretch the mission
+    return f"{ALIVE}/{robot}"
+
+
+def host_path(stage: str) -> str:
+    return f"{HOSTS}/{stage}"
+
+
+def link_state_path(a: str, b: str) -> str:
+    return f"{link_path(a, b)}/state"
+
+
+def robot_colour(robot: str) -> tuple[int, int, int]:
+    """A colour per robot, the same in every process's file (from the name, not the order seen)."""
+    digits = "".join(ch for ch in robot if ch.isdigit())
+    index = int(digits) if digits else zlib.crc32(robot.encode())
+    return _PALETTE[index % len(_PALETTE)]
+
+
+_PALETTE = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+            (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207))
+
+
+def _lighter(colour: tuple[int, int, int]) -> tuple[int, int, int]:
+    return tuple(int(c + (255 - c) * 0.5) for c in colour)
+
+
+def series_style(rr, entity: str):
+    """The static style of a scalar entity: legend name, colour per robot, steps for states."""
+    parts = entity.split("/")
+    if parts[0] == PREDICTED and len(parts) == 3:
+        robot, colour = parts[1], robot_colour(parts[1])
+        if parts[2] == "battery_j":
+            return rr.SeriesLines(names=f"{robot} model's prediction", colors=[_lighter(colour)], widths=[1.5])
+        return rr.SeriesPoints(names=f"{robot} predicted empty", colors=[colour], markers="cross",
+                               marker_sizes=[6.0])
+    if parts[0] == "robots" and len(parts) >= 3:
+        robot, what = parts[1], "/".join(parts[2:])
+        colour = robot_colour(robot)
+        if what == "battery_j":
+            return rr.SeriesLines(names=f"{robot} measured", colors=[colour], widths=[2.0])
+        if what.startswith("power_w/"):
+            part = what[len("power_w/"):]
+            return rr.SeriesLines(names="total" if part == "total" else _PART_NAMES.get(part, part.replace("/", " ")),
+                                  widths=[2.0 if part == "total" else 1.0])
+        if what == "model_w":
+            return rr.SeriesLines(names=f"{robot} model", colors=[_lighter(colour)])
+        return None
+    if parts[0:2] == ALIVE.split("/") and len(parts) == 3:
+        return rr.SeriesLines(names=f"{parts[2]} alive", colors=[robot_colour(parts[2])], **_STEPS)
+    if entity.endswith(STATE_SUFFIXES):
+        return rr.SeriesLines(names=f"{parts[-2]} up" if entity.endswith("/up") else parts[-2], **_STEPS)
+    if parts[0] == "components" and len(parts) >= 4 and parts[2] in ("sink", "source"):
+        return rr.SeriesLines(names=f"{parts[1]} {parts[3].replace('_total', '').replace('_', ' ')}")
+    return None
+
+
+# a state holds until the next change; zoomed out, a 0 and a 1 in one pixel must not average to 0.5
+_STEPS = {"interpolation_mode": "StepAfter", "aggregation_policy": "Off"}
+_PART_NAMES = {"cpu": "CPU", "cpu_idle": "CPU idle", "cpu_busy": "CPU busy (components)",
+               "cpu_recovery": "CPU recovery"}
+
+
 def new_recording_id() -> str:
     return str(uuid.uuid4())
 
 
+@dataclass
+class Layout:
+    """What a recording holds, as far as a view of it needs: its entity paths and value ranges."""
+
+    entities: set[str] = field(default_factory=set)
+    battery_max_j: float = 0.0
+    power_max_w: float = 0.0
+    start_s: float = math.inf  # mission time span of the scalar series
+    end_s: float = -math.inf
+
+    def note(self, entity: str, values: Sequence[float] = (), times: Sequence[float] = ()) -> None:
+        self.entities.add(entity)
+        if times:
+            self.start_s, self.end_s = min(self.start_s, min(times)), max(self.end_s, max(times))
+        finite = [v for v in values if v is not None and math.isfinite(v)]
+        if not finite:
+            return
+        if entity.endswith("/battery_j"):
+            self.battery_max_j = max(self.battery_max_j, max(finite))
+        elif entity.startswith("robots/") and "/power_w/" in entity:
+            self.power_max_w = max(self.power_max_w, max(finite))
+
+    def merge(self, other: "Layout") -> None:
+        self.entities |= other.entities
+        self.battery_max_j = max(self.battery_max_j, other.battery_max_j)
+        self.power_max_w = max(self.power_max_w, other.power_max_w)
+        self.start_s, self.end_s = min(self.start_s, other.start_s), max(self.end_s, other.end_s)
+
+    def under(self, prefix: str) -> list[str]:
+        """Entities at or below `prefix`, sorted."""
+        return sorted(e for e in self.entities if e == prefix or e.startswith(prefix + "/"))
+
+    def robots(self) -> list[str]:
+        """Robots with a battery series."""
+        return sorted({e.split("/")[1] for e in self.entities if e.startswith("robots/") and e.endswith("/battery_j")})
+
+    def chains(self) -> list[str]:
+        return sorted({e.split("/")[1] for e in self.entities if e.startswith("components/")})
+
+
 class Telemetry:
-    """A Rerun writer with the AutoPower layout that never raises into its caller."""
+    """A Rerun writer with the AutoPower layout that never raises into its caller.
+
+    `blueprint` (a function of the `Layout` logged, e.g. `autopower.recording.blueprint.design`)
+    is sent as the recording's default view when it closes; writers of one process of a run
+    leave it out (the merge gives the run's file one view of everything).
+    """
 
     def __init__(self, path: str | Path | None, *, recording_id: str | None = None, kind: str = "simulation",
-                 properties: Mapping[str, Any] | None = None, flush_rows: int = 100_000, stream=None):
+                 properties: Mapping[str, Any] | None = None, flush_rows: int = 100_000, stream=None,
+                 blueprint: Callable[[Layout], Any] | None = None):
         self.path = None if path is None else str(path)
+        self.layout = Layout()
+        self._blueprint = blueprint
+        self._styled: set[str] = set()
+        self._states: dict[str, tuple[list[float], list[str]]] = {}
+        self._predictions: dict[str, tuple[float, float, float]] = {}
+        self._hosts: dict[str, str] = {}
         self.recording_id = recording_id or new_recording_id()
         self.errors = 0
         self._warned: set[str] = set()
@@ -152,8 +305,52 @@ class Telemetry:
             texts.append(str(text))
             levels.append(level)
             self._count()
+            human, tag, _ = str(text).rpartition(EVENT_TAG)
+            if tag and entity in (FAULTS, DECISIONS, MIGRATIONS):
+                # a person reads the event without the JSON a replay parses
+                self.text(f"{READABLE}/{entity.rpartition('/')[2]}", t_s, human, level)
         except Exception as exc:  # noqa: BLE001
             self._fail("text", exc)
+
+    def state(self, entity: str, t_s: float, text: str) -> None:
+        """A named state (a link's medium, a stage's host) from `t_s` on: a lane in a state timeline."""
+        try:
+            times, states = self._states.setdefault(entity, ([], []))
+            times.append(float(t_s))
+            states.append(str(text))
+            self._count()
+        except Exception as exc:  # noqa: BLE001
+            self._fail("state", exc)
+
+    def prediction(self, t_s: float, robot: str, joules: float, watts: float) -> None:
+        """The model's prediction at `t_s`: `robot` has `joules` and draws `watts` from now on.
+
+        Logs the predicted battery line (where the previous prediction had got to, then the new
+        start) and the predicted empty point; a prediction the previous one already makes (same
+        power, battery on its line) is skipped, so calling this at every sample is cheap.
+        """
+        try:
+            t, joules, watts = float(t_s), max(float(joules), 0.0), float(watts)
+            previous = self._predictions.get(robot)
+            if previous is not None:
+                t0, e0, w0 = previous
+                on_line = e0 - w0 * (t - t0)
+                if abs(w0 - watts) <= 1e-9 * max(1.0, abs(w0)) and abs(on_line - joules) <= 1e-6 * max(1.0, e0):
+                    return
+                self.scalar(predicted_path(robot), t, max(on_line, 0.0))
+            self.scalar(predicted_path(robot), t, joules)
+            if watts > 0:
+                self.scalar(depletion_path(robot), t + joules / watts, 0.0)
+            self._predictions[robot] = (t, joules, watts)
+        except Exception as exc:  # noqa: BLE001
+            self._fail("prediction", exc)
+
+    def _end_predictions(self) -> None:
+        """Draw each robot's last predicted line down to where it runs dry."""
+        for robot, (t0, e0, w0) in self._predictions.items():
+            if w0 > 0:
+                self.scalar(predicted_path(robot), t0 + e0 / w0, 0.0)
+        self._predictions = {}
 
     def fault(self, t_s: float, text: str) -> None:
         self.text(FAULTS, t_s, text, "WARN")
@@ -169,14 +366,18 @@ class Telemetry:
         if self._rows >= self.flush_rows:
             self.flush()
 
-    def log(self, entity: str, t_s: float, *archetypes) -> None:
-        """Log archetypes (e.g. ``rr.Points2D``) now, at mission time `t_s`; never raises.
+    def log(self, entity: str, t_s: float | None, *archetypes) -> None:
+        """Log archetypes (e.g. ``rr.Points2D``) now, at mission time `t_s` (None: static); never raises.
 
         For low-rate visual data (component outputs); numbers belong in `scalar` (batched).
         """
         if self.stream is None:
             return
         try:
+            self.layout.note(entity)
+            if t_s is None:
+                self.stream.log(entity, *archetypes, static=True)
+                return
             self.stream.set_time(TIMELINE, duration=float(t_s))
             self.stream.log(entity, *archetypes)
         except Exception as exc:  # noqa: BLE001
@@ -194,6 +395,11 @@ class Telemetry:
             self.stream.set_time(TIMELINE, duration=float(t_s))
             self.stream.log(ALLOCATION, rr.GraphNodes(node_ids=ids, labels=ids),
                             rr.GraphEdges(edges=[(s, allocation[s]) for s in stages], graph_type="directed"))
+            self.layout.note(ALLOCATION)
+            for stage in stages:
+                if self._hosts.get(stage) != allocation[stage]:
+                    self._hosts[stage] = allocation[stage]
+                    self.state(host_path(stage), t_s, allocation[stage])
         except Exception as exc:  # noqa: BLE001
             self._fail("allocation graph", exc)
 
@@ -210,6 +416,7 @@ class Telemetry:
             self.stream.set_time(TIMELINE, duration=float(t_s))
             self.stream.log(NETWORK, rr.GraphNodes(node_ids=list(network.nodes), labels=list(network.nodes)),
                             rr.GraphEdges(edges=[(l.a, l.b) for l in network.links], graph_type="undirected"))
+            self.layout.note(NETWORK)
             now: dict[str, tuple[bool, str | None]] = {}
             for spec in all_links:
                 now[link_path(spec.a, spec.b)] = (False, None)
@@ -218,6 +425,7 @@ class Telemetry:
             for path, (up, medium) in now.items():
                 if self._links.get(path) != (up, medium):
                     self.scalar(f"{path}/up", t_s, 1.0 if up else 0.0)
+                    self.state(f"{path}/state", t_s, medium if up else "down")
                     self.text(f"{path}/medium", t_s, medium if up else "down", "INFO" if up else "WARN")
             self._links = now
         except Exception as exc:  # noqa: BLE001
@@ -226,19 +434,29 @@ class Telemetry:
     # ---- flushing ------------------------------------------------------------------------------------
     def flush(self) -> None:
         """Send everything buffered with one ``send_columns`` per entity."""
-        scalars, texts = self._scalars, self._texts
-        self._scalars, self._texts, self._rows = {}, {}, 0
+        scalars, texts, states = self._scalars, self._texts, self._states
+        self._scalars, self._texts, self._states, self._rows = {}, {}, {}, 0
         if self.stream is None:
             return
         rr = self.rr
         for entity, (times, values) in scalars.items():
             try:
+                self.layout.note(entity, values, times)
+                self._style(entity)
                 self.stream.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=times)],
                                          columns=rr.Scalars.columns(scalars=values))
             except Exception as exc:  # noqa: BLE001
                 self._fail("send scalars", exc)
+        for entity, (times, values) in states.items():
+            try:
+                self.layout.note(entity)
+                self.stream.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=times)],
+                                         columns=rr.StateChange.columns(state=values))
+            except Exception as exc:  # noqa: BLE001
+                self._fail("send states", exc)
         for entity, (times, lines, levels) in texts.items():
             try:
+                self.layout.note(entity)
                 self.stream.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=times)],
                                          columns=rr.TextLog.columns(text=lines, level=levels))
             except Exception as exc:  # noqa: BLE001
@@ -248,8 +466,23 @@ class Telemetry:
         except Exception as exc:  # noqa: BLE001
             self._fail("flush", exc)
 
+    def _style(self, entity: str) -> None:
+        """Once per entity: its static legend name, colour and (for states) step interpolation."""
+        if entity in self._styled:
+            return
+        self._styled.add(entity)
+        style = series_style(self.rr, entity)
+        if style is not None:
+            self.stream.log(entity, style, static=True)
+
     def close(self) -> None:
+        self._end_predictions()
         self.flush()
+        try:
+            if self.stream is not None and self._blueprint is not None:
+                self.stream.send_blueprint(self._blueprint(self.layout), make_active=True, make_default=True)
+        except Exception as exc:  # noqa: BLE001
+            self._fail("blueprint", exc)
         try:
             if self.stream is not None:
                 self.stream.disconnect()
@@ -279,11 +512,13 @@ class Recording:
     """The AutoPower view of an .rrd file: properties, scalar series and text logs by entity."""
 
     def __init__(self, properties: dict[str, Any], scalars: dict[str, tuple[list[float], list[float]]],
-                 texts: dict[str, list[tuple[float, str, str]]], graphs: dict[str, list[tuple[float, list, list]]]):
+                 texts: dict[str, list[tuple[float, str, str]]], graphs: dict[str, list[tuple[float, list, list]]],
+                 layout: Layout | None = None):
         self.properties = properties
         self.scalars = scalars
         self.texts = texts
         self.graphs = graphs
+        self.layout = layout or Layout()
 
     def series(self, entity: str) -> tuple[list[float], list[float]]:
         times, values = self.scalars.get(entity, ([], []))
@@ -310,10 +545,13 @@ def read_recording(path: str | Path) -> Recording:
     scalars: dict[str, tuple[list[float], list[float]]] = {}
     texts: dict[str, list[tuple[float, str, str]]] = {}
     graphs: dict[str, list[tuple[float, list, list]]] = {}
+    layout = Layout()
     for chunk in chunks:
         entity = str(chunk.entity_path).lstrip("/")
         batch = chunk.to_record_batch()
         names = batch.schema.names
+        if not entity.startswith("__"):
+            layout.entities.add(entity)
         if entity == f"__properties/{PROPERTY}":
             for name in names:
                 if name.startswith("rerun.") or name in ("log_time", "log_tick"):
@@ -331,6 +569,7 @@ def read_recording(path: str | Path) -> Recording:
             series = scalars.setdefault(entity, ([], []))
             series[0].extend(times)
             series[1].extend(values)
+            layout.note(entity, values, times)
         if "TextLog:text" in names:
             lines = batch.column("TextLog:text").to_pylist()
             levels = batch.column("TextLog:level").to_pylist() if "TextLog:level" in names else [None] * len(lines)
@@ -345,7 +584,7 @@ def read_recording(path: str | Path) -> Recording:
                 rows.append((t, nodes[k] if k < len(nodes) else None, edges[k]))
     if props.get("layout") is None:
         raise RecordingError(f"{path}: a Rerun recording, but not an AutoPower run (no '{PROPERTY}' property)")
-    return Recording(props, scalars, texts, graphs)
+    return Recording(props, scalars, texts, graphs, layout)
 
 
 def _one(value):

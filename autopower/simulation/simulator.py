@@ -384,6 +384,8 @@ class _Mission:
         watts = self.power()
         for robot in self.present():
             self.telemetry.battery(self.t, robot, max(self.energy[robot], 0.0))
+            # the model's prediction from here if nothing changed (the sink skips repeats)
+            self.telemetry.prediction(self.t, robot, max(self.energy[robot], 0.0), watts.get(robot, 0.0))
             self.telemetry.power(self.t, robot, {"total": watts.get(robot, 0.0), **self._parts.get(robot, {})})
 
 

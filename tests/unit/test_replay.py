@@ -131,6 +131,8 @@ def test_serve_opens_the_viewer_on_loopback_and_stops_it(simulated, capsys):
     json.loads(out)  # stdout stays one JSON object; the viewer's messages go to stderr
     line = next(l for l in err.splitlines() if l.startswith("viewer: "))
     assert line.startswith("viewer: http://127.0.0.1:")
+    url = line.split()[1]
+    assert url.endswith("&renderer=webgl")  # no GPU needed (WebGPU fails without one)
     pid = int(line.split("(pid ")[1].split(";")[0])
     assert "viewer stopped" in err
     with pytest.raises(ProcessLookupError):
