@@ -34,6 +34,7 @@ def run_command(command: click.Command, args: list[str] | None = None, prog_name
         sys.exit(130)
     except click.UsageError as exc:  # one line, like every other mistake, with where to look
         where = f" (see '{exc.ctx.command_path} --help')" if exc.ctx is not None else ""
+        _json_error(as_json, f"{exc.format_message()}{where}", exc.exit_code)
         click.echo(f"error: {exc.format_message()}{where}", err=True)
         sys.exit(exc.exit_code)
     except click.ClickException as exc:

@@ -191,7 +191,13 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         except (AutoPowerError, OSError) as exc:  # the run itself is fine; say why there is no merged file
             summary["recording_error"] = "; ".join(filter(None, [summary["recording_error"], str(exc)]))
     bad = {n: c for n, c in codes.items() if c not in (0, None)}
+    error = (f"process(es) exited with errors: {bad}; logs in {team.log_dir}" if bad
+             else f"{failure} (logs in {team.log_dir})" if failure
+             else f"the recording failed ({recording_failure}); the team was stopped cleanly" if recording_failure
+             else None)
     if as_json:
+        if error:
+            summary.update(error=error, exit_code=2)
         click.echo(json.dumps(summary, indent=2, default=str))
     else:
         why = ("interrupted" if interrupted else "recording failed" if recording_failure
@@ -206,12 +212,10 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                            f"`autopower recording merge {record_dir}` builds run.rrd from it", err=True)
         for warning in summary["warnings"]:
             click.echo(f"warning: {warning}", err=True)
-    if bad:
-        raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")
-    if failure:
-        raise AutoPowerError(f"{failure} (logs in {team.log_dir})")
-    if recording_failure:
-        raise AutoPowerError(f"the recording failed ({recording_failure}); the team was stopped cleanly")
+    if error:
+        # the summary above is the one JSON object (it carries the error); the line goes to stderr
+        click.echo(f"error: {error}", err=True)
+        sys.exit(2)
 
 
 COMMANDS = (up,)

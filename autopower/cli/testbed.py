@@ -40,7 +40,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     `autopower status`, `chain`, `migrate`, `fault cut|heal|kill|freeze|thaw` and `replay` work on
     it as on `autopower up`; a cut drops the link's packets silently.
     """
-    from autopower.basestation.operator import clear_session, state_dir, write_session
+    from autopower.basestation.operator import clear_session, team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
     from autopower.launch.localhost import TeamSpec
     from autopower.launch.netns import require_root
@@ -61,7 +61,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     started, snap, ready_after, control, interrupted = time.monotonic(), {}, None, None, False
     try:
         team.start()
-        control = FaultServer(FaultController(team), state_dir() / SOCKET_NAME).__enter__()
+        control = FaultServer(FaultController(team), team_dir(team.team) / SOCKET_NAME).__enter__()
         write_session({"team": team.team, "connect": [team.base_endpoint], "pid": os.getpid(),
                        "children": {n: c.proc.pid for n, c in team.children.items()}, "scenario": scenario.name,
                        "log_dir": str(team.log_dir), "control": str(control.path), **team.session_security()})

@@ -62,9 +62,12 @@ def start_testbed(tmp_path, *args):
 
 
 def _wait_started(proc, tmp_path, env):
-    session_file = tmp_path / "state" / "session.json"
-    wait_until(lambda: session_file.exists() or proc.poll() is not None, 60, "the testbed's session file")
+    def session_files():  # each team's files live in a directory of their own
+        return list((tmp_path / "state" / "teams").glob("*/session.json"))
+
+    wait_until(lambda: session_files() or proc.poll() is not None, 60, "the testbed's session file")
     assert proc.poll() is None, proc.stderr.read()[-2000:]
+    session_file = session_files()[0]
 
     def ready():
         if proc.poll() is not None:

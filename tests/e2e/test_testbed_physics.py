@@ -35,7 +35,15 @@ def blob_figures(pins, tmp_path) -> dict:
     with TestbedTeam(spec, build_scenario("paper-fig7")) as team:
         team.wait_ready(120)
         time.sleep(RUN_S)
-        snap = team.snapshot()
+        # statuses cross the same saturated radio as the frames: judge on ones from late in the
+        # run, not on one that left a robot before its camera had started (0 produced, 0 missed)
+        deadline = time.monotonic() + 30.0
+        while True:
+            snap = team.snapshot()
+            times = [(v.get("status") or {}).get("t_virtual") or 0.0 for v in snap["robots"].values()]
+            if min(times) >= 0.5 * RUN_S * spec.speed or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
     sources, sinks = sources_of(snap), sinks_of(snap)
     out = {}
     for chain in ("Blob-2", "Blob-3"):
