@@ -20,8 +20,8 @@ from autopower.chains.registry import component_types, make_component, make_sour
 from autopower.errors import ScenarioError
 from autopower.model.loading import load_scenario
 from autopower.protocol import Keys, StageFailed, encode
-from autopower.recording.recorder import MIGRATIONS, Recorder, parse_event
-from autopower.recording.telemetry import Telemetry, read_recording
+from autopower.recording.recorder import Recorder, parse_event
+from autopower.recording.telemetry import MIGRATIONS, Telemetry, read_recording
 from autopower.runtime.bus import InMemoryHub
 
 REPO = Path(__file__).resolve().parents[2]
