@@ -72,7 +72,7 @@ from typing import Any
 from autopower.errors import RecordingError
 from autopower.model.parts import OVERHEAD_KINDS
 from autopower.recording.recorder import parse_event
-from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MIGRATIONS, Recording, read_recording
+from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGES, MIGRATIONS, Recording, read_recording
 
 _OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/seq$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
@@ -311,7 +311,9 @@ def _subgroup_commits(rec: Recording) -> list[tuple[float, str, list[dict]]]:
     """(time, round id, moves) of every committed subgroup round (robots agreeing without the base)."""
     proposals: dict[str, list[dict]] = {}
     out = []
-    for t, _text, p in _events(rec, DECISIONS):
+    # rounds are protocol messages (events/messages); recordings made before they moved there
+    # logged them with the decisions
+    for t, _text, p in sorted(_events(rec, DECISIONS) + _events(rec, MESSAGES), key=lambda e: e[0]):
         if p is None:
             continue
         if p.get("type") == "sg-propose":
