@@ -57,18 +57,24 @@ class Hosting:
     def _reply(self, msg) -> None:
         self.send_to(self.scenario.basestation, self.keys.inbox, encode(msg))
 
+    def _construct(self, msg, chain, stage):
+        """A new instance of the stage's component, or None when its constructor raised (reported)."""
+        try:
+            return self._new_component(chain, stage)
+        except Exception as exc:
+            self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
+            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="raised",
+                                    detail=_bounded(f"constructor: {type(exc).__name__}: {exc}"), running=False))
+            return None
+
     def on_assign(self, msg: Assign) -> None:
         chain, index = self.stage_index[msg.stage]
         stage = chain.stages[index]
         current = self.hosted.get(msg.stage)
         if current and current.generation > msg.generation:
             return
-        try:
-            component = self._new_component(chain, stage)
-        except Exception as exc:
-            self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
-            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="raised",
-                                    detail=_bounded(f"constructor: {type(exc).__name__}: {exc}"), running=False))
+        component = self._construct(msg, chain, stage)
+        if component is None:
             return
         self.failed.pop(msg.stage, None)
         hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
@@ -150,12 +156,8 @@ class Hosting:
                                     detail=_bounded(f"state from {msg.from_node} did not import, started without "
                                                     f"it: import_state: {type(exc).__name__}: {exc}"), running=True))
             imported = False
-            try:
-                component = self._new_component(chain, stage)
-            except Exception as exc:
-                self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
-                self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="raised",
-                                        detail=_bounded(f"constructor: {type(exc).__name__}: {exc}"), running=False))
+            component = self._construct(msg, chain, stage)
+            if component is None:
                 return
         held = list(msg.pending)
         if current is not None and current.lifecycle is Lifecycle.STARTING:
