@@ -17,6 +17,9 @@ from typing import Any, Iterable, Mapping
 from autopower.errors import ScenarioError
 import networkx as nx
 
+from autopower.model.dvfs import parse_levels
+from autopower.model.variants import check_chain_variants, parse_variants
+
 from autopower.model.scenario import (
     ACCOUNTING_MODES,
     TOPOLOGIES,
@@ -242,7 +245,7 @@ class ScenarioParser:
         top = self.table(
             self.data, "",
             ["scenario", "platforms", "radios", "robots", "basestation", "network", "components",
-             "chains", "reference_rows", "migration"],
+             "chains", "reference_rows", "migration", "mission"],
             ["scenario", "platforms", "radios", "robots", "basestation", "network", "components", "chains"],
         )
         head = self.table(top["scenario"], "scenario",
@@ -279,9 +282,17 @@ class ScenarioParser:
             reference_rows=rows,
             migration=migration,
             basestation_radio_limit=limit_radios,
+            quality_weight=self.quality_weight(top.get("mission", {})),
         )
         self.check_routable(scenario)
         return scenario
+
+    def quality_weight(self, obj: Any) -> float:
+        mission = self.table(obj, "mission", ["quality_weight"])
+        weight = self.number(mission, "quality_weight", "mission", minimum=0.0, default=0.0)
+        if weight > 1:
+            raise self.fail("mission.quality_weight", f"found {weight}", "a weight in [0, 1] (0: lifetime only)")
+        return weight
 
     def platforms(self, obj: Any) -> dict[str, Platform]:
         obj = self.table(obj, "platforms", obj.keys() if isinstance(obj, dict) else [])
@@ -290,7 +301,7 @@ class ScenarioParser:
         out = {}
         for name, spec in obj.items():
             path = f"platforms.{name}"
-            spec = self.table(spec, path, ["idle_w", "busy_w", "mains"])
+            spec = self.table(spec, path, ["idle_w", "busy_w", "mains", "levels"])
             mains = spec.get("mains", False)
             if not isinstance(mains, bool):
                 raise self.fail(f"{path}.mains", f"found {mains!r}", "true or false")
@@ -298,7 +309,8 @@ class ScenarioParser:
             busy = self.number(spec, "busy_w", path, minimum=0.0, default=idle if mains else None)
             if busy < idle:
                 raise self.fail(f"{path}.busy_w", f"busy_w {busy} < idle_w {idle}", "busy_w >= idle_w")
-            out[name] = Platform(name=name, idle_w=idle, busy_w=busy, mains=mains)
+            out[name] = Platform(name=name, idle_w=idle, busy_w=busy, mains=mains,
+                                 levels=parse_levels(self, spec["levels"], f"{path}.levels") if "levels" in spec else ())
         return out
 
     def radios(self, obj: Any) -> dict[str, Radio]:
@@ -400,7 +412,7 @@ class ScenarioParser:
         out = {}
         for name, spec in obj.items():
             path = f"components.{name}"
-            spec = self.table(spec, path, ["latency_s", "implementation", "source"], ["latency_s"])
+            spec = self.table(spec, path, ["latency_s", "implementation", "source", "variants"], ["latency_s"])
             lat = self.table(spec["latency_s"], f"{path}.latency_s", platforms)
             missing = [p for p in platforms if p not in lat]
             if missing:
@@ -415,6 +427,7 @@ class ScenarioParser:
                 name=name, latency_s={p: self.number(lat, p, f"{path}.latency_s", positive=True) for p in lat},
                 implementation=plugin.get("implementation"), source=plugin.get("source"),
                 defined_at={key: self.position(f"{path}.{key}") for key in ("latency_s", *plugin)},
+                variants=parse_variants(self, spec["variants"], f"{path}.variants", platforms) if "variants" in spec else (),
             )
         return out
 
@@ -438,7 +451,7 @@ class ScenarioParser:
         for i, spec in enumerate(obj):
             path = f"chains[{i}]"
             spec = self.table(spec, path, ["name", "source", "sink", "period_s", "component", "stages",
-                                           "message_bytes", "requires", "pin", "hosts"],
+                                           "message_bytes", "requires", "pin", "hosts", "min_quality"],
                               ["name", "source", "period_s", "message_bytes"])
             name = self.string(spec, "name", path)
             source = self.string(spec, "source", path, choices=list(robot_by_name))
@@ -466,7 +479,9 @@ class ScenarioParser:
                 raise self.fail(f"{path}.requires", f"source robot {source} lacks {', '.join(sorted(lacking))}",
                                 f"a source with those sensors (it has {', '.join(sorted(robot_by_name[source].sensors)) or 'none'})")
             out.append(Chain(name=name, source=source, sink=sink, period_s=period, stages=stages,
-                             message_bytes=tuple(sizes), requires=requires))
+                             message_bytes=tuple(sizes), requires=requires,
+                             min_quality=self.number(spec, "min_quality", path, minimum=0.0, default=0.0)))
+        check_chain_variants(self, out, components)
         return tuple(out)
 
     def stages(self, spec: dict, path: str, chain_name: str, components: dict, nodes: list[str]) -> tuple[Stage, ...]:

@@ -24,6 +24,7 @@ class Platform:
     idle_w: float
     busy_w: float
     mains: bool = False  # mains-powered nodes (the base station) pay no energy
+    levels: tuple = ()  # DVFS frequency levels (model.dvfs.FrequencyLevel); () = one fixed level
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -52,6 +53,7 @@ class ComponentSpec:
     implementation: str | None = None
     source: str | None = None
     defined_at: Mapping[str, str] = field(default_factory=dict)  # key -> "file:line", for import errors
+    variants: tuple = ()  # quality variants (model.variants.Variant); () = the component as declared
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -71,6 +73,7 @@ class Chain:
     stages: tuple[Stage, ...]
     message_bytes: tuple[int, ...]  # source->stage0, stage0->stage1, ..., last stage->sink
     requires: frozenset[str] = frozenset()  # sensors the source robot must carry
+    min_quality: float = 0.0  # the least quality score a variant may have to run this chain
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -127,6 +130,8 @@ class Scenario:
     migration: Mapping[str, Any] = field(default_factory=dict)  # downtime_s, cpu_s, state_bytes_default, state_bytes
     # [basestation] limit_radios: its radios may be at most 100 % busy like a robot's (off: the paper)
     basestation_radio_limit: bool = False
+    # [mission] quality_weight: 0 = lifetime only, 1 = quality only (see model.variants)
+    quality_weight: float = 0.0
 
     # ---- lookups -------------------------------------------------------------------------
     def node_names(self) -> list[str]:

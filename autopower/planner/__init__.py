@@ -39,6 +39,10 @@ class Plan:
     ties: list[tuple[Network, dict[str, str]]] = field(default_factory=list)
     dropped: dict[str, str] = field(default_factory=dict)  # chains that cannot run, and why
     bound: TimeSharingBound | None = None
+    variants: dict[str, str] = field(default_factory=dict)  # chain -> quality variant (planner.choices)
+    levels: dict[str, str] = field(default_factory=dict)  # robot -> DVFS frequency level
+    quality: float | None = None  # mean chain quality; None: the scenario has no variants
+    pareto: list = field(default_factory=list)  # the lifetime/quality front, when a weight chose the plan
 
     @property
     def lifetime_s(self) -> float:
@@ -61,6 +65,8 @@ class Plan:
             "ties": [{"allocation": a, "media": n.media_by_group()} for n, a in self.ties],
             "evaluation": ev.to_dict(),
         }
+        if self.variants or self.levels or self.quality is not None:
+            out.update(variants=dict(self.variants), levels=dict(self.levels), quality=self.quality)
         if self.bound is not None:
             out["time_sharing_bound"] = {
                 "lifetime_s": self.bound.lifetime_s,
@@ -86,6 +92,12 @@ def evaluate_in(problem: Problem, network: Network, allocation: dict[str, str]) 
 def plan(request: PlanRequest) -> Plan:
     """The optimal allocation and media for a request; raises InfeasibleError if nothing fits."""
     problem = make_problem(request)
+    from autopower.planner.choices import has_choices
+
+    if has_choices(problem.scenario):  # quality variants or DVFS levels to choose too
+        from autopower.planner.plan_choices import plan_with_choices
+
+        return plan_with_choices(request, problem)
     if not any(n != problem.networks[0].basestation for n in problem.networks[0].nodes):
         raise InfeasibleError("no robot is available to plan for (all are unavailable); wait for one to join")
     method = request.method

@@ -23,6 +23,7 @@ from itertools import product
 
 from autopower.model.energy import airtime_s, flow_rate_hz
 from autopower.model.network import Link, Network
+from autopower.planner.choices import add_selection_row, dvfs_cpu_power
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.problem import Problem
 
@@ -76,7 +77,8 @@ class PlacementModel:
             for stage in chain.stages:
                 cols = {h: self.lp.binary() for h in problem.hosts[stage.name]}
                 self.x.update({(stage.name, h): c for h, c in cols.items()})
-                self.lp.row({c: 1.0 for c in cols.values()}, 1.0, 1.0)
+                if not add_selection_row(self, chain, cols):  # a quality variant: placed iff chosen
+                    self.lp.row({c: 1.0 for c in cols.values()}, 1.0, 1.0)
         self._build_loads()
 
     # ---- linear pieces -----------------------------------------------------------------------
@@ -178,6 +180,7 @@ class PlacementModel:
         const = platform.idle_w
         for col, u in self.cpu[robot].items():
             expr[col] = expr.get(col, 0.0) + (platform.busy_w - platform.idle_w) * u
+        expr, const = dvfs_cpu_power(self, robot, expr, const)  # DVFS: the level's power instead
         for medium, radio in self.scenario.radios.items():
             key = (robot, medium)
             pres = self.present.get(key)
@@ -299,7 +302,7 @@ def _finish(problem: Problem, model: PlacementModel, t_col: int, sol, refine: bo
         if second.has_solution:
             best = second
     allocation, network = model.decode(best.values)
-    placed = {c.name for c in problem.chains}
+    placed = {c.name for c in problem.chains if all(s.name in allocation for s in c.stages)}  # variants: the chosen
     ev = evaluate(problem.scenario, network, allocation, accounting=problem.accounting,
                   energies_j=problem.energies_j,
                   disabled_chains=frozenset(c.name for c in problem.scenario.chains) - placed)
