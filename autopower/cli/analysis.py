@@ -47,12 +47,19 @@ def list_scenarios() -> None:
 @profile_opts
 @click.option("--only", type=click.Choice(["all", "paper", "optimal"]), default="all", show_default=True,
               help="Rows to show: everything, the paper's reference rows, or the optimum per media pair.")
+@click.option("--pareto", is_flag=True,
+              help="Print the Pareto front of lifetime against quality instead (scenarios with quality variants).")
 def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdown: bool, only: str,
-            profile, as_platform) -> None:
+            profile, as_platform, pareto: bool) -> None:
     """Tabulate all-local, all-laptop and the optimum per topology and media pair (the paper's Fig 7)."""
     from autopower.planner.analysis import analyze as run
 
     s = build_scenario(scenario, energy, accounting=accounting, profile=profile, as_platform=as_platform)
+    if pareto:
+        from autopower.cli.pareto import print_front
+
+        print_front(s, as_json)
+        return
     rows, normaliser = run(s, max_ties=ties)
     if only == "paper":
         rows = [r for r in rows if r.label.startswith("paper-row-")]
@@ -148,6 +155,11 @@ def plan_cmd(scenario, energy, accounting, as_json, topology, method, disable, w
     for chain, why in p.dropped.items():
         table.add_row(chain, "-", why)
     console.print(table)
+    for key, why in p.reasons.items():  # quality variants and DVFS levels (planner.plan_choices)
+        if key.startswith(("variant:", "level:")):
+            console.print(why)
+    if p.quality is not None:
+        console.print(f"mean quality {p.quality:.3f}")
     power = Table("robot", "energy J", "power W", "CPU W", "CPU util", "radios", "lifetime s")
     for name, rp in ev.robots.items():
         radios = ", ".join(f"{m} {r.total_w:.4f} W ({r.busy:.1%})" for m, r in rp.radios.items())

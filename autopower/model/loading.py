@@ -160,7 +160,8 @@ class ScenarioParser:
             if index:
                 found = self._nth_line(rf"^\s*\[\[\s*{re.escape(header)}\s*\]\]", int(index), line)
             else:
-                found = self._nth_line(rf"^\s*\[\s*({re.escape(header)}|{re.escape(quoted)})\s*\]", 0, line)
+                loose = r"\s*\.\s*".join(rf'"?{re.escape(k)}"?' for k, _ in parts[: i + 1])  # quoted or bare keys
+                found = self._nth_line(rf"^\s*\[\s*({re.escape(header)}|{re.escape(quoted)}|{loose})\s*\]", 0, line)
                 if found is None:
                     found = self._nth_line(rf'^\s*"?{re.escape(key)}"?\s*=', 0, line)
             if found is not None:

@@ -96,7 +96,7 @@ def test_without_variants_and_levels_the_plain_planner_runs():
 
 
 def test_dvfs_plan_charges_the_chosen_level():
-    s = load_scenario("paper-dvfs")
+    s = load_scenario("paper-pxa255-dvfs")
     p = plan(PlanRequest(scenario=s, method="exhaustive"))
     q = plan(PlanRequest(scenario=s, method="milp"))
     assert p.lifetime_s == pytest.approx(q.lifetime_s, rel=1e-9) and p.levels == q.levels
@@ -108,7 +108,7 @@ def test_dvfs_plan_charges_the_chosen_level():
 
 
 def test_dvfs_level_keeps_utilisation_within_100_percent():
-    s = load_scenario("paper-dvfs")
+    s = load_scenario("paper-pxa255-dvfs")
     # everything local: r2 and r3 run Loc (42.5 %) and Blob (46 %) = 88.5 %: only 400 MHz fits
     p = plan(PlanRequest(scenario=s, network=None, topology="fully-connected", method="exhaustive",
                          unavailable_nodes=frozenset()))
