@@ -12,6 +12,8 @@ What is charged, and why it reproduces `autopower.model.energy.evaluate` for the
   virtual second it is not busy: sleep is charged for elapsed time and credited back for the
   busy airtime, which is the model's ``sleep_w * (1 - busy)``.
 - Mains-powered nodes (the base station) pay nothing.
+- DVFS (`model.dvfs`): at a frequency level the idle and busy power are the level's, and every run
+  is charged the modelled latency times the level's latency factor (`set_level`, from the plan).
 
 Work the model's steady state does not include is kept in parts of its own, so that a run can
 be checked against the model and its overheads reported beside it: migrations (the state on
@@ -21,6 +23,7 @@ recomputing inputs): see `autopower.model.parts`.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from typing import Iterable, Mapping
 
@@ -38,6 +41,9 @@ class BatteryMeter:
     def __init__(self, *, platform: Platform, radios: Mapping[str, Radio], initial_j: float | None,
                  t0: float, media: Iterable[str] = ()):
         self.platform = platform
+        self.nominal = platform  # the platform's own figures; `set_level` swaps in a level's
+        self.level: str | None = None
+        self.latency_factor = 1.0
         self.radios = dict(radios)
         self.mains = platform.mains
         self.initial_j = None if self.mains else float(initial_j)
@@ -67,11 +73,25 @@ class BatteryMeter:
         self.advance(t)
         self.media = frozenset(media)
 
+    def set_level(self, level, t: float) -> None:
+        """Run at a DVFS level (a `model.dvfs.FrequencyLevel`; None: the platform's nominal figures)
+        from virtual time t on: idle time up to t is charged at the previous level first."""
+        if (level.name if level else None) == self.level:
+            return
+        self.advance(t)
+        if level is None:
+            self.platform, self.level, self.latency_factor = self.nominal, None, 1.0
+        else:
+            self.platform = dataclasses.replace(self.nominal, idle_w=level.idle_w, busy_w=level.busy_w)
+            self.level, self.latency_factor = level.name, level.latency_factor
+
     # ---- activity ------------------------------------------------------------------------------
     def charge_run(self, latency_s: float, t: float, purpose: str = "chain") -> float:
+        """Charge one run of modelled (nominal) latency; at a DVFS level it takes factor times longer."""
         self.advance(t)
         if self.mains:
             return 0.0
+        latency_s *= self.latency_factor
         joules = (self.platform.busy_w - self.platform.idle_w) * latency_s
         self._add(CPU_BUSY if purpose == "chain" else CPU_RECOVERY, joules)
         self.cpu_busy_s += latency_s

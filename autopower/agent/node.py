@@ -179,6 +179,17 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
                  if l.a in nodes and l.b in nodes and l.medium in self.scenario.radios]
         self.network = Network(nodes, self.scenario.basestation, links, "runtime")
         self.meter.set_media(self.network.media_of(self.node), self.now())
+        self.meter.set_level(self._level(plan.levels.get(self.node)), self.now())
+
+    def _level(self, name: str | None):
+        """The DVFS level the plan names for this node (None: nominal; an unknown name is refused)."""
+        if name is None or self.platform.mains:
+            return None
+        level = next((lv for lv in self.platform.levels if lv.name == name), None)
+        if level is None:
+            self.count("unknown-level", f"plan names level {name[:40]!r}, the platform has "
+                       f"{', '.join(lv.name for lv in self.platform.levels) or 'none'}")
+        return level
 
     def override_placement(self, placement: dict[str, str], unreachable: set[str]) -> None:
         """A placement agreed without the base station (a subgroup commit): same epoch, our view.

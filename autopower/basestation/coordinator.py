@@ -139,6 +139,7 @@ class Coordinator(Deciding, Placing, Operating):
         self.links = LinkStates({frozenset((l.a, l.b)) for l in topology.links},
                                 down_after_s=config.link_down_after_s, heal_hold_s=config.heal_hold_s)
         self.predicted_w: dict[str, float] = {}
+        self.levels: dict[str, str] = {}  # robot -> DVFS level of the current plan (deciding._at_levels)
         self.predicted_lifetime_s: float | None = None
         self.plan_t_virtual = 0.0
         self.baselines: dict[str, Baseline] = {}

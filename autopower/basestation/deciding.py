@@ -7,6 +7,7 @@ import logging
 from dataclasses import dataclass
 
 from autopower.errors import AutoPowerError
+from autopower.model.dvfs import apply_levels, best_levels, has_levels
 from autopower.model.energy import evaluate, round_lifetime
 from autopower.model.mission_events import MissionEvent
 from autopower.model.network import Network
@@ -184,10 +185,24 @@ class Deciding:
 
     def _predict(self) -> None:
         ev = self._evaluate(self.target, self.plan_network, self.remaining_energies())
+        ev = self._at_levels(ev)
         self.predicted_w = {r: p.total_w for r, p in ev.robots.items()} if ev else {}
         self.predicted_lifetime_s = ev.lifetime_s if ev else None
         self.plan_t_virtual = self.now()
         self._reset_baselines()
+
+    def _at_levels(self, ev):
+        """DVFS: every robot at the cheapest frequency level at which its placement fits (a robot's
+        level changes only its own power, so this is optimal for any policy's placement); the plan
+        carries the levels to the agents and the prediction is made at them."""
+        self.levels = best_levels(self.scenario, ev.utilisation) if ev is not None and has_levels(self.scenario) else {}
+        if not self.levels:
+            return ev
+        nominal, self.scenario = self.scenario, apply_levels(self.scenario, self.levels)
+        try:
+            return self._evaluate(self.target, self.plan_network, self.remaining_energies())
+        finally:
+            self.scenario = nominal
 
     def _reset_baselines(self) -> None:
         self.baselines.clear()  # re-anchored from the next status that reflects the settled plan

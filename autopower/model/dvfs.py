@@ -110,6 +110,13 @@ def best_cpu_power(idle: np.ndarray, extra: np.ndarray, factor: np.ndarray, u: n
     return np.take_along_axis(power, pick[..., None], axis=-1)[..., 0], pick
 
 
+def cpu_at_best_levels(space, parts: dict) -> tuple[np.ndarray, np.ndarray]:
+    """For a `model.energy.LoadSpace` breakdown: CPU watts (K, R) with every robot at its cheapest
+    fitting level (inf where none fits), and the level index chosen (K, R)."""
+    idle, extra, factor, _ = level_table(space.scenario, space.robots)
+    return best_cpu_power(idle, extra, factor, parts["cpu_u"])
+
+
 def best_levels(scenario: Scenario, utilisation: Mapping[str, float]) -> dict[str, str]:
     """The cheapest level at which each robot with levels fits, for its nominal CPU utilisation
     (robots that fit at none keep their fastest level: the plan is infeasible anyway)."""

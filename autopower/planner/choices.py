@@ -21,7 +21,7 @@ from typing import Mapping
 import numpy as np
 
 from autopower.errors import AutoPowerError
-from autopower.model.dvfs import apply_levels, best_cpu_power, best_levels, has_levels, level_table
+from autopower.model.dvfs import apply_levels, best_levels, cpu_at_best_levels, has_levels, level_table
 from autopower.model.energy import LoadSpace, evaluate
 from autopower.model.network import Network
 from autopower.model.scenario import Chain, Scenario
@@ -138,8 +138,7 @@ def lifetimes_with_levels(space: LoadSpace, loads: np.ndarray):
     robots' power (K, R) and the chosen level index (K, R)."""
     parts = space.breakdown(loads)
     radio_w = (parts["send_w"] + parts["receive_w"] + parts["sleep_w"]).sum(axis=2)
-    idle, extra, factor, _ = level_table(space.scenario, space.robots)
-    cpu_w, pick = best_cpu_power(idle, extra, factor, parts["cpu_u"])
+    cpu_w, pick = cpu_at_best_levels(space, parts)
     power = cpu_w + radio_w
     life = (space.energy_j / power).min(axis=1)
     ok = space.feasible(loads) & np.isfinite(cpu_w).all(axis=1)

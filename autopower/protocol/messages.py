@@ -281,6 +281,8 @@ class PlanUpdate:
     plan_t_virtual: float  # when this placement's prediction starts
     policy: str = ""  # what decided it (autopower.policies's name)
     reasons: tuple[str, ...] = ()  # why, in the policy's words (for the operator and the recording)
+    levels: dict[str, str] = field(default_factory=dict)  # robot -> DVFS frequency level (model.dvfs)
+    variants: dict[str, str] = field(default_factory=dict)  # chain -> quality variant (model.variants)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from typing import Mapping
 import numpy as np
 
 from autopower.errors import AutoPowerError, InfeasibleError
+from autopower.model.dvfs import cpu_at_best_levels, has_levels
 from autopower.model.energy import LoadSpace, active_chains, load_of
 from autopower.model.mission_events import NO_EVENTS, EventScript, MissionEvent
 from autopower.model.network import Network, media_choices
@@ -204,6 +205,10 @@ class _Mission:
                                  f"limit; the policy {self.result.policy} should not have chosen it")
         watts = dict(zip(space.robots, map(float, space.total_power(load)[0])))
         parts = space.breakdown(load)
+        if has_levels(scenario):  # DVFS: every robot at its cheapest level that fits (model.dvfs)
+            cpu_w, _ = cpu_at_best_levels(space, parts)
+            watts = {r: w - float(parts["cpu_w"][0, i]) + float(cpu_w[0, i]) for i, (r, w) in enumerate(watts.items())}
+            parts = {**parts, "cpu_w": cpu_w}
         self._parts = {robot: {"cpu": float(parts["cpu_w"][0, i]),
                                **{f"{m}/{kind}": float(parts[f"{kind}_w"][0, i, j])
                                   for j, m in enumerate(space.media) if space.present[i, j]

@@ -1,0 +1,74 @@
+"""DVFS at run time: the meter charges the plan's level, the base station's plans carry each
+robot's level, and the simulator draws the power of the levels."""
+
+import dataclasses
+
+import pytest
+
+from autopower.agent.meter import CPU_BUSY, CPU_IDLE, BatteryMeter
+from autopower.model.dvfs import apply_levels, level_named
+from autopower.model.energy import evaluate
+from autopower.model.loading import load_scenario
+from autopower.model.network import build_network
+from autopower.planner import PlanRequest, plan
+from autopower.simulation.simulator import simulate
+
+DVFS = load_scenario("paper-pxa255-dvfs")
+
+
+def test_meter_charges_the_level_it_is_set_to():
+    sitsang = DVFS.platforms["sitsang"]
+    meter = BatteryMeter(platform=sitsang, radios=DVFS.radios, initial_j=64000, t0=0.0)
+    meter.advance(10.0)  # nominal (400 MHz) for 10 s
+    assert meter.energy_j[CPU_IDLE] == pytest.approx(13.4)
+    meter.set_level(level_named(DVFS, "r1", "200MHz"), 10.0)
+    meter.charge_run(0.85, 12.0)  # one localisation: 0.85 s at 400 MHz takes 1.7 s at 200 MHz
+    assert meter.energy_j[CPU_BUSY] == pytest.approx((1.5448 - 1.2696) * 0.85 * 2.0)
+    assert meter.cpu_busy_s == pytest.approx(1.7)
+    meter.set_level(None, 20.0)  # back to nominal: 10..20 s were idle at 200 MHz
+    assert meter.energy_j[CPU_IDLE] == pytest.approx(13.4 + 1.2696 * 10)
+    meter.advance(21.0)
+    assert meter.energy_j[CPU_IDLE] == pytest.approx(13.4 + 1.2696 * 10 + 1.34)
+
+
+def test_metering_a_level_reproduces_the_model():
+    """One robot's steady state, charged run by run at its level, equals evaluate() at that level."""
+    p = plan(PlanRequest(scenario=DVFS, method="exhaustive"))
+    local = {c.name: c.source for c in DVFS.chains}
+    network = build_network(DVFS, "fully-connected", {"laptop-robot": "802.11a", "robot-robot": "802.11a"})
+    levels = {"r1": "200MHz", "r2": "400MHz", "r3": "400MHz"}
+    ev = evaluate(apply_levels(DVFS, levels), network, local)
+    assert ev.feasible and ev.utilisation["r1"] == pytest.approx(0.85)
+    meter = BatteryMeter(platform=DVFS.platforms["sitsang"], radios=DVFS.radios, initial_j=64000, t0=0.0)
+    meter.set_level(level_named(DVFS, "r1", "200MHz"), 0.0)
+    for k in range(50):  # Loc-1 runs locally every 2 s for 100 s
+        meter.charge_run(DVFS.components["Loc"].latency_s["sitsang"], 2.0 * k)
+    meter.advance(100.0)
+    assert meter.consumed_j / 100.0 == pytest.approx(ev.robots["r1"].cpu_w, rel=1e-9)
+    assert p.levels  # the planner's own choice carries levels too
+
+
+def test_simulator_draws_the_levels_power():
+    nominal = simulate(load_scenario("paper-fig7"), policy="static")
+    scaled = simulate(DVFS, policy="static")
+    best = plan(PlanRequest(scenario=DVFS, method="exhaustive"))
+    assert scaled.lifetime_s > nominal.lifetime_s
+    assert scaled.lifetime_s == pytest.approx(best.evaluation.lifetime_s, rel=1e-6)
+
+
+def test_a_plan_naming_levels_round_trips_the_codec():
+    import sys
+    sys.path.insert(0, __file__.rsplit("/", 1)[0])
+    from test_protocol import MISSION
+
+    from autopower.errors import ProtocolError
+    from autopower.protocol import LinkInfo, PlanUpdate, decode, encode
+
+    update = PlanUpdate(epoch=3, mission=MISSION, placement={"Loc-1": "laptop"}, running={"Loc-1": 0},
+                        links=(LinkInfo(a="r1", b="laptop", medium="802.11a"),), predicted_w={"r1": 1.26},
+                        predicted_lifetime_s=None, plan_t_virtual=0.0, levels={"r1": "100MHz"},
+                        variants={"Blob-2": "2fps"})
+    back = decode(encode(update), PlanUpdate)
+    assert back.levels == {"r1": "100MHz"} and back.variants == {"Blob-2": "2fps"}
+    with pytest.raises(ProtocolError):  # a hostile plan: levels must map names to names
+        decode(encode(dataclasses.replace(update, levels={"r1": 5})), PlanUpdate)
