@@ -84,14 +84,40 @@ def combinations(problem: Problem) -> int:
     return n
 
 
-def exhaustive_choices(problem: Problem, floor: float = 0.0, max_ties: int = 8) -> list[Choice]:
-    """The best configurations with mean quality >= floor (ties: higher quality, then less drain)."""
+@dataclass
+class Enumerated:
+    """Every configuration on one network: loads, mean quality, lifetime and power at the best levels."""
+
+    network: Network
+    space: LoadSpace
+    quality: np.ndarray  # (K,)
+    life: np.ndarray  # (K,) raw; -inf where infeasible or below the floor
+    power: np.ndarray  # (K, R)
+    level_pick: np.ndarray  # (K, R)
+    picks: list  # per chain: [(Alternative, hosts)]
+
+    def decode(self, k: int) -> Choice:
+        idx = np.unravel_index(int(k), [len(o) for o in self.picks])
+        allocation, variants = {}, {}
+        for opts, i in zip(self.picks, idx):
+            alt, hosts = opts[int(i)]
+            for stage, host in zip(alt.chain.stages, hosts):
+                allocation[stage.name] = host
+            if alt.variant is not None:
+                variants[alt.chain.name] = alt.variant
+        _, _, _, names = level_table(self.space.scenario, self.space.robots)
+        levels = {r: names[j][int(self.level_pick[k, j])] for j, r in enumerate(self.space.robots) if names[j][0]}
+        spread = float((self.power[k] / self.space.energy_j).sum())
+        return Choice(float(self.life[k]), float(self.quality[k]), spread, self.network, allocation, variants, levels)
+
+
+def enumerate_choices(problem: Problem, floor: float = 0.0):
+    """Per network, every (variant, hosts) combination of the chains, scored at the best levels."""
     if combinations(problem) > MAX_COMBINATIONS:
         raise AutoPowerError(f"{combinations(problem):,} combinations of variants and hosts is too many for "
                              f"exhaustive search (limit {MAX_COMBINATIONS:,}); use --method milp")
     scenario = with_variant_components(problem.scenario)
     n_chains = max(1, len(problem.chains))
-    found: list[Choice] = []
     for network in problem.networks:
         space = LoadSpace(scenario, network, problem.accounting, problem.energies_j)
         loads, quality, picks = np.zeros((1, space.size)), np.zeros((1, 1)), []
@@ -107,24 +133,18 @@ def exhaustive_choices(problem: Problem, floor: float = 0.0, max_ties: int = 8) 
         quality = quality[:, 0] / n_chains
         life, power, level_pick = lifetimes_with_levels(space, loads)
         life = np.where(quality >= floor - QUALITY_EPS, life, -np.inf)
-        best = life.max()
+        yield Enumerated(network, space, quality, life, power, level_pick, picks)
+
+
+def exhaustive_choices(problem: Problem, floor: float = 0.0, max_ties: int = 8) -> list[Choice]:
+    """The best configurations with mean quality >= floor (ties: higher quality, then less drain)."""
+    found: list[Choice] = []
+    for block in enumerate_choices(problem, floor):
+        best = block.life.max()
         if not np.isfinite(best):
             continue
-        spread = (power / space.energy_j).sum(axis=1)
-        _, _, _, names = level_table(scenario, space.robots)
-        for k in np.flatnonzero(life >= best * (1 - TIE_REL)):
-            sizes = [len(o) for o in picks]
-            idx = np.unravel_index(int(k), sizes)
-            allocation, variants = {}, {}
-            for opts, i in zip(picks, idx):
-                alt, hosts = opts[int(i)]
-                for stage, host in zip(alt.chain.stages, hosts):
-                    allocation[stage.name] = host
-                if alt.variant is not None:
-                    variants[alt.chain.name] = alt.variant
-            levels = {r: names[j][int(level_pick[k, j])] for j, r in enumerate(space.robots) if names[j][0]}
-            found.append(Choice(float(life[k]), float(quality[k]), float(spread[k]), network, allocation,
-                                variants, levels))
+        for k in np.flatnonzero(block.life >= best * (1 - TIE_REL)):
+            found.append(block.decode(int(k)))
     if not found:
         return []
     top = max(c.lifetime_s for c in found)

@@ -12,7 +12,7 @@ import dataclasses
 from autopower.errors import AutoPowerError, InfeasibleError
 from autopower.model.dvfs import level_named
 from autopower.model.variants import has_variants
-from autopower.planner.choices import (Choice, alternatives, applied_scenario, combinations,
+from autopower.planner.choices import (Choice, alternatives, applied_scenario, combinations, enumerate_choices,
                                        evaluate_choice, expand, exhaustive_choices, finish_choice)
 from autopower.planner.exhaustive import TIE_REL
 from autopower.planner.milp import solve_milp
@@ -46,13 +46,16 @@ def plan_with_choices(request: PlanRequest, problem: Problem):
                                           chains=[c for c in applied.chains if c.name in placed])
     reasons = explain(applied_problem, best.network, best.allocation, evaluation)
     reasons.update(choice_reasons(problem, request, best))
-    return Plan(allocation=best.allocation, network=best.network, evaluation=evaluation, reasons=reasons,
-                method=method, proven_optimal=proven, mip_gap=gap,
-                ties=[(c.network, c.allocation) for c in found[1:]], dropped=dict(problem.unroutable),
-                variants=dict(best.variants), levels=dict(best.levels),
-                quality=best.quality if has_variants(scenario) else None,
-                pareto=[{"lifetime_s": c.lifetime_s, "quality": c.quality, "variants": c.variants,
-                         "levels": c.levels} for c in front])
+    out = Plan(allocation=best.allocation, network=best.network, evaluation=evaluation, reasons=reasons,
+               method=method, proven_optimal=proven, mip_gap=gap,
+               ties=[(c.network, c.allocation) for c in found[1:]], dropped=dict(problem.unroutable),
+               variants=dict(best.variants), levels=dict(best.levels),
+               quality=best.quality if has_variants(scenario) else None,
+               pareto=[{"lifetime_s": c.lifetime_s, "quality": c.quality, "variants": c.variants,
+                        "levels": c.levels} for c in front])
+    if request.with_bound:
+        out.bound = choice_time_sharing_bound(problem)
+    return out
 
 
 def choice_reasons(problem: Problem, request: PlanRequest, best: Choice) -> dict[str, str]:
@@ -166,3 +169,52 @@ def floor_error(problem: Problem, request, floor: float) -> InfeasibleError:
         f"no allocation meets the quality floors ({asked}) within the CPU and radio limits; the highest "
         f"quality that fits is {best.quality:.3f} (variants {', '.join(f'{k}={v}' for k, v in best.variants.items())}"
         f", lifetime {best.lifetime_s:,.1f} s). Lower min_quality, or allow faster media or more hosts.")
+
+
+def choice_time_sharing_bound(problem: Problem, floor: float = 0.0):
+    """The time-sharing bound (`planner.timesharing`) over configurations that include variants
+    and levels: every configuration meeting the quality floors, each robot at its best level (the
+    best level minimises every robot's power at once, so other levels never help a schedule).
+    Exact by enumeration with column generation on the LP; None when there are too many."""
+    import numpy as np
+
+    from autopower.planner.lp import INF
+    from autopower.planner.timesharing import Phase, TimeSharingBound, _master
+
+    from autopower.planner.exhaustive import MAX_COMBINATIONS
+
+    if combinations(problem) > MAX_COMBINATIONS:
+        return None
+    blocks = [(b, np.flatnonzero(np.isfinite(b.life))) for b in enumerate_choices(problem, floor)]
+    blocks = [(b, ok) for b, ok in blocks if ok.size]
+    if not blocks:
+        return TimeSharingBound(0.0, 0.0, True, [], "enumeration")
+    powers = np.concatenate([b.power[ok] for b, ok in blocks])
+    where = [(b, int(i)) for b, ok in blocks for i in ok]
+    energies = blocks[0][0].space.energy_j
+    robots = blocks[0][0].space.robots
+    chosen = [int(np.argmin((powers / energies).max(axis=1)))]
+    upper, converged, sol = INF, False, None
+    for _ in range(500):
+        sol = _master(powers[chosen], energies)
+        prices = np.maximum(-sol.duals, 0.0)
+        reduced = powers @ prices
+        best = int(np.argmin(reduced))
+        if reduced[best] > 0:
+            upper = min(upper, float(np.dot(energies, prices)) / reduced[best])
+        if reduced[best] >= 1.0 - 1e-9 or best in chosen:
+            converged = True
+            break
+        chosen.append(best)
+    phases = []
+    for k, t in zip(chosen, sol.values):
+        if t > 1e-6:
+            block, i = where[k]
+            c = block.decode(i)
+            phases.append(Phase(float(t), c.network, {**c.allocation, **{f"variant:{n}": v for n, v in c.variants.items()},
+                                                      **{f"level:{r}": lv for r, lv in c.levels.items()}},
+                                dict(zip(robots, map(float, powers[k])))))
+    phases.sort(key=lambda p: -p.duration_s)
+    achieved = -sol.objective
+    return TimeSharingBound(achieved if converged else max(upper, achieved), achieved, converged, phases,
+                            "enumeration (variants and levels)")

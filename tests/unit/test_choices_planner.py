@@ -161,3 +161,20 @@ def test_a_chain_floor_that_cannot_be_met_is_explained():
         plan(PlanRequest(scenario=s, method="exhaustive"))
     text = str(err.value)
     assert "quality floors (Loc-1 ≥ 1" in text and "highest quality that fits is" in text
+
+
+def test_time_sharing_bound_over_variants_and_levels():
+    """The bound switches between configurations (variants and levels included): at least the
+    static optimum, its schedule spends no robot's energy twice, and it never beats LP duality."""
+    s = load_scenario("paper-variants-dvfs").with_accounting("physical").with_energies({"r2": 32000})
+    p = plan(PlanRequest(scenario=s, method="exhaustive", with_bound=True))
+    b = p.bound
+    assert b.proven and b.lifetime_s >= p.lifetime_s * (1 - 1e-9)
+    assert sum(ph.duration_s for ph in b.schedule) == pytest.approx(b.achieved_s, rel=1e-9)
+    for robot, energy in s.energies_j().items():
+        assert sum(ph.power_w[robot] * ph.duration_s for ph in b.schedule) <= energy * (1 + 1e-9)
+    # more configurations than the paper's (levels, variants): never a lower bound than its
+    nominal = plan(PlanRequest(scenario=load_scenario("paper-fig7").with_accounting("physical")
+                               .with_energies({"r2": 32000}), method="exhaustive", with_bound=True))
+    assert b.lifetime_s >= nominal.bound.lifetime_s * (1 + 0.05)
+    assert all(any(k.startswith("level:") for k in ph.allocation) for ph in b.schedule)
