@@ -44,6 +44,7 @@ from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
 from autopower.model.network import Link, Network
 from autopower.model.scenario import Scenario
+from autopower.model.variants import apply_variants, runtime_component
 from autopower.protocol import (
     ChainFrame,
     Keys,
@@ -149,6 +150,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             self.clock = self._clock_factory(plan.mission)
             if not self.platform.mains and self.node not in plan.mission.energies_j:
                 raise AutoPowerError(f"the mission gives no starting energy for {self.node}")
+            self._use_variants(plan.variants)
             self.meter = BatteryMeter(platform=self.platform, radios=self.scenario.radios,
                                       initial_j=plan.mission.energies_j.get(self.node),
                                       t0=max(0.0, self.clock.now()))
@@ -171,6 +173,25 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         early, self._early_control = self._early_control, []
         for payload in early:
             self.on_control(payload)
+
+    def _use_variants(self, variants: dict[str, str]) -> None:
+        """The mission's quality variants (fixed at its start): each chain's period, message sizes
+        and modelled latency become its variant's, and its component and source are built with the
+        variant's parameters (`model.variants`, `chains.variants`)."""
+        if not variants:
+            return
+        try:
+            self.scenario = apply_variants(self.scenario, variants)
+        except AutoPowerError as exc:  # a plan naming variants this scenario lacks: run as declared
+            self.count("unknown-variant", str(exc)[:200])
+            return
+        self.chains = {c.name: c for c in self.scenario.chains}
+        self.stage_index = {s.name: (c, i) for c in self.scenario.chains for i, s in enumerate(c.stages)}
+
+    def _build(self, factory, component: str, robot: str, seed: int):
+        """A component or source of a stage's component (a variant's: with its parameters)."""
+        kind, parameters = runtime_component(self.scenario, component)
+        return factory(kind, robot, seed, parameters) if parameters else factory(kind, robot, seed)
 
     def _set_plan(self, plan: PlanUpdate) -> None:
         self.plan = plan
@@ -246,7 +267,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             if chain is None or chain.source != self.node or name in self.sources or self.hung_sources.get(name) == run:
                 continue
             try:
-                source = self._make_source(chain.stages[0].component, chain.source, chain_seed(self.scenario, chain))
+                source = self._build(self._make_source, chain.stages[0].component, chain.source,
+                                     chain_seed(self.scenario, chain))
             except Exception as exc:  # a broken component type must not take the agent down
                 self.count("source-failed", f"{name}: {exc}", logging.ERROR)
                 continue

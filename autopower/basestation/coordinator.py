@@ -46,6 +46,8 @@ from autopower.errors import AutoPowerError
 from autopower.model.mission_events import MissionEvent
 from autopower.model.network import Network, build_network, media_choices
 from autopower.model.scenario import Scenario
+from autopower.model.variants import apply_variants
+from autopower.planner.plan_choices import mission_variants
 from autopower.policies import (
     POLICY_NAMES,
     Decision,
@@ -86,6 +88,7 @@ class CoordinatorConfig:
     plan_republish_s: float = 1.0  # wall seconds between repeats of the current plan (late joiners)
     link_down_after_s: float = 3.0  # wall seconds a never-seen-up link must be reported down before it counts
     heal_hold_s: float = 2.0  # wall seconds a link must be back before plans may use it again (no flapping)
+    variants: dict[str, str] = field(default_factory=dict)  # chain -> quality variant, fixed by the operator
 
     def __post_init__(self) -> None:
         _policy_from(self)  # a wrong policy name or parameter fails here, before anything starts
@@ -95,6 +98,9 @@ class Coordinator(Deciding, Placing, Operating):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time):
         """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it)."""
+        # quality variants are fixed for the mission: the policies place the chains as they run them
+        self.variants = mission_variants(scenario, config.variants)
+        scenario = apply_variants(scenario, self.variants)
         self.scenario = scenario
         self.bus = bus
         self.keys = keys

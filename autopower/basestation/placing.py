@@ -182,7 +182,8 @@ class Placing:
         update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
                             running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
                             predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
-                            policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels))
+                            policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels),
+                            variants=dict(self.variants))
         payload = encode(update)
         self.bus.publish(self.keys.plan, payload)
         self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)

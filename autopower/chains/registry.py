@@ -21,6 +21,7 @@ from autopower.chains.base import Component, Source, UnknownComponentTypeError, 
 from autopower.chains.blobfinder import BlobFinder, score_report
 from autopower.chains.camera import CameraSource
 from autopower.chains.mcl import MonteCarloLocaliser, score_estimate
+from autopower.chains.variants import split_parameters, wrap_source
 from autopower.chains.world import LocSource
 
 
@@ -76,14 +77,17 @@ def get_component_type(component_type: str) -> ComponentType:
     return spec
 
 
-def make_source(component_type: str, robot: str, seed: int) -> Source:
-    """The source of ``robot``'s ``component_type`` chain; ``produce(seq)`` is deterministic in (robot, seed, seq)."""
+def make_source(component_type: str, robot: str, seed: int, parameters: dict | None = None) -> Source:
+    """The source of ``robot``'s ``component_type`` chain; ``produce(seq)`` is deterministic in (robot, seed, seq).
+
+    ``parameters``: a quality variant's (`autopower.chains.variants`: frame skipping)."""
     spec = get_component_type(component_type)
     robot_key(robot)  # validates the name
-    return spec.make_source(robot, check_seed(seed))
+    source = spec.make_source(robot, check_seed(seed))
+    return wrap_source(source, split_parameters(parameters)[0]) if parameters else source
 
 
-def make_component(component_type: str, robot: str, seed: int) -> Component:
+def make_component(component_type: str, robot: str, seed: int, parameters: dict | None = None) -> Component:
     """The component of ``robot``'s ``component_type`` chain (e.g. "Loc" for robot "r2" = Loc-2).
 
     It processes that robot's data wherever it runs: ``make_component("Loc", "r2", s)`` on the
@@ -91,7 +95,14 @@ def make_component(component_type: str, robot: str, seed: int) -> Component:
     """
     spec = get_component_type(component_type)
     robot_key(robot)
-    return spec.make_component(robot, check_seed(seed))
+    params = split_parameters(parameters)[1]
+    if not params:
+        return spec.make_component(robot, check_seed(seed))
+    try:  # a quality variant's constructor arguments (``n_particles``)
+        return spec.make_component(robot, check_seed(seed), **params)
+    except TypeError as exc:
+        raise ValueError(f"component type {component_type!r} does not take variant parameters "
+                         f"{', '.join(sorted(params))}: {exc}") from exc
 
 
 def score_output(component_type: str, truth: dict[str, Any], output: bytes) -> dict[str, float]:
@@ -109,7 +120,7 @@ register_component_type(ComponentType(
 register_component_type(ComponentType(
     name="Loc",
     make_source=lambda robot, seed: LocSource(robot, seed),
-    make_component=lambda robot, seed: MonteCarloLocaliser(robot, seed),
+    make_component=lambda robot, seed, n_particles=1000: MonteCarloLocaliser(robot, seed, n_particles=n_particles),
     score=score_estimate,
     description="Monte-Carlo localisation from odometry and two laser scanners",
 ))

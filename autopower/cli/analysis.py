@@ -56,7 +56,7 @@ def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdow
 
     s = build_scenario(scenario, energy, accounting=accounting, profile=profile, as_platform=as_platform)
     if pareto:
-        from autopower.cli.pareto import print_front
+        from autopower.cli.quality import print_front
 
         print_front(s, as_json)
         return

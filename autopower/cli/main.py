@@ -17,6 +17,7 @@ from autopower.cli import (
     operator,
     processes,
     profile,
+    quality,
     recording,
     replay,
     simulate,
@@ -35,7 +36,7 @@ def cli() -> None:
 
 
 for _module in (analysis, evaluate, profile, simulate, replay, recording, processes, team, operator, fault, demo,
-                deploy, testbed):
+                deploy, testbed, quality):
     for _command in _module.COMMANDS:
         cli.add_command(_command)
 

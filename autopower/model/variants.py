@@ -182,3 +182,13 @@ def check_chain_variants(parser, chains, components: Mapping[str, ComponentSpec]
                 else "a chain without variants has quality 1"
             raise parser.fail(f"chains[{i}].min_quality", f"found {chain.min_quality} but {what}",
                               f"a floor of at most {best}")
+
+
+def runtime_component(scenario: Scenario, component: str) -> tuple[str, dict[str, Any]]:
+    """(component type to build, the variant's parameters) for a stage's component name, which
+    `apply_variants` makes "<type>@<variant>"; ({}: the type as declared)."""
+    base, _, variant = component.partition("@")
+    if not variant or base not in scenario.components:
+        return component, {}
+    spec = next((v for v in scenario.components[base].variants if v.name == variant), None)
+    return base, dict(spec.parameters) if spec else {}

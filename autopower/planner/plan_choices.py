@@ -218,3 +218,23 @@ def choice_time_sharing_bound(problem: Problem, floor: float = 0.0):
     achieved = -sol.objective
     return TimeSharingBound(achieved if converged else max(upper, achieved), achieved, converged, phases,
                             "enumeration (variants and levels)")
+
+
+def mission_variants(scenario, chosen: dict[str, str] | None = None) -> dict[str, str]:
+    """The variants a live mission runs (fixed for it): the operator's choice where given, the
+    planner's for the other chains (its first-declared variant if nothing fits)."""
+    from autopower.errors import ScenarioError
+    from autopower.model.variants import check_choice, default_choice
+    from autopower.planner import plan
+
+    chosen = dict(chosen or {})
+    if not has_variants(scenario):
+        if chosen:
+            raise ScenarioError(f"{scenario.source_path}: --variant given but no component declares variants")
+        return {}
+    check_choice(scenario, chosen)
+    try:
+        planned = plan(PlanRequest(scenario=scenario)).variants
+    except AutoPowerError:
+        planned = default_choice(scenario)
+    return {**planned, **chosen}

@@ -140,7 +140,36 @@ class OutputDrawer:
         return drawn
 
 
+class QualityScorer:
+    """The recorder's quality hook: each output at its sink scored against the synthetic world's
+    ground truth, with the quality variant the plan runs (`autopower.chains.variants`: blob recall
+    over every camera frame, localisation position error). Chains of other types, or without a
+    scenario: nothing."""
+
+    def __init__(self, scenario=None):
+        self.scenario = scenario
+        self._sources: dict[tuple[str, str | None], object] = {}
+
+    def __call__(self, chain: str, seq: int, data: bytes, variants: dict) -> dict[str, float]:
+        from autopower.chains.registry import make_source, score_output
+        from autopower.chains.variants import measured_quality
+
+        spec = _chain(self.scenario, chain)
+        kind = spec.stages[0].component if spec is not None else None
+        if kind not in ("Blob", "Loc"):
+            return {}
+        variant = variants.get(chain)
+        key = (chain, variant)
+        if key not in self._sources:
+            params = next((dict(v.parameters) for v in self.scenario.components[kind].variants
+                           if v.name == variant), {})
+            self._sources[key] = make_source(kind, spec.source, _chain_seed(self.scenario, spec), params or None)
+        return measured_quality(kind, self._sources[key], seq, data, score_output)
+
+
 def open_recorder(run_dir: str | Path, node: str, *, scenario=None, **kwargs) -> Recorder:
-    """A `Recorder` writing ``<run_dir>/<node>.rrd`` (the run's shared recording id), drawing outputs."""
+    """A `Recorder` writing ``<run_dir>/<node>.rrd`` (the run's shared recording id), drawing outputs
+    and scoring their quality."""
     kwargs.setdefault("visualise", OutputDrawer(scenario))
+    kwargs.setdefault("quality", QualityScorer(scenario))
     return Recorder.open(run_dir, node, scenario=scenario, **kwargs)

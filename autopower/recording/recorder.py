@@ -180,7 +180,7 @@ class Recorder:
     def __init__(self, telemetry: Telemetry, node: str, *, team: str | None = None,
                  clock: Callable[[], float] | None = None, flush_every_s: float = 1.0,
                  visual_every_s: float = 0.5, owns_telemetry: bool = True,
-                 visualise: Visualiser | None = None):
+                 visualise: Visualiser | None = None, quality=None):
         self.telemetry = telemetry
         self.node = node
         self.keys = None
@@ -205,6 +205,9 @@ class Recorder:
         self._predicted_epoch = -1
         self._owns = owns_telemetry
         self.visualise = visualise
+        # (chain, seq, output, variants) -> metrics against the ground truth (`recording.live.QualityScorer`)
+        self.quality = quality
+        self._variants: dict[str, str] = {}  # the quality variants the plans run
         self.errors = 0
         self.closed = False
 
@@ -384,6 +387,7 @@ class Recorder:
         if epoch <= self._last_epoch:
             return
         self._last_epoch = epoch
+        self._variants = dict(p.get("variants") or {})
         # when it was published (plan_t_virtual is the start of the prediction's baseline, which
         # a plan that only drops a robot keeps)
         tel, t = self.telemetry, self.now()
@@ -408,7 +412,8 @@ class Recorder:
                                   predicted_lifetime_s=life, accounting=self._mission.accounting,
                                   speed=self._mission.speed, epoch_unix=self._mission.epoch_unix,
                                   links=[list(l) for l in links], energies_j=self._mission.energies_j,
-                                  by=self.node))
+                                  by=self.node, variants=dict(self._variants),
+                                  levels=dict(p.get("levels") or {})))
 
     def _stage_ready(self, m: dict) -> None:
         moved = "state imported" if m["imported_state"] else "fresh start"
@@ -457,6 +462,9 @@ class Recorder:
     def _output(self, chain: str, run: int, seq: int, data: bytes) -> None:
         t = self.now()
         self.telemetry.scalar(output_path(chain, run), t, seq)
+        if self.quality is not None:  # measured quality (issue 16): beside the declared score
+            for metric, value in self.quality(chain, seq, data, self._variants).items():
+                self.telemetry.scalar(component_path(chain, f"quality/{metric}"), t, float(value))
         last = self._last_visual.get(chain)
         wall = time.monotonic()
         if last is not None and wall - last < self.visual_every_s:

@@ -1,4 +1,5 @@
-"""`autopower analyze --pareto`: the lifetime/quality trade-offs of a scenario with quality variants."""
+"""Quality variants: `autopower analyze --pareto` (lifetime against quality) and `autopower quality`
+(declared scores against what the real components measure on the synthetic world)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import json
 import click
 from rich.table import Table
 
-from autopower.cli.options import console
+from autopower.cli.options import JSON_OPT, POSITIVE, SCENARIO_ARG, build_scenario, console
 from autopower.model.energy import round_lifetime
 from autopower.model.scenario import Scenario
 
@@ -41,3 +42,31 @@ def print_front(s: Scenario, as_json: bool) -> None:
     console.print(table)
     if not rows:
         console.print("no plan fits the CPU and radio limits")
+
+
+@click.command("quality")
+@SCENARIO_ARG
+@JSON_OPT
+@click.option("--duration", type=POSITIVE, default=60.0, show_default=True,
+              help="Mission seconds of synthetic sensor data to run each variant on.")
+def quality_cmd(scenario: str, as_json: bool, duration: float) -> None:
+    """Run every quality variant's real component on the synthetic world; declared vs measured quality."""
+    from autopower.chains.variants import measure_variants
+
+    s = build_scenario(scenario)
+    rows = measure_variants(s, duration)
+    if as_json:
+        click.echo(json.dumps({"scenario": s.name, "duration_s": duration, "variants": rows}, indent=2))
+        return
+    if not rows:
+        console.print(f"{s.name} declares no quality variants")
+        return
+    table = Table("component", "variant", "chain", "declared", "measured", "metric", "outputs",
+                  title=f"{s.name} — declared against measured quality ({duration:g} s of data)")
+    for r in rows:
+        table.add_row(r["component"], r["variant"], r["chain"], f"{r['declared']:.2f}",
+                      f"{r['measured']:.3f}", r["metric"], str(r["outputs"]))
+    console.print(table)
+
+
+COMMANDS = (quality_cmd,)
