@@ -51,7 +51,7 @@ def print_front(s: Scenario, as_json: bool) -> None:
               help="Mission seconds of synthetic sensor data to run each variant on.")
 def quality_cmd(scenario: str, as_json: bool, duration: float) -> None:
     """Run every quality variant's real component on the synthetic world; declared vs measured quality."""
-    from autopower.chains.variants import measure_variants
+    from autopower.chains.quality import measure_variants
 
     s = build_scenario(scenario)
     rows = measure_variants(s, duration)

@@ -73,3 +73,15 @@ def test_bad_variants_and_levels_are_one_line_exit_2(tmp_path, old, new, where):
     line = int(err.split(f"{path}:")[1].split(":")[0])
     key = where.split(":")[0].split(".")[-1].split("[")[0]
     assert path.read_text().splitlines()[line - 1].startswith(key)  # the line of the offending field
+
+
+def test_quality_command_declared_against_measured():
+    out = run("quality", "paper-variants", "--duration", "20", "--json")
+    assert out.returncode == 0, out.stderr
+    rows = {(r["component"], r["variant"]): r for r in json.loads(out.stdout)["variants"]}
+    assert set(rows) == {("Loc", "1000p"), ("Loc", "300p"), ("Loc", "100p"), ("Blob", "4fps"), ("Blob", "2fps"),
+                         ("Blob", "1fps")}
+    assert rows[("Blob", "2fps")]["declared"] == 0.8 and rows[("Blob", "2fps")]["outputs"] == 40
+    assert rows[("Blob", "1fps")]["measured"] < rows[("Blob", "2fps")]["measured"] < rows[("Blob", "4fps")]["measured"]
+    bad = run("quality", "paper-variants", "--duration", "-1")
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr

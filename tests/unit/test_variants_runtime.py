@@ -8,7 +8,8 @@ import pytest
 
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.chains.registry import make_component, make_source, score_output
-from autopower.chains.variants import SkippingSource, measure_variants, measured_quality
+from autopower.chains.quality import measure_variants
+from autopower.chains.variants import SkippingSource, measured_quality
 from autopower.model.dvfs import apply_levels
 from autopower.model.energy import evaluate
 from autopower.model.loading import load_scenario
