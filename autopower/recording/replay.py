@@ -46,6 +46,8 @@ from the telemetry layout and the structured text events (`autopower.recording.r
       "outputs": {"recorded": bool, "lost": int, "duplicated": int, "resent": int, "given_up": int,
                   "chains": {chain: {"outputs": int, "distinct": int, "lost": int, "duplicated": int,
                                      "runs": [int]}}},
+      "quality": {chain: {metric: float}},          # measured quality, mean over the chain's outputs
+                                                    # (blob recall, localisation error; see chains.variants)
       "invariants": [{"name": str, "ok": bool | null, "detail": str}],   # null: not checkable here
       "ok": bool,                                   # every checkable invariant holds
       "lost_outputs": int, "duplicated_outputs": int, "energy_model_error_pct": float | null
@@ -267,6 +269,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         "energy": {"metered_j": metered_sum, "model_j": model_sum if model_known else None, "error_pct": error,
                    "overhead_j": overhead_sum, "per_robot": per_robot_energy},
         "outputs": outputs,
+        "quality": _quality(rec),
         "invariants": invariants,
         "ok": all(i["ok"] is not False for i in invariants),
         "lost_outputs": outputs["lost"],
@@ -509,6 +512,24 @@ def _reconfiguration(rec, kind, t_ref, t_next, plans, commits, decision_times, s
     horizon = min(t_next, later[0] if later else math.inf)
     landed = [t for t in stage_ready if t_plan - _EPS <= t < horizon]
     return max([t_plan, *landed]), "replan"
+
+
+_QUALITY = re.compile(r"^components/(?P<chain>.+)/quality/(?P<metric>[^/]+)$")
+
+
+def _quality(rec: Recording) -> dict[str, dict[str, float]]:
+    """Each chain's measured quality (`recording.live.QualityScorer`), the mean over its outputs;
+    blob recall is pooled over every camera frame (victims found / victims in view)."""
+    out: dict[str, dict[str, float]] = {}
+    for entity, (_, values) in rec.scalars.items():
+        m = _QUALITY.match(entity)
+        finite = [v for v in values if math.isfinite(v)] if m else []
+        if finite:
+            out.setdefault(m["chain"], {})[m["metric"]] = sum(finite) / len(finite)
+    for chain, q in out.items():
+        if "victims_total" in q and q["victims_total"] > 0:
+            q["recall"] = q.get("victims_found", 0.0) / q["victims_total"]
+    return out
 
 
 def _outputs(rec: Recording) -> dict[str, Any]:
