@@ -72,3 +72,30 @@ def test_a_plan_naming_levels_round_trips_the_codec():
     assert back.levels == {"r1": "100MHz"} and back.variants == {"Blob-2": "2fps"}
     with pytest.raises(ProtocolError):  # a hostile plan: levels must map names to names
         decode(encode(dataclasses.replace(update, levels={"r1": 5})), PlanUpdate)
+
+
+def test_levels_follow_the_placement_at_run_time():
+    """Whatever moves a stage (here the operator), the next plan carries the levels that fit the new
+    placement and the agent's meter switches to them."""
+    from autopower.basestation.coordinator import CoordinatorConfig
+    from autopower.protocol import MigrateCommand
+    from tests.unit.sim_team import SimTeam
+
+    team = SimTeam(DVFS, config=CoordinatorConfig(speed=1.0, auto_replan=False))
+    team.join()
+    coord, r1 = team.coordinator, team.nodes["r1"]
+    team.run_until(5.0)
+    assert coord.placement["Loc-1"] == "laptop" and r1.meter.level == "100MHz"
+    reply = coord.on_operator(MigrateCommand(stage="Loc-1", to_node="r1"))
+    assert reply.ok, reply.message
+    team.run_until(10.0)
+    assert coord.placement["Loc-1"] == "r1"
+    # Loc-1 is 42.5 % of r1 at 400 MHz: 200 MHz (85 %) fits, 100 MHz (170 %) does not
+    assert coord.levels["r1"] == "200MHz" and r1.meter.level == "200MHz" and r1.meter.latency_factor == 2.0
+    assert coord.plan_network is not None and team.nodes["r2"].meter.level == "100MHz"
+    t0 = 20.0
+    team.run_until(t0)
+    e0 = team.energy("r1")
+    team.run_until(t0 + 60.0)
+    ev = evaluate(apply_levels(DVFS, coord.levels), coord.plan_network, coord.placement)
+    assert (team.energy("r1") - e0) / 60.0 == pytest.approx(ev.robots["r1"].total_w, rel=2e-3)
