@@ -29,10 +29,12 @@ import numpy as np
 
 from autopower.errors import AutoPowerError, InfeasibleError
 from autopower.model.dvfs import cpu_at_best_levels, has_levels
+from autopower.model.variants import apply_variants
 from autopower.model.energy import LoadSpace, active_chains, load_of
 from autopower.model.mission_events import NO_EVENTS, EventScript, MissionEvent
 from autopower.model.network import Network, media_choices
 from autopower.model.scenario import Scenario
+from autopower.planner.plan_choices import mission_variants
 from autopower.planner.problem import PlanRequest, make_problem
 from autopower.policies import (
     Decision,
@@ -412,5 +414,7 @@ def simulate(scenario: Scenario, events: EventScript = NO_EVENTS, *, policy: str
     if isinstance(policy, str):
         policy = make_policy(policy, **dict(policy_params or {}))
     scenario = scenario.with_accounting(accounting)
+    # quality variants are fixed for the mission, as a live base station fixes them (the planner's)
+    scenario = apply_variants(scenario, mission_variants(scenario))
     mission = _Mission(scenario, events, policy, seed, topology, accounting, telemetry, horizon_s)
     return mission.run()

@@ -99,3 +99,14 @@ def test_levels_follow_the_placement_at_run_time():
     team.run_until(t0 + 60.0)
     ev = evaluate(apply_levels(DVFS, coord.levels), coord.plan_network, coord.placement)
     assert (team.energy("r1") - e0) / 60.0 == pytest.approx(ev.robots["r1"].total_w, rel=2e-3)
+
+
+def test_simulator_runs_the_planned_variants_at_their_levels():
+    s = load_scenario("paper-variants-dvfs").with_accounting("physical")
+    best = plan(PlanRequest(scenario=s, method="exhaustive"))
+    assert best.variants["Blob-2"] == "1fps"
+    result = simulate(s, policy="static")
+    # the static policy keeps the planned configuration: the simulated mission lives as planned
+    assert result.lifetime_s == pytest.approx(best.evaluation.lifetime_s, rel=1e-6)
+    assert result.lifetime_s > simulate(load_scenario("paper-pxa255-dvfs").with_accounting("physical"),
+                                        policy="static").lifetime_s * 1.1
