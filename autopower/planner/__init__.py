@@ -67,6 +67,8 @@ class Plan:
         }
         if self.variants or self.levels or self.quality is not None:
             out.update(variants=dict(self.variants), levels=dict(self.levels), quality=self.quality)
+        if self.pareto:  # a quality_weight chose the plan on this front
+            out["pareto"] = [dict(p) for p in self.pareto]
         if self.bound is not None:
             out["time_sharing_bound"] = {
                 "lifetime_s": self.bound.lifetime_s,
