@@ -110,8 +110,6 @@ def test_dvfs_plan_charges_the_chosen_level():
 def test_dvfs_level_keeps_utilisation_within_100_percent():
     s = load_scenario("paper-pxa255-dvfs")
     # everything local: r2 and r3 run Loc (42.5 %) and Blob (46 %) = 88.5 %: only 400 MHz fits
-    p = plan(PlanRequest(scenario=s, network=None, topology="fully-connected", method="exhaustive",
-                         unavailable_nodes=frozenset()))
     local = {c.name: c.source for c in s.chains}
     s_local = dataclasses.replace(s, chains=tuple(dataclasses.replace(c, stages=tuple(
         dataclasses.replace(st_, pin=c.source) for st_ in c.stages)) for c in s.chains))
