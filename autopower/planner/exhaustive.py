@@ -56,7 +56,33 @@ def search_network(problem: Problem, network: Network) -> tuple[LoadSpace, np.nd
         rows = np.array([space.chain_load(chain, o) for o in opts])
         loads = combine(loads, rows)
         options.append(opts)
+    add_flow_loads(problem, space, options, loads)
     return space, loads, options
+
+
+def add_flow_loads(problem: Problem, space: LoadSpace, options: list[list[tuple[str, ...]]], loads: np.ndarray) -> None:
+    """Add each DAG flow's load to every combination (in place): the flow joins two chains'
+    options, so its load is looked up by (producer host, consumer host) per combination."""
+    flows = problem.flows
+    if not flows:
+        return
+    sizes = [len(o) for o in options]
+    picks = np.unravel_index(np.arange(loads.shape[0]), sizes)
+    where = {s.name: (i, k) for i, c in enumerate(problem.chains) for k, s in enumerate(c.stages)}
+    nodes = {n: j for j, n in enumerate(space.nodes)}
+    for flow in flows:
+        (a, ka), (b, kb) = where[flow.producer], where[flow.consumer]
+        producer_chain = problem.chains[a]
+        table = np.zeros((len(nodes), len(nodes), space.size))
+        for src, i in nodes.items():
+            for dst, j in nodes.items():
+                if space.network.reachable(src, dst):
+                    table[i, j] = space.dag_flow_load(flow, producer_chain, src, dst)
+                else:  # no route between the two hosts: that combination cannot run
+                    table[i, j, space.cpu_slot(src)] = np.inf
+        src_of = np.array([nodes[o[ka]] for o in options[a]])
+        dst_of = np.array([nodes[o[kb]] for o in options[b]])
+        loads += table[src_of[picks[a]], dst_of[picks[b]]]
 
 
 def exhaustive(problem: Problem, max_ties: int = 8) -> list[Candidate]:
