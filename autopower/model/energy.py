@@ -144,12 +144,15 @@ class LoadSpace:
         return load
 
     def dag_flow_load(self, flow: Flow, producer_chain: Chain, src: str, dst: str) -> np.ndarray:
-        """Load of one DAG flow (autopower.model.dag) from its producer's host to its consumer's."""
+        """Load of one DAG flow (autopower.model.dag) from its producer's host to its consumer's.
+
+        Between hosts with no route (a partitioned team) it carries nothing: its frames wait in
+        their producer's custody until a route returns, as a chain's results wait for its sink."""
         key = (flow.name, (src, dst))
         cached = self._chain_cache.get(key)
         if cached is None:
             cached = np.zeros(self.size)
-            if src != dst:
+            if src != dst and self.network.reachable(src, dst):
                 self.flow_load(src, dst, flow.n_bytes, flow_rate_hz(producer_chain, self.accounting), cached)
             self._chain_cache[key] = cached
         return cached
@@ -319,7 +322,7 @@ def dag_load(space: LoadSpace, chains: Sequence[Chain], allocation: Mapping[str,
              flows: Sequence[Flow] | None = None) -> np.ndarray:
     """Load of the DAG flows between running `chains` (all of them, or just `flows`)."""
     total = np.zeros(space.size)
-    by_stage = chain_of_stage(chains)
+    by_stage = {**chain_of_stage(space.scenario.chains), **chain_of_stage(chains)}  # a flow's producer may be fixed
     for flow in active_flows(chains) if flows is None else flows:
         total += space.dag_flow_load(flow, by_stage[flow.producer], allocation[flow.producer],
                                      allocation[flow.consumer])

@@ -184,9 +184,8 @@ class PlacementModel:
                 if u_node == v_node:
                     continue
                 hosts_term = (self.x[(flow.producer, u_node)], self.x[(flow.consumer, v_node)])
-                if not self.structure.reachable(u_node, v_node):  # this pair of hosts cannot talk
-                    self.lp.row({self.product(hosts_term): 1.0}, 0.0, 0.0)
-                    continue
+                if not self.structure.reachable(u_node, v_node):
+                    continue  # partitioned: the flow waits in custody, uncharged (LoadSpace.dag_flow_load)
                 for a, b, _ in self.structure.route(u_node, v_node):
                     for medium, m_term in self.media_terms(a, b):
                         air = airtime_s(flow.n_bytes, self.scenario.radios[medium]) * rate
