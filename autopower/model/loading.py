@@ -501,9 +501,11 @@ class ScenarioParser:
         where: dict[tuple[str, str], tuple[str, str]] = {}
         for spath, consumer, raw in self.flow_specs:
             ipath = f"{spath}.inputs"
+            # the line of `inputs = [...]`, or of `stages = [...]` when it sits inside a stage's inline table
+            line_path = f"{spath.split('.stages[')[0]}.stages" if ".stages[" in spath else ipath
 
             def bad(field: str, problem: str, expected: str) -> ScenarioError:
-                return self.fail(field, problem, expected, ipath)  # the line of `inputs = [...]`
+                return self.fail(field, problem, expected, line_path)
 
             if not isinstance(raw, list) or not raw:
                 raise bad(ipath, f"found {raw!r}", 'a non-empty list of { from = "STAGE", bytes = N }')
@@ -520,6 +522,10 @@ class ScenarioParser:
                     raise bad(f"{fpath}.from", f"unknown stage {producer!r}",
                               f"a stage of another chain: {', '.join(by_stage)}")
                 home, chain = by_stage[producer], by_stage[consumer]
+                if chain.sourced or chain.stages[0].name != consumer:
+                    raise bad(ipath, f"inputs on {consumer!r}, a stage its own chain feeds",
+                              "inputs only on the first stage of a chain without a source (the runtime joins "
+                              "stages fed by inputs alone; put the fan-in stage first in a chain of its own)")
                 if home is chain:
                     raise bad(f"{fpath}.from", f"{producer!r} is in the same chain as {consumer!r}",
                               "a stage of another chain (within a chain each stage already feeds the next)")
@@ -533,7 +539,7 @@ class ScenarioParser:
                 if isinstance(n_bytes, bool) or not isinstance(n_bytes, int) or not 0 <= n_bytes <= MAX_MESSAGE_BYTES:
                     raise bad(f"{fpath}.bytes", f"found {n_bytes!r}", f"a non-negative integer of at most {MAX_MESSAGE_BYTES}")
                 flows[chain.name].append(Flow(producer=producer, consumer=consumer, n_bytes=n_bytes))
-                where[(producer, consumer)] = (f"{fpath}.from", ipath)
+                where[(producer, consumer)] = (f"{fpath}.from", line_path)
         out = tuple(dataclasses.replace(c, inputs=tuple(flows[c.name])) if flows[c.name] else c for c in chains)
         cycle = find_cycle(out)
         if cycle is not None:

@@ -67,31 +67,47 @@ def test_bad_flows_name_file_line_and_field(new, field, problem):
 
 
 def test_a_cycle_is_refused_naming_it():
-    # Loc-1 takes the team map as an input: Loc-1 > TeamMap > Loc-1
-    text = edited('component = "Loc"\nperiod_s = 2.0', 'component = "Loc"\ninputs = [{ from = "TeamMap", bytes = 9 }]\nperiod_s = 2.0')
-    with pytest.raises(ScenarioError, match=r"dag.toml:\d+: chains\[(0|5)\]\.inputs\[0\]\.from: cycle "
-                                            r"(Loc-1 > TeamMap > Loc-1|TeamMap > Loc-1 > TeamMap)"):
+    # a second map fed by the first, which takes the second as an input: TeamMap > Map2 > TeamMap
+    text = edited(INPUTS, INPUTS.replace("]", ', { from = "Map2", bytes = 9 }]'))
+    text += """
+[[chains]]
+name = "Map2"
+sink = "operator"
+component = "TeamMap"
+period_s = 2.0
+inputs = [{ from = "TeamMap", bytes = 600 }]
+message_bytes = [600]
+"""
+    with pytest.raises(ScenarioError) as err:
         parse_scenario(text, "dag.toml")
+    message = str(err.value)
+    assert re.fullmatch(r"dag.toml:(\d+): chains\[(5|6)\]\.inputs\[(0|3)\]\.from: cycle "
+                        r"(TeamMap > Map2 > TeamMap|Map2 > TeamMap > Map2); expected an acyclic graph.*", message), message
+    line = int(message.split(":")[1])
+    assert "inputs = [" in text.splitlines()[line - 1]
 
 
-def test_a_chain_without_source_or_inputs_is_dangling():
-    text = edited(INPUTS + "\n", "")
-    with pytest.raises(ScenarioError, match=r"dag.toml:\d+: chains\[5\]: missing required key 'source'"):
+def test_inputs_only_on_the_first_stage_of_a_chain_without_source():
+    """Fan-in into a stage its own chain also feeds is refused (the runtime joins stages fed by
+    inputs alone); the line is the one of the stages list it sits in."""
+    old = 'name = "Loc-1"\nsource = "r1"\nsink = "source"               # the pose goes back to the robot\ncomponent = "Loc"'
+    new = ('name = "Loc-1"\nsource = "r1"\nsink = "source"\n'
+           'stages = [{ name = "A", component = "Loc" }, { name = "B", component = "Loc", inputs = [{ from = "Loc-2", bytes = 5 }] }]')
+    text = edited(old, new).replace("message_bytes = [1059, 805]", "message_bytes = [1059, 805, 805]", 1)
+    with pytest.raises(ScenarioError) as err:
         parse_scenario(text, "dag.toml")
+    line = line_of(text, 'stages = [{ name = "A"')
+    assert str(err.value).startswith(f"dag.toml:{line}: chains[0].stages[1].inputs: "
+                                     "inputs on 'B', a stage its own chain feeds; expected inputs only on the first stage")
 
 
 def test_same_chain_input_is_refused():
-    text = edited("""name = "Loc-1"
-source = "r1"
-sink = "source"               # the pose goes back to the robot
-component = "Loc\"""", """name = "Loc-1"
-source = "r1"
-sink = "source"               # the pose goes back to the robot
-stages = [{ name = "A", component = "Loc" }, { name = "B", component = "Loc", inputs = [{ from = "A", bytes = 5 }] }]""")
-    text = text.replace("message_bytes = [1059, 805]", "message_bytes = [1059, 805, 805]", 1)
-    text = text.replace('"Loc-1" = "laptop", ', '"A" = "laptop", "B" = "laptop", ').replace('"Loc-1" = "r1", ', '"A" = "r1", "B" = "r1", ')
-    text = text.replace('{ from = "Loc-1", bytes = 805 }, ', "")
-    with pytest.raises(ScenarioError, match=r"chains\[0\]\.stages\[1\]\.inputs\[0\]\.from: 'A' is in the same chain"):
+    text = edited('component = "TeamMap"\n', "")
+    text = text.replace(INPUTS, 'stages = [{ name = "TeamMap", component = "TeamMap", inputs = [{ from = "Tail", bytes = 5 }] }, '
+                                '{ name = "Tail", component = "TeamMap" }]')
+    text = text.replace("message_bytes = [600]", "message_bytes = [600, 600]")
+    text = text.replace('"TeamMap" = "laptop" }', '"TeamMap" = "laptop", "Tail" = "laptop" }')
+    with pytest.raises(ScenarioError, match=r"chains\[5\]\.stages\[0\]\.inputs\[0\]\.from: 'Tail' is in the same chain"):
         parse_scenario(text, "dag.toml")
 
 
