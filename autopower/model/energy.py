@@ -322,6 +322,8 @@ def dag_load(space: LoadSpace, chains: Sequence[Chain], allocation: Mapping[str,
              flows: Sequence[Flow] | None = None) -> np.ndarray:
     """Load of the DAG flows between running `chains` (all of them, or just `flows`)."""
     total = np.zeros(space.size)
+    if not flows and (flows is not None or not any(c.inputs for c in chains)):
+        return total  # linear chains only: the common case stays as cheap as before
     by_stage = {**chain_of_stage(space.scenario.chains), **chain_of_stage(chains)}  # a flow's producer may be fixed
     for flow in active_flows(chains) if flows is None else flows:
         total += space.dag_flow_load(flow, by_stage[flow.producer], allocation[flow.producer],
