@@ -11,9 +11,11 @@ sources tick on the mission clock's multiples of the period, so equal steps are 
 A step runs, in step order, as soon as every expected input (those whose producer chain runs) is
 there; an input that has not come `join_wait_s` wall seconds after the step's first input is
 declared *missing* and the step runs with what is present, the absent producers listed in the
-join message (`autopower.chains.teammap.encode_join`) and counted ("join-missing"). An input that
-arrives after its step ran is *late*: consumed (acknowledged, never run twice), dropped and
-counted ("join-late"). A step none of whose inputs came is skipped ("join-empty-steps").
+join message (`autopower.chains.teammap.encode_join`) and counted: "join-missing" (an error) when
+that edge had delivered before, "join-not-started" (a counter) when its producer had not produced
+anything yet (sources start a period or two apart when a team starts). An input that arrives
+after its step ran is *late*: consumed (acknowledged, never run twice), dropped and counted
+("join-late"). A step none of whose inputs came is skipped (`join_stats`: empty_steps).
 The bound is above the custody resend time (about 1 s), so a lost frame that a resend recovers in
 time still joins its own step.
 
@@ -104,7 +106,8 @@ class Join:
 
     step: int
     payload: bytes
-    missing: list[str]
+    missing: list[str]  # producers absent from this step (all of them, as the join message lists them)
+    lost: list[str]  # ... of which had delivered before: a loss; the others had not started yet
     t_unix: float  # the earliest input's production time (latency counts from there)
 
 
@@ -119,7 +122,8 @@ class JoinState:
         self.next_step: int | None = None
         self.joined = 0
         self.late = 0
-        self.missing = 0
+        self.missing = 0  # inputs absent from a step whose edge had delivered before
+        self.not_started = 0  # inputs absent because their producer had not produced anything yet
         self.empty_steps = 0
 
     def offer(self, flow: str, frame: ChainFrame, step: int, now: float) -> str:
@@ -156,9 +160,12 @@ class JoinState:
                 break
             del self.waiting[k]
             del self.first_seen[k]
-            self.missing += len(absent)
+            lost = [name for name in absent if self.gates[name].run >= 0]
+            self.missing += len(lost)
+            self.not_started += len(absent) - len(lost)
             producers = {self.flows[name].producer: data for name, (data, _) in inputs.items()}
             out.append(Join(step=k, missing=[self.flows[name].producer for name in absent],
+                            lost=[self.flows[name].producer for name in lost],
                             payload=encode_join(k, producers, [self.flows[name].producer for name in absent]),
                             t_unix=min(t for _, t in inputs.values())))
             self.joined += 1
@@ -178,7 +185,8 @@ class JoinState:
         return {"gates": {n: [g.run, g.contiguous, sorted(g.above)] for n, g in self.gates.items()},
                 "waiting": [[k, n, d, t] for k, inputs in self.waiting.items() for n, (d, t) in inputs.items()],
                 "first_seen_age": {str(k): time.time() - t for k, t in self.first_seen.items()},
-                "next_step": self.next_step, "counts": [self.joined, self.late, self.missing, self.empty_steps]}
+                "next_step": self.next_step,
+                "counts": [self.joined, self.late, self.missing, self.empty_steps, self.not_started]}
 
     def restore(self, obj: dict) -> None:
         gates = obj["gates"]
@@ -195,7 +203,7 @@ class JoinState:
         for k, age in obj["first_seen_age"].items():
             self.first_seen[int(k)] = now - float(age)
         self.next_step = None if obj["next_step"] is None else int(obj["next_step"])
-        self.joined, self.late, self.missing, self.empty_steps = (int(v) for v in obj["counts"])
+        self.joined, self.late, self.missing, self.empty_steps, self.not_started = (int(v) for v in obj["counts"])
 
 
 class JoinedComponent:
@@ -301,9 +309,11 @@ class Joining:
         wait = join_wait_s(hosted.chain.period_s, self.mission.speed if self.mission else 1.0)
         before = component.join.missing
         for join in component.join.ready(expected, self.wall(), wait):
-            if join.missing:
+            if join.lost:  # an input of a producer that had delivered before: lost or late
                 self.count("join-missing", f"{hosted.stage.name} step {join.step} ran without "
-                           f"{', '.join(join.missing)}", logging.INFO)
+                           f"{', '.join(join.lost)}", logging.INFO)
+            elif join.missing:  # at start-up: a producer that has not produced anything yet
+                self.tally("join-not-started", len(join.missing))
             seq = hosted.gate.next_seq if hosted.gate.next_seq is not None else 0
             frame = ChainFrame(chain=hosted.chain.name, run=hosted.run, seq=seq, target=hosted.index,
                                t_virtual=join.step * hosted.chain.period_s, t_unix=join.t_unix,
@@ -333,7 +343,8 @@ class Joining:
     def join_stats(self) -> dict[str, dict[str, int]]:
         """Per fan-in stage hosted here: steps joined, inputs late, missing, empty steps."""
         return {name: {"joined": h.component.join.joined, "late": h.component.join.late,
-                       "missing": h.component.join.missing, "empty_steps": h.component.join.empty_steps}
+                       "missing": h.component.join.missing, "not_started": h.component.join.not_started,
+                       "empty_steps": h.component.join.empty_steps}
                 for name, h in self.hosted.items() if isinstance(h.component, JoinedComponent)}
 
 

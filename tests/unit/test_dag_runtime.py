@@ -199,3 +199,22 @@ def test_edge_gate_reports_what_custody_must_resend():
     report = gate.report(generation=5)
     assert (report.next_seq, report.max_seq, report.missing, report.generation) == (1, 3, (1,), 5)
     assert gate.admit(1, 0) == "new" and gate.admit(0, 9) == "stale"  # a new run of the producer resets it
+
+
+def test_a_producer_that_has_not_started_is_not_a_loss():
+    """At start-up a producer may begin a step later than the others: the first step runs without
+    it after the bound, listed in the join message but counted as not started, not as missing."""
+    flows = SC.chain("TeamMap").inputs
+    join = JoinState(flows)
+    a, b, c = (f.name for f in flows)
+    join.offer(a, _frame(0, 0.0, b"A0"), 0, now=0.0)
+    join.offer(b, _frame(0, 0.0, b"B0"), 0, now=0.0)
+    [first] = join.ready({a, b, c}, now=3.5, wait_s=3.0)
+    assert first.missing == ["Loc-3"] and first.lost == []
+    assert (join.missing, join.not_started) == (0, 1)
+    for name in (a, b, c):
+        join.offer(name, _frame(1, 2.0, b"x"), 1, now=4.0)
+    join.offer(a, _frame(2, 4.0, b"x"), 2, now=5.0)
+    join.offer(b, _frame(2, 4.0, b"x"), 2, now=5.0)
+    assert [(j.step, j.lost) for j in join.ready({a, b, c}, now=8.5, wait_s=3.0)] == [(1, []), (2, ["Loc-3"])]
+    assert (join.missing, join.not_started) == (1, 1)  # now Loc-3 had delivered: its absence is a loss
