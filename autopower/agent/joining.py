@@ -77,12 +77,18 @@ class EdgeGate:
     above: set[int] = field(default_factory=set)
     duplicates: int = 0
 
-    def admit(self, run: int, seq: int) -> str:
-        """"new", "duplicate" or "stale" (a frame of an older run of the producer chain)."""
+    def admit(self, run: int, seq: int, floor: int | None = None) -> str:
+        """"new", "duplicate" or "stale" (a frame of an older run of the producer chain).
+
+        ``floor`` is the producer's lowest unacknowledged seq (`ChainFrame.floor`): everything below
+        was consumed by some instance of this stage, so a gate started fresh (a failover without
+        state) starts there instead of asking for the whole run again."""
         if run < self.run:
             return "stale"
         if run > self.run:
-            self.run, self.contiguous, self.above = run, 0, set()
+            self.run, self.contiguous, self.above = run, 0 if floor is None else min(seq, floor), set()
+        elif floor is not None and floor > self.contiguous and not any(s < floor for s in self.above):
+            self.contiguous = floor  # consumed by a previous instance
         if seq < self.contiguous or seq in self.above:
             self.duplicates += 1
             return "duplicate"
@@ -128,7 +134,7 @@ class JoinState:
 
     def offer(self, flow: str, frame: ChainFrame, step: int, now: float) -> str:
         """Admit one input: "new", "duplicate", "stale", "late" or "overflow"."""
-        verdict = self.gates[flow].admit(frame.run, frame.seq)
+        verdict = self.gates[flow].admit(frame.run, frame.seq, frame.floor)
         if verdict != "new":
             return verdict
         if self.next_step is not None and step < self.next_step:
