@@ -44,6 +44,7 @@ class Acknowledging:
             report = ledger.report()
             if report is not None and name in self.chains:
                 out[hop_key(name, len(self.chains[name].stages))] = report
+        out.update(self.flow_consumed())  # DAG flows: each fan-in stage's edge gates
         return out
 
     def _consumer_of(self, frame: ChainFrame) -> str | None:
@@ -65,6 +66,7 @@ class Acknowledging:
             chain = self.chains.get(name)
             if chain is not None and chain.stages:
                 out.add(placement.get(chain.stages[-1].name))
+        out |= self.flow_producers()
         return out - {None, self.node}
 
     def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed]) -> None:

@@ -139,6 +139,9 @@ class Frames:
             self._admit(hosted, frame)
 
     def _admit(self, hosted: HostedStage, frame: ChainFrame) -> None:
+        if frame.chain != hosted.chain.name:  # a DAG flow into this stage: joined by step
+            self.admit_flow(hosted, frame)
+            return
         if frame.run != hosted.run:
             self.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
                        logging.INFO)
@@ -186,6 +189,7 @@ class Frames:
         payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
         out = ChainFrame(chain=chain.name, run=frame.run, seq=frame.seq, target=target, t_virtual=frame.t_virtual,
                          t_unix=frame.t_unix, payload_len=len(output), payload=payload, attempt=int(recomputed))
+        self.emit_flows(hosted, frame, output)  # DAG fan-out: the same output along each flow it feeds
         dest = chain.sink if target == len(chain.stages) else self.plan.placement.get(chain.stages[target].name)
         if dest is None:
             self.count("unplaced-stage", f"{chain.stages[target].name} has no host")

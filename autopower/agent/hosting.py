@@ -52,7 +52,9 @@ class Hosting:
             self.on_release(msg)
 
     def _new_component(self, chain: Chain, stage: Stage):
-        return self._build(self._make_component, stage.component, chain.source, chain_seed(self.scenario, chain))
+        return self.wrap_joined(self._build(self._make_component, stage.component, chain.source,
+                                            chain_seed(self.scenario, chain)),
+                                stage.name)  # a fan-in stage's join travels with its state
 
     def _reply(self, msg) -> None:
         self.send_to(self.scenario.basestation, self.keys.inbox, encode(msg))

@@ -37,6 +37,7 @@ from autopower.agent.custody import Custody
 from autopower.agent.frames import Frames
 from autopower.agent.guard import ComponentHung, GuardedCalls
 from autopower.agent.hosting import Hosting
+from autopower.agent.joining import Joining
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.sequencing import SinkLedger
 from autopower.agent.stages import HELD_OUTPUT_LIMIT, HostedStage, SourceRunner, chain_seed, pad
@@ -62,7 +63,7 @@ from autopower.runtime.clock import Clock, VirtualClock
 log = logging.getLogger(__name__)
 
 
-class NodeRuntime(Frames, Hosting, Acknowledging):
+class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
     """Chain data handling for one node; see the module docstring."""
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
@@ -86,6 +87,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self._clock_factory = clock_factory or (lambda m: VirtualClock(m.epoch_unix, m.speed))
         self.chains = {c.name: c for c in scenario.chains}
         self.stage_index = {s.name: (c, i) for c in scenario.chains for i, s in enumerate(c.stages)}
+        self.init_flows()  # DAG flows: pseudo-chains in self.chains (autopower.agent.joining)
 
         self.mission: MissionInfo | None = None
         self.clock: Clock | None = None
@@ -155,6 +157,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
                                       initial_j=plan.mission.energies_j.get(self.node),
                                       t0=max(0.0, self.clock.now()))
             self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
+            self.weights.update(self.flow_weights(plan.mission.accounting))
         self._set_plan(plan)
         # stages that have landed elsewhere: frames held here for them can go now
         for stage, frames in list(self.orphans.items()):
@@ -164,7 +167,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
                 for frame in frames:
                     self.send_frame(frame, host)
         self._sync_sources()
-        for chain in {hop[0] for hop in self.custody.hops} - set(plan.running):
+        for chain in {hop[0] for hop in self.custody.hops} - set(plan.running) - self.running_flows():
             self.custody.forget_chain(chain)  # stopped: nobody will consume its frames
         parked, self.parked_transfers = self.parked_transfers, []
         for dest, body, chain in parked:
@@ -264,7 +267,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
                 self._retire_source(runner)
         for name, run in running.items():
             chain = self.chains.get(name)
-            if chain is None or chain.source != self.node or name in self.sources or self.hung_sources.get(name) == run:
+            if (chain is None or chain.source != self.node or name in self.sources or self.hung_sources.get(name) == run
+                    or not chain.sourced):  # a DAG chain fed by other stages has no source to run
                 continue
             try:
                 source = self._build(self._make_source, chain.stages[0].component, chain.source,
@@ -296,6 +300,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         if wall >= self._next_custody_check:
             self._acknowledge(self.node, wall, self.consumed())  # what we consumed ourselves
             self.resend_lost(wall)
+        self.join_tick()  # fan-in steps whose wait is over
         now = self.now()
         for runner in list(self.sources.values()):
             if runner.next_t > now:

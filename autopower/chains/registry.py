@@ -21,6 +21,7 @@ from autopower.chains.base import Component, Source, UnknownComponentTypeError, 
 from autopower.chains.blobfinder import BlobFinder, score_report
 from autopower.chains.camera import CameraSource
 from autopower.chains.mcl import MonteCarloLocaliser, score_estimate
+from autopower.chains.teammap import JoinSource, TeamMap, score_map
 from autopower.chains.variants import split_parameters, wrap_source
 from autopower.chains.world import LocSource
 
@@ -123,4 +124,11 @@ register_component_type(ComponentType(
     make_component=lambda robot, seed, n_particles=1000: MonteCarloLocaliser(robot, seed, n_particles=n_particles),
     score=score_estimate,
     description="Monte-Carlo localisation from odometry and two laser scanners",
+))
+register_component_type(ComponentType(
+    name="TeamMap",
+    make_source=JoinSource,  # profiling only: the runtime feeds a fan-in stage from its inputs
+    make_component=TeamMap,
+    score=score_map,
+    description="fan-in: merges every robot's localisation into the team's explored map (README, Applications as DAGs)",
 ))

@@ -13,6 +13,7 @@ from rich.table import Table
 
 from autopower.cli.options import ACCOUNTING_OPT, ENERGY_OPT, JSON_OPT, SCENARIO_ARG, build_scenario, console, parse_pairs
 from autopower.errors import ScenarioError
+from autopower.model.dag import active_flows, chain_of_stage
 from autopower.model.energy import Evaluation, active_chains, evaluate, flow_rate_hz
 from autopower.model.network import Network, build_network
 from autopower.model.scenario import TOPOLOGIES, Scenario
@@ -61,11 +62,24 @@ def flows(scenario: Scenario, network: Network, allocation: dict[str, str], acco
         names = ("source", *(s.name for s in chain.stages), "sink")
         for k, n_bytes in enumerate(chain.message_bytes):
             src, dst = hops[k], hops[k + 1]
+            if k == 0 and not chain.sourced:
+                continue  # a DAG chain fed by other stages: its inputs are the flows below
             out.append({
                 "chain": chain.name, "from_stage": names[k], "to_stage": names[k + 1],
                 "from": src, "to": dst, "bytes": n_bytes, "rate_hz": flow_rate_hz(chain, accounting),
                 "route": [{"from": u, "to": v, "medium": m} for u, v, m in network.route(src, dst)],
             })
+    chains = active_chains(scenario, network)
+    by_stage = chain_of_stage(chains)
+    for flow in active_flows(chains):  # DAG edges: a stage's output into another chain's stage
+        src, dst = allocation[flow.producer], allocation[flow.consumer]
+        out.append({
+            "chain": by_stage[flow.consumer].name, "flow": flow.name, "from_stage": flow.producer,
+            "to_stage": flow.consumer, "from": src, "to": dst, "bytes": flow.n_bytes,
+            "rate_hz": flow_rate_hz(by_stage[flow.producer], accounting),
+            "route": [{"from": u, "to": v, "medium": m} for u, v, m in network.route(src, dst)]
+            if network.reachable(src, dst) else [],
+        })
     return out
 
 

@@ -26,6 +26,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from autopower.errors import ScenarioError
+from autopower.model.dag import Flow, active_flows, chain_of_stage, runnable
 from autopower.model.network import Network
 from autopower.model.scenario import Chain, Radio, Scenario
 
@@ -141,6 +142,20 @@ class LoadSpace:
                 self.flow_load(src, dst, n_bytes, rate, load)
         self._chain_cache[key] = load
         return load
+
+    def dag_flow_load(self, flow: Flow, producer_chain: Chain, src: str, dst: str) -> np.ndarray:
+        """Load of one DAG flow (autopower.model.dag) from its producer's host to its consumer's.
+
+        Between hosts with no route (a partitioned team) it carries nothing: its frames wait in
+        their producer's custody until a route returns, as a chain's results wait for its sink."""
+        key = (flow.name, (src, dst))
+        cached = self._chain_cache.get(key)
+        if cached is None:
+            cached = np.zeros(self.size)
+            if src != dst and self.network.reachable(src, dst):
+                self.flow_load(src, dst, flow.n_bytes, flow_rate_hz(producer_chain, self.accounting), cached)
+            self._chain_cache[key] = cached
+        return cached
 
     # ---- load -> power -------------------------------------------------------------------------
     def split(self, loads: np.ndarray):
@@ -279,7 +294,7 @@ class Evaluation:
 
 def active_chains(scenario: Scenario, network: Network, disabled: frozenset[str] = frozenset()) -> list[Chain]:
     """Chains that run: not disabled by the operator and whose source robot is in the network."""
-    return [c for c in scenario.chains if c.name not in disabled and c.source in network.nodes]
+    return runnable([c for c in scenario.chains if c.name not in disabled and c.source in network.nodes])
 
 
 def check_allocation(scenario: Scenario, network: Network, chains: Sequence[Chain], allocation: Mapping[str, str]) -> None:
@@ -300,6 +315,19 @@ def load_of(space: LoadSpace, chains: Sequence[Chain], allocation: Mapping[str, 
     total = np.zeros(space.size)
     for chain in chains:
         total += space.chain_load(chain, tuple(allocation[s.name] for s in chain.stages))
+    return total + dag_load(space, chains, allocation)
+
+
+def dag_load(space: LoadSpace, chains: Sequence[Chain], allocation: Mapping[str, str],
+             flows: Sequence[Flow] | None = None) -> np.ndarray:
+    """Load of the DAG flows between running `chains` (all of them, or just `flows`)."""
+    total = np.zeros(space.size)
+    if not flows and (flows is not None or not any(c.inputs for c in chains)):
+        return total  # linear chains only: the common case stays as cheap as before
+    by_stage = {**chain_of_stage(space.scenario.chains), **chain_of_stage(chains)}  # a flow's producer may be fixed
+    for flow in active_flows(chains) if flows is None else flows:
+        total += space.dag_flow_load(flow, by_stage[flow.producer], allocation[flow.producer],
+                                     allocation[flow.consumer])
     return total
 
 

@@ -7,6 +7,7 @@ the line where it can be found, what was found and what was expected.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import tomllib
@@ -17,6 +18,7 @@ from typing import Any, Iterable, Mapping
 from autopower.errors import ScenarioError
 import networkx as nx
 
+from autopower.model.dag import Flow, find_cycle
 from autopower.model.dvfs import parse_levels
 from autopower.model.variants import check_chain_variants, parse_variants
 
@@ -143,8 +145,8 @@ class ScenarioParser:
         self.where = where
 
     # ---- error reporting -------------------------------------------------------------------
-    def fail(self, path: str, problem: str, expected: str) -> ScenarioError:
-        line = self._line_of(path)
+    def fail(self, path: str, problem: str, expected: str, line_of: str | None = None) -> ScenarioError:
+        line = self._line_of(line_of or path)  # line_of: a coarser path when the field is inline
         at = f"{self.where}:{line}" if line else self.where
         if len(problem) > 200:  # a whole mangled table in one line helps nobody
             problem = problem[:200] + " …"
@@ -449,13 +451,25 @@ class ScenarioParser:
             raise self.fail("chains", f"found {obj!r}", "[[chains]] tables")
         robot_by_name = {r.name: r for r in robots}
         out, stage_names = [], set()
+        self.flow_specs: list[tuple[str, str, Any]] = []  # (stage path, stage name, raw inputs), for dag_flows
         for i, spec in enumerate(obj):
             path = f"chains[{i}]"
             spec = self.table(spec, path, ["name", "source", "sink", "period_s", "component", "stages",
-                                           "message_bytes", "requires", "pin", "hosts", "min_quality"],
-                              ["name", "source", "period_s", "message_bytes"])
+                                           "message_bytes", "requires", "pin", "hosts", "min_quality", "inputs"],
+                              ["name", "period_s", "message_bytes"])
             name = self.string(spec, "name", path)
-            source = self.string(spec, "source", path, choices=list(robot_by_name))
+            sourced = "source" in spec or not self.first_stage_has_inputs(spec)
+            if not sourced:  # a DAG chain fed only by other stages (autopower.model.dag): lives at its sink
+                for key in ("requires",):
+                    if key in spec:
+                        raise self.fail(f"{path}.{key}", "set on a chain without a source", "no requires")
+                sink = self.string(spec, "sink", path)
+                spec = {**spec, "source": base if sink == "operator" else sink, "sink": sink}
+                if spec["source"] not in nodes:
+                    raise self.fail(f"{path}.sink", f"found {sink!r}", f"\"operator\" or a node: {', '.join(nodes)}")
+                if isinstance(spec["message_bytes"], list):  # no sensor hop: source -> stage 0 carries 0 B
+                    spec["message_bytes"] = [0, *spec["message_bytes"]]
+            source = self.string(spec, "source", path, choices=list(robot_by_name) + ([] if sourced else [base]))
             sink = self.string(spec, "sink", path, default="source")
             sink = {"source": source, "operator": base}.get(sink, sink)
             if sink not in nodes:
@@ -471,19 +485,84 @@ class ScenarioParser:
             if (not isinstance(sizes, list) or len(sizes) != len(stages) + 1
                     or not all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s <= MAX_MESSAGE_BYTES
                                for s in sizes)):
-                raise self.fail(f"{path}.message_bytes", f"found {sizes!r}",
-                                f"{len(stages) + 1} non-negative integers of at most {MAX_MESSAGE_BYTES} "
-                                "(source->first stage, ..., last stage->sink)")
+                raise self.fail(f"{path}.message_bytes", f"found {sizes[1:] if not sourced else sizes!r}",
+                                f"{len(stages) + int(sourced)} non-negative integers of at most {MAX_MESSAGE_BYTES} "
+                                + ("(source->first stage, ..., last stage->sink)" if sourced
+                                   else "(first stage->second, ..., last stage->sink; a chain without a source has no sensor hop)"))
             requires = frozenset(self.strings(spec, "requires", path))
-            lacking = requires - robot_by_name[source].sensors
+            lacking = requires - (robot_by_name[source].sensors if sourced else frozenset())
             if lacking:
                 raise self.fail(f"{path}.requires", f"source robot {source} lacks {', '.join(sorted(lacking))}",
                                 f"a source with those sensors (it has {', '.join(sorted(robot_by_name[source].sensors)) or 'none'})")
             out.append(Chain(name=name, source=source, sink=sink, period_s=period, stages=stages,
-                             message_bytes=tuple(sizes), requires=requires,
+                             message_bytes=tuple(sizes), requires=requires, sourced=sourced,
                              min_quality=self.number(spec, "min_quality", path, minimum=0.0, default=0.0)))
         check_chain_variants(self, out, components)
-        return tuple(out)
+        return self.dag_flows(tuple(out))
+
+    # ---- DAG flows (autopower.model.dag) -------------------------------------------------------
+    @staticmethod
+    def first_stage_has_inputs(spec: dict) -> bool:
+        if "stages" in spec:
+            raw = spec["stages"]
+            return isinstance(raw, list) and bool(raw) and isinstance(raw[0], dict) and "inputs" in raw[0]
+        return "inputs" in spec
+
+    def dag_flows(self, chains: tuple[Chain, ...]) -> tuple[Chain, ...]:
+        """Resolve every stage's `inputs` into flows; reject unknown or same-chain producers, a
+        producer listed twice, a period mismatch (the join is by step) and cycles."""
+        by_stage = {s.name: c for c in chains for s in c.stages}
+        flows: dict[str, list[Flow]] = {c.name: [] for c in chains}
+        where: dict[tuple[str, str], tuple[str, str]] = {}
+        for spath, consumer, raw in self.flow_specs:
+            ipath = f"{spath}.inputs"
+            # the line of `inputs = [...]`, or of `stages = [...]` when it sits inside a stage's inline table
+            line_path = f"{spath.split('.stages[')[0]}.stages" if ".stages[" in spath else ipath
+
+            def bad(field: str, problem: str, expected: str) -> ScenarioError:
+                return self.fail(field, problem, expected, line_path)
+
+            if not isinstance(raw, list) or not raw:
+                raise bad(ipath, f"found {raw!r}", 'a non-empty list of { from = "STAGE", bytes = N }')
+            seen = set()
+            for k, item in enumerate(raw):
+                fpath = f"{ipath}[{k}]"
+                if not isinstance(item, dict) or set(item) != {"from", "bytes"}:
+                    keys = sorted(item) if isinstance(item, dict) else None
+                    missing = sorted({"from", "bytes"} - set(keys or ()))
+                    raise bad(fpath, f"missing required key {missing[0]!r}" if keys is not None and missing
+                              else f"found {item!r}", '{ from = "STAGE", bytes = N } and nothing else')
+                producer = item["from"]
+                if not isinstance(producer, str) or producer not in by_stage:
+                    raise bad(f"{fpath}.from", f"unknown stage {producer!r}",
+                              f"a stage of another chain: {', '.join(by_stage)}")
+                home, chain = by_stage[producer], by_stage[consumer]
+                if chain.sourced or chain.stages[0].name != consumer:
+                    raise bad(ipath, f"inputs on {consumer!r}, a stage its own chain feeds",
+                              "inputs only on the first stage of a chain without a source (the runtime joins "
+                              "stages fed by inputs alone; put the fan-in stage first in a chain of its own)")
+                if home is chain:
+                    raise bad(f"{fpath}.from", f"{producer!r} is in the same chain as {consumer!r}",
+                              "a stage of another chain (within a chain each stage already feeds the next)")
+                if producer in seen:
+                    raise bad(f"{fpath}.from", f"{producer!r} listed twice", "each input once")
+                seen.add(producer)
+                if home.period_s != chain.period_s:
+                    raise bad(f"{fpath}.from", f"{producer} runs every {home.period_s:g} s, {consumer} every "
+                              f"{chain.period_s:g} s", "the same period_s (inputs are joined step by step)")
+                n_bytes = item["bytes"]
+                if isinstance(n_bytes, bool) or not isinstance(n_bytes, int) or not 0 <= n_bytes <= MAX_MESSAGE_BYTES:
+                    raise bad(f"{fpath}.bytes", f"found {n_bytes!r}", f"a non-negative integer of at most {MAX_MESSAGE_BYTES}")
+                flows[chain.name].append(Flow(producer=producer, consumer=consumer, n_bytes=n_bytes))
+                where[(producer, consumer)] = (f"{fpath}.from", line_path)
+        out = tuple(dataclasses.replace(c, inputs=tuple(flows[c.name])) if flows[c.name] else c for c in chains)
+        cycle = find_cycle(out)
+        if cycle is not None:
+            first = next(((a, b) for a, b in zip(cycle, cycle[1:]) if (a, b) in where), None)
+            field, line_path = where[first] if first else ("chains", None)
+            raise self.fail(field, f"cycle {' > '.join(cycle)}", "an acyclic graph of stages (remove one of these inputs)",
+                            line_path)
+        return out
 
     def stages(self, spec: dict, path: str, chain_name: str, components: dict, nodes: list[str]) -> tuple[Stage, ...]:
         if ("component" in spec) == ("stages" in spec):
@@ -491,18 +570,20 @@ class ScenarioParser:
                             "component = \"Loc\" for a one-stage chain, or stages = [{name, component}, ...]")
         if "component" in spec:
             raw = [{"name": chain_name, "component": spec["component"],
-                    **{k: spec[k] for k in ("pin", "hosts") if k in spec}}]
+                    **{k: spec[k] for k in ("pin", "hosts", "inputs") if k in spec}}]
         else:
             raw = spec["stages"]
             if not isinstance(raw, list) or not raw:
                 raise self.fail(f"{path}.stages", f"found {raw!r}", "a non-empty list of {name, component}")
-            for key in ("pin", "hosts"):
+            for key in ("pin", "hosts", "inputs"):
                 if key in spec:
                     raise self.fail(f"{path}.{key}", "set on a multi-stage chain", f"{key} inside each stage")
         out = []
         for j, st in enumerate(raw):
             spath = f"{path}.stages[{j}]" if "stages" in spec else path
-            st = self.table(st, spath, ["name", "component", "pin", "hosts"], ["name", "component"])
+            st = self.table(st, spath, ["name", "component", "pin", "hosts", "inputs"], ["name", "component"])
+            if "inputs" in st:
+                self.flow_specs.append((spath, self.string(st, "name", spath), st["inputs"]))
             pin = st.get("pin")
             if pin is not None:
                 pin = self.string(st, "pin", spath, choices=nodes)

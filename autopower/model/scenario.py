@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from autopower.errors import ScenarioError
+from autopower.model.dag import Flow
 
 ACCOUNTING_MODES = ("paper", "physical")
 TOPOLOGIES = ("fully-connected", "relay", "explicit")
@@ -74,6 +75,11 @@ class Chain:
     message_bytes: tuple[int, ...]  # source->stage0, stage0->stage1, ..., last stage->sink
     requires: frozenset[str] = frozenset()  # sensors the source robot must carry
     min_quality: float = 0.0  # the least quality score a variant may have to run this chain
+    # DAG (autopower.model.dag): flows from other chains' stages into this chain's stages (fan-in);
+    # sourced=False: no sensor source, the first stage is fed by its flows only (source = sink node,
+    # message_bytes[0] = 0)
+    inputs: tuple[Flow, ...] = ()
+    sourced: bool = True
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -56,7 +56,44 @@ def search_network(problem: Problem, network: Network) -> tuple[LoadSpace, np.nd
         rows = np.array([space.chain_load(chain, o) for o in opts])
         loads = combine(loads, rows)
         options.append(opts)
+    add_flow_loads(problem.chains, problem.flows, space, options, loads)
     return space, loads, options
+
+
+def add_flow_loads(chains, flows, space: LoadSpace, options: list[list[tuple[str, ...]]], loads: np.ndarray,
+                   fixed: dict[str, str] | None = None) -> None:
+    """Add each DAG flow's load to every combination of `chains`' options (in place, C order as
+    `combine` builds it): looked up by (producer host, consumer host) per combination. A flow
+    with one end outside `chains` takes that end's host from `fixed` (skipped if it has none);
+    a flow with both ends outside is the caller's (its base load)."""
+    if not flows:
+        return
+    sizes = [len(o) for o in options]
+    picks = np.unravel_index(np.arange(loads.shape[0]), sizes)
+    where = {s.name: (i, k) for i, c in enumerate(chains) for k, s in enumerate(c.stages)}
+    chain_of = {s.name: c for c in chains for s in c.stages}
+    nodes = {n: j for j, n in enumerate(space.nodes)}
+
+    def host_index(stage: str) -> np.ndarray | None:
+        if stage in where:
+            i, k = where[stage]
+            return np.array([nodes[o[k]] for o in options[i]])[picks[i]]
+        host = (fixed or {}).get(stage)
+        return None if host not in nodes else np.full(loads.shape[0], nodes[host])
+
+    for flow in flows:
+        if flow.producer not in where and flow.consumer not in where:
+            continue
+        src, dst = host_index(flow.producer), host_index(flow.consumer)
+        if src is None or dst is None:
+            continue
+        producer_chain = chain_of.get(flow.producer) or next(c for c in space.scenario.chains
+                                                             if any(s.name == flow.producer for s in c.stages))
+        table = np.zeros((len(nodes), len(nodes), space.size))
+        for a, i in nodes.items():
+            for b, j in nodes.items():
+                table[i, j] = space.dag_flow_load(flow, producer_chain, a, b)  # 0 without a route
+        loads += table[src, dst]
 
 
 def exhaustive(problem: Problem, max_ties: int = 8) -> list[Candidate]:

@@ -141,6 +141,7 @@ class PlacementModel:
                             term = u_term + v_term + m_term
                             add(send[(a, medium)], self.const_send, (a, medium), term, air)
                             add(recv[(b, medium)], self.const_recv, (b, medium), term, air)
+        self._add_dag_flows(add, send, recv)
         self.cpu, self.send, self.recv = cpu, send, recv
 
         # radio presence r[i, m] >= y[g, m] for every link of i (a constant 1 for fixed media)
@@ -172,6 +173,26 @@ class PlacementModel:
                 const = self.const_send[key] + self.const_recv[key]
                 if busy:
                     self.lp.row(busy, -INF, 1.0 - const)
+
+    def _add_dag_flows(self, add, send: dict, recv: dict) -> None:
+        """DAG flows (autopower.model.dag): a hop exists when the producer's and the consumer's
+        hosts (and the hop's medium) are chosen, like a chain's own hops."""
+        by_stage = {s.name: c for c in self.problem.chains for s in c.stages}
+        for flow in self.problem.flows:
+            if flow.n_bytes == 0:
+                continue
+            rate = flow_rate_hz(by_stage[flow.producer], self.problem.accounting)
+            for u_node, v_node in product(self.problem.hosts[flow.producer], self.problem.hosts[flow.consumer]):
+                if u_node == v_node:
+                    continue
+                hosts_term = (self.x[(flow.producer, u_node)], self.x[(flow.consumer, v_node)])
+                if not self.structure.reachable(u_node, v_node):
+                    continue  # partitioned: the flow waits in custody, uncharged (LoadSpace.dag_flow_load)
+                for a, b, _ in self.structure.route(u_node, v_node):
+                    for medium, m_term in self.media_terms(a, b):
+                        air = airtime_s(flow.n_bytes, self.scenario.radios[medium]) * rate
+                        add(send[(a, medium)], self.const_send, (a, medium), hosts_term + m_term, air)
+                        add(recv[(b, medium)], self.const_recv, (b, medium), hosts_term + m_term, air)
 
     def power(self, robot: str) -> tuple[dict[int, float], float]:
         """P_robot as (col -> coef, constant) watts."""

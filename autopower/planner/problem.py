@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from itertools import product
 from typing import Mapping
 
+from autopower.model.dag import Flow, active_flows, runnable
 from autopower.model.energy import active_chains
 from autopower.model.network import Network, build_network, media_choices
 from autopower.model.scenario import Chain, Scenario
@@ -45,6 +46,11 @@ class Problem:
 
     def options(self, chain: Chain) -> list[tuple[str, ...]]:
         return list(product(*(self.hosts[s.name] for s in chain.stages)))
+
+    @property
+    def flows(self) -> list[Flow]:
+        """The DAG flows between placed chains (autopower.model.dag)."""
+        return active_flows(self.chains)
 
     def combinations(self) -> int:
         n = 1
@@ -85,4 +91,10 @@ def make_problem(request: PlanRequest) -> Problem:
             problem.hosts[stage.name] = allowed
         if ok:
             problem.chains.append(chain)
+    problem.chains = runnable(problem.chains)  # a DAG chain whose inputs all stopped has nothing to join
+    placed = {c.name for c in problem.chains}
+    for chain in scenario.chains:
+        if (not chain.sourced and chain.name not in placed and chain.name not in problem.unroutable
+                and chain.name not in request.disabled_chains):
+            problem.unroutable[chain.name] = f"{chain.name} cannot run: none of its inputs runs"
     return problem

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from autopower.model.energy import Evaluation, LoadSpace, load_of
+from autopower.model.energy import Evaluation, LoadSpace, dag_load, load_of
 from autopower.model.network import Network
 from autopower.planner.problem import Problem
 
@@ -37,9 +37,13 @@ def explain(problem: Problem, network: Network, allocation: dict[str, str], eval
                 reasons[stage.name] = f"{stage.name} → {host}: the only allowed host"
                 continue
 
+            flows = [f for f in problem.flows if stage.name in (f.producer, f.consumer)]  # DAG edges it moves
+
             def trial(alt: str) -> np.ndarray:
                 new_hosts = hosts[:k] + (alt,) + hosts[k + 1:]
-                return base - old + space.chain_load(chain, new_hosts)
+                moved = dag_load(space, problem.chains, {**allocation, stage.name: alt}, flows) if flows else 0.0
+                kept = dag_load(space, problem.chains, allocation, flows) if flows else 0.0
+                return base - old + space.chain_load(chain, new_hosts) + moved - kept
 
             if host != chain.source and chain.source in alternatives:
                 alt = chain.source
@@ -54,6 +58,7 @@ def explain(problem: Problem, network: Network, allocation: dict[str, str], eval
             if not np.isfinite(alt_life):
                 violated = _violations(space, load)
                 text += f" Running it {where} is infeasible ({violated})."
+                text += _flows_text(space, {**allocation, stage.name: alt}, flows, f"{where}, ", load)
             else:
                 delta = alt_life / base_life - 1 if np.isfinite(base_life) and base_life > 0 else 0.0
                 text += f" Running it {where} gives {_fmt_life(alt_life)} ({delta:+.1%})"
@@ -71,6 +76,8 @@ def explain(problem: Problem, network: Network, allocation: dict[str, str], eval
                                    f"({_signed('CPU', cpu_saved)}, {_signed('radio', radio_saved)})")
                 text += ("; " + "; ".join(changes)) if changes else ""
                 text += "."
+                text += _flows_text(space, {**allocation, stage.name: alt}, flows, f"{where}, ", load)
+            text += _flows_text(space, allocation, flows, "here, ", base)
             reasons[stage.name] = text
     for name, why in problem.unroutable.items():
         reasons[name] = f"not placed: {why}"
@@ -93,3 +100,25 @@ def _violations(space: LoadSpace, load: np.ndarray) -> str:
 
 def _signed(part: str, saved_w: float) -> str:
     return f"{'saves' if saved_w >= 0 else 'costs'} {abs(saved_w):.4f} W {part}"
+
+
+def _flows_text(space: LoadSpace, allocation: dict[str, str], flows, where: str, load: np.ndarray) -> str:
+    """The DAG flows a stage's placement routes, each named, with its path and medium; a flow
+    crossing an over-limit radio is marked as the offending one."""
+    if not flows:
+        return ""
+    _, send, recv = (x[0] for x in space.split(load[None, :]))
+    parts = []
+    for flow in flows:
+        src, dst = allocation[flow.producer], allocation[flow.consumer]
+        if src == dst:
+            parts.append(f"flow {flow.name} stays on {src}")
+            continue
+        hops = space.network.route(src, dst) if space.network.reachable(src, dst) else []
+        over = [f"{u} {m}" for u, v, m in hops for n in (u, v)
+                if space.node_index[n] in space.radio_limited_rows
+                and send[space.node_index[n], space.medium_index[m]] + recv[space.node_index[n], space.medium_index[m]] > 1]
+        path = " → ".join([src, *(f"{v} ({m})" for _, v, m in hops)]) if hops else f"{src} ↛ {dst} (no route)"
+        parts.append(f"flow {flow.name} ({flow.n_bytes} B) {path}" + (" crosses an over-limit radio" if over else ""))
+    sentence = where + "; ".join(parts)
+    return f" {sentence[:1].upper()}{sentence[1:]}."

@@ -15,10 +15,11 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from autopower.errors import AutoPowerError, InfeasibleError
+from autopower.model.dag import active_flows
 from autopower.model.energy import LoadSpace, load_of
 from autopower.model.network import Network
 from autopower.model.scenario import Chain
-from autopower.planner.exhaustive import TIE_REL, combine, decode_allocation
+from autopower.planner.exhaustive import TIE_REL, add_flow_loads, combine, decode_allocation
 from autopower.planner.problem import PlanRequest, make_problem
 from autopower.policies.team import (
     EXHAUSTIVE_UP_TO,
@@ -205,7 +206,7 @@ def better_option(value: float, best_value: float, key: tuple, best_key: tuple) 
 
 def enumerate_network(view: DecisionView, network: Network, chains: Sequence[Chain], hosts: Mapping[str, Sequence[str]],
                        current: Mapping[str, str], base_load: np.ndarray | None = None,
-                       lifetime_of: Sequence[str] | None = None):
+                       lifetime_of: Sequence[str] | None = None, flow_ends: Mapping[str, str] | None = None):
     """Exhaustive search on one network, migrations included: (value, moves, -spread, allocation)."""
     space = view.space(network)
     robots = space.robots
@@ -233,6 +234,8 @@ def enumerate_network(view: DecisionView, network: Network, chains: Sequence[Cha
         costs = combine(costs, crow)
         moves = combine(moves, mrow)
         options.append(opts)
+    # DAG flows: an end outside `chains` stays where `flow_ends` (default: `current`) puts it
+    add_flow_loads(chains, active_flows(view.problem.chains), space, options, loads, dict(flow_ends or current))
     power = space.total_power(loads)
     energy = np.maximum(space.energy_j[None, :] - costs, 0.0)
     cols = list(range(len(robots))) if lifetime_of is None else [index[r] for r in lifetime_of if r in index]

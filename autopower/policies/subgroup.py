@@ -17,6 +17,8 @@ import networkx as nx
 import numpy as np
 
 from autopower.errors import AutoPowerError
+from autopower.model.dag import active_flows
+from autopower.model.energy import dag_load
 from autopower.model.network import Network
 from autopower.model.scenario import Chain, Scenario
 from autopower.policies.search import DecisionView, enumerate_network, forced_reason, make_decision, no_placement
@@ -124,12 +126,21 @@ def subgroup_reallocation(scenario: Scenario, network: Network, members: Sequenc
     base_load = np.zeros(space.size)
     for chain in fixed:
         base_load += space.chain_load(chain, tuple(view.current[s.name] for s in chain.stages))
+    # DAG flows: those between fixed chains are fixed load; those touching a movable one move with it
+    fixed_stages = {s.name for c in fixed for s in c.stages}
+    movable_stages = {s.name for c in movable for s in c.stages}
+    placed = fixed_stages | movable_stages
+    flows = [f for f in active_flows(view.problem.chains) if f.producer in placed and f.consumer in placed]
+    base_load += dag_load(space, fixed + movable, view.current,
+                          [f for f in flows if f.producer in fixed_stages and f.consumer in fixed_stages])
+    moving_flows = [f for f in flows if f.producer in movable_stages or f.consumer in movable_stages]
     index = {r: i for i, r in enumerate(space.robots)}
     cols = [index[r] for r in robots if r in index]
 
     def life_of(alloc: Mapping[str, str]) -> float:
         load = base_load + sum((space.chain_load(c, tuple(alloc[s.name] for s in c.stages)) for c in movable),
                                np.zeros(space.size))
+        load = load + dag_load(space, fixed + movable, {**view.current, **alloc}, moving_flows)
         if not space.feasible(load[None, :])[0]:
             return -NEVER
         moves = plan_moves(view.scenario, net, view.current, alloc, view.state.migration)
@@ -150,7 +161,8 @@ def subgroup_reallocation(scenario: Scenario, network: Network, members: Sequenc
             proposal.update(found[3])
         search = "exhaustive"
     else:
-        proposal = neighbourhood_search(view, net, movable, hosts, base_load, robots, life_of, max_rounds)
+        proposal = neighbourhood_search(view, net, movable, hosts, base_load, robots, life_of, max_rounds,
+                                        moving_flows)
         search = "neighbourhood"
     after = life_of(proposal)
     worth = after > -NEVER and (before == -NEVER or beats(after, before, min_gain, min_gain_s))
@@ -177,7 +189,8 @@ def subgroup_reallocation(scenario: Scenario, network: Network, members: Sequenc
 
 
 def neighbourhood_search(view: DecisionView, network: Network, chains: list[Chain], hosts: Mapping[str, list[str]],
-                          base_load: np.ndarray, robots: Sequence[str], life_of, max_rounds: int) -> dict[str, str]:
+                          base_load: np.ndarray, robots: Sequence[str], life_of, max_rounds: int,
+                          flows=()) -> dict[str, str]:
     """Re-place up to three chains at once (one of them on the bottleneck) until nothing gains.
 
     Each neighbourhood is searched exactly and vectorised, the other chains' loads held fixed.
@@ -194,7 +207,7 @@ def neighbourhood_search(view: DecisionView, network: Network, chains: list[Chai
     index = {r: i for i, r in enumerate(space.robots)}
     for _ in range(max_rounds):
         loads = {c.name: space.chain_load(c, tuple(current[s.name] for s in c.stages)) for c in chains}
-        total = base_load + sum(loads.values(), np.zeros(space.size))
+        total = base_load + sum(loads.values(), np.zeros(space.size)) + dag_load(space, chains, current, flows)
         power = space.total_power(total[None, :])[0]
         worst = min((r for r in robots if r in index), key=lambda r: space.energy_j[index[r]] / power[index[r]],
                     default=None)
@@ -205,7 +218,10 @@ def neighbourhood_search(view: DecisionView, network: Network, chains: list[Chai
                 if not any(c.name in hot for c in group) or math.prod(sizes[c.name] for c in group) > 4096:
                     continue
                 others = total - sum((loads[c.name] for c in group), np.zeros(space.size))
-                found = enumerate_network(view, network, group, hosts, view.current, others, robots)
+                in_group = {s.name for c in group for s in c.stages}  # its DAG flows move with it
+                others = others - dag_load(space, chains, current,
+                                           [f for f in flows if f.producer in in_group or f.consumer in in_group])
+                found = enumerate_network(view, network, group, hosts, view.current, others, robots, flow_ends=current)
                 if found is None:
                     continue
                 trial = {**current, **found[3]}

@@ -65,6 +65,9 @@ def draw_output(rr, chain: str, data: bytes, *, seq: int | None = None, scenario
         if frame is not None:
             drawn.insert(0, ("camera", rr.Image(frame).compress(jpeg_quality=75)))
         return drawn
+    team_map = _team_map(rr, data)
+    if team_map is not None:
+        return team_map
     try:
         est = decode_estimate(data)
     except Exception:  # noqa: BLE001 - an output kind we do not draw
@@ -75,6 +78,30 @@ def draw_output(rr, chain: str, data: bytes, *, seq: int | None = None, scenario
     if occupied is not None:
         drawn.insert(0, ("map", rr.Points2D(occupied, radii=0.05, colors=(150, 150, 150)), True))
     return drawn
+
+
+def _team_map(rr, data: bytes) -> list[tuple] | None:
+    """A TeamMap output (a DAG fan-in, README "Applications as DAGs"): the explored cells, each
+    robot's merged pose, and which inputs the step joined or ran without."""
+    from autopower.chains.teammap import CELL_M, CELLS, decode_map
+
+    try:
+        out = decode_map(data)
+    except Exception:  # noqa: BLE001 - not a team map
+        return None
+    import numpy as np
+
+    grid = np.unpackbits(np.frombuffer(out["grid"], dtype=np.uint8)).reshape(CELLS, CELLS).astype(bool)
+    rows, cols = np.nonzero(grid)
+    robots = sorted(out["robots"])
+    joined = [r for r in robots if out["robots"][r]["age_steps"] == 0]
+    return [("explored", rr.Points2D(np.column_stack([(cols + 0.5) * CELL_M, (rows + 0.5) * CELL_M]),
+                                     radii=CELL_M / 2, colors=(90, 200, 120))),
+            ("poses", rr.Points2D([out["robots"][r]["pose"][:2] for r in robots], radii=0.3,
+                                  colors=(255, 80, 40), labels=robots)),
+            ("join", rr.TextDocument(f"step {out['step']}: joined {', '.join(joined) or 'none'}; "
+                                     f"missing {', '.join(out['missing']) or 'none'}; "
+                                     f"explored {out['explored_m2']:.1f} m²"))]
 
 
 def _chain_seed(scenario, chain) -> int:

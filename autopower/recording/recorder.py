@@ -376,6 +376,10 @@ class Recorder:
                 tel.scalar(component_path(chain, "sink/latency_ms_max"), t, st["latency_ms_max"])
         for chain, st in (s.get("sources") or {}).items():
             tel.scalar(component_path(chain, "source/produced_total"), t, st["produced_total"])
+        for key, c in (s.get("consumed") or {}).items():  # DAG flows "P>C#0": each edge's consumer gate
+            producer, sep, consumer = key.rpartition("#")[0].partition(">")
+            if sep and isinstance(c, dict) and "next_seq" in c:
+                tel.scalar(component_path(consumer, f"inputs/{producer}/consumed"), t, c["next_seq"])
         counters = s.get("counters") or {}
         for name, what in (("custody-resent", "resent"), ("custody-frames", "held"), ("custody-evicted", "evicted")):
             if name in counters:  # frames lost in flight and resent (see autopower.agent.custody)

@@ -97,4 +97,38 @@ def fleet_scenario(robots: int, components: int, seed: int = 0, accounting: str 
     return random_scenario(seed, robots, components, accounting=accounting)
 
 
-__all__ = ["random_scenario", "fleet_scenario", "LAPTOP_ROBOT", "ROBOT_ROBOT", "LinkSpec", "Platform", "Radio"]
+def random_dag_scenario(seed: int, robots: int = 3, chains: int = 3, **kwargs) -> Scenario:
+    """`random_scenario` made an application DAG (autopower.model.dag): a source-less fan-in
+    chain joining 1-3 random stages (sink: the base station or a robot), and sometimes one more
+    flow from one chain's stage into a later chain's stage (fan-out + fan-in mid-chain). Flows
+    only go from earlier to later chains, so the graph is acyclic."""
+    import dataclasses
+
+    from autopower.model.dag import Flow
+
+    base = random_scenario(seed, robots, chains, **kwargs)
+    rng = np.random.default_rng([seed, 0xDA6])
+    chain_list = list(base.chains)
+    stages = [(i, s.name) for i, c in enumerate(chain_list) for s in c.stages]
+    picked = rng.choice(len(stages), size=min(len(stages), int(rng.integers(1, 4))), replace=False)
+    producers = [stages[int(k)][1] for k in picked]
+    period = chain_list[stages[int(picked[0])][0]].period_s
+    join = "J"
+    components = dict(base.components)
+    sitsang = float(rng.uniform(0.02, 0.4)) * period
+    components[join] = ComponentSpec(name=join, latency_s={"sitsang": sitsang, "laptop": sitsang / 20})
+    sink = str(rng.choice([base.basestation, *(r.name for r in base.robots)]))
+    flows = tuple(Flow(producer=p, consumer=join, n_bytes=int(rng.integers(200, 20000))) for p in producers)
+    chain_list.append(Chain(name=join, source=sink, sink=sink, period_s=period,
+                            stages=(Stage(name=join, component=join),), message_bytes=(0, int(rng.integers(100, 3000))),
+                            inputs=flows, sourced=False))
+    if len(base.chains) > 1 and rng.random() < 0.5:
+        a, b = sorted(int(k) for k in rng.choice(len(base.chains), size=2, replace=False))
+        producer = chain_list[a].stages[-1].name
+        consumer = chain_list[b]
+        extra = Flow(producer=producer, consumer=consumer.stages[-1].name, n_bytes=int(rng.integers(100, 5000)))
+        chain_list[b] = dataclasses.replace(consumer, inputs=(*consumer.inputs, extra))
+    return dataclasses.replace(base, name=base.name + "-dag", components=components, chains=tuple(chain_list))
+
+
+__all__ = ["random_scenario", "random_dag_scenario", "fleet_scenario", "LAPTOP_ROBOT", "ROBOT_ROBOT", "LinkSpec", "Platform", "Radio"]

@@ -92,7 +92,7 @@ def test_success_is_one_documented_object(env, command, args):
     result, obj = run(args, env)
     assert result.returncode == 0, result.stderr
     if command == "profile":
-        assert set(obj) == {"Blob", "Loc"} and all("latency_median_s" in v for v in obj.values())
+        assert set(obj) == {"Blob", "Loc", "TeamMap"} and all("latency_median_s" in v for v in obj.values())
         return
     check_keys(command, obj)
     if command == "analyze":

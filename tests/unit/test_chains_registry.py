@@ -19,7 +19,7 @@ from autopower.errors import AutoPowerError
 
 
 def test_builtin_types_are_the_scenario_names():
-    assert component_types() == ("Blob", "Loc")
+    assert component_types() == ("Blob", "Loc", "TeamMap")
 
 
 @pytest.mark.parametrize("factory", [make_source, make_component])
@@ -28,7 +28,7 @@ def test_unknown_type_is_a_clear_key_error_listing_known_types(factory):
         factory("Planner", "r1", 0)
     error = excinfo.value
     assert isinstance(error, KeyError) and isinstance(error, AutoPowerError)
-    assert str(error) == "unknown component type 'Planner'; known types: 'Blob', 'Loc'"
+    assert str(error) == "unknown component type 'Planner'; known types: 'Blob', 'Loc', 'TeamMap'"
 
 
 def test_instance_name_instead_of_type_gets_a_hint():
@@ -115,7 +115,7 @@ def test_a_new_type_can_be_registered_and_is_then_profiled():
 
 def test_profile_reports_latencies_and_the_message_sizes():
     profile = profile_components(runs=3)
-    assert set(profile) == {"Blob", "Loc"}
+    assert set(profile) == {"Blob", "Loc", "TeamMap"}
     blob, loc = profile["Blob"], profile["Loc"]
     assert blob["input_bytes"] == blob["input_bytes_max"] == 230415
     assert 0 < blob["output_bytes"] <= blob["output_bytes_max"] <= 200
