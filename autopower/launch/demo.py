@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import signal
 import sys
 import time
 from datetime import datetime
@@ -68,6 +69,10 @@ def _commits(log_dir: Path, robots: list[str]) -> list[tuple[float, str, str]]:
     return sorted(out)
 
 
+def _interrupt(signum, _frame):
+    raise KeyboardInterrupt
+
+
 def _say(quiet: bool, text: str) -> None:
     if not quiet:
         print(text, file=sys.stderr, flush=True)
@@ -99,6 +104,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     else:
         team = LocalTeam(spec, scenario)
     snap: dict = {}
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # a terminated demo still stops its team (and testbed)
     try:
         team.start()
         _say(quiet, f"demo: base station + {len(robots)} agents (team {team.team}, logs in {log_dir}), "
@@ -169,7 +175,10 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         time.sleep(0.6)  # its last status and the base's reaction
         snap = team.snapshot()
     finally:
-        codes = team.stop()
+        try:
+            codes = team.stop()
+        finally:
+            signal.signal(signal.SIGTERM, previous)
 
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=-1.0,
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(log_dir))
@@ -191,7 +200,14 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         "source": "live", "recording": None, "faults": faults_out, "migrations": live["migrations"],
         "lost_outputs": lost, "duplicated_outputs": duplicated,
         "energy_model_error_pct": live["energy_model_error_pct"],
+        # what every link of this run was: mutual TLS + default-deny access control, or plain tcp
+        "security": "mtls+acl" if secure else "insecure",
     }
+    if testbed:
+        net = team.net
+        result["testbed"] = {"run": net.run_id, "namespaces": [net.ns(n) for n in net.nodes],
+                             "links": {f"{l.a}-{l.b}": {"medium": l.medium, "kbit_s": net.rate_kbit(l)}
+                                       for l in net.links}}
     if record_dir is not None:
         result.update(_recording(record_dir, quiet))
     return result
