@@ -148,7 +148,8 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
             time.sleep(0.1)
         if not commits:
             raise AutoPowerError(f"demo: no subgroup agreement within 10 s (logs in {log_dir})")
-        snap = team.snapshot()
+        # the base station has just lost every robot; its answer may wait on links Zenoh is closing
+        snap = _wait(team, lambda s: True, 10, "the base station's answer after the cut")
         lost = [f for f in snap["faults"][before:] if f["kind"] == "node-left"]
         detected = max((f["detected_unix"] for f in lost), default=None)
         faults_out.append({"kind": "cut", "target": ",".join(f"{r}-{base}" for r in robots),
