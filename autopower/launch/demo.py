@@ -206,9 +206,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     }
     if testbed:
         net = team.net
-        result["testbed"] = {"run": net.run_id, "namespaces": [net.ns(n) for n in net.nodes],
-                             "links": {f"{l.a}-{l.b}": {"medium": l.medium, "kbit_s": net.rate_kbit(l)}
-                                       for l in net.links}}
+        result["testbed"] = {"run": net.run_id, "namespaces": net.namespaces, **net.describe()}
     if record_dir is not None:
         result.update(_recording(record_dir, quiet))
     return result

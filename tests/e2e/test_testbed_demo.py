@@ -48,8 +48,11 @@ def test_the_demo_story_in_the_testbed_with_mtls_and_access_control(tmp_path, cl
     # it really ran in namespaces over shaped links, every link mTLS + default-deny ACL
     assert out["security"] == "mtls+acl"
     testbed = out["testbed"]
-    assert sorted(testbed["namespaces"]) == sorted(f"{PREFIX}{testbed['run']}-{n}" for n in ("laptop", "r1", "r2", "r3"))
-    assert testbed["links"]["r1-laptop"] == {"medium": "802.11a", "kbit_s": 54000 * 5}
+    assert sorted(testbed["namespaces"]) == sorted(f"{PREFIX}{testbed['run']}-{n}"
+                                                   for n in ("laptop", "r1", "r2", "r3", "medium1"))
+    # the four radios share one 802.11a channel (a bridge), each shaped to the rate x the speed-up
+    assert testbed["links"]["r1-laptop"] == {"medium": "802.11a", "kbit_s": 54000 * 5, "shared": True}
+    assert testbed["shared_media"]["802.11a"]["nodes"] == ["r1", "r2", "r3", "laptop"]
     assert not set(testbed["namespaces"]) & set(list_namespaces()), "the demo left its namespaces behind"
     # the story: one silent cut (detected, replanned around through a relay), then every robot
     # cut from the base station (the robots agree on a reallocation among themselves)
