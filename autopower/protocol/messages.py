@@ -392,6 +392,9 @@ class Relayed:
     hop: int  # index in path of the node this copy is addressed to
     key: str
     payload: bytes
+    # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
+    signer_cert: bytes = b""
+    signature: bytes = b""
 
     def __post_init__(self) -> None:
         if len(self.path) < 2 or not 1 <= self.hop < len(self.path):
@@ -422,6 +425,9 @@ class SubgroupPropose:
     moves: tuple[SubgroupMove, ...]
     generation: int  # generation of every move of this round
     reason: str
+    # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
+    signer_cert: bytes = b""
+    signature: bytes = b""
 
 
 @message
@@ -432,6 +438,9 @@ class SubgroupVote:
     node: str
     accept: bool
     reason: str
+    # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
+    signer_cert: bytes = b""
+    signature: bytes = b""
 
 
 @message
@@ -441,6 +450,9 @@ class SubgroupDecision:
     round_id: str
     commit: bool
     reason: str
+    # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
+    signer_cert: bytes = b""
+    signature: bytes = b""
 
 
 OPERATOR_COMMANDS = (ChainCommand, MigrateCommand, AutoCommand, LinkCommand, SnapshotRequest)

@@ -9,6 +9,7 @@ seconds late, while the optimum keeps up. One run each, same machine, same speed
 
 from __future__ import annotations
 
+import math
 import os
 import time
 
@@ -50,7 +51,9 @@ def blob_figures(pins, tmp_path) -> dict:
         produced, missed = sources[chain]["produced_total"], sources[chain]["missed"]
         out[chain] = {"placement": snap["placement"][chain], "produced": produced,
                       "missed_ratio": missed / max(1, produced + missed),
-                      "latency_ms_p50": sinks[chain]["latency_ms_p50"]}
+                      # no output through at all (the laptop's one GSM radio receives for every
+                      # robot): its latency is unbounded
+                      "latency_ms_p50": sinks[chain]["latency_ms_p50"] if chain in sinks else math.inf}
     return out
 
 
