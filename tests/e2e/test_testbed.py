@@ -30,10 +30,22 @@ def ours() -> set[str]:
 
 
 @pytest.fixture
-def clean(root):
-    before = ours()
+def clean(root, tmp_path):
+    """After the test, remove what its own testbed runs left and fail if there was anything.
+
+    Only runs recorded under this test's directory count (a run deletes its record once it has
+    removed its namespaces): other test sessions on this machine may be running testbeds too,
+    and their namespaces are none of ours.
+    """
     yield
-    leftovers = ours() - before
+
+    records = list(tmp_path.rglob("testbed/*.json"))
+    leftovers = set()
+    for record in records:
+        try:
+            leftovers |= set(json.loads(record.read_text()).get("namespaces", [])) & ours()
+        except (OSError, json.JSONDecodeError):
+            continue
     remove_namespaces(leftovers)  # never leave a namespace behind, even when the test failed
     assert not leftovers, f"namespaces left behind: {sorted(leftovers)}"
 
