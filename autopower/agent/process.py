@@ -144,7 +144,7 @@ class Agent:
                     return  # a duplicate (direct and relayed) or an older one overtaken
                 self.relayer.on_status(status)
                 if not relayed:
-                    self.relayer.on_direct(status.node, time.time())
+                    self.relayer.on_direct(status.node)
                 self.statuses[status.node] = status
                 rt.on_peer_status(status)  # what it consumed: acks for our custody buffer
             except ProtocolError as exc:
@@ -164,8 +164,6 @@ class Agent:
         if not cfg.subgroup or not rt.started or rt.plan is None:
             return
         base = cfg.scenario.basestation
-        # two status periods without a direct status (or a lease, if longer): out of sight
-        self.relayer.drop_silent(time.time(), max(2 * cfg.status_period_s, cfg.zenoh.lease_ms / 1000) + 0.1)
         if self.relayer.reachable(base):
             self._base_lost_at = None
             return

@@ -47,7 +47,6 @@ class Relayer:
         # not in theirs: our link to them is cut and our lease has not expired yet
         self.shunned: set[str] = set()
         self.views: dict[str, set[str]] = {}  # node -> the nodes it reported seeing, from its last status
-        self.heard: dict[str, float] = {}  # node -> when its last status came directly (wall s)
         self._count = count or (lambda what, detail="": None)
         self.relayed_out = 0
         self.forwarded = 0
@@ -62,33 +61,15 @@ class Relayer:
         else:
             self.direct.discard(node)
 
-    def on_direct(self, node: str, now: float | None = None) -> None:
+    def on_direct(self, node: str) -> None:
         """A message from ``node`` arrived directly, not relayed: our link to it works.
 
         Undoes a shun: the relayed message that caused it may have been sent before the link came
         back and arrived after (it went the long way), which must not cut us off from a node we see.
         """
-        if now is not None:
-            self.heard[node] = now
         if node in self.shunned:
             self.shunned.discard(node)
             self.direct.add(node)
-
-    def drop_silent(self, now: float, silence_s: float) -> list[str]:
-        """Shun nodes still "in sight" whose periodic statuses stopped arriving directly.
-
-        A liveliness token can outlive the link it came over: in a mesh of peers, Zenoh keeps a
-        token while any peer still declares it to us, and after every robot lost the base station
-        at once the robots were seen to keep its token for 8 s and more (the testbed's
-        all-robots cut). A node whose statuses (every status period) have not come directly for
-        ``silence_s`` is out of sight, whatever the token says; its next direct status undoes it.
-        """
-        gone = [n for n in sorted(self.direct) if n in self.heard and now - self.heard[n] > silence_s]
-        for node in gone:
-            self.direct.discard(node)
-            self.shunned.add(node)
-            self._count("silent-peer", f"no direct status from {node} for {now - self.heard[node]:.1f} s")
-        return gone
 
     def on_status(self, status: NodeStatus) -> None:
         if status.node != self.node:

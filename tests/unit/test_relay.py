@@ -87,20 +87,3 @@ def test_a_late_relayed_message_does_not_cut_off_a_node_that_is_seen_directly():
     assert "laptop" in r1.direct and r1.path_to("laptop") == ["r1", "laptop"]
     r1.on_direct("r9")  # nothing to undo for a node we never shunned
     assert "r9" not in r1.direct
-
-
-def test_a_node_whose_statuses_stop_is_out_of_sight_whatever_its_token_says():
-    """After every robot lost the base station at once, Zenoh kept its liveliness token at the
-    robots for 8 s and more (peers declaring it to each other); its statuses had stopped."""
-    hub = InMemoryHub(record=True)
-    r1 = make(hub, "r1", ["r2", "laptop"])
-    r1.on_direct("laptop", now=10.0)
-    r1.on_direct("r2", now=10.9)
-    r1.on_status(status("r2", ["r1"]))  # r2 lost the laptop too
-    assert r1.drop_silent(11.0, 1.1) == [] and r1.reachable("laptop")
-    assert r1.drop_silent(11.2, 1.1) == ["laptop"]  # 1.2 s without a status from it; r2 is fine
-    assert not r1.reachable("laptop") and "r2" in r1.direct
-    r1.on_direct("laptop", now=11.5)  # a status directly again: back in sight
-    assert r1.path_to("laptop") == ["r1", "laptop"]
-    r1.on_liveliness("r3", True)  # never heard from: not judged (it has not started talking yet)
-    assert "r3" not in r1.drop_silent(100.0, 1.1)
