@@ -8,16 +8,17 @@ medium's rate × the speed-up, so a virtual second carries what the radio carrie
 zero-length pfifo on both ends: every packet is dropped silently, no FIN, no RST, the interfaces
 stay up, exactly a radio out of range; heal restores the shaping.
 
-A medium that three or more nodes use is one radio per node on a shared channel, as the energy
-model counts it (a node's radio is busy with the sum of what it sends and receives over all its
-links of that medium): a Linux bridge in a namespace of its own (a `Segment`), one veth per node
-attached to it, addressed 10.98.<segment>.<n>, shaped per node — the node's end to the rate (what
-it sends), the bridge's end towards it to the rate (what it receives) — so every link of that
-node shares its radio's capacity. Pairs of the segment that are not links of the topology (a
-star of GSM links: no robot-to-robot GSM) and a cut link get a blackhole route for the other's
+A broadcast medium — three or more nodes whose radios of that medium all reach each other (the
+fully-connected topology over one radio) — is one radio per node on a shared channel, as the
+energy model counts it (a node's radio is busy with the sum of what it sends and receives over
+all its links of that medium): a Linux bridge in a namespace of its own (a `Segment`), one veth
+per node attached to it, addressed 10.98.<segment>.<n>, shaped per node — the node's end to the
+rate (what it sends), the bridge's end towards it to the rate (what it receives) — so every link
+of that node shares its radio's capacity. A cut link gets a blackhole route for the other's
 address in both namespaces: packets are dropped before they leave, silently for the peer (no
 FIN, no RST, nothing on the wire); a new connection attempt fails at once (EINVAL) rather than
-timing out. A cut of one link leaves the node's other links on that medium working.
+timing out. A cut of one link leaves the node's other links on that medium working. A star (GSM
+to the base station only) stays one shaped veth pair per link: its hub's radio is not shared.
 
 Every name starts with `PREFIX` and this run's id, and the run writes what it creates into
 ``<state dir>/testbed/<run>.json`` *before* creating it: `cleanup_stale` (`autopower testbed
@@ -114,7 +115,10 @@ class NamespaceNetwork:
         self.segments: list[Segment] = []
         for medium in dict.fromkeys(l.medium for l in network.links):
             users = [n for n in self.nodes if any(l.medium == medium and l.touches(n) for l in network.links)]
-            if len(users) >= 3:  # a channel several radios share
+            pairs = {frozenset((l.a, l.b)) for l in network.links if l.medium == medium}
+            # a broadcast channel: three or more radios that all reach each other on it (a star,
+            # such as GSM to the base station only, stays one shaped veth pair per link)
+            if len(users) >= 3 and len(pairs) == len(users) * (len(users) - 1) // 2:
                 self.segments.append(Segment(index=len(self.segments) + 1, medium=medium,
                                              kbps=radios[medium].kbps, nodes=tuple(users)))
         shared = {seg.medium: seg for seg in self.segments}
@@ -126,13 +130,6 @@ class NamespaceNetwork:
                                       dev_b=seg.dev if seg else _dev(i + 1, l.a), segment=seg))
         if len(self.links) > 250 or len(self.segments) > 250 or len(self.nodes) > 250:
             raise AutoPowerError(f"{len(self.links)} links, {len(self.nodes)} nodes: the testbed addresses at most 250")
-        self.blocked: set[frozenset[str]] = set()  # pairs of a segment with no link between them
-        for seg in self.segments:
-            linked = {frozenset((l.a, l.b)) for l in self.links if l.segment is seg}
-            for i, a in enumerate(seg.nodes):
-                for b in seg.nodes[i + 1:]:
-                    if frozenset((a, b)) not in linked:
-                        self.blocked.add(frozenset((a, b)))
         self.state_file = state_root(state_dir) / f"{self.run_id}.json"
         self.cut_links: set[frozenset[str]] = set()
         self.created = False
@@ -192,8 +189,6 @@ class NamespaceNetwork:
                 _run("ip", "-n", self.ns(node), "link", "set", "dev", "lo", "up")
             for seg in self.segments:
                 self._create_segment(seg)
-            for pair in self.blocked:
-                self._blackhole(*sorted(pair), add=True)
             for link in self.links:
                 if link.segment is not None:
                     continue
