@@ -6,7 +6,10 @@
    control on the listener (median of --opens); ratio in the same run.
 2. One relay hop: A -> R -> C and back (R republishes, as an agent relays), round-trip time of
    small messages over tcp vs mTLS; ratio in the same run.
-3. Throughput (root only): 230 KB frames over an 802.11a link of the testbed (two namespaces, a
+3. End-to-end signatures on relayed messages: the same round trip through the agents' own
+   `Relayer` (A signs, R forwards, C verifies and answers signed, A verifies) over mTLS + ACL,
+   with and without signatures; ratio in the same run, and the cost of one sign / one verify.
+4. Throughput (root only): 230 KB frames over an 802.11a link of the testbed (two namespaces, a
    veth pair shaped to 54 Mbit/s), from a Zenoh mTLS publisher in one namespace to a subscriber
    in the other, against the configured rate. Not a test: prints figures.
 """
@@ -93,6 +96,73 @@ def relay_rtt(secure: bool, ids, n: int) -> float:
     return statistics.median(times)
 
 
+def signed_relay_rtt(ids, n: int, signed: bool) -> float:
+    """r1 -> laptop -> r2 and back through `Relayer`s, over mTLS + ACL, signed or not."""
+    from autopower.protocol import Relayed  # noqa: F401 - what travels
+    from autopower.runtime.relay import Relayer
+    from autopower.runtime.signatures import Signing
+
+    p = free_ports(1)[0]
+    hub = ZenohBus(settings(True, ids, "laptop", listen=[f"127.0.0.1:{p}"]))
+    a = ZenohBus(settings(True, ids, "r1", connect=[f"127.0.0.1:{p}"]))
+    c = ZenohBus(settings(True, ids, "r2", connect=[f"127.0.0.1:{p}"]))
+
+    def relayer(node, bus, sees, views):
+        signing = Signing.load(node, ids[node].ca, ids[node].cert, ids[node].key) if signed else None
+        r = Relayer(node=node, bus=bus, keys=KEYS, access=ACCESS, signing=signing)
+        r.direct, r.views = set(sees), views
+        return r
+
+    ra = relayer("r1", a, {"laptop"}, {"laptop": {"r2"}})
+    rh = relayer("laptop", hub, {"r1", "r2"}, {})
+    rc = relayer("r2", c, {"laptop"}, {"laptop": {"r1"}})
+    got = threading.Event()
+
+    def at_c(k, v):
+        if rc.on_relay(v) is not None:
+            rc.send("r1", KEYS.node_data("r1"), v[-64:])
+
+    hub.subscribe(KEYS.node_relay("laptop"), lambda k, v: rh.on_relay(v))
+    c.subscribe(KEYS.node_relay("r2"), at_c)
+    a.subscribe(KEYS.node_relay("r1"), lambda k, v: ra.on_relay(v) is not None and got.set())
+    time.sleep(1.0)
+    times = []
+    for i in range(n + 10):
+        got.clear()
+        t = time.perf_counter()
+        ra.send("r2", KEYS.node_data("r2"), b"x" * 64)
+        if not got.wait(2.0):
+            raise SystemExit("a relayed message did not come back (signature, ACL or connection problem)")
+        if i >= 10:
+            times.append(time.perf_counter() - t)
+    if signed and (ra.signing.forged or rc.signing.forged):
+        raise SystemExit("a genuine relayed message was taken for a forgery")
+    for bus in (a, c, hub):
+        bus.close()
+    return statistics.median(times)
+
+
+def sign_verify_us(ids, n: int = 500) -> tuple[float, float]:
+    from autopower.protocol import Relayed
+    from autopower.runtime.signatures import Signing
+
+    r1 = Signing.load("r1", ids["r1"].ca, ids["r1"].cert, ids["r1"].key)
+    r2 = Signing.load("r2", ids["r2"].ca, ids["r2"].cert, ids["r2"].key)
+    msg = Relayed(path=("r1", "laptop", "r2"), hop=1, key=KEYS.node_data("r2"), payload=b"x" * 64)
+    t = time.perf_counter()
+    for _ in range(n):
+        signed = r1.sign(msg)
+    t_sign = (time.perf_counter() - t) / n
+    r2.signer(signed)  # the certificate is checked against the CA once, then remembered
+    t = time.perf_counter()
+    for _ in range(n):
+        r2.signer(signed)
+    t_verify = (time.perf_counter() - t) / n
+    from autopower.protocol import encode
+
+    return t_sign * 1e6, t_verify * 1e6, len(encode(msg)), len(encode(signed))
+
+
 RECEIVER = r"""
 import sys, time, threading
 from autopower.runtime.bus import ZenohBus, ZenohSettings, TlsFiles
@@ -166,6 +236,12 @@ def main() -> None:
     tcp_hop, tls_hop = relay_rtt(False, ids, args.pings), relay_rtt(True, ids, args.pings)
     print(f"one relay hop, round trip (median of {args.pings}): tcp {tcp_hop * 1e3:.3f} ms, "
           f"mTLS+ACL {tls_hop * 1e3:.3f} ms, ratio {tls_hop / tcp_hop:.2f}")
+    plain_hop, signed_hop = signed_relay_rtt(ids, args.pings, False), signed_relay_rtt(ids, args.pings, True)
+    sign_us, verify_us, plain_bytes, signed_bytes = sign_verify_us(ids)
+    print(f"relayed through the agents' Relayer, round trip over mTLS+ACL (median of {args.pings}): "
+          f"unsigned {plain_hop * 1e3:.3f} ms, signed {signed_hop * 1e3:.3f} ms, ratio {signed_hop / plain_hop:.2f}; "
+          f"one ECDSA P-256 sign {sign_us:.0f} us, one verify {verify_us:.0f} us; "
+          f"+{signed_bytes - plain_bytes} B per relayed message (certificate + signature)")
     if os.geteuid() == 0:
         got, configured = shaped_throughput(directory, ids, args.frames)
         print(f"230 KB frames over a shaped 802.11a link: {got:.1f} Mbit/s of {configured:.0f} Mbit/s configured "

@@ -23,6 +23,7 @@ from autopower.protocol.access import TeamAccess, status_problem
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.runtime.relay import Relayer
+from autopower.runtime.signatures import load_signing
 from autopower.runtime.subgroup import SubgroupAgreement
 
 log = logging.getLogger(__name__)
@@ -71,11 +72,13 @@ class Agent:
                                    **self._runtime_kwargs)
         scenario = self.config.scenario
         access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
-        self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count, access=access)
+        self.signing = load_signing(robot, self.config.zenoh.tls)  # None: --insecure, nothing signed
+        self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count, access=access,
+                               signing=self.signing)
         self.runtime.send_to = self.relayer.send
         self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
                                            on_commit=self._subgroup_commit,
-                                           timeout_s=self.config.subgroup_timeout_s)
+                                           timeout_s=self.config.subgroup_timeout_s, signing=self.signing)
         for key in (keys.node_data(robot), keys.node_control(robot), keys.plan, keys.node_relay(robot),
                     keys.status_all, keys.subgroup):
             self._handles.append(bus.subscribe(key, self.events.on_message))

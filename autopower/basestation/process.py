@@ -36,6 +36,7 @@ from autopower.protocol.access import TeamAccess, status_problem
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.runtime.relay import Relayer
+from autopower.runtime.signatures import load_signing
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +106,9 @@ class BaseStation:
                                        config=self.config.coordinator, policy=self._policy)
         scenario = self.config.scenario
         access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
-        self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count, access=access)
+        self.signing = load_signing(self.node, self.config.zenoh.tls)  # None: --insecure, nothing signed
+        self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count, access=access,
+                               signing=self.signing)
         self.runtime.send_to = self.relayer.send
         self.coordinator.send_to = self.relayer.send
         self.coordinator.also_relay = self.relayer.send_beyond_sight

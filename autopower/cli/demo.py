@@ -34,6 +34,9 @@ def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, i
         raise AutoPowerError(f"--mission must be within 10..600 s, got {mission_wall_s:g}")
     if not speed > 0:
         raise AutoPowerError(f"--speed must be > 0, got {speed:g}")
+    if insecure and testbed:
+        raise AutoPowerError("--insecure does not apply to --testbed: the testbed always runs mutual TLS and "
+                             "access control; drop --insecure")
     warn_insecure(insecure)
     directory = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix="autopower-demo-"))
     directory.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,7 @@ def render(snap: dict, speed: float):
     from rich.table import Table
     from rich.text import Text
 
-    from autopower.launch.summary import keep_up_warning
+    from autopower.launch.summary import chain_latencies, keep_up_warning
 
     revisit = snap.get("revisit_at_s")
     parts = [f"{snap.get('scenario')}", f"{snap.get('accounting')} accounting",
@@ -47,14 +47,21 @@ def render(snap: dict, speed: float):
         moving = snap.get("migrating", {}).get(stage)
         stages.add_row(stage, have + (f" → {moving['to']}" if moving else ""), want,
                        (snap.get("reasons") or {}).get(stage, ""))
-    sinks = []
-    base = snap.get("basestation") or {}
-    for chain, s in (base.get("sinks") or {}).items():
-        sinks.append(f"{chain}: {s['received_total']} results, p50 {s['latency_ms_p50']:.1f} ms")
-    foot = Text("operator sink: " + ("; ".join(sinks) or "nothing yet") + "\n" +
-                "\n".join((snap.get("events") or [])[-4:]), style="dim")
+    # end to end: from the source's capture to the sink's receipt (wall ms; shaped radios add to it)
+    chains = Table("chain", "sink", "outputs", "latency p50", "latency max", "missing", "duplicated",
+                   title="chains (end-to-end latency, source to sink)", title_justify="left")
+    for chain, c in chain_latencies(snap).items():
+        chains.add_row(chain, c["sink"], str(c["outputs"]), _ms(c["p50_ms"]), _ms(c["max_ms"]),
+                       str(c["missing"]), str(c["duplicated"]))
+    if not chains.row_count:
+        chains.add_row("-", "nothing yet", "", "", "", "", "")
+    foot = Text("\n".join((snap.get("events") or [])[-4:]), style="dim")
     failed = snap.get("failed_stages") or {}
     if failed:  # components stopped for misbehaving, and why (their chains are stopped)
         warn = Text("\n".join(f"FAILED {stage} on {why}" for stage, why in failed.items()), style="bold red")
-        return Group(head, robots, stages, warn, foot)
-    return Group(head, robots, stages, foot)
+        return Group(head, robots, stages, chains, warn, foot)
+    return Group(head, robots, stages, chains, foot)
+
+
+def _ms(value) -> str:
+    return "-" if value is None else f"{value:,.0f} ms" if value >= 100 else f"{value:.1f} ms"

@@ -182,7 +182,8 @@ def warn_insecure(insecure: bool) -> None:
     """Said on every insecure start, on stderr (so --json output stays one object)."""
     if insecure:
         click.echo("warning: --insecure: no TLS and no access control; anyone who can reach this team's "
-                   "ports can read its data and command it", err=True)
+                   "ports can read its data and command it; relayed messages and subgroup votes are not "
+                   "signed", err=True)
 
 
 SCENARIO_ARG = click.argument("scenario", default="paper-fig7", metavar="SCENARIO")

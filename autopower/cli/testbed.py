@@ -98,7 +98,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
                           wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary.update(interrupted=interrupted, testbed=team.net.run_id, shaped=not no_shaping,
-                   links={f"{l.a}-{l.b}": {"medium": l.medium, "kbit_s": team.net.rate_kbit(l)} for l in team.net.links})
+                   **team.net.describe())
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
     else:

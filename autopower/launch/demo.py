@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import signal
 import sys
 import time
 from datetime import datetime
@@ -68,6 +69,10 @@ def _commits(log_dir: Path, robots: list[str]) -> list[tuple[float, str, str]]:
     return sorted(out)
 
 
+def _interrupt(signum, _frame):
+    raise KeyboardInterrupt
+
+
 def _say(quiet: bool, text: str) -> None:
     if not quiet:
         print(text, file=sys.stderr, flush=True)
@@ -99,6 +104,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     else:
         team = LocalTeam(spec, scenario)
     snap: dict = {}
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # a terminated demo still stops its team (and testbed)
     try:
         team.start()
         _say(quiet, f"demo: base station + {len(robots)} agents (team {team.team}, logs in {log_dir}), "
@@ -142,7 +148,8 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
             time.sleep(0.1)
         if not commits:
             raise AutoPowerError(f"demo: no subgroup agreement within 10 s (logs in {log_dir})")
-        snap = team.snapshot()
+        # the base station has just lost every robot; its answer may wait on links Zenoh is closing
+        snap = _wait(team, lambda s: True, 10, "the base station's answer after the cut")
         lost = [f for f in snap["faults"][before:] if f["kind"] == "node-left"]
         detected = max((f["detected_unix"] for f in lost), default=None)
         faults_out.append({"kind": "cut", "target": ",".join(f"{r}-{base}" for r in robots),
@@ -169,7 +176,10 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         time.sleep(0.6)  # its last status and the base's reaction
         snap = team.snapshot()
     finally:
-        codes = team.stop()
+        try:
+            codes = team.stop()
+        finally:
+            signal.signal(signal.SIGTERM, previous)
 
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=-1.0,
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(log_dir))
@@ -191,7 +201,12 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         "source": "live", "recording": None, "faults": faults_out, "migrations": live["migrations"],
         "lost_outputs": lost, "duplicated_outputs": duplicated,
         "energy_model_error_pct": live["energy_model_error_pct"],
+        # what every link of this run was: mutual TLS + default-deny access control, or plain tcp
+        "security": "mtls+acl" if secure else "insecure",
     }
+    if testbed:
+        net = team.net
+        result["testbed"] = {"run": net.run_id, "namespaces": net.namespaces, **net.describe()}
     if record_dir is not None:
         result.update(_recording(record_dir, quiet))
     return result

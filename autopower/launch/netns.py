@@ -1,12 +1,24 @@
-"""A scenario's network as Linux network namespaces: one per node, one veth pair per link, shaped.
+"""A scenario's network as Linux network namespaces: one per node, a veth pair or a bridge per medium, shaped.
 
-Each node gets its own network stack (``ip netns``); each link of the scenario's topology is a
-veth pair created directly inside the two nodes' namespaces (nothing is ever added to the host's
-own namespace), addressed 10.99.<link>.1/.2, and shaped on both ends with a token bucket (tbf) to
-the medium's rate × the speed-up, so a virtual second carries what the radio carries in a real
-one (this kernel has no netem: no added delay or random loss). A cut swaps a link's qdisc for a
+Each node gets its own network stack (``ip netns``). A medium that only two nodes use is a veth
+pair created directly inside the two nodes' namespaces (nothing is ever added to the host's own
+namespace), addressed 10.99.<link>.1/.2, and shaped on both ends with a token bucket (tbf) to the
+medium's rate × the speed-up, so a virtual second carries what the radio carries in a real one
+(this kernel has no netem: no added delay or random loss). A cut swaps the link's qdisc for a
 zero-length pfifo on both ends: every packet is dropped silently, no FIN, no RST, the interfaces
 stay up, exactly a radio out of range; heal restores the shaping.
+
+A broadcast medium — three or more nodes whose radios of that medium all reach each other (the
+fully-connected topology over one radio) — is one radio per node on a shared channel, as the
+energy model counts it (a node's radio is busy with the sum of what it sends and receives over
+all its links of that medium): a Linux bridge in a namespace of its own (a `Segment`), one veth
+per node attached to it, addressed 10.98.<segment>.<n>, shaped per node — the node's end to the
+rate (what it sends), the bridge's end towards it to the rate (what it receives) — so every link
+of that node shares its radio's capacity. A cut link gets a blackhole route for the other's
+address in both namespaces: packets are dropped before they leave, silently for the peer (no
+FIN, no RST, nothing on the wire); a new connection attempt fails at once (EINVAL) rather than
+timing out. A cut of one link leaves the node's other links on that medium working. A star (GSM
+to the base station only) stays one shaped veth pair per link: its hub's radio is not shared.
 
 Every name starts with `PREFIX` and this run's id, and the run writes what it creates into
 ``<state dir>/testbed/<run>.json`` *before* creating it: `cleanup_stale` (`autopower testbed
@@ -29,7 +41,8 @@ from autopower.model.network import Network
 log = logging.getLogger(__name__)
 
 PREFIX = "aptb-"  # AutoPower testbed: the only namespaces this module ever deletes
-SUBNET = "10.99"
+SUBNET = "10.99"  # point-to-point links
+SHARED_SUBNET = "10.98"  # shared media (bridges)
 
 
 def require_root() -> None:
@@ -46,6 +59,26 @@ def _run(*cmd: str, check: bool = True) -> subprocess.CompletedProcess:
 
 
 @dataclass(frozen=True)
+class Segment:
+    """A shared medium: a bridge every node with a radio of that medium is attached to."""
+
+    index: int
+    medium: str
+    kbps: float
+    nodes: tuple[str, ...]
+
+    def address(self, node: str) -> str:
+        return f"{SHARED_SUBNET}.{self.index}.{self.nodes.index(node) + 1}"
+
+    @property
+    def dev(self) -> str:  # the node's interface on this medium (one per medium in a namespace)
+        return f"m{self.index}"
+
+    def port(self, node: str) -> str:  # the bridge's end towards the node
+        return f"p{self.nodes.index(node) + 1}"
+
+
+@dataclass(frozen=True)
 class NetLink:
     index: int
     a: str
@@ -54,8 +87,11 @@ class NetLink:
     kbps: float  # the radio's real rate
     dev_a: str  # the interface in a's namespace
     dev_b: str
+    segment: Segment | None = None  # set when the link crosses a shared medium's bridge
 
     def address(self, node: str) -> str:
+        if self.segment is not None:
+            return self.segment.address(node)
         return f"{SUBNET}.{self.index}.{1 if node == self.a else 2}"
 
 
@@ -76,17 +112,38 @@ class NamespaceNetwork:
         self.speed = speed
         self.shaping = shaping
         self.nodes = list(network.nodes)
-        self.links = [NetLink(index=i + 1, a=l.a, b=l.b, medium=l.medium, kbps=radios[l.medium].kbps,
-                              dev_a=_dev(i + 1, l.b), dev_b=_dev(i + 1, l.a))
-                      for i, l in enumerate(network.links)]
-        if len(self.links) > 250:
-            raise AutoPowerError(f"{len(self.links)} links: the testbed addresses at most 250")
+        self.segments: list[Segment] = []
+        for medium in dict.fromkeys(l.medium for l in network.links):
+            users = [n for n in self.nodes if any(l.medium == medium and l.touches(n) for l in network.links)]
+            pairs = {frozenset((l.a, l.b)) for l in network.links if l.medium == medium}
+            # a broadcast channel: three or more radios that all reach each other on it (a star,
+            # such as GSM to the base station only, stays one shaped veth pair per link)
+            if len(users) >= 3 and len(pairs) == len(users) * (len(users) - 1) // 2:
+                self.segments.append(Segment(index=len(self.segments) + 1, medium=medium,
+                                             kbps=radios[medium].kbps, nodes=tuple(users)))
+        shared = {seg.medium: seg for seg in self.segments}
+        self.links = []
+        for i, l in enumerate(network.links):
+            seg = shared.get(l.medium)
+            self.links.append(NetLink(index=i + 1, a=l.a, b=l.b, medium=l.medium, kbps=radios[l.medium].kbps,
+                                      dev_a=seg.dev if seg else _dev(i + 1, l.b),
+                                      dev_b=seg.dev if seg else _dev(i + 1, l.a), segment=seg))
+        if len(self.links) > 250 or len(self.segments) > 250 or len(self.nodes) > 250:
+            raise AutoPowerError(f"{len(self.links)} links, {len(self.nodes)} nodes: the testbed addresses at most 250")
         self.state_file = state_root(state_dir) / f"{self.run_id}.json"
         self.cut_links: set[frozenset[str]] = set()
         self.created = False
 
     def ns(self, node: str) -> str:
         return f"{PREFIX}{self.run_id}-{node}"
+
+    def segment_ns(self, seg: Segment) -> str:
+        return f"{PREFIX}{self.run_id}-medium{seg.index}"
+
+    @property
+    def namespaces(self) -> list[str]:
+        """Every namespace of this run: one per node, one per shared medium's bridge."""
+        return [self.ns(n) for n in self.nodes] + [self.segment_ns(seg) for seg in self.segments]
 
     def link(self, a: str, b: str) -> NetLink:
         for link in self.links:
@@ -100,9 +157,16 @@ class NamespaceNetwork:
         return self.link(node, peer).address(peer)
 
     def addresses(self, node: str) -> list[str]:
-        return [l.address(node) for l in self.links if node in (l.a, l.b)]
+        return list(dict.fromkeys(l.address(node) for l in self.links if node in (l.a, l.b)))
 
-    def rate_kbit(self, link: NetLink) -> int:
+    def describe(self) -> dict:
+        """Each link's medium and shaped rate, and which nodes share a medium's bridge (for summaries)."""
+        return {"links": {f"{l.a}-{l.b}": {"medium": l.medium, "kbit_s": self.rate_kbit(l),
+                                           "shared": l.segment is not None} for l in self.links},
+                "shared_media": {seg.medium: {"nodes": list(seg.nodes), "kbit_s_per_node": self.rate_kbit(seg)}
+                                 for seg in self.segments}}
+
+    def rate_kbit(self, link: NetLink | Segment) -> int:
         return max(8, int(round(link.kbps * self.speed)))
 
     # ---- lifecycle -------------------------------------------------------------------------------
@@ -117,13 +181,17 @@ class NamespaceNetwork:
         require_root()
         self.state_file.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         # written first: a crash half-way leaves a record `testbed down` can clean from
-        self.state_file.write_text(json.dumps({"pid": os.getpid(), "namespaces": [self.ns(n) for n in self.nodes]}))
+        self.state_file.write_text(json.dumps({"pid": os.getpid(), "namespaces": self.namespaces}))
         self.created = True
         try:
             for node in self.nodes:
                 _run("ip", "netns", "add", self.ns(node))
                 _run("ip", "-n", self.ns(node), "link", "set", "dev", "lo", "up")
+            for seg in self.segments:
+                self._create_segment(seg)
             for link in self.links:
+                if link.segment is not None:
+                    continue
                 na, nb = self.ns(link.a), self.ns(link.b)
                 _run("ip", "link", "add", "name", link.dev_a, "netns", na, "type", "veth",
                      "peer", "name", link.dev_b, "netns", nb)
@@ -136,29 +204,63 @@ class NamespaceNetwork:
             raise
         log.info("testbed %s: %d namespaces, %d links", self.run_id, len(self.nodes), len(self.links))
 
+    def _create_segment(self, seg: Segment) -> None:
+        """The bridge of a shared medium and each node's radio on it, shaped per node."""
+        bridge_ns = self.segment_ns(seg)
+        _run("ip", "netns", "add", bridge_ns)
+        _run("ip", "-n", bridge_ns, "link", "add", "name", "br0", "type", "bridge")
+        _run("ip", "-n", bridge_ns, "link", "set", "dev", "br0", "up")
+        for node in seg.nodes:
+            ns, port = self.ns(node), seg.port(node)
+            _run("ip", "link", "add", "name", seg.dev, "netns", ns, "type", "veth", "peer", "name", port,
+                 "netns", bridge_ns)
+            _run("ip", "-n", bridge_ns, "link", "set", "dev", port, "master", "br0")
+            _run("ip", "-n", bridge_ns, "link", "set", "dev", port, "up")
+            _run("ip", "-n", ns, "addr", "add", f"{seg.address(node)}/24", "dev", seg.dev)
+            _run("ip", "-n", ns, "link", "set", "dev", seg.dev, "up")
+            # what the node sends (its end) and what it receives (the bridge's end towards it)
+            for where, dev in ((ns, seg.dev), (bridge_ns, port)):
+                self._qdisc(where, dev, seg.kbps)
+
+    def _blackhole(self, a: str, b: str, *, add: bool) -> None:
+        """Drop a's packets to b's address on their shared medium and b's to a's, before they leave."""
+        seg = next(s for s in self.segments if a in s.nodes and b in s.nodes)
+        for src, dst in ((a, b), (b, a)):
+            _run("ip", "-n", self.ns(src), "route", "replace" if add else "del", "blackhole",
+                 f"{seg.address(dst)}/32", check=add)
+
     def _ends(self, link: NetLink):
         return ((self.ns(link.a), link.dev_a), (self.ns(link.b), link.dev_b))
 
+    def _qdisc(self, ns: str, dev: str, kbps: float) -> None:
+        if self.shaping:
+            rate = max(8, int(round(kbps * self.speed)))
+            burst = max(3200, rate * 1000 // 8 // 100)  # 10 ms of traffic, at least two frames
+            _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "tbf", "rate", f"{rate}kbit",
+                 "burst", str(burst), "latency", "100ms")
+        else:
+            _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "pfifo", "limit", "1000")
+
     def _shape(self, link: NetLink) -> None:
         for ns, dev in self._ends(link):
-            if self.shaping:
-                rate = self.rate_kbit(link)
-                burst = max(3200, rate * 1000 // 8 // 100)  # 10 ms of traffic, at least two frames
-                _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "tbf", "rate", f"{rate}kbit",
-                     "burst", str(burst), "latency", "100ms")
-            else:
-                _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "pfifo", "limit", "1000")
+            self._qdisc(ns, dev, link.kbps)
 
     def cut(self, a: str, b: str) -> None:
         """Drop every packet on link a-b from now on, silently (both directions)."""
         link = self.link(a, b)
-        for ns, dev in self._ends(link):
-            _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "pfifo", "limit", "0")
+        if link.segment is not None:  # the node's other links on that medium stay up
+            self._blackhole(a, b, add=True)
+        else:
+            for ns, dev in self._ends(link):
+                _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "pfifo", "limit", "0")
         self.cut_links.add(frozenset((a, b)))
 
     def heal(self, a: str, b: str) -> None:
         link = self.link(a, b)
-        self._shape(link)
+        if link.segment is not None:
+            self._blackhole(a, b, add=False)
+        else:
+            self._shape(link)
         self.cut_links.discard(frozenset((a, b)))
 
     def destroy(self) -> None:

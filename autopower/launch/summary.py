@@ -107,3 +107,24 @@ def team_sinks(snap: dict) -> list[dict]:
 def lost_outputs(sinks) -> int:
     """Outputs a sink never received: every seq up to the highest one seen should have arrived once."""
     return sum(max(0, ledger["max_seq"] + 1 - ledger["received"]) for ledger in sinks)
+
+
+def chain_latencies(snap: dict) -> dict[str, dict]:
+    """Each chain's end-to-end latency (its source's capture to its sink's receipt, wall ms), where
+    its sink is: ``{chain: {"sink", "outputs", "p50_ms", "max_ms", "missing", "duplicated"}}``.
+
+    The base station's sink counts; a robot's holds results for an unreachable operator and is
+    shown only for a chain the base station has no sink of.
+    """
+    out: dict[str, dict] = {}
+    holders = [(snap.get("basestation") or {}, None)]
+    holders += [((v.get("status") or {}), name) for name, v in (snap.get("robots") or {}).items()]
+    for status, node in holders:
+        for chain, s in (status.get("sinks") or {}).items():
+            if chain in out:
+                continue
+            out[chain] = {"sink": node or "base station", "outputs": s.get("received_total", 0),
+                          "p50_ms": s.get("latency_ms_p50"), "max_ms": s.get("latency_ms_max"),
+                          "missing": max(0, s.get("max_seq", -1) + 1 - s.get("received", 0)),
+                          "duplicated": s.get("duplicates_total", 0)}
+    return dict(sorted(out.items()))

@@ -394,6 +394,9 @@ class Relayed:
     hop: int  # index in path of the node this copy is addressed to
     key: str
     payload: bytes
+    # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
+    signer_cert: bytes = b""
+    signature: bytes = b""
 
     def __post_init__(self) -> None:
         if len(self.path) < 2 or not 1 <= self.hop < len(self.path):
@@ -424,6 +427,9 @@ class SubgroupPropose:
     moves: tuple[SubgroupMove, ...]
     generation: int  # generation of every move of this round
     reason: str
+    # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
+    signer_cert: bytes = b""
+    signature: bytes = b""
 
 
 @message
@@ -434,6 +440,9 @@ class SubgroupVote:
     node: str
     accept: bool
     reason: str
+    # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
+    signer_cert: bytes = b""
+    signature: bytes = b""
 
 
 @message
@@ -443,6 +452,9 @@ class SubgroupDecision:
     round_id: str
     commit: bool
     reason: str
+    # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
+    signer_cert: bytes = b""
+    signature: bytes = b""
 
 
 OPERATOR_COMMANDS = (ChainCommand, MigrateCommand, AutoCommand, LinkCommand, SnapshotRequest)

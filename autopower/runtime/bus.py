@@ -113,6 +113,11 @@ class ZenohSettings:
             ("scouting/gossip/enabled", False),
             ("transport/link/tx/lease", int(self.lease_ms)),
             ("transport/link/tx/keep_alive", int(self.keep_alive)),
+            # A reliable put to a peer whose link went silent blocks until its queue drains; Zenoh
+            # closes the link only after this wait (default 5 s), and the publishing thread (a
+            # process's event loop) is stuck all that time: seen in the testbed, where a cut radio
+            # stops 230 KB frames. A link that takes nothing for a lease is as dead as a silent one.
+            ("transport/link/tx/queue/congestion_control/block/wait_before_close", int(self.lease_ms) * 1000),
             ("connect/retry", retry),
             # Keep retrying a peer that is not up yet instead of failing the open.
             ("connect/timeout_ms", -1),

@@ -13,6 +13,7 @@ statuses and the relay messages addressed to it.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import deque
 from typing import Callable
@@ -21,6 +22,7 @@ from autopower.errors import ProtocolError
 from autopower.protocol import Keys, NodeStatus, Relayed, decode, encode
 from autopower.protocol.access import TeamAccess
 from autopower.runtime.bus import Bus
+from autopower.runtime.signatures import Signing
 
 log = logging.getLogger(__name__)
 
@@ -31,10 +33,13 @@ class Relayer:
     """Send to a node directly when it is in sight, else through the nodes that reach it."""
 
     def __init__(self, *, node: str, bus: Bus, keys: Keys, count: Callable[[str, str], None] | None = None,
-                 access: TeamAccess | None = None):
-        """With ``access``, a relayed message is delivered only if its origin may put on its key."""
+                 access: TeamAccess | None = None, signing: Signing | None = None):
+        """With ``access``, a relayed message is delivered only if its origin may put on its key;
+        with ``signing``, what we originate is signed and what reaches us must be signed by its
+        claimed origin (a robot on the way cannot write in another node's name)."""
         self.node = node
         self.access = access
+        self.signing = signing
         self.bus = bus
         self.keys = keys
         self.direct: set[str] = set()
@@ -109,6 +114,8 @@ class Relayer:
             self._count("no-relay-path", f"{dest} is out of reach from {self.node}")
             return False
         msg = Relayed(path=tuple(path), hop=1, key=key, payload=payload)
+        if self.signing is not None:
+            msg = self.signing.sign(msg)  # over hop 1: the hop is all a forwarder changes
         self.bus.publish(self.keys.node_relay(path[1]), encode(msg), reliable=reliable)
         self.relayed_out += 1
         return True
@@ -126,6 +133,9 @@ class Relayer:
             raise ProtocolError(f"relay for {msg.path[msg.hop]} reached {self.node}")
         if msg.hop == len(msg.path) - 1:
             origin = msg.path[0]
+            if self.signing is not None and not self.signing.check(msg, origin, f"a relayed {msg.key}", hop=1):
+                self._count("forged", f"a relayed {msg.key} not signed by its origin {origin} (via {msg.path[-2]})")
+                return None
             if self.access is not None and not self.access.may_put(origin, msg.key):
                 # Zenoh's access control saw only the relay key; the inner key gets the same rule
                 self._count("forged", f"{origin} may not put on {msg.key} (relayed via {msg.path[-2]})")
@@ -138,7 +148,7 @@ class Relayer:
         if nxt not in self.direct:  # the planned next hop is gone; the origin resends what matters
             self._count("relay-next-hop-gone", f"{nxt} on the way to {msg.path[-1]}")
             return None
-        self.bus.publish(self.keys.node_relay(nxt),
-                         encode(Relayed(path=msg.path, hop=msg.hop + 1, key=msg.key, payload=msg.payload)))
+        # forwarded as it came (its signature included): only the destination verifies it
+        self.bus.publish(self.keys.node_relay(nxt), encode(dataclasses.replace(msg, hop=msg.hop + 1)))
         self.forwarded += 1
         return None

@@ -36,6 +36,7 @@ from autopower.protocol import (
     encode,
 )
 from autopower.runtime.bus import Bus
+from autopower.runtime.signatures import Signing
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +62,11 @@ class SubgroupAgreement:
 
     def __init__(self, *, node: str, bus: Bus, keys: Keys, now: Callable[[], float],
                  on_commit: Callable[[SubgroupPropose], None], timeout_s: float = 1.0,
-                 on_abort: Callable[[str, str], None] | None = None):
+                 on_abort: Callable[[str, str], None] | None = None, signing: Signing | None = None):
+        """With ``signing``, every proposal, vote and decision is signed, and one that its claimed
+        author (the leader, the voter) did not sign is dropped: a robot cannot vote for another."""
         self.node = node
+        self.signing = signing
         self.bus = bus
         self.keys = keys
         self.now = now
@@ -94,7 +98,7 @@ class SubgroupAgreement:
         self.phase = Phase.PROPOSED
         log.info("subgroup %s: proposing %s to %s (%d moves): %s", self.node, round_id, ", ".join(members),
                  len(moves), reason)
-        self.bus.publish(self.keys.subgroup, encode(proposal))
+        self._publish(proposal)
         self._maybe_decide()
         return round_id
 
@@ -109,8 +113,7 @@ class SubgroupAgreement:
 
     def _finish(self, commit: bool, reason: str) -> None:
         r = self.round
-        self.bus.publish(self.keys.subgroup, encode(SubgroupDecision(round_id=r.proposal.round_id, commit=commit,
-                                                                      reason=reason)))
+        self._publish(SubgroupDecision(round_id=r.proposal.round_id, commit=commit, reason=reason))
         if commit:
             self.agreement_s.append(self.now() - r.started)
         self._apply(r.proposal, commit, reason)
@@ -138,16 +141,18 @@ class SubgroupAgreement:
             log.warning("subgroup %s: dropped a garbled message: %s", self.node, exc)
             return
         if isinstance(msg, SubgroupPropose):
-            self._on_propose(msg)
+            if self._authentic(msg, msg.leader):
+                self._on_propose(msg)
         elif isinstance(msg, SubgroupVote):
             r = self.round
             if self.phase is Phase.PROPOSED and r and msg.round_id == r.proposal.round_id \
-                    and msg.node in r.proposal.members:
+                    and msg.node in r.proposal.members and self._authentic(msg, msg.node):
                 r.votes[msg.node] = msg.accept
                 self._maybe_decide()
         elif isinstance(msg, SubgroupDecision):
             r = self.round
-            if self.phase is Phase.ACCEPTED and r and msg.round_id == r.proposal.round_id:
+            if self.phase is Phase.ACCEPTED and r and msg.round_id == r.proposal.round_id \
+                    and self._authentic(msg, r.proposal.leader):
                 self._apply(r.proposal, msg.commit, msg.reason)
 
     def _on_propose(self, msg: SubgroupPropose) -> None:
@@ -162,8 +167,13 @@ class SubgroupAgreement:
         self._vote(msg, True, "")
 
     def _vote(self, msg: SubgroupPropose, accept: bool, reason: str) -> None:
-        self.bus.publish(self.keys.subgroup, encode(SubgroupVote(round_id=msg.round_id, node=self.node,
-                                                                 accept=accept, reason=reason)))
+        self._publish(SubgroupVote(round_id=msg.round_id, node=self.node, accept=accept, reason=reason))
+
+    def _publish(self, msg) -> None:
+        self.bus.publish(self.keys.subgroup, encode(self.signing.sign(msg) if self.signing is not None else msg))
+
+    def _authentic(self, msg, author: str) -> bool:
+        return self.signing is None or self.signing.check(msg, author, f"a subgroup {type(msg).__name__}")
 
     def on_timer(self) -> None:
         r = self.round

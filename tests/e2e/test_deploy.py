@@ -148,6 +148,9 @@ def test_up_insecure_says_so_on_start_and_keeps_stdout_one_object(tmp_path):
                      env_for(tmp_path), timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "warning: --insecure: no TLS and no access control" in result.stderr
+    assert "relayed messages and subgroup votes are not signed" in result.stderr
+    for name in ("laptop", "r1", "r2", "r3"):  # and every process says it in its log
+        assert "are not signed" in (tmp_path / "logs" / f"{name}.log").read_text(), name
     json.loads(result.stdout)  # the warning went to stderr: stdout is still one JSON object
     assert not (tmp_path / "state" / "tls").exists() or not any((tmp_path / "state" / "tls").iterdir())
 

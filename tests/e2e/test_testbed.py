@@ -30,10 +30,22 @@ def ours() -> set[str]:
 
 
 @pytest.fixture
-def clean(root):
-    before = ours()
+def clean(root, tmp_path):
+    """After the test, remove what its own testbed runs left and fail if there was anything.
+
+    Only runs recorded under this test's directory count (a run deletes its record once it has
+    removed its namespaces): other test sessions on this machine may be running testbeds too,
+    and their namespaces are none of ours.
+    """
     yield
-    leftovers = ours() - before
+
+    records = list(tmp_path.rglob("testbed/*.json"))
+    leftovers = set()
+    for record in records:
+        try:
+            leftovers |= set(json.loads(record.read_text()).get("namespaces", [])) & ours()
+        except (OSError, json.JSONDecodeError):
+            continue
     remove_namespaces(leftovers)  # never leave a namespace behind, even when the test failed
     assert not leftovers, f"namespaces left behind: {sorted(leftovers)}"
 
@@ -84,7 +96,8 @@ def test_testbed_runs_the_team_in_namespaces_and_a_silent_cut_is_detected(tmp_pa
     run_id = session["testbed"]
     try:
         mine = {n for n in ours() if n.startswith(f"{PREFIX}{run_id}-")}
-        assert mine == {f"{PREFIX}{run_id}-{n}" for n in ("laptop", "r1", "r2", "r3")}
+        # one per node, and one for the bridge of the radio all four share (802.11a)
+        assert mine == {f"{PREFIX}{run_id}-{n}" for n in ("laptop", "r1", "r2", "r3", "medium1")}
         # each process really is in its node's namespace
         for node, pid in session["children"].items():
             if node == "operator-bridge":
@@ -93,6 +106,11 @@ def test_testbed_runs_the_team_in_namespaces_and_a_silent_cut_is_detected(tmp_pa
             assert ns == f"{PREFIX}{run_id}-{node}", (node, ns)
         snap = json.loads(run_cli(["status", "--json"], env).stdout)
         before = len(snap["faults"])
+        # the table `status` draws (and `up` keeps live) has each chain's end-to-end latency
+        table = run_cli(["status"], {**env, "COLUMNS": "200"}).stdout
+        assert "chains (end-to-end latency, source to sink)" in table
+        rows = {line.split("│")[1].strip(): line for line in table.splitlines() if line.count("│") == 8}
+        assert {"Loc-1", "Loc-2", "Loc-3", "Blob-2", "Blob-3"} <= set(rows) and " ms" in rows["Blob-2"], table
         result = run_cli(["fault", "cut", "r1", "laptop", "--json"], env)
         assert result.returncode == 0, result.stderr
         t_cut = json.loads(result.stdout)["fault"]["t_unix"]
@@ -116,7 +134,10 @@ def test_testbed_runs_the_team_in_namespaces_and_a_silent_cut_is_detected(tmp_pa
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 0, err[-2000:]
         summary = json.loads(out)
-        assert summary["shaped"] and summary["links"]["r1-laptop"]["kbit_s"] == 54000 * 5
+        assert summary["shaped"] and summary["links"]["r1-laptop"] == {"medium": "802.11a", "kbit_s": 54000 * 5,
+                                                                       "shared": True}
+        assert summary["shared_media"] == {"802.11a": {"nodes": ["r1", "r2", "r3", "laptop"],
+                                                       "kbit_s_per_node": 54000 * 5}}
     finally:
         stop(proc)  # after a failed assertion too, so it cleans up
     assert not {n for n in ours() if n.startswith(f"{PREFIX}{run_id}-")}, "Ctrl-C left namespaces behind"

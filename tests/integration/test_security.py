@@ -206,3 +206,35 @@ def test_forged_statuses_do_not_mark_a_healthy_robot_depleted(team):
     assert not later["robots"]["r1"]["status"]["depleted"]
     assert (later.get("basestation") or {}).get("errors", {}).get("forged", 0) >= 1, \
         "the base station did not notice the status naming r1 on r2's key"
+
+
+def test_a_robot_cannot_relay_a_plan_in_the_base_stations_name(team):
+    """A relaying robot writes the origin of what it carries; the destination checks the origin's
+    signature (end to end, the team CA's key of that node), not the relay's word."""
+    from autopower.protocol import Relayed
+    from autopower.runtime.signatures import Signing
+
+    snap = team.snapshot()
+    epoch = snap["epoch"]
+    forged_before = ((snap["robots"]["r1"]["status"] or {}).get("errors") or {}).get("forged", 0)
+    insider = Insider(team)
+    files = team.identities.files("r2")
+    try:
+        insider.wait_connected()
+        real = decode(insider.wait_for(insider.keys.plan), PlanUpdate)
+        forged_plan = encode(dataclasses.replace(real, epoch=real.epoch + 1000, running={}, placement={}))
+        # "from the laptop, via r2": unsigned, and signed with r2's own key
+        carried = Relayed(path=("laptop", "r2", "r1"), hop=1, key=insider.keys.plan, payload=forged_plan)
+        signed_by_r2 = Signing.load("r2", files.ca, files.cert, files.key).sign(carried)
+        for _ in range(5):
+            for msg in (carried, signed_by_r2):
+                insider.bus.publish(insider.keys.node_relay("r1"), encode(dataclasses.replace(msg, hop=2)))
+            time.sleep(0.1)
+        produced = _counts(team)
+        later = wait_for(team, lambda s: all(v["produced_total"] > produced[c] + 5 for c, v in sources_of(s).items())
+                         and s["robots"]["r1"]["status"]["errors"].get("forged", 0) >= forged_before + 10,
+                         20, "every source to keep producing and r1 to count the forgeries")
+    finally:
+        insider.close()
+    assert later["epoch"] == epoch
+    assert later["robots"]["r1"]["status"]["plan_epoch"] == epoch, "r1 adopted a plan relayed in the laptop's name"
