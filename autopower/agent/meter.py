@@ -119,6 +119,21 @@ class BatteryMeter:
     def depleted(self) -> bool:
         return not self.mains and self.battery_j <= 0
 
+    def restore(self, saved: Mapping) -> None:
+        """Carry on from what a crashed process metered (`NodeRuntime.resume_state`).
+
+        Metered up to the saved time; the time the process was down is charged at the next
+        `advance` as idle CPU with its radios asleep (the robot kept drawing current).
+        """
+        if not self.mains and saved.get("initial_j") is not None:
+            self.initial_j = float(saved["initial_j"])
+        self.energy_j = {str(k): float(v) for k, v in saved.get("energy_j", {}).items()}
+        self.cpu_busy_s = float(saved.get("cpu_busy_s", 0.0))
+        self.airtime_s = {str(k): float(v) for k, v in saved.get("airtime_s", {}).items()}
+        self.t = min(float(saved.get("t_virtual", self.t)), self.t)
+        self.media = frozenset(m for m in saved.get("media", ()) if m in self.radios)
+        self._history = deque([self.snapshot()])
+
     def snapshot(self) -> tuple[float, dict[str, float], float]:
         return self.t, dict(self.energy_j), self.cpu_busy_s
 

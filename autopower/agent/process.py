@@ -14,8 +14,10 @@ import logging
 import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from autopower.agent.node import NodeRuntime
+from autopower.agent.resume import ResumeFile
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMove, SubgroupPropose, decode, encode
@@ -40,6 +42,9 @@ class AgentConfig:
     subgroup: bool = True  # reallocate among the robots in reach when the base station is not
     subgroup_settle_s: float = 0.3  # wall seconds the base must be out of reach before that
     subgroup_timeout_s: float = 1.0  # a round not decided by then is aborted
+    # where the agent keeps what a restarted process needs to carry on (`autopower.agent.resume`);
+    # None: a restart starts from the mission's energies
+    resume_path: Path | None = None
 
 
 class Agent:
@@ -73,6 +78,10 @@ class Agent:
         access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
         self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count, access=access)
         self.runtime.send_to = self.relayer.send
+        self.resume = ResumeFile(self.config.resume_path) if self.config.resume_path else None
+        if self.resume is not None:
+            self.runtime.resume_from = self.resume.load()
+            self.runtime.on_produced = self.save_resume
         self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
                                            on_commit=self._subgroup_commit,
                                            timeout_s=self.config.subgroup_timeout_s)
@@ -253,6 +262,11 @@ class Agent:
         except Exception as exc:  # a prediction is telemetry: never worth stopping for
             log.info("agent %s: no model prediction for the subgroup placement: %s", self.config.robot, exc)
 
+    def save_resume(self) -> None:
+        state = self.runtime.resume_state() if self.resume is not None else None
+        if state is not None:
+            self.resume.save(state)
+
     def publish_status(self) -> None:
         """Our status, to everyone in sight and (relayed) to the base station if it is not.
 
@@ -303,6 +317,7 @@ class Agent:
                     break
             now = time.time()
             if now >= next_status:
+                self.save_resume()
                 self.publish_status()
                 next_status = max(next_status + self.config.status_period_s, now)
                 if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
@@ -311,6 +326,7 @@ class Agent:
             if deadline is not None and now >= deadline:
                 self.stop_reason = "time limit"
                 break
+        self.save_resume()
         self.publish_status()
         log.info("agent %s stopping: %s", self.config.robot, self.stop_reason)
         return self.stop_reason

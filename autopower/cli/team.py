@@ -24,7 +24,7 @@ from autopower.cli.options import (
     warn_insecure,
 )
 from autopower.errors import AutoPowerError
-from autopower.launch.summary import every_robot_depleted, run_summary, status_line
+from autopower.launch.summary import every_robot_depleted, run_summary, status_line, supervisor_line
 from autopower.model.network import build_network
 
 
@@ -137,14 +137,16 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
             last_line = time.monotonic()
             while not done():
                 time.sleep(0.25)
-                team.check_children()
+                for event in team.check_children():  # a crash restarts that process; the rest run on
+                    click.echo(f"supervisor: {event.line()}", err=True)
                 now = time.monotonic()
                 if now - last_poll >= SNAPSHOT_EVERY_S:
                     last_poll = now
                     try:
                         snap = team.snapshot()
-                    except AutoPowerError:  # a busy base station answers late: keep the last one
+                    except AutoPowerError:  # a busy base station answers late (or is restarting): keep the last one
                         pass
+                snap["supervision"] = team.supervision()
                 if not as_json and now - last_line >= STATUS_LINE_EVERY_S:
                     click.echo(status_line(snap, speed))
                     last_line = now
@@ -155,7 +157,13 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                 while not done():
                     time.sleep(0.5)
                     team.check_children()
-                    snap = team.snapshot()
+                    try:
+                        snap = team.snapshot()
+                    except AutoPowerError:
+                        if not team.supervision().get("down"):
+                            raise
+                        # the base station crashed and is being restarted: show the last view
+                    snap["supervision"] = team.supervision()
                     live.update(render(snap, speed))
                 live.update(render(snap, speed))
             console.print()
@@ -180,6 +188,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
     summary["all_depleted"] = all_depleted
+    summary["supervision"] = supervision = team.supervision()
+    given_up = supervision.get("given_up") or {}
     summary["failure"] = failure
     summary["recording"] = None
     summary["recording_error"] = f"recording failed during the run: {recording_failure}" if recording_failure else None
@@ -190,8 +200,10 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
             summary["recording"] = str(merge_run(Path(record_dir)))
         except (AutoPowerError, OSError) as exc:  # the run itself is fine; say why there is no merged file
             summary["recording_error"] = "; ".join(filter(None, [summary["recording_error"], str(exc)]))
-    bad = {n: c for n, c in codes.items() if c not in (0, None)}
-    error = (f"process(es) exited with errors: {bad}; logs in {team.log_dir}" if bad
+    bad = {n: c for n, c in codes.items() if c not in (0, None) and n not in given_up}
+    error = (f"gave up restarting {', '.join(f'{n} ({why})' for n, why in given_up.items())}; the rest of the "
+             f"team ran on; logs in {team.log_dir}" if given_up
+             else f"process(es) exited with errors: {bad}; logs in {team.log_dir}" if bad
              else f"{failure} (logs in {team.log_dir})" if failure
              else f"the recording failed ({recording_failure}); the team was stopped cleanly" if recording_failure
              else None)
@@ -203,6 +215,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         why = ("interrupted" if interrupted else "recording failed" if recording_failure
                else "every robot depleted" if all_depleted else "done")
         click.echo(f"stopped {len(codes)} processes ({why}); logs in {team.log_dir}")
+        if supervision.get("crashes"):
+            click.echo(supervisor_line(supervision))
         if summary["recording"]:
             click.echo(f"recording: {summary['recording']} (autopower replay {summary['recording']})")
         if summary["recording_error"]:

@@ -1,0 +1,67 @@
+"""A restarted agent carries on: battery and source positions from its resume file (same mission only)."""
+
+from __future__ import annotations
+
+import stat
+
+import pytest
+
+from autopower.agent.node import NodeRuntime
+from autopower.agent.resume import ResumeFile
+from autopower.model.loading import load_scenario
+from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+
+
+def _team_at(t_end: float) -> SimTeam:
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    team.run_until(t_end)
+    return team
+
+
+def _restarted(team: SimTeam, robot: str, saved: dict | None) -> NodeRuntime:
+    old = team.nodes[robot]
+    rt = NodeRuntime(node=robot, scenario=team.scenario, bus=team.hub.bus(robot + "-again"), keys=team.keys,
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
+    rt.resume_from = saved
+    rt.on_plan(old.plan)
+    return rt
+
+
+def test_the_resume_file_is_private_and_survives_a_round_trip(tmp_path):
+    team = _team_at(40.0)
+    state = team.nodes["r2"].resume_state()
+    store = ResumeFile(tmp_path / "agents" / "r2.json")
+    store.save(state)
+    assert stat.S_IMODE(store.path.stat().st_mode) == 0o600
+    assert store.load()["energy_j"] == pytest.approx(state["energy_j"])
+    store.path.write_text("{not json")
+    assert store.load() is None  # unreadable: start from the mission's energies, never crash
+
+
+def test_a_restart_continues_the_battery_and_the_sources():
+    team = _team_at(40.0)
+    old = team.nodes["r2"]
+    saved = old.resume_state()
+    consumed = old.meter.consumed_j
+    sources = {name: runner.seq for name, runner in old.sources.items()}
+    assert sources and all(seq > 0 for seq in sources.values())
+    team.clock.set(50.0)  # the process was down for 10 s of mission time
+    rt = _restarted(team, "r2", saved)
+    assert rt.resumed
+    rt.meter.advance(50.0)
+    idle_w = team.scenario.platform_of("r2").idle_w
+    # what it had consumed, plus at least the idle CPU of the 10 s it was down: not a full battery
+    assert rt.meter.consumed_j >= consumed + idle_w * 10.0 - 1e-6
+    assert rt.meter.battery_j < team.scenario.robot("r2").energy_j - consumed
+    assert {name: runner.seq for name, runner in rt.sources.items()} == sources
+
+
+def test_the_state_of_another_mission_is_ignored():
+    team = _team_at(20.0)
+    saved = team.nodes["r2"].resume_state()
+    saved["mission"] = {**saved["mission"], "epoch_unix": saved["mission"]["epoch_unix"] + 1.0}
+    rt = _restarted(team, "r2", saved)
+    assert not rt.resumed
+    assert rt.meter.battery_j == pytest.approx(team.scenario.robot("r2").energy_j)
+    assert all(runner.seq == 0 for runner in rt.sources.values())
