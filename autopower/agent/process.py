@@ -115,6 +115,9 @@ class Agent:
             if node is not None and node != self.config.robot:
                 rt.on_liveliness(node, event.alive)
                 self.relayer.on_liveliness(node, event.alive)
+                if node == self.config.scenario.basestation:  # (the demo times a base station crash by it)
+                    log.info("agent %s: base station %s %s", self.config.robot, node,
+                             "in sight" if event.alive else "out of sight")
                 if not event.alive:
                     self.agreement.on_member_lost(node)
                 # tell the others now, not at the next tick: the base station tells a dead

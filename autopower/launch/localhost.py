@@ -27,6 +27,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +41,7 @@ from autopower.model.scenario import Scenario
 log = logging.getLogger(__name__)
 
 HOST = "127.0.0.1"
+SUPERVISE_EVERY_S = 0.05  # how often the supervisor looks for crashed children
 
 
 def free_ports(n: int, host: str = HOST) -> list[int]:
@@ -174,6 +176,9 @@ class LocalTeam:
         self.supervisor = Supervisor(spec.restart) if spec.restart is not None else None
         self._down: set[str] = set()  # crashed children the supervisor has seen (until restarted)
         self._stopping = False
+        self._lock = threading.RLock()  # the supervisor thread and the callers of check_children
+        self._pending_events: list[SupervisorEvent] = []
+        self._supervisor_thread: threading.Thread | None = None
         self.mission: dict | None = None  # the base station's mission clock, for recording events
         self.client: OperatorClient | None = None
         self.exit_codes: dict[str, int | None] = {}
@@ -245,6 +250,9 @@ class LocalTeam:
         self._spawn(base, args)
         for robot in self.nodes[1:]:
             self._spawn(robot, ["agent", "--robot", robot, *self._common(robot)])
+        if self.supervisor is not None:
+            self._supervisor_thread = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
+            self._supervisor_thread.start()
         self.client = OperatorClient(self.team, connect=(self.base_endpoint,), settings=self.operator_settings())
 
     def session_security(self) -> dict:
@@ -261,32 +269,50 @@ class LocalTeam:
         return self.identities.operator_settings(self.base_endpoint)
 
     def check_children(self) -> list[SupervisorEvent]:
-        """Supervise: note children that crashed, restart those whose backoff is over (the events).
+        """The supervisor's events since the last call (a crash restarts that child; the rest run on).
 
-        Without a restart policy (``TeamSpec.restart=None``) a crash raises instead.
+        The supervising itself runs in its own thread (`_supervise`), so restarts do not wait for
+        a caller busy with a base station that does not answer. Without a restart policy
+        (``TeamSpec.restart=None``) a crash raises here instead.
         """
+        events = self._supervise_once()
+        with self._lock:
+            events = self._pending_events + events
+            self._pending_events = []
+        return events
+
+    def _supervise(self) -> None:
+        while not self._stopping:
+            events = self._supervise_once()
+            if events:
+                with self._lock:
+                    self._pending_events.extend(events)
+            time.sleep(SUPERVISE_EVERY_S)
+
+    def _supervise_once(self) -> list[SupervisorEvent]:
         events: list[SupervisorEvent] = []
-        for child in list(self.children.values()):
-            if child.name in self.expected_exits or child.name in self._down or self._stopping:
-                continue
-            rc = child.proc.poll()
-            if rc in (None, 0):  # running, or left cleanly (a depleted robot): nothing to restart
-                continue
-            if self.supervisor is None:
-                raise AutoPowerError(f"{child.name} exited with status {rc}; its log ({child.log_path}) ends:\n"
-                                     f"{child.tail()}")
-            self._down.add(child.name)
-            event = self.supervisor.crashed(child.name, rc)
-            log.warning("%s (log %s)", event.line(), child.log_path)
-            events.append(event)
-            self.record_event(event)
-        if self.supervisor is not None and not self._stopping:
-            for name in self.supervisor.due():
-                self.restart(name)
-                event = self.supervisor.restarted(name)
-                log.warning("%s", event.line())
+        with self._lock:
+            for child in list(self.children.values()):
+                if child.name in self.expected_exits or child.name in self._down or self._stopping:
+                    continue
+                rc = child.proc.poll()
+                if rc in (None, 0):  # running, or left cleanly (a depleted robot): nothing to restart
+                    continue
+                if self.supervisor is None:
+                    raise AutoPowerError(f"{child.name} exited with status {rc}; its log ({child.log_path}) "
+                                         f"ends:\n{child.tail()}")
+                self._down.add(child.name)
+                event = self.supervisor.crashed(child.name, rc)
+                log.warning("%s (log %s)", event.line(), child.log_path)
                 events.append(event)
-                self.record_event(event)
+            if self.supervisor is not None and not self._stopping:
+                for name in self.supervisor.due():
+                    self.restart(name)
+                    event = self.supervisor.restarted(name)
+                    log.warning("%s", event.line())
+                    events.append(event)
+        for event in events:  # outside the lock: it may ask the base station for its clock
+            self.record_event(event)
         return events
 
     def restart(self, name: str) -> None:
@@ -306,11 +332,12 @@ class LocalTeam:
         """Put a supervisor event into the run's recording (when the team records); never raises."""
         if self.spec.record_dir is None:
             return
+        if self.mission is None:  # before the mission started there is no timeline to put it on
+            log.info("supervisor event %s not recorded: the mission has not started", event.line())
+            return
         try:
             from autopower.recording.recorder import record_fault_event
 
-            if self.mission is None:
-                self.mission = self.snapshot(timeout_s=2.0).get("mission")
             record_fault_event(self.spec.record_dir, kind="crash", target=event.node, phase=event.kind,
                                reason=event.detail, mission=self.mission, wall_unix=event.t_unix)
         except Exception as exc:  # noqa: BLE001 - a recording problem must not stop the supervision
@@ -344,7 +371,10 @@ class LocalTeam:
 
     def stop(self, timeout_s: float = 8.0) -> dict[str, int | None]:
         """Stop the agents, then the base station; kill what does not stop in time."""
-        self._stopping = True  # no restarts from here on
+        with self._lock:
+            self._stopping = True  # no restarts from here on
+        if self._supervisor_thread is not None:
+            self._supervisor_thread.join(timeout=2.0)
         if self.client is not None:
             self.client.close()
             self.client = None
