@@ -24,6 +24,7 @@ from autopower.cli.options import (
     warn_insecure,
 )
 from autopower.errors import AutoPowerError
+from autopower.launch.supervisor import RestartPolicy
 from autopower.launch.summary import every_robot_depleted, run_summary, status_line, supervisor_line
 from autopower.model.network import build_network
 
@@ -52,13 +53,21 @@ RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still
 @click.option("--until-depleted", is_flag=True, help="Stop when the first robot's battery is empty.")
 @click.option("--record-dir", type=click.Path(file_okay=False), default=None,
               help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
+@click.option("--restart-burst", type=click.IntRange(0, 1000), default=RestartPolicy.burst, show_default=True,
+              help="A crashed process is restarted (backoff from 0.2 s, doubling); after more than this many "
+                   "crashes within --restart-interval it is given up (0: never restart).")
+@click.option("--restart-interval", type=POSITIVE, default=RestartPolicy.interval_s, show_default=True,
+              help="Seconds over which --restart-burst counts crashes.")
 @INSECURE_OPT
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
-       policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir, insecure):
+       policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir, restart_burst,
+       restart_interval, insecure):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
     prints a summary (placement, batteries against the model, missed periods, results).
+    A process that crashes is restarted with backoff while the others run on; one that keeps
+    crashing is given up (reported; exit 2 at the end).
     """
     from autopower.basestation.operator import clear_session, running_sessions, team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
@@ -76,7 +85,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan, policy=policy,
                     lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
-                    record_dir=Path(record_dir) if record_dir else None, secure=not insecure)
+                    record_dir=Path(record_dir) if record_dir else None, secure=not insecure,
+                    restart=RestartPolicy(burst=restart_burst, interval_s=restart_interval))
     warn_insecure(insecure)
     if record_dir:
         from autopower.recording.health import check_record_dir
