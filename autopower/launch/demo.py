@@ -197,6 +197,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     spec = TeamSpec(scenario=SCENARIO, speed=speed, energy_scale=energy_scale, lease_ms=lease_ms,
                     proxied_links=True, log_dir=log_dir, record_dir=record_dir, policy=policy, secure=secure)
     faults_out: list[dict] = []
+    adopted = 0
     if testbed:  # each node in its network namespace, links shaped like their radios (root)
         from autopower.launch.testbed import TestbedTeam
 
@@ -265,7 +266,8 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
             faults.apply({"op": "heal", "a": r, "b": base})
         snap = _wait(team, lambda s: s["ready"] and all(v["present"] for v in s["robots"].values())
                      and not s["links_down"], 20, "the team back under the base station")
-        _say(quiet, f"demo: healed; the base station adopted {snap.get('adopted', 0)} stage(s) the subgroup ran")
+        adopted = snap.get("adopted", 0)  # (a base station started later knows nothing of this)
+        _say(quiet, f"demo: healed; the base station adopted {adopted} stage(s) the subgroup ran")
 
         # 3. an agent crashes: restarted by the supervisor, it rejoins where it was
         time.sleep(1.0)
@@ -299,7 +301,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
             "first_depletion": snap.get("first_depletion")}
     result = {
         "agents": len(robots), "wall_s": time.monotonic() - started, "log_dir": str(log_dir),
-        "adopted": snap.get("adopted", 0), "first_depletion": snap.get("first_depletion"), "live": live,
+        "adopted": adopted, "first_depletion": snap.get("first_depletion"), "live": live,
         # without a recording the live measurements are all there is
         "source": "live", "recording": None, "faults": faults_out, "migrations": live["migrations"],
         "lost_outputs": lost, "duplicated_outputs": duplicated,
