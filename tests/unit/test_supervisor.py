@@ -49,3 +49,22 @@ def test_bad_configuration_is_given_up_at_once():
     event = sup.crashed("laptop", 2, now=0.0)
     assert event.kind == "gave-up" and "bad configuration" in event.detail
     assert sup.due(now=1e9) == []
+
+
+def test_the_live_table_and_the_status_line_show_what_the_supervisor_did():
+    from rich.console import Console
+
+    from autopower.cli.live_table import render
+    from autopower.launch.summary import status_line
+
+    sup = Supervisor(RestartPolicy(burst=1))
+    sup.crashed("r2", -9, now=0.0)
+    sup.restarted("r2")
+    sup.crashed("r2", -9, now=1.0)
+    snap = {"scenario": "paper-fig7", "robots": {}, "supervision": {**sup.report(), "down": []}}
+    console = Console(record=True, width=200)
+    console.print(render(snap, 5.0))
+    text = console.export_text()
+    assert "supervisor: 2 crash(es), restarts r2 1x; GAVE UP on r2 (2 crashes within 60 s" in text
+    assert "r2 restarted: restart 1" in text and "r2 gave-up" in text
+    assert "GAVE UP on r2" in status_line(snap, 5.0)
