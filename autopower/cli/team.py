@@ -153,7 +153,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                 if now - last_poll >= SNAPSHOT_EVERY_S:
                     last_poll = now
                     try:
-                        snap = team.snapshot()
+                        snap = team.snapshot(timeout_s=2.0)
                     except AutoPowerError:  # a busy base station answers late (or is restarting): keep the last one
                         pass
                 snap["supervision"] = team.supervision()
@@ -168,11 +168,9 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     time.sleep(0.5)
                     team.check_children()
                     try:
-                        snap = team.snapshot()
-                    except AutoPowerError:
-                        if not team.supervision().get("down"):
-                            raise
-                        # the base station crashed and is being restarted: show the last view
+                        snap = team.snapshot(timeout_s=2.0)
+                    except AutoPowerError:  # the base station is busy, or crashed (restarting or given up,
+                        pass                # which the supervisor's line says): show the last view
                     snap["supervision"] = team.supervision()
                     live.update(render(snap, speed))
                 live.update(render(snap, speed))

@@ -92,8 +92,8 @@ def crash_agent(team, faults, robots: list[str], quiet: bool) -> dict:
     battery_before = status["battery_j"]
     produced_before = sum(s["produced_total"] for s in status["sources"].values())
     before = len(snap["faults"])
-    t_kill = faults.apply({"op": "crash", "robot": victim})["fault"]["t_unix"]
     _say(quiet, f"demo: SIGKILL {victim}'s agent (hosting {hosts.count(victim)} stage(s))")
+    t_kill = faults.apply({"op": "crash", "robot": victim})["fault"]["t_unix"]
 
     def back(s: dict) -> bool:
         restarted = _restarted_at(team, victim, t_kill)
@@ -130,8 +130,8 @@ def crash_basestation(team, faults, robots: list[str], quiet: bool, log_dir: Pat
     mission = team.snapshot()["mission"]
     seen_before = len(_commits(log_dir, robots, _BASE_OUT))
     commits_before = len(_commits(log_dir, robots))
-    t_kill = faults.apply({"op": "crash", "robot": base})["fault"]["t_unix"]
     _say(quiet, f"demo: SIGKILL the base station {base}")
+    t_kill = faults.apply({"op": "crash", "robot": base})["fault"]["t_unix"]
     deadline = time.monotonic() + 10
     seen, commits = [], []
     while time.monotonic() < deadline:
@@ -325,10 +325,14 @@ def _recording(record_dir: Path, quiet: bool) -> dict:
     summary, the same code as `autopower replay`)."""
     out: dict = {}
     try:
+        import warnings
+
         from autopower.recording.live import merge_run
         from autopower.recording.replay import replay_summary
 
-        merged = merge_run(record_dir)
+        with warnings.catch_warnings():  # the files of the processes the demo SIGKILLed have no footer
+            warnings.filterwarnings("ignore", message="RRD file has no footer")
+            merged = merge_run(record_dir)
         out["recording"] = str(merged)
         replay = replay_summary(merged)
     except Exception as exc:  # noqa: BLE001 - the demo's live figures stand without the recording
