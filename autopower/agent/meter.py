@@ -21,6 +21,7 @@ recomputing inputs): see `autopower.model.parts`.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Iterable, Mapping
 
@@ -30,6 +31,13 @@ from autopower.model.parts import radio_part as part
 from autopower.model.scenario import Platform, Radio
 
 __all__ = ["BatteryMeter", "CPU_BUSY", "CPU_IDLE", "CPU_RECOVERY", "part"]
+
+
+def _finite(value) -> float:
+    x = float(value)
+    if not math.isfinite(x):
+        raise ValueError(f"not a finite number: {value!r}")
+    return x
 
 
 class BatteryMeter:
@@ -126,11 +134,11 @@ class BatteryMeter:
         `advance` as idle CPU with its radios asleep (the robot kept drawing current).
         """
         if not self.mains and saved.get("initial_j") is not None:
-            self.initial_j = float(saved["initial_j"])
-        self.energy_j = {str(k): float(v) for k, v in saved.get("energy_j", {}).items()}
-        self.cpu_busy_s = float(saved.get("cpu_busy_s", 0.0))
-        self.airtime_s = {str(k): float(v) for k, v in saved.get("airtime_s", {}).items()}
-        self.t = min(float(saved.get("t_virtual", self.t)), self.t)
+            self.initial_j = _finite(saved["initial_j"])
+        self.energy_j = {str(k): _finite(v) for k, v in saved.get("energy_j", {}).items()}
+        self.cpu_busy_s = _finite(saved.get("cpu_busy_s", 0.0))
+        self.airtime_s = {str(k): _finite(v) for k, v in saved.get("airtime_s", {}).items()}
+        self.t = min(_finite(saved.get("t_virtual", self.t)), self.t)
         self.media = frozenset(m for m in saved.get("media", ()) if m in self.radios)
         self._history = deque([self.snapshot()])
 

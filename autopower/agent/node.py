@@ -25,6 +25,7 @@ What a node hosts is described in `stages.py`.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import math
@@ -185,12 +186,18 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         saved, self.resume_from = self.resume_from, None
         if not saved or saved.get("mission") != mission_key(mission) or saved.get("node") != self.node:
             return
+        fresh = copy.copy(self.meter)
+        try:
+            sources = {name: SourceStats(run=int(src["run"]), produced=int(src["seq"]),
+                                         missed=int(src.get("missed", 0)), produced_total=int(src["produced_total"]))
+                       for name, src in saved.get("sources", {}).items() if name in self.chains}
+            self.meter.restore(saved)
+        except (AttributeError, KeyError, TypeError, ValueError) as exc:  # a damaged file must not crash-loop us
+            self.meter = fresh
+            log.warning("%s: resume state unusable (%s); starting from the mission's energies", self.node, exc)
+            return
         meter = self.meter
-        meter.restore(saved)
-        for name, src in saved.get("sources", {}).items():
-            self.source_totals[name] = SourceStats(run=int(src["run"]), produced=int(src["seq"]),
-                                                   missed=int(src.get("missed", 0)),
-                                                   produced_total=int(src["produced_total"]))
+        self.source_totals.update(sources)
         self.resumed = True
         log.warning("%s: resumed after a restart: battery %.1f J (consumed %.1f J up to t=%.1f s), sources %s",
                     self.node, meter.battery_j if not meter.mains else float("nan"), meter.consumed_j, meter.t,

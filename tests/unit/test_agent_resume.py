@@ -65,3 +65,13 @@ def test_the_state_of_another_mission_is_ignored():
     assert not rt.resumed
     assert rt.meter.battery_j == pytest.approx(team.scenario.robot("r2").energy_j)
     assert all(runner.seq == 0 for runner in rt.sources.values())
+
+
+@pytest.mark.parametrize("damage", [{"energy_j": "much"}, {"energy_j": {"cpu_idle": float("nan")}},
+                                    {"sources": {"Loc-2": {"run": "x"}}}, {"t_virtual": None}])
+def test_a_damaged_resume_state_is_ignored_not_a_crash_loop(damage):
+    team = _team_at(20.0)
+    saved = {**team.nodes["r2"].resume_state(), **damage}
+    rt = _restarted(team, "r2", saved)
+    assert not rt.resumed
+    assert rt.meter.battery_j == pytest.approx(team.scenario.robot("r2").energy_j)
