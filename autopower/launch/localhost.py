@@ -13,7 +13,8 @@ their parent is gone at their next status tick).
 The team is supervised like a service manager would (`autopower.launch.supervisor`): a child
 that crashes is started again with the same command after a backoff while the others keep
 running; one that crashes too often, or exits 2 (bad configuration), is given up and
-reported. Whoever drives the team calls `check_children` regularly (`up`'s loop, the demo).
+reported. A thread of the launcher does the watching; `check_children` hands whoever drives the
+team (`up`'s loop, the demo) the events since its last call.
 """
 
 from __future__ import annotations
@@ -311,7 +312,7 @@ class LocalTeam:
                     event = self.supervisor.restarted(name)
                     log.warning("%s", event.line())
                     events.append(event)
-        for event in events:  # outside the lock: it may ask the base station for its clock
+        for event in events:  # outside the lock: a file write need not hold up the callers
             self.record_event(event)
         return events
 
