@@ -75,3 +75,13 @@ def test_a_damaged_resume_state_is_ignored_not_a_crash_loop(damage):
     rt = _restarted(team, "r2", saved)
     assert not rt.resumed
     assert rt.meter.battery_j == pytest.approx(team.scenario.robot("r2").energy_j)
+
+
+def test_the_files_of_a_dead_team_go_with_its_resume_files(tmp_path, monkeypatch):
+    from autopower.agent.resume import AGENTS_DIR
+    from autopower.basestation.operator import remove_team_files, team_dir
+
+    monkeypatch.setenv("AUTOPOWER_STATE_DIR", str(tmp_path))
+    ResumeFile(team_dir("t9") / AGENTS_DIR / "r1.json").save({"node": "r1"})
+    remove_team_files("t9")
+    assert not (tmp_path / "teams" / "t9").exists()
