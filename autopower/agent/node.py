@@ -115,7 +115,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         # at the first plan of the same mission; and who to tell when a source advanced
         self.resume_from: dict | None = None
         self.resumed: bool = False
-        self.on_produced: Callable[[], None] | None = None
+        self.on_produced: Callable[[SourceRunner], None] | None = None
         self.custody = Custody()
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
@@ -345,8 +345,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
                            t_unix=time.time(), payload_len=len(data), payload=payload)
         runner.seq += 1
         runner.produced_total += 1
-        if self.on_produced is not None:  # saved before it leaves: a crash after this never reuses the seq
-            self.on_produced()
+        if self.on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq
+            self.on_produced(runner)
         self.emit(frame, host)
 
     def _source_hung(self, runner: SourceRunner, detail: str) -> None:

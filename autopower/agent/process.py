@@ -60,6 +60,7 @@ class Agent:
         self._handles: list = []
         self._runtime_kwargs = runtime_kwargs
         self.runtime: NodeRuntime | None = None
+        self.resume: ResumeFile | None = None
         self.relayer: Relayer | None = None
         self.agreement: SubgroupAgreement | None = None
         self.statuses: dict = {}  # robot -> its last NodeStatus (battery for subgroup decisions)
@@ -81,7 +82,8 @@ class Agent:
         self.resume = ResumeFile(self.config.resume_path) if self.config.resume_path else None
         if self.resume is not None:
             self.runtime.resume_from = self.resume.load()
-            self.runtime.on_produced = self.save_resume
+            self.runtime.on_produced = lambda r: self.resume.note_source(r.chain.name, r.run, r.seq, r.missed,
+                                                                         r.produced_total)
         self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
                                            on_commit=self._subgroup_commit,
                                            timeout_s=self.config.subgroup_timeout_s)
@@ -95,6 +97,8 @@ class Agent:
         return self
 
     def __exit__(self, *exc) -> None:
+        if self.resume is not None:
+            self.resume.close()
         for handle in reversed(self._handles):
             handle.close()
         self._handles.clear()

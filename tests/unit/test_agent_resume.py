@@ -85,3 +85,18 @@ def test_the_files_of_a_dead_team_go_with_its_resume_files(tmp_path, monkeypatch
     ResumeFile(team_dir("t9") / AGENTS_DIR / "r1.json").save({"node": "r1"})
     remove_team_files("t9")
     assert not (tmp_path / "teams" / "t9").exists()
+
+
+def test_source_positions_after_the_snapshot_come_from_the_journal(tmp_path):
+    store = ResumeFile(tmp_path / "r2.json")
+    store.note_source("Blob-2", 1, 5, 0, 5)  # before any snapshot: nothing to resume from, not noted
+    store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}}})
+    assert stat.S_IMODE(store.journal_path.stat().st_mode) == 0o600
+    for seq in (8, 9, 10):
+        store.note_source("Blob-2", 1, seq, 0, seq)
+    with open(store.journal_path, "a") as f:
+        f.write('["Blob-2", 1, 11')  # the line a SIGKILL cut short
+    assert store.load()["sources"]["Blob-2"]["seq"] == 10
+    store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 12, "missed": 0, "produced_total": 12}}})
+    assert store.journal_path.stat().st_size == 0 and store.load()["sources"]["Blob-2"]["seq"] == 12
+    store.close()
