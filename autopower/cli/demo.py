@@ -28,7 +28,10 @@ from autopower.policies import POLICY_NAMES
 @INSECURE_OPT
 @click.option("--testbed", is_flag=True,
               help="Run the story in the testbed (root): network namespaces, links shaped like their radios.")
-def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure, testbed):
+@click.option("--crash-basestation", "crash_base", is_flag=True,
+              help="Also SIGKILL the base station: the robots carry on in a subgroup, a new one is started "
+                   "(it cannot adopt the running team yet, so the energy figures after it are off by a few %).")
+def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure, testbed, crash_base):
     """Three agents + the base station: a cut, a heal, a subgroup without the base, an agent and the
     base station killed and restarted, the replay."""
     if not 10 <= mission_wall_s <= 600:
@@ -40,7 +43,7 @@ def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, i
     directory.mkdir(parents=True, exist_ok=True)
     result = run_demo(speed=speed, mission_wall_s=mission_wall_s, lease_ms=lease_ms, log_dir=directory,
                       record=not no_record, quiet=as_json, policy=policy,
-                      secure=not insecure, testbed=testbed)
+                      secure=not insecure, testbed=testbed, crash_base=crash_base)
     if as_json:
         slim = {k: v for k, v in result.items() if k != "replay"}  # the full replay: `autopower replay`
         click.echo(json.dumps(slim, default=str))
