@@ -24,6 +24,7 @@ recomputing inputs): see `autopower.model.parts`.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import deque
 from typing import Iterable, Mapping
 
@@ -33,6 +34,13 @@ from autopower.model.parts import radio_part as part
 from autopower.model.scenario import Platform, Radio
 
 __all__ = ["BatteryMeter", "CPU_BUSY", "CPU_IDLE", "CPU_RECOVERY", "part"]
+
+
+def _finite(value) -> float:
+    x = float(value)
+    if not math.isfinite(x):
+        raise ValueError(f"not a finite number: {value!r}")
+    return x
 
 
 class BatteryMeter:
@@ -138,6 +146,21 @@ class BatteryMeter:
     @property
     def depleted(self) -> bool:
         return not self.mains and self.battery_j <= 0
+
+    def restore(self, saved: Mapping) -> None:
+        """Carry on from what a crashed process metered (`NodeRuntime.resume_state`).
+
+        Metered up to the saved time; the time the process was down is charged at the next
+        `advance` as idle CPU with its radios asleep (the robot kept drawing current).
+        """
+        if not self.mains and saved.get("initial_j") is not None:
+            self.initial_j = _finite(saved["initial_j"])
+        self.energy_j = {str(k): _finite(v) for k, v in saved.get("energy_j", {}).items()}
+        self.cpu_busy_s = _finite(saved.get("cpu_busy_s", 0.0))
+        self.airtime_s = {str(k): _finite(v) for k, v in saved.get("airtime_s", {}).items()}
+        self.t = min(_finite(saved.get("t_virtual", self.t)), self.t)
+        self.media = frozenset(m for m in saved.get("media", ()) if m in self.radios)
+        self._history = deque([self.snapshot()])
 
     def snapshot(self) -> tuple[float, dict[str, float], float]:
         return self.t, dict(self.energy_j), self.cpu_busy_s

@@ -25,6 +25,7 @@ What a node hosts is described in `stages.py`.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import math
@@ -113,6 +114,11 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
         self.parked_transfers: list[tuple[str, bytes, str]] = []
         self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
+        # where a restarted process carries on (`autopower.agent.resume`): its saved state, applied
+        # at the first plan of the same mission; and who to tell when a source advanced
+        self.resume_from: dict | None = None
+        self.resumed: bool = False
+        self.on_produced: Callable[[SourceRunner], None] | None = None
         self.custody = Custody()
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
@@ -158,6 +164,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
                                       t0=max(0.0, self.clock.now()))
             self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
             self.weights.update(self.flow_weights(plan.mission.accounting))
+            self._resume(plan.mission)
         self._set_plan(plan)
         # stages that have landed elsewhere: frames held here for them can go now
         for stage, frames in list(self.orphans.items()):
@@ -195,6 +202,46 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         """A component or source of a stage's component (a variant's: with its parameters)."""
         kind, parameters = runtime_component(self.scenario, component)
         return factory(kind, robot, seed, parameters) if parameters else factory(kind, robot, seed)
+
+    def _resume(self, mission: MissionInfo) -> None:
+        """Carry on from a crashed process's saved state if it belongs to this very mission."""
+        from autopower.agent.resume import mission_key
+
+        saved, self.resume_from = self.resume_from, None
+        if not saved or saved.get("mission") != mission_key(mission) or saved.get("node") != self.node:
+            return
+        fresh = copy.copy(self.meter)
+        try:
+            sources = {name: SourceStats(run=int(src["run"]), produced=int(src["seq"]),
+                                         missed=int(src.get("missed", 0)), produced_total=int(src["produced_total"]))
+                       for name, src in saved.get("sources", {}).items() if name in self.chains}
+            self.meter.restore(saved)
+        except (AttributeError, KeyError, TypeError, ValueError) as exc:  # a damaged file must not crash-loop us
+            self.meter = fresh
+            log.warning("%s: resume state unusable (%s); starting from the mission's energies", self.node, exc)
+            return
+        meter = self.meter
+        self.source_totals.update(sources)
+        self.resumed = True
+        log.warning("%s: resumed after a restart: battery %.1f J (consumed %.1f J up to t=%.1f s), sources %s",
+                    self.node, meter.battery_j if not meter.mains else float("nan"), meter.consumed_j, meter.t,
+                    {n: s["seq"] for n, s in saved.get("sources", {}).items()} or "none")
+
+    def resume_state(self) -> dict | None:
+        """What a restarted process needs to carry on (None before the mission starts)."""
+        if self.mission is None or self.meter is None:
+            return None
+        from autopower.agent.resume import mission_key
+
+        meter = self.meter
+        sources = {n: {"run": s.run, "seq": s.produced, "missed": s.missed, "produced_total": s.produced_total}
+                   for n, s in self.source_totals.items()}
+        for name, runner in self.sources.items():
+            sources[name] = {"run": runner.run, "seq": runner.seq, "missed": runner.missed,
+                             "produced_total": runner.produced_total}
+        return {"node": self.node, "mission": mission_key(self.mission), "t_virtual": meter.t,
+                "initial_j": meter.initial_j, "energy_j": dict(meter.energy_j), "cpu_busy_s": meter.cpu_busy_s,
+                "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources}
 
     def _set_plan(self, plan: PlanUpdate) -> None:
         self.plan = plan
@@ -280,7 +327,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
             before = self.source_totals.get(name)
             self.sources[name] = SourceRunner(chain=chain, source=source, run=run,
                                               next_t=math.ceil(self.now() / period - 1e-9) * period,
-                                              produced_total=before.produced_total if before else 0)
+                                              produced_total=before.produced_total if before else 0,
+                                              # the same run after a restart: go on from its next seq
+                                              seq=before.produced if before and before.run == run else 0)
 
     def _retire_source(self, runner: SourceRunner) -> None:
         del self.sources[runner.chain.name]
@@ -334,6 +383,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
                            t_unix=time.time(), payload_len=len(data), payload=payload)
         runner.seq += 1
         runner.produced_total += 1
+        if self.on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq
+            self.on_produced(runner)
         self.emit(frame, host)
 
     def _source_hung(self, runner: SourceRunner, detail: str) -> None:

@@ -14,8 +14,10 @@ import logging
 import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from autopower.agent.node import NodeRuntime
+from autopower.agent.resume import ResumeFile
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMove, SubgroupPropose, decode, encode
@@ -41,6 +43,9 @@ class AgentConfig:
     subgroup: bool = True  # reallocate among the robots in reach when the base station is not
     subgroup_settle_s: float = 0.3  # wall seconds the base must be out of reach before that
     subgroup_timeout_s: float = 1.0  # a round not decided by then is aborted
+    # where the agent keeps what a restarted process needs to carry on (`autopower.agent.resume`);
+    # None: a restart starts from the mission's energies
+    resume_path: Path | None = None
 
 
 class Agent:
@@ -56,6 +61,7 @@ class Agent:
         self._handles: list = []
         self._runtime_kwargs = runtime_kwargs
         self.runtime: NodeRuntime | None = None
+        self.resume: ResumeFile | None = None
         self.relayer: Relayer | None = None
         self.agreement: SubgroupAgreement | None = None
         self.statuses: dict = {}  # robot -> its last NodeStatus (battery for subgroup decisions)
@@ -76,6 +82,11 @@ class Agent:
         self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count, access=access,
                                signing=self.signing)
         self.runtime.send_to = self.relayer.send
+        self.resume = ResumeFile(self.config.resume_path) if self.config.resume_path else None
+        if self.resume is not None:
+            self.runtime.resume_from = self.resume.load()
+            self.runtime.on_produced = lambda r: self.resume.note_source(r.chain.name, r.run, r.seq, r.missed,
+                                                                         r.produced_total)
         self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
                                            on_commit=self._subgroup_commit,
                                            timeout_s=self.config.subgroup_timeout_s, signing=self.signing)
@@ -89,6 +100,8 @@ class Agent:
         return self
 
     def __exit__(self, *exc) -> None:
+        if self.resume is not None:
+            self.resume.close()
         for handle in reversed(self._handles):
             handle.close()
         self._handles.clear()
@@ -109,6 +122,9 @@ class Agent:
             if node is not None and node != self.config.robot:
                 rt.on_liveliness(node, event.alive)
                 self.relayer.on_liveliness(node, event.alive)
+                if node == self.config.scenario.basestation:  # (the demo times a base station crash by it)
+                    log.info("agent %s: base station %s %s", self.config.robot, node,
+                             "in sight" if event.alive else "out of sight")
                 if not event.alive:
                     self.agreement.on_member_lost(node)
                 # tell the others now, not at the next tick: the base station tells a dead
@@ -256,6 +272,11 @@ class Agent:
         except Exception as exc:  # a prediction is telemetry: never worth stopping for
             log.info("agent %s: no model prediction for the subgroup placement: %s", self.config.robot, exc)
 
+    def save_resume(self) -> None:
+        state = self.runtime.resume_state() if self.resume is not None else None
+        if state is not None:
+            self.resume.save(state)
+
     def publish_status(self) -> None:
         """Our status, to everyone in sight and (relayed) to the base station if it is not.
 
@@ -306,6 +327,7 @@ class Agent:
                     break
             now = time.time()
             if now >= next_status:
+                self.save_resume()
                 self.publish_status()
                 next_status = max(next_status + self.config.status_period_s, now)
                 if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
@@ -314,6 +336,7 @@ class Agent:
             if deadline is not None and now >= deadline:
                 self.stop_reason = "time limit"
                 break
+        self.save_resume()
         self.publish_status()
         log.info("agent %s stopping: %s", self.config.robot, self.stop_reason)
         return self.stop_reason

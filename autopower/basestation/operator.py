@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -118,6 +119,8 @@ def remove_team_files(team: str) -> None:
             (folder / name).unlink()
         except FileNotFoundError:
             pass
+    # the agents' resume files (autopower.agent.resume.AGENTS_DIR): their mission ended with the team
+    shutil.rmtree(folder / "agents", ignore_errors=True)
     try:
         folder.rmdir()
     except OSError:  # not empty (something we did not put there) or already gone

@@ -28,8 +28,12 @@ from autopower.policies import POLICY_NAMES
 @INSECURE_OPT
 @click.option("--testbed", is_flag=True,
               help="Run the story in the testbed (root): network namespaces, links shaped like their radios.")
-def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure, testbed):
-    """Three agents + the base station: a cut, a heal, a subgroup without the base, the replay."""
+@click.option("--crash-basestation", "crash_base", is_flag=True,
+              help="Also SIGKILL the base station: the robots carry on in a subgroup, a new one is started "
+                   "(it cannot adopt the running team yet, so the energy figures after it are off by a few %).")
+def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure, testbed, crash_base):
+    """Three agents + the base station: a cut, a heal, a subgroup without the base, an agent and the
+    base station killed and restarted, the replay."""
     if not 10 <= mission_wall_s <= 600:
         raise AutoPowerError(f"--mission must be within 10..600 s, got {mission_wall_s:g}")
     if not speed > 0:
@@ -42,7 +46,7 @@ def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, i
     directory.mkdir(parents=True, exist_ok=True)
     result = run_demo(speed=speed, mission_wall_s=mission_wall_s, lease_ms=lease_ms, log_dir=directory,
                       record=not no_record, quiet=as_json, policy=policy,
-                      secure=not insecure, testbed=testbed)
+                      secure=not insecure, testbed=testbed, crash_base=crash_base)
     if as_json:
         slim = {k: v for k, v in result.items() if k != "replay"}  # the full replay: `autopower replay`
         click.echo(json.dumps(slim, default=str))
@@ -66,8 +70,19 @@ def human_summary(result: dict) -> str:
         mission = ""
         if f.get("detected_mission_s") is not None and f.get("reconfigured_mission_s") is not None:
             mission = f"; mission time {f['detected_mission_s']:.1f} s, {f['reconfigured_mission_s']:.1f} s"
-        lines.append(f"  {what}: detected {_secs(f['detected_wall_s'])}, {done} {_secs(f['reconfigured_wall_s'])} "
-                     f"after the cut (wall clock{mission})")
+        after = "the SIGKILL" if f["kind"].startswith("crash-") else "the cut"
+        line = (f"  {what}: detected {_secs(f['detected_wall_s'])}, {done} {_secs(f['reconfigured_wall_s'])} "
+                f"after {after} (wall clock{mission})")
+        if f.get("restarted_wall_s") is not None:
+            line += f"; restarted {_secs(f['restarted_wall_s'])}"
+        if f.get("rejoined_wall_s") is not None:
+            line += f", back with its chains {_secs(f['rejoined_wall_s'])}"
+        if f.get("battery_before_j") is not None and f.get("battery_after_j") is not None:
+            line += f" (battery {f['battery_before_j']:,.0f} J -> {f['battery_after_j']:,.0f} J: not reset)"
+        if f["kind"] == "crash-basestation":
+            line += (f", new base station took over {_secs(f['taken_over_wall_s'])}" if f.get("taken_over_wall_s")
+                     is not None else ", the new base station has not adopted the running team (not yet supported)")
+        lines.append(line)
     outputs = f"{result['outputs']} outputs, " if result.get("outputs") is not None else ""
     lines.append(f"  {result['migrations']} migrations; {outputs}{result['lost_outputs']} lost, "
                  f"{result['duplicated_outputs']} duplicated")

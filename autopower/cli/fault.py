@@ -1,4 +1,4 @@
-"""`autopower fault cut|heal|kill|freeze|thaw|radio|list`: inject faults into the running team."""
+"""`autopower fault cut|heal|kill|crash|freeze|thaw|radio|list`: inject faults into the running team."""
 
 from __future__ import annotations
 
@@ -49,8 +49,16 @@ def fault_heal(a, b, as_json):
 @click.argument("robot")
 @_json
 def fault_kill(robot, as_json):
-    """SIGKILL a robot's agent."""
+    """SIGKILL a robot's agent for good (the robot is lost: `up` does not restart it)."""
     _run({"op": "kill", "robot": robot}, as_json)
+
+
+@fault.command("crash")
+@click.argument("node")
+@_json
+def fault_crash(node, as_json):
+    """SIGKILL a robot's agent or the base station as a crash: `up` restarts it after a backoff."""
+    _run({"op": "crash", "robot": node}, as_json)
 
 
 @fault.command("freeze")

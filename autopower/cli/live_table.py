@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 
 def render(snap: dict, speed: float):
     """The live status table of `autopower up`."""
@@ -9,7 +11,7 @@ def render(snap: dict, speed: float):
     from rich.table import Table
     from rich.text import Text
 
-    from autopower.launch.summary import chain_latencies, keep_up_warning
+    from autopower.launch.summary import chain_latencies, keep_up_warning, supervisor_line
 
     revisit = snap.get("revisit_at_s")
     parts = [f"{snap.get('scenario')}", f"{snap.get('accounting')} accounting",
@@ -56,6 +58,12 @@ def render(snap: dict, speed: float):
     if not chains.row_count:
         chains.add_row("-", "nothing yet", "", "", "", "", "")
     foot = Text("\n".join((snap.get("events") or [])[-4:]), style="dim")
+    supervision = snap.get("supervision") or {}
+    if supervision.get("events"):  # crashes and restarts by `up`'s supervisor (not the base station's view)
+        lines = [supervisor_line(supervision)] + [
+            f"{time.strftime('%H:%M:%S', time.localtime(e['t_unix']))} {e['node']} {e['kind']}: {e['detail']}"
+            for e in supervision["events"][-3:]]
+        foot.append("\n" + "\n".join(lines), style="bold red" if supervision.get("given_up") else "yellow")
     failed = snap.get("failed_stages") or {}
     if failed:  # components stopped for misbehaving, and why (their chains are stopped)
         warn = Text("\n".join(f"FAILED {stage} on {why}" for stage, why in failed.items()), style="bold red")

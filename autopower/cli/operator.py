@@ -93,6 +93,13 @@ def status(team, connect, timeout, as_json):
     """Show the running team's status once."""
     with _client(team, connect) as client:
         snap = client.snapshot(timeout)
+    if not connect:  # a team of `up` on this machine: what its supervisor restarted (the base station cannot know)
+        from autopower.launch.faults import request_fault
+
+        try:
+            snap["supervision"] = request_fault({"op": "list"}, timeout_s=2.0, team=team).get("supervision")
+        except AutoPowerError:
+            snap["supervision"] = None
     if as_json:
         click.echo(json.dumps(snap, indent=2, default=str))
     else:

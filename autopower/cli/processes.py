@@ -67,9 +67,13 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
     if robot is None:
         raise AutoPowerError("which robot? pass --robot NAME (or --fleet DIR --node NAME)")
     scenario = build_scenario(scenario_name, to_run=True)  # imports and registers its plug-in components
+    from autopower.agent.resume import AGENTS_DIR
+    from autopower.basestation.operator import team_dir
+
     config = AgentConfig(robot=robot, scenario=scenario, team=team,
                          zenoh=secure(zenoh, robot, scenario, team),
-                         status_period_s=status_period, parent_pid=parent_pid)
+                         status_period_s=status_period, parent_pid=parent_pid,
+                         resume_path=team_dir(team) / AGENTS_DIR / f"{robot}.json")
     recorder, bus = _recording_bus(record_dir, robot, scenario, config.zenoh)
     try:
         with Agent(config, bus=bus) as process:

@@ -24,7 +24,8 @@ from autopower.cli.options import (
     warn_insecure,
 )
 from autopower.errors import AutoPowerError
-from autopower.launch.summary import every_robot_depleted, run_summary, status_line
+from autopower.launch.supervisor import RestartPolicy
+from autopower.launch.summary import every_robot_depleted, run_summary, status_line, supervisor_line
 from autopower.model.network import build_network
 
 
@@ -52,13 +53,21 @@ RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still
 @click.option("--until-depleted", is_flag=True, help="Stop when the first robot's battery is empty.")
 @click.option("--record-dir", type=click.Path(file_okay=False), default=None,
               help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
+@click.option("--restart-burst", type=click.IntRange(0, 1000), default=RestartPolicy.burst, show_default=True,
+              help="A crashed process is restarted (backoff from 0.2 s, doubling); after more than this many "
+                   "crashes within --restart-interval it is given up (0: never restart).")
+@click.option("--restart-interval", type=POSITIVE, default=RestartPolicy.interval_s, show_default=True,
+              help="Seconds over which --restart-burst counts crashes.")
 @INSECURE_OPT
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
-       policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir, insecure):
+       policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir, restart_burst,
+       restart_interval, insecure):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
     prints a summary (placement, batteries against the model, missed periods, results).
+    A process that crashes is restarted with backoff while the others run on; one that keeps
+    crashing is given up (reported; exit 2 at the end).
     """
     from autopower.basestation.operator import clear_session, running_sessions, team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
@@ -76,7 +85,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan, policy=policy,
                     lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
-                    record_dir=Path(record_dir) if record_dir else None, secure=not insecure)
+                    record_dir=Path(record_dir) if record_dir else None, secure=not insecure,
+                    restart=RestartPolicy(burst=restart_burst, interval_s=restart_interval))
     warn_insecure(insecure)
     if record_dir:
         from autopower.recording.health import check_record_dir
@@ -137,14 +147,16 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
             last_line = time.monotonic()
             while not done():
                 time.sleep(0.25)
-                team.check_children()
+                for event in team.check_children():  # a crash restarts that process; the rest run on
+                    click.echo(f"supervisor: {event.line()}", err=True)
                 now = time.monotonic()
                 if now - last_poll >= SNAPSHOT_EVERY_S:
                     last_poll = now
                     try:
-                        snap = team.snapshot()
-                    except AutoPowerError:  # a busy base station answers late: keep the last one
+                        snap = team.snapshot(timeout_s=2.0)
+                    except AutoPowerError:  # a busy base station answers late (or is restarting): keep the last one
                         pass
+                snap["supervision"] = team.supervision()
                 if not as_json and now - last_line >= STATUS_LINE_EVERY_S:
                     click.echo(status_line(snap, speed))
                     last_line = now
@@ -155,7 +167,11 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                 while not done():
                     time.sleep(0.5)
                     team.check_children()
-                    snap = team.snapshot()
+                    try:
+                        snap = team.snapshot(timeout_s=2.0)
+                    except AutoPowerError:  # the base station is busy, or crashed (restarting or given up,
+                        pass                # which the supervisor's line says): show the last view
+                    snap["supervision"] = team.supervision()
                     live.update(render(snap, speed))
                 live.update(render(snap, speed))
             console.print()
@@ -180,6 +196,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
     summary["all_depleted"] = all_depleted
+    summary["supervision"] = supervision = team.supervision()
+    given_up = supervision.get("given_up") or {}
     summary["failure"] = failure
     summary["recording"] = None
     summary["recording_error"] = f"recording failed during the run: {recording_failure}" if recording_failure else None
@@ -190,8 +208,10 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
             summary["recording"] = str(merge_run(Path(record_dir)))
         except (AutoPowerError, OSError) as exc:  # the run itself is fine; say why there is no merged file
             summary["recording_error"] = "; ".join(filter(None, [summary["recording_error"], str(exc)]))
-    bad = {n: c for n, c in codes.items() if c not in (0, None)}
-    error = (f"process(es) exited with errors: {bad}; logs in {team.log_dir}" if bad
+    bad = {n: c for n, c in codes.items() if c not in (0, None) and n not in given_up}
+    error = (f"gave up restarting {', '.join(f'{n} ({why})' for n, why in given_up.items())}; the rest of the "
+             f"team ran on; logs in {team.log_dir}" if given_up
+             else f"process(es) exited with errors: {bad}; logs in {team.log_dir}" if bad
              else f"{failure} (logs in {team.log_dir})" if failure
              else f"the recording failed ({recording_failure}); the team was stopped cleanly" if recording_failure
              else None)
@@ -203,6 +223,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         why = ("interrupted" if interrupted else "recording failed" if recording_failure
                else "every robot depleted" if all_depleted else "done")
         click.echo(f"stopped {len(codes)} processes ({why}); logs in {team.log_dir}")
+        if supervision.get("crashes"):
+            click.echo(supervisor_line(supervision))
         if summary["recording"]:
             click.echo(f"recording: {summary['recording']} (autopower replay {summary['recording']})")
         if summary["recording_error"]:

@@ -98,11 +98,16 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
                           wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary.update(interrupted=interrupted, testbed=team.net.run_id, shaped=not no_shaping,
+                   supervision=team.supervision(),  # crashed children restarted in their namespace
                    **team.net.describe())
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
     else:
         click.echo(f"stopped; namespaces and links removed; logs in {team.log_dir}")
+    given_up = summary["supervision"].get("given_up") or {}
+    if given_up:
+        raise AutoPowerError(f"gave up restarting {', '.join(f'{n} ({why})' for n, why in given_up.items())}; "
+                             f"logs in {team.log_dir}")
     bad = {n: c for n, c in codes.items() if c not in (0, None)}
     if bad:
         raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")

@@ -9,8 +9,15 @@ enough to end in about a minute, then:
 2. cut every robot from the base station: the robots form a subgroup and agree on a
    reallocation among themselves (propose -> accept -> commit); heal: the base station adopts
    what they run;
-3. run until the first robot's battery is empty, stop, merge the recording and print the
-   replay summary (``--json``: one object).
+3. SIGKILL one robot's agent (``crash-agent``): the launcher's supervisor starts it again, it
+   rejoins with its battery as it was (not the mission's starting energy) and its chains resume,
+   nothing lost or duplicated;
+4. with ``crash_base`` (``--crash-basestation``), SIGKILL the base station
+   (``crash-basestation``): the robots carry on through a subgroup reallocation and the
+   supervisor starts a new base station (``taken_over_wall_s`` says when it has adopted the
+   running team; null while it cannot);
+5. run until the first robot's battery is empty;
+6. stop, merge the recording and print the replay summary (``--json``: one object).
 """
 
 from __future__ import annotations
@@ -31,6 +38,9 @@ log = logging.getLogger(__name__)
 
 SCENARIO = "paper-fig7"
 _COMMIT = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) INFO autopower.runtime.subgroup: subgroup (\S+): round (\S+) committed")
+_BASE_OUT = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) INFO autopower.agent.process: agent (\S+): "
+                       r"base station \S+ out of sight")
+TAKEOVER_WAIT_S = 15.0  # how long the demo waits for a restarted base station to adopt the team
 
 
 def _wait(team, predicate, timeout_s: float, what: str) -> dict:
@@ -53,8 +63,8 @@ def _handled(snap: dict, before: int, kind: str, target: str | None = None) -> l
             if f["kind"] == kind and (target is None or f["target"] == target) and f["reconfigured_unix"]]
 
 
-def _commits(log_dir: Path, robots: list[str]) -> list[tuple[float, str, str]]:
-    """(wall time, node, round) of every subgroup commit in the agents' logs."""
+def _commits(log_dir: Path, robots: list[str], pattern: re.Pattern = _COMMIT) -> list[tuple[float, str, str]]:
+    """(wall time, node, round) of every subgroup commit in the agents' logs (or what `pattern` matches)."""
     out = []
     for robot in robots:
         try:
@@ -62,15 +72,111 @@ def _commits(log_dir: Path, robots: list[str]) -> list[tuple[float, str, str]]:
         except OSError:
             continue
         for line in lines:
-            m = _COMMIT.match(line)
+            m = pattern.match(line)
             if m:
                 t = datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S,%f").timestamp()
-                out.append((t, m.group(2), m.group(3)))
+                out.append((t, m.group(2), m.group(3) if pattern.groups >= 3 else ""))
     return sorted(out)
 
 
 def _interrupt(signum, _frame):
     raise KeyboardInterrupt
+
+
+def _restarted_at(team, node: str, after: float) -> float | None:
+    """Wall time the supervisor started `node` again after `after` (None: not yet)."""
+    return next((e.t_unix for e in team.supervisor.events
+                 if e.node == node and e.kind == "restarted" and e.t_unix >= after), None)
+
+
+def crash_agent(team, faults, robots: list[str], quiet: bool) -> dict:
+    """SIGKILL the agent hosting most stages; wait until it is back, its battery and chains resumed."""
+    snap = team.snapshot()
+    hosts = list(snap["placement"].values())
+    victim = max(robots, key=lambda r: (hosts.count(r), r == "r2"))
+    status = snap["robots"][victim]["status"]
+    battery_before = status["battery_j"]
+    produced_before = sum(s["produced_total"] for s in status["sources"].values())
+    before = len(snap["faults"])
+    _say(quiet, f"demo: SIGKILL {victim}'s agent (hosting {hosts.count(victim)} stage(s))")
+    t_kill = faults.apply({"op": "crash", "robot": victim})["fault"]["t_unix"]
+
+    def back(s: dict) -> bool:
+        restarted = _restarted_at(team, victim, t_kill)
+        st = s["robots"][victim].get("status") or {}
+        return (restarted is not None and s["robots"][victim]["present"] and s["ready"]
+                and st.get("t_unix", 0) > restarted and st.get("plan_epoch") == s["epoch"]
+                and sum(x["produced_total"] for x in st["sources"].values()) > produced_before)
+
+    snap = _wait(team, back, 30, f"{victim} restarted and back in the team")
+    t_back = time.time()
+    left = [f for f in snap["faults"][before:] if f["kind"] == "node-left" and f["target"] == victim]
+    battery_after = snap["robots"][victim]["status"]["battery_j"]
+    entry = {"kind": "crash-agent", "target": victim, "parts": [victim],
+             "detected_wall_s": (left[0]["detected_unix"] - t_kill) if left else None,
+             "reconfigured_wall_s": (left[0]["reconfigured_unix"] - t_kill) if left and left[0]["reconfigured_unix"]
+             else None,
+             "reconfigured_by": f"plan epoch {left[0]['epoch']}" if left else None,
+             "restarted_wall_s": _restarted_at(team, victim, t_kill) - t_kill,
+             "rejoined_wall_s": t_back - t_kill,
+             "battery_before_j": battery_before, "battery_after_j": battery_after}
+    _say(quiet, f"demo:   detected after {_fmt(entry['detected_wall_s'])} s, restarted after "
+                f"{entry['restarted_wall_s']:.3f} s, back with its chains after {entry['rejoined_wall_s']:.3f} s; "
+                f"battery {battery_before:,.0f} J before, {battery_after:,.0f} J after (not reset)")
+    return entry
+
+
+def crash_basestation(team, faults, robots: list[str], quiet: bool, log_dir: Path) -> dict:
+    """SIGKILL the base station: the robots reallocate among themselves; a new one is started.
+
+    Waits at most `TAKEOVER_WAIT_S` for the new base station to adopt the running team (its
+    snapshot on the same mission clock, ready, robots present).
+    """
+    base = team.scenario.basestation
+    mission = team.snapshot()["mission"]
+    seen_before = len(_commits(log_dir, robots, _BASE_OUT))
+    commits_before = len(_commits(log_dir, robots))
+    _say(quiet, f"demo: SIGKILL the base station {base}")
+    t_kill = faults.apply({"op": "crash", "robot": base})["fault"]["t_unix"]
+    deadline = time.monotonic() + 10
+    seen, commits = [], []
+    while time.monotonic() < deadline:
+        team.check_children()
+        seen = _commits(log_dir, robots, _BASE_OUT)[seen_before:]
+        commits = _commits(log_dir, robots)[commits_before:]
+        if commits and _restarted_at(team, base, t_kill):
+            break
+        time.sleep(0.1)
+    restarted = _restarted_at(team, base, t_kill)
+    taken_over = None
+    if restarted is not None:  # a new base station: has it adopted the running team and its clock?
+        deadline = time.monotonic() + TAKEOVER_WAIT_S
+        while time.monotonic() < deadline and taken_over is None:
+            team.check_children()
+            try:
+                s = team.snapshot(timeout_s=1.0)
+            except AutoPowerError:
+                continue
+            present = [r for r in robots if (s.get("robots", {}).get(r) or {}).get("present")]
+            if (s.get("mission") or {}).get("epoch_unix") == mission["epoch_unix"] and s.get("ready") and present:
+                taken_over = time.time()
+            time.sleep(0.1)
+    entry = {"kind": "crash-basestation", "target": base, "parts": [base],
+             "detected_wall_s": (min(t for t, _, _ in seen) - t_kill) if seen else None,
+             "reconfigured_wall_s": (min(t for t, _, _ in commits) - t_kill) if commits else None,
+             "reconfigured_by": f"subgroup round {commits[0][2]}" if commits else None,
+             "restarted_wall_s": (restarted - t_kill) if restarted else None,
+             "taken_over_wall_s": (taken_over - t_kill) if taken_over else None}
+    _say(quiet, f"demo:   robots saw it after {_fmt(entry['detected_wall_s'])} s and reallocated among themselves "
+                f"after {_fmt(entry['reconfigured_wall_s'])} s; a new base station started after "
+                f"{_fmt(entry['restarted_wall_s'])} s; "
+                + (f"it took over the team after {entry['taken_over_wall_s']:.3f} s" if taken_over
+                   else f"it has not adopted the running team within {TAKEOVER_WAIT_S:g} s"))
+    return entry
+
+
+def _fmt(x: float | None) -> str:
+    return "?" if x is None else f"{x:.3f}"
 
 
 def _say(quiet: bool, text: str) -> None:
@@ -79,7 +185,8 @@ def _say(quiet: bool, text: str) -> None:
 
 
 def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Path, record: bool,
-             quiet: bool, policy: str = "rebalance", secure: bool = True, testbed: bool = False) -> dict:
+             quiet: bool, policy: str = "rebalance", secure: bool = True, testbed: bool = False,
+             crash_base: bool = False) -> dict:
     from autopower.launch.faults import FaultController
     from autopower.launch.localhost import LocalTeam, TeamSpec
     from autopower.model.loading import load_scenario
@@ -97,6 +204,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     spec = TeamSpec(scenario=SCENARIO, speed=speed, energy_scale=energy_scale, lease_ms=lease_ms,
                     proxied_links=True, log_dir=log_dir, record_dir=record_dir, policy=policy, secure=secure)
     faults_out: list[dict] = []
+    adopted = 0
     if testbed:  # each node in its network namespace, links shaped like their radios (root)
         from autopower.launch.testbed import TestbedTeam
 
@@ -167,9 +275,22 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
             faults.apply({"op": "heal", "a": r, "b": base})
         snap = _wait(team, lambda s: s["ready"] and all(v["present"] for v in s["robots"].values())
                      and not s["links_down"], 20, "the team back under the base station")
-        _say(quiet, f"demo: healed; the base station adopted {snap.get('adopted', 0)} stage(s) the subgroup ran")
+        adopted = snap.get("adopted", 0)  # (a base station started later knows nothing of this)
+        _say(quiet, f"demo: healed; the base station adopted {adopted} stage(s) the subgroup ran")
 
-        # 3. the rest of the mission
+        # 3. an agent crashes: restarted by the supervisor, it rejoins where it was
+        time.sleep(1.0)
+        faults_out.append(crash_agent(team, faults, robots, quiet))
+        time.sleep(1.0)
+
+        # 4. the base station crashes: the robots carry on, the supervisor starts a new one. Opt-in
+        # until a restarted base station adopts the running team (issue 12, item 2): until then the
+        # robots keep a subgroup allocation the new base station does not know, and the metered
+        # energy after it no longer matches the model's figures for the plan (a few %)
+        if crash_base:
+            faults_out.append(crash_basestation(team, faults, robots, quiet, log_dir))
+
+        # 5. the rest of the mission
         remaining = max(5.0, mission_wall_s + 15 - (time.monotonic() - mission_started))
         snap = _wait(team, lambda s: bool(s.get("first_depletion")), remaining, "the first robot to run dry")
         _say(quiet, f"demo: {snap['first_depletion']['robot']} ran dry at t={snap['first_depletion']['t_virtual']:.0f} s")
@@ -196,7 +317,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
             "first_depletion": snap.get("first_depletion")}
     result = {
         "agents": len(robots), "wall_s": time.monotonic() - started, "log_dir": str(log_dir),
-        "adopted": snap.get("adopted", 0), "first_depletion": snap.get("first_depletion"), "live": live,
+        "adopted": adopted, "first_depletion": snap.get("first_depletion"), "live": live,
         # without a recording the live measurements are all there is
         "source": "live", "recording": None, "faults": faults_out, "migrations": live["migrations"],
         "lost_outputs": lost, "duplicated_outputs": duplicated,
@@ -207,8 +328,16 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     if testbed:
         net = team.net
         result["testbed"] = {"run": net.run_id, "namespaces": net.namespaces, **net.describe()}
+    result["supervision"] = team.supervision()
     if record_dir is not None:
         result.update(_recording(record_dir, quiet))
+        # what only the launcher knows (restart, rejoin, takeover) joins the replay's view of the crashes
+        live_crashes = {(f["kind"], f["target"]): f for f in faults_out if f["kind"].startswith("crash-")}
+        for fault in result["faults"]:
+            extra = live_crashes.pop((fault["kind"], fault["target"]), None)
+            for key, value in (extra or {}).items():
+                fault.setdefault(key, value)
+        result["faults"].extend(live_crashes.values())  # not in the recording (e.g. it could not be merged)
     return result
 
 
@@ -217,10 +346,14 @@ def _recording(record_dir: Path, quiet: bool) -> dict:
     summary, the same code as `autopower replay`)."""
     out: dict = {}
     try:
+        import warnings
+
         from autopower.recording.live import merge_run
         from autopower.recording.replay import replay_summary
 
-        merged = merge_run(record_dir)
+        with warnings.catch_warnings():  # the files of the processes the demo SIGKILLed have no footer
+            warnings.filterwarnings("ignore", message="RRD file has no footer")
+            merged = merge_run(record_dir)
         out["recording"] = str(merged)
         replay = replay_summary(merged)
     except Exception as exc:  # noqa: BLE001 - the demo's live figures stand without the recording

@@ -1,4 +1,8 @@
-"""Fault injection into a running team: `autopower fault cut|heal|kill|freeze|thaw|radio`.
+"""Fault injection into a running team: `autopower fault cut|heal|kill|crash|freeze|thaw|radio`.
+
+`kill` takes a robot out for good (the supervisor lets it go); `crash` is a SIGKILL the
+supervisor answers like any crash: it starts the process again (a robot's agent or the base
+station).
 
 The `up` supervisor owns the team's link proxies and child processes, so faults are carried
 out there. It serves a small local control channel — a Unix socket in the team's own state
@@ -47,8 +51,9 @@ class FaultController:
         if name not in robots:
             raise AutoPowerError(f"unknown robot {name!r}; robots of this team: {', '.join(robots)}")
 
-    def _child(self, name: str):
-        self._robot(name)
+    def _child(self, name: str, base_too: bool = False):
+        if not (base_too and name == self.team.scenario.basestation):
+            self._robot(name)
         child = self.team.children.get(name)
         if child is None or child.proc.poll() is not None:
             raise AutoPowerError(f"{name} is not running (already killed?)")
@@ -63,15 +68,18 @@ class FaultController:
                 proxy = self.team.proxy(a, b)
                 proxy.cut() if op == "cut" else proxy.heal()
                 target = f"{a}-{b}"
-            elif op in ("kill", "freeze", "thaw"):
+            elif op in ("kill", "crash", "freeze", "thaw"):
                 name = request.get("robot")
-                child = self._child(name)
-                sig = {"kill": signal.SIGKILL, "freeze": signal.SIGSTOP, "thaw": signal.SIGCONT}[op]
+                child = self._child(name, base_too=op == "crash")
+                sig = {"kill": signal.SIGKILL, "crash": signal.SIGKILL, "freeze": signal.SIGSTOP,
+                       "thaw": signal.SIGCONT}[op]
                 if op == "kill":
                     self.team.expected_exits.add(name)
                 t = time.time()
                 os.killpg(child.proc.pid, sig) if _own_group(child.proc.pid) else child.proc.send_signal(sig)
                 target = name
+                if op == "crash":  # the kinds the demo reports: which part of the team crashed
+                    op = "crash-basestation" if name == self.team.scenario.basestation else "crash-agent"
             elif op == "radio":
                 from autopower.protocol import LinkCommand
 
@@ -89,7 +97,7 @@ class FaultController:
                     raise AutoPowerError(f"the base station refused: {reply.message}")
                 target = name
             elif op == "list":
-                return {"ok": True, "faults": list(self.log),
+                return {"ok": True, "faults": list(self.log), "supervision": self.team.supervision(),
                         "links": {"-".join(sorted(p)): ("cut" if x.is_cut else "up") for p, x in self.team.proxies.items()}}
             else:
                 raise AutoPowerError(f"unknown fault operation {op!r}")

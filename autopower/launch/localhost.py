@@ -9,6 +9,12 @@ later node connects to the earlier one), and the endpoint used for each pair can
 Children are put in their own process group (a Ctrl-C reaches only `up`, which stops them in
 order) and get SIGTERM if `up` itself dies (Linux PR_SET_PDEATHSIG; elsewhere they notice
 their parent is gone at their next status tick).
+
+The team is supervised like a service manager would (`autopower.launch.supervisor`): a child
+that crashes is started again with the same command after a backoff while the others keep
+running; one that crashes too often, or exits 2 (bad configuration), is given up and
+reported. A thread of the launcher does the watching; `check_children` hands whoever drives the
+team (`up`'s loop, the demo) the events since its last call.
 """
 
 from __future__ import annotations
@@ -22,18 +28,21 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from autopower.basestation.operator import OperatorClient
 from autopower.errors import AutoPowerError
+from autopower.launch.supervisor import RestartPolicy, Supervisor, SupervisorEvent
 from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
 HOST = "127.0.0.1"
+SUPERVISE_EVERY_S = 0.05  # how often the supervisor looks for crashed children
 
 
 def free_ports(n: int, host: str = HOST) -> list[int]:
@@ -116,6 +125,7 @@ class TeamSpec:
     # False is `--insecure`: plain tcp, anyone who reaches a port controls the team
     secure: bool = True
     tls_dir: Path | None = None  # where the team's CA and identities go (default: under the state dir)
+    restart: RestartPolicy | None = field(default_factory=RestartPolicy)  # None: a crash stops the team
 
 
 class LocalTeam:
@@ -163,6 +173,14 @@ class LocalTeam:
             self.connects = pair_endpoints(self.nodes, self.ports, spec.endpoint_overrides, self.scheme)
         self.expected_exits: set[str] = set()  # children a fault killed on purpose
         self.children: dict[str, Child] = {}
+        self._commands: dict[str, list[str]] = {}  # name -> the arguments it was started with
+        self.supervisor = Supervisor(spec.restart) if spec.restart is not None else None
+        self._down: set[str] = set()  # crashed children the supervisor has seen (until restarted)
+        self._stopping = False
+        self._lock = threading.RLock()  # the supervisor thread and the callers of check_children
+        self._pending_events: list[SupervisorEvent] = []
+        self._supervisor_thread: threading.Thread | None = None
+        self.mission: dict | None = None  # the base station's mission clock, for recording events
         self.client: OperatorClient | None = None
         self.exit_codes: dict[str, int | None] = {}
 
@@ -190,7 +208,8 @@ class LocalTeam:
     def _spawn(self, name: str, args: list[str]) -> None:
         log_path = self.log_dir / f"{name}.log"
         cmd = self._command(name, args)
-        with open(log_path, "wb") as out:
+        self._commands[name] = args
+        with open(log_path, "ab") as out:  # a restarted child's log goes on after its crash
             proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                                     process_group=0, preexec_fn=_die_with_parent,
                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
@@ -232,6 +251,9 @@ class LocalTeam:
         self._spawn(base, args)
         for robot in self.nodes[1:]:
             self._spawn(robot, ["agent", "--robot", robot, *self._common(robot)])
+        if self.supervisor is not None:
+            self._supervisor_thread = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
+            self._supervisor_thread.start()
         self.client = OperatorClient(self.team, connect=(self.base_endpoint,), settings=self.operator_settings())
 
     def session_security(self) -> dict:
@@ -247,15 +269,80 @@ class LocalTeam:
             return None
         return self.identities.operator_settings(self.base_endpoint)
 
-    def check_children(self) -> None:
-        """Raise if a child exited on its own with an error."""
-        for child in self.children.values():
-            if child.name in self.expected_exits:
-                continue
-            rc = child.proc.poll()
-            if rc not in (None, 0):
-                raise AutoPowerError(f"{child.name} exited with status {rc}; its log ({child.log_path}) ends:\n"
-                                     f"{child.tail()}")
+    def check_children(self) -> list[SupervisorEvent]:
+        """The supervisor's events since the last call (a crash restarts that child; the rest run on).
+
+        The supervising itself runs in its own thread (`_supervise`), so restarts do not wait for
+        a caller busy with a base station that does not answer. Without a restart policy
+        (``TeamSpec.restart=None``) a crash raises here instead.
+        """
+        events = self._supervise_once()
+        with self._lock:
+            events = self._pending_events + events
+            self._pending_events = []
+        return events
+
+    def _supervise(self) -> None:
+        while not self._stopping:
+            events = self._supervise_once()
+            if events:
+                with self._lock:
+                    self._pending_events.extend(events)
+            time.sleep(SUPERVISE_EVERY_S)
+
+    def _supervise_once(self) -> list[SupervisorEvent]:
+        events: list[SupervisorEvent] = []
+        with self._lock:
+            for child in list(self.children.values()):
+                if child.name in self.expected_exits or child.name in self._down or self._stopping:
+                    continue
+                rc = child.proc.poll()
+                if rc in (None, 0):  # running, or left cleanly (a depleted robot): nothing to restart
+                    continue
+                if self.supervisor is None:
+                    raise AutoPowerError(f"{child.name} exited with status {rc}; its log ({child.log_path}) "
+                                         f"ends:\n{child.tail()}")
+                self._down.add(child.name)
+                event = self.supervisor.crashed(child.name, rc)
+                log.warning("%s (log %s)", event.line(), child.log_path)
+                events.append(event)
+            if self.supervisor is not None and not self._stopping:
+                for name in self.supervisor.due():
+                    self.restart(name)
+                    event = self.supervisor.restarted(name)
+                    log.warning("%s", event.line())
+                    events.append(event)
+        for event in events:  # outside the lock: a file write need not hold up the callers
+            self.record_event(event)
+        return events
+
+    def restart(self, name: str) -> None:
+        """Start `name` again with the command it was started with."""
+        self._spawn(name, self._commands[name])
+        self._down.discard(name)
+
+    def supervision(self) -> dict:
+        """What the supervisor did (for the live table and the summaries); {} without one."""
+        if self.supervisor is None:
+            return {}
+        report = self.supervisor.report()
+        report["down"] = sorted(self._down - set(report["given_up"]))  # waiting for their restart
+        return report
+
+    def record_event(self, event: SupervisorEvent) -> None:
+        """Put a supervisor event into the run's recording (when the team records); never raises."""
+        if self.spec.record_dir is None:
+            return
+        if self.mission is None:  # before the mission started there is no timeline to put it on
+            log.info("supervisor event %s not recorded: the mission has not started", event.line())
+            return
+        try:
+            from autopower.recording.recorder import record_fault_event
+
+            record_fault_event(self.spec.record_dir, kind="crash", target=event.node, phase=event.kind,
+                               reason=event.detail, mission=self.mission, wall_unix=event.t_unix)
+        except Exception as exc:  # noqa: BLE001 - a recording problem must not stop the supervision
+            log.warning("supervisor event %s not recorded: %s", event.line(), exc)
 
     def snapshot(self, timeout_s: float = 5.0) -> dict:
         return self.client.snapshot(timeout_s)
@@ -266,11 +353,17 @@ class LocalTeam:
         snap: dict = {}
         while time.monotonic() < deadline:
             self.check_children()
+            given_up = self.supervisor.given_up() if self.supervisor else {}
+            if given_up:  # a team that cannot start is not worth waiting for
+                name, why = next(iter(given_up.items()))
+                raise AutoPowerError(f"{name} could not be started ({why}); its log ({self.children[name].log_path}) "
+                                     f"ends:\n{self.children[name].tail()}")
             try:
                 snap = self.snapshot(timeout_s=max(0.5, min(3.0, deadline - time.monotonic())))
             except AutoPowerError:
                 continue
             if snap.get("ready"):
+                self.mission = self.mission or snap.get("mission")
                 return snap
             time.sleep(0.05)
         detail = json.dumps({k: snap.get(k) for k in ("placement", "target", "migrating", "plan_error", "events")},
@@ -279,6 +372,10 @@ class LocalTeam:
 
     def stop(self, timeout_s: float = 8.0) -> dict[str, int | None]:
         """Stop the agents, then the base station; kill what does not stop in time."""
+        with self._lock:
+            self._stopping = True  # no restarts from here on
+        if self._supervisor_thread is not None:
+            self._supervisor_thread.join(timeout=2.0)
         if self.client is not None:
             self.client.close()
             self.client = None
@@ -304,9 +401,19 @@ class LocalTeam:
                 self.exit_codes[child.name] = child.proc.returncode
         for proxy in self.proxies.values():
             proxy.close()
+        self._remove_resume_files()
         if self.identities is not None:
             self.identities.remove()  # a stopped team's keys are of no use to anyone
         return {n: c for n, c in self.exit_codes.items() if n not in self.expected_exits}
+
+    def _remove_resume_files(self) -> None:
+        """The agents' resume states (`autopower.agent.resume`) end with the team's mission."""
+        import shutil
+
+        from autopower.agent.resume import AGENTS_DIR
+        from autopower.basestation.operator import TEAMS_DIR, state_dir
+
+        shutil.rmtree(state_dir() / TEAMS_DIR / self.team / AGENTS_DIR, ignore_errors=True)
 
     def __enter__(self) -> "LocalTeam":
         try:

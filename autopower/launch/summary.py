@@ -45,7 +45,21 @@ def status_line(snap: dict, speed: float) -> str:
     warning = keep_up_warning(snap, speed)
     if snap.get("recording_error"):
         line += f"; RECORDING FAILED: {snap['recording_error']}"
+    if (snap.get("supervision") or {}).get("crashes"):
+        line += f"; {supervisor_line(snap['supervision'])}"
     return line + (f"; warning: {warning}" if warning else "")
+
+
+def supervisor_line(supervision: dict) -> str:
+    """What the launcher's supervisor did, in one line (crashes, restarts, what it gave up on)."""
+    restarts = ", ".join(f"{n} {k}x" for n, k in (supervision.get("restarts") or {}).items()) or "none"
+    line = f"supervisor: {supervision.get('crashes', 0)} crash(es), restarts {restarts}"
+    if supervision.get("down"):
+        line += f", restarting {', '.join(supervision['down'])}"
+    given_up = supervision.get("given_up") or {}
+    if given_up:
+        line += "; GAVE UP on " + "; ".join(f"{n} ({why})" for n, why in given_up.items())
+    return line
 
 
 def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wall_s: float,

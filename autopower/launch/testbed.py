@@ -144,8 +144,8 @@ class TestbedTeam(LocalTeam):
             self.net.destroy()
             shutil.rmtree(self.fleet_dir, ignore_errors=True)
 
-    def check_children(self) -> None:
+    def check_children(self):
         if self._bridge is not None and self._bridge.poll() is not None:
             raise AutoPowerError(f"the operator bridge into {self.scenario.basestation}'s namespace exited "
                                  f"({self._bridge.returncode}); see {self.log_dir / 'operator-bridge.log'}")
-        super().check_children()
+        return super().check_children()  # supervised like on localhost: a crashed child restarts in its namespace

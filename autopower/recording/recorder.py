@@ -174,6 +174,17 @@ def record_fault_event(run_dir: str | Path, *, kind: str, target: str, phase: st
 # ---------------------------------------------------------------------------------------------
 
 
+def _fresh_path(run_dir: Path, node: str) -> Path:
+    """``<node>.rrd``, or ``<node>.restart-<n>.rrd`` for a process started again after a crash
+    (its earlier file is kept: the merge joins every file of the run)."""
+    path = run_dir / f"{node}.rrd"
+    n = 0
+    while path.exists():
+        n += 1
+        path = run_dir / f"{node}.restart-{n}.rrd"
+    return path
+
+
 class Recorder:
     """Turns one process's protocol traffic into Telemetry calls; thread-safe, never raises."""
 
@@ -221,7 +232,7 @@ class Recorder:
             props.update(scenario=scenario.name, accounting=scenario.accounting,
                          topology=scenario.network_spec.topology, basestation=scenario.basestation)
         props.update(properties or {})
-        telemetry = Telemetry(run_dir / f"{node}.rrd", recording_id=recording_id or run_recording_id(run_dir),
+        telemetry = Telemetry(_fresh_path(run_dir, node), recording_id=recording_id or run_recording_id(run_dir),
                               kind=kind, properties=props, flush_rows=20_000)
         return cls(telemetry, node, **kwargs)
 

@@ -1,0 +1,102 @@
+"""A restarted agent carries on: battery and source positions from its resume file (same mission only)."""
+
+from __future__ import annotations
+
+import stat
+
+import pytest
+
+from autopower.agent.node import NodeRuntime
+from autopower.agent.resume import ResumeFile
+from autopower.model.loading import load_scenario
+from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+
+
+def _team_at(t_end: float) -> SimTeam:
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    team.run_until(t_end)
+    return team
+
+
+def _restarted(team: SimTeam, robot: str, saved: dict | None) -> NodeRuntime:
+    old = team.nodes[robot]
+    rt = NodeRuntime(node=robot, scenario=team.scenario, bus=team.hub.bus(robot + "-again"), keys=team.keys,
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
+    rt.resume_from = saved
+    rt.on_plan(old.plan)
+    return rt
+
+
+def test_the_resume_file_is_private_and_survives_a_round_trip(tmp_path):
+    team = _team_at(40.0)
+    state = team.nodes["r2"].resume_state()
+    store = ResumeFile(tmp_path / "agents" / "r2.json")
+    store.save(state)
+    assert stat.S_IMODE(store.path.stat().st_mode) == 0o600
+    assert store.load()["energy_j"] == pytest.approx(state["energy_j"])
+    store.path.write_text("{not json")
+    assert store.load() is None  # unreadable: start from the mission's energies, never crash
+
+
+def test_a_restart_continues_the_battery_and_the_sources():
+    team = _team_at(40.0)
+    old = team.nodes["r2"]
+    saved = old.resume_state()
+    consumed = old.meter.consumed_j
+    sources = {name: runner.seq for name, runner in old.sources.items()}
+    assert sources and all(seq > 0 for seq in sources.values())
+    team.clock.set(50.0)  # the process was down for 10 s of mission time
+    rt = _restarted(team, "r2", saved)
+    assert rt.resumed
+    rt.meter.advance(50.0)
+    idle_w = team.scenario.platform_of("r2").idle_w
+    # what it had consumed, plus at least the idle CPU of the 10 s it was down: not a full battery
+    assert rt.meter.consumed_j >= consumed + idle_w * 10.0 - 1e-6
+    assert rt.meter.battery_j < team.scenario.robot("r2").energy_j - consumed
+    assert {name: runner.seq for name, runner in rt.sources.items()} == sources
+
+
+def test_the_state_of_another_mission_is_ignored():
+    team = _team_at(20.0)
+    saved = team.nodes["r2"].resume_state()
+    saved["mission"] = {**saved["mission"], "epoch_unix": saved["mission"]["epoch_unix"] + 1.0}
+    rt = _restarted(team, "r2", saved)
+    assert not rt.resumed
+    assert rt.meter.battery_j == pytest.approx(team.scenario.robot("r2").energy_j)
+    assert all(runner.seq == 0 for runner in rt.sources.values())
+
+
+@pytest.mark.parametrize("damage", [{"energy_j": "much"}, {"energy_j": {"cpu_idle": float("nan")}},
+                                    {"sources": {"Loc-2": {"run": "x"}}}, {"t_virtual": None}])
+def test_a_damaged_resume_state_is_ignored_not_a_crash_loop(damage):
+    team = _team_at(20.0)
+    saved = {**team.nodes["r2"].resume_state(), **damage}
+    rt = _restarted(team, "r2", saved)
+    assert not rt.resumed
+    assert rt.meter.battery_j == pytest.approx(team.scenario.robot("r2").energy_j)
+
+
+def test_the_files_of_a_dead_team_go_with_its_resume_files(tmp_path, monkeypatch):
+    from autopower.agent.resume import AGENTS_DIR
+    from autopower.basestation.operator import remove_team_files, team_dir
+
+    monkeypatch.setenv("AUTOPOWER_STATE_DIR", str(tmp_path))
+    ResumeFile(team_dir("t9") / AGENTS_DIR / "r1.json").save({"node": "r1"})
+    remove_team_files("t9")
+    assert not (tmp_path / "teams" / "t9").exists()
+
+
+def test_source_positions_after_the_snapshot_come_from_the_journal(tmp_path):
+    store = ResumeFile(tmp_path / "r2.json")
+    store.note_source("Blob-2", 1, 5, 0, 5)  # before any snapshot: nothing to resume from, not noted
+    store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}}})
+    assert stat.S_IMODE(store.journal_path.stat().st_mode) == 0o600
+    for seq in (8, 9, 10):
+        store.note_source("Blob-2", 1, seq, 0, seq)
+    with open(store.journal_path, "a") as f:
+        f.write('["Blob-2", 1, 11')  # the line a SIGKILL cut short
+    assert store.load()["sources"]["Blob-2"]["seq"] == 10
+    store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 12, "missed": 0, "produced_total": 12}}})
+    assert store.journal_path.stat().st_size == 0 and store.load()["sources"]["Blob-2"]["seq"] == 12
+    store.close()
