@@ -425,7 +425,7 @@ class ScenarioParser:
             if len(plugin) == 1:
                 have, lacking = next(iter(plugin)), ({"implementation", "source"} - set(plugin)).pop()
                 raise self.fail(f"{path}.{have}", f"{have} without {lacking}",
-                                f'both implementation = "pkg.mod:Component" and source = "pkg.mod:Source"')
+                                'both implementation = "pkg.mod:Component" and source = "pkg.mod:Source"')
             out[name] = ComponentSpec(
                 name=name, latency_s={p: self.number(lat, p, f"{path}.latency_s", positive=True) for p in lat},
                 implementation=plugin.get("implementation"), source=plugin.get("source"),

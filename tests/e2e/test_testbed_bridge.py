@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from autopower.launch.netns import PREFIX, NamespaceNetwork, list_namespaces
+from autopower.launch.netns import NamespaceNetwork, list_namespaces
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
 from tests.e2e.test_testbed import clean, root  # noqa: F401 - fixtures

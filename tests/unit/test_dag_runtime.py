@@ -8,7 +8,6 @@ the real components: MCL localises each robot and TeamMap merges their poses.
 from __future__ import annotations
 
 import msgpack
-import pytest
 
 from autopower.agent.joining import EdgeGate, JoinState, join_wait_s
 from autopower.basestation.coordinator import CoordinatorConfig
