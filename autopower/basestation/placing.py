@@ -173,7 +173,7 @@ class Placing:
         self.placement.pop(stage, None)
 
     def publish_plan(self, repeat: bool = False) -> None:
-        if self.mission is None:
+        if self.mission is None or self.stepped_down is not None:
             return
         if not repeat:
             self.epoch += 1
@@ -182,7 +182,8 @@ class Placing:
         update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
                             running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
                             predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
-                            policy=self.policy.name, reasons=tuple(self.decision_reasons))
+                            policy=self.policy.name, reasons=tuple(self.decision_reasons),
+                            incarnation=self.incarnation, leader=self.leader)
         payload = encode(update)
         self.bus.publish(self.keys.plan, payload)
         self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)

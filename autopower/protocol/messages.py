@@ -271,7 +271,7 @@ class StageFailed:
 @dataclass(frozen=True, kw_only=True)
 class PlanUpdate:
     KIND = "plan"
-    epoch: int  # increases with every change
+    epoch: int  # increases with every change (continued by a base station that takes over)
     mission: MissionInfo
     placement: dict[str, str]  # stage -> node where it runs now (confirmed)
     running: dict[str, int]  # chain -> run number, for chains whose sources should produce
@@ -281,6 +281,10 @@ class PlanUpdate:
     plan_t_virtual: float  # when this placement's prediction starts
     policy: str = ""  # what decided it (autopower.policies's name)
     reasons: tuple[str, ...] = ()  # why, in the policy's words (for the operator and the recording)
+    # which start of a base station made it: plans are ordered by (incarnation, epoch), so a base
+    # station that takes over a running team (incarnation + 1) is followed whatever its epoch
+    incarnation: int = 0
+    leader: str = ""  # that base station's instance id: two base stations at once tell each other apart
 
 
 # ---------------------------------------------------------------------------------------------
@@ -313,6 +317,10 @@ class NodeStatus:
     depleted: bool
     consumed: dict[str, Consumed] = field(default_factory=dict)  # "chain#target" -> what this node took in
     failed: dict[str, str] = field(default_factory=dict)  # stage -> why its component was stopped here
+    # what a base station taking over a running team learns from it (see basestation/takeover.py)
+    plan_incarnation: int = 0  # with plan_epoch: the plan this node runs
+    mission: MissionInfo | None = None  # the mission clock and starting energies it meters (None: not started)
+    generations: dict[str, int] = field(default_factory=dict)  # stage -> generation of the instance hosted here
 
 
 # ---------------------------------------------------------------------------------------------
