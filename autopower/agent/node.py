@@ -385,6 +385,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             consumed=self.consumed(),
             failed=dict(self.failed),
             plan_incarnation=self.plan.incarnation if self.plan else 0,
+            plan_leader=self.plan.leader if self.plan else "",
             mission=self.mission,
             generations={n: h.generation for n, h in self.hosted.items()},
         )

@@ -287,6 +287,7 @@ class BaseStation:
                         # before it runs the mission (plan_epoch -1) a robot's status only says who
                         # it sees (for the relay) and that it is there: its link view may predate
                         # our token reaching it, so it must not count as a link going down
+                        co.on_rival_status(status)  # a robot on another base station's plan
                         if co.mission is None:
                             co.learn(status)  # what a running team runs, before anything is decided
                         elif status.plan_epoch >= 0 and (status.node in co.present or status.node in self.relayer.direct):

@@ -18,8 +18,12 @@ incarnation is one above any reported (and any this host remembers), so that eve
 accepts its plans: plans are ordered by (incarnation, epoch).
 
 Two base stations at once (one restarted while the old one was only cut off, or started twice)
-see each other's plans on the plan key: the one with the older (incarnation, leader id) steps
-down (`on_rival_plan`): it stops deciding and its process exits, saying which one it yielded to.
+learn of each other from the plans on the plan key (when they are connected) or from the robots'
+statuses, which name the base station whose plan they run (`NodeStatus.plan_leader`): the one
+with the older (incarnation, leader id) steps down (`on_rival_plan`, `on_rival_status`): it stops
+deciding and its process exits (status 0: a service manager must not restart it), saying which
+one it yielded to. The robots follow the newer one's plans from the first (plans are ordered by
+incarnation first); the older one hears of it from their next status (half a second).
 """
 
 from __future__ import annotations
@@ -107,29 +111,41 @@ class TakingOver:
         self.adopted += len(placement)
         self.takeover = {"up_unix": self.up_unix, "adopted_unix": self.wall(), "incarnation": self.incarnation,
                          "from_robots": sorted(reports), "mission_t_s": self.now(), "stages": len(placement),
-                         "previous": f"incarnation {newest.plan_incarnation} epoch {newest.plan_epoch}"}
+                         "previous": {"incarnation": newest.plan_incarnation, "epoch": newest.plan_epoch,
+                                      "leader": newest.plan_leader}}
         self.note(f"took over a running team after {self.wall() - self.up_unix:.2f} s: mission time "
                   f"{self.now():.1f} s (its clock goes on), {len(placement)} stage(s) running "
                   f"({', '.join(f'{s}@{n}' for s, n in sorted(placement.items())) or 'none'}), "
-                  f"heard {', '.join(sorted(reports))}; incarnation {self.incarnation}, epochs from {self.epoch + 1}")
+                  f"heard {', '.join(sorted(reports))}; incarnation {self.incarnation} (after {newest.plan_leader or '?'}'s "
+                  f"{newest.plan_incarnation}), epochs from {self.epoch + 1}")
         self.note(f"policy: {self.policy.name}")
         self.replan("took over a running team")
 
     def on_rival_plan(self, plan: PlanUpdate) -> None:
-        """A plan on the plan key that another base station made: the older one steps down."""
-        if plan.leader == self.leader or self.stepped_down is not None:
+        """A plan on the plan key that another base station made (when the two are connected)."""
+        if plan.leader != self.leader:
+            self._rival(plan.incarnation, plan.leader, "publishes plans")
+
+    def on_rival_status(self, status: NodeStatus) -> None:
+        """A robot runs a plan we did not make: another base station reaches it (the two of us may not
+        be connected: Zenoh peers do not route for each other, the robots see both)."""
+        if self.mission is not None and status.plan_epoch >= 0 and status.plan_leader not in ("", self.leader):
+            self._rival(status.plan_incarnation, status.plan_leader, f"gives {status.node} its plans")
+
+    def _rival(self, incarnation: int, leader: str, how: str) -> None:
+        """Another base station for this team: the one with the older (incarnation, leader id) steps down."""
+        if self.stepped_down is not None:
             return
-        rival = (plan.incarnation, plan.leader)
-        if rival > (self.incarnation, self.leader):
-            self.stepped_down = (f"another base station runs team {self.keys.team!r}: {plan.leader or '?'} "
-                                 f"(incarnation {plan.incarnation}, ours {self.incarnation}); the older one "
+        if (incarnation, leader) > (self.incarnation, self.leader):
+            self.stepped_down = (f"another base station runs team {self.keys.team!r}: {leader} "
+                                 f"(incarnation {incarnation}, ours {self.incarnation}) {how}; the older one "
                                  "steps down")
             self.note(f"stepping down: {self.stepped_down}")
             log.warning("base station: stepping down: %s", self.stepped_down)
-        elif self._rival_seen != plan.leader:
-            self._rival_seen = plan.leader
-            self.note(f"another base station ({plan.leader or '?'}, incarnation {plan.incarnation}) publishes plans "
-                      f"for this team; it is older and must step down (ours: incarnation {self.incarnation})")
+        elif self._rival_seen != leader:
+            self._rival_seen = leader
+            self.note(f"another base station ({leader}, incarnation {incarnation}) {how} for this team; it is "
+                      f"older than this one (incarnation {self.incarnation}) and steps down when it hears of us")
 
 
 def _placement_of(reports: dict[str, NodeStatus], stages: set[str]) -> tuple[dict[str, str], list[tuple[str, str]]]:

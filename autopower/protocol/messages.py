@@ -319,6 +319,7 @@ class NodeStatus:
     failed: dict[str, str] = field(default_factory=dict)  # stage -> why its component was stopped here
     # what a base station taking over a running team learns from it (see basestation/takeover.py)
     plan_incarnation: int = 0  # with plan_epoch: the plan this node runs
+    plan_leader: str = ""  # the base station that made it (`PlanUpdate.leader`)
     mission: MissionInfo | None = None  # the mission clock and starting energies it meters (None: not started)
     generations: dict[str, int] = field(default_factory=dict)  # stage -> generation of the instance hosted here
 
