@@ -284,12 +284,12 @@ class BaseStation:
                         if (status.node in co.robots and status.node not in co.present
                                 and self.relayer.reachable(status.node)):
                             co.on_liveliness(status.node, True)  # back, through a relay
-                        # before it runs the mission (plan_epoch -1) a robot's status only says who
-                        # it sees (for the relay) and that it is there: its link view may predate
-                        # our token reaching it, so it must not count as a link going down
                         co.on_rival_status(status)  # a robot on another base station's plan
                         if co.mission is None:
                             co.learn(status)  # what a running team runs, before anything is decided
+                        # before it runs the mission (plan_epoch -1) a robot's status only says who
+                        # it sees (for the relay) and that it is there: its link view may predate
+                        # our token reaching it, so it must not count as a link going down
                         elif status.plan_epoch >= 0 and (status.node in co.present or status.node in self.relayer.direct):
                             co.on_status(status)
                 else:

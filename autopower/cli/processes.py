@@ -140,7 +140,9 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     coordinator = CoordinatorConfig(speed=speed, topology=topology, media=media_choice,
                                     pins=parse_pairs(pin, "--pin", "Loc-2=r1"),
                                     auto_replan=not no_replan, replan_interval_s=replan_interval,
-                                    start_grace_s=start_grace, policy=policy)
+                                    start_grace_s=start_grace, policy=policy,
+                                    # listen to a running team for two status periods and a lease
+                                    learn_team_s=2 * status_period + zenoh.lease_ms / 1000)
     # what survives a restart (incarnation, the operator sink's ledgers): the team's state directory
     state = team_dir(team)
     config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh, state_dir=state,
