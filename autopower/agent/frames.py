@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+import zlib
 
 from autopower.agent.guard import ComponentHung
 from autopower.agent.sequencing import SinkLedger
@@ -202,7 +203,8 @@ class Frames:
         new = ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt)
         if new and self.sink_store is not None and self.mission is not None:
             # kept before it is handed on: a crash after this line cannot deliver it twice
-            self.sink_store.save(self.mission.epoch_unix, self.sinks)
+            self.sink_store.keep(self.mission.epoch_unix, self.sinks, chain.name, frame.run, frame.seq,
+                                 zlib.crc32(frame.data()))
         if not new:
             if ledger.redundant_total != redundant:
                 self.tally("redundant-output")  # a resent copy of what arrived late: dropped, as designed

@@ -162,8 +162,8 @@ class SinkLedger:
     _resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first received as a resend
 
     def record(self, run: int, seq: int, latency_ms: float | None = None, data: bytes = b"",
-               attempt: int = 0) -> bool:
-        """True if this output is new.
+               attempt: int = 0, crc: int | None = None) -> bool:
+        """True if this output is new (``crc``: the CRC-32 of ``data``, when only that is known).
 
         A second copy is *redundant* when a retransmission is involved (either copy is one: the
         first was only late); otherwise it is a *duplicate*, which means an output was produced
@@ -189,7 +189,7 @@ class SinkLedger:
         if attempt > 0:
             self._resent.append(seq)
         self.above.add(seq)
-        self._waiting[seq] = zlib.crc32(data)
+        self._waiting[seq] = zlib.crc32(data) if crc is None else crc
         while self.contiguous in self.above:
             self.above.remove(self.contiguous)
             self.digest = fold_crc(self.digest, self.contiguous, self._waiting.pop(self.contiguous))

@@ -63,6 +63,7 @@ from autopower.protocol import (
     Keys,
     MissionInfo,
     NodeStatus,
+    PlanUpdate,
     Release,
     encode,
 )
@@ -160,6 +161,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.up_unix = self.wall()
         self.heard: dict[str, NodeStatus] = {}  # robot -> its status before we run the mission
         self.takeover: dict | None = None  # how the running team was adopted (None: we started the mission)
+        self.mission_unix = 0.0  # when we started or adopted the mission
         self.stepped_down: str | None = None  # why we yielded to another base station
         self._rival_seen: str | None = None
         self._foreign_noted = False
@@ -184,6 +186,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         # reached through other agents); defaults publish directly
         self.send_to: Callable[[str, str, bytes], object] = lambda node, key, payload: self.bus.publish(key, payload)
         self.also_relay: Callable[[list[str], str, bytes], object] = lambda nodes, key, payload: None
+        # the base station's own host, handed each plan before it is published (not after a trip
+        # through Zenoh's loopback: after a takeover the robots' held results follow the plan at once,
+        # and a host without the mission would drop them)
+        self.on_own_plan: Callable[[PlanUpdate], object] = lambda plan: None
 
     # ---- helpers ----------------------------------------------------------------------------------
     def now(self) -> float:
@@ -285,6 +291,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.mission = MissionInfo(scenario=self.scenario.name, accounting=self.scenario.accounting,
                                    epoch_unix=self.wall(), speed=self.config.speed,
                                    energies_j=self.scenario.energies_j())
+        self.mission_unix = self.wall()
         self.clock = VirtualClock(self.mission.epoch_unix, self.mission.speed, wall_fn=self.wall)
         self.next_periodic_replan = self.config.replan_interval_s
         self.note(f"policy: {self.policy.name}")

@@ -57,6 +57,8 @@ class Host(Protocol):
 
     def on_message(self, key: str, payload: bytes) -> bool: ...
 
+    def on_plan(self, plan: PlanUpdate) -> None: ...
+
     def on_liveliness(self, node: str, alive: bool) -> None: ...
 
     def on_timer(self) -> None: ...
@@ -124,6 +126,7 @@ class BaseStation:
         self.runtime.send_to = self.relayer.send
         self.coordinator.send_to = self.relayer.send
         self.coordinator.also_relay = self.relayer.send_beyond_sight
+        self.coordinator.on_own_plan = self._own_plan
         for key in (keys.node_data(self.node), keys.node_control(self.node), keys.plan, keys.inbox,
                     keys.status_all, keys.node_relay(self.node)):
             self._handles.append(bus.subscribe(key, self.events.on_message))
@@ -186,6 +189,13 @@ class BaseStation:
         if self._owns_bus and self._bus is not None:
             self._bus.close()
             self._bus = None
+
+    def _own_plan(self, plan) -> None:
+        try:
+            self.runtime.on_plan(plan)
+        except Exception:  # the host's trouble must not stop the coordinator's plan from going out
+            log.exception("base station: the laptop's host could not take its own plan")
+            self.runtime.count("internal-error")
 
     def request_stop(self, reason: str) -> None:
         self.events.post(StopRequested(reason))

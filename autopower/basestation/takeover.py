@@ -85,6 +85,7 @@ class TakingOver:
                 self.note(self.plan_error)
             return
         self.mission = mission
+        self.mission_unix = self.wall()
         self.clock = VirtualClock(mission.epoch_unix, mission.speed, wall_fn=self.wall)
         if mission.speed != self.config.speed:
             self.note(f"the team runs at speed {mission.speed:g}, not {self.config.speed:g}: going on at its speed")
@@ -129,8 +130,12 @@ class TakingOver:
     def on_rival_status(self, status: NodeStatus) -> None:
         """A robot runs a plan we did not make: another base station reaches it (the two of us may not
         be connected: Zenoh peers do not route for each other, the robots see both)."""
-        if self.mission is not None and status.plan_epoch >= 0 and status.plan_leader not in ("", self.leader):
-            self._rival(status.plan_incarnation, status.plan_leader, f"gives {status.node} its plans")
+        if self.mission is None or status.plan_epoch < 0 or status.plan_leader in ("", self.leader):
+            return
+        older = (status.plan_incarnation, status.plan_leader) < (self.incarnation, self.leader)
+        if older and status.t_unix < self.mission_unix + 1.0:
+            return  # made before our first plan reached it (a takeover): not a sign of anyone else
+        self._rival(status.plan_incarnation, status.plan_leader, f"gives {status.node} its plans")
 
     def _rival(self, incarnation: int, leader: str, how: str) -> None:
         """Another base station for this team: the one with the older (incarnation, leader id) steps down."""

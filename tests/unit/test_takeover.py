@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import zlib
 
 import pytest
 
@@ -138,26 +139,45 @@ def test_plans_are_ordered_by_incarnation_then_epoch(sc):
     assert status.mission == current.mission
 
 
-def test_a_sink_goes_on_from_its_kept_ledgers(tmp_path):
-    store = SinkStore(tmp_path / "sinks.json")
+def keep_output(store: SinkStore, ledger: SinkLedger, seq: int, mission: float = 100.0) -> None:
+    data = b"out%d" % seq
+    assert ledger.record(0, seq, data=data)
+    store.keep(mission, {"Blob-2": ledger}, "Blob-2", 0, seq, zlib.crc32(data))
+
+
+@pytest.mark.parametrize("compact_bytes", [1 << 20, 200])  # appended lines; snapshots every few outputs
+def test_a_sink_goes_on_from_its_kept_ledgers(tmp_path, compact_bytes):
+    store = SinkStore(tmp_path / "sinks.json", compact_bytes=compact_bytes)
     full, first = SinkLedger(), SinkLedger()
     for seq in (0, 1, 2, 4, 5):  # 3 is still on its way
         full.record(0, seq, data=b"out%d" % seq)
-        first.record(0, seq, data=b"out%d" % seq)
-        store.save(100.0, {"Blob-2": first})
-    assert store.load(200.0) == {}  # another mission's sinks start empty
-    restarted = store.load(100.0)["Blob-2"]
+        keep_output(store, first, seq)
+    assert SinkStore(tmp_path / "sinks.json").load(200.0) == {}  # another mission's sinks start empty
+    restarted = SinkStore(tmp_path / "sinks.json").load(100.0)["Blob-2"]
     assert (restarted.contiguous, restarted.max_seq, restarted.received_total) == (3, 5, 5)
     assert not restarted.record(0, 4, data=b"out4", attempt=1)  # resent to the new sink: not delivered again
     assert restarted.redundant_total == 1 and restarted.duplicates_total == 0
+    again = SinkStore(tmp_path / "sinks.json")
     for seq in (3, 6):
-        assert restarted.record(0, seq, data=b"out%d" % seq)
         full.record(0, seq, data=b"out%d" % seq)
+        keep_output(again, restarted, seq)
     assert (restarted.contiguous, restarted.digest) == (full.contiguous, full.digest)  # as if never restarted
-    (tmp_path / "sinks.json").write_text('{"mission_epoch_unix": 100.0, "sinks": {"Blob-2": {"run": "x"}}}')
-    assert store.load(100.0) == {}  # a damaged file is reported and ignored
-    (tmp_path / "sinks.json").write_bytes(b"\xff\x00")
-    assert store.load(100.0) == {}
+    third = SinkStore(tmp_path / "sinks.json").load(100.0)["Blob-2"]
+    assert (third.contiguous, third.digest, third.received_total) == (full.contiguous, full.digest, 7)
+
+
+def test_a_torn_or_damaged_sink_state_is_survived(tmp_path):
+    path = tmp_path / "sinks.json"
+    store, ledger = SinkStore(path), SinkLedger()
+    for seq in range(4):
+        keep_output(store, ledger, seq)
+    with open(path, "ab") as f:
+        f.write(b'["Blob-2",0,4')  # killed in the middle of a line
+    assert SinkStore(path).load(100.0)["Blob-2"].contiguous == 4
+    path.write_text('{"mission_epoch_unix": 100.0}\n{"sinks": {"Blob-2": {"run": "x"}}}\n')
+    assert SinkStore(path).load(100.0) == {}  # not a sink state: reported, the sink starts empty
+    path.write_bytes(b"\xff\x00")
+    assert SinkStore(path).load(100.0) == {}
 
 
 def test_one_base_station_per_team_and_host(sc, tmp_path):
