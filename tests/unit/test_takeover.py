@@ -66,6 +66,9 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
     # the chains that run go on with their run; those whose stage ran only on the old base station
     # (nobody reports it: here it is cut off, in a real crash it is gone) restart as a new run
     assert new.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 1, "Loc-3": 1, "Blob-2": 1}
+    for robot in ROBOTS:  # the policy starts from the batteries as measured, not the scenario's
+        assert new.remaining_energies()[robot] == pytest.approx(team.nodes[robot].meter.battery_j)
+        assert new.remaining_energies()[robot] < sc.robot(robot).energy_j
     team.pump()
     team.report_status()
     team.run_until(80.0)
@@ -83,6 +86,11 @@ def test_the_older_base_station_steps_down_when_it_hears_of_the_newer(sc):
     for robot in ROBOTS:
         new.on_liveliness(robot, True)
         new.learn(team.nodes[robot].status(10.0))
+    on_old_plan = team.nodes["r1"].status(10.0)
+    new.on_rival_status(on_old_plan)  # made before our first plan reached r1: not a rival
+    assert new._rival_seen is None
+    new.on_rival_status(dataclasses.replace(on_old_plan, t_unix=new.mission_unix + 2.0))
+    assert new._rival_seen == old.leader and new.stepped_down is None  # older: noted, it is the one to yield
     team.pump()
     new.on_rival_status(team.nodes["r1"].status(10.0))  # its own plan: nothing to say
     assert new.stepped_down is None
