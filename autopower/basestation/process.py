@@ -179,7 +179,27 @@ class BaseStation:
         except OSError as exc:
             log.error("base station: cannot remember incarnation %d in %s: %s", co.incarnation, path, exc)
 
+    def _forget_state(self) -> None:
+        """A base station whose launcher owns the team (``parent_pid``: `up`, the test launcher) that
+        stops cleanly leaves nothing behind: the team ends with it. Under a service manager (no
+        parent) the files stay for the next start; after a kill they stay for the restart."""
+        folder = Path(self.config.state_dir)
+        for name in ("sinks.json", "sinks.json.tmp", "basestation.json", "basestation.json.tmp", "basestation.lock"):
+            try:
+                (folder / name).unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                log.warning("base station: cannot remove %s: %s", folder / name, exc)
+        try:
+            folder.rmdir()  # only if empty: `up`'s session file is `up`'s to remove
+        except OSError:
+            pass
+
     def __exit__(self, *exc) -> None:
+        if (self._lock_fd is not None and self.stop_reason is not None and self.config.parent_pid is not None
+                and exc[0] is None):
+            self._forget_state()
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # releases the lock (a kill releases it too)
             self._lock_fd = None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import zlib
 
 import pytest
@@ -202,3 +203,19 @@ def test_one_base_station_per_team_and_host(sc, tmp_path):
     (tmp_path / "basestation.json").write_text('{"incarnation": 6}')
     with BaseStation(config, host_factory=host, bus=hub.bus("laptop-3")) as base:  # the lock went with it
         assert base.coordinator.incarnation == 7  # above what this host used last
+        base.run(max_wall_s=0.05)
+    assert (tmp_path / "basestation.json").exists()  # kept for the next start (a service manager's)
+
+
+def test_a_launched_base_station_that_stops_cleanly_leaves_no_state(sc, tmp_path):
+    hub, state = InMemoryHub(synchronous=True), tmp_path / "team"
+    state.mkdir()
+    config = BaseStationConfig(scenario=sc, team="t", state_dir=state, parent_pid=os.getppid())
+
+    def host(**kw):
+        return NodeRuntime(make_component=FakeComponent, make_source=FakeSource, **kw)
+
+    with BaseStation(config, host_factory=host, bus=hub.bus("laptop")) as base:
+        (state / "sinks.json").write_text("{}")
+        assert base.run(max_wall_s=0.05) == "time limit"
+    assert not state.exists()  # its launcher (`up`) owned the team: nothing is left for a restart
