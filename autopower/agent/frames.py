@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+import zlib
 
 from autopower.agent.guard import ComponentHung
 from autopower.agent.sequencing import SinkLedger
@@ -203,7 +204,12 @@ class Frames:
         ledger = self.sinks.setdefault(chain.name, SinkLedger())
         latency_ms = (time.time() - frame.t_unix) * 1000.0
         redundant = ledger.redundant_total
-        if not ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt):
+        new = ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt)
+        if new and self.sink_store is not None and self.mission is not None:
+            # kept before it is handed on: a crash after this line cannot deliver it twice
+            self.sink_store.keep(self.mission.epoch_unix, self.sinks, chain.name, frame.run, frame.seq,
+                                 zlib.crc32(frame.data()))
+        if not new:
             if ledger.redundant_total != redundant:
                 self.tally("redundant-output")  # a resent copy of what arrived late: dropped, as designed
                 return

@@ -41,6 +41,7 @@ from autopower.agent.hosting import Hosting
 from autopower.agent.joining import Joining
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.sequencing import SinkLedger
+from autopower.agent.sink_store import SinkStore
 from autopower.agent.stages import HELD_OUTPUT_LIMIT, HostedStage, SourceRunner, chain_seed, pad
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
@@ -120,6 +121,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         self.resumed: bool = False
         self.on_produced: Callable[[SourceRunner], None] | None = None
         self.custody = Custody()
+        # where this node's sink ledgers are kept across a restart (the base station's, in its team
+        # state directory): an output delivered before a crash is not delivered again after it
+        self.sink_store: SinkStore | None = None
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
         self.hung_sources: dict[str, int] = {}  # chain -> the run whose source hung here (not restarted)
@@ -147,14 +151,23 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         return self.mission is not None
 
     # ---- plan --------------------------------------------------------------------------------
+    @property
+    def plan_order(self) -> tuple[int, int]:
+        """(incarnation, epoch) of the plan this node runs; (-1, -1) before the first."""
+        return (self.plan.incarnation, self.plan.epoch) if self.plan else (-1, -1)
+
     def on_plan(self, plan: PlanUpdate) -> None:
-        if self.plan is not None and plan.epoch <= self.plan.epoch:
+        # plans are ordered by (incarnation, epoch): a base station that took over the team
+        # (a higher incarnation) is followed even if its epoch is lower than what runs
+        if (plan.incarnation, plan.epoch) <= self.plan_order:
             return  # old or repeated
         if plan.mission.scenario != self.scenario.name:
             self.count("foreign-plan", f"plan for scenario {plan.mission.scenario!r}")
             return
         if self.mission is None:
             self.mission = plan.mission
+            if self.sink_store is not None:  # a restarted sink goes on from what it had delivered
+                self.sinks.update(self.sink_store.load(plan.mission.epoch_unix))
             self.clock = self._clock_factory(plan.mission)
             if not self.platform.mains and self.node not in plan.mission.energies_j:
                 raise AutoPowerError(f"the mission gives no starting energy for {self.node}")
@@ -460,6 +473,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
             depleted=bool(self.meter and self.meter.depleted),
             consumed=self.consumed(),
             failed=dict(self.failed),
+            plan_incarnation=self.plan.incarnation if self.plan else 0,
+            plan_leader=self.plan.leader if self.plan else "",
+            mission=self.mission,
+            generations={n: h.generation for n, h in self.hosted.items()},
         )
 
     # ---- dispatch -----------------------------------------------------------------------------------------

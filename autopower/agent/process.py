@@ -166,10 +166,10 @@ class Agent:
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
             return
-        epoch = rt.plan.epoch if rt.plan else -1
+        order = rt.plan_order
         if not rt.on_message(key, payload):
             rt.count("unexpected-key", key)
-        elif rt.plan is not None and rt.plan.epoch != epoch:
+        elif rt.plan_order != order:
             self.publish_status()  # acknowledges the new plan at once (reconfiguration is timed on it)
 
     # ---- subgroup (no base station) ---------------------------------------------------------------
@@ -189,7 +189,7 @@ class Agent:
             return
         robots = [r.name for r in cfg.scenario.robots]
         members = tuple(sorted({cfg.robot} | {r for r in robots if self.relayer.reachable(r)}))
-        key = (members, rt.plan.epoch)
+        key = (members, rt.plan_order)
         if (now - self._base_lost_at < cfg.subgroup_settle_s or members[0] != cfg.robot
                 or self.agreement.busy or self._subgroup_done == key):
             return

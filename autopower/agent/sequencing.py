@@ -133,7 +133,12 @@ def fold_digest(digest: int, seq: int, data: bytes) -> int:
     0..n-1 have the same digest: a cheap end-to-end check that nothing was lost, repeated,
     reordered or computed from the wrong state.
     """
-    return zlib.crc32(struct.pack("<QI", seq, zlib.crc32(data)), digest)
+    return fold_crc(digest, seq, zlib.crc32(data))
+
+
+def fold_crc(digest: int, seq: int, data_crc: int) -> int:
+    """`fold_digest` from the CRC-32 of the output (what a sink keeps of outputs not yet in order)."""
+    return zlib.crc32(struct.pack("<QI", seq, data_crc), digest)
 
 
 @dataclass
@@ -152,13 +157,13 @@ class SinkLedger:
     latencies_ms: deque = field(default_factory=lambda: deque(maxlen=512))
     latency_ms_max: float = 0.0
     digest: int = 0  # fold_digest over the outputs of seqs < contiguous
-    _waiting: dict[int, bytes] = field(default_factory=dict)  # data of seqs above the prefix
+    _waiting: dict[int, int] = field(default_factory=dict)  # CRC-32 of the data of seqs above the prefix
     redundant_total: int = 0  # second copies where a retransmission was involved (expected)
     _resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first received as a resend
 
     def record(self, run: int, seq: int, latency_ms: float | None = None, data: bytes = b"",
-               attempt: int = 0) -> bool:
-        """True if this output is new.
+               attempt: int = 0, crc: int | None = None) -> bool:
+        """True if this output is new (``crc``: the CRC-32 of ``data``, when only that is known).
 
         A second copy is *redundant* when a retransmission is involved (either copy is one: the
         first was only late); otherwise it is a *duplicate*, which means an output was produced
@@ -184,10 +189,10 @@ class SinkLedger:
         if attempt > 0:
             self._resent.append(seq)
         self.above.add(seq)
-        self._waiting[seq] = data
+        self._waiting[seq] = zlib.crc32(data) if crc is None else crc
         while self.contiguous in self.above:
             self.above.remove(self.contiguous)
-            self.digest = fold_digest(self.digest, self.contiguous, self._waiting.pop(self.contiguous))
+            self.digest = fold_crc(self.digest, self.contiguous, self._waiting.pop(self.contiguous))
             self.contiguous += 1
         self.received += 1
         self.received_total += 1
@@ -203,6 +208,27 @@ class SinkLedger:
             return None
         return Consumed(run=self.run, generation=0, next_seq=self.contiguous, max_seq=self.max_seq,
                         missing=missing_between(self.contiguous, self.max_seq, self.above))
+
+    def state(self) -> dict:
+        """What a restarted sink needs to go on exactly where this one is (`from_state`): JSON-able."""
+        return {"run": self.run, "contiguous": self.contiguous, "above": sorted(self.above),
+                "waiting": {str(s): c for s, c in self._waiting.items()}, "received": self.received,
+                "max_seq": self.max_seq, "received_total": self.received_total,
+                "duplicates_total": self.duplicates_total, "redundant_total": self.redundant_total,
+                "digest": self.digest}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "SinkLedger":
+        """A ledger that goes on from `state` (ValueError/KeyError/TypeError if it is not one)."""
+        ledger = cls(run=int(state["run"]), contiguous=int(state["contiguous"]),
+                     above={int(s) for s in state["above"]}, received=int(state["received"]),
+                     max_seq=int(state["max_seq"]), received_total=int(state["received_total"]),
+                     duplicates_total=int(state["duplicates_total"]),
+                     redundant_total=int(state["redundant_total"]), digest=int(state["digest"]))
+        ledger._waiting = {int(s): int(c) for s, c in state["waiting"].items()}
+        if set(ledger._waiting) != ledger.above or any(s < ledger.contiguous for s in ledger.above):
+            raise ValueError("a sink state whose outputs above the prefix do not add up")
+        return ledger
 
     @property
     def gaps(self) -> int:

@@ -24,9 +24,13 @@ schedule's next phase) and periodically. The hysteresis (a move must gain enough
 policy's; what stays here is link-state debouncing, which is about facts, not decisions: a link
 counts as down after ``link_down_after_s`` and as back after ``heal_hold_s``.
 
-This module holds the state and the event handlers; the class is assembled from three parts that
+Before deciding anything it listens to the team (`takeover.py`): robots that already run a mission
+(this base station was restarted) are adopted with their clock, placement, epochs and generations.
+
+This module holds the state and the event handlers; the class is assembled from four parts that
 use that state: `deciding.py` (team view -> policy -> target), `placing.py` (target -> assignments
-and migrations, plan updates) and `operating.py` (operator commands, the snapshot).
+and migrations, plan updates), `operating.py` (operator commands, the snapshot) and `takeover.py`
+(learning a running team, a rival base station).
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from autopower.basestation.deciding import Baseline, Deciding
 from autopower.basestation.links import LinkStates, pair_name
 from autopower.basestation.operating import Operating
 from autopower.basestation.placing import Migration, Placing
+from autopower.basestation.takeover import TakingOver, instance_id
 from autopower.errors import AutoPowerError
 from autopower.model.mission_events import MissionEvent
 from autopower.model.network import Network, build_network, media_choices
@@ -60,6 +65,7 @@ from autopower.protocol import (
     Keys,
     MissionInfo,
     NodeStatus,
+    PlanUpdate,
     Release,
     encode,
 )
@@ -89,12 +95,15 @@ class CoordinatorConfig:
     link_down_after_s: float = 3.0  # wall seconds a never-seen-up link must be reported down before it counts
     heal_hold_s: float = 2.0  # wall seconds a link must be back before plans may use it again (no flapping)
     variants: dict[str, str] = field(default_factory=dict)  # chain -> quality variant, fixed by the operator
+    # wall seconds to listen to the robots before deciding (a running team is adopted, see takeover.py):
+    # two status periods and a lease, what a running robot needs to reconnect and report
+    learn_team_s: float = 2.0
 
     def __post_init__(self) -> None:
         _policy_from(self)  # a wrong policy name or parameter fails here, before anything starts
 
 
-class Coordinator(Deciding, Placing, Operating):
+class Coordinator(Deciding, Placing, Operating, TakingOver):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time):
         """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it)."""
@@ -152,6 +161,17 @@ class Coordinator(Deciding, Placing, Operating):
         self.plan_error: str | None = None
         self.epoch = 0
         self.generation = 0
+        # which start of a base station this is (plans are ordered by (incarnation, epoch)): one above
+        # any the robots report when taking over; the process raises it to what its host remembers
+        self.incarnation = 0
+        self.leader = instance_id()
+        self.up_unix = self.wall()
+        self.heard: dict[str, NodeStatus] = {}  # robot -> its status before we run the mission
+        self.takeover: dict | None = None  # how the running team was adopted (None: we started the mission)
+        self.mission_unix = 0.0  # when we started or adopted the mission
+        self.stepped_down: str | None = None  # why we yielded to another base station
+        self._rival_seen: str | None = None
+        self._foreign_noted = False
         self.first_seen_unix: float | None = None
         self.next_republish = 0.0
         self.next_periodic_replan: float | None = None
@@ -173,10 +193,19 @@ class Coordinator(Deciding, Placing, Operating):
         # reached through other agents); defaults publish directly
         self.send_to: Callable[[str, str, bytes], object] = lambda node, key, payload: self.bus.publish(key, payload)
         self.also_relay: Callable[[list[str], str, bytes], object] = lambda nodes, key, payload: None
+        # the base station's own host, handed each plan before it is published (not after a trip
+        # through Zenoh's loopback: after a takeover the robots' held results follow the plan at once,
+        # and a host without the mission would drop them)
+        self.on_own_plan: Callable[[PlanUpdate], object] = lambda plan: None
 
     # ---- helpers ----------------------------------------------------------------------------------
     def now(self) -> float:
         return self.clock.now() if self.clock else 0.0
+
+    def runs_plan(self, status: NodeStatus, epoch: int, newer: bool = False) -> bool:
+        """Does the node run our plan of ``epoch`` (or, ``newer``, a later one)?"""
+        theirs, ours = (status.plan_incarnation, status.plan_epoch), (self.incarnation, epoch)
+        return theirs >= ours if newer else theirs == ours
 
     def note(self, text: str) -> None:
         line = f"t={self.now():.1f}s {text}"
@@ -209,7 +238,7 @@ class Coordinator(Deciding, Placing, Operating):
             if fault["epoch"] is None:
                 fault["epoch"] = self.epoch
         for fault in open_faults:
-            acked = all(self.statuses.get(r) is not None and self.statuses[r].plan_epoch >= fault["epoch"]
+            acked = all(self.statuses.get(r) is not None and self.runs_plan(self.statuses[r], fault["epoch"], newer=True)
                         for r in self.alive_nodes() if r in self.robots)
             if acked:
                 fault["reconfigured_unix"] = self.wall()
@@ -254,8 +283,13 @@ class Coordinator(Deciding, Placing, Operating):
 
     # ---- mission start --------------------------------------------------------------------------------
     def maybe_start(self) -> None:
-        if self.mission is not None:
+        if self.mission is not None or self.stepped_down is not None:
             return
+        if self._takeover_due():
+            self._adopt_team()
+            return
+        if self._running_reports() or not self._team_known():
+            return  # a running team is still to be heard, or robots in sight have not said what they run
         everyone = set(self.robots) <= self.present
         late = (self.first_seen_unix is not None
                 and self.wall() - self.first_seen_unix >= self.config.start_grace_s)
@@ -264,6 +298,7 @@ class Coordinator(Deciding, Placing, Operating):
         self.mission = MissionInfo(scenario=self.scenario.name, accounting=self.scenario.accounting,
                                    epoch_unix=self.wall(), speed=self.config.speed,
                                    energies_j=self.scenario.energies_j())
+        self.mission_unix = self.wall()
         self.clock = VirtualClock(self.mission.epoch_unix, self.mission.speed, wall_fn=self.wall)
         self.next_periodic_replan = self.config.replan_interval_s
         self.note(f"policy: {self.policy.name}")
@@ -411,6 +446,13 @@ class Coordinator(Deciding, Placing, Operating):
             deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
         elif self.first_seen_unix is not None:
             deadlines.append(self.first_seen_unix + self.config.start_grace_s)  # a late start
+            # done listening (only ahead of us: a deadline in the past would spin the loop)
+            now, listening = self.wall(), []
+            if self._running_reports() and not self._listened_enough():
+                listening.append(self.up_unix + self.config.learn_team_s)
+            if not all(r in self.heard for r in self.present - self.departed):
+                listening.append(self.first_seen_unix + self.config.learn_team_s)
+            deadlines += [t for t in listening if t > now]
         # nothing else is timed before the first robot appears: the next event wakes us
         if self.clock is not None and self.revisit_at_s is not None:
             deadlines.append(self.clock.wall_at(self.revisit_at_s))

@@ -210,7 +210,7 @@ class Deciding:
     def _check_drift(self, status: NodeStatus) -> None:
         if not self.config.auto_replan or status.battery_j is None or not self.ready:
             return
-        if status.plan_epoch != self.epoch or status.node not in self.predicted_w:
+        if not self.runs_plan(status, self.epoch) or status.node not in self.predicted_w:
             return
         base = self.baselines.get(status.node)
         if base is None:

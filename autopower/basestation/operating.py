@@ -115,6 +115,9 @@ class Operating:
             "mission": dataclasses.asdict(self.mission) if self.mission else None,
             "t_virtual": self.now(),
             "epoch": self.epoch,
+            "incarnation": self.incarnation,  # plans are ordered by (incarnation, epoch)
+            "leader": self.leader,
+            "takeover": dict(self.takeover) if self.takeover else None,  # how a running team was adopted
             "placement": dict(self.placement),
             "target": dict(self.target),
             "migrating": {s: {"from": m.from_node, "to": m.to_node, "phase": m.phase}

@@ -114,7 +114,9 @@ def read_session(team: str | None = None) -> dict:
 def remove_team_files(team: str) -> None:
     """Remove one team's session file, control socket and directory; nothing of any other team."""
     folder = state_dir() / TEAMS_DIR / check_name(team, "team")
-    for name in (SESSION_FILE, SESSION_FILE.replace(".json", ".tmp"), "control.sock"):
+    # with what the team's base station keeps across its restarts (process.py, agent/sink_store.py)
+    for name in (SESSION_FILE, SESSION_FILE.replace(".json", ".tmp"), "control.sock", "basestation.lock",
+                 "basestation.json", "basestation.json.tmp", "sinks.json", "sinks.json.tmp"):
         try:
             (folder / name).unlink()
         except FileNotFoundError:

@@ -173,7 +173,7 @@ class Placing:
         self.placement.pop(stage, None)
 
     def publish_plan(self, repeat: bool = False) -> None:
-        if self.mission is None:
+        if self.mission is None or self.stepped_down is not None:
             return
         if not repeat:
             self.epoch += 1
@@ -183,8 +183,9 @@ class Placing:
                             running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
                             predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
                             policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels),
-                            variants=dict(self.variants))
+                            variants=dict(self.variants), incarnation=self.incarnation, leader=self.leader)
         payload = encode(update)
+        self.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
         self.bus.publish(self.keys.plan, payload)
         self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)
         self.next_republish = self.wall() + self.config.plan_republish_s

@@ -5,19 +5,27 @@ the operator's sink for results), so the process runs a host for it (the agents'
 `NodeRuntime`, injected by the deploy layer as ``host_factory`` so that this package does not
 import its sibling) beside the `Coordinator`. Both are driven by the same loop; Zenoh
 callbacks only enqueue.
+
+What must survive a restart of the process lives in ``BaseStationConfig.state_dir`` (the team's
+state directory; systemd's ``StateDirectory``): the last incarnation this host used and the
+operator sink's ledgers (`autopower.agent.sink_store`), and a lock that refuses a second base
+station of the same team on the same host. The rest is learnt from the robots (`takeover.py`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import fcntl
+import json
 import logging
 import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Protocol
 
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
-from autopower.errors import ProtocolError
+from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.policies import Policy
 from autopower.protocol import (
@@ -26,6 +34,7 @@ from autopower.protocol import (
     Keys,
     NodeStatus,
     OperatorReply,
+    PlanUpdate,
     Prepared,
     StageFailed,
     StageReady,
@@ -48,6 +57,8 @@ class Host(Protocol):
     clock: Any
 
     def on_message(self, key: str, payload: bytes) -> bool: ...
+
+    def on_plan(self, plan: PlanUpdate) -> None: ...
 
     def on_liveliness(self, node: str, alive: bool) -> None: ...
 
@@ -72,6 +83,8 @@ class BaseStationConfig:
     # after losing sight of a robot, how long to wait for the other robots' word on it:
     # still seen by one of them -> only our link is cut (relay through it); else it is gone
     suspect_settle_s: float = 0.2
+    # where what survives a restart is kept (incarnation, sink ledgers, the host's lock); None: nothing
+    state_dir: Path | None = None
 
 
 class BaseStation:
@@ -96,6 +109,8 @@ class BaseStation:
         self.relayer: Relayer | None = None
         self._suspects: dict[str, float] = {}  # robot out of direct sight -> when
         self._status_t: dict[str, float] = {}  # node -> t_unix of its newest status seen
+        self._lock_fd: int | None = None
+        self._kept_incarnation: int | None = None  # what the state directory says we used last
 
     def __enter__(self) -> "BaseStation":
         if self._bus is None:
@@ -104,6 +119,8 @@ class BaseStation:
         self.runtime = self._host_factory(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys)
         self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
                                        config=self.config.coordinator, policy=self._policy)
+        if self.config.state_dir is not None:
+            self._keep_state(Path(self.config.state_dir))
         scenario = self.config.scenario
         access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
         self.signing = load_signing(self.node, self.config.zenoh.tls)  # None: --insecure, nothing signed
@@ -112,6 +129,7 @@ class BaseStation:
         self.runtime.send_to = self.relayer.send
         self.coordinator.send_to = self.relayer.send
         self.coordinator.also_relay = self.relayer.send_beyond_sight
+        self.coordinator.on_own_plan = self._own_plan
         for key in (keys.node_data(self.node), keys.node_control(self.node), keys.plan, keys.inbox,
                     keys.status_all, keys.node_relay(self.node)):
             self._handles.append(bus.subscribe(key, self.events.on_message))
@@ -122,13 +140,85 @@ class BaseStation:
                  self.config.scenario.name)
         return self
 
+    # ---- what survives a restart ----------------------------------------------------------------
+    def _keep_state(self, folder: Path) -> None:
+        """Lock the state directory (one base station per team and host) and resume its incarnation
+        (the sinks' ledgers there are the host's: ``host_factory`` gives it its `SinkStore`)."""
+        lock = folder / "basestation.lock"
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise AutoPowerError(f"another base station of team {self.config.team!r} runs on this host (pid "
+                                 f"{holder}, lock {lock}); stop it first, or give this one its own state directory")
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._lock_fd = fd
+        try:
+            kept = json.loads((folder / "basestation.json").read_text())
+            self._kept_incarnation = int(kept["incarnation"])
+        except FileNotFoundError:
+            pass
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("base station: %s/basestation.json is unreadable (%s); incarnations restart from the "
+                        "robots' reports", folder, exc)
+        if self._kept_incarnation is not None:
+            self.coordinator.incarnation = self._kept_incarnation + 1
+
+    def _remember_incarnation(self) -> None:
+        """Once it runs the mission, this host remembers the incarnation (the next start goes above)."""
+        co, folder = self.coordinator, self.config.state_dir
+        if folder is None or co.mission is None or self._kept_incarnation == co.incarnation:
+            return
+        self._kept_incarnation = co.incarnation
+        path, tmp = Path(folder) / "basestation.json", Path(folder) / "basestation.json.tmp"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            with os.fdopen(fd, "w") as f:
+                json.dump({"incarnation": co.incarnation, "leader": co.leader}, f)
+            tmp.replace(path)
+        except OSError as exc:
+            log.error("base station: cannot remember incarnation %d in %s: %s", co.incarnation, path, exc)
+
+    def _forget_state(self) -> None:
+        """A base station whose launcher owns the team (``parent_pid``: `up`, the test launcher) that
+        stops cleanly leaves nothing behind: the team ends with it. Under a service manager (no
+        parent) the files stay for the next start; after a kill they stay for the restart."""
+        folder = Path(self.config.state_dir)
+        for name in ("sinks.json", "sinks.json.tmp", "basestation.json", "basestation.json.tmp", "basestation.lock"):
+            try:
+                (folder / name).unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                log.warning("base station: cannot remove %s: %s", folder / name, exc)
+        try:
+            folder.rmdir()  # only if empty: `up`'s session file is `up`'s to remove
+        except OSError:
+            pass
+
     def __exit__(self, *exc) -> None:
+        if (self._lock_fd is not None and self.stop_reason is not None and self.config.parent_pid is not None
+                and exc[0] is None):
+            self._forget_state()
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # releases the lock (a kill releases it too)
+            self._lock_fd = None
         for handle in reversed(self._handles):
             handle.close()
         self._handles.clear()
         if self._owns_bus and self._bus is not None:
             self._bus.close()
             self._bus = None
+
+    def _own_plan(self, plan) -> None:
+        try:
+            self.runtime.on_plan(plan)
+        except Exception:  # the host's trouble must not stop the coordinator's plan from going out
+            log.exception("base station: the laptop's host could not take its own plan")
+            self.runtime.count("internal-error")
 
     def request_stop(self, reason: str) -> None:
         self.events.post(StopRequested(reason))
@@ -189,6 +279,14 @@ class BaseStation:
     def _received(self, key: str, payload: bytes, relayed: bool = False) -> None:
         rt, co, keys = self.runtime, self.coordinator, self.keys
         if True:
+            if key == keys.plan:
+                try:
+                    plan = decode(payload, PlanUpdate)
+                except ProtocolError:
+                    pass  # the runtime counts it
+                else:
+                    if plan.leader != co.leader:
+                        co.on_rival_plan(plan)  # another base station: the older one steps down
             if rt.on_message(key, payload):
                 return
             event_key = key
@@ -219,10 +317,13 @@ class BaseStation:
                         if (status.node in co.robots and status.node not in co.present
                                 and self.relayer.reachable(status.node)):
                             co.on_liveliness(status.node, True)  # back, through a relay
+                        co.on_rival_status(status)  # a robot on another base station's plan
+                        if co.mission is None:
+                            co.learn(status)  # what a running team runs, before anything is decided
                         # before it runs the mission (plan_epoch -1) a robot's status only says who
                         # it sees (for the relay) and that it is there: its link view may predate
                         # our token reaching it, so it must not count as a link going down
-                        if status.plan_epoch >= 0 and (status.node in co.present or status.node in self.relayer.direct):
+                        elif status.plan_epoch >= 0 and (status.node in co.present or status.node in self.relayer.direct):
                             co.on_status(status)
                 else:
                     rt.count("unexpected-key", event_key)
@@ -280,6 +381,10 @@ class BaseStation:
                     rt.count("internal-error")
             self._settle_suspects()
             co.on_timer()
+            if co.stepped_down is not None:
+                self.stop_reason = f"stepped down: {co.stepped_down}"
+                break
+            self._remember_incarnation()
             if rt.started:
                 rt.on_timer()
             now = time.time()

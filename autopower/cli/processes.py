@@ -127,7 +127,9 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
                 replan_interval, start_grace):
     """Run the base station: plan, place and migrate components; the operator's sink."""
     from autopower.agent.node import NodeRuntime
+    from autopower.agent.sink_store import SinkStore
     from autopower.basestation.coordinator import CoordinatorConfig
+    from autopower.basestation.operator import team_dir
     from autopower.basestation.process import BaseStation, BaseStationConfig
 
     setup_logging(log_level)
@@ -142,12 +144,22 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     coordinator = CoordinatorConfig(speed=speed, topology=topology, media=media_choice,
                                     pins=parse_pairs(pin, "--pin", "Loc-2=r1"),
                                     auto_replan=not no_replan, replan_interval_s=replan_interval,
-                                    start_grace_s=start_grace, policy=policy)
-    config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh,
+                                    start_grace_s=start_grace, policy=policy,
+                                    # listen to a running team for two status periods and a lease
+                                    learn_team_s=2 * status_period + zenoh.lease_ms / 1000)
+    # what survives a restart (incarnation, the operator sink's ledgers): the team's state directory
+    state = team_dir(team)
+    config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh, state_dir=state,
                                coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
+
+    def host(**kwargs) -> NodeRuntime:
+        runtime = NodeRuntime(**kwargs)
+        runtime.sink_store = SinkStore(state / "sinks.json")
+        return runtime
+
     recorder, bus = _recording_bus(record_dir, scenario.basestation, scenario, config.zenoh)
     try:
-        with BaseStation(config, host_factory=NodeRuntime, bus=bus) as process:
+        with BaseStation(config, host_factory=host, bus=bus) as process:
             if recorder is not None:
                 recorder.attach(process.runtime)
             reason = run_until_signalled(process, duration)

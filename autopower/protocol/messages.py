@@ -271,7 +271,7 @@ class StageFailed:
 @dataclass(frozen=True, kw_only=True)
 class PlanUpdate:
     KIND = "plan"
-    epoch: int  # increases with every change
+    epoch: int  # increases with every change (continued by a base station that takes over)
     mission: MissionInfo
     placement: dict[str, str]  # stage -> node where it runs now (confirmed)
     running: dict[str, int]  # chain -> run number, for chains whose sources should produce
@@ -283,6 +283,10 @@ class PlanUpdate:
     reasons: tuple[str, ...] = ()  # why, in the policy's words (for the operator and the recording)
     levels: dict[str, str] = field(default_factory=dict)  # robot -> DVFS frequency level (model.dvfs)
     variants: dict[str, str] = field(default_factory=dict)  # chain -> quality variant (model.variants)
+    # which start of a base station made it: plans are ordered by (incarnation, epoch), so a base
+    # station that takes over a running team (incarnation + 1) is followed whatever its epoch
+    incarnation: int = 0
+    leader: str = ""  # that base station's instance id: two base stations at once tell each other apart
 
 
 # ---------------------------------------------------------------------------------------------
@@ -315,6 +319,11 @@ class NodeStatus:
     depleted: bool
     consumed: dict[str, Consumed] = field(default_factory=dict)  # "chain#target" -> what this node took in
     failed: dict[str, str] = field(default_factory=dict)  # stage -> why its component was stopped here
+    # what a base station taking over a running team learns from it (see basestation/takeover.py)
+    plan_incarnation: int = 0  # with plan_epoch: the plan this node runs
+    plan_leader: str = ""  # the base station that made it (`PlanUpdate.leader`)
+    mission: MissionInfo | None = None  # the mission clock and starting energies it meters (None: not started)
+    generations: dict[str, int] = field(default_factory=dict)  # stage -> generation of the instance hosted here
 
 
 # ---------------------------------------------------------------------------------------------

@@ -163,8 +163,10 @@ def test_a_robot_identity_cannot_publish_a_plan_or_a_migration_order(team):
     try:
         insider.wait_connected()
         real = decode(insider.wait_for(insider.keys.plan), PlanUpdate)
-        # what stopped every source before: a higher epoch with nothing running
-        forged = dataclasses.replace(real, epoch=real.epoch + 1000, running={}, placement={})
+        # what stopped every source before: a higher epoch with nothing running (and, since plans are
+        # ordered by incarnation first, a higher incarnation: a base station taking over)
+        forged = dataclasses.replace(real, epoch=real.epoch + 1000, incarnation=real.incarnation + 1000,
+                                     leader="forged", running={}, placement={})
         stage, host = next(iter(placement.items()))
         order = MigrateOut(stage=stage, generation=10**9, to_node="r2")
         for _ in range(5):

@@ -136,6 +136,8 @@ class SimTeam:
                 rt.on_liveliness(node, True)
         for robot in robots:
             self.coordinator.on_liveliness(robot, True)
+        for robot in robots:  # a robot publishes its status as soon as it sees the base station
+            self.coordinator.learn(self.nodes[robot].status(0.0))
         self.pump()
 
     def leave(self, robot: str) -> None:

@@ -1,0 +1,112 @@
+"""A sink's ledgers kept on disk, so a restarted sink neither repeats nor loses an output.
+
+The base station is the operator's sink. When it is killed and started again, the producers'
+custody (`autopower.agent.custody`) resends every output the old sink had not acknowledged yet
+(acknowledgements travel in the status, every half second), including some it had received:
+without its ledgers the new sink would hand those to the operator a second time. So the sink
+notes every new output it takes in, before handing it on; the restarted sink rebuilds its ledgers
+from the notes, counts the resent copies as redundant and reports the same prefix to the producers.
+
+The file is a journal: a header naming the mission (its clock's ``epoch_unix``: another mission
+starts empty), a snapshot of the ledgers (`SinkLedger.state`), then one line per new output
+(chain, run, seq, CRC-32 of its data: what the ledger and its digest need). Appending a line is
+one ``write`` (microseconds; rewriting a file per output cost milliseconds here, as the filesystem
+flushes on truncate and rename); a kill at any instant leaves whole lines and at most one torn
+last line, which is skipped. When the journal grows past ``COMPACT_BYTES`` it is rewritten as a
+snapshot (to a temporary file renamed over it). A file that cannot be read is reported and
+ignored: the sink then starts empty, as it did before this existed.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+from autopower.agent.sequencing import SinkLedger
+
+log = logging.getLogger(__name__)
+
+COMPACT_BYTES = 4 * 1024 * 1024  # ~100,000 outputs between snapshots
+
+
+class SinkStore:
+    def __init__(self, path: Path, compact_bytes: int = COMPACT_BYTES):
+        self.path = Path(path)
+        self._tmp = self.path.with_name(self.path.name + ".tmp")
+        self.compact_bytes = compact_bytes
+        self._fd: int | None = None
+        self._mission: float | None = None  # the mission the open journal belongs to
+        self._size = 0
+        self.failed = False  # a write failed (reported once; the sink goes on without)
+
+    # ---- reading -----------------------------------------------------------------------------
+    def load(self, mission_epoch_unix: float) -> dict[str, SinkLedger]:
+        """The ledgers kept for this mission ({} for another mission, none kept, or a bad file)."""
+        try:
+            lines = self.path.read_bytes().split(b"\n")
+        except FileNotFoundError:
+            return {}
+        except OSError as exc:
+            log.warning("sink state %s is unreadable (%s); starting the sinks empty", self.path, exc)
+            return {}
+        try:
+            header = json.loads(lines[0])
+            if not isinstance(header, dict) or header.get("mission_epoch_unix") != mission_epoch_unix:
+                return {}  # another mission's (or a file we did not write)
+            ledgers = {str(c): SinkLedger.from_state(s) for c, s in json.loads(lines[1])["sinks"].items()}
+        except (IndexError, KeyError, TypeError, ValueError, AttributeError, UnicodeDecodeError) as exc:
+            log.warning("sink state %s is not a sink state (%s); starting the sinks empty", self.path, exc)
+            return {}
+        replayed = 0
+        for number, line in enumerate(lines[2:], start=3):
+            if not line:
+                continue
+            try:
+                chain, run, seq, crc = json.loads(line)
+                ledgers.setdefault(str(chain), SinkLedger()).record(int(run), int(seq), crc=int(crc))
+                replayed += 1
+            except (TypeError, ValueError, UnicodeDecodeError):
+                if number < len(lines) - 1:  # only the last line may be torn (a kill mid-write)
+                    log.warning("sink state %s: line %d is damaged; skipped", self.path, number)
+        log.info("sinks go on from %s (%d output(s) after its snapshot): %s", self.path, replayed,
+                 ", ".join(f"{c} run {l.run} seq {l.contiguous}" for c, l in sorted(ledgers.items())) or "none")
+        return ledgers
+
+    # ---- writing -----------------------------------------------------------------------------
+    def keep(self, mission_epoch_unix: float, sinks: dict[str, SinkLedger], chain: str, run: int, seq: int,
+             crc: int) -> None:
+        """Note a new output (already recorded in ``sinks[chain]``) before it is handed on."""
+        if self.failed:
+            return
+        try:
+            if self._fd is None or self._mission != mission_epoch_unix or self._size >= self.compact_bytes:
+                self._rewrite(mission_epoch_unix, sinks)  # the snapshot includes this output
+                return
+            line = json.dumps([chain, run, seq, crc], separators=(",", ":")).encode() + b"\n"
+            os.write(self._fd, line)
+            self._size += len(line)
+        except OSError as exc:
+            log.error("cannot keep the sink state in %s (%s); a restart may repeat outputs", self.path, exc)
+            self.failed = True
+
+    def _rewrite(self, mission_epoch_unix: float, sinks: dict[str, SinkLedger]) -> None:
+        header = json.dumps({"mission_epoch_unix": mission_epoch_unix}).encode()
+        snapshot = json.dumps({"sinks": {c: l.state() for c, l in sinks.items()}}, separators=(",", ":")).encode()
+        fd = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, header + b"\n" + snapshot + b"\n")
+        finally:
+            os.close(fd)
+        os.replace(self._tmp, self.path)
+        if self._fd is not None:
+            os.close(self._fd)
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+        self._mission = mission_epoch_unix
+        self._size = len(header) + len(snapshot) + 2
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None

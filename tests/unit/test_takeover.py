@@ -1,0 +1,221 @@
+"""A base station that starts while the team runs: it listens, adopts, goes on; a rival steps down."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import zlib
+
+import pytest
+
+from autopower.agent.node import NodeRuntime
+from autopower.agent.sequencing import SinkLedger
+from autopower.agent.sink_store import SinkStore
+from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
+from autopower.basestation.process import BaseStation, BaseStationConfig
+from autopower.errors import AutoPowerError
+from autopower.model.loading import load_scenario
+from autopower.runtime.bus import InMemoryHub
+from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+
+ROBOTS = ("r1", "r2", "r3")
+
+
+@pytest.fixture
+def sc():
+    return load_scenario("paper-fig7")
+
+
+def running_team(sc, t_end: float = 60.0) -> SimTeam:
+    """A team whose base station ran the mission to ``t_end`` with two stages pinned to robots."""
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, pins={"Loc-2": "r2", "Blob-3": "r3"}))
+    team.join()
+    team.run_until(t_end)
+    team.report_status()
+    return team
+
+
+def new_base_station(team: SimTeam, **config) -> Coordinator:
+    """A second coordinator on the same team (the first one's process is gone or cut off)."""
+    co = Coordinator(scenario=team.scenario, bus=team.hub.bus("coordinator-2"), keys=team.keys,
+                     config=CoordinatorConfig(**{"speed": 1.0, **config}), wall_fn=team.clock.wall)
+    team.coordinator = co  # the team's inbox now reaches it
+    return co
+
+
+def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
+    team = running_team(sc)
+    old = team.coordinator
+    generations = [g for r in ROBOTS for g in team.nodes[r].status(10.0).generations.values()]
+    assert generations  # the robots say which instance they host
+    new = new_base_station(team, speed=5.0)  # started with another speed: the team's wins
+    for robot in ROBOTS:
+        new.on_liveliness(robot, True)
+    assert new.mission is None  # seen, not heard: nothing is decided yet
+    new.learn(team.nodes["r1"].status(10.0))
+    new.learn(team.nodes["r2"].status(10.0))
+    assert new.mission is None  # r3 is still to be heard, and the listening time has not passed
+    new.learn(team.nodes["r3"].status(10.0))
+
+    assert new.mission == old.mission  # one mission clock: the team's
+    assert new.now() == pytest.approx(old.now()) and new.now() >= 60.0
+    assert new.placement["Loc-2"] == "r2" and new.placement["Blob-3"] == "r3"  # what runs, where it runs
+    assert new.incarnation == old.incarnation + 1 and new.epoch == old.epoch + 1
+    assert new.generation > max(generations)
+    assert new.takeover["from_robots"] == list(ROBOTS) and new.takeover["stages"] == 2
+    assert new.takeover["previous"] == {"incarnation": old.incarnation, "epoch": old.epoch, "leader": old.leader}
+    # the chains that run go on with their run; those whose stage ran only on the old base station
+    # (nobody reports it: here it is cut off, in a real crash it is gone) restart as a new run
+    assert new.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 1, "Loc-3": 1, "Blob-2": 1}
+    for robot in ROBOTS:  # the policy starts from the batteries as measured, not the scenario's
+        assert new.remaining_energies()[robot] == pytest.approx(team.nodes[robot].meter.battery_j)
+        assert new.remaining_energies()[robot] < sc.robot(robot).energy_j
+    team.pump()
+    team.report_status()
+    team.run_until(80.0)
+    for name, rt in team.nodes.items():  # every node follows it, although its epoch may be lower
+        assert (rt.plan.incarnation, rt.plan.leader) == (new.incarnation, new.leader), name
+    assert new.ready
+    for name, ledger in team.nodes["laptop"].sinks.items():
+        assert ledger.duplicates_total == 0, name
+
+
+def test_the_older_base_station_steps_down_when_it_hears_of_the_newer(sc):
+    team = running_team(sc)
+    old = team.coordinator
+    new = new_base_station(team)
+    for robot in ROBOTS:
+        new.on_liveliness(robot, True)
+        new.learn(team.nodes[robot].status(10.0))
+    on_old_plan = team.nodes["r1"].status(10.0)
+    new.on_rival_status(on_old_plan)  # made before our first plan reached r1: not a rival
+    assert new._rival_seen is None
+    new.on_rival_status(dataclasses.replace(on_old_plan, t_unix=new.mission_unix + 2.0))
+    assert new._rival_seen == old.leader and new.stepped_down is None  # older: noted, it is the one to yield
+    team.pump()
+    new.on_rival_status(team.nodes["r1"].status(10.0))  # its own plan: nothing to say
+    assert new.stepped_down is None
+    old.on_rival_status(team.nodes["r1"].status(10.0))  # r1 runs the newer one's plan
+    assert old.stepped_down is not None and "incarnation 1, ours 0" in old.stepped_down
+    epoch = old.epoch
+    old.publish_plan()
+    assert old.epoch == epoch  # it decides and publishes nothing any more
+    # equal incarnations: the leader id breaks the tie, the same way on both sides
+    plan = team.nodes["r1"].plan
+    for rival, yields in (("~after-every-id", True), ("!before-every-id", False)):
+        co = Coordinator(scenario=sc, bus=team.hub.bus(f"third{rival}"), keys=team.keys, config=CoordinatorConfig())
+        co.incarnation = new.incarnation
+        co.on_rival_plan(dataclasses.replace(plan, leader=rival))
+        assert (co.stepped_down is not None) is yields
+
+
+def test_a_fresh_team_starts_only_after_the_robots_are_heard(sc):
+    team = SimTeam(sc)
+    co = team.coordinator
+    for robot in ROBOTS:
+        co.on_liveliness(robot, True)
+    assert co.mission is None  # present, but they have not said they run nothing yet
+    for robot in ROBOTS:
+        co.learn(team.nodes[robot].status(0.0))
+    assert co.mission is not None and co.takeover is None and co.incarnation == 0
+
+
+def test_a_robot_that_never_speaks_delays_the_start_only_for_the_listening_time(sc):
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, learn_team_s=2.0))
+    co = team.coordinator
+    for robot in ROBOTS:
+        co.on_liveliness(robot, True)
+    co.learn(team.nodes["r1"].status(0.0))
+    co.learn(team.nodes["r2"].status(0.0))
+    assert co.mission is None and co.next_deadline_unix() == pytest.approx(team.clock.wall() + 2.0)
+    team.clock.advance(2.0)
+    co.on_timer()
+    assert co.mission is not None
+
+
+def test_plans_are_ordered_by_incarnation_then_epoch(sc):
+    team = running_team(sc, t_end=10.0)
+    rt = team.nodes["r1"]
+    current = rt.plan
+    stale = dataclasses.replace(current, epoch=current.epoch + 100, running={}, incarnation=current.incarnation - 1)
+    rt.on_plan(stale)
+    assert rt.plan is current  # a higher epoch of an older base station is ignored
+    newer = dataclasses.replace(current, epoch=1, incarnation=current.incarnation + 1, leader="next")
+    rt.on_plan(newer)
+    assert rt.plan is newer  # a newer base station is followed from its first plan
+    status = rt.status(10.0)
+    assert (status.plan_incarnation, status.plan_epoch, status.plan_leader) == (newer.incarnation, 1, "next")
+    assert status.mission == current.mission
+
+
+def keep_output(store: SinkStore, ledger: SinkLedger, seq: int, mission: float = 100.0) -> None:
+    data = b"out%d" % seq
+    assert ledger.record(0, seq, data=data)
+    store.keep(mission, {"Blob-2": ledger}, "Blob-2", 0, seq, zlib.crc32(data))
+
+
+@pytest.mark.parametrize("compact_bytes", [1 << 20, 200])  # appended lines; snapshots every few outputs
+def test_a_sink_goes_on_from_its_kept_ledgers(tmp_path, compact_bytes):
+    store = SinkStore(tmp_path / "sinks.json", compact_bytes=compact_bytes)
+    full, first = SinkLedger(), SinkLedger()
+    for seq in (0, 1, 2, 4, 5):  # 3 is still on its way
+        full.record(0, seq, data=b"out%d" % seq)
+        keep_output(store, first, seq)
+    assert SinkStore(tmp_path / "sinks.json").load(200.0) == {}  # another mission's sinks start empty
+    restarted = SinkStore(tmp_path / "sinks.json").load(100.0)["Blob-2"]
+    assert (restarted.contiguous, restarted.max_seq, restarted.received_total) == (3, 5, 5)
+    assert not restarted.record(0, 4, data=b"out4", attempt=1)  # resent to the new sink: not delivered again
+    assert restarted.redundant_total == 1 and restarted.duplicates_total == 0
+    again = SinkStore(tmp_path / "sinks.json")
+    for seq in (3, 6):
+        full.record(0, seq, data=b"out%d" % seq)
+        keep_output(again, restarted, seq)
+    assert (restarted.contiguous, restarted.digest) == (full.contiguous, full.digest)  # as if never restarted
+    third = SinkStore(tmp_path / "sinks.json").load(100.0)["Blob-2"]
+    assert (third.contiguous, third.digest, third.received_total) == (full.contiguous, full.digest, 7)
+
+
+def test_a_torn_or_damaged_sink_state_is_survived(tmp_path):
+    path = tmp_path / "sinks.json"
+    store, ledger = SinkStore(path), SinkLedger()
+    for seq in range(4):
+        keep_output(store, ledger, seq)
+    with open(path, "ab") as f:
+        f.write(b'["Blob-2",0,4')  # killed in the middle of a line
+    assert SinkStore(path).load(100.0)["Blob-2"].contiguous == 4
+    path.write_text('{"mission_epoch_unix": 100.0}\n{"sinks": {"Blob-2": {"run": "x"}}}\n')
+    assert SinkStore(path).load(100.0) == {}  # not a sink state: reported, the sink starts empty
+    path.write_bytes(b"\xff\x00")
+    assert SinkStore(path).load(100.0) == {}
+
+
+def test_one_base_station_per_team_and_host(sc, tmp_path):
+    hub = InMemoryHub(synchronous=True)
+
+    def host(**kw):
+        return NodeRuntime(make_component=FakeComponent, make_source=FakeSource, **kw)
+
+    config = BaseStationConfig(scenario=sc, team="t", state_dir=tmp_path)
+    with BaseStation(config, host_factory=host, bus=hub.bus("laptop")):
+        with pytest.raises(AutoPowerError, match="another base station of team 't' runs on this host"):
+            with BaseStation(config, host_factory=host, bus=hub.bus("laptop-2")):
+                pass
+    (tmp_path / "basestation.json").write_text('{"incarnation": 6}')
+    with BaseStation(config, host_factory=host, bus=hub.bus("laptop-3")) as base:  # the lock went with it
+        assert base.coordinator.incarnation == 7  # above what this host used last
+        base.run(max_wall_s=0.05)
+    assert (tmp_path / "basestation.json").exists()  # kept for the next start (a service manager's)
+
+
+def test_a_launched_base_station_that_stops_cleanly_leaves_no_state(sc, tmp_path):
+    hub, state = InMemoryHub(synchronous=True), tmp_path / "team"
+    state.mkdir()
+    config = BaseStationConfig(scenario=sc, team="t", state_dir=state, parent_pid=os.getppid())
+
+    def host(**kw):
+        return NodeRuntime(make_component=FakeComponent, make_source=FakeSource, **kw)
+
+    with BaseStation(config, host_factory=host, bus=hub.bus("laptop")) as base:
+        (state / "sinks.json").write_text("{}")
+        assert base.run(max_wall_s=0.05) == "time limit"
+    assert not state.exists()  # its launcher (`up`) owned the team: nothing is left for a restart
