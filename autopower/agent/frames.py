@@ -206,7 +206,7 @@ class Frames:
         redundant = ledger.redundant_total
         new = ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt)
         if new and self.sink_store is not None and self.mission is not None:
-            # kept before it is handed on: a crash after this line cannot deliver it twice
+            # noted now, written out with the status that acknowledges it (`SinkStore.commit`)
             self.sink_store.keep(self.mission.epoch_unix, self.sinks, chain.name, frame.run, frame.seq,
                                  zlib.crc32(frame.data()))
         if not new:

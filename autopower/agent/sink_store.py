@@ -4,8 +4,13 @@ The base station is the operator's sink. When it is killed and started again, th
 custody (`autopower.agent.custody`) resends every output the old sink had not acknowledged yet
 (acknowledgements travel in the status, every half second), including some it had received:
 without its ledgers the new sink would hand those to the operator a second time. So the sink
-notes every new output it takes in, before handing it on; the restarted sink rebuilds its ledgers
-from the notes, counts the resent copies as redundant and reports the same prefix to the producers.
+notes every new output it takes in and writes the notes out (`commit`) just before the status that
+acknowledges them (the recording of those outputs is flushed at the same moment, see
+`Recorder.before_publish`); the restarted sink rebuilds its ledgers from the notes, counts the
+resent copies as redundant and reports the same prefix to the producers. An output taken in after
+the last status is neither noted nor acknowledged nor recorded when the process dies: custody
+resends it and the new sink delivers and records it once (noting it at once instead lost it from
+the recording, whose buffer died with the process, while the new sink took the resend for a copy).
 
 The file is a journal: a header naming the mission (its clock's ``epoch_unix``: another mission
 starts empty), a snapshot of the ledgers (`SinkLedger.state`), then one line per new output
@@ -40,6 +45,8 @@ class SinkStore:
         self._mission: float | None = None  # the mission the open journal belongs to
         self._size = 0
         self.failed = False  # a write failed (reported once; the sink goes on without)
+        self._pending: list[bytes] = []  # notes taken since the last commit
+        self._rewrite_due: tuple[float, dict[str, SinkLedger]] | None = None
 
     # ---- reading -----------------------------------------------------------------------------
     def load(self, mission_epoch_unix: float) -> dict[str, SinkLedger]:
@@ -77,16 +84,29 @@ class SinkStore:
     # ---- writing -----------------------------------------------------------------------------
     def keep(self, mission_epoch_unix: float, sinks: dict[str, SinkLedger], chain: str, run: int, seq: int,
              crc: int) -> None:
-        """Note a new output (already recorded in ``sinks[chain]``) before it is handed on."""
+        """Note a new output (already recorded in ``sinks[chain]``); written out by `commit`."""
         if self.failed:
             return
+        if self._fd is None or self._mission != mission_epoch_unix or self._size >= self.compact_bytes:
+            self._rewrite_due = (mission_epoch_unix, sinks)  # a snapshot at commit includes this output
+            self._pending.clear()
+            return
+        if self._rewrite_due is None:
+            self._pending.append(json.dumps([chain, run, seq, crc], separators=(",", ":")).encode() + b"\n")
+
+    def commit(self) -> None:
+        """Write the notes taken since the last commit (one ``write``); called before each status."""
+        if self.failed or (self._rewrite_due is None and not self._pending):
+            return
         try:
-            if self._fd is None or self._mission != mission_epoch_unix or self._size >= self.compact_bytes:
-                self._rewrite(mission_epoch_unix, sinks)  # the snapshot includes this output
+            if self._rewrite_due is not None:
+                mission, sinks = self._rewrite_due
+                self._rewrite_due = None
+                self._rewrite(mission, sinks)
                 return
-            line = json.dumps([chain, run, seq, crc], separators=(",", ":")).encode() + b"\n"
-            os.write(self._fd, line)
-            self._size += len(line)
+            lines, self._pending = b"".join(self._pending), []
+            os.write(self._fd, lines)
+            self._size += len(lines)
         except OSError as exc:
             log.error("cannot keep the sink state in %s (%s); a restart may repeat outputs", self.path, exc)
             self.failed = True
@@ -107,6 +127,7 @@ class SinkStore:
         self._size = len(header) + len(snapshot) + 2
 
     def close(self) -> None:
+        self.commit()
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None

@@ -393,6 +393,11 @@ class BaseStation:
                 if rt.started:
                     status = rt.status(self.config.status_window_s * rt.clock.speed, self.events.depth())
                     key, payload = self.keys.status(self.node), encode(status)
+                    # what this status acknowledges is kept first: the sink's notes here, the recording
+                    # of those outputs by the recording bus (`Recorder.before_publish`); an operator's
+                    # snapshot builds a status too but acknowledges nothing, so it keeps nothing
+                    if rt.sink_store is not None:
+                        rt.sink_store.commit()
                     self._bus.publish(key, payload, reliable=False)
                     # robots out of direct sight learn what our sinks received (their acks) via a relay
                     self.relayer.send_beyond_sight([r for r in co.robots if r in co.alive_nodes()], key, payload,

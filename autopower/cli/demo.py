@@ -28,9 +28,9 @@ from autopower.policies import POLICY_NAMES
 @INSECURE_OPT
 @click.option("--testbed", is_flag=True,
               help="Run the story in the testbed (root): network namespaces, links shaped like their radios.")
-@click.option("--crash-basestation", "crash_base", is_flag=True,
-              help="Also SIGKILL the base station: the robots carry on in a subgroup, a new one is started "
-                   "(it cannot adopt the running team yet, so the energy figures after it are off by a few %).")
+@click.option("--crash-basestation/--no-crash-basestation", "crash_base", default=True, show_default=True,
+              help="SIGKILL the base station after the agent: the robots carry on in a subgroup, the "
+                   "supervisor starts a new base station and it takes over the running team.")
 def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure, testbed, crash_base):
     """Three agents + the base station: a cut, a heal, a subgroup without the base, an agent and the
     base station killed and restarted, the replay."""
@@ -81,7 +81,7 @@ def human_summary(result: dict) -> str:
             line += f" (battery {f['battery_before_j']:,.0f} J -> {f['battery_after_j']:,.0f} J: not reset)"
         if f["kind"] == "crash-basestation":
             line += (f", new base station took over {_secs(f['taken_over_wall_s'])}" if f.get("taken_over_wall_s")
-                     is not None else ", the new base station has not adopted the running team (not yet supported)")
+                     is not None else ", the new base station did not take over the running team in time")
         lines.append(line)
     outputs = f"{result['outputs']} outputs, " if result.get("outputs") is not None else ""
     lines.append(f"  {result['migrations']} migrations; {outputs}{result['lost_outputs']} lost, "

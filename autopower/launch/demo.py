@@ -12,10 +12,9 @@ enough to end in about a minute, then:
 3. SIGKILL one robot's agent (``crash-agent``): the launcher's supervisor starts it again, it
    rejoins with its battery as it was (not the mission's starting energy) and its chains resume,
    nothing lost or duplicated;
-4. with ``crash_base`` (``--crash-basestation``), SIGKILL the base station
-   (``crash-basestation``): the robots carry on through a subgroup reallocation and the
-   supervisor starts a new base station (``taken_over_wall_s`` says when it has adopted the
-   running team; null while it cannot);
+4. SIGKILL the base station (``crash-basestation``; ``--no-crash-basestation`` skips it): the
+   robots carry on through a subgroup reallocation, the supervisor starts a new base station and
+   it takes the running team over (its clock, placement and epochs; ``taken_over_wall_s``);
 5. run until the first robot's battery is empty;
 6. stop, merge the recording and print the replay summary (``--json``: one object).
 """
@@ -283,10 +282,8 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
         faults_out.append(crash_agent(team, faults, robots, quiet))
         time.sleep(1.0)
 
-        # 4. the base station crashes: the robots carry on, the supervisor starts a new one. Opt-in
-        # until a restarted base station adopts the running team (issue 12, item 2): until then the
-        # robots keep a subgroup allocation the new base station does not know, and the metered
-        # energy after it no longer matches the model's figures for the plan (a few %)
+        # 4. the base station crashes: the robots carry on in a subgroup, the supervisor starts a
+        # new one, which learns what the robots run and takes the team over (basestation/takeover.py)
         if crash_base:
             faults_out.append(crash_basestation(team, faults, robots, quiet, log_dir))
 

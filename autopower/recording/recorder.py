@@ -49,7 +49,8 @@ Text events carry a machine-readable JSON tail after `EVENT_TAG` (see `tag_event
 
 Logging never stops a robot: every handler catches everything, `Telemetry` never raises, and
 scalars and texts are batched with ``send_columns`` (flushed every `flush_every_s`).
-Data still buffered when a process is SIGKILLed (≤ `flush_every_s`) is lost.
+Data still buffered when a process is SIGKILLed (≤ `flush_every_s`) is lost, except outputs: they
+are flushed before the status that acknowledges them to their producers leaves (`before_publish`).
 """
 
 from __future__ import annotations
@@ -205,6 +206,9 @@ class Recorder:
         self.flush_every_s = flush_every_s
         self.visual_every_s = visual_every_s
         self._last_flush = time.monotonic()
+        # outputs recorded since the last flush: a sink acknowledges what it received in its next
+        # status (custody then forgets it), so those outputs are flushed before that status leaves
+        self._outputs_unflushed = False
         self._last_visual: dict[str, float] = {}
         self._last_epoch = -1
         self._links_seen: dict[str, bool] = {}
@@ -476,6 +480,7 @@ class Recorder:
 
     def _output(self, chain: str, run: int, seq: int, data: bytes) -> None:
         t = self.now()
+        self._outputs_unflushed = True
         self.telemetry.scalar(output_path(chain, run), t, seq)
         if self.quality is not None:  # measured quality (issue 16): beside the declared score
             for metric, value in self.quality(chain, seq, data, self._variants).items():
@@ -504,6 +509,17 @@ class Recorder:
         with self._lock:
             self.telemetry.flush()
             self._last_flush = time.monotonic()
+            self._outputs_unflushed = False
+
+    def before_publish(self, key: str) -> None:
+        """Flush recorded outputs before the status that acknowledges them is sent: a SIGKILL after
+        the acknowledgement then cannot lose from the recording what custody no longer resends."""
+        if self._outputs_unflushed and "/status/" in key:
+            try:
+                self.flush()
+            except Exception as exc:  # noqa: BLE001 - recording must never stop a robot
+                self.errors += 1
+                log.warning("recorder %s: flush before a status failed (%s); continuing", self.node, exc)
 
     def close(self) -> None:
         with self._lock:
@@ -539,6 +555,7 @@ class RecordingBus:
         self.recorder.on_output(chain, run, seq, data)
 
     def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
+        self.recorder.before_publish(key)
         self.inner.publish(key, payload, reliable=reliable)
         self.recorder.on_publish(key, payload)
 

@@ -474,16 +474,19 @@ def _faults(rec: Recording, kind: str, raw, decision_times: list[float], migrati
 
 
 def _detection(parts: list[str], detected, t_f: float, t_next: float, base: str | None) -> float | None:
-    """When a fault was seen: each part (link or node) when the base station saw it (else when any
-    node did); a fault of several parts when its last part was seen. None if no part was seen."""
+    """When a fault was seen: a link when either of its ends first saw it (the team acts on the
+    first report: the base station replans from a robot's relayed status before its own liveliness
+    lease runs out), a node when the base station saw it (else when any node did); a fault of
+    several parts when its last part was seen. None if no part was seen."""
     seen = []
     for target in parts:
         names = set(target.split("-")) if target else set()
         hits = [(t, observer) for t, who, observer in detected
                 if t_f - _EPS <= t < t_next and (not names or who in names)]
         if hits:
+            by_end = [t for t, observer in hits if len(names) > 1 and observer in names]
             by_base = [t for t, observer in hits if observer == base]
-            seen.append(min(by_base or [t for t, _ in hits]))
+            seen.append(min(by_end or by_base or [t for t, _ in hits]))
     return max(seen) if seen else None
 
 

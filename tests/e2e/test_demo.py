@@ -21,7 +21,7 @@ def test_demo_json(tmp_path):
     assert out["source"] == "recording"  # the summary is the replay's, not a second bookkeeping
     cuts = [["r1-laptop"], ["r1-laptop", "r2-laptop", "r3-laptop"]]  # the three cuts at once are one fault
     assert [f["parts"] for f in out["faults"]][:2] == [f["parts"] for f in out["live"]["faults"]][:2] == cuts
-    kinds = ["cut", "cut", "crash-agent"]
+    kinds = ["cut", "cut", "crash-agent", "crash-basestation"]
     assert [f["kind"] for f in out["faults"]] == [f["kind"] for f in out["live"]["faults"]] == kinds
     for fault in out["faults"]:
         assert fault["detected_wall_s"] is not None and 0 < fault["detected_wall_s"] <= 1.0, fault
@@ -32,8 +32,15 @@ def test_demo_json(tmp_path):
     crash = out["faults"][2]
     assert 0 < crash["restarted_wall_s"] <= 1.0 and crash["restarted_wall_s"] < crash["rejoined_wall_s"] <= 15, crash
     assert crash["battery_after_j"] < crash["battery_before_j"], crash
-    assert out["supervision"]["restarts"] == {crash["target"]: 1} and out["supervision"]["given_up"] == {}
-    assert out["duplicated_outputs"] == 0
+    # SIGKILL of the base station: the robots reallocated among themselves, the supervisor started a
+    # new base station, and it took the running team over (same mission clock, robots on its plans)
+    base = out["faults"][3]
+    assert base["target"] == "laptop" and base["reconfigured_by"].startswith("subgroup round"), base
+    assert 0 < base["restarted_wall_s"] <= 1.0, base
+    assert base["taken_over_wall_s"] is not None and base["restarted_wall_s"] < base["taken_over_wall_s"] <= 10, base
+    assert out["supervision"]["restarts"] == {crash["target"]: 1, "laptop": 1}, out["supervision"]
+    assert out["supervision"]["given_up"] == {}
+    assert out["lost_outputs"] == 0 and out["duplicated_outputs"] == 0
     assert out["adopted"] >= 1  # the base station started from what the subgroup ran
     assert out["migrations"] >= 1
     assert out["recording"] and Path(out["recording"]).is_file()
@@ -82,23 +89,3 @@ def test_demo_json(tmp_path):
     assert replay["energy"]["overhead_j"]["recovery"] > 0
     assert replay["outputs"]["resent"] > 0 and replay["outputs"]["given_up"] == 0
     assert abs(out["energy_model_error_pct"]) <= 1.0
-
-
-def test_demo_with_a_base_station_crash(tmp_path):
-    """`demo --crash-basestation`: the robots carry on in a subgroup and a new base station is started.
-
-    (`taken_over_wall_s` stays null until a restarted base station can adopt a running team; the
-    energy figures are not checked here: without that takeover the robots run an allocation the
-    new base station does not know.)"""
-    result = run_cli(["demo", "--json", "--no-record", "--crash-basestation", "--log-dir", str(tmp_path / "demo")],
-                     env_for(tmp_path), timeout=150)
-    assert result.returncode == 0, result.stderr[-3000:]
-    out = json.loads(result.stdout)
-    check_keys("demo", out)
-    assert [f["kind"] for f in out["faults"]] == ["cut", "cut", "crash-agent", "crash-basestation"]
-    base = out["faults"][3]
-    assert base["target"] == "laptop" and base["reconfigured_by"].startswith("subgroup round"), base
-    assert 0 < base["detected_wall_s"] <= 1.0 and 0 < base["reconfigured_wall_s"] <= 1.5, base
-    assert 0 < base["restarted_wall_s"] <= 1.0 and "taken_over_wall_s" in base, base
-    assert out["supervision"]["restarts"]["laptop"] == 1 and out["supervision"]["given_up"] == {}
-    assert out["duplicated_outputs"] == 0

@@ -152,6 +152,20 @@ def keep_output(store: SinkStore, ledger: SinkLedger, seq: int, mission: float =
     data = b"out%d" % seq
     assert ledger.record(0, seq, data=data)
     store.keep(mission, {"Blob-2": ledger}, "Blob-2", 0, seq, zlib.crc32(data))
+    store.commit()  # the status acknowledging it goes out
+
+
+def test_outputs_not_yet_acknowledged_are_not_kept(tmp_path):
+    """An output noted after the last status dies with the process, as does its recording: the
+    producers still hold it in custody and resend it, and the new sink must take it as new."""
+    store, ledger = SinkStore(tmp_path / "sinks.json"), SinkLedger()
+    keep_output(store, ledger, 0)
+    keep_output(store, ledger, 1)
+    assert ledger.record(0, 2, data=b"out2")
+    store.keep(100.0, {"Blob-2": ledger}, "Blob-2", 0, 2, zlib.crc32(b"out2"))  # no status since: killed now
+    restarted = SinkStore(tmp_path / "sinks.json").load(100.0)["Blob-2"]
+    assert restarted.contiguous == 2
+    assert restarted.record(0, 2, data=b"out2", attempt=1)  # the resend is delivered (and recorded) once
 
 
 @pytest.mark.parametrize("compact_bytes", [1 << 20, 200])  # appended lines; snapshots every few outputs
