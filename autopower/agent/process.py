@@ -45,7 +45,7 @@ class AgentConfig:
     # A node whose statuses stop arriving directly for this many status periods is out of sight,
     # whatever its liveliness token says: a second, independent failure detector (Zenoh keeps a
     # token until the link's lease expires, and a link stuck behind a full send queue can outlive it).
-    silence_periods: float = 3.0
+    silence_periods: float = 2.0
 
 
 class Agent:
