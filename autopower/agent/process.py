@@ -376,6 +376,8 @@ class Agent:
                 wake.append(deadline)
             if rt.started and (t := rt.next_deadline()) is not None:
                 wake.append(rt.clock.wall_at(t))
+            if self._base_lost_at is not None:  # the subgroup forms when the settle ends, not at the next event
+                wake.append(max(self._base_lost_at + self.config.subgroup_settle_s, self._subgroup_retry_at))
             event = self.events.get(max(0.0, min(wake) - now))
             if isinstance(event, StopRequested):
                 self.stop_reason = event.reason
