@@ -117,7 +117,7 @@ class Agent:
         elif isinstance(event, LivelinessChanged):
             node = self.keys.node_of_alive(event.key)
             if node is not None and node != self.config.robot:
-                log.info("agent %s: %s %s (liveliness)", self.config.robot, node,
+                log.info("agent %s: %s %s (liveliness)", self.config.robot, self._who(node),
                          "in sight" if event.alive else "out of sight")
                 if event.alive:
                     self._tokens.add(node)
@@ -131,6 +131,10 @@ class Agent:
                 self._sight(node, event.alive)
         elif isinstance(event, OperatorRequest):
             event.request.close()
+
+    def _who(self, node: str) -> str:
+        """A node as the log names it ("base station laptop": what the demo's timing looks for)."""
+        return f"base station {node}" if node == self.config.scenario.basestation else node
 
     def _sight(self, node: str, visible: bool) -> None:
         """``node`` came into direct sight or went out of it (its token, or its statuses' silence)."""
@@ -149,7 +153,7 @@ class Agent:
             heard = self._heard_direct.get(node)
             if heard is not None and now - heard > limit:
                 log.info("agent %s: %s out of sight (no status for %.1f s; its token is still here)",
-                         self.config.robot, node, now - heard)
+                         self.config.robot, self._who(node), now - heard)
                 self._silent.add(node)
                 self.runtime.tally("silent-peers")
                 self._sight(node, False)
@@ -158,7 +162,7 @@ class Agent:
         """A status from ``node`` arrived directly (not relayed)."""
         self._heard_direct[node] = time.time()
         if node in self._silent and node in self._tokens:
-            log.info("agent %s: %s in sight again (its statuses arrive)", self.config.robot, node)
+            log.info("agent %s: %s in sight again (its statuses arrive)", self.config.robot, self._who(node))
             self._silent.discard(node)
             self._sight(node, True)
 
