@@ -18,6 +18,7 @@ from pathlib import Path
 
 from autopower.agent.node import NodeRuntime
 from autopower.agent.resume import ResumeFile
+from autopower.agent.stages import Lifecycle
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMove, SubgroupPropose, decode, encode
@@ -46,6 +47,10 @@ class AgentConfig:
     # where the agent keeps what a restarted process needs to carry on (`autopower.agent.resume`);
     # None: a restart starts from the mission's energies
     resume_path: Path | None = None
+    # A node whose statuses stop arriving directly for this many status periods is out of sight,
+    # whatever its liveliness token says: a second, independent failure detector (Zenoh keeps a
+    # token until the link's lease expires, and a link stuck behind a full send queue can outlive it).
+    silence_periods: float = 2.0
 
 
 class Agent:
@@ -67,6 +72,10 @@ class Agent:
         self.statuses: dict = {}  # robot -> its last NodeStatus (battery for subgroup decisions)
         self._base_lost_at: float | None = None
         self._subgroup_done: tuple | None = None  # (members, epoch) already handled
+        self._subgroup_retry_at = 0.0  # after an aborted round: not before fresh statuses are in
+        self._heard_direct: dict[str, float] = {}  # node -> wall time of its last status received directly
+        self._tokens: set[str] = set()  # nodes whose liveliness token we see
+        self._silent: set[str] = set()  # nodes with a token but no direct status for too long
         self.subgroup_log: list[dict] = []
         self.stop_reason: str | None = None
 
@@ -88,7 +97,8 @@ class Agent:
             self.runtime.on_produced = lambda r: self.resume.note_source(r.chain.name, r.run, r.seq, r.missed,
                                                                          r.produced_total)
         self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
-                                           on_commit=self._subgroup_commit,
+                                           on_commit=self._subgroup_commit, on_abort=self._subgroup_aborted,
+                                           objection=self._subgroup_objection,
                                            timeout_s=self.config.subgroup_timeout_s, signing=self.signing)
         for key in (keys.node_data(robot), keys.node_control(robot), keys.plan, keys.node_relay(robot),
                     keys.status_all, keys.subgroup):
@@ -120,18 +130,54 @@ class Agent:
         elif isinstance(event, LivelinessChanged):
             node = self.keys.node_of_alive(event.key)
             if node is not None and node != self.config.robot:
-                rt.on_liveliness(node, event.alive)
-                self.relayer.on_liveliness(node, event.alive)
-                if node == self.config.scenario.basestation:  # (the demo times a base station crash by it)
-                    log.info("agent %s: base station %s %s", self.config.robot, node,
-                             "in sight" if event.alive else "out of sight")
-                if not event.alive:
-                    self.agreement.on_member_lost(node)
-                # tell the others now, not at the next tick: the base station tells a dead
-                # robot from a cut link by what the other robots still see
-                self.publish_status()
+                log.info("agent %s: %s %s (liveliness)", self.config.robot, self._who(node),
+                         "in sight" if event.alive else "out of sight")
+                if event.alive:
+                    self._tokens.add(node)
+                    self._silent.discard(node)
+                    self._heard_direct.pop(node, None)  # back: silence counts from its next status
+                else:
+                    self._tokens.discard(node)
+                    if node in self._silent:  # already out of sight (silent): nothing changes
+                        self._silent.discard(node)
+                        return
+                self._sight(node, event.alive)
         elif isinstance(event, OperatorRequest):
             event.request.close()
+
+    def _who(self, node: str) -> str:
+        """A node as the log names it ("base station laptop": what the demo's timing looks for)."""
+        return f"base station {node}" if node == self.config.scenario.basestation else node
+
+    def _sight(self, node: str, visible: bool) -> None:
+        """``node`` came into direct sight or went out of it (its token, or its statuses' silence)."""
+        self.runtime.on_liveliness(node, visible)
+        self.relayer.on_liveliness(node, visible)
+        if not visible:
+            self.agreement.on_member_lost(node)
+        # tell the others now, not at the next tick: the base station tells a dead
+        # robot from a cut link by what the other robots still see
+        self.publish_status()
+
+    def _check_silence(self, now: float) -> None:
+        """Nodes in sight by their token whose statuses stopped arriving directly go out of sight."""
+        limit = self.config.silence_periods * self.config.status_period_s
+        for node in sorted(self._tokens - self._silent):
+            heard = self._heard_direct.get(node)
+            if heard is not None and now - heard > limit:
+                log.info("agent %s: %s out of sight (no status for %.1f s; its token is still here)",
+                         self.config.robot, self._who(node), now - heard)
+                self._silent.add(node)
+                self.runtime.tally("silent-peers")
+                self._sight(node, False)
+
+    def _heard(self, node: str) -> None:
+        """A status from ``node`` arrived directly (not relayed)."""
+        self._heard_direct[node] = time.time()
+        if node in self._silent and node in self._tokens:
+            log.info("agent %s: %s in sight again (its statuses arrive)", self.config.robot, self._who(node))
+            self._silent.discard(node)
+            self._sight(node, True)
 
     def _received(self, key: str, payload: bytes) -> None:
         rt = self.runtime
@@ -155,6 +201,8 @@ class Agent:
                 if problem is not None:
                     rt.count("forged", problem)
                     return
+                if not relayed:
+                    self._heard(status.node)  # before the duplicate check: a relayed copy may come first
                 last = self.statuses.get(status.node)
                 if last is not None and status.t_unix <= last.t_unix:
                     return  # a duplicate (direct and relayed) or an older one overtaken
@@ -191,7 +239,7 @@ class Agent:
         members = tuple(sorted({cfg.robot} | {r for r in robots if self.relayer.reachable(r)}))
         key = (members, rt.plan_order)
         if (now - self._base_lost_at < cfg.subgroup_settle_s or members[0] != cfg.robot
-                or self.agreement.busy or self._subgroup_done == key):
+                or self.agreement.busy or self._subgroup_done == key or now < self._subgroup_retry_at):
             return
         self._subgroup_done = key
         from autopower.policies import subgroup_reallocation
@@ -204,7 +252,7 @@ class Agent:
             battery = rt.meter.battery_j if r == cfg.robot else getattr(self.statuses.get(r), "battery_j", None)
             energies[r] = max(1e-6, battery) if battery is not None else cfg.scenario.robot(r).energy_j
         try:
-            proposal = subgroup_reallocation(cfg.scenario, network, members, dict(rt.plan.placement), energies,
+            proposal = subgroup_reallocation(cfg.scenario, network, members, self._running_placement(members), energies,
                                              accounting=rt.mission.accounting)
         except Exception as exc:  # a decision that cannot be made must not stop the robot
             log.warning("agent %s: subgroup %s: no reallocation: %s", cfg.robot, ",".join(members), exc)
@@ -218,10 +266,52 @@ class Agent:
                                    to_node=m.to_node) for m in proposal.moves)
         moves += tuple(SubgroupMove(stage=s, from_node=None, to_node=proposal.allocation[s])
                        for s in proposal.started)
-        placement = {m.stage: m.to_node for m in moves}
+        # every stage the members run after the round, not only the moved ones: a member that missed
+        # an earlier round learns where that round put things, and routes to them
+        placement = {s: h for s, h in proposal.allocation.items() if h in member_set}
+        placement.update({m.stage: m.to_node for m in moves})
         # above any generation the base station handed out; it jumps past these when it returns
         generation = int(time.time() * 1000)
         self.agreement.propose(members, placement, moves, generation, "; ".join(proposal.reasons[:1]))
+
+    def _running_placement(self, members: tuple[str, ...]) -> dict[str, str]:
+        """Where the stages run now, as the members see it: a round starts from this, not the plan alone.
+
+        A robot that was not in an earlier round (out of reach then, or not yet seen) never applied
+        it: its plan still names the hosts before it (the base station, say). Starting from that
+        would restart, elsewhere, a stage that round already placed on a member, and it would run
+        twice. So a stage whose planned host is outside the subgroup, but that a member runs (our
+        own stages, the others' last statuses), starts from that member.
+        """
+        rt, me = self.runtime, self.config.robot
+        placement = dict(rt.plan.placement)
+        for member in members:
+            if member == me:
+                hosted = {s: h.lifecycle.value for s, h in rt.hosted.items()}
+            else:
+                hosted = getattr(self.statuses.get(member), "hosted", None) or {}
+            for stage, state in sorted(hosted.items()):
+                if (state in (Lifecycle.RUNNING.value, Lifecycle.STARTING.value) and stage in rt.stage_index
+                        and placement.get(stage) not in members):
+                    placement[stage] = member
+        return placement
+
+    def _runs_here(self, stage: str) -> bool:
+        hosted = self.runtime.hosted.get(stage)
+        return hosted is not None and hosted.lifecycle in (Lifecycle.RUNNING, Lifecycle.STARTING)
+
+    def _subgroup_objection(self, proposal: SubgroupPropose) -> str | None:
+        """Why we vote no: the round would start elsewhere a stage that runs here (it would run twice)."""
+        me = self.config.robot
+        for move in proposal.moves:
+            if move.to_node != me and move.from_node != me and self._runs_here(move.stage):
+                return f"{move.stage} runs on {me}, the round starts it on {move.to_node}"
+        return None
+
+    def _subgroup_aborted(self, round_id: str, why: str) -> None:
+        """The leader tries again once fresh statuses are in (the same members and plan included)."""
+        self._subgroup_done = None
+        self._subgroup_retry_at = time.time() + self.config.status_period_s
 
     def _subgroup_commit(self, proposal: SubgroupPropose) -> None:
         rt, me = self.runtime, self.config.robot
@@ -230,6 +320,8 @@ class Agent:
             chain, _ = rt.stage_index[move.stage]
             if move.from_node == me and move.to_node != me:
                 rt.on_migrate_out(MigrateOut(stage=move.stage, generation=proposal.generation, to_node=move.to_node))
+            elif move.from_node is None and move.to_node == me and self._runs_here(move.stage):
+                rt.tally("subgroup-restart-kept")  # it runs here already: a restart would redo its inputs
             elif move.from_node is None and move.to_node == me:
                 run = rt.plan.running.get(chain.name, 0)
                 rt.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
@@ -306,6 +398,8 @@ class Agent:
                 wake.append(deadline)
             if rt.started and (t := rt.next_deadline()) is not None:
                 wake.append(rt.clock.wall_at(t))
+            if self._base_lost_at is not None:  # the subgroup forms when the settle ends, not at the next event
+                wake.append(max(self._base_lost_at + self.config.subgroup_settle_s, self._subgroup_retry_at))
             event = self.events.get(max(0.0, min(wake) - now))
             if isinstance(event, StopRequested):
                 self.stop_reason = event.reason
@@ -316,6 +410,7 @@ class Agent:
                 except Exception:  # a bug in one handler must not kill the robot's software
                     log.exception("agent %s: error handling %r", self.config.robot, type(event).__name__)
                     rt.count("internal-error")
+            self._check_silence(time.time())
             if rt.started:
                 self._subgroup_tick()
                 rt.on_timer()

@@ -41,6 +41,14 @@ from autopower.model.network import Network
 log = logging.getLogger(__name__)
 
 PREFIX = "aptb-"  # AutoPower testbed: the only namespaces this module ever deletes
+# TCP gives up on a connection whose data stays unacknowledged for about 1.4 s (retransmissions
+# modelled from the 200 ms minimum RTO) instead of the kernel's ~15 min (15). Why: Zenoh removes
+# a peer's liveliness tokens only once it has closed the link after its lease, and the close waits
+# for the link's writer; on a silently cut link carrying camera frames that writer is stuck in a
+# write to a full socket buffer that never drains, so the peer stayed "alive" until the link came
+# back and TCP's backed-off retransmission got through (8-13 s measured). Every node of a real
+# team needs the same setting (deploy/README.md).
+TCP_RETRIES2 = 2
 SUBNET = "10.99"  # point-to-point links
 SHARED_SUBNET = "10.98"  # shared media (bridges)
 
@@ -187,6 +195,7 @@ class NamespaceNetwork:
             for node in self.nodes:
                 _run("ip", "netns", "add", self.ns(node))
                 _run("ip", "-n", self.ns(node), "link", "set", "dev", "lo", "up")
+                _run("ip", "netns", "exec", self.ns(node), "sysctl", "-qw", f"net.ipv4.tcp_retries2={TCP_RETRIES2}")
             for seg in self.segments:
                 self._create_segment(seg)
             for link in self.links:

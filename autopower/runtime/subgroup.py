@@ -6,7 +6,8 @@ and runs one round of this protocol:
 
 - the leader publishes `SubgroupPropose` (members, the placement after the round, the moves,
   one generation for all of them) and accepts it itself;
-- a member accepts if it is in the members and has no other round pending, else rejects;
+- a member accepts if it is in the members, has no other round pending and has no objection
+  (the agent objects to a round that would start elsewhere a stage it runs), else rejects;
 - the leader commits (`SubgroupDecision(commit=True)`) when every member accepted, and aborts
   on any reject, on its deadline, or when a member is lost; a member that accepted but hears no
   decision by its own (longer) deadline, or loses the leader, aborts locally.
@@ -62,7 +63,8 @@ class SubgroupAgreement:
 
     def __init__(self, *, node: str, bus: Bus, keys: Keys, now: Callable[[], float],
                  on_commit: Callable[[SubgroupPropose], None], timeout_s: float = 1.0,
-                 on_abort: Callable[[str, str], None] | None = None, signing: Signing | None = None):
+                 on_abort: Callable[[str, str], None] | None = None, signing: Signing | None = None,
+                 objection: Callable[[SubgroupPropose], str | None] | None = None):
         """With ``signing``, every proposal, vote and decision is signed, and one that its claimed
         author (the leader, the voter) did not sign is dropped: a robot cannot vote for another."""
         self.node = node
@@ -72,6 +74,7 @@ class SubgroupAgreement:
         self.now = now
         self.on_commit = on_commit
         self.on_abort = on_abort or (lambda round_id, why: None)
+        self.objection = objection or (lambda proposal: None)
         self.timeout_s = timeout_s
         self.phase = Phase.IDLE
         self.round: Round | None = None
@@ -160,6 +163,11 @@ class SubgroupAgreement:
             return
         if self.phase is not Phase.IDLE:
             why = f"busy with round {self.round.proposal.round_id}" if self.round else "busy"
+            self._vote(msg, False, why)
+            return
+        why = self.objection(msg)
+        if why is not None:
+            log.info("subgroup %s: rejecting round %s: %s", self.node, msg.round_id, why)
             self._vote(msg, False, why)
             return
         self.round = Round(proposal=msg, deadline=self.now() + 2 * self.timeout_s, started=self.now())

@@ -44,7 +44,7 @@ def test_the_demo_story_in_the_testbed_with_mtls_and_access_control(tmp_path, cl
     assert result.returncode == 0, result.stderr[-3000:]
     out = json.loads(result.stdout)  # one JSON object on stdout
     print(json.dumps({k: out[k] for k in ("faults", "lost_outputs", "duplicated_outputs", "migrations",
-                                          "outputs", "testbed", "wall_s")}, indent=1))
+                                          "outputs", "testbed", "wall_s", "live")}, indent=1))
     # it really ran in namespaces over shaped links, every link mTLS + default-deny ACL
     assert out["security"] == "mtls+acl"
     testbed = out["testbed"]

@@ -1,0 +1,170 @@
+"""Subgroup rounds one after another, agents on InMemoryBus: a later round starts from what runs.
+
+The bug this guards against (seen in the testbed as 49 duplicated outputs): a robot that was not
+in a first round still had the base station's plan, led the next round from it, and restarted
+on other robots the stages the first round had already started, while they kept running where
+they were; a member also restarted a stage the round proposed where it already ran.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from autopower.agent.process import Agent, AgentConfig
+from autopower.agent.stages import Lifecycle
+from autopower.model.loading import load_scenario
+from autopower.protocol import LinkInfo, MissionInfo, PlanUpdate, SubgroupMove, encode
+from autopower.runtime.bus import InMemoryHub
+from autopower.runtime.clock import ManualClock
+from tests.unit.sim_team import FakeComponent, FakeSource
+
+ROBOTS = ("r1", "r2", "r3")
+
+
+def drain(hub: InMemoryHub, agents: dict[str, Agent]) -> None:
+    """Deliver every message and let every agent handle what it got, until all is quiet."""
+    while True:
+        moved = hub.pump()
+        for agent in agents.values():
+            while (event := agent.events.get(0)) is not None:
+                agent._handle(event)
+                moved += 1
+        if not moved and not hub.pending:
+            return
+
+
+@pytest.fixture
+def team():
+    scenario = load_scenario("paper-fig7")
+    hub = InMemoryHub(synchronous=False)
+    clock = ManualClock(speed=1.0, epoch_unix=time.time())
+    agents: dict[str, Agent] = {}
+    for robot in ROBOTS:
+        config = AgentConfig(robot=robot, scenario=scenario, team="t", subgroup_settle_s=0.0)
+        agent = Agent(config, bus=hub.bus(robot), make_component=FakeComponent, make_source=FakeSource,
+                      clock_factory=lambda mission: clock)
+        agents[robot] = agent.__enter__()
+    # the base station's plan: every stage on the laptop; then the laptop is gone for everyone
+    mission = MissionInfo(scenario=scenario.name, accounting="paper", epoch_unix=clock.epoch_unix, speed=1.0,
+                          energies_j={r.name: r.energy_j for r in scenario.robots})
+    stages = [s.name for c in scenario.chains for s in c.stages]
+    links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.media[0]) for l in scenario.link_specs())
+    plan = PlanUpdate(epoch=1, mission=mission, placement={s: scenario.basestation for s in stages},
+                      running={c.name: 0 for c in scenario.chains}, links=links, predicted_w={},
+                      predicted_lifetime_s=None, plan_t_virtual=0.0)
+    hub.bus("laptop").publish(agents["r1"].keys.plan, encode(plan))
+    drain(hub, agents)
+    yield hub, agents, stages
+    for agent in agents.values():
+        agent.__exit__(None, None, None)
+
+
+def see(agents: dict[str, Agent], who: str, others) -> None:
+    for other in others:
+        agents[who].relayer.on_liveliness(other, True)
+        agents[who].runtime.on_liveliness(other, True)
+
+
+def running(agents: dict[str, Agent]) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for robot, agent in agents.items():
+        for stage, hosted in agent.runtime.hosted.items():
+            if hosted.lifecycle is Lifecycle.RUNNING:
+                out.setdefault(stage, []).append(robot)
+    return out
+
+
+def test_a_later_round_starts_from_what_the_first_one_placed_and_restarts_nothing(team):
+    hub, agents, stages = team
+    assert all(a.runtime.started and a.runtime.plan.epoch == 1 for a in agents.values())
+    # round 1: r2 and r3 (r1 out of their reach) restart the laptop's stages among themselves
+    see(agents, "r2", ["r3"])
+    see(agents, "r3", ["r2"])
+    first = {"Loc-2": "r2", "Blob-2": "r2", "Loc-3": "r3", "Blob-3": "r3"}
+    moves = tuple(SubgroupMove(stage=s, from_node=None, to_node=h) for s, h in first.items())
+    assert agents["r2"].agreement.propose(("r2", "r3"), dict(first), moves, 100, "round 1")
+    drain(hub, agents)
+    assert agents["r3"].agreement.committed == 1 and agents["r2"].agreement.committed == 1
+    assert running(agents) == {s: [h] for s, h in first.items()}
+    components = {s: agents[h].runtime.hosted[s].component for s, h in first.items()}
+    assert agents["r1"].runtime.plan.placement["Loc-2"] == "laptop"  # r1 missed round 1
+
+    # r1 comes into their reach; everyone has everyone's status; r1 (lowest name) leads round 2
+    for robot in ROBOTS:
+        see(agents, robot, [r for r in ROBOTS if r != robot])
+    for agent in agents.values():
+        agent.publish_status()
+    drain(hub, agents)
+    leader = agents["r1"]
+    leader._subgroup_tick()  # the base station out of reach: noted
+    leader._subgroup_tick()  # settled: propose
+    assert leader.agreement.counter == 1, "r1 proposed no round"
+    proposal = leader.agreement.round.proposal
+    # what round 1 started is where it runs: nothing of it is restarted anywhere
+    for move in proposal.moves:
+        if move.stage in first:
+            assert move.from_node == first[move.stage], move
+    drain(hub, agents)
+    assert [a.agreement.committed for a in agents.values()] == [1, 2, 2]
+    now = running(agents)
+    assert all(len(hosts) == 1 for hosts in now.values()), now  # nothing runs twice
+    assert set(now) == set(stages)  # and everything runs
+    for stage, component in components.items():
+        if now[stage] == [first[stage]]:  # not moved: the very same instance, not restarted
+            assert agents[first[stage]].runtime.hosted[stage].component is component
+    # every member routes to the same hosts, r1 included
+    views = [{s: a.runtime.plan.placement[s] for s in stages} for a in agents.values()]
+    assert views[0] == views[1] == views[2] == {s: hosts[0] for s, hosts in now.items()}
+
+
+def test_a_member_refuses_a_round_that_would_start_elsewhere_what_it_runs(team):
+    hub, agents, _ = team
+    for robot in ROBOTS:
+        see(agents, robot, [r for r in ROBOTS if r != robot])
+    restart = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r2"}, restart, 100, "round 1")
+    drain(hub, agents)
+    kept = agents["r2"].runtime.hosted["Loc-2"].component
+    # a leader with a stale view proposes to restart Loc-2 on r3: r2 runs it and says no
+    stale = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r3"),)
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r3"}, stale, 200, "stale")
+    drain(hub, agents)
+    assert agents["r1"].agreement.aborted == 1 and agents["r3"].agreement.committed == 1
+    assert running(agents) == {"Loc-2": ["r2"]}
+    # a round that restarts it where it runs changes nothing there
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r2"}, restart, 300, "again")
+    drain(hub, agents)
+    assert agents["r2"].runtime.hosted["Loc-2"].component is kept
+    assert agents["r2"].runtime.counters.get("subgroup-restart-kept") == 1
+
+
+def test_a_peer_whose_statuses_stop_is_out_of_sight_though_its_token_stays(team):
+    """The second failure detector: Zenoh may keep a cut peer's token for seconds (a link close
+    stuck behind a full socket); two status periods without its status put it out of sight."""
+    from autopower.runtime.events import LivelinessChanged
+
+    hub, agents, _ = team
+    r1, r2 = agents["r1"], agents["r2"]
+    assert {"r2", "r3"} <= r1._tokens  # every agent's token, through the hub
+    r2.publish_status()
+    agents["r3"].publish_status()
+    drain(hub, agents)
+    assert "r2" in r1.relayer.direct and r1.runtime.status(1.0).links["r2"]
+    heard = time.time()
+    r1._check_silence(heard + 0.9)  # within two periods (1 s): still in sight
+    assert {"r2", "r3"} <= r1.relayer.direct and not r1._silent
+    r1._check_silence(heard + 1.2)
+    assert "r2" not in r1.relayer.direct and not r1.runtime.status(1.0).links["r2"]
+    assert r1._silent == {"r2", "r3"} and r1.runtime.counters.get("silent-peers") == 2
+    r2.publish_status()  # it speaks again (the token never went): back in sight
+    drain(hub, agents)
+    assert "r2" in r1.relayer.direct and r1.runtime.status(1.0).links["r2"]
+    # its token going while it is silent changes nothing more; its token coming back starts afresh
+    r1._check_silence(time.time() + 1.2)
+    r1._handle(LivelinessChanged(key=r1.keys.alive("r2"), alive=False))
+    assert "r2" not in r1.relayer.direct
+    r1._handle(LivelinessChanged(key=r1.keys.alive("r2"), alive=True))
+    r1._check_silence(time.time() + 0.5)  # no status yet since it came back: no verdict
+    assert "r2" in r1.relayer.direct
