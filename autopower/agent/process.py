@@ -124,7 +124,6 @@ class Agent:
         self.events.post(StopRequested(reason))
 
     def _handle(self, event) -> None:
-        rt = self.runtime
         if isinstance(event, Received):
             self._received(event.key, event.payload)
         elif isinstance(event, LivelinessChanged):
