@@ -332,7 +332,8 @@ def _finish(problem: Problem, model: PlacementModel, t_col: int, sol, refine: bo
         for robot, expr in model.power_rows.items():
             for col, coef in expr.items():
                 lp.cost[col] += coef / problem.energies_j[robot]
-        second = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=1e-6)
+        # the first pass's optimum is feasible here: start from it rather than from nothing
+        second = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=1e-6, start=dict(enumerate(sol.values)))
         runtime += second.runtime_s
         if second.has_solution:
             best = second
