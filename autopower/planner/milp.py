@@ -283,6 +283,8 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
             bounds.append(sol.dual_bound if sol.dual_bound is not None else sol.objective)
             if best is None or sol.objective < best[2].objective:
                 best = (built, t_col, sol, sub)
+        elif cutoff is not None and sol.status == "Objective bound":
+            bounds.append(sol.dual_bound)  # its LP relaxation: within the gap of the incumbent
         elif cutoff is not None and ("Infeasible" in sol.status or "bound" in sol.status.lower()):
             bounds.append(cutoff)  # nothing here beats the incumbent: its bound is at least the cut-off
         elif "Infeasible" not in sol.status:
@@ -311,6 +313,16 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None)
         # P_i - (E_i/E_ref) T <= 0  ->  expr - k T <= -const
         model.power_rows[robot] = expr
         lp.row({**expr, t_col: -problem.energies_j[robot] / e_ref}, -INF, -const)
+    if cutoff is not None:
+        # Another media choice already has an incumbent. If this one's LP relaxation cannot beat
+        # it by more than the gap asked for, its MILP is not worth a search: HiGHS would spend
+        # its whole time limit raising a bound that only needs to be within the gap.
+        integer, lp.integer = lp.integer, [False] * len(lp.integer)
+        relaxed = lp.solve(time_limit_s=time_limit_s)
+        lp.integer = integer
+        if relaxed.has_solution and relaxed.optimal and relaxed.objective >= cutoff * (1 - mip_rel_gap):
+            relaxed.status, relaxed.has_solution, relaxed.values = "Objective bound", False, None
+            return model, t_col, relaxed
     sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff,
                    start=model.start_values(start) if start else None)
     return model, t_col, sol
