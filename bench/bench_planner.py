@@ -1,18 +1,26 @@
 """Planner benchmark: MILP time and lifetime vs a greedy baseline measured in the same run.
 
-Run: ./run bench  (or .venv/bin/python bench/bench_planner.py). Not a timed test: the figures
-are printed, with ratios, for the README and the notes.
+Run: ./run bench  (or .venv/bin/python bench/bench_planner.py [--big]). Not a timed test: the
+figures are printed, with ratios, for the README and the notes.
+
+Cases: the paper's scenarios; sparse fleets (chains spread over the robots at random, many robots
+idle); loaded fleets where every robot runs three chains of its own (localisation, blob finder,
+mapper), with any node a possible host or only the robot itself or the laptop; and a replan after
+one link changes medium in the loaded 100-robot fleet, cold vs warm-started from the plan in force.
+--big adds the 1,000-robot / 3,000-component loaded fleet (own robot or laptop; minutes to build).
 """
 
+import sys
 import time
 
 from autopower.model.loading import load_scenario
+from autopower.model.network import Link, Network
 from autopower.planner import PlanRequest
 from autopower.planner.exhaustive import exhaustive
 from autopower.planner.greedy import greedy
 from autopower.planner.milp import solve_milp
 from autopower.planner.problem import make_problem
-from autopower.simulation.synthetic import fleet_scenario
+from autopower.simulation.synthetic import fleet_scenario, loaded_fleet_scenario
 
 
 def timed(fn):
@@ -21,26 +29,61 @@ def timed(fn):
     return out, time.perf_counter() - t
 
 
+def row(name, problem, build_s, limit, gap, run_greedy=True):
+    g, g_time = timed(lambda: greedy(problem)) if run_greedy else (None, float("nan"))
+    m, m_time = timed(lambda: solve_milp(problem, time_limit_s=limit, mip_rel_gap=gap))
+    ex_time = ""
+    if problem.combinations() <= 200_000:
+        ex, t = timed(lambda: exhaustive(problem))
+        assert abs(ex[0].lifetime_s - m.lifetime_s) <= 1e-6 * m.lifetime_s, (ex[0].lifetime_s, m.lifetime_s)
+        ex_time = f"{t:.3f}"
+    ratio = m.lifetime_s / g[2] if g else float("nan")
+    print(f"{name:40} {build_s:8.2f} {g_time:9.3f} {m_time:8.2f} {ratio:17.4f} {str(m.optimal):>7} {m.mip_gap:7.3%} {ex_time:>13}",
+          flush=True)
+    return m
+
+
+def replan_after_link_change(scenario, current) -> None:
+    """One robot's laptop link switches medium; replan on that network, cold and from the plan in force."""
+    robot = "r7"
+    media = scenario.network_spec.laptop_robot_media
+    links = []
+    for link in current.network.links:
+        if {link.a, link.b} == {robot, scenario.basestation}:
+            other = next(m for m in media if m != link.medium)
+            link = Link(a=link.a, b=link.b, medium=other, group=link.group)
+        links.append(link)
+    changed = Network(current.network.nodes, current.network.basestation, links, current.network.topology)
+    problem = make_problem(PlanRequest(scenario=scenario, network=changed))
+    cold, cold_s = timed(lambda: solve_milp(problem, time_limit_s=60))
+    warm, warm_s = timed(lambda: solve_milp(problem, time_limit_s=60, start=current.allocation))
+    if cold.optimal and warm.optimal:
+        assert abs(cold.lifetime_s - warm.lifetime_s) <= 1e-6 * cold.lifetime_s, (cold.lifetime_s, warm.lifetime_s)
+    print(f"replan after {robot}-laptop link change ({scenario.name}): cold {cold_s:.2f} s, warm start {warm_s:.2f} s "
+          f"(warm/cold {warm_s / cold_s:.2f}); proven optimal: cold {cold.optimal}, warm {warm.optimal}; "
+          f"gap cold {cold.mip_gap:.3%}, warm {warm.mip_gap:.3%}", flush=True)
+
+
 def main() -> None:
+    big = "--big" in sys.argv
     cases = [
         ("paper-fig7", load_scenario("paper-fig7"), None, 1e-9),
         ("paper-fig8", load_scenario("paper-fig8"), None, 1e-9),
         ("30 robots / 90 comps", fleet_scenario(30, 90, seed=1), None, 1e-9),
         ("30 robots / 90 comps, physical", fleet_scenario(30, 90, seed=2, accounting="physical"), None, 1e-9),
-        ("100 robots / 300 comps", fleet_scenario(100, 300, seed=3), 600, 0.01),
+        ("100 robots / 300 comps (sparse)", fleet_scenario(100, 300, seed=3), 600, 0.01),
+        ("100 / 300 loaded, own robot or laptop", loaded_fleet_scenario(100, 3, hosts="own"), 60, 1e-9),
+        ("100 / 300 loaded, any host", loaded_fleet_scenario(100, 3, hosts="any"), 60, 1e-9),
     ]
-    print(f"{'case':34} {'greedy s':>9} {'MILP s':>8} {'MILP/greedy life':>17} {'proven':>7} {'gap':>7} {'exhaustive s':>13}")
+    if big:
+        cases.append(("1000 / 3000 loaded, own robot or laptop", loaded_fleet_scenario(1000, 3, hosts="own"), 120, 0.01))
+    print(f"{'case':40} {'build s':>8} {'greedy s':>9} {'MILP s':>8} {'MILP/greedy life':>17} {'proven':>7} {'gap':>7} {'exhaustive s':>13}")
+    results = {}
     for name, scenario, limit, gap in cases:
-        problem = make_problem(PlanRequest(scenario=scenario))
-        g, g_time = timed(lambda: greedy(problem))
-        m, m_time = timed(lambda: solve_milp(problem, time_limit_s=limit, mip_rel_gap=gap))
-        ex_time = ""
-        if problem.combinations() <= 200_000:
-            ex, t = timed(lambda: exhaustive(problem))
-            assert abs(ex[0].lifetime_s - m.lifetime_s) <= 1e-6 * m.lifetime_s, (ex[0].lifetime_s, m.lifetime_s)
-            ex_time = f"{t:.3f}"
-        ratio = m.lifetime_s / g[2] if g else float("inf")
-        print(f"{name:34} {g_time:9.3f} {m_time:8.2f} {ratio:17.4f} {str(m.optimal):>7} {m.mip_gap:7.2%} {ex_time:>13}")
+        problem, build_s = timed(lambda: make_problem(PlanRequest(scenario=scenario)))
+        results[name] = (scenario, row(name, problem, build_s, limit, gap))
+    replan_after_link_change(*results["100 / 300 loaded, own robot or laptop"])
+    replan_after_link_change(*results["100 / 300 loaded, any host"])
 
 
 if __name__ == "__main__":

@@ -86,7 +86,16 @@ class Network:
 
     def media_of(self, node: str) -> set[str]:
         """Media of the radios a node carries: one radio per medium among its links."""
-        return {link.medium for link in self.links if link.touches(node)}
+        return set(self._media_by_node.get(node, ()))
+
+    @cached_property
+    def _media_by_node(self) -> dict[str, set[str]]:
+        # one pass over the links: a fully connected fleet of n robots has ~n^2/2 of them
+        out: dict[str, set[str]] = {}
+        for link in self.links:
+            out.setdefault(link.a, set()).add(link.medium)
+            out.setdefault(link.b, set()).add(link.medium)
+        return out
 
     def media_by_group(self) -> dict[str, str]:
         out: dict[str, str] = {}

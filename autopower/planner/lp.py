@@ -89,7 +89,10 @@ class LinearProgram:
         return len(self.row_lower) - 1
 
     def solve(self, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
-              threads: int | None = None, objective_cutoff: float | None = None) -> "Solution":
+              threads: int | None = None, objective_cutoff: float | None = None,
+              start: dict[int, float] | None = None) -> "Solution":
+        """`start`: values of some columns (a known plan's binaries) HiGHS completes into a first
+        incumbent, so it prunes from the start instead of searching for a feasible point."""
         h = new_highs()
         h.setOptionValue("mip_rel_gap", mip_rel_gap)
         # The objective is a power in watts (~1): absolute gaps of 1e-6 W would stop too early.
@@ -117,6 +120,9 @@ class LinearProgram:
             lp.integrality_ = [highspy.HighsVarType.kInteger if i else highspy.HighsVarType.kContinuous
                                for i in self.integer]
         h.passModel(lp)
+        if start:
+            cols = np.fromiter(start.keys(), dtype=np.int32, count=len(start))
+            h.setSolution(len(start), cols, np.fromiter(start.values(), dtype=float, count=len(start)))
         h.run()
         status = h.getModelStatus()
         info = h.getInfo()

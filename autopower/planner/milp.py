@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from itertools import product
+from typing import Mapping
 
 from autopower.model.energy import airtime_s, flow_rate_hz
 from autopower.model.network import Link, Network
@@ -146,10 +147,12 @@ class PlacementModel:
 
         # radio presence r[i, m] >= y[g, m] for every link of i (a constant 1 for fixed media)
         self.present: dict[tuple[str, str], int | float] = {}
+        links_of: dict[str, list[Link]] = {}  # one pass over the links (a fleet has ~n^2/2 of them)
+        for link in self.structure.links:
+            links_of.setdefault(link.a, []).append(link)
+            links_of.setdefault(link.b, []).append(link)
         for robot in self.robots:
-            for link in self.structure.links:
-                if not link.touches(robot):
-                    continue
+            for link in links_of.get(robot, []):
                 for medium, m_term in self.media_terms(link.a, link.b):
                     key = (robot, medium)
                     if not m_term:
@@ -219,6 +222,14 @@ class PlacementModel:
                 const += coef * consts[key]
         return expr, const
 
+    def start_values(self, allocation: Mapping[str, str]) -> dict[int, float]:
+        """The x columns of a plan (stage -> host): 1 at its host, 0 at the stage's others."""
+        out = {}
+        for (stage, host), col in self.x.items():
+            if stage in allocation:
+                out[col] = 1.0 if allocation[stage] == host else 0.0
+        return out
+
     # ---- read back -----------------------------------------------------------------------------
     def decode(self, values) -> tuple[dict[str, str], Network]:
         allocation = {}
@@ -243,18 +254,20 @@ SPLIT_MEDIA_UP_TO = 16  # media combinations solved as separate, product-free MI
 
 
 def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
-               refine: bool = True) -> MilpResult:
+               refine: bool = True, start: Mapping[str, str] | None = None) -> MilpResult:
     """Min-max lifetime placement; optionally a second pass to minimise total normalised drain.
 
     With few media combinations (a named topology has 4) one MILP per combination is much smaller
     than the joint model (no binary products) and each solve passes the best lifetime so far as
     an objective cut-off, so hopeless combinations are pruned at once. Otherwise the joint model
     chooses media itself.
+
+    `start` (stage -> host, e.g. the plan in force) is handed to HiGHS as a first incumbent.
     """
     import time as _time
 
     if not 1 < len(problem.networks) <= SPLIT_MEDIA_UP_TO:
-        return _finish(problem, *_first_pass(problem, time_limit_s, mip_rel_gap, None), refine, time_limit_s)
+        return _finish(problem, *_first_pass(problem, time_limit_s, mip_rel_gap, None, start), refine, time_limit_s)
     started = _time.monotonic()
     best = None
     bounds = []
@@ -264,12 +277,14 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
         left = None if time_limit_s is None else max(1.0, time_limit_s - (_time.monotonic() - started))
         sub = dataclasses.replace(problem, networks=[network])
         cutoff = best[2].values[best[1]] if best else None
-        built, t_col, sol = _first_pass(sub, left, mip_rel_gap, cutoff)
+        built, t_col, sol = _first_pass(sub, left, mip_rel_gap, cutoff, start)
         runtime += sol.runtime_s
         if sol.has_solution:
             bounds.append(sol.dual_bound if sol.dual_bound is not None else sol.objective)
             if best is None or sol.objective < best[2].objective:
                 best = (built, t_col, sol, sub)
+        elif cutoff is not None and sol.status == "Objective bound":
+            bounds.append(sol.dual_bound)  # its LP relaxation: within the gap of the incumbent
         elif cutoff is not None and ("Infeasible" in sol.status or "bound" in sol.status.lower()):
             bounds.append(cutoff)  # nothing here beats the incumbent: its bound is at least the cut-off
         elif "Infeasible" not in sol.status:
@@ -287,7 +302,7 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
     return result
 
 
-def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff):
+def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None):
     model = PlacementModel(problem)
     lp = model.lp
     e_ref = max(problem.energies_j[r] for r in model.robots)
@@ -298,7 +313,18 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff):
         # P_i - (E_i/E_ref) T <= 0  ->  expr - k T <= -const
         model.power_rows[robot] = expr
         lp.row({**expr, t_col: -problem.energies_j[robot] / e_ref}, -INF, -const)
-    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff)
+    if cutoff is not None:
+        # Another media choice already has an incumbent. If this one's LP relaxation cannot beat
+        # it by more than the gap asked for, its MILP is not worth a search: HiGHS would spend
+        # its whole time limit raising a bound that only needs to be within the gap.
+        integer, lp.integer = lp.integer, [False] * len(lp.integer)
+        relaxed = lp.solve(time_limit_s=time_limit_s)
+        lp.integer = integer
+        if relaxed.has_solution and relaxed.optimal and relaxed.objective >= cutoff * (1 - mip_rel_gap):
+            relaxed.status, relaxed.has_solution, relaxed.values = "Objective bound", False, None
+            return model, t_col, relaxed
+    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff,
+                   start=model.start_values(start) if start else None)
     return model, t_col, sol
 
 
@@ -318,7 +344,8 @@ def _finish(problem: Problem, model: PlacementModel, t_col: int, sol, refine: bo
         for robot, expr in model.power_rows.items():
             for col, coef in expr.items():
                 lp.cost[col] += coef / problem.energies_j[robot]
-        second = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=1e-6)
+        # the first pass's optimum is feasible here: start from it rather than from nothing
+        second = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=1e-6, start=dict(enumerate(sol.values)))
         runtime += second.runtime_s
         if second.has_solution:
             best = second

@@ -97,6 +97,60 @@ def fleet_scenario(robots: int, components: int, seed: int = 0, accounting: str 
     return random_scenario(seed, robots, components, accounting=accounting)
 
 
+def loaded_fleet_scenario(robots: int, seed: int = 0, *, hosts: str = "any", accounting: str = "paper") -> Scenario:
+    """A fleet where every robot is loaded: each runs three chains of its own, a localisation
+    (sink: itself), a blob finder (sink: the base station) and a mapper (sink: the base station),
+    with latencies, periods and sizes drawn around the paper's per robot.
+
+    hosts="any": any node may run any stage; hosts="own": a robot's stages run on that robot or
+    the base station (the laptop), the deployment the paper's robots would use at scale.
+    """
+    if hosts not in ("any", "own"):
+        raise ValueError(f"hosts must be 'any' or 'own', not {hosts!r}")
+    rng = np.random.default_rng([seed, robots, 0xF1EE7])
+    paper = load_scenario("paper-fig7")
+    names = [f"r{i + 1}" for i in range(robots)]
+    team = tuple(Robot(name=n, platform="sitsang", energy_j=float(round(64000 * (1 - 0.5 * rng.random()))),
+                       sensors=frozenset({"laser", "odometry", "camera"}))
+                 for n in names)
+    components: dict[str, ComponentSpec] = {}
+    chains = []
+    for robot in names:
+        allowed = None if hosts == "any" else (robot, "laptop")
+        # (kind, period, share of the period on a Sitsang, sizes in/out, sink)
+        loc_period = float(rng.choice([1.0, 2.0, 4.0]))
+        blob_period = float(rng.choice([0.5, 1.0]))
+        specs = [
+            ("Loc", loc_period, float(rng.uniform(0.05, 0.3)), (int(rng.integers(500, 2000)), int(rng.integers(300, 1200))), robot),
+            ("Blob", blob_period, float(rng.uniform(0.05, 0.3)), (int(rng.choice([2000, 20000])), int(rng.integers(50, 400))), "laptop"),
+            ("Map", 2.0, float(rng.uniform(0.05, 0.3)), (int(rng.integers(2000, 8000)), int(rng.integers(200, 1000))), "laptop"),
+        ]
+        for kind, period, share, sizes, sink in specs:
+            name = f"{kind}-{robot}"
+            sitsang = share * period
+            components[name] = ComponentSpec(name=name, latency_s={"sitsang": sitsang, "laptop": sitsang / rng.uniform(10, 250)})
+            chains.append(Chain(name=name, source=robot, sink=sink, period_s=period,
+                                stages=(Stage(name=name, component=name, hosts=allowed),), message_bytes=sizes))
+    network = NetworkSpec(topology="fully-connected", relay=names[0],
+                          laptop_robot_media=("802.11a", "gsm"), robot_robot_media=("802.11a", "bluetooth"),
+                          analyze_topologies=("fully-connected",))
+    return Scenario(
+        name=f"loaded-fleet-{seed}-{robots}-{hosts}",
+        description="synthetic: every robot loaded",
+        source_path=f"<loaded fleet seed {seed}>",
+        accounting=accounting,
+        lifetime_rounding_s=0.8,
+        platforms=dict(paper.platforms),
+        radios=dict(paper.radios),
+        robots=team,
+        basestation="laptop",
+        basestation_platform="laptop",
+        network_spec=network,
+        components=components,
+        chains=tuple(chains),
+    )
+
+
 def random_dag_scenario(seed: int, robots: int = 3, chains: int = 3, **kwargs) -> Scenario:
     """`random_scenario` made an application DAG (autopower.model.dag): a source-less fan-in
     chain joining 1-3 random stages (sink: the base station or a robot), and sometimes one more
@@ -131,4 +185,4 @@ def random_dag_scenario(seed: int, robots: int = 3, chains: int = 3, **kwargs) -
     return dataclasses.replace(base, name=base.name + "-dag", components=components, chains=tuple(chain_list))
 
 
-__all__ = ["random_scenario", "random_dag_scenario", "fleet_scenario", "LAPTOP_ROBOT", "ROBOT_ROBOT", "LinkSpec", "Platform", "Radio"]
+__all__ = ["random_scenario", "loaded_fleet_scenario", "random_dag_scenario", "fleet_scenario", "LAPTOP_ROBOT", "ROBOT_ROBOT", "LinkSpec", "Platform", "Radio"]

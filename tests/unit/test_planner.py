@@ -131,3 +131,27 @@ def test_hundred_robots_three_hundred_components_within_one_percent():
 def test_no_robot_left_is_a_clear_infeasible_error():
     with pytest.raises(InfeasibleError, match="no robot is available"):
         plan(PlanRequest(scenario=FIG7, unavailable_nodes=frozenset({"r1", "r2", "r3"})))
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), hosts=st.sampled_from(["any", "own"]), gap=st.sampled_from([1e-9, 0.01]))
+def test_loaded_fleet_milp_equals_exhaustive_cold_and_from_a_start(seed, hosts, gap):
+    """The loaded-fleet generator (every robot runs three chains of its own), the MILP started
+    from another plan (the greedy's), and the per-media-choice skip by LP relaxation within the
+    gap asked for all keep the MILP's answer the exhaustive optimum (within that gap)."""
+    from autopower.planner.greedy import greedy
+    from autopower.simulation.synthetic import loaded_fleet_scenario
+
+    s = loaded_fleet_scenario(2 if hosts == "any" else 3, seed, hosts=hosts)
+    problem = make_problem(PlanRequest(scenario=s))
+    best = exhaustive(problem)
+    g = greedy(problem)
+    for start in (None, g[1] if g else None):
+        milp = solve_milp(problem, mip_rel_gap=gap, start=start)
+        if not best:
+            assert milp.allocation is None
+            continue
+        assert best[0].lifetime_s * (1 - gap) - 1e-6 <= milp.lifetime_s <= best[0].lifetime_s * (1 + 1e-7)
+        assert evaluate(s, milp.network, milp.allocation).feasible
+        if hosts == "own":
+            assert all(host in (stage.split("-", 1)[1], "laptop") for stage, host in milp.allocation.items())
