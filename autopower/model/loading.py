@@ -266,6 +266,7 @@ class ScenarioParser:
         network = self.network(top["network"], radios, robots, base_name)
         components = self.components(top["components"], platforms)
         chains = self.chains(top["chains"], components, robots, nodes, base_name)
+        self.check_dag_choices(chains, components, platforms)
         rows = self.reference_rows(top.get("reference_rows", []), radios, chains, nodes, network)
         migration = self.migration(top.get("migration", {}), components)
         scenario = Scenario(
@@ -289,6 +290,20 @@ class ScenarioParser:
         )
         self.check_routable(scenario)
         return scenario
+
+    def check_dag_choices(self, chains, components, platforms) -> None:
+        """DAG flows together with quality variants or DVFS levels are not planned yet: the planner's
+        variant and level search (`planner.plan_choices`) does not charge flows, so refuse the file
+        rather than plan it wrong."""
+        fan_in = next((i for i, c in enumerate(chains) if c.inputs), None)
+        if fan_in is None:
+            return
+        choices = sorted([f"components.{n}.variants" for n, c in components.items() if c.variants]
+                         + [f"platforms.{n}.levels" for n, p in platforms.items() if p.levels])
+        if choices:
+            raise self.fail(f"chains[{fan_in}].inputs", f"DAG inputs together with {', '.join(choices)}",
+                            "either DAG inputs or quality variants/DVFS levels in one scenario (both at once is "
+                            "not supported yet)")
 
     def quality_weight(self, obj: Any) -> float:
         mission = self.table(obj, "mission", ["quality_weight"])
