@@ -55,9 +55,17 @@ def test_the_demo_story_in_the_testbed_with_mtls_and_access_control(tmp_path, cl
     assert testbed["shared_media"]["802.11a"]["nodes"] == ["r1", "r2", "r3", "laptop"]
     assert not set(testbed["namespaces"]) & set(list_namespaces()), "the demo left its namespaces behind"
     # the story: one silent cut (detected, replanned around through a relay), then every robot
-    # cut from the base station (the robots agree on a reallocation among themselves)
-    assert [f["parts"] for f in out["faults"]] == [["r1-laptop"], ["r1-laptop", "r2-laptop", "r3-laptop"]]
-    single, everyone = out["faults"]
+    # cut from the base station (the robots agree on a reallocation among themselves), then a
+    # SIGKILL of an agent and of the base station (each restarted in its namespace)
+    assert [f["kind"] for f in out["faults"]] == ["cut", "cut", "crash-agent", "crash-basestation"]
+    assert [f["parts"] for f in out["faults"]][:2] == [["r1-laptop"], ["r1-laptop", "r2-laptop", "r3-laptop"]]
+    single, everyone, agent, base = out["faults"]
+    assert 0 < agent["restarted_wall_s"] < agent["rejoined_wall_s"] <= 15, agent
+    assert agent["battery_after_j"] < agent["battery_before_j"], agent  # its battery goes on, not reset
+    assert base["reconfigured_by"].startswith("subgroup round"), base  # the robots carry on
+    assert 0 < base["detected_wall_s"] <= 1.0 and 0 < base["reconfigured_wall_s"] <= 1.5, base
+    assert base["taken_over_wall_s"] is not None and base["taken_over_wall_s"] <= 10, base
+    assert out["supervision"]["restarts"] == {agent["target"]: 1, "laptop": 1}, out["supervision"]
     assert 0 < single["detected_wall_s"] <= 1.0, single
     assert 0 < single["reconfigured_wall_s"] <= 1.5, single
     assert single["reconfigured_by"].startswith("plan epoch")
