@@ -178,8 +178,7 @@ def choice_time_sharing_bound(problem: Problem, floor: float = 0.0):
     Exact by enumeration with column generation on the LP; None when there are too many."""
     import numpy as np
 
-    from autopower.planner.lp import INF
-    from autopower.planner.timesharing import Phase, TimeSharingBound, _master
+    from autopower.planner.timesharing import Phase, TimeSharingBound, price_enumerated
 
     from autopower.planner.exhaustive import MAX_COMBINATIONS
 
@@ -194,18 +193,7 @@ def choice_time_sharing_bound(problem: Problem, floor: float = 0.0):
     energies = blocks[0][0].space.energy_j
     robots = blocks[0][0].space.robots
     chosen = [int(np.argmin((powers / energies).max(axis=1)))]
-    upper, converged, sol = INF, False, None
-    for _ in range(500):
-        sol = _master(powers[chosen], energies)
-        prices = np.maximum(-sol.duals, 0.0)
-        reduced = powers @ prices
-        best = int(np.argmin(reduced))
-        if reduced[best] > 0:
-            upper = min(upper, float(np.dot(energies, prices)) / reduced[best])
-        if reduced[best] >= 1.0 - 1e-9 or best in chosen:
-            converged = True
-            break
-        chosen.append(best)
+    sol, bound, achieved, converged = price_enumerated(powers, energies, chosen)
     phases = []
     for k, t in zip(chosen, sol.values):
         if t > 1e-6:
@@ -215,9 +203,7 @@ def choice_time_sharing_bound(problem: Problem, floor: float = 0.0):
                                                       **{f"level:{r}": lv for r, lv in c.levels.items()}},
                                 dict(zip(robots, map(float, powers[k])))))
     phases.sort(key=lambda p: -p.duration_s)
-    achieved = -sol.objective
-    return TimeSharingBound(achieved if converged else max(upper, achieved), achieved, converged, phases,
-                            "enumeration (variants and levels)")
+    return TimeSharingBound(bound, achieved, converged, phases, "enumeration (variants and levels)")
 
 
 def mission_variants(scenario, chosen: dict[str, str] | None = None) -> dict[str, str]:

@@ -99,6 +99,19 @@ def _by_enumeration(problem: Problem, seeds=()) -> TimeSharingBound:
         match = np.flatnonzero(np.all(np.abs(powers - p) <= 1e-12 * (1 + np.abs(p)), axis=1))
         if match.size and int(match[0]) not in chosen:
             chosen.append(int(match[0]))
+    sol, bound, achieved, converged = price_enumerated(powers, energies, chosen)
+    configs = []
+    for k in chosen:
+        block, flat = where[k]
+        network, options = blocks[block][0], blocks[block][1]
+        configs.append((network, decode_allocation(problem.chains, options, flat), powers[k]))
+    return TimeSharingBound(bound, achieved, converged, _schedule(sol.values, configs, robots), "enumeration")
+
+
+def price_enumerated(powers, energies, chosen: list[int]):
+    """Column generation over an enumerated power matrix (one row per configuration): grows
+    `chosen` (in place) with the column of least reduced cost until none prices below 1.
+    Returns (master solution, bound, achieved lifetime, converged)."""
     sol = None
     upper = INF  # LP duality: any prices give sum(E*pi) / min_k(pi . P_k) >= the optimum
     converged = False
@@ -114,13 +127,7 @@ def _by_enumeration(problem: Problem, seeds=()) -> TimeSharingBound:
             break
         chosen.append(best)
     achieved = -sol.objective
-    configs = []
-    for k in chosen:
-        block, flat = where[k]
-        network, options = blocks[block][0], blocks[block][1]
-        configs.append((network, decode_allocation(problem.chains, options, flat), powers[k]))
-    bound = achieved if converged else max(upper, achieved)
-    return TimeSharingBound(bound, achieved, converged, _schedule(sol.values, configs, robots), "enumeration")
+    return sol, (achieved if converged else max(upper, achieved)), achieved, converged
 
 
 def _by_column_generation(problem: Problem, seeds, max_rounds: int) -> TimeSharingBound:
