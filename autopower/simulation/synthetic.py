@@ -72,23 +72,31 @@ def random_scenario(
             stages = (Stage(name=f"{comp}-{source}", component=comp),)
         out_chains.append(Chain(name=f"{comp}-{source}", source=source, sink=sink, period_s=period,
                                 stages=stages, message_bytes=tuple(sizes)))
-    network = NetworkSpec(topology=topology, relay=names[0],
+    return _synthetic(paper, f"random-{seed}-{robots}x{chains}", "synthetic", f"<random seed {seed}>", accounting,
+                      team, topology, components, out_chains)
+
+
+def _synthetic(paper: Scenario, name: str, description: str, source_path: str, accounting: str, team, topology: str,
+               components, chains) -> Scenario:
+    """A synthetic team on the paper's platforms and radios, the laptop as base station, media to
+    choose between 802.11a and GSM (laptop-robot) or Bluetooth (robot-robot)."""
+    network = NetworkSpec(topology=topology, relay=team[0].name,
                           laptop_robot_media=("802.11a", "gsm"), robot_robot_media=("802.11a", "bluetooth"),
                           analyze_topologies=(topology,))
     return Scenario(
-        name=f"random-{seed}-{robots}x{chains}",
-        description="synthetic",
-        source_path=f"<random seed {seed}>",
+        name=name,
+        description=description,
+        source_path=source_path,
         accounting=accounting,
         lifetime_rounding_s=0.8,
         platforms=dict(paper.platforms),
         radios=dict(paper.radios),
-        robots=team,
+        robots=tuple(team),
         basestation="laptop",
         basestation_platform="laptop",
         network_spec=network,
         components=components,
-        chains=tuple(out_chains),
+        chains=tuple(chains),
     )
 
 
@@ -131,24 +139,8 @@ def loaded_fleet_scenario(robots: int, seed: int = 0, *, hosts: str = "any", acc
             components[name] = ComponentSpec(name=name, latency_s={"sitsang": sitsang, "laptop": sitsang / rng.uniform(10, 250)})
             chains.append(Chain(name=name, source=robot, sink=sink, period_s=period,
                                 stages=(Stage(name=name, component=name, hosts=allowed),), message_bytes=sizes))
-    network = NetworkSpec(topology="fully-connected", relay=names[0],
-                          laptop_robot_media=("802.11a", "gsm"), robot_robot_media=("802.11a", "bluetooth"),
-                          analyze_topologies=("fully-connected",))
-    return Scenario(
-        name=f"loaded-fleet-{seed}-{robots}-{hosts}",
-        description="synthetic: every robot loaded",
-        source_path=f"<loaded fleet seed {seed}>",
-        accounting=accounting,
-        lifetime_rounding_s=0.8,
-        platforms=dict(paper.platforms),
-        radios=dict(paper.radios),
-        robots=team,
-        basestation="laptop",
-        basestation_platform="laptop",
-        network_spec=network,
-        components=components,
-        chains=tuple(chains),
-    )
+    return _synthetic(paper, f"loaded-fleet-{seed}-{robots}-{hosts}", "synthetic: every robot loaded",
+                      f"<loaded fleet seed {seed}>", accounting, team, "fully-connected", components, chains)
 
 
 def random_dag_scenario(seed: int, robots: int = 3, chains: int = 3, **kwargs) -> Scenario:
