@@ -160,7 +160,9 @@ class Agent:
 
     def _check_silence(self, now: float) -> None:
         """Nodes in sight by their token whose statuses stopped arriving directly go out of sight."""
-        limit = self.config.silence_periods * self.config.status_period_s
+        # never sooner than the lease: a team configured with a long lease (radios that stay
+        # saturated for seconds) must not have its peers declared gone by this detector first
+        limit = max(self.config.silence_periods * self.config.status_period_s, self.config.zenoh.lease_ms / 1000.0)
         for node in sorted(self._tokens - self._silent):
             heard = self._heard_direct.get(node)
             if heard is not None and now - heard > limit:
