@@ -341,6 +341,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
             self.sources[name] = SourceRunner(chain=chain, source=source, run=run,
                                               next_t=math.ceil(self.now() / period - 1e-9) * period,
                                               produced_total=before.produced_total if before else 0,
+                                              # like produced_total, over every run: summaries divide one
+                                              # by the other (it restarted at 0 with each new run, so a
+                                              # chain re-planned while late reported no missed period)
+                                              missed=before.missed if before else 0,
                                               # the same run after a restart: go on from its next seq
                                               seq=before.produced if before and before.run == run else 0)
 
@@ -477,6 +481,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
             plan_leader=self.plan.leader if self.plan else "",
             mission=self.mission,
             generations={n: h.generation for n, h in self.hosted.items()},
+            plan_operator=self.plan.operator if self.plan else None,
         )
 
     # ---- dispatch -----------------------------------------------------------------------------------------

@@ -163,6 +163,11 @@ class Agent:
         # never sooner than the lease: a team configured with a long lease (radios that stay
         # saturated for seconds) must not have its peers declared gone by this detector first
         limit = max(self.config.silence_periods * self.config.status_period_s, self.config.zenoh.lease_ms / 1000.0)
+        # only once the statuses that arrived are taken: after the loop itself was held up (a put
+        # blocked on a saturated radio for seconds) they wait in the queue, and judging before
+        # taking them declared every peer silent (the testbed physics test's flake)
+        if self.events.urgent_waiting():
+            return
         for node in sorted(self._tokens - self._silent):
             heard = self._heard_direct.get(node)
             if heard is not None and now - heard > limit:

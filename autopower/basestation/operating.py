@@ -15,6 +15,7 @@ from autopower.protocol import (
     MigrateCommand,
     NodeStatus,
     OperatorReply,
+    OperatorSettings,
     SnapshotRequest,
 )
 
@@ -63,6 +64,27 @@ class Operating:
         except AutoPowerError as exc:
             return OperatorReply(ok=False, message=str(exc))
         return OperatorReply(ok=False, message=f"unsupported command {type(cmd).__name__}")
+
+    def operator_settings(self) -> OperatorSettings:
+        """What the operator decided, for the plans (a base station taking over keeps it)."""
+        return OperatorSettings(pins=dict(self.pins), disabled=tuple(sorted(self.disabled)),
+                                cuts=tuple(sorted(tuple(sorted(pair)) for pair in self.operator_cuts)),
+                                radios=dict(self.radio_faults))
+
+    def adopt_operator_settings(self, settings: OperatorSettings) -> list[str]:
+        """Take over the settings a robot's plan carried; what names no stage, chain, node or radio of
+        this scenario is left out (a status is network input). Returns what was adopted, in words."""
+        nodes, chains = set(self.scenario.node_names()), {c.name for c in self.scenario.chains}
+        self.pins = {st: n for st, n in settings.pins.items() if st in self.chain_of and n in nodes}
+        self.disabled = {c for c in settings.disabled if c in chains}
+        self.operator_cuts = {frozenset(pair) for pair in settings.cuts if set(pair) <= nodes and pair[0] != pair[1]}
+        self.radio_faults = {n: media for n, media in settings.radios.items()
+                             if n in nodes and all(m is None or m in self.scenario.radios for m in media)}
+        said = [f"pins {', '.join(f'{s}->{n}' for s, n in sorted(self.pins.items()))}" if self.pins else "",
+                f"disabled {', '.join(sorted(self.disabled))}" if self.disabled else "",
+                f"links down {', '.join('-'.join(sorted(p)) for p in self.operator_cuts)}" if self.operator_cuts else "",
+                f"radio changes of {', '.join(sorted(self.radio_faults))}" if self.radio_faults else ""]
+        return [w for w in said if w]
 
     def _clear_pins(self) -> None:
         """Back to what the policy chose (pinned stages migrate back), then the policy is asked again."""

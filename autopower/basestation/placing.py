@@ -183,7 +183,8 @@ class Placing:
                             running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
                             predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
                             policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels),
-                            variants=dict(self.variants), incarnation=self.incarnation, leader=self.leader)
+                            variants=dict(self.variants), incarnation=self.incarnation, leader=self.leader,
+                            operator=self.operator_settings())
         payload = encode(update)
         self.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
         self.bus.publish(self.keys.plan, payload)

@@ -97,6 +97,8 @@ class TakingOver:
         self.generation = max([self.generation, int(self.wall() * 1000), *generations]) + 1
         for node, status in reports.items():
             self.statuses[node] = status  # batteries, links: what the policy starts from
+        # the operator's pins, disabled chains, links and radios, from the newest plan the robots run
+        kept = self.adopt_operator_settings(newest.plan_operator) if newest.plan_operator else []
         placement, stale = _placement_of(reports, set(self.chain_of))
         self.placement = placement
         self.target = dict(placement)
@@ -119,6 +121,8 @@ class TakingOver:
                   f"({', '.join(f'{s}@{n}' for s, n in sorted(placement.items())) or 'none'}), "
                   f"heard {', '.join(sorted(reports))}; incarnation {self.incarnation} (after {newest.plan_leader or '?'}'s "
                   f"{newest.plan_incarnation}), epochs from {self.epoch + 1}")
+        if kept:
+            self.note(f"kept the operator's settings: {'; '.join(kept)}")
         self.note(f"policy: {self.policy.name}")
         self.replan("took over a running team")
 

@@ -21,6 +21,7 @@ from autopower.protocol.messages import (
     MissionInfo,
     NodeStatus,
     OperatorReply,
+    OperatorSettings,
     Packet,
     PlanUpdate,
     Prepare,
@@ -41,7 +42,7 @@ from autopower.protocol.messages import (
 
 __all__ = [
     "CONTROL_MESSAGES", "INBOX_MESSAGES", "OPERATOR_COMMANDS", "PROTOCOL_VERSION",
-    "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo",
+    "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo", "OperatorSettings",
     "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet",
     "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "Consumed", "SnapshotRequest", "SourceStats",
     "StageFailed", "StageReady", "StateTransfer", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",

@@ -32,6 +32,19 @@ class LinkInfo:
 
 @struct
 @dataclass(frozen=True, kw_only=True)
+class OperatorSettings:
+    """What the operator decided, carried in every plan and echoed in every robot's status, so
+    that a base station taking over the team keeps it (pins, disabled chains, links declared down,
+    radio changes): it lives with the team, not in the process that heard the command."""
+
+    pins: dict[str, str] = field(default_factory=dict)  # stage -> node (`migrate`)
+    disabled: tuple[str, ...] = ()  # chains stopped by the operator or by a failed component
+    cuts: tuple[tuple[str, str], ...] = ()  # links the operator declared down
+    radios: dict[str, tuple[str | None, str | None]] = field(default_factory=dict)  # node -> (laptop-robot, robot-robot) medium
+
+
+@struct
+@dataclass(frozen=True, kw_only=True)
 class MissionInfo:
     """What every node must agree on to meter the same mission."""
 
@@ -47,7 +60,7 @@ class MissionInfo:
 class SourceStats:
     run: int  # activation number of the chain (a disable/enable starts a new run)
     produced: int  # frames produced in this run (the next seq)
-    missed: int  # periods skipped because the agent was late
+    missed: int  # periods skipped because the agent was late, over every run (like produced_total)
     produced_total: int
 
 
@@ -287,6 +300,7 @@ class PlanUpdate:
     # station that takes over a running team (incarnation + 1) is followed whatever its epoch
     incarnation: int = 0
     leader: str = ""  # that base station's instance id: two base stations at once tell each other apart
+    operator: OperatorSettings = field(default_factory=OperatorSettings)  # kept by a base station that takes over
 
 
 # ---------------------------------------------------------------------------------------------
@@ -324,6 +338,7 @@ class NodeStatus:
     plan_leader: str = ""  # the base station that made it (`PlanUpdate.leader`)
     mission: MissionInfo | None = None  # the mission clock and starting energies it meters (None: not started)
     generations: dict[str, int] = field(default_factory=dict)  # stage -> generation of the instance hosted here
+    plan_operator: OperatorSettings | None = None  # the operator's settings in the plan it runs
 
 
 # ---------------------------------------------------------------------------------------------

@@ -127,6 +127,10 @@ class EventQueue:
     def depth(self) -> int:
         return len(self._urgent) + len(self._bulk)
 
+    def urgent_waiting(self) -> bool:
+        """Whether urgent events (statuses, liveliness, plans) wait to be taken."""
+        return bool(self._urgent)
+
     # Bus callbacks: enqueue and return, nothing else.
     def on_message(self, key: str, payload: bytes) -> None:
         self.post(Received(key, payload), bulk=key in self.bulk_keys)

@@ -74,4 +74,7 @@ def test_an_infeasible_allocation_falls_behind_while_the_optimum_keeps_up(tmp_pa
         assert good["placement"] != "laptop" and bad["placement"] == "laptop"
         assert good["latency_ms_p50"] < 500 and good["missed_ratio"] < 0.15, good
         assert bad["latency_ms_p50"] > 1000, bad  # frames wait behind the radio
-        assert bad["missed_ratio"] > 0.2 and bad["produced"] < good["produced"] / 2, bad
+        # it produces less than half of its periods' frames. Judged against its own periods, not
+        # against the optimum's count: the two runs last different times (the wait above for a
+        # late status is longer behind a saturated radio)
+        assert bad["missed_ratio"] > 0.5, bad

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import random
 
 import msgpack
@@ -155,12 +157,16 @@ def test_disable_and_enable_start_a_new_run():
     team.run_until(8.0)
     assert "Blob-2" not in team.coordinator.running and "Blob-2" not in team.coordinator.placement
     assert "Blob-2" not in team.nodes["r2"].sources
-    produced_before = team.nodes["r2"].source_totals["Blob-2"].produced_total
+    before = team.nodes["r2"].source_totals["Blob-2"]
+    produced_before = before.produced_total
+    team.nodes["r2"].source_totals["Blob-2"] = replace(before, missed=3)  # as if it had run late
     assert team.coordinator.on_operator(ChainCommand(chain="Blob-2", enabled=True)).ok
     team.run_until(12.0)
     assert team.coordinator.running["Blob-2"] == 1
     runner = team.nodes["r2"].sources["Blob-2"]
     assert runner.run == 1 and runner.produced_total > produced_before
+    # missed periods count over every run, like produced_total (the summaries divide one by the other)
+    assert runner.missed == 3 and team.nodes["r2"].status(1.0).sources["Blob-2"].missed == 3
     ledger = team.nodes["laptop"].sinks["Blob-2"]
     assert ledger.run == 1 and ledger.contiguous == runner.seq and ledger.duplicates_total == 0
     runs = sorted({run for run, _, _ in outputs["Blob-2"]})

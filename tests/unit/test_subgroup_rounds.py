@@ -168,3 +168,26 @@ def test_a_peer_whose_statuses_stop_is_out_of_sight_though_its_token_stays(team)
     r1._handle(LivelinessChanged(key=r1.keys.alive("r2"), alive=True))
     r1._check_silence(time.time() + 0.5)  # no status yet since it came back: no verdict
     assert "r2" in r1.relayer.direct
+
+
+def test_statuses_waiting_in_the_queue_are_taken_before_anyone_is_called_silent(team):
+    """An agent whose own loop was held up (a put blocked for seconds on a saturated radio) finds
+    its peers' statuses waiting in its queue: they count, so nobody goes out of sight."""
+    hub, agents, _ = team
+    r1 = agents["r1"]
+    for robot in ("r2", "r3"):
+        agents[robot].publish_status()
+    drain(hub, agents)
+    late = time.time() + 5.0  # the loop comes back 5 s later ...
+    for robot in ("r2", "r3"):
+        agents[robot].publish_status()
+    hub.pump()  # ... with the statuses sent meanwhile in its queue, not yet taken
+    assert r1.events.urgent_waiting()
+    r1._check_silence(late)
+    assert not r1._silent and {"r2", "r3"} <= r1.relayer.direct
+    while (event := r1.events.get(0)) is not None:
+        r1._handle(event)
+    r1._check_silence(time.time() + 0.5)
+    assert not r1._silent
+    r1._check_silence(time.time() + 5.0)  # and a real silence is still seen once the queue is empty
+    assert r1._silent == {"r2", "r3"}

@@ -15,6 +15,7 @@ from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.basestation.process import BaseStation, BaseStationConfig
 from autopower.errors import AutoPowerError
 from autopower.model.loading import load_scenario
+from autopower.protocol import ChainCommand, LinkCommand
 from autopower.runtime.bus import InMemoryHub
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
@@ -78,6 +79,46 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
     assert new.ready
     for name, ledger in team.nodes["laptop"].sinks.items():
         assert ledger.duplicates_total == 0, name
+
+
+def test_a_base_station_that_takes_over_keeps_what_the_operator_decided(sc):
+    """Pins, a disabled chain, a link declared down and a radio change live in the plans the robots
+    run, so a new base station keeps them (it did re-enable the chain and forget the pins); what
+    names nothing of the scenario (a status is network input) is left out."""
+    team = running_team(sc, t_end=30.0)
+    old = team.coordinator
+    assert old.on_operator(ChainCommand(chain="Blob-2", enabled=False)).ok
+    assert old.on_operator(LinkCommand(node="r2", down_peer="r3")).ok
+    assert old.on_operator(LinkCommand(node="r1", laptop_robot="bluetooth")).ok
+    team.pump()
+    team.run_until(40.0)
+    team.report_status()
+    statuses = {r: team.nodes[r].status(10.0) for r in ROBOTS}
+    assert statuses["r1"].plan_operator == old.operator_settings()
+    # the robots' copies also name things this scenario does not have
+    garbled = dataclasses.replace(statuses["r1"].plan_operator, pins={**old.pins, "Nope-1": "r1", "Loc-1": "mars"},
+                                  disabled=("Blob-2", "Ghost"), cuts=(("r2", "r3"), ("r1", "r1"), ("r1", "x")),
+                                  radios={"r1": ("bluetooth", None), "r2": ("carrier-pigeon", None)})
+    statuses = {r: dataclasses.replace(s, plan_operator=garbled) for r, s in statuses.items()}
+    new = new_base_station(team)
+    for robot in ROBOTS:
+        new.on_liveliness(robot, True)
+    for robot in ROBOTS:
+        new.learn(statuses[robot])
+    assert new.mission == old.mission
+    assert new.pins == {"Loc-2": "r2", "Blob-3": "r3"} and new.disabled == {"Blob-2"}
+    assert new.operator_cuts == {frozenset(("r2", "r3"))} and new.radio_faults == {"r1": ("bluetooth", None)}
+    assert any("kept the operator's settings" in n for n in new.events)
+    team.pump()
+    team.report_status()
+    team.run_until(60.0)
+    assert "Blob-2" not in new.running and "Blob-2" not in team.nodes["r2"].sources  # still off
+    assert new.placement["Loc-2"] == "r2" and new.placement["Blob-3"] == "r3"  # still pinned
+    # and the operator can change them as before
+    assert new.on_operator(ChainCommand(chain="Blob-2", enabled=True)).ok
+    team.pump()
+    team.run_until(70.0)
+    assert "Blob-2" in new.running and new.runs["Blob-2"] == old.runs["Blob-2"] + 1
 
 
 def test_the_older_base_station_steps_down_when_it_hears_of_the_newer(sc):
