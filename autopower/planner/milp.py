@@ -23,7 +23,7 @@ from itertools import product
 from typing import Mapping
 
 from autopower.model.energy import airtime_s, flow_rate_hz
-from autopower.model.network import Link, Network
+from autopower.model.network import Clique, Link, Network
 from autopower.planner.choices import add_selection_row, dvfs_cpu_power
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.problem import Problem
@@ -59,14 +59,19 @@ class PlacementModel:
         # media groups: every link of the structure, with the candidates seen across networks
         self.group_media: dict[str, list[str]] = {}
         self.link_group: dict[frozenset, str] = {}
+        self.clique_group: dict[int, str] = {}  # a clique's links share one group (and one medium)
+        self._hop_terms: dict[tuple[str, str], list[tuple[str, TERM]]] = {}
+        joint = len(problem.networks) > 1
         for network in problem.networks:
-            for link in network.links:
-                key = frozenset((link.a, link.b))
-                group = link.group if len(problem.networks) > 1 else f"{link.a}-{link.b}"
-                self.link_group[key] = group
+            named = [(self.link_group, frozenset((l.a, l.b)), l.group if joint else f"{l.a}-{l.b}", l.medium)
+                     for l in network.explicit]
+            named += [(self.clique_group, i, c.group if joint else f"clique {i}", c.medium)
+                      for i, c in enumerate(network.cliques)]
+            for index, key, group, medium in named:
+                index[key] = group
                 media = self.group_media.setdefault(group, [])
-                if link.medium not in media:
-                    media.append(link.medium)
+                if medium not in media:
+                    media.append(medium)
         self.y: dict[tuple[str, str], int] = {}
         for group, media in self.group_media.items():
             if len(media) > 1:
@@ -85,9 +90,9 @@ class PlacementModel:
     # ---- linear pieces -----------------------------------------------------------------------
     def product(self, term: TERM) -> int | None:
         """Column equal to the product of binary columns (None for the constant 1)."""
+        if len(term) < 2:
+            return term[0] if term else None
         term = tuple(sorted(set(term)))
-        if not term:
-            return None
         if len(term) == 1:
             return term[0]
         col = self._products.get(term)
@@ -99,7 +104,15 @@ class PlacementModel:
         return col
 
     def media_terms(self, a: str, b: str) -> list[tuple[str, TERM]]:
-        group = self.link_group[frozenset((a, b))]
+        terms = self._hop_terms.get((a, b))
+        if terms is None:  # a hop is on many flows' routes
+            group = self.link_group.get(frozenset((a, b)))
+            if group is None:
+                group = self.clique_group[self.structure.clique_between(a, b)]
+            terms = self._hop_terms[a, b] = self.group_terms(group)
+        return terms
+
+    def group_terms(self, group: str) -> list[tuple[str, TERM]]:
         media = self.group_media[group]
         if len(media) == 1:
             return [(media[0], ())]
@@ -120,12 +133,13 @@ class PlacementModel:
             else:
                 expr[col] = expr.get(col, 0.0) + coef
 
+        platform = {n: self.scenario.platform_of(n).name for n in self.nodes}  # (a fleet asks 100,000 times)
         for chain in self.problem.chains:
             for stage in chain.stages:
                 latency = self.scenario.components[stage.component].latency_s
                 for host in self.problem.hosts[stage.name]:
                     col = self.x[(stage.name, host)]
-                    u = latency[self.scenario.platform_of(host).name] / chain.period_s
+                    u = latency[platform[host]] / chain.period_s
                     cpu[host][col] = cpu[host].get(col, 0.0) + u
             rate = flow_rate_hz(chain, self.problem.accounting)
             ends: list[list[tuple[str, TERM]]] = [[(chain.source, ())]]
@@ -133,12 +147,15 @@ class PlacementModel:
                 ends.append([(h, (self.x[(stage.name, h)],)) for h in self.problem.hosts[stage.name]])
             ends.append([(chain.sink, ())])
             for k, n_bytes in enumerate(chain.message_bytes):
+                if n_bytes == 0:
+                    continue
+                air_of = {m: airtime_s(n_bytes, radio) * rate for m, radio in self.scenario.radios.items()}
                 for (u_node, u_term), (v_node, v_term) in product(ends[k], ends[k + 1]):
-                    if u_node == v_node or n_bytes == 0:
+                    if u_node == v_node:
                         continue
                     for a, b, _ in self.structure.route(u_node, v_node):
                         for medium, m_term in self.media_terms(a, b):
-                            air = airtime_s(n_bytes, self.scenario.radios[medium]) * rate
+                            air = air_of[medium]
                             term = u_term + v_term + m_term
                             add(send[(a, medium)], self.const_send, (a, medium), term, air)
                             add(recv[(b, medium)], self.const_recv, (b, medium), term, air)
@@ -147,13 +164,11 @@ class PlacementModel:
 
         # radio presence r[i, m] >= y[g, m] for every link of i (a constant 1 for fixed media)
         self.present: dict[tuple[str, str], int | float] = {}
-        links_of: dict[str, list[Link]] = {}  # one pass over the links (a fleet has ~n^2/2 of them)
-        for link in self.structure.links:
-            links_of.setdefault(link.a, []).append(link)
-            links_of.setdefault(link.b, []).append(link)
         for robot in self.robots:
-            for link in links_of.get(robot, []):
-                for medium, m_term in self.media_terms(link.a, link.b):
+            groups = [self.link_group[frozenset((l.a, l.b))] for l in self.structure.explicit_links_of(robot)]
+            groups += [self.clique_group[i] for i in self.structure.cliques_of(robot)]
+            for group in dict.fromkeys(groups):
+                for medium, m_term in self.group_terms(group):
                     key = (robot, medium)
                     if not m_term:
                         self.present[key] = 1.0
@@ -240,13 +255,15 @@ class PlacementModel:
         for (group, medium), col in self.y.items():
             if values[col] > 0.5:
                 chosen[group] = medium
-        links = []
-        for link in self.structure.links:
-            group = self.link_group[frozenset((link.a, link.b))]
+        def medium(group: str) -> str:
             media = self.group_media[group]
-            medium = media[0] if len(media) == 1 else chosen[group]
-            links.append(Link(a=link.a, b=link.b, medium=medium, group=link.group))
-        network = Network(self.structure.nodes, self.structure.basestation, links, self.structure.topology)
+            return media[0] if len(media) == 1 else chosen[group]
+
+        links = [Link(a=l.a, b=l.b, medium=medium(self.link_group[frozenset((l.a, l.b))]), group=l.group)
+                 for l in self.structure.explicit]
+        cliques = [Clique(nodes=c.nodes, medium=medium(self.clique_group[i]), group=c.group)
+                   for i, c in enumerate(self.structure.cliques)]
+        network = Network(self.structure.nodes, self.structure.basestation, links, self.structure.topology, cliques)
         return allocation, network
 
 
