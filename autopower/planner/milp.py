@@ -24,6 +24,7 @@ from typing import Mapping
 
 from autopower.model.energy import airtime_s, flow_rate_hz
 from autopower.model.network import Clique, Link, Network
+from autopower.planner import repair
 from autopower.planner.choices import add_selection_row, dvfs_cpu_power
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.problem import Problem
@@ -279,9 +280,18 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
     an objective cut-off, so hopeless combinations are pruned at once. Otherwise the joint model
     chooses media itself.
 
-    `start` (stage -> host, e.g. the plan in force) is handed to HiGHS as a first incumbent.
+    `start` (stage -> host, e.g. the plan in force) is handed to HiGHS as a first incumbent. On
+    one fixed network it is first repaired where it fails (`autopower.planner.repair`): when the
+    repair meets the per-robot bound it is returned as optimal without the whole MILP (its
+    second pass then only reorders the repaired stages).
     """
     import time as _time
+
+    if start and repair.repairable(problem):
+        repaired = _repair_start(problem, start, time_limit_s, mip_rel_gap, refine)
+        if isinstance(repaired, MilpResult):
+            return repaired
+        start = repaired or start
 
     if not 1 < len(problem.networks) <= SPLIT_MEDIA_UP_TO:
         return _finish(problem, *_first_pass(problem, time_limit_s, mip_rel_gap, None, start), refine, time_limit_s)
@@ -319,6 +329,22 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
     return result
 
 
+def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_rel_gap, refine):
+    """The plan in force repaired (repair.neighbourhood): a MilpResult when the per-robot bound
+    proves it optimal, else its allocation (a better start for the whole MILP) or None."""
+    bound, per_robot = repair.own_bound(problem)
+    free = repair.neighbourhood(problem, start, per_robot, bound)
+    sub = repair.restricted(problem, start, free)
+    built, t_col, sol = _first_pass(sub, time_limit_s, mip_rel_gap, None)
+    if not sol.has_solution:
+        return None
+    if sol.objective <= bound * (1 + mip_rel_gap) + 1e-12:
+        sol.optimal, sol.dual_bound, sol.status = True, bound, "Optimal"
+        sol.mip_gap = max(0.0, (sol.objective - bound) / sol.objective) if sol.objective > 0 else 0.0
+        return _finish(sub, built, t_col, sol, refine, time_limit_s)
+    return built.decode(sol.values)[0]
+
+
 def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None):
     model = PlacementModel(problem)
     lp = model.lp
@@ -330,19 +356,55 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None)
         # P_i - (E_i/E_ref) T <= 0  ->  expr - k T <= -const
         model.power_rows[robot] = expr
         lp.row({**expr, t_col: -problem.energies_j[robot] / e_ref}, -INF, -const)
-    if cutoff is not None:
-        # Another media choice already has an incumbent. If this one's LP relaxation cannot beat
-        # it by more than the gap asked for, its MILP is not worth a search: HiGHS would spend
-        # its whole time limit raising a bound that only needs to be within the gap.
+    relaxed = None
+    if cutoff is not None or start:
         integer, lp.integer = lp.integer, [False] * len(lp.integer)
         relaxed = lp.solve(time_limit_s=time_limit_s)
         lp.integer = integer
-        if relaxed.has_solution and relaxed.optimal and relaxed.objective >= cutoff * (1 - mip_rel_gap):
-            relaxed.status, relaxed.has_solution, relaxed.values = "Objective bound", False, None
-            return model, t_col, relaxed
-    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff,
-                   start=model.start_values(start) if start else None)
+        if not (relaxed.has_solution and relaxed.optimal):
+            relaxed = None
+    if cutoff is not None and relaxed and relaxed.objective >= cutoff * (1 - mip_rel_gap):
+        # Another media choice already has an incumbent. If this one's LP relaxation cannot beat
+        # it by more than the gap asked for, its MILP is not worth a search: HiGHS would spend
+        # its whole time limit raising a bound that only needs to be within the gap.
+        relaxed.status, relaxed.has_solution, relaxed.values = "Objective bound", False, None
+        return model, t_col, relaxed
+    first = model.start_values(start) if start else None
+    if start and relaxed:
+        repaired = _repair(model, relaxed, start, time_limit_s, mip_rel_gap)
+        if repaired is not None and (cutoff is None or repaired.objective < cutoff):
+            if repaired.objective <= relaxed.objective * (1 + mip_rel_gap) + 1e-12:
+                # the LP relaxation of the whole problem proves the repaired plan optimal
+                repaired.mip_gap = max(0.0, (repaired.objective - relaxed.objective) / repaired.objective)
+                repaired.dual_bound, repaired.optimal, repaired.status = relaxed.objective, True, "Optimal"
+                return model, t_col, repaired
+            first = dict(enumerate(repaired.values))
+    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff, start=first)
     return model, t_col, sol
+
+
+def _repair(model: PlacementModel, relaxed, start: Mapping[str, str], time_limit_s, mip_rel_gap):
+    """The best plan that keeps every stage of `start` (the plan in force) where the LP
+    relaxation keeps it too, and searches only the others (relaxation-induced neighbourhood
+    search): after one link changes, a MILP over a handful of stages instead of all of them.
+    None when that neighbourhood has no feasible plan."""
+    lp = model.lp
+    hosts = model.problem.hosts
+    lower, upper = list(lp.lower), list(lp.upper)
+    for stage, host in start.items():
+        col = model.x.get((stage, host))
+        if col is not None and relaxed.values[col] > 1 - 1e-6:
+            for other in hosts[stage]:
+                c = model.x[(stage, other)]
+                if other == host:
+                    lp.lower[c] = 1.0
+                else:
+                    lp.upper[c] = 0.0
+    try:
+        sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap)
+    finally:
+        lp.lower, lp.upper = lower, upper
+    return sol if sol.has_solution else None
 
 
 def _finish(problem: Problem, model: PlacementModel, t_col: int, sol, refine: bool, time_limit_s) -> MilpResult:
