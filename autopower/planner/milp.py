@@ -18,10 +18,12 @@ are not left burning energy for nothing (the same tie-break as the exhaustive se
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 from itertools import product
 from typing import Mapping
 
+from autopower.errors import AutoPowerError
 from autopower.model.energy import airtime_s, flow_rate_hz
 from autopower.model.network import Clique, Link, Network
 from autopower.planner import repair
@@ -269,6 +271,10 @@ class PlacementModel:
 
 
 SPLIT_MEDIA_UP_TO = 16  # media combinations solved as separate, product-free MILPs
+# Stage-host binaries per media choice beyond which the model is not built: 1,000 robots whose
+# stages may each run on any of 1,001 nodes have 3 million, which take minutes of Python and
+# gigabytes before HiGHS even starts (the own-robot-or-laptop fleet of that size has 6,000).
+MAX_HOST_BINARIES = 1_000_000
 
 
 def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
@@ -285,23 +291,30 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
     repair meets the per-robot bound it is returned as optimal without the whole MILP (its
     second pass then only reorders the repaired stages).
     """
-    import time as _time
-
+    binaries = sum(len(hosts) for hosts in problem.hosts.values())
+    if binaries > MAX_HOST_BINARIES:
+        raise AutoPowerError(
+            f"the placement MILP would need {binaries:,} stage-host binaries per media choice "
+            f"({len(problem.hosts):,} stages on up to {max(map(len, problem.hosts.values())):,} hosts each; "
+            f"the limit is {MAX_HOST_BINARIES:,}): give the stages fewer hosts (e.g. hosts = [robot, base station])")
     if start and repair.repairable(problem):
+        began = time.monotonic()
         repaired = _repair_start(problem, start, time_limit_s, mip_rel_gap, refine)
         if isinstance(repaired, MilpResult):
             return repaired
         start = repaired or start
+        if time_limit_s is not None:  # the repair's time counts against the limit
+            time_limit_s = max(1.0, time_limit_s - (time.monotonic() - began))
 
     if not 1 < len(problem.networks) <= SPLIT_MEDIA_UP_TO:
         return _finish(problem, *_first_pass(problem, time_limit_s, mip_rel_gap, None, start), refine, time_limit_s)
-    started = _time.monotonic()
+    started = time.monotonic()
     best = None
     bounds = []
     runtime = 0.0
     status = "Infeasible"
     for network in problem.networks:
-        left = None if time_limit_s is None else max(1.0, time_limit_s - (_time.monotonic() - started))
+        left = None if time_limit_s is None else max(1.0, time_limit_s - (time.monotonic() - started))
         sub = dataclasses.replace(problem, networks=[network])
         cutoff = best[2].values[best[1]] if best else None
         built, t_col, sol = _first_pass(sub, left, mip_rel_gap, cutoff, start)
@@ -334,12 +347,16 @@ def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_
     proves it optimal, else its allocation (a better start for the whole MILP) or None."""
     bound, per_robot = repair.own_bound(problem)
     free = repair.neighbourhood(problem, start, per_robot, bound)
+    stages = sum(len(c.stages) for c in problem.chains)
+    if len(free) > max(repair.SMALL_NEIGHBOURHOOD, stages * repair.SMALL_SHARE):
+        return None  # not a repair: the plan fails almost everywhere (or its T is far above the bound)
     sub = repair.restricted(problem, start, free)
-    built, t_col, sol = _first_pass(sub, time_limit_s, mip_rel_gap, None)
+    built, t_col, sol = _first_pass(sub, None if time_limit_s is None else max(1.0, time_limit_s / 4),
+                                    mip_rel_gap, None)
     if not sol.has_solution:
         return None
     if sol.objective <= bound * (1 + mip_rel_gap) + 1e-12:
-        sol.optimal, sol.dual_bound, sol.status = True, bound, "Optimal"
+        sol.optimal, sol.dual_bound, sol.status = True, bound, "Optimal (repaired plan meets the per-robot bound)"
         sol.mip_gap = max(0.0, (sol.objective - bound) / sol.objective) if sol.objective > 0 else 0.0
         return _finish(sub, built, t_col, sol, refine, time_limit_s)
     return built.decode(sol.values)[0]
@@ -371,12 +388,17 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None)
         return model, t_col, relaxed
     first = model.start_values(start) if start else None
     if start and relaxed:
-        repaired = _repair(model, relaxed, start, time_limit_s, mip_rel_gap)
+        began = time.monotonic()
+        repaired = _repair(model, relaxed, start, None if time_limit_s is None else max(1.0, time_limit_s / 4),
+                           mip_rel_gap)
+        if time_limit_s is not None:
+            time_limit_s = max(1.0, time_limit_s - (time.monotonic() - began))
         if repaired is not None and (cutoff is None or repaired.objective < cutoff):
             if repaired.objective <= relaxed.objective * (1 + mip_rel_gap) + 1e-12:
                 # the LP relaxation of the whole problem proves the repaired plan optimal
                 repaired.mip_gap = max(0.0, (repaired.objective - relaxed.objective) / repaired.objective)
-                repaired.dual_bound, repaired.optimal, repaired.status = relaxed.objective, True, "Optimal"
+                repaired.dual_bound, repaired.optimal, repaired.status = (relaxed.objective, True,
+                                                                          "Optimal (meets the LP relaxation)")
                 return model, t_col, repaired
             first = dict(enumerate(repaired.values))
     sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff, start=first)

@@ -21,6 +21,10 @@ from autopower.model.energy import airtime_s, evaluate, flow_rate_hz
 from autopower.planner.problem import Problem
 
 MAX_OPTIONS = 5_000  # a chain with more host combinations adds nothing to the bound (still valid)
+# A repair searches at most this many stages (or this share of them); beyond, the whole MILP is
+# no slower and the plan in force is only its first incumbent.
+SMALL_NEIGHBOURHOOD = 30
+SMALL_SHARE = 0.1
 
 
 def repairable(problem: Problem) -> bool:
@@ -88,7 +92,7 @@ def neighbourhood(problem: Problem, start: Mapping[str, str], bound_by_robot: Ma
     if free:
         hot = set()
     else:
-        ev = evaluate(problem.scenario, network, dict(start), accounting=problem.accounting,
+        ev = evaluate(problem.scenario, network, {s: start[s] for s in stages}, accounting=problem.accounting,
                       energies_j=problem.energies_j,
                       disabled_chains=frozenset(c.name for c in problem.scenario.chains) - {c.name for c in problem.chains})
         e_ref = max(problem.energies_j[r] for r in bound_by_robot)

@@ -183,3 +183,18 @@ def test_replan_from_the_plan_in_force_equals_exhaustive(seed, robots, chains, t
     bound, _ = repair.own_bound(problem)
     e_ref = max(problem.energies_j[r.name] for r in s.robots)
     assert e_ref / bound >= best[0].lifetime_s * (1 - 1e-9)  # a bound on T is a cap on the lifetime
+
+
+def test_a_milp_too_big_to_build_is_refused_with_the_reason(monkeypatch):
+    """Beyond MAX_HOST_BINARIES stage-host pairs (1,000 robots, any node a host: 3 million) the
+    planner says so and what to do, instead of building for minutes and gigabytes."""
+    from autopower.errors import AutoPowerError
+    from autopower.planner import milp
+    from autopower.simulation.synthetic import loaded_fleet_scenario
+
+    problem = make_problem(PlanRequest(scenario=loaded_fleet_scenario(3, 0, hosts="any")))
+    monkeypatch.setattr(milp, "MAX_HOST_BINARIES", 35)  # 9 stages x 4 hosts = 36
+    with pytest.raises(AutoPowerError, match=r"36 stage-host binaries .*9 stages on up to 4 hosts.*fewer hosts"):
+        milp.solve_milp(problem)
+    monkeypatch.setattr(milp, "MAX_HOST_BINARIES", 36)
+    assert milp.solve_milp(problem).optimal
