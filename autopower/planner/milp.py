@@ -352,7 +352,7 @@ def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_
         return None  # not a repair: the plan fails almost everywhere (or its T is far above the bound)
     sub = repair.restricted(problem, start, free)
     built, t_col, sol = _first_pass(sub, None if time_limit_s is None else max(1.0, time_limit_s / 4),
-                                    mip_rel_gap, None)
+                                    mip_rel_gap, None, start, around_start=False)
     if not sol.has_solution:
         return None
     if sol.objective <= bound * (1 + mip_rel_gap) + 1e-12:
@@ -362,7 +362,7 @@ def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_
     return built.decode(sol.values)[0]
 
 
-def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None):
+def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None, around_start=True):
     model = PlacementModel(problem)
     lp = model.lp
     e_ref = max(problem.energies_j[r] for r in model.robots)
@@ -374,7 +374,7 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None)
         model.power_rows[robot] = expr
         lp.row({**expr, t_col: -problem.energies_j[robot] / e_ref}, -INF, -const)
     relaxed = None
-    if cutoff is not None or start:
+    if cutoff is not None or (start and around_start):
         integer, lp.integer = lp.integer, [False] * len(lp.integer)
         relaxed = lp.solve(time_limit_s=time_limit_s)
         lp.integer = integer
@@ -387,7 +387,7 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None)
         relaxed.status, relaxed.has_solution, relaxed.values = "Objective bound", False, None
         return model, t_col, relaxed
     first = model.start_values(start) if start else None
-    if start and relaxed:
+    if start and around_start and relaxed:
         began = time.monotonic()
         repaired = _repair(model, relaxed, start, None if time_limit_s is None else max(1.0, time_limit_s / 4),
                            mip_rel_gap)
@@ -422,8 +422,8 @@ def _repair(model: PlacementModel, relaxed, start: Mapping[str, str], time_limit
                     lp.lower[c] = 1.0
                 else:
                     lp.upper[c] = 0.0
-    try:
-        sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap)
+    try:  # the plan in force is in the neighbourhood: nothing worse than it comes back
+        sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, start=model.start_values(start))
     finally:
         lp.lower, lp.upper = lower, upper
     return sol if sol.has_solution else None
