@@ -172,16 +172,20 @@ class Network:
 
     def route(self, src: str, dst: str) -> list[tuple[str, str, str]]:
         """Shortest-hop route as hops (from, to, medium); [] when src == dst."""
+        return list(self.hops(src, dst))
+
+    def hops(self, src: str, dst: str) -> tuple[tuple[str, str, str], ...]:
+        """`route`, shared (not a copy): planners ask for the same routes again and again."""
         hops = self._routes.get((src, dst))
-        if hops is None:  # planners ask for the same routes again and again
+        if hops is None:
             path = self.path(src, dst)
             if path is None:
                 raise ScenarioError(f"no route from {src} to {dst} on this network (links: {self.describe()})")
-            hops = self._routes[src, dst] = [(u, v, self.medium_between(u, v)) for u, v in zip(path, path[1:])]
-        return list(hops)
+            hops = self._routes[src, dst] = tuple((u, v, self.medium_between(u, v)) for u, v in zip(path, path[1:]))
+        return hops
 
     @cached_property
-    def _routes(self) -> dict[tuple[str, str], list[tuple[str, str, str]]]:
+    def _routes(self) -> dict[tuple[str, str], tuple[tuple[str, str, str], ...]]:
         return {}
 
     @cached_property

@@ -51,33 +51,44 @@ def own_bound(problem: Problem) -> tuple[float, dict[str, float]]:
         options = problem.options(chain)
         if len(options) > MAX_OPTIONS:
             continue
-        power[chain.source] += min(_own_cost(problem, chain, hosts) for hosts in options)
+        cost = _own_cost(problem, chain)
+        power[chain.source] += min(map(cost, options))
     per_robot = {r: power[r] * e_ref / problem.energies_j[r] for r in robots}
     return max(per_robot.values()), per_robot
 
 
-def _own_cost(problem: Problem, chain, hosts: tuple[str, ...]) -> float:
-    """The power a chain with its stages on `hosts` costs its source robot (as PlacementModel.power)."""
+def _own_cost(problem: Problem, chain):
+    """hosts -> the power the chain with its stages there costs its source robot (as
+    PlacementModel.power counts it: CPU above idle, radios above sleep)."""
     scenario, network = problem.scenario, problem.networks[0]
     me = chain.source
     platform = scenario.platform_of(me)
-    cost = 0.0
-    for stage, host in zip(chain.stages, hosts):
-        if host == me:
-            latency = scenario.components[stage.component].latency_s[platform.name]
-            cost += (platform.busy_w - platform.idle_w) * latency / chain.period_s
+    cpu_w = [(platform.busy_w - platform.idle_w) * scenario.components[s.component].latency_s[platform.name]
+             / chain.period_s for s in chain.stages]
     rate = flow_rate_hz(chain, problem.accounting)
-    ends = (chain.source, *hosts, chain.sink)
-    for (u, v), n_bytes in zip(zip(ends, ends[1:]), chain.message_bytes):
-        if u == v or n_bytes == 0 or me not in (u, v) and len(network.route(u, v)) < 2:
-            continue
-        for a, b, medium in network.route(u, v):
-            radio = scenario.radios[medium]
-            air = airtime_s(n_bytes, radio) * rate
-            if a == me:
-                cost += (radio.send_w - radio.sleep_w) * air
-            if b == me:
-                cost += (radio.receive_w - radio.sleep_w) * air
+    message_w = [{m: ((r.send_w - r.sleep_w) * airtime_s(n, r) * rate, (r.receive_w - r.sleep_w) * airtime_s(n, r) * rate)
+                  for m, r in scenario.radios.items()} if n else None
+                 for n in chain.message_bytes]
+
+    def cost(hosts: tuple[str, ...]) -> float:
+        total = sum(w for w, host in zip(cpu_w, hosts) if host == me)
+        ends = (me, *hosts, chain.sink)
+        for k, watts in enumerate(message_w):
+            u, v = ends[k], ends[k + 1]
+            if u == v or watts is None:
+                continue
+            direct = network.medium_between(u, v)
+            if direct is not None:  # one hop, the only shortest route: no route to look up
+                if me in (u, v):
+                    total += watts[direct][0 if u == me else 1]
+                continue
+            for a, b, medium in network.hops(u, v):
+                if a == me:
+                    total += watts[medium][0]
+                elif b == me:
+                    total += watts[medium][1]
+        return total
+
     return cost
 
 
