@@ -91,6 +91,20 @@ class LinkSpec:
 
 
 @dataclass(frozen=True, kw_only=True)
+class CliqueSpec:
+    """Every pair of `nodes` linked, all with one medium choice: a fully connected fleet's robots
+    (n^2/2 links a planner never needs one by one)."""
+
+    nodes: tuple[str, ...]
+    media: tuple[str, ...]
+    group: str
+
+    def pairs(self) -> list[LinkSpec]:
+        return [LinkSpec(a=a, b=b, media=self.media, group=self.group)
+                for i, a in enumerate(self.nodes) for b in self.nodes[i + 1:]]
+
+
+@dataclass(frozen=True, kw_only=True)
 class NetworkSpec:
     topology: str
     relay: str | None = None
@@ -212,25 +226,29 @@ class Scenario:
 
     def link_specs(self, topology: str | None = None) -> tuple[LinkSpec, ...]:
         """The links of a topology, each with its candidate media and choice group."""
+        links, cliques = self.link_layout(topology)
+        return links + tuple(spec for clique in cliques for spec in clique.pairs())
+
+    def link_layout(self, topology: str | None = None) -> tuple[tuple[LinkSpec, ...], tuple[CliqueSpec, ...]]:
+        """The links of a topology as single links plus cliques (the robots, linked pairwise);
+        `link_specs` lists them all, in this order."""
         spec = self.network_spec
         topology = topology or spec.topology
-        robots = [r.name for r in self.robots]
+        robots = tuple(r.name for r in self.robots)
         base = self.basestation
-        pairs = [(a, b) for i, a in enumerate(robots) for b in robots[i + 1 :]]
         if topology == "fully-connected":
             up = [LinkSpec(a=r, b=base, media=spec.laptop_robot_media, group=LAPTOP_ROBOT) for r in robots]
         elif topology == "relay":
             relay = spec.relay or robots[0]
             up = [LinkSpec(a=relay, b=base, media=spec.laptop_robot_media, group=LAPTOP_ROBOT)]
         elif topology == "explicit":
-            return spec.links
+            return tuple(spec.links), ()
         else:
             raise ScenarioError(
                 f"{self.source_path}: unknown topology {topology!r}; expected one of "
                 f"{', '.join(TOPOLOGIES)}"
             )
-        side = [LinkSpec(a=a, b=b, media=spec.robot_robot_media, group=ROBOT_ROBOT) for a, b in pairs]
-        return tuple(up + side)
+        return tuple(up), (CliqueSpec(nodes=robots, media=spec.robot_robot_media, group=ROBOT_ROBOT),)
 
 
 # ---------------------------------------------------------------------------------------------

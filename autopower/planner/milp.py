@@ -18,12 +18,15 @@ are not left burning energy for nothing (the same tie-break as the exhaustive se
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 from itertools import product
 from typing import Mapping
 
+from autopower.errors import AutoPowerError
 from autopower.model.energy import airtime_s, flow_rate_hz
-from autopower.model.network import Link, Network
+from autopower.model.network import Clique, Link, Network
+from autopower.planner import repair
 from autopower.planner.choices import add_selection_row, dvfs_cpu_power
 from autopower.planner.lp import INF, LinearProgram
 from autopower.planner.problem import Problem
@@ -59,14 +62,19 @@ class PlacementModel:
         # media groups: every link of the structure, with the candidates seen across networks
         self.group_media: dict[str, list[str]] = {}
         self.link_group: dict[frozenset, str] = {}
+        self.clique_group: dict[int, str] = {}  # a clique's links share one group (and one medium)
+        self._hop_terms: dict[tuple[str, str], list[tuple[str, TERM]]] = {}
+        joint = len(problem.networks) > 1
         for network in problem.networks:
-            for link in network.links:
-                key = frozenset((link.a, link.b))
-                group = link.group if len(problem.networks) > 1 else f"{link.a}-{link.b}"
-                self.link_group[key] = group
+            named = [(self.link_group, frozenset((l.a, l.b)), l.group if joint else f"{l.a}-{l.b}", l.medium)
+                     for l in network.explicit]
+            named += [(self.clique_group, i, c.group if joint else f"clique {i}", c.medium)
+                      for i, c in enumerate(network.cliques)]
+            for index, key, group, medium in named:
+                index[key] = group
                 media = self.group_media.setdefault(group, [])
-                if link.medium not in media:
-                    media.append(link.medium)
+                if medium not in media:
+                    media.append(medium)
         self.y: dict[tuple[str, str], int] = {}
         for group, media in self.group_media.items():
             if len(media) > 1:
@@ -85,9 +93,9 @@ class PlacementModel:
     # ---- linear pieces -----------------------------------------------------------------------
     def product(self, term: TERM) -> int | None:
         """Column equal to the product of binary columns (None for the constant 1)."""
+        if len(term) < 2:
+            return term[0] if term else None
         term = tuple(sorted(set(term)))
-        if not term:
-            return None
         if len(term) == 1:
             return term[0]
         col = self._products.get(term)
@@ -99,7 +107,15 @@ class PlacementModel:
         return col
 
     def media_terms(self, a: str, b: str) -> list[tuple[str, TERM]]:
-        group = self.link_group[frozenset((a, b))]
+        terms = self._hop_terms.get((a, b))
+        if terms is None:  # a hop is on many flows' routes
+            group = self.link_group.get(frozenset((a, b)))
+            if group is None:
+                group = self.clique_group[self.structure.clique_between(a, b)]
+            terms = self._hop_terms[a, b] = self.group_terms(group)
+        return terms
+
+    def group_terms(self, group: str) -> list[tuple[str, TERM]]:
         media = self.group_media[group]
         if len(media) == 1:
             return [(media[0], ())]
@@ -120,12 +136,13 @@ class PlacementModel:
             else:
                 expr[col] = expr.get(col, 0.0) + coef
 
+        platform = {n: self.scenario.platform_of(n).name for n in self.nodes}  # (a fleet asks 100,000 times)
         for chain in self.problem.chains:
             for stage in chain.stages:
                 latency = self.scenario.components[stage.component].latency_s
                 for host in self.problem.hosts[stage.name]:
                     col = self.x[(stage.name, host)]
-                    u = latency[self.scenario.platform_of(host).name] / chain.period_s
+                    u = latency[platform[host]] / chain.period_s
                     cpu[host][col] = cpu[host].get(col, 0.0) + u
             rate = flow_rate_hz(chain, self.problem.accounting)
             ends: list[list[tuple[str, TERM]]] = [[(chain.source, ())]]
@@ -133,12 +150,15 @@ class PlacementModel:
                 ends.append([(h, (self.x[(stage.name, h)],)) for h in self.problem.hosts[stage.name]])
             ends.append([(chain.sink, ())])
             for k, n_bytes in enumerate(chain.message_bytes):
+                if n_bytes == 0:
+                    continue
+                air_of = {m: airtime_s(n_bytes, radio) * rate for m, radio in self.scenario.radios.items()}
                 for (u_node, u_term), (v_node, v_term) in product(ends[k], ends[k + 1]):
-                    if u_node == v_node or n_bytes == 0:
+                    if u_node == v_node:
                         continue
                     for a, b, _ in self.structure.route(u_node, v_node):
                         for medium, m_term in self.media_terms(a, b):
-                            air = airtime_s(n_bytes, self.scenario.radios[medium]) * rate
+                            air = air_of[medium]
                             term = u_term + v_term + m_term
                             add(send[(a, medium)], self.const_send, (a, medium), term, air)
                             add(recv[(b, medium)], self.const_recv, (b, medium), term, air)
@@ -147,13 +167,11 @@ class PlacementModel:
 
         # radio presence r[i, m] >= y[g, m] for every link of i (a constant 1 for fixed media)
         self.present: dict[tuple[str, str], int | float] = {}
-        links_of: dict[str, list[Link]] = {}  # one pass over the links (a fleet has ~n^2/2 of them)
-        for link in self.structure.links:
-            links_of.setdefault(link.a, []).append(link)
-            links_of.setdefault(link.b, []).append(link)
         for robot in self.robots:
-            for link in links_of.get(robot, []):
-                for medium, m_term in self.media_terms(link.a, link.b):
+            groups = [self.link_group[frozenset((l.a, l.b))] for l in self.structure.explicit_links_of(robot)]
+            groups += [self.clique_group[i] for i in self.structure.cliques_of(robot)]
+            for group in dict.fromkeys(groups):
+                for medium, m_term in self.group_terms(group):
                     key = (robot, medium)
                     if not m_term:
                         self.present[key] = 1.0
@@ -240,17 +258,23 @@ class PlacementModel:
         for (group, medium), col in self.y.items():
             if values[col] > 0.5:
                 chosen[group] = medium
-        links = []
-        for link in self.structure.links:
-            group = self.link_group[frozenset((link.a, link.b))]
+        def medium(group: str) -> str:
             media = self.group_media[group]
-            medium = media[0] if len(media) == 1 else chosen[group]
-            links.append(Link(a=link.a, b=link.b, medium=medium, group=link.group))
-        network = Network(self.structure.nodes, self.structure.basestation, links, self.structure.topology)
+            return media[0] if len(media) == 1 else chosen[group]
+
+        links = [Link(a=l.a, b=l.b, medium=medium(self.link_group[frozenset((l.a, l.b))]), group=l.group)
+                 for l in self.structure.explicit]
+        cliques = [Clique(nodes=c.nodes, medium=medium(self.clique_group[i]), group=c.group)
+                   for i, c in enumerate(self.structure.cliques)]
+        network = Network(self.structure.nodes, self.structure.basestation, links, self.structure.topology, cliques)
         return allocation, network
 
 
 SPLIT_MEDIA_UP_TO = 16  # media combinations solved as separate, product-free MILPs
+# Stage-host binaries per media choice beyond which the model is not built: 1,000 robots whose
+# stages may each run on any of 1,001 nodes have 3 million, which take minutes of Python and
+# gigabytes before HiGHS even starts (the own-robot-or-laptop fleet of that size has 6,000).
+MAX_HOST_BINARIES = 1_000_000
 
 
 def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
@@ -262,19 +286,35 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
     an objective cut-off, so hopeless combinations are pruned at once. Otherwise the joint model
     chooses media itself.
 
-    `start` (stage -> host, e.g. the plan in force) is handed to HiGHS as a first incumbent.
+    `start` (stage -> host, e.g. the plan in force) is handed to HiGHS as a first incumbent. On
+    one fixed network it is first repaired where it fails (`autopower.planner.repair`): when the
+    repair meets the per-robot bound it is returned as optimal without the whole MILP (its
+    second pass then only reorders the repaired stages).
     """
-    import time as _time
+    binaries = sum(len(hosts) for hosts in problem.hosts.values())
+    if binaries > MAX_HOST_BINARIES:
+        raise AutoPowerError(
+            f"the placement MILP would need {binaries:,} stage-host binaries per media choice "
+            f"({len(problem.hosts):,} stages on up to {max(map(len, problem.hosts.values())):,} hosts each; "
+            f"the limit is {MAX_HOST_BINARIES:,}): give the stages fewer hosts (e.g. hosts = [robot, base station])")
+    if start and repair.repairable(problem):
+        began = time.monotonic()
+        repaired = _repair_start(problem, start, time_limit_s, mip_rel_gap, refine)
+        if isinstance(repaired, MilpResult):
+            return repaired
+        start = repaired or start
+        if time_limit_s is not None:  # the repair's time counts against the limit
+            time_limit_s = max(1.0, time_limit_s - (time.monotonic() - began))
 
     if not 1 < len(problem.networks) <= SPLIT_MEDIA_UP_TO:
         return _finish(problem, *_first_pass(problem, time_limit_s, mip_rel_gap, None, start), refine, time_limit_s)
-    started = _time.monotonic()
+    started = time.monotonic()
     best = None
     bounds = []
     runtime = 0.0
     status = "Infeasible"
     for network in problem.networks:
-        left = None if time_limit_s is None else max(1.0, time_limit_s - (_time.monotonic() - started))
+        left = None if time_limit_s is None else max(1.0, time_limit_s - (time.monotonic() - started))
         sub = dataclasses.replace(problem, networks=[network])
         cutoff = best[2].values[best[1]] if best else None
         built, t_col, sol = _first_pass(sub, left, mip_rel_gap, cutoff, start)
@@ -302,7 +342,27 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
     return result
 
 
-def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None):
+def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_rel_gap, refine):
+    """The plan in force repaired (repair.neighbourhood): a MilpResult when the per-robot bound
+    proves it optimal, else its allocation (a better start for the whole MILP) or None."""
+    bound, per_robot = repair.own_bound(problem)
+    free = repair.neighbourhood(problem, start, per_robot, bound)
+    stages = sum(len(c.stages) for c in problem.chains)
+    if len(free) > max(repair.SMALL_NEIGHBOURHOOD, stages * repair.SMALL_SHARE):
+        return None  # not a repair: the plan fails almost everywhere (or its T is far above the bound)
+    sub = repair.restricted(problem, start, free)
+    built, t_col, sol = _first_pass(sub, None if time_limit_s is None else max(1.0, time_limit_s / 4),
+                                    mip_rel_gap, None, start, around_start=False)
+    if not sol.has_solution:
+        return None
+    if sol.objective <= bound * (1 + mip_rel_gap) + 1e-12:
+        sol.optimal, sol.dual_bound, sol.status = True, bound, "Optimal (repaired plan meets the per-robot bound)"
+        sol.mip_gap = max(0.0, (sol.objective - bound) / sol.objective) if sol.objective > 0 else 0.0
+        return _finish(sub, built, t_col, sol, refine, time_limit_s)
+    return built.decode(sol.values)[0]
+
+
+def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None, around_start=True):
     model = PlacementModel(problem)
     lp = model.lp
     e_ref = max(problem.energies_j[r] for r in model.robots)
@@ -313,19 +373,60 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None)
         # P_i - (E_i/E_ref) T <= 0  ->  expr - k T <= -const
         model.power_rows[robot] = expr
         lp.row({**expr, t_col: -problem.energies_j[robot] / e_ref}, -INF, -const)
-    if cutoff is not None:
-        # Another media choice already has an incumbent. If this one's LP relaxation cannot beat
-        # it by more than the gap asked for, its MILP is not worth a search: HiGHS would spend
-        # its whole time limit raising a bound that only needs to be within the gap.
+    relaxed = None
+    if cutoff is not None or (start and around_start):
         integer, lp.integer = lp.integer, [False] * len(lp.integer)
         relaxed = lp.solve(time_limit_s=time_limit_s)
         lp.integer = integer
-        if relaxed.has_solution and relaxed.optimal and relaxed.objective >= cutoff * (1 - mip_rel_gap):
-            relaxed.status, relaxed.has_solution, relaxed.values = "Objective bound", False, None
-            return model, t_col, relaxed
-    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff,
-                   start=model.start_values(start) if start else None)
+        if not (relaxed.has_solution and relaxed.optimal):
+            relaxed = None
+    if cutoff is not None and relaxed and relaxed.objective >= cutoff * (1 - mip_rel_gap):
+        # Another media choice already has an incumbent. If this one's LP relaxation cannot beat
+        # it by more than the gap asked for, its MILP is not worth a search: HiGHS would spend
+        # its whole time limit raising a bound that only needs to be within the gap.
+        relaxed.status, relaxed.has_solution, relaxed.values = "Objective bound", False, None
+        return model, t_col, relaxed
+    first = model.start_values(start) if start else None
+    if start and around_start and relaxed:
+        began = time.monotonic()
+        repaired = _repair(model, relaxed, start, None if time_limit_s is None else max(1.0, time_limit_s / 4),
+                           mip_rel_gap)
+        if time_limit_s is not None:
+            time_limit_s = max(1.0, time_limit_s - (time.monotonic() - began))
+        if repaired is not None and (cutoff is None or repaired.objective < cutoff):
+            if repaired.objective <= relaxed.objective * (1 + mip_rel_gap) + 1e-12:
+                # the LP relaxation of the whole problem proves the repaired plan optimal
+                repaired.mip_gap = max(0.0, (repaired.objective - relaxed.objective) / repaired.objective)
+                repaired.dual_bound, repaired.optimal, repaired.status = (relaxed.objective, True,
+                                                                          "Optimal (meets the LP relaxation)")
+                return model, t_col, repaired
+            first = dict(enumerate(repaired.values))
+    sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, objective_cutoff=cutoff, start=first)
     return model, t_col, sol
+
+
+def _repair(model: PlacementModel, relaxed, start: Mapping[str, str], time_limit_s, mip_rel_gap):
+    """The best plan that keeps every stage of `start` (the plan in force) where the LP
+    relaxation keeps it too, and searches only the others (relaxation-induced neighbourhood
+    search): after one link changes, a MILP over a handful of stages instead of all of them.
+    None when that neighbourhood has no feasible plan."""
+    lp = model.lp
+    hosts = model.problem.hosts
+    lower, upper = list(lp.lower), list(lp.upper)
+    for stage, host in start.items():
+        col = model.x.get((stage, host))
+        if col is not None and relaxed.values[col] > 1 - 1e-6:
+            for other in hosts[stage]:
+                c = model.x[(stage, other)]
+                if other == host:
+                    lp.lower[c] = 1.0
+                else:
+                    lp.upper[c] = 0.0
+    try:  # the plan in force is in the neighbourhood: nothing worse than it comes back
+        sol = lp.solve(time_limit_s=time_limit_s, mip_rel_gap=mip_rel_gap, start=model.start_values(start))
+    finally:
+        lp.lower, lp.upper = lower, upper
+    return sol if sol.has_solution else None
 
 
 def _finish(problem: Problem, model: PlacementModel, t_col: int, sol, refine: bool, time_limit_s) -> MilpResult:

@@ -163,7 +163,8 @@ class DecisionView:
             return self._enumerate(hosts)
         from autopower.planner.milp import solve_milp
 
-        result = solve_milp(self.problem, time_limit_s=30.0, mip_rel_gap=1e-6)
+        # warm: the plan in force, repaired where it fails, is the first incumbent (often the answer)
+        result = solve_milp(self.problem, time_limit_s=30.0, mip_rel_gap=1e-6, start=self.current or None)
         if result.allocation is None:
             return None
         # the MILP ignores migration costs; callers weigh its plan against staying, costs included

@@ -155,3 +155,46 @@ def test_loaded_fleet_milp_equals_exhaustive_cold_and_from_a_start(seed, hosts, 
         assert evaluate(s, milp.network, milp.allocation).feasible
         if hosts == "own":
             assert all(host in (stage.split("-", 1)[1], "laptop") for stage, host in milp.allocation.items())
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), robots=st.integers(2, 3), chains=st.integers(1, 4),
+       topology=st.sampled_from(["fully-connected", "relay"]), multi_stage=st.booleans(),
+       before=st.integers(0, 3), after=st.integers(0, 3))
+def test_replan_from_the_plan_in_force_equals_exhaustive(seed, robots, chains, topology, multi_stage, before, after):
+    """A replan on one network warm-started from the plan made for another media choice (a link
+    changed): the repaired plan, proven by the per-robot bound or finished by the whole MILP, is
+    the exhaustive optimum; and the per-robot bound never exceeds the optimum."""
+    from autopower.model.network import media_choices
+    from autopower.planner import repair
+
+    s = random_scenario(seed, robots, chains, topology=topology, multi_stage=multi_stage)
+    choices = media_choices(s, topology)
+    old, new = (build_network(s, topology, choices[k % len(choices)]) for k in (before, after))
+    in_force = exhaustive(make_problem(PlanRequest(scenario=s, network=old)))
+    problem = make_problem(PlanRequest(scenario=s, network=new))
+    best = exhaustive(problem)
+    milp = solve_milp(problem, start=in_force[0].allocation if in_force else None)
+    if not best:
+        assert milp.allocation is None
+        return
+    assert milp.lifetime_s == pytest.approx(best[0].lifetime_s, rel=1e-7)
+    assert milp.optimal and evaluate(s, milp.network, milp.allocation).feasible
+    bound, _ = repair.own_bound(problem)
+    e_ref = max(problem.energies_j[r.name] for r in s.robots)
+    assert e_ref / bound >= best[0].lifetime_s * (1 - 1e-9)  # a bound on T is a cap on the lifetime
+
+
+def test_a_milp_too_big_to_build_is_refused_with_the_reason(monkeypatch):
+    """Beyond MAX_HOST_BINARIES stage-host pairs (1,000 robots, any node a host: 3 million) the
+    planner says so and what to do, instead of building for minutes and gigabytes."""
+    from autopower.errors import AutoPowerError
+    from autopower.planner import milp
+    from autopower.simulation.synthetic import loaded_fleet_scenario
+
+    problem = make_problem(PlanRequest(scenario=loaded_fleet_scenario(3, 0, hosts="any")))
+    monkeypatch.setattr(milp, "MAX_HOST_BINARIES", 35)  # 9 stages x 4 hosts = 36
+    with pytest.raises(AutoPowerError, match=r"36 stage-host binaries .*9 stages on up to 4 hosts.*fewer hosts"):
+        milp.solve_milp(problem)
+    monkeypatch.setattr(milp, "MAX_HOST_BINARIES", 36)
+    assert milp.solve_milp(problem).optimal
