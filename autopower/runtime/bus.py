@@ -2,15 +2,17 @@
 
 The agent and the base station only use this small surface (publish, subscribe, liveliness,
 query/reply), so their logic runs unchanged on the `InMemoryBus` in unit tests and on
-`ZenohBus` between real processes. Callbacks run on the transport's threads: they must only
-enqueue (the processes' event loops do the work).
+`ZenohBus` between real processes. Callbacks run on other threads (Zenoh's, or the thread that
+drains a subscriber's bounded channel): they must only enqueue (the event loops do the work).
 
 Zenoh traps this adapter handles (see ../shared/notes/zenoh-rerun.md):
 - the default congestion control drops under load: ``reliable=True`` publishes with BLOCK;
 - failure detection is the dying peer's lease: it is a setting here (`ZenohSettings.lease_ms`);
 - peers do not relay for other peers: every process connects explicitly to the endpoints it is
   given (one per peer pair, so a test can put a proxy on any single link), multicast and gossip
-  scouting are off so nothing leaves loopback and parallel test runs cannot find each other.
+  scouting are off so nothing leaves loopback and parallel test runs cannot find each other;
+- a callback subscriber buffers up to 256 samples of up to 1 GiB each on its way to Python: a
+  subscriber here has an 8-sample channel and Zenoh takes no message over the codec's limit.
 """
 
 from __future__ import annotations
