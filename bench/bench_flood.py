@@ -1,14 +1,17 @@
 """An agent's memory under a flood of garbage: resident memory at rest, at the peak, after.
 
-    .venv/bin/python bench/bench_flood.py [--messages N] [--mb M] [--baseline PATH/TO/autopower]
+    .venv/bin/python bench/bench_flood.py [--messages N ...] [--mb M] [--baseline-ref REV | --baseline CMD]
 
 Not a timed test. A real `autopower agent` process listens on 127.0.0.1; this process joins
 it over Zenoh and publishes N messages of M MB of random bytes as fast as Zenoh takes them,
 half on the agent's data key (bulk) and half on its control key (urgent). The agent can only
 decode and drop them. Its resident memory at rest (before the flood) is the baseline: the
-peak and the memory 3 s after the flood are printed as ratios against it. With --baseline,
-the same flood is sent to another build's agent (e.g. one without bounded queues) in the
-same run, so the two are measured on the same machine under the same load.
+peak and the memory 3 s after the flood are printed as ratios against it. The same floods are
+sent, in the same run, to the agent of another build: by default the commit before the bounded
+subscriber channels (--baseline-ref, checked out with `git archive` into a temporary directory
+and run on this environment), or any `autopower` command (--baseline). Several --messages
+values show whether the peak grows with the flood's length (bounded: it does not). The agent's
+"event queue full" warnings are counted: drops are logged once per interval, not per message.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ import time
 from pathlib import Path
 
 import zenoh
+
+from autopower.protocol import Keys, NodeStatus, decode
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 
@@ -41,28 +46,51 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def flood(command: str, messages: int, size_mb: float, team: str) -> tuple[float, float, float, float]:
-    """(rest MB, peak MB, after MB, seconds the flood took) of one agent built by `command`."""
+ENVELOPE = b"\x94\xc4\x02AP"  # what every encoded message starts with: a 4-array, then the magic
+BASELINE_REF = "414b935"  # the last commit whose subscribers used Zenoh's default 256-sample channel
+
+
+def baseline_command(ref: str, into: str) -> tuple[list[str], dict[str, str]]:
+    """An `autopower` command running the sources of git revision `ref` (extracted into `into`)."""
+    repo = Path(__file__).resolve().parent.parent
+    archive = subprocess.run(["git", "-C", str(repo), "archive", ref, "autopower"], check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", into], input=archive, check=True)
+    # -P: not the current directory first (the bench runs from a checkout of this build)
+    return ([sys.executable, "-P", "-c", "import sys; from autopower.cli.main import main; sys.exit(main())"],
+            {"PYTHONPATH": into})
+
+
+def flood(command: list[str], env: dict[str, str], messages: int, size_mb: float, team: str,
+          prefix: bytes = b"", shared_memory: bool = False) -> dict:
+    """Resident MB at rest, at the peak and 3 s after; how long the flood took; what the agent
+    counted (its last status' errors) and how many drop warnings it logged."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     log = tempfile.TemporaryFile()
-    agent = subprocess.Popen([command, "agent", "--robot", "r1", "--team", team, "--listen", endpoint,
-                              "--log-level", "error"], stdout=log, stderr=log,
-                             env={**os.environ, "RERUN_ANALYTICS": "0"})
+    agent = subprocess.Popen([*command, "agent", "--robot", "r1", "--team", team, "--listen", endpoint,
+                              "--log-level", "warning"], stdout=log, stderr=log,
+                             env={**os.environ, "RERUN_ANALYTICS": "0", **env})
+    keys = Keys(team)
     try:
         cfg = zenoh.Config()
         cfg.insert_json5("mode", '"peer"')
         cfg.insert_json5("connect/endpoints", f'["{endpoint}"]')
         cfg.insert_json5("scouting/multicast/enabled", "false")
+        # by default the flood crosses the link as it would from another host; through shared
+        # memory (Zenoh's default between two processes of one machine) it comes several times faster
+        cfg.insert_json5("transport/shared_memory/enabled", "true" if shared_memory else "false")
         session = zenoh.open(cfg)
+        statuses: list[bytes] = []
         try:
-            alive = session.liveliness().get(f"autopower/{team}/alive/r1", timeout=1.0)
+            session.declare_subscriber(keys.status("r1"), lambda s: statuses.append(s.payload.to_bytes()))
+            alive = session.liveliness().get(keys.alive("r1"), timeout=1.0)
             deadline = time.monotonic() + 30
             while not list(alive):
                 if time.monotonic() > deadline or agent.poll() is not None:
                     raise SystemExit("the agent did not come up")
                 time.sleep(0.2)
-                alive = session.liveliness().get(f"autopower/{team}/alive/r1", timeout=1.0)
+                alive = session.liveliness().get(keys.alive("r1"), timeout=1.0)
             time.sleep(1.0)
             rest = rss_mb(agent.pid)
             peak = rest
@@ -76,10 +104,9 @@ def flood(command: str, messages: int, size_mb: float, team: str) -> tuple[float
 
             sampler = threading.Thread(target=sample, daemon=True)
             sampler.start()
-            garbage = os.urandom(int(size_mb * 2**20))
-            keys = [f"autopower/{team}/node/r1/data", f"autopower/{team}/node/r1/control"]
+            garbage = prefix + os.urandom(int(size_mb * 2**20) - len(prefix))
             publishers = [session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
-                          for k in keys]
+                          for k in (keys.node_data("r1"), keys.node_control("r1"))]
             started = time.monotonic()
             for i in range(messages):
                 publishers[i % 2].put(garbage)
@@ -90,7 +117,11 @@ def flood(command: str, messages: int, size_mb: float, team: str) -> tuple[float
             after = rss_mb(agent.pid)
             if agent.poll() is not None:
                 raise SystemExit(f"the agent died under the flood (exit {agent.returncode})")
-            return rest, peak, after, took
+            errors = decode(statuses[-1], NodeStatus).errors if statuses else {}
+            log.seek(0)
+            text = log.read()
+            return {"rest": rest, "peak": peak, "after": after, "took": took, "errors": errors,
+                    "drop_logs": text.count(b"event queue full") + text.count(b"not an AutoPower message")}
         finally:
             session.close()
     finally:
@@ -103,16 +134,35 @@ def flood(command: str, messages: int, size_mb: float, team: str) -> tuple[float
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--messages", type=int, default=4000)
+    parser.add_argument("--messages", type=int, nargs="+", default=[4000, 16000])
     parser.add_argument("--mb", type=float, default=1.0)
-    parser.add_argument("--baseline", default=None, help="another build's autopower command to compare with")
+    parser.add_argument("--baseline-ref", default=BASELINE_REF,
+                        help="git revision of the build to compare with ('' for none)")
+    parser.add_argument("--baseline", default=None, help="another build's autopower command instead")
+    parser.add_argument("--enveloped", action="store_true",
+                        help="garbage that starts like an AutoPower message (is queued, fails to decode)")
+    parser.add_argument("--shared-memory", action="store_true",
+                        help="flood through Zenoh's shared memory (a local attacker) instead of TCP")
     args = parser.parse_args()
-    builds = [("this build", AUTOPOWER)] + ([("baseline", args.baseline)] if args.baseline else [])
-    print(f"{args.messages} garbage messages of {args.mb:g} MB to one agent (half data, half control)")
-    print(f"{'build':>11} {'rest MB':>8} {'peak MB':>8} {'after MB':>9} {'peak/rest':>10} {'after/rest':>11} {'flood s':>8}")
-    for name, command in builds:
-        rest, peak, after, took = flood(command, args.messages, args.mb, f"flood{os.getpid()}")
-        print(f"{name:>11} {rest:>8.0f} {peak:>8.0f} {after:>9.0f} {peak / rest:>9.2f}x {after / rest:>10.2f}x {took:>8.1f}")
+    with tempfile.TemporaryDirectory() as tmp:
+        builds = [("this build", [AUTOPOWER], {})]
+        if args.baseline:
+            builds.append(("baseline", [args.baseline], {}))
+        elif args.baseline_ref:
+            builds.append((args.baseline_ref, *baseline_command(args.baseline_ref, tmp)))
+        prefix = ENVELOPE if args.enveloped else b""
+        print(f"{'enveloped ' if prefix else 'random '}garbage messages of {args.mb:g} MB to one agent "
+              f"(half data, half control), over {'shared memory' if args.shared_memory else 'TCP'}")
+        print(f"{'build':>11} {'messages':>9} {'rest MB':>8} {'peak MB':>8} {'after MB':>9} {'peak/rest':>10} "
+              f"{'after/rest':>11} {'flood s':>8} {'drop logs':>10}  counted by the agent")
+        for messages in args.messages:
+            for name, command, env in builds:
+                r = flood(command, env, messages, args.mb, f"flood{os.getpid()}", prefix,
+                          args.shared_memory)
+                counted = ", ".join(f"{k} {n}" for k, n in sorted(r["errors"].items())) or "-"
+                print(f"{name:>11} {messages:>9} {r['rest']:>8.0f} {r['peak']:>8.0f} {r['after']:>9.0f} "
+                      f"{r['peak'] / r['rest']:>9.2f}x {r['after'] / r['rest']:>10.2f}x {r['took']:>8.1f} "
+                      f"{r['drop_logs']:>10}  {counted}", flush=True)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMove, SubgroupPropose, decode, encode
 from autopower.protocol.access import TeamAccess, status_problem
+from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.runtime.relay import Relayer
@@ -60,7 +61,8 @@ class Agent:
         config.scenario.robot(config.robot)  # unknown robot -> ScenarioError
         self.config = config
         self.keys = Keys(config.team)
-        self.events = EventQueue(bulk_keys=[self.keys.node_data(config.robot)])
+        # everything an agent subscribes to is an encoded message: random bytes never take room
+        self.events = EventQueue(bulk_keys=[self.keys.node_data(config.robot)], admit=looks_like_message)
         self._bus = bus
         self._owns_bus = bus is None
         self._handles: list = []
@@ -384,6 +386,7 @@ class Agent:
         """
         rt = self.runtime
         window = self.config.status_window_s * rt.clock.speed if rt.started else 0.0
+        rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
         status = rt.status(window, self.events.depth())
         key, payload = self.keys.status(self.config.robot), encode(status)
         self._bus.publish(key, payload, reliable=False)

@@ -20,6 +20,11 @@ from autopower.errors import ProtocolError
 
 PROTOCOL_VERSION = 1
 MAGIC = b"AP"
+# The first bytes of every encoded message (a 4-element array, then the magic): a check cheap
+# enough for a transport thread, so that a flood of random bytes is dropped before it is queued.
+_PREFIX = b"\x94" + msgpack.packb(MAGIC, use_bin_type=True)
+MAX_BIN_BYTES = 64 * 2**20  # the largest byte string a message may carry (a frame's payload)
+MAX_MESSAGE_BYTES = MAX_BIN_BYTES + 2**20  # with room for its other fields: nothing larger decodes
 
 _MESSAGES: dict[str, type] = {}  # kind -> class; only these may be top-level
 _STRUCTS: set[type] = set()  # nested value types (also frozen dataclasses)
@@ -182,10 +187,15 @@ def _build(cls: type, fields: Any, where: str) -> Any:
         raise _fail(where, str(exc)) from exc
 
 
+def looks_like_message(data: bytes) -> bool:
+    """Whether ``data`` starts like an encoded message (any version); `decode` still judges the rest."""
+    return data[:len(_PREFIX)] == _PREFIX
+
+
 def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...] | None = None) -> Any:
     """Decode one message, strictly. ``expect`` limits which message classes are acceptable here."""
     try:
-        obj = msgpack.unpackb(bytes(data), raw=False, strict_map_key=False, max_bin_len=64 * 2**20)
+        obj = msgpack.unpackb(bytes(data), raw=False, strict_map_key=False, max_bin_len=MAX_BIN_BYTES)
     except Exception as exc:  # msgpack raises many unrelated types on garbage
         raise ProtocolError(f"not a msgpack message ({exc.__class__.__name__}: {exc})") from exc
     if not isinstance(obj, list) or len(obj) != 4:
@@ -209,4 +219,4 @@ def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...]
     return _build(cls, fields, kind)
 
 
-__all__ = ["PROTOCOL_VERSION", "decode", "encode", "message", "message_kinds", "struct"]
+__all__ = ["MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "decode", "encode", "looks_like_message", "message", "message_kinds", "struct"]

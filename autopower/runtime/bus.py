@@ -2,15 +2,17 @@
 
 The agent and the base station only use this small surface (publish, subscribe, liveliness,
 query/reply), so their logic runs unchanged on the `InMemoryBus` in unit tests and on
-`ZenohBus` between real processes. Callbacks run on the transport's threads: they must only
-enqueue (the processes' event loops do the work).
+`ZenohBus` between real processes. Callbacks run on other threads (Zenoh's, or the thread that
+drains a subscriber's bounded channel): they must only enqueue (the event loops do the work).
 
 Zenoh traps this adapter handles (see ../shared/notes/zenoh-rerun.md):
 - the default congestion control drops under load: ``reliable=True`` publishes with BLOCK;
 - failure detection is the dying peer's lease: it is a setting here (`ZenohSettings.lease_ms`);
 - peers do not relay for other peers: every process connects explicitly to the endpoints it is
   given (one per peer pair, so a test can put a proxy on any single link), multicast and gossip
-  scouting are off so nothing leaves loopback and parallel test runs cannot find each other.
+  scouting are off so nothing leaves loopback and parallel test runs cannot find each other;
+- a callback subscriber buffers up to 256 samples of up to 1 GiB each on its way to Python: a
+  subscriber here has an 8-sample channel and Zenoh takes no message over the codec's limit.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
+from autopower.protocol.codec import MAX_MESSAGE_BYTES
 from autopower.protocol.keys import key_matches  # noqa: F401  (the in-memory bus matches with it)
 
 log = logging.getLogger(__name__)
@@ -100,6 +103,9 @@ class ZenohSettings:
     # bytes never cross the link: False for nodes that stand for separate hosts (the testbed,
     # a fleet), where the link must carry what a radio would. None keeps Zenoh's default.
     shared_memory: bool | None = None
+    # Zenoh reassembles a message of up to this many bytes (its default: 1 GiB) before anyone
+    # can judge it; nothing larger than the codec's limit decodes, so nothing larger is taken.
+    max_message_bytes: int = MAX_MESSAGE_BYTES
 
     def entries(self) -> list[tuple[str, object]]:
         """The configuration as (path, value) pairs: what `to_config` inserts, what a json5 file holds."""
@@ -122,6 +128,7 @@ class ZenohSettings:
             # Keep retrying a peer that is not up yet instead of failing the open.
             ("connect/timeout_ms", -1),
             ("connect/exit_on_failure", False),
+            ("transport/link/rx/max_message_size", int(self.max_message_bytes)),
         ]
         if self.tls is not None:
             out.append(("transport/link/tls", {
@@ -192,6 +199,7 @@ class ZenohBus:
         self.settings = settings
         self.session = zenoh.open(settings.to_config())
         self._publishers: dict[tuple[str, bool], object] = {}
+        self._pumps: set[_Pump] = set()
         self._lock = threading.Lock()
         self._closed = False
 
@@ -219,10 +227,12 @@ class ZenohBus:
         self._publisher(key, reliable).put(payload)
 
     def subscribe(self, key_expr: str, callback: MessageCallback):
-        def on_sample(sample) -> None:
-            callback(str(sample.key_expr), sample.payload.to_bytes())
-
-        return _Undeclare(self.session.declare_subscriber(key_expr, on_sample))
+        pump = _Pump(self.session, key_expr, callback, self._zenoh.handlers.FifoChannel(SUBSCRIBER_CHANNEL),
+                     forget=self._pumps.discard)
+        # held here: a subscriber with a channel is undeclared when dropped, and a caller that
+        # drops the handle expects it to last until closed, as a callback subscriber does
+        self._pumps.add(pump)
+        return pump
 
     def declare_token(self, key: str):
         return _Undeclare(self.session.liveliness().declare_token(key))
@@ -258,7 +268,54 @@ class ZenohBus:
             except Exception:  # the session may already be going down
                 pass
         self._publishers.clear()
-        self.session.close()
+        self.session.close()  # ends every pump's iteration
+        for pump in list(self._pumps):
+            pump.close()
+
+
+# How many samples Zenoh holds for one subscriber before the link they come on waits (the
+# sender is slowed down, nothing piles up here). A plain callback subscriber gets Zenoh's default:
+# 256 samples of up to `max_message_size` each, a quarter of a gigabyte under a flood of 1 MB
+# garbage on top of the event queue's own bound. The pump only moves a sample into the event
+# queue (which bounds itself in bytes and counts what it drops), so a few are enough.
+SUBSCRIBER_CHANNEL = 8
+
+
+class _Pump:
+    """A subscriber whose samples wait in a bounded Zenoh channel, taken out by a thread of ours.
+
+    The thread reads the subscriber's *handler* (not the subscriber: a blocking ``recv`` on the
+    subscriber would hold it borrowed and its undeclare would fail with "Already borrowed").
+    Undeclaring the subscriber, or closing the session, ends the handler's iteration, so the
+    thread ends with it. The callback runs on our thread, never on Zenoh's: undeclaring never
+    waits for a callback that waits for the GIL.
+    """
+
+    def __init__(self, session, key_expr: str, callback: MessageCallback, channel,
+                 forget: Callable[["_Pump"], None]):
+        self._forget = forget
+        self._sub = session.declare_subscriber(key_expr, channel)
+        self._thread = threading.Thread(target=self._run, args=(self._sub.handler, callback),
+                                        name=f"zenoh-sub {key_expr}", daemon=True)
+        self._thread.start()
+
+    @staticmethod
+    def _run(handler, callback: MessageCallback) -> None:
+        # recv() waits in slices of 100 ms with the GIL released: ~10 wake-ups a second at rest.
+        for sample in handler:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:  # a callback only enqueues; never let one bad sample end the pump
+                log.exception("subscriber callback failed on %s", sample.key_expr)
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except Exception:  # already undeclared, or the session is closed
+            pass
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        self._forget(self)
 
 
 class _Undeclare:

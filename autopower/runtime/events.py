@@ -16,7 +16,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Callable, Iterable
 
 from autopower.runtime.bus import Request
 
@@ -64,11 +64,13 @@ class EventQueue:
 
     Each level is bounded in events and in payload bytes; a message that does not fit is
     dropped (counted in `dropped`, logged at most every few seconds). Stop requests are never
-    dropped.
+    dropped. With ``admit``, a message it refuses (random bytes, not one of ours) is dropped
+    before it takes any room (counted in `rejected`, logged the same way).
     """
 
     def __init__(self, bulk_keys: Iterable[str] = (), *, bulk_limit: tuple[int, int] = BULK_LIMIT,
-                 urgent_limit: tuple[int, int] = URGENT_LIMIT) -> None:
+                 urgent_limit: tuple[int, int] = URGENT_LIMIT,
+                 admit: Callable[[bytes], bool] | None = None) -> None:
         # Re-entrant: a signal handler may post while the loop's thread holds the lock.
         self._cond = threading.Condition(threading.RLock())
         self._urgent: deque[Event] = deque()
@@ -78,6 +80,9 @@ class EventQueue:
         self.bulk_keys = set(bulk_keys)
         self.dropped = 0
         self._drop_logged_at = -math.inf
+        self._admit = admit
+        self.rejected = 0
+        self._reject_logged_at = -math.inf
 
     def post(self, event: Event, *, bulk: bool = False) -> None:
         size = len(event.payload) if isinstance(event, Received) else 0
@@ -100,6 +105,10 @@ class EventQueue:
             log.warning("event queue full (%s): dropping %s (%d dropped so far); the process cannot keep up "
                         "with what it is sent", "bulk" if bulk else "urgent",
                         getattr(event, "key", type(event).__name__), self.dropped)
+
+    def counts(self) -> dict[str, int]:
+        """What was dropped so far, by why (for a status' errors): absolute counts, 0s left out."""
+        return {k: n for k, n in (("queue-full", self.dropped), ("not-a-message", self.rejected)) if n}
 
     def _take(self, queue: deque, bulk: bool) -> Event:
         event = queue.popleft()
@@ -133,6 +142,15 @@ class EventQueue:
 
     # Bus callbacks: enqueue and return, nothing else.
     def on_message(self, key: str, payload: bytes) -> None:
+        if self._admit is not None and not self._admit(payload):
+            with self._cond:
+                self.rejected += 1
+                now = time.monotonic()
+                if now - self._reject_logged_at >= DROP_LOG_EVERY_S:
+                    self._reject_logged_at = now
+                    log.warning("dropping what is not an AutoPower message (on %s, %d B; %d dropped so far)",
+                                key, len(payload), self.rejected)
+            return
         self.post(Received(key, payload), bulk=key in self.bulk_keys)
 
     def on_liveliness(self, key: str, alive: bool) -> None:

@@ -60,3 +60,24 @@ def test_a_flood_is_bounded_in_bytes_and_events_and_stop_still_gets_through():
     assert q.get(0) is None
     q.on_message("data", b"y" * 10_000)  # the budget is given back as events are taken
     assert q.depth() == 1 and q.dropped == 43
+
+
+def test_what_admit_refuses_takes_no_room_and_is_counted_and_logged_once_per_interval(caplog):
+    from autopower.protocol import SnapshotRequest, encode
+    from autopower.protocol.codec import looks_like_message
+
+    q = EventQueue(bulk_keys=["data"], bulk_limit=(1000, 10_000), admit=looks_like_message)
+    with caplog.at_level("WARNING", logger="autopower.runtime.events"):
+        for _ in range(500):
+            q.on_message("data", os.urandom(1000))
+        q.on_message("data", b"")
+    assert q.depth() == 0 and q.rejected == 501 and q.dropped == 0
+    assert sum("not an AutoPower message" in r.message for r in caplog.records) == 1
+    real = encode(SnapshotRequest())
+    q.on_message("data", real)  # ours: queued (decoding judges the rest)
+    assert q.get(0) == Received("data", real)
+    for _ in range(20):
+        q.on_message("data", real[:8] + b"x" * 992)  # starts like ours: queued, bounded by the limits
+    assert q.depth() == 10 and q.dropped == 10
+    assert q.counts() == {"queue-full": 10, "not-a-message": 501}
+    assert EventQueue().counts() == {}

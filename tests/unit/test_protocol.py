@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from autopower.errors import ProtocolError
+from autopower.protocol.codec import looks_like_message
 from autopower.protocol import (
     PROTOCOL_VERSION,
     Assign,
@@ -99,6 +100,15 @@ def test_every_kind_has_a_sample():
 @pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: type(m).KIND)
 def test_round_trip(msg):
     assert decode(encode(msg)) == msg
+    assert looks_like_message(encode(msg))  # the cheap check before queuing never refuses ours
+
+
+def test_what_does_not_look_like_a_message_never_decodes():
+    assert looks_like_message(_raw("frame", {}, version=99))  # decode says which version it is
+    for data in (b"", b"\x94", b"\xc1" * 10, _raw("frame", {}, magic=b"XX"), msgpack.packb([1, 2, 3, 4])):
+        assert not looks_like_message(data)
+        with pytest.raises(ProtocolError):
+            decode(data)
 
 
 def _raw(kind, fields, version=PROTOCOL_VERSION, magic=b"AP"):
@@ -164,6 +174,8 @@ def test_random_bytes_never_escape_as_other_errors(data):
         decode(data)
     except ProtocolError:
         pass
+    else:
+        assert looks_like_message(data)
 
 
 json_values = st.recursive(st.none() | st.booleans() | st.integers(-2**63, 2**63 - 1) | st.text(max_size=8)
