@@ -127,6 +127,9 @@ class EventQueue:
     def depth(self) -> int:
         return len(self._urgent) + len(self._bulk)
 
+    def bulk_depth(self) -> int:
+        return len(self._bulk)
+
     # Bus callbacks: enqueue and return, nothing else.
     def on_message(self, key: str, payload: bytes) -> None:
         self.post(Received(key, payload), bulk=key in self.bulk_keys)
