@@ -180,7 +180,7 @@ def bench_migration(moves: int = 40, speed: float = 10.0) -> None:
 
 
 def main() -> None:
-    which = sys.argv[1:] or ["overhead", "hop", "migration"]
+    which = sys.argv[1:] or ["overhead", "migration"]  # hop: bench_relay.py runs on its own in `./run bench`
     for name in which:
         {"overhead": bench_overhead, "hop": bench_hop, "migration": bench_migration}[name]()
 
