@@ -1,10 +1,10 @@
-"""Relaying on arrival: a packet that only crosses this node is forwarded from the transport's thread.
+"""Relaying on arrival: a packet that only crosses this node is forwarded from the Zenoh callback.
 
 A packet whose route goes on past this node needs nothing of the node's state but whether the
 next node is in sight. Queued for the process's loop, it paid a thread switch and the loop's turn
-on top of decoding and re-encoding it whole: one relay hop cost 1.5x (200 B) to 2.4x (230 KB) a
-bare Zenoh echo (bench/bench_relay.py). So the process's transport callback offers each packet on
-its data key here first (`relay_now`), which
+on top of decoding and re-encoding it whole: one relay hop cost 1.7x (200 B) to 2.9x (230 KB) a
+bare Zenoh echo (bench/bench_relay.py; 1.02-1.12x now). So the process's callback for its data key
+offers each packet here first (`relay_now`), which
 
 - reads its header without copying the body (`protocol.forwarding.read_header`: as strict as the
   codec; what it cannot judge goes to the codec on the loop),
@@ -22,11 +22,13 @@ state): the radios' energy, receive on the incoming hop's medium and send on the
 `on_data` charges it, and the "forwarded" count; so the battery, the status and the recording see
 the same energy as if the loop had forwarded each packet itself.
 
-A put that blocks here stalls the transport's reception from the previous hop (its other messages,
-its keep-alives), which the loop never did: when a forward took longer than `CONGESTED_S` (the link
-to the next node is backed up; a normal put takes microseconds) packets for that node go through
-the loop again for `CONGESTED_HOLD_S`, where a blocked put holds the loop and the transport keeps
-reading into the loop's bounded queue, as before.
+zenoh-python runs the callback on the subscription's own Python thread, fed by a bounded channel
+(Zenoh's default FIFO): a put that blocks here stalls our data key's deliveries, and once that channel is full,
+the transport's reception from the previous hop (its other messages, its keep-alives), which the
+loop never did. So when a forward took longer than `CONGESTED_S` (the link to the next node is
+backed up; a normal put takes microseconds) packets for that node go through the loop again for
+`CONGESTED_HOLD_S`, where a blocked put holds the loop while the callback keeps filling the
+loop's bounded queue, as before.
 """
 
 from __future__ import annotations
