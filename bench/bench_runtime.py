@@ -3,18 +3,15 @@
     .venv/bin/python bench/bench_runtime.py [overhead|hop|migration ...]
 
 Not a timed test: each figure is printed beside a baseline measured in the same run (the bare
-component call, a raw Zenoh put/echo round trip, the chain's own period and latency), so the
+component call, a raw Zenoh echo (bench_relay.py), the chain's own period and latency), so the
 ratios mean something on any machine. Absolute numbers are from whatever machine runs it.
 """
 
 from __future__ import annotations
 
 import statistics
-import subprocess
 import sys
 import tempfile
-import textwrap
-import threading
 import time
 from pathlib import Path
 
@@ -22,7 +19,7 @@ from autopower.agent.node import NodeRuntime
 from autopower.agent.stages import chain_seed
 from autopower.chains import make_component, make_source
 from autopower.cli.options import build_scenario
-from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint, free_ports
+from autopower.launch.localhost import LocalTeam, TeamSpec
 from autopower.model.energy import flow_weight
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
@@ -37,12 +34,7 @@ from autopower.protocol import (
     PlanUpdate,
     encode,
 )
-from autopower.runtime.bus import InMemoryHub, ZenohBus, ZenohSettings
-
-
-def pct(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
+from autopower.runtime.bus import InMemoryHub
 
 
 def mission(scenario, speed=1.0) -> MissionInfo:
@@ -122,90 +114,14 @@ def bench_overhead(runs: int = 300) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# 2. chain hop latency vs raw zenoh
+# 2. one relay hop vs raw zenoh: bench/bench_relay.py (also run as `hop` here)
 # ---------------------------------------------------------------------------------------------
 
-ECHO = textwrap.dedent("""
-    import sys, threading
-    from autopower.runtime.bus import ZenohBus, ZenohSettings
-    bus = ZenohBus(ZenohSettings(listen=(sys.argv[1],)))
-    bus.subscribe("bench/ping", lambda k, p: bus.publish("bench/pong", p))
-    print("ready", flush=True)
-    sys.stdin.read()
-    bus.close()
-""")
 
+def bench_hop() -> None:
+    from bench_relay import bench_relay  # bench/ is the script's directory: on sys.path
 
-def round_trips(bus, send_key, recv_key, payloads, make) -> list[float]:
-    done = threading.Event()
-    times: list[float] = []
-    sent = [0.0]
-    sub = bus.subscribe(recv_key, lambda k, p: (times.append(time.perf_counter() - sent[0]), done.set()))
-    try:
-        for i, payload in enumerate(payloads):
-            done.clear()
-            sent[0] = time.perf_counter()
-            bus.publish(send_key, make(i, payload))
-            if not done.wait(5.0):
-                raise RuntimeError(f"no answer on {recv_key}")
-    finally:
-        sub.close()
-    return times[5:]  # warm-up
-
-
-def bench_hop(n: int = 300) -> None:
-    scenario = load_scenario("paper-fig7")
-    print("\n== chain hop latency: one relay through an agent vs a raw Zenoh echo (2 processes) ==")
-    port_echo, port_agent, port_me = free_ports(3)
-    echo = subprocess.Popen([sys.executable, "-c", ECHO, endpoint(port_echo)], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)
-    team = "bench-hop"
-    keys = Keys(team)
-    with tempfile.TemporaryDirectory() as tmp:
-        agent = subprocess.Popen([sys.executable, "-m", "autopower.cli.processes", "agent", "--robot", "r1",
-                                  "--team", team, "--listen", endpoint(port_agent), "--log-level", "warning"],
-                                 stdout=open(Path(tmp) / "agent.log", "w"), stderr=subprocess.STDOUT)
-        try:
-            assert echo.stdout.readline().strip() == "ready"
-            settings = ZenohSettings(listen=(endpoint(port_me),), connect=(endpoint(port_echo), endpoint(port_agent)))
-            with ZenohBus(settings) as bus:
-                plan = PlanUpdate(epoch=1, mission=mission(scenario), placement={}, running={},
-                                  links=links(scenario), predicted_w={}, predicted_lifetime_s=None, plan_t_virtual=0.0)
-                # wait until the agent publishes its status: it is up and connected (a fixed sleep
-                # was too short on a loaded machine, and a plan sent before it is up is never seen)
-                # the agent sends only to nodes it sees (else it relays): be the laptop, alive
-                _laptop_alive = bus.declare_token(keys.alive("laptop"))  # held until the session closes
-                up = threading.Event()
-                sub = bus.subscribe(keys.status("r1"), lambda k, p: up.set())
-                try:
-                    if not up.wait(60.0):
-                        raise RuntimeError(f"agent r1 sent no status in 60 s; see {tmp}/agent.log")
-                finally:
-                    sub.close()
-                bus.publish(keys.plan, encode(plan))
-                time.sleep(0.3)
-                print(f"{'payload':>9} {'raw p50 ms':>11} {'raw p99':>8} {'agent p50 ms':>13} {'agent p99':>10} "
-                      f"{'p50 ratio':>10}")
-                for size in (200, 1059, 230415):
-                    payloads = [bytes([i % 251]) * size for i in range(n)]
-                    raw = round_trips(bus, "bench/ping", "bench/pong", payloads, lambda i, p: p)
-
-                    def packet(i, p, size=size):
-                        frame = ChainFrame(chain="Blob-2", run=0, seq=i, target=1, t_virtual=0.0, t_unix=0.0,
-                                           payload_len=size, payload=p)
-                        return encode(Packet(path=("laptop", "r1", "laptop"), media=("802.11a", "802.11a"), hop=1,
-                                             charge_bytes=size, weight=1.0, purpose="chain", chain="Blob-2",
-                                             body=encode(frame)))
-
-                    via = round_trips(bus, keys.node_data("r1"), keys.node_data("laptop"), payloads, packet)
-                    print(f"{size:>9} {statistics.median(raw) * 1e3:>11.3f} {pct(raw, 0.99) * 1e3:>8.3f} "
-                          f"{statistics.median(via) * 1e3:>13.3f} {pct(via, 0.99) * 1e3:>10.3f} "
-                          f"{statistics.median(via) / statistics.median(raw):>10.2f}")
-        finally:
-            agent.terminate()
-            agent.wait(10)
-            echo.stdin.close()
-            echo.wait(10)
+    bench_relay()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -264,7 +180,7 @@ def bench_migration(moves: int = 40, speed: float = 10.0) -> None:
 
 
 def main() -> None:
-    which = sys.argv[1:] or ["overhead", "hop", "migration"]
+    which = sys.argv[1:] or ["overhead", "migration"]  # hop: bench_relay.py runs on its own in `./run bench`
     for name in which:
         {"overhead": bench_overhead, "hop": bench_hop, "migration": bench_migration}[name]()
 

@@ -19,7 +19,8 @@ its sink exactly once even when a link is cut silently with frames in flight.
 
 This module holds the node's state, plan, sources, timers and status; the class is assembled from
 three parts that use that state: `frames.py` (the data plane), `hosting.py` (the control messages
-that start, move and stop stages) and `acknowledging.py` (custody acknowledgements and resends).
+that start, move and stop stages) and `acknowledging.py` (custody acknowledgements and resends);
+`relaying.py` forwards packets that only cross this node on the transport's thread.
 What a node hosts is described in `stages.py`.
 """
 
@@ -40,6 +41,7 @@ from autopower.agent.guard import ComponentHung, GuardedCalls
 from autopower.agent.hosting import Hosting
 from autopower.agent.joining import Joining
 from autopower.agent.meter import BatteryMeter
+from autopower.agent.relaying import Relaying
 from autopower.agent.sequencing import SinkLedger
 from autopower.agent.sink_store import SinkStore
 from autopower.agent.stages import HELD_OUTPUT_LIMIT, HostedStage, SourceRunner, chain_seed, pad
@@ -65,7 +67,7 @@ from autopower.runtime.clock import Clock, VirtualClock
 log = logging.getLogger(__name__)
 
 
-class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
+class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
     """Chain data handling for one node; see the module docstring."""
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
@@ -132,6 +134,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         # How a message for one node leaves: the process replaces it with its `Relayer.send`
         # so that a node out of direct sight is still reached through other agents.
         self.send_to: Callable[[str, str, bytes], object] = lambda dest, key, payload: self.bus.publish(key, payload)
+        self.init_relaying()  # packets only crossing this node: forwarded on arrival (`agent.relaying`)
 
     # ---- small helpers -----------------------------------------------------------------------
     def now(self) -> float:
@@ -244,6 +247,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         """What a restarted process needs to carry on (None before the mission starts)."""
         if self.mission is None or self.meter is None:
             return None
+        self.settle_relayed()
         from autopower.agent.resume import mission_key
 
         meter = self.meter
@@ -362,6 +366,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         return min((r.next_t for r in self.sources.values()), default=None)
 
     def on_timer(self) -> None:
+        self.settle_relayed()
         wall = self.wall()
         if wall >= self._next_custody_check:
             self._acknowledge(self.node, wall, self.consumed())  # what we consumed ourselves
@@ -448,6 +453,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
 
     # ---- status ----------------------------------------------------------------------------------------
     def status(self, window_s: float, queue_depth: int = 0) -> NodeStatus:
+        self.settle_relayed()
         now = self.now()
         power, utilisation = self.meter.window(now, window_s) if self.meter else ({}, 0.0)
         # Every other node, not only today's neighbours: a link that went down must be seen coming back.

@@ -93,6 +93,7 @@ class Agent:
         self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count, access=access,
                                signing=self.signing)
         self.runtime.send_to = self.relayer.send
+        self.runtime.in_sight = self.relayer.direct.__contains__  # what it may forward on arrival
         self.resume = ResumeFile(self.config.resume_path) if self.config.resume_path else None
         if self.resume is not None:
             self.runtime.resume_from = self.resume.load()
@@ -102,8 +103,8 @@ class Agent:
                                            on_commit=self._subgroup_commit, on_abort=self._subgroup_aborted,
                                            objection=self._subgroup_objection,
                                            timeout_s=self.config.subgroup_timeout_s, signing=self.signing)
-        for key in (keys.node_data(robot), keys.node_control(robot), keys.plan, keys.node_relay(robot),
-                    keys.status_all, keys.subgroup):
+        self._handles.append(bus.subscribe(keys.node_data(robot), self._on_data))
+        for key in (keys.node_control(robot), keys.plan, keys.node_relay(robot), keys.status_all, keys.subgroup):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))
         # Presence last: once the base station sees us, everything we need is declared.
@@ -120,6 +121,17 @@ class Agent:
         if self._owns_bus and self._bus is not None:
             self._bus.close()
             self._bus = None
+
+    def _on_data(self, key: str, payload: bytes) -> None:
+        """On the transport's thread: a packet only crossing us goes on at once (`agent.relaying`),
+        unless data is queued before it (relayed packets keep their order); the rest is queued."""
+        try:
+            done = not self.events.bulk_depth() and self.runtime.relay_now(payload)
+        except Exception:  # a bug here must not lose the packet: the loop handles it as before
+            log.exception("agent %s: forwarding on arrival failed; left to the loop", self.config.robot)
+            done = False
+        if not done:
+            self.events.on_message(key, payload)
 
     def request_stop(self, reason: str) -> None:
         """Thread- and signal-safe."""

@@ -118,14 +118,22 @@ class Packet:
     body: bytes  # an encoded ChainFrame or StateTransfer
 
     def __post_init__(self) -> None:
-        if len(self.path) < 2 or len(self.media) != len(self.path) - 1:
-            raise ValueError(f"path {self.path} needs >= 2 nodes and one medium per hop")
-        if not 1 <= self.hop < len(self.path):
-            raise ValueError(f"hop {self.hop} outside path of {len(self.path)} nodes")
-        if self.charge_bytes < 0 or self.weight < 0:
-            raise ValueError("charge_bytes and weight must be >= 0")
-        if self.purpose not in ("chain", "migration", "recovery"):
-            raise ValueError(f"purpose {self.purpose!r} is not chain, migration or recovery")
+        problem = Packet.problem(self.path, self.media, self.hop, self.charge_bytes, self.weight, self.purpose)
+        if problem is not None:
+            raise ValueError(problem)
+
+    @staticmethod
+    def problem(path, media, hop: int, charge_bytes: int, weight: float, purpose: str) -> str | None:
+        """What is wrong with a packet header (None: nothing); also checked by `protocol.forwarding`."""
+        if len(path) < 2 or len(media) != len(path) - 1:
+            return f"path {path} needs >= 2 nodes and one medium per hop"
+        if not 1 <= hop < len(path):
+            return f"hop {hop} outside path of {len(path)} nodes"
+        if charge_bytes < 0 or weight < 0:
+            return "charge_bytes and weight must be >= 0"
+        if purpose not in ("chain", "migration", "recovery"):
+            return f"purpose {purpose!r} is not chain, migration or recovery"
+        return None
 
 
 @message

@@ -140,6 +140,9 @@ class EventQueue:
         """Whether urgent events (statuses, liveliness, plans) wait to be taken."""
         return bool(self._urgent)
 
+    def bulk_depth(self) -> int:
+        return len(self._bulk)
+
     # Bus callbacks: enqueue and return, nothing else.
     def on_message(self, key: str, payload: bytes) -> None:
         if self._admit is not None and not self._admit(payload):

@@ -159,6 +159,8 @@ def test_relay_forwarding_through_r1(tmp_path):
         assert set(s2["placement"].values()) == {"laptop"}
         forwarded = s2["robots"]["r1"]["status"]["counters"].get("forwarded", 0)
         assert forwarded > 100  # r2's and r3's images and poses went through r1's agent
+        # and most on arrival, from the transport's thread (the loop only has those it must judge)
+        assert s2["robots"]["r1"]["status"]["counters"].get("forwarded-on-arrival", 0) > forwarded / 2
         assert not s2["robots"]["r2"]["status"]["counters"].get("forwarded")
         ev = evaluate(team.scenario, build_network(team.scenario, topology="relay", media=s2["media"]), s2["placement"])
         for robot in ROBOTS:

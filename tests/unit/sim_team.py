@@ -58,7 +58,7 @@ class FakeComponent:
 
 class SimTeam:
     def __init__(self, scenario, *, config: CoordinatorConfig | None = None, policy=None, fake=True,
-                 rng: random.Random | None = None, speed: float = 1.0):
+                 rng: random.Random | None = None, speed: float = 1.0, relay_on_arrival: bool = True):
         self.scenario = scenario
         self.clock = ManualClock(speed=speed, epoch_unix=1_000_000.0)
         self.hub = InMemoryHub(synchronous=False)
@@ -76,10 +76,15 @@ class SimTeam:
                              clock_factory=lambda mission: self.clock, **kwargs)
             rt.wall = self.clock.wall  # custody ages frames on the test's clock
             rt.send_to = lambda dest, key, payload, rt=rt, bus=bus: self._send(rt.node, dest, key, payload, bus)
+            # as an agent does: a packet only crossing this node is forwarded on arrival (not
+            # across a silent cut: that one goes to `on_data`, whose send is lost in `_send`)
+            rt.in_sight = lambda dest, rt=rt: relay_on_arrival and (rt.node, dest) not in self.cut_links
             self.nodes[node] = rt
             self.subscriptions[node] = [
                 bus.subscribe(k, lambda key, payload, rt=rt: rt.on_message(key, payload))
-                for k in (self.keys.node_data(node), self.keys.node_control(node), self.keys.plan)]
+                for k in (self.keys.node_control(node), self.keys.plan)]
+            self.subscriptions[node].append(bus.subscribe(
+                self.keys.node_data(node), lambda key, payload, rt=rt: rt.relay_now(payload) or rt.on_message(key, payload)))
         self.coordinator.bus.subscribe(self.keys.inbox, self._inbox)
 
     # ---- silent cuts: what one node sends another vanishes, nobody is told ----------------------------
@@ -174,6 +179,7 @@ class SimTeam:
                 on_tick(self.clock.t)
 
     def energy(self, robot: str) -> float:
+        self.nodes[robot].settle_relayed()  # what it forwarded on arrival since its last timer
         meter = self.nodes[robot].meter
         meter.advance(self.clock.t)
         return meter.consumed_j

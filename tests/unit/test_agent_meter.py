@@ -116,7 +116,7 @@ def test_meter_parts_match_the_model_breakdown():
     ev = evaluate(sc, team.coordinator.plan_network, MIXED)
     assert ev.feasible
     team.run_until(20.0)
-    before = {r: dict(team.nodes[r].meter.energy_j) for r in ("r1", "r2", "r3")}
+    before = {r: (team.energy(r), dict(team.nodes[r].meter.energy_j))[1] for r in ("r1", "r2", "r3")}
     team.run_until(120.0)
     for robot in ("r1", "r2", "r3"):
         team.energy(robot)
