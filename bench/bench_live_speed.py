@@ -108,8 +108,10 @@ def show(label: str, r: dict, nodes: list[str]) -> None:
     blob = max((v for c, v in lat.items() if c.startswith("Blob") and v is not None), default=float("nan"))
     loc = max((v for c, v in lat.items() if c.startswith("Loc") and v is not None), default=float("nan"))
     cpu = " ".join(f"{r['cpu_pct'].get(n, float('nan')):>7.1f}" for n in nodes)
+    total = sum(r["cpu_pct"].values())
+    per_virtual_ms = total / 100 * r["wall_s"] / r["virtual_s"] * 1e3 if r["virtual_s"] else float("nan")
     print(f"{label:9} {r['speed']:>7.1f} {r['missed_pct']:>8.2f} {r['missed']:>6}/{r['produced'] + r['missed']:<6} "
-          f"{cpu} {sum(r['cpu_pct'].values()):>7.1f} {blob:>10.1f} {loc:>10.1f}  {r['load'][0]:.2f}/{r['load'][1]:.2f}")
+          f"{cpu} {total:>7.1f} {per_virtual_ms:>8.1f} {blob:>10.1f} {loc:>10.1f}  {r['load'][0]:.2f}/{r['load'][1]:.2f}")
 
 
 def main() -> None:
@@ -136,8 +138,9 @@ def main() -> None:
     nodes = [scenario.basestation] + [r.name for r in scenario.robots]
     header = (f"{'code':9} {'speed':>7} {'missed%':>8} {'missed/periods':>13} "
               + " ".join(f"{n + ' %':>7}" for n in nodes)
-              + f" {'all %':>7} {'Blob p50ms':>10} {'Loc p50ms':>10}  load 1-min start/end")
-    print(f"\nCPU in % of one core over {args.seconds:g} s of wall time after ready; latency p50 = a sink's "
+              + f" {'all %':>7} {'ms/virt':>8} {'Blob p50ms':>10} {'Loc p50ms':>10}  load 1-min start/end")
+    print(f"\nCPU in % of one core over {args.seconds:g} s of wall time after ready; ms/virt = the whole team's CPU "
+          "ms per virtual second (compare with the components' need above); latency p50 = a sink's "
           "capture-to-receipt wall ms (worst chain of each kind)")
     print(header)
     results: dict[str, list[dict]] = {"before": [], "after": []}
