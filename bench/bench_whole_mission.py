@@ -37,6 +37,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--speed", type=float, default=55.0)
     ap.add_argument("--max-wall-s", type=float, default=1200.0, help="give up after this long")
+    ap.add_argument("--log-dir", default=None, help="keep the processes' logs here (default: a temporary directory)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     scenario = build_scenario(SCENARIO)
@@ -44,8 +45,8 @@ def main() -> None:
     print(f"== whole mission: {SCENARIO} fully-connected 802.11a, static policy, x{args.speed:g} "
           f"(load average {loads[0]:.2f}, {os.cpu_count()} cores) ==", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        spec = TeamSpec(scenario=SCENARIO, speed=args.speed, media=MEDIA, policy="static", log_dir=Path(tmp),
-                        log_level="warning")
+        spec = TeamSpec(scenario=SCENARIO, speed=args.speed, media=MEDIA, policy="static",
+                        log_dir=Path(args.log_dir or tmp), log_level="warning")
         started = time.monotonic()
         with LocalTeam(spec, scenario) as team:
             snap = team.wait_ready(120)
@@ -75,6 +76,8 @@ def main() -> None:
                 if snap.get("first_depletion"):
                     break
             wall = time.monotonic() - t0
+            supervision = team.supervision()
+            restarted = {n: c.proc.pid for n, c in team.children.items() if c.proc.pid != pids[n]}
     first = snap.get("first_depletion")
     produced, missed, pct = missed_periods(snap)
     cpu = {n: (cpu1[n] - cpu0[n]) / wall * 100 for n in pids if cpu0[n] is not None and cpu1[n] is not None}
@@ -83,7 +86,9 @@ def main() -> None:
               "lifetime_error": (first["t_virtual"] / planned - 1) if first and planned else None,
               "frames": produced, "missed": missed, "missed_pct": pct, "cpu_pct": cpu,
               "latency_p50_ms": {c: v["p50_ms"] for c, v in chain_latencies(snap).items()},
-              "load_min": min(loads), "load_max": max(loads), "load_mean": sum(loads) / len(loads)}
+              "load_min": min(loads), "load_max": max(loads), "load_mean": sum(loads) / len(loads),
+              "supervision": supervision, "restarted": sorted(restarted), "events": snap.get("events"),
+              "placement_at_end": snap.get("placement")}
     if first:
         print(f"first depletion: {first['robot']} at t={first['t_virtual']:.1f} s virtual; model {planned} s "
               f"({result['lifetime_error']:+.3%}); wall {wall / 60:.1f} min")
@@ -92,6 +97,10 @@ def main() -> None:
     print(f"missed periods {missed}/{produced + missed} ({pct:.2f} %); CPU % of one core: "
           + ", ".join(f"{n} {v:.1f}" for n, v in cpu.items())
           + f"; load average {result['load_min']:.2f}-{result['load_max']:.2f} (mean {result['load_mean']:.2f})")
+    if restarted or supervision.get("crashes"):
+        print(f"restarted by the supervisor: {', '.join(sorted(restarted))} (CPU above covers the first process "
+              f"only); {supervision}")
+    print(f"placement at the end: {snap.get('placement')}")
     if args.json:
         print(json.dumps(result, indent=1))
 
