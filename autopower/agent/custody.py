@@ -98,6 +98,9 @@ class Custody:
         self.acknowledged = 0
         self.resent = 0
         self.evicted = 0  # dropped unacknowledged (bounds, age, attempts): possibly lost
+        # (hop, run) -> its lowest seq held: asked for every frame sent, found by a scan only when
+        # the lowest one was acknowledged (a hop holds a status period's frames: 100 at x50)
+        self._floors: dict[tuple[Hop, int], int] = {}
 
     def __len__(self) -> int:
         return sum(len(h) for h in self.hops.values())
@@ -109,6 +112,9 @@ class Custody:
         if key in hop:
             return
         hop[key] = Held(frame=frame, kept_unix=now, sent_unix=now if sent else None)
+        lowest = self._floors.get(((frame.chain, frame.target), frame.run))
+        if lowest is not None and frame.seq < lowest:
+            self._floors[((frame.chain, frame.target), frame.run)] = frame.seq
         self.bytes += len(frame.payload)
         self.kept += 1
         while len(hop) > self.max_frames_per_hop:
@@ -119,8 +125,13 @@ class Custody:
 
     def floor(self, chain: str, target: int, run: int, default: int) -> int:
         """The lowest seq of a hop and run still held unacknowledged (``default`` if none is)."""
-        held = [seq for (r, seq) in self.hops.get((chain, target), {}) if r == run]
-        return min(held, default=default)
+        lowest = self._floors.get(((chain, target), run))
+        if lowest is None:
+            held = [seq for (r, seq) in self.hops.get((chain, target), {}) if r == run]
+            if not held:
+                return default
+            lowest = self._floors[((chain, target), run)] = min(held)
+        return lowest
 
     def mark(self, frame: ChainFrame, sent_unix: float | None) -> None:
         """The frame went on the wire now (or was held back: None)."""
@@ -130,6 +141,9 @@ class Custody:
 
     def _drop(self, hop: OrderedDict, key: tuple[int, int], evicted: bool) -> None:
         held = hop.pop(key)
+        floor_key = ((held.frame.chain, held.frame.target), key[0])
+        if self._floors.get(floor_key) == key[1]:
+            del self._floors[floor_key]  # the next floor asked for scans for the new lowest
         self.bytes -= len(held.frame.payload)
         if evicted:
             self.evicted += 1

@@ -44,7 +44,7 @@ from autopower.agent.meter import BatteryMeter
 from autopower.agent.relaying import Relaying
 from autopower.agent.sequencing import SinkLedger
 from autopower.agent.sink_store import SinkStore
-from autopower.agent.stages import HELD_OUTPUT_LIMIT, HostedStage, SourceRunner, chain_seed, pad
+from autopower.agent.stages import HELD_OUTPUT_LIMIT, SENSOR_QUEUE, HostedStage, SourceRunner, chain_seed, pad
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
 from autopower.model.network import Link, Network
@@ -377,14 +377,18 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             if runner.next_t > now:
                 continue
             period = runner.chain.period_s
-            late = int((now - runner.next_t) // period)
-            if late > 0:  # never burst to catch up: a real camera would have dropped them too
+            # the captures since the last tick wait in the sensor's queue; older ones were overwritten
+            late = int((now - runner.next_t) // period) + 1 - SENSOR_QUEUE
+            if late > 0:
                 runner.missed += late
                 runner.next_t += late * period
                 self.tally("missed-periods", late)
                 log.info("%s: source %s is %d period(s) late; skipped them", self.node, runner.chain.name, late)
-            self._produce(runner, runner.next_t)
-            runner.next_t += period
+            while runner.next_t <= now and runner.chain.name in self.sources:
+                if runner.next_t + period <= now:
+                    self.tally("late-captures")  # taken from the sensor's queue, after a later one was due
+                self._produce(runner, runner.next_t)
+                runner.next_t += period
 
     def _produce(self, runner: SourceRunner, t_tick: float) -> None:
         chain = runner.chain
@@ -401,8 +405,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         if host is None:
             self.count("unplaced-stage", f"{chain.stages[0].name} has no host")
             return
+        # latency counts from the capture (a frame taken from the sensor's queue waited there)
+        waited_s = max(0.0, self.clock.wall() - self.clock.wall_at(t_tick))
         frame = ChainFrame(chain=chain.name, run=runner.run, seq=runner.seq, target=0, t_virtual=t_tick,
-                           t_unix=time.time(), payload_len=len(data), payload=payload)
+                           t_unix=time.time() - waited_s, payload_len=len(data), payload=payload)
         runner.seq += 1
         runner.produced_total += 1
         if self.on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq

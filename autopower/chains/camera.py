@@ -43,6 +43,9 @@ _CELL_W_PX = WIDTH_PX / _GRID_COLS
 _CELL_H_PX = HEIGHT_PX / _GRID_ROWS
 _MARGIN_PX = 4.0  # keep victims this far from their cell's edges (and so from each other)
 _NOISE_LEVELS = 8  # per-channel uniform pixel noise in [-8, +8]
+# Sensor noise is cut per frame from a larger field drawn once per camera, at an offset drawn per
+# frame: drawing 230,400 fresh random numbers took 0.5 of the 0.85 ms a frame cost (x50: 400 frames a second).
+_NOISE_MARGIN_PX = 64
 
 
 @dataclass(frozen=True)
@@ -115,6 +118,10 @@ class SyntheticCamera:
         rng = np.random.default_rng([seed, 0xCA3E7A])
         self._victims = _make_victims(rng, n_victims)
         self._background = _make_background(rng)
+        h, w, c = self._background.shape
+        self._noise = (np.random.default_rng([seed, 0x9015E]).integers(
+            0, 2 * _NOISE_LEVELS + 1, size=(h + _NOISE_MARGIN_PX, w + _NOISE_MARGIN_PX, c), dtype=np.int16)
+            - np.int16(_NOISE_LEVELS))
 
     def truth(self, frame: int) -> list[VictimTruth]:
         """Ground truth for every victim in frame ``frame``."""
@@ -132,6 +139,11 @@ class SyntheticCamera:
 
     def render(self, frame: int) -> np.ndarray:
         """The RGB image of frame ``frame`` as a (240, 320, 3) uint8 array."""
+        image = np.empty(self._background.shape, dtype=np.uint8)
+        self._render_into(frame, image)
+        return image
+
+    def _render_into(self, frame: int, out: np.ndarray) -> None:
         check_seq(frame)
         image = self._background.copy()
         for victim in self._victims:
@@ -139,15 +151,20 @@ class SyntheticCamera:
             x0, y0, mask = victim.mask(x, y)
             h, w = mask.shape
             image[y0:y0 + h, x0:x0 + w][mask] = VICTIM_COLOURS_RGB[victim.colour]
-        # Sensor noise, fresh per frame but reproducible from (seed, frame).
-        noise_rng = np.random.default_rng([self.seed, 0x9015E, frame])
-        noise = noise_rng.integers(0, 2 * _NOISE_LEVELS + 1, size=image.shape, dtype=np.int16)
-        noisy = image.astype(np.int16) + (noise - _NOISE_LEVELS)
-        return np.clip(noisy, 0, 255).astype(np.uint8)
+        # Sensor noise, different in every frame and reproducible from (seed, frame), computed in place
+        dy, dx = np.random.default_rng([self.seed, 0x9015E, frame]).integers(0, _NOISE_MARGIN_PX + 1, size=2)
+        h, w, _ = image.shape
+        noisy = self._noise[dy:dy + h, dx:dx + w] + image  # int16
+        np.clip(noisy, 0, 255, out=out, casting="unsafe")
 
     def frame(self, frame: int) -> bytes:
         """Frame ``frame`` as a 230415-byte binary PPM."""
-        return encode_ppm(self.render(frame))
+        h, w, _ = self._background.shape
+        header = b"P6\n%d %d\n255\n" % (w, h)  # what encode_ppm writes, around the pixels rendered in place
+        buf = np.empty(len(header) + h * w * 3, dtype=np.uint8)
+        buf[:len(header)] = np.frombuffer(header, dtype=np.uint8)
+        self._render_into(frame, buf[len(header):].reshape(h, w, 3))
+        return buf.tobytes()
 
 
 def encode_ppm(image: np.ndarray) -> bytes:

@@ -179,43 +179,129 @@ def cast_rays(building: Building, pose: np.ndarray, angles_rad: np.ndarray,
               max_range_m: float = MAX_RANGE_M) -> np.ndarray:
     """Exact range (m) from ``pose`` along each beam to the first occupied cell, or max range.
 
-    Grid traversal (Amanatides & Woo), vectorised over beams: each iteration moves every beam
-    into the next cell it crosses, so no cell corner is skipped and ranges are exact.
+    Grid traversal (Amanatides & Woo) without the walk: a beam's first hit is the nearest of its
+    cell-boundary crossings that enters an occupied cell, so every crossing of every beam is
+    computed at once (whole arrays, no loop over steps). The crossing distances are the walk's
+    own running sums and its tie rule is kept (at a cell corner the row changes first), so the
+    ranges are the walk's, bit for bit. The beams that hit nothing near are done again further.
     """
     res = building.resolution_m
-    rows, cols = building.occupied.shape
     world = pose[2] + np.asarray(angles_rad, dtype=np.float64)
     dx, dy = np.cos(world), np.sin(world)
-    ix = np.full(world.shape, int(math.floor(pose[0] / res)))
-    iy = np.full(world.shape, int(math.floor(pose[1] / res)))
-    step_x = np.where(dx > 0, 1, -1)
-    step_y = np.where(dy > 0, 1, -1)
-    with np.errstate(divide="ignore"):
-        # Distance along the beam between vertical (horizontal) cell boundaries, and to the first.
+    ix = int(math.floor(pose[0] / res))
+    iy = int(math.floor(pose[1] / res))
+    with np.errstate(divide="ignore", invalid="ignore"):
         delta_x = np.where(dx != 0, res / np.abs(dx), np.inf)
         delta_y = np.where(dy != 0, res / np.abs(dy), np.inf)
         first_x = np.where(dx > 0, (ix + 1) * res - pose[0], pose[0] - ix * res)
         first_y = np.where(dy > 0, (iy + 1) * res - pose[1], pose[1] - iy * res)
         t_x = np.where(dx != 0, first_x / np.abs(dx), np.inf)
         t_y = np.where(dy != 0, first_y / np.abs(dy), np.inf)
-    ranges = np.full(world.shape, max_range_m)
-    active = np.ones(world.shape, dtype=bool)
-    for _ in range(2 * int(math.ceil(max_range_m / res)) + 2):  # cells a beam can cross
-        cross_x = t_x < t_y
-        t = np.where(cross_x, t_x, t_y)
-        ix = np.where(cross_x, ix + step_x, ix)
-        iy = np.where(cross_x, iy, iy + step_y)
-        t_x = np.where(cross_x, t_x + delta_x, t_x)
-        t_y = np.where(cross_x, t_y, t_y + delta_y)
-        beyond = t >= max_range_m
-        inside = (ix >= 0) & (ix < cols) & (iy >= 0) & (iy < rows)
-        hit = ~inside | building.occupied[np.clip(iy, 0, rows - 1), np.clip(ix, 0, cols - 1)]
-        done = active & hit & ~beyond
-        ranges[done] = t[done]
-        active &= ~(hit | beyond)
-        if not active.any():
-            break
+    beams = _Beams(t_x, t_y, delta_x, delta_y, np.where(dx > 0, 1, -1), np.where(dy > 0, 1, -1))
+    full = int(math.ceil(max_range_m / res)) + 2  # crossings of one kind a beam makes within range, + 1
+    near = min(full, _NEAR_CROSSINGS)
+    rows, cols = building.occupied.shape
+    pad = full + max(0, -ix, ix - cols + 1, -iy, iy - rows + 1)  # no crossing within range leaves it
+    ranges, settled = _first_hits(building, ix, iy, beams, near, max_range_m, pad)
+    if near < full and not settled.all():
+        far = ~settled
+        ranges[far], _ = _first_hits(building, ix, iy, beams.subset(far), full, max_range_m, pad)
     return ranges
+
+
+_NEAR_CROSSINGS = 32  # crossings of each kind looked at first (about 3 m): most beams hit a wall by then
+
+
+@dataclass(frozen=True)
+class _Beams:
+    t_x: np.ndarray  # distance to the first vertical (horizontal) cell boundary
+    t_y: np.ndarray
+    delta_x: np.ndarray  # distance between two vertical (horizontal) cell boundaries
+    delta_y: np.ndarray
+    step_x: np.ndarray  # +1 / -1: the column (row) a crossing moves to
+    step_y: np.ndarray
+
+    def subset(self, mask: np.ndarray) -> "_Beams":
+        return _Beams(*(getattr(self, f)[mask] for f in ("t_x", "t_y", "delta_x", "delta_y", "step_x", "step_y")))
+
+
+def _first_hits(building: Building, ix: int, iy: int, beams: _Beams, n: int, max_range_m: float,
+                pad: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each beam's range over its first ``n`` crossings of each kind, and whether that is final.
+
+    A hit is final when no crossing left out comes before it (the last computed crossing of
+    each kind is not nearer); a beam with neither a hit nor crossings left within range is done.
+    """
+    xs = _crossings(beams.t_x, beams.delta_x, n)
+    ys = _crossings(beams.t_y, beams.delta_y, n)
+    flat, width = _padded_grid(building, pad + 1)
+    origin = (iy + pad + 1) * width + (ix + pad + 1)
+    k = np.arange(1, n + 1)
+    row_step = (beams.step_y * width)[:, None]
+    col_step = beams.step_x[:, None]
+    # an x crossing moves one column, into the row reached by every y crossing not after it
+    # (at a corner the y crossing goes first), and the other way round
+    x_cells = origin + k * col_step + _crossed(ys, xs, beams.t_y, beams.delta_y, True) * row_step
+    y_cells = origin + k * row_step + _crossed(xs, ys, beams.t_x, beams.delta_x, False) * col_step
+    ranges = np.full(xs.shape[0], max_range_m)
+    for t, cells in ((xs, x_cells), (ys, y_cells)):
+        hit = flat[cells] & (t < max_range_m)
+        ranges = np.minimum(ranges, np.where(hit, t, max_range_m).min(axis=1))
+    horizon = np.minimum(xs[:, -1], ys[:, -1])
+    return ranges, (ranges <= horizon) | (horizon >= max_range_m)
+
+
+def _crossings(first: np.ndarray, delta: np.ndarray, n: int) -> np.ndarray:
+    """The first ``n`` crossing distances of each beam, summed one step at a time as the walk does."""
+    steps = np.empty((first.size, n))
+    steps[:, 0] = first
+    steps[:, 1:] = delta[:, None]
+    return np.cumsum(steps, axis=1)
+
+
+def _crossed(seq: np.ndarray, at: np.ndarray, first: np.ndarray, delta: np.ndarray, inclusive: bool) -> np.ndarray:
+    """How many of each beam's crossings ``seq`` come before each of its distances ``at``.
+
+    Counted from the arithmetic (a float division), which is exact unless ``at`` is within a
+    hair of a crossing; those few are counted against the running sums themselves.
+    ``inclusive``: a crossing at the same distance counts.
+    """
+    n = seq.shape[1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = (at - first[:, None]) / delta[:, None]
+    finite = np.isfinite(g)
+    g = np.where(finite, g, -1.0)  # inf: no such crossing within range (counted 0; never a hit)
+    count = np.minimum(np.maximum(np.floor(g) + 1, 0), n).astype(np.int64)
+    rows, cols = np.nonzero(finite & (np.abs(g - np.round(g)) < 1e-6))
+    if rows.size:
+        c, v = count[rows, cols], at[rows, cols]
+        for _ in range(3):
+            above = seq[rows, np.minimum(c, n - 1)]
+            below = seq[rows, np.maximum(c - 1, 0)]
+            c = (c + ((c < n) & ((above <= v) if inclusive else (above < v)))
+                 - ((c > 0) & ((below > v) if inclusive else (below >= v))))
+        count[rows, cols] = c
+    return count
+
+
+_PADDED: dict[tuple[int, int], tuple[Building, np.ndarray, int]] = {}
+
+
+def _padded_grid(building: Building, pad: int) -> tuple[np.ndarray, int]:
+    """The occupancy grid inside a border of occupied cells ``pad`` wide, flat, and its width.
+
+    Outside the map counts as occupied, and no index of a beam within range leaves the border.
+    """
+    key = (id(building), pad)
+    got = _PADDED.get(key)
+    if got is None or got[0] is not building:
+        if len(_PADDED) >= 64:
+            _PADDED.clear()
+        rows, cols = building.occupied.shape
+        grid = np.ones((rows + 2 * pad, cols + 2 * pad), dtype=bool)
+        grid[pad:pad + rows, pad:pad + cols] = building.occupied
+        got = _PADDED[key] = (building, grid.ravel(), cols + 2 * pad)  # holds the building: its id stays its
+    return got[1], got[2]
 
 
 class LocSource:

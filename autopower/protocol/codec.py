@@ -12,7 +12,7 @@ import dataclasses
 import math
 import types
 from functools import lru_cache
-from typing import Any, Union, get_args, get_origin, get_type_hints
+from typing import Any, Callable, Union, get_args, get_origin, get_type_hints
 
 import msgpack
 
@@ -64,7 +64,27 @@ def message_kinds() -> dict[str, type]:
 # ---------------------------------------------------------------------------------------------
 
 
+_PLAIN = frozenset({str, int, bytes, bool, type(None)})  # exact types that go on the wire as they are
+
+
+@lru_cache(maxsize=None)
+def _field_names(cls: type) -> tuple[str, ...] | None:
+    """A dataclass's field names, once per class (None: not a dataclass)."""
+    return tuple(f.name for f in dataclasses.fields(cls)) if dataclasses.is_dataclass(cls) else None
+
+
 def _to_wire(value: Any) -> Any:
+    # the common cases first, by exact type: every frame of a live team goes through here
+    t = type(value)
+    if t in _PLAIN:
+        return value
+    if t is float:
+        if not math.isfinite(value):
+            raise ValueError(f"non-finite number {value}")
+        return value
+    names = _field_names(t)
+    if names is not None:
+        return {name: _to_wire(getattr(value, name)) for name in names}
     if isinstance(value, float) and not math.isfinite(value):
         raise ValueError(f"non-finite number {value}")  # the receiver would refuse it: fail at the sender
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
@@ -102,85 +122,122 @@ def _fail(where: str, what: str) -> ProtocolError:
 
 
 def _from_wire(value: Any, hint: Any, where: str) -> Any:
+    return _converter(hint)(value, where)
+
+
+@lru_cache(maxsize=None)
+def _converter(hint: Any) -> Callable[[Any, str], Any]:
+    """What checks and converts a wire value for ``hint``: worked out once per type hint, not per value."""
     if hint is Any:
-        return value
+        return lambda value, where: value
     origin = get_origin(hint)
     if origin in (Union, types.UnionType):
         options = get_args(hint)
-        if value is None:
-            if type(None) in options:
-                return None
-            raise _fail(where, "null is not allowed here")
-        errors = []
-        for option in options:
-            if option is type(None):
-                continue
-            try:
-                return _from_wire(value, option, where)
-            except ProtocolError as exc:
-                errors.append(str(exc))
-        raise _fail(where, "; ".join(errors) or f"unexpected {type(value).__name__}")
+        nullable = type(None) in options
+        choices = [_converter(option) for option in options if option is not type(None)]
+
+        def union(value: Any, where: str) -> Any:
+            if value is None:
+                if nullable:
+                    return None
+                raise _fail(where, "null is not allowed here")
+            errors = []
+            for choice in choices:
+                try:
+                    return choice(value, where)
+                except ProtocolError as exc:
+                    errors.append(str(exc))
+            raise _fail(where, "; ".join(errors) or f"unexpected {type(value).__name__}")
+        return union
     if hint is bool:
-        if isinstance(value, bool):
-            return value
-        raise _fail(where, f"expected bool, got {type(value).__name__}")
+        def boolean(value: Any, where: str) -> Any:
+            if isinstance(value, bool):
+                return value
+            raise _fail(where, f"expected bool, got {type(value).__name__}")
+        return boolean
     if hint is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise _fail(where, f"expected int, got {type(value).__name__}")
+        def integer(value: Any, where: str) -> Any:
+            if isinstance(value, int) and not isinstance(value, bool):
+                return value
+            raise _fail(where, f"expected int, got {type(value).__name__}")
+        return integer
     if hint is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            try:
-                value = float(value)
-            except OverflowError:  # an int too large for a float
-                raise _fail(where, "number out of range") from None
-            if not math.isfinite(value):
-                raise _fail(where, f"{value} is not a finite number (NaN and ±inf are refused)")
-            return value
-        raise _fail(where, f"expected float, got {type(value).__name__}")
-    if hint is str:
-        if isinstance(value, str):
-            return value
-        raise _fail(where, f"expected str, got {type(value).__name__}")
-    if hint is bytes:
-        if isinstance(value, bytes):
-            return value
-        raise _fail(where, f"expected bytes, got {type(value).__name__}")
+        def number(value: Any, where: str) -> Any:
+            if isinstance(value, (int, float)) and not isinstance(value, bool):
+                try:
+                    value = float(value)
+                except OverflowError:  # an int too large for a float
+                    raise _fail(where, "number out of range") from None
+                if not math.isfinite(value):
+                    raise _fail(where, f"{value} is not a finite number (NaN and ±inf are refused)")
+                return value
+            raise _fail(where, f"expected float, got {type(value).__name__}")
+        return number
+    if hint is str or hint is bytes:
+        def exact(value: Any, where: str, kind: type = hint) -> Any:
+            if isinstance(value, kind):
+                return value
+            raise _fail(where, f"expected {kind.__name__}, got {type(value).__name__}")
+        return exact
     if origin is tuple:
         args = get_args(hint)
-        if not isinstance(value, (list, tuple)):
-            raise _fail(where, f"expected a list, got {type(value).__name__}")
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_from_wire(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
-        if len(args) != len(value):
-            raise _fail(where, f"expected {len(args)} items, got {len(value)}")
-        return tuple(_from_wire(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+            item = _converter(args[0])
+
+            def variadic(value: Any, where: str) -> Any:
+                if not isinstance(value, (list, tuple)):
+                    raise _fail(where, f"expected a list, got {type(value).__name__}")
+                return tuple(item(v, f"{where}[{i}]") for i, v in enumerate(value))
+            return variadic
+        items = [_converter(a) for a in args]
+
+        def fixed(value: Any, where: str) -> Any:
+            if not isinstance(value, (list, tuple)):
+                raise _fail(where, f"expected a list, got {type(value).__name__}")
+            if len(items) != len(value):
+                raise _fail(where, f"expected {len(items)} items, got {len(value)}")
+            return tuple(c(v, f"{where}[{i}]") for i, (v, c) in enumerate(zip(value, items)))
+        return fixed
     if origin is dict:
         key_t, val_t = get_args(hint)
-        if not isinstance(value, dict):
-            raise _fail(where, f"expected a map, got {type(value).__name__}")
-        return {_from_wire(k, key_t, f"{where}.<key>"): _from_wire(v, val_t, f"{where}[{k!r}]")
-                for k, v in value.items()}
-    if isinstance(hint, type) and (hint in _STRUCTS or hint in _MESSAGES.values()):
-        return _build(hint, value, where)
-    raise _fail(where, f"unsupported field type {hint!r}")  # a bug in a message definition
+        key_c, val_c = _converter(key_t), _converter(val_t)
+
+        def mapping(value: Any, where: str) -> Any:
+            if not isinstance(value, dict):
+                raise _fail(where, f"expected a map, got {type(value).__name__}")
+            return {key_c(k, f"{where}.<key>"): val_c(v, f"{where}[{k!r}]") for k, v in value.items()}
+        return mapping
+
+    def registered(value: Any, where: str) -> Any:  # looked up when used: classes register at import
+        if isinstance(hint, type) and (hint in _STRUCTS or hint in _MESSAGES.values()):
+            return _build(hint, value, where)
+        raise _fail(where, f"unsupported field type {hint!r}")  # a bug in a message definition
+    return registered
+
+
+@lru_cache(maxsize=None)
+def _plan(cls: type) -> tuple[tuple[str, ...], frozenset[str], tuple[Callable[[Any, str], Any], ...]]:
+    """A class's field names, the names its hints allow, and each field's converter."""
+    hints = _hints(cls)
+    names = tuple(f.name for f in dataclasses.fields(cls))
+    return names, frozenset(hints), tuple(_converter(hints[n]) for n in names)
 
 
 def _build(cls: type, fields: Any, where: str) -> Any:
     if not isinstance(fields, dict):
         raise _fail(where, f"expected a map of fields, got {type(fields).__name__}")
-    hints = _hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
-    unknown = [k for k in fields if k not in hints]
-    missing = [n for n in names if n not in fields]
-    if unknown or missing:
-        detail = []
-        if unknown:
-            detail.append(f"unknown field(s) {', '.join(map(repr, unknown))}")
-        if missing:
-            detail.append(f"missing field(s) {', '.join(missing)}")
-        raise _fail(where, "; ".join(detail))
-    kwargs = {n: _from_wire(fields[n], hints[n], f"{where}.{n}") for n in names}
+    names, allowed, converters = _plan(cls)
+    if len(fields) != len(names) or any(k not in allowed for k in fields) or any(n not in fields for n in names):
+        unknown = [k for k in fields if k not in allowed]
+        missing = [n for n in names if n not in fields]
+        if unknown or missing:
+            detail = []
+            if unknown:
+                detail.append(f"unknown field(s) {', '.join(map(repr, unknown))}")
+            if missing:
+                detail.append(f"missing field(s) {', '.join(missing)}")
+            raise _fail(where, "; ".join(detail))
+    kwargs = {n: c(fields[n], f"{where}.{n}") for n, c in zip(names, converters)}
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:

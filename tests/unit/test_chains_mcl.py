@@ -61,6 +61,42 @@ def test_ray_casting_matches_a_fine_brute_force_march():
         assert np.abs(fast - slow).max() <= 0.0011  # the brute force's own 1 mm step
 
 
+def _walk(building, pose, angle, max_range_m):
+    """One beam's Amanatides & Woo walk, a cell at a time (what cast_rays must equal bit for bit)."""
+    res, (rows, cols) = building.resolution_m, building.occupied.shape
+    dx, dy = math.cos(pose[2] + angle), math.sin(pose[2] + angle)
+    ix, iy = math.floor(pose[0] / res), math.floor(pose[1] / res)
+    sx, sy = (1 if dx > 0 else -1), (1 if dy > 0 else -1)
+    delta_x = res / abs(dx) if dx else math.inf
+    delta_y = res / abs(dy) if dy else math.inf
+    t_x = ((ix + 1) * res - pose[0] if dx > 0 else pose[0] - ix * res) / abs(dx) if dx else math.inf
+    t_y = ((iy + 1) * res - pose[1] if dy > 0 else pose[1] - iy * res) / abs(dy) if dy else math.inf
+    while True:
+        if t_x < t_y:
+            t, ix, t_x = t_x, ix + sx, t_x + delta_x
+        else:
+            t, iy, t_y = t_y, iy + sy, t_y + delta_y
+        if t >= max_range_m:
+            return max_range_m
+        if not (0 <= ix < cols and 0 <= iy < rows) or building.occupied[iy, ix]:
+            return t
+
+
+@pytest.mark.parametrize("max_range_m", [MAX_RANGE_M, 1.5, 30.0])
+def test_ray_casting_equals_the_cell_by_cell_walk_bit_for_bit(max_range_m):
+    building = make_building(7)
+    path = RobotPath(building, "r3")
+    angles = np.concatenate([beam_angles_rad()[::5], [0.0, math.pi / 4, math.pi / 2, -3 * math.pi / 4]])
+    poses = [path.pose_at(d) for d in (0.0, 7.3, 22.0, 55.5)]
+    # exactly on cell corners (beams through corners: the tie rule), and outside the map
+    poses += [np.array([10.0, 10.0, 0.0]), np.array([10.0, 10.0, math.pi / 4]), np.array([-1.0, 5.0, 0.3]),
+              np.array([25.0, -3.0, 2.0])]
+    for pose in poses:
+        got = cast_rays(building, pose, angles, max_range_m)
+        want = [_walk(building, pose, a, max_range_m) for a in angles]
+        assert got.tolist() == want, pose
+
+
 def test_source_is_deterministic_whatever_the_order_of_requests():
     in_order = LocSource("r2", seed=5)
     for seq in range(300):  # crosses an odometry chunk boundary (256 steps)

@@ -1,0 +1,165 @@
+"""How fast a live team keeps up: missed periods, CPU per process and latency at each speed-up.
+
+    .venv/bin/python bench/bench_live_speed.py [--seconds 20] [--speeds 10,20,50,100]
+                                               [--baseline-tree DIR] [--json]
+
+The mission is the paper's (paper-fig7, what `autopower up` and `demo` run by default): a real
+localhost team (base station + three agents, mutual TLS, real components) at each speed-up.
+
+The limit is what this machine can do at best: its cores divided by the CPU seconds the mission's
+components themselves need per virtual second (each chain's runs per virtual second times its
+component's median run time, measured here as `autopower profile` measures it). A team that
+kept up at the limit would spend all its CPU in the components and none in the runtime.
+
+For each speed (10x, 20x, 50x, 100x and the limit) it prints, over ``--seconds`` of wall time
+counted from the moment the team is ready: source periods missed (%), the CPU each process used
+(utime + stime from /proc/PID/stat over that window, in % of one core), and each sink's
+end-to-end latency p50. With ``--baseline-tree DIR`` (a checkout of the code before, e.g.
+``git archive main | tar -x -C DIR``) the same runs are made first with the team's processes
+running that code (PYTHONPATH=DIR), so the ratio is measured in the same bench run.
+Not a timed test: the machine's load average is printed beside every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from autopower.chains import profile_components
+from autopower.cli.options import build_scenario
+from autopower.launch.localhost import LocalTeam, TeamSpec
+from autopower.launch.summary import chain_latencies
+
+SCENARIO = "paper-fig7"
+TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def component_cpu_per_virtual_s(scenario, runs: int = 40) -> tuple[float, dict[str, float]]:
+    """CPU seconds the mission's components need per virtual second (all of them on this machine)."""
+    kinds = sorted({stage.component for chain in scenario.chains for stage in chain.stages})
+    profile = profile_components(runs, types=kinds)
+    need = 0.0
+    for chain in scenario.chains:
+        for stage in chain.stages:
+            need += profile[stage.component]["latency_median_s"] / chain.period_s
+    return need, {k: p["latency_median_s"] for k, p in profile.items()}
+
+
+def cpu_s(pid: int) -> float | None:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / TICKS  # utime, stime (fields 14 and 15)
+
+
+def missed(snap: dict) -> tuple[int, int]:
+    produced = missed_ = 0
+    for info in (snap.get("robots") or {}).values():
+        for s in ((info.get("status") or {}).get("sources") or {}).values():
+            produced += s.get("produced_total", 0)
+            missed_ += s.get("missed", 0)
+    return produced, missed_
+
+
+def run_once(speed: float, seconds: float, tree: str | None) -> dict:
+    scenario = build_scenario(SCENARIO)
+    saved = os.environ.get("PYTHONPATH")
+    if tree:
+        os.environ["PYTHONPATH"] = tree  # the children run that code; this process keeps its own
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            spec = TeamSpec(scenario=SCENARIO, speed=speed, log_dir=Path(tmp), log_level="warning")
+            with LocalTeam(spec, scenario) as team:
+                team.wait_ready(120)
+                pids = {name: child.proc.pid for name, child in team.children.items()}
+                snap0 = team.snapshot()
+                cpu0 = {n: cpu_s(p) for n, p in pids.items()}
+                wall0 = time.monotonic()
+                load0 = os.getloadavg()[0]
+                time.sleep(seconds)
+                snap1 = team.snapshot()
+                cpu1 = {n: cpu_s(p) for n, p in pids.items()}
+                wall = time.monotonic() - wall0
+                load1 = os.getloadavg()[0]
+    finally:
+        if tree:
+            if saved is None:
+                os.environ.pop("PYTHONPATH", None)
+            else:
+                os.environ["PYTHONPATH"] = saved
+    (p0, m0), (p1, m1) = missed(snap0), missed(snap1)
+    produced, miss = p1 - p0, m1 - m0
+    cpu = {n: (cpu1[n] - cpu0[n]) / wall * 100 for n in pids if cpu0[n] is not None and cpu1[n] is not None}
+    latencies = {c: v["p50_ms"] for c, v in chain_latencies(snap1).items()}
+    virtual = (snap1.get("t_virtual") or 0) - (snap0.get("t_virtual") or 0)
+    return {"speed": speed, "wall_s": wall, "virtual_s": virtual, "produced": produced, "missed": miss,
+            "missed_pct": 100.0 * miss / (produced + miss) if produced + miss else 0.0,
+            "cpu_pct": cpu, "latency_p50_ms": latencies, "load": (load0, load1)}
+
+
+def show(label: str, r: dict, nodes: list[str]) -> None:
+    lat = r["latency_p50_ms"]
+    blob = max((v for c, v in lat.items() if c.startswith("Blob") and v is not None), default=float("nan"))
+    loc = max((v for c, v in lat.items() if c.startswith("Loc") and v is not None), default=float("nan"))
+    cpu = " ".join(f"{r['cpu_pct'].get(n, float('nan')):>7.1f}" for n in nodes)
+    total = sum(r["cpu_pct"].values())
+    per_virtual_ms = total / 100 * r["wall_s"] / r["virtual_s"] * 1e3 if r["virtual_s"] else float("nan")
+    print(f"{label:9} {r['speed']:>7.1f} {r['missed_pct']:>8.2f} {r['missed']:>6}/{r['produced'] + r['missed']:<6} "
+          f"{cpu} {total:>7.1f} {per_virtual_ms:>8.1f} {blob:>10.1f} {loc:>10.1f}  {r['load'][0]:.2f}/{r['load'][1]:.2f}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="wall seconds measured per speed (after ready)")
+    ap.add_argument("--speeds", default="10,20,50,100", help="speed-ups to run besides the limit")
+    ap.add_argument("--no-limit", action="store_true", help="do not run at the computed limit")
+    ap.add_argument("--baseline-tree", default=None, metavar="DIR",
+                    help="also run every speed with the team's processes on the code in DIR (before)")
+    ap.add_argument("--json", action="store_true", help="print the figures as JSON at the end")
+    args = ap.parse_args()
+
+    scenario = build_scenario(SCENARIO)
+    cores = os.cpu_count() or 1
+    need, medians = component_cpu_per_virtual_s(scenario)
+    limit = cores / need
+    print(f"== live speed on {SCENARIO} ({cores} cores, load average {os.getloadavg()[0]:.2f}) ==")
+    print("components (median ms per run here): " + ", ".join(f"{k} {v * 1e3:.2f}" for k, v in medians.items()))
+    print(f"components need {need * 1e3:.2f} ms of CPU per virtual second -> limit = {cores} cores / that = "
+          f"x{limit:.0f}; 60 % of it = x{0.6 * limit:.0f}")
+    speeds = [float(s) for s in args.speeds.split(",") if s]
+    if not args.no_limit:
+        speeds.append(round(limit))
+    nodes = [scenario.basestation] + [r.name for r in scenario.robots]
+    header = (f"{'code':9} {'speed':>7} {'missed%':>8} {'missed/periods':>13} "
+              + " ".join(f"{n + ' %':>7}" for n in nodes)
+              + f" {'all %':>7} {'ms/virt':>8} {'Blob p50ms':>10} {'Loc p50ms':>10}  load 1-min start/end")
+    print(f"\nCPU in % of one core over {args.seconds:g} s of wall time after ready; ms/virt = the whole team's CPU "
+          "ms per virtual second (compare with the components' need above); latency p50 = a sink's "
+          "capture-to-receipt wall ms (worst chain of each kind)")
+    print(header)
+    results: dict[str, list[dict]] = {"before": [], "after": []}
+    for speed in speeds:
+        for label, tree in (("before", args.baseline_tree), ("after", None)):
+            if label == "before" and not tree:
+                continue
+            try:
+                r = run_once(speed, args.seconds, tree)
+            except Exception as exc:  # one speed that cannot start must not lose the others' figures
+                print(f"{label:9} {speed:>7.1f} failed: {exc}".splitlines()[0])
+                continue
+            results[label].append(r)
+            show(label, r, nodes)
+            sys.stdout.flush()
+    if args.json:
+        print(json.dumps({"cores": cores, "component_cpu_s_per_virtual_s": need, "limit": limit,
+                          "medians_s": medians, **results}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
