@@ -165,6 +165,13 @@ class FaultServer:
                         log.warning("control request from uid %s refused (this team belongs to uid %s)",
                                     uid, os.getuid())
                         reply = {"ok": False, "message": "refused: this team belongs to another user"}
+                        # take its request first (bounded, not acted on): closing on an unread request
+                        # broke the caller's send (EPIPE) before it could read why it was refused
+                        self.request.settimeout(2.0)
+                        try:
+                            self.rfile.readline(65536)
+                        except OSError:
+                            pass
                         self.wfile.write((json.dumps(reply) + "\n").encode())
                         return
                     request = json.loads(self.rfile.readline().decode() or "{}")
