@@ -120,3 +120,24 @@ def test_a_signal_that_lands_on_another_thread_wakes_the_loop_at_once():
         old = signal.set_wakeup_fd(-1)
         if old >= 0:
             os.close(old)  # the wake-up thread reads the end of its pipe and stops
+
+
+def test_a_repeated_plan_is_not_decoded_again_and_an_older_one_is_still_ignored(team, monkeypatch):  # noqa: F811
+    """The base station repeats its plan every second for late joiners: at rest, that is most of what
+    an agent receives."""
+    import autopower.agent.node as node_module
+    from autopower.protocol import encode
+
+    _, agents, _ = team
+    rt = agents["r1"].runtime
+    decoded = []
+    real = node_module.decode
+    monkeypatch.setattr(node_module, "decode", lambda payload, kind: decoded.append(kind) or real(payload, kind))
+    current = encode(rt.plan)  # the very bytes the fixture's base station sent
+    assert rt.on_message(rt.keys.plan, current) and rt.plan_order == (0, 1)
+    assert decoded == []  # its repeat: not decoded again
+    newer = encode(dataclasses.replace(rt.plan, epoch=2))
+    assert rt.on_message(rt.keys.plan, newer) and rt.plan_order == (0, 2) and len(decoded) == 1
+    assert rt.on_message(rt.keys.plan, current) and rt.plan_order == (0, 2)  # an older one: decoded, ignored
+    assert len(decoded) == 2
+    assert rt.on_message(rt.keys.plan, current) and len(decoded) == 2 and rt.plan_order == (0, 2)
