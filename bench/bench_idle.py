@@ -1,15 +1,19 @@
 """CPU of processes with nothing to do: a base station waiting for robots, a whole team at rest.
 
-    .venv/bin/python bench/bench_idle.py [--baseline PATH/TO/autopower] [--seconds S]
+    .venv/bin/python bench/bench_idle.py [--baseline DIR | PATH/TO/autopower] [--seconds S] [--variants]
 
-Not a timed test. CPU is read from /proc (user + system ticks) over S wall seconds and shown as
-a percentage of one core:
+Not a timed test. CPU is read from /proc (user + system ticks of every thread) over S wall
+seconds and shown as a percentage of one core:
 - a lone base station waiting for its robots (no agent ever comes);
-- a whole team under `up` (base station, three agents, link proxies and `up` itself) with
-  every chain disabled, i.e. at rest; beside it, the same team running its chains, measured
-  in the same run, as the baseline the rest is compared with.
-With --baseline, the waiting base station of another build is measured too (e.g. one whose
-wake-up time was 0 until the first plan, which spun a core).
+- a whole team under `up` (`up` itself with its link proxies and supervisor, the base station,
+  three agents) running the default mission, then at rest (every chain disabled): per process,
+  and split into the Python threads and Zenoh's own (its tokio runtimes: rx, tx, net, acc, ...).
+
+--baseline measures another build the same way in the same run, alternating with this one:
+a source checkout (``git worktree add /tmp/before main`` or ``git archive main autopower | tar
+-x -C DIR``; it runs on this venv with PYTHONPATH=DIR), or the `autopower` command of another
+venv (then only the waiting base station). --variants also measures this build's team at rest
+without link proxies (``up --direct-links``) and with a 2 s Zenoh lease: where the rest goes.
 """
 
 from __future__ import annotations
@@ -26,17 +30,28 @@ from pathlib import Path
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 TICKS = os.sysconf("SC_CLK_TCK")
+ZENOH_THREADS = ("rx-", "tx-", "net-", "acc-", "app-", "Watchdog")  # Zenoh's runtime threads (by name)
+
+
+def threads(pid: int) -> dict[int, tuple[str, int]]:
+    """tid -> (thread name, user + system ticks so far)."""
+    out = {}
+    try:
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except OSError:
+        return out
+    for task in tasks:
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        out[int(task.name)] = (stat[stat.index("(") + 1:stat.rindex(")")], int(fields[11]) + int(fields[12]))
+    return out
 
 
 def cpu_ticks(pids) -> int:
-    total = 0
-    for pid in pids:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            total += int(fields[11]) + int(fields[12])  # utime, stime
-        except (OSError, IndexError):
-            pass
-    return total
+    return sum(t for pid in pids for _, t in threads(pid).values())
 
 
 def tree(pid: int) -> list[int]:
@@ -60,65 +75,138 @@ def percent_of_core(pids_fn, seconds: float) -> float:
     return 100.0 * (after - before) / TICKS / (t1 - t0)
 
 
-def waiting_basestation(command: str, seconds: float) -> float:
+def per_process(pids: dict[str, int], seconds: float) -> dict[str, tuple[float, float]]:
+    """name -> (% of a core in all, % of it in Zenoh's threads), over ``seconds``."""
+    before, t0 = {n: threads(p) for n, p in pids.items()}, time.monotonic()
+    time.sleep(seconds)
+    after, dt = {n: threads(p) for n, p in pids.items()}, time.monotonic() - t0
+    out = {}
+    for name, now in after.items():
+        total = zenoh = 0
+        for tid, (comm, ticks) in now.items():
+            used = ticks - before[name].get(tid, (comm, 0))[1]  # a thread started meanwhile: all of it
+            total += used
+            zenoh += used if comm.startswith(ZENOH_THREADS) else 0
+        out[name] = (100.0 * total / TICKS / dt, 100.0 * zenoh / TICKS / dt)
+    return out
+
+
+def build_env(baseline_src: str | None, base: dict) -> dict:
+    env = dict(base)
+    if baseline_src:
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (baseline_src, os.environ.get("PYTHONPATH")) if p)
+    return env
+
+
+def waiting_basestation(command: str, seconds: float, src: str | None = None) -> float:
     proc = subprocess.Popen([command, "basestation", "--team", f"idle{os.getpid()}", "--listen", "tcp/127.0.0.1:0",
                              "--log-level", "error"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            env={**os.environ, "RERUN_ANALYTICS": "0"})
+                            env=build_env(src, {**os.environ, "RERUN_ANALYTICS": "0"}), cwd=tempfile.gettempdir())
     try:
-        time.sleep(3.0)  # past start-up
+        time.sleep(8.0)  # past start-up (slower on a loaded machine)
         return percent_of_core(lambda: [proc.pid], seconds)
     finally:
         proc.terminate()
         proc.wait(15)
 
 
-def team_at_rest(seconds: float) -> tuple[float, float]:
-    """(% of a core running its chains, % with every chain disabled) for a whole team under `up`."""
+def team(seconds: float, src: str | None = None, extra: tuple[str, ...] = (), running: bool = True) -> dict:
+    """{"running": per_process, "rest": per_process} for a whole team under `up` (the default mission)."""
     with tempfile.TemporaryDirectory() as tmp:
-        env = {**os.environ, "AUTOPOWER_STATE_DIR": str(Path(tmp) / "state"), "RERUN_ANALYTICS": "0"}
-        team = f"rest{os.getpid()}"
-        up = subprocess.Popen([AUTOPOWER, "up", "--team", team, "--json", "--log-dir", str(Path(tmp) / "logs")],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+        env = build_env(src, {**os.environ, "AUTOPOWER_STATE_DIR": str(Path(tmp) / "state"), "RERUN_ANALYTICS": "0"})
+        name = f"rest{os.getpid()}{int(time.monotonic() * 1000) % 100000}"
+        up = subprocess.Popen([AUTOPOWER, "up", "--team", name, "--json", "--log-dir", str(Path(tmp) / "logs"),
+                               *extra], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                              cwd=tmp)  # `python -m` puts the working directory first on the children's path
         try:
             def status() -> dict:
-                out = subprocess.run([AUTOPOWER, "status", "--team", team, "--json", "--timeout", "3"], env=env,
+                out = subprocess.run([AUTOPOWER, "status", "--team", name, "--json", "--timeout", "3"], env=env,
                                      capture_output=True, text=True, timeout=30)
-                return json.loads(out.stdout) if out.returncode == 0 else {}
+                try:
+                    return json.loads(out.stdout) if out.returncode == 0 else {}
+                except ValueError:
+                    return {}
 
             deadline = time.monotonic() + 90
-            while not status().get("ready"):
+            while not (snap := status()).get("ready"):
                 if time.monotonic() > deadline or up.poll() is not None:
                     raise SystemExit("the team did not get ready")
                 time.sleep(1.0)
             time.sleep(2.0)
-            running = percent_of_core(lambda: tree(up.pid), seconds)
-            for chain in status().get("running") or []:
-                subprocess.run([AUTOPOWER, "chain", "disable", chain, "--team", team], env=env,
+            children = {}
+            for pid in tree(up.pid)[1:]:
+                args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+                node = args[args.index(b"--robot") + 1].decode() if b"--robot" in args else "base station"
+                children[node] = pid
+            pids = {"up": up.pid, **dict(sorted(children.items()))}
+            out = {}
+            if running:
+                out["running"] = per_process(pids, seconds)
+            for chain in snap.get("running") or []:
+                subprocess.run([AUTOPOWER, "chain", "disable", chain, "--team", name], env=env,
                                capture_output=True, timeout=30)
-            time.sleep(3.0)  # the last frames drain
-            rest = percent_of_core(lambda: tree(up.pid), seconds)
-            return running, rest
+            time.sleep(4.0)  # the last frames drain, the statuses settle into their rest cadence
+            out["rest"] = per_process(pids, seconds)
+            return out
         finally:
-            up.send_signal(signal.SIGINT)
+            up.send_signal(signal.SIGTERM)
             try:
                 up.wait(30)
             except subprocess.TimeoutExpired:
                 up.kill()
 
 
+def show(label: str, this: dict, before: dict | None) -> None:
+    print(f"  {label}: % of one core, per process (of which Zenoh's threads)")
+    names = list(this)
+    for name in names + ["total"]:
+        def cell(m):
+            if m is None:
+                return ""
+            if name == "total":
+                return f"{sum(v[0] for v in m.values()):6.2f} ({sum(v[1] for v in m.values()):5.2f})"
+            v = m.get(name)
+            return f"{v[0]:6.2f} ({v[1]:5.2f})" if v else ""
+        row = f"    {name:13s} this build {cell(this):16s}"
+        if before is not None:
+            row += f"  before {cell(before):16s}"
+        print(row)
+
+
+def load() -> str:
+    return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--baseline", default=None)
-    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--baseline", default=None, help="a source checkout of the build to compare with, "
+                                                         "or its `autopower` command")
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--variants", action="store_true", help="also at rest without proxies, and with a 2 s lease")
     args = parser.parse_args()
-    print(f"CPU over {args.seconds:g} s wall, % of one core")
-    print(f"  base station waiting for robots (this build): {waiting_basestation(AUTOPOWER, args.seconds):6.2f} %")
+    src = cmd = None
     if args.baseline:
-        print(f"  base station waiting for robots (baseline):   {waiting_basestation(args.baseline, args.seconds):6.2f} %")
-    running, rest = team_at_rest(args.seconds)
-    print(f"  whole team (up + base station + 3 agents + link proxies), chains running: {running:6.2f} %")
-    print(f"  the same team at rest (every chain disabled):                              {rest:6.2f} %"
-          f"  ({rest / running:.2f}x running)")
+        if Path(args.baseline).is_dir():
+            src = str(Path(args.baseline).resolve())
+        else:
+            cmd = args.baseline
+    print(f"CPU over {args.seconds:g} s wall, % of one core ({os.cpu_count()} cores; load average {load()})")
+    print(f"  base station waiting for robots (this build): {waiting_basestation(AUTOPOWER, args.seconds):6.2f} %")
+    if src or cmd:
+        print(f"  base station waiting for robots (before):     "
+              f"{waiting_basestation(cmd or AUTOPOWER, args.seconds, src):6.2f} %")
+    before = team(args.seconds, src) if src else None
+    this = team(args.seconds)
+    show("whole team running the default mission (chains enabled)", this["running"],
+         before and before["running"])
+    show("the same team at rest (every chain disabled)", this["rest"], before and before["rest"])
+    if args.variants:
+        direct = team(args.seconds, extra=("--direct-links",), running=False)["rest"]
+        lease = team(args.seconds, extra=("--lease-ms", "2000"), running=False)["rest"]
+        print("  this build at rest, where the rest goes (% of one core in all, of which Zenoh's threads):")
+        for label, m in (("up --direct-links (no link proxies)", direct), ("up --lease-ms 2000 (keep-alives 4x rarer)", lease)):
+            print(f"    {label:44s} {sum(v[0] for v in m.values()):6.2f} ({sum(v[1] for v in m.values()):5.2f})")
+    print(f"  load average after: {load()}")
 
 
 if __name__ == "__main__":

@@ -97,6 +97,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.clock: Clock | None = None
         self.meter: BatteryMeter | None = None
         self.plan: PlanUpdate | None = None
+        self._plan_payload: bytes | None = None  # the last plan message handled (a repeat of it is skipped)
         self.network: Network | None = None
         self.hosted: dict[str, HostedStage] = {}
         self.orphans: dict[str, list[ChainFrame]] = {}
@@ -508,7 +509,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             elif key == self.keys.node_control(self.node):
                 self.on_control(payload)
             elif key == self.keys.plan:
-                self.on_plan(decode(payload, PlanUpdate))
+                # the base station repeats its plan every second (late joiners): the bytes handled
+                # last need no decoding again (plans only move forward: what was applied or ignored
+                # once would be ignored now)
+                if payload != self._plan_payload:
+                    self.on_plan(decode(payload, PlanUpdate))
+                    self._plan_payload = payload
             else:
                 return False
         except ProtocolError as exc:

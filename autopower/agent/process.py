@@ -25,6 +25,7 @@ from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMov
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
+from autopower.runtime.cadence import StatusCadence, silence_limit_s
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -40,6 +41,8 @@ class AgentConfig:
     team: str
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
     status_period_s: float = 0.5  # wall seconds between status messages
+    # at rest (nothing new in the status but what drifts with time), one every this many wall seconds
+    status_rest_period_s: float = 2.0
     status_window_s: float = 2.0  # wall seconds the reported mean power covers
     parent_pid: int | None = None  # stop when this process is gone (no orphans)
     subgroup: bool = True  # reallocate among the robots in reach when the base station is not
@@ -78,6 +81,8 @@ class Agent:
         self._heard_direct: dict[str, float] = {}  # node -> wall time of its last status received directly
         self._tokens: set[str] = set()  # nodes whose liveliness token we see
         self._silent: set[str] = set()  # nodes with a token but no direct status for too long
+        self._announced: dict[str, float] = {}  # node -> when its next status is due at the latest (it said)
+        self.cadence = StatusCadence(config.status_period_s, config.status_rest_period_s)
         self.subgroup_log: list[dict] = []
         self.stop_reason: str | None = None
 
@@ -176,14 +181,17 @@ class Agent:
         """Nodes in sight by their token whose statuses stopped arriving directly go out of sight."""
         # never sooner than the lease: a team configured with a long lease (radios that stay
         # saturated for seconds) must not have its peers declared gone by this detector first
-        limit = max(self.config.silence_periods * self.config.status_period_s, self.config.zenoh.lease_ms / 1000.0)
         # only once the statuses that arrived are taken: after the loop itself was held up (a put
         # blocked on a saturated radio for seconds) they wait in the queue, and judging before
         # taking them declared every peer silent (the testbed physics test's flake)
         if self.events.urgent_waiting():
             return
+        cfg = self.config
         for node in sorted(self._tokens - self._silent):
             heard = self._heard_direct.get(node)
+            # a node at rest sends its status less often and says so: silent is silent for its cadence
+            limit = silence_limit_s(cfg.silence_periods, cfg.status_period_s, self._announced.get(node, 0.0),
+                                    cfg.zenoh.lease_ms / 1000.0)
             if heard is not None and now - heard > limit:
                 log.info("agent %s: %s out of sight (no status for %.1f s; its token is still here)",
                          self.config.robot, self._who(node), now - heard)
@@ -222,6 +230,7 @@ class Agent:
                     rt.count("forged", problem)
                     return
                 if not relayed:
+                    self._announced[status.node] = status.next_status_s
                     self._heard(status.node)  # before the duplicate check: a relayed copy may come first
                 last = self.statuses.get(status.node)
                 if last is not None and status.t_unix <= last.t_unix:
@@ -389,23 +398,31 @@ class Agent:
         if state is not None:
             self.resume.save(state)
 
-    def publish_status(self) -> None:
+    def publish_status(self, *, urgent: bool = True, save_resume: bool = False) -> bool:
         """Our status, to everyone in sight and (relayed) to the base station if it is not.
 
         Also before the mission starts: with the relay topology the base station sees r2 and r3
         only through r1's statuses (who it sees) and theirs (relayed), and starts the mission as
         soon as every robot is known to be reachable rather than after the start grace.
+        The periodic one (not ``urgent``) is held back at rest (`StatusCadence`); False then.
+        ``save_resume``: the resume state is saved first (at rest its state only drifts: saved with
+        the statuses that go out, the restart charges idle power from there).
         """
         rt = self.runtime
         window = self.config.status_window_s * rt.clock.speed if rt.started else 0.0
         rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
-        status = rt.status(window, self.events.depth())
+        status = self.cadence.due(rt.status(window, self.events.depth()), time.time(), urgent=urgent)
+        if status is None:
+            return False
+        if save_resume:
+            self.save_resume()
         key, payload = self.keys.status(self.config.robot), encode(status)
         self._bus.publish(key, payload, reliable=False)
         # out of the base station's sight: through a robot that still sees it; and to the robots
         # whose frames we consume, for whom the status is the acknowledgement
         dests = {self.config.scenario.basestation} | rt.producers()
         self.relayer.send_beyond_sight(sorted(dests), key, payload, reliable=False)
+        return True
 
     def run(self, max_wall_s: float | None = None) -> str:
         """Run until stopped, depleted or ``max_wall_s``; return why it stopped."""
@@ -420,7 +437,11 @@ class Agent:
             if rt.started and (t := rt.next_deadline()) is not None:
                 wake.append(rt.clock.wall_at(t))
             if self._base_lost_at is not None:  # the subgroup forms when the settle ends, not at the next event
-                wake.append(max(self._base_lost_at + self.config.subgroup_settle_s, self._subgroup_retry_at))
+                settled = max(self._base_lost_at + self.config.subgroup_settle_s, self._subgroup_retry_at)
+                if settled > now:  # once past, waking for it again would spin the loop (a core at 100 %)
+                    wake.append(settled)
+            if rt.started and self.agreement.round is not None:  # a subgroup round times out on its own deadline
+                wake.append(self.agreement.round.deadline)
             event = self.events.get(max(0.0, min(wake) - now))
             if isinstance(event, StopRequested):
                 self.stop_reason = event.reason
@@ -443,8 +464,7 @@ class Agent:
                     break
             now = time.time()
             if now >= next_status:
-                self.save_resume()
-                self.publish_status()
+                self.publish_status(urgent=False, save_resume=True)
                 next_status = max(next_status + self.config.status_period_s, now)
                 if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                     self.stop_reason = "parent exited"

@@ -43,6 +43,7 @@ from autopower.protocol import (
 )
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
+from autopower.runtime.cadence import StatusCadence
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -78,6 +79,7 @@ class BaseStationConfig:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
     coordinator: CoordinatorConfig = field(default_factory=CoordinatorConfig)
     status_period_s: float = 0.5
+    status_rest_period_s: float = 2.0  # at rest (nothing new but what drifts), a status this often
     status_window_s: float = 2.0
     parent_pid: int | None = None
     # after losing sight of a robot, how long to wait for the other robots' word on it:
@@ -109,6 +111,7 @@ class BaseStation:
         self.relayer: Relayer | None = None
         self._suspects: dict[str, float] = {}  # robot out of direct sight -> when
         self._status_t: dict[str, float] = {}  # node -> t_unix of its newest status seen
+        self.cadence = StatusCadence(config.status_period_s, config.status_rest_period_s)
         self._lock_fd: int | None = None
         self._kept_incarnation: int | None = None  # what the state directory says we used last
 
@@ -390,8 +393,11 @@ class BaseStation:
             now = time.time()
             if now >= next_status:
                 next_status = max(next_status + self.config.status_period_s, now)
-                if rt.started:
-                    status = rt.status(self.config.status_window_s * rt.clock.speed, self.events.depth())
+                status = None
+                if rt.started:  # held back at rest: nothing new in it but what drifts with time
+                    status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
+                                                        self.events.depth()), now)
+                if status is not None:
                     key, payload = self.keys.status(self.node), encode(status)
                     # what this status acknowledges is kept first: the sink's notes here, the recording
                     # of those outputs by the recording bus (`Recorder.before_publish`); an operator's

@@ -36,6 +36,7 @@ def run_until_signalled(process, duration: float | None) -> str:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    process.events.wake_on_signals()  # its loop then sleeps until its next due event, not in slices
     return process.run(duration)
 
 

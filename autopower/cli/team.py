@@ -30,6 +30,7 @@ from autopower.model.network import build_network
 
 
 SNAPSHOT_EVERY_S = 1.0  # how often `up` without a live table asks the base station how things are
+SNAPSHOT_AT_REST_S = 5.0  # the same while no chain runs (a snapshot costs the base station too)
 STATUS_LINE_EVERY_S = 5.0  # how often it prints a plain status line to a pipe or a log
 RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still being written
 
@@ -150,7 +151,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                 for event in team.check_children():  # a crash restarts that process; the rest run on
                     click.echo(f"supervisor: {event.line()}", err=True)
                 now = time.monotonic()
-                if now - last_poll >= SNAPSHOT_EVERY_S:
+                if now - last_poll >= (SNAPSHOT_EVERY_S if snap.get("running") else SNAPSHOT_AT_REST_S):
                     last_poll = now
                     try:
                         snap = team.snapshot(timeout_s=2.0)

@@ -31,7 +31,7 @@ class LinkProxy:
         self.name = name
         self.target = (target_host, target_port)
         self._server = server or socket.create_server(("127.0.0.1", listen_port), reuse_port=False)
-        self._server.settimeout(0.2)
+        self._server.settimeout(None)  # accept blocks; `close` wakes it (no wake-up every 0.2 s at rest)
         self.port = self._server.getsockname()[1]
         self._cut = threading.Event()
         self._closed = threading.Event()
@@ -56,6 +56,10 @@ class LinkProxy:
 
     def close(self) -> None:
         self._closed.set()
+        try:
+            self._server.shutdown(socket.SHUT_RDWR)  # wakes the blocked accept (Linux)
+        except OSError:
+            pass
         self._server.close()
         self._close_all()
         if self._acceptor.is_alive():
@@ -85,9 +89,10 @@ class LinkProxy:
         while not self._closed.is_set():
             try:
                 client, _ = self._server.accept()
-            except TimeoutError:
-                continue
-            except OSError:
+            except OSError:  # closed (shut down under a blocked accept)
+                return
+            if self._closed.is_set():
+                client.close()
                 return
             client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             if self._cut.is_set():

@@ -42,7 +42,8 @@ from autopower.model.scenario import Scenario
 log = logging.getLogger(__name__)
 
 HOST = "127.0.0.1"
-SUPERVISE_EVERY_S = 0.05  # how often the supervisor looks for crashed children
+SUPERVISE_EVERY_S = 0.05  # how often the supervisor looks for crashed children (without pidfds)
+SUPERVISE_IDLE_S = 0.5  # with pidfds it sleeps until a child exits, a restart is due, or this long
 
 
 def free_ports(n: int, host: str = HOST) -> list[int]:
@@ -283,12 +284,40 @@ class LocalTeam:
         return events
 
     def _supervise(self) -> None:
-        while not self._stopping:
-            events = self._supervise_once()
-            if events:
-                with self._lock:
-                    self._pending_events.extend(events)
+        pidfds: dict[int, int] = {}  # pid -> its pidfd: readable once that child has exited
+        try:
+            while not self._stopping:
+                events = self._supervise_once()
+                if events:
+                    with self._lock:
+                        self._pending_events.extend(events)
+                self._wait_for_children(pidfds)
+        finally:
+            for fd in pidfds.values():
+                os.close(fd)
+
+    def _wait_for_children(self, pidfds: dict[int, int]) -> None:
+        """Sleep until a watched child exits or a restart is due, rather than polling every 50 ms."""
+        if not hasattr(os, "pidfd_open"):
             time.sleep(SUPERVISE_EVERY_S)
+            return
+        import select
+
+        with self._lock:
+            # a child that exited and was dealt with (reaped: returncode set) would keep its pidfd readable
+            watched = {c.proc.pid for c in self.children.values()
+                       if c.proc.returncode is None and c.name not in self.expected_exits and c.name not in self._down}
+            due = self.supervisor.next_due() if self.supervisor is not None else None
+        for pid in set(pidfds) - watched:
+            os.close(pidfds.pop(pid))
+        for pid in watched - set(pidfds):
+            try:
+                pidfds[pid] = os.pidfd_open(pid)
+            except OSError:  # gone already: the next round sees it exited
+                time.sleep(SUPERVISE_EVERY_S)
+                return
+        timeout = SUPERVISE_IDLE_S if due is None else min(SUPERVISE_IDLE_S, max(0.0, due - time.monotonic()))
+        select.select(list(pidfds.values()), [], [], timeout)
 
     def _supervise_once(self) -> list[SupervisorEvent]:
         events: list[SupervisorEvent] = []

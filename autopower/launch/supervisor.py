@@ -109,6 +109,10 @@ class Supervisor:
         mono = time.monotonic() if now is None else now
         return [n for n, w in self._watch.items() if w.restart_at is not None and w.restart_at <= mono]
 
+    def next_due(self) -> float | None:
+        """The monotonic time of the next restart due (None: none scheduled)."""
+        return min((w.restart_at for w in self._watch.values() if w.restart_at is not None), default=None)
+
     def waiting(self, node: str) -> bool:
         """A restart of `node` is scheduled (it is down on purpose, not gone)."""
         w = self._watch.get(node)

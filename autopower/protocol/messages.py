@@ -347,6 +347,9 @@ class NodeStatus:
     mission: MissionInfo | None = None  # the mission clock and starting energies it meters (None: not started)
     generations: dict[str, int] = field(default_factory=dict)  # stage -> generation of the instance hosted here
     plan_operator: OperatorSettings | None = None  # the operator's settings in the plan it runs
+    # wall seconds until this node's next status at the latest: its status period, or a longer one at
+    # rest (nothing new to say; `runtime.cadence`); 0: not said (the receiver's own period applies)
+    next_status_s: float = 0.0
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import signal
 import threading
 import time
 from collections import deque
@@ -83,6 +85,9 @@ class EventQueue:
         self._admit = admit
         self.rejected = 0
         self._reject_logged_at = -math.inf
+        # how long `get` waits at a time: short unless `wake_on_signals` makes signals wake it
+        self._slice_s: float | None = SIGNAL_SLICE_S
+        self._nudged = False
 
     def post(self, event: Event, *, bulk: bool = False) -> None:
         size = len(event.payload) if isinstance(event, Received) else 0
@@ -121,17 +126,43 @@ class EventQueue:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         with self._cond:
             while not (self._urgent or self._bulk):
-                left = SIGNAL_SLICE_S if deadline is None else min(SIGNAL_SLICE_S, deadline - time.monotonic())
-                if left <= 0:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
                     break
-                # Short slices: a signal that lands on a transport thread only runs its Python
-                # handler when this thread returns to the interpreter.
+                # Short slices unless signals wake us: a signal that lands on a transport thread
+                # only runs its Python handler when this thread returns to the interpreter.
+                if self._slice_s is not None:
+                    left = self._slice_s if left is None else min(self._slice_s, left)
                 self._cond.wait(left)
+                if self._nudged:
+                    self._nudged = False
+                    break  # back to the interpreter: the signal's handler runs (and posts its event)
             if self._urgent:
                 return self._take(self._urgent, False)
             if self._bulk:
                 return self._take(self._bulk, True)
             return None
+
+    def wake_on_signals(self) -> None:
+        """Wake `get` when a signal arrives, wherever it lands; then it sleeps until its timeout.
+
+        Call from the main thread, once its signal handlers are set. Without this, `get` wakes
+        every `SIGNAL_SLICE_S` to let a handler run: ten wake-ups a second in a process at rest.
+        Python writes each signal's number to the wakeup fd from its C handler, on whatever
+        thread the signal lands; a small thread waits on that pipe and nudges the queue.
+        """
+        read_fd, write_fd = os.pipe()
+        os.set_blocking(write_fd, False)
+        signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+
+        def nudge() -> None:
+            while os.read(read_fd, 64):
+                with self._cond:
+                    self._nudged = True
+                    self._cond.notify_all()
+
+        threading.Thread(target=nudge, name="signal-wakeup", daemon=True).start()
+        self._slice_s = None
 
     def depth(self) -> int:
         return len(self._urgent) + len(self._bulk)

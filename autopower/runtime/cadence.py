@@ -1,0 +1,59 @@
+"""When a node publishes its status: every period while anything in it changes, slower at rest.
+
+A team at rest (every chain disabled, nothing in flight) would otherwise send, receive and
+decode every node's status every period for nothing: most of what a resting team costs. A
+status that says nothing new beyond what drifts with time (clock, battery, energy, mean power)
+is held back until the rest period has passed since the last one; anything else in it (a plan,
+a stage, a counter, a link, an acknowledgement) goes out at the next period, as it always did.
+
+Every status announces when the next one is due (``NodeStatus.next_status_s``): a receiver's
+status-silence detector waits that long, not its own period, so it neither fires at a resting
+node nor waits longer than today for an active one. The status that first finds the node at
+rest announces the rest period, so no receiver ever expects the short one when it is not coming.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from autopower.protocol import NodeStatus
+
+# What changes with time alone, also at rest: not a reason to speak before the rest period.
+DRIFTING = {"t_virtual": 0.0, "t_unix": 0.0, "battery_j": None, "energy_j": {}, "power_w": {},
+            "cpu_utilisation": 0.0, "next_status_s": 0.0}
+
+
+class StatusCadence:
+    """Decides, for each status a node builds, whether it goes out now and what it announces."""
+
+    def __init__(self, period_s: float, rest_period_s: float):
+        self.period_s = period_s
+        self.rest_period_s = max(period_s, rest_period_s)
+        self._last: NodeStatus | None = None  # the last status sent, drifting fields blanked
+        self._last_wall: float | None = None
+        self._last_announced = period_s
+
+    def due(self, status: NodeStatus, now: float, *, urgent: bool = False) -> NodeStatus | None:
+        """``status`` with the announcement to publish now, or None (held back: nothing new).
+
+        ``urgent``: something the others must hear at once (a link seen or lost, a new plan): it
+        goes out and announces the normal period.
+        """
+        steady = dataclasses.replace(status, **DRIFTING)
+        unchanged = steady == self._last
+        if (unchanged and not urgent and self._last_announced == self.rest_period_s and self._last_wall is not None
+                and now - self._last_wall < self.rest_period_s - self.period_s / 2):
+            return None
+        # unchanged since the last one: the node is at rest, say the next comes after the rest period
+        # (an urgent one says something changed: the normal cadence)
+        announced = self.rest_period_s if unchanged and not urgent else self.period_s
+        self._last, self._last_wall, self._last_announced = steady, now, announced
+        return dataclasses.replace(status, next_status_s=announced)
+
+
+def silence_limit_s(periods: float, own_period_s: float, announced_s: float, lease_s: float) -> float:
+    """How long a node's statuses may stay away before it counts as silent (out of sight).
+
+    ``periods`` of its announced period (ours if it announced none), never sooner than the lease.
+    """
+    return max(periods * max(own_period_s, announced_s), lease_s)

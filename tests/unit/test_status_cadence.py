@@ -1,0 +1,143 @@
+"""A node at rest speaks less often and says so; the silence detector waits for what it said.
+
+Also: a signal wakes a process's event loop wherever it lands, without the loop polling.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import threading
+import time
+
+from autopower.protocol import NodeStatus
+from autopower.runtime.cadence import StatusCadence, silence_limit_s
+from autopower.runtime.events import EventQueue, StopRequested
+from tests.unit.test_subgroup_rounds import drain, team  # noqa: F401 - `team` is a fixture
+
+
+def status(t: float, battery: float = 100.0, **changes) -> NodeStatus:
+    base = NodeStatus(node="r1", t_virtual=t, t_unix=1000.0 + t, plan_epoch=1, initial_j=200.0, battery_j=battery,
+                      energy_j={"cpu_idle": 200.0 - battery}, power_w={"cpu_idle": 1.3}, cpu_utilisation=0.0,
+                      hosted={}, sources={}, sinks={}, links={"laptop": True}, runs={}, compute_ms={},
+                      queue_depth=0, errors={}, counters={"forwarded": 3}, depleted=False)
+    return dataclasses.replace(base, **changes)
+
+
+def test_a_status_with_nothing_new_but_what_drifts_goes_out_at_the_rest_period_and_says_so():
+    cadence = StatusCadence(0.5, 2.0)
+    first = cadence.due(status(0.0), 0.0)
+    assert first is not None and first.next_status_s == 0.5
+    # the clock, the battery, the energy and the mean power drift at rest: nothing new
+    resting = cadence.due(status(0.5, battery=99.0), 0.5)
+    assert resting is not None and resting.next_status_s == 2.0  # the first one at rest announces it
+    assert resting.battery_j == 99.0 and resting.t_virtual == 0.5  # sent as built, drift included
+    assert [cadence.due(status(t, battery=99.0 - t), t) for t in (1.0, 1.5, 2.0)] == [None] * 3
+    heartbeat = cadence.due(status(2.5, battery=97.0), 2.5)  # the rest period has passed
+    assert heartbeat is not None and heartbeat.next_status_s == 2.0
+    # anything else new (a counter, a stage, a link) goes out at once, on the normal cadence
+    busy = cadence.due(status(3.0, counters={"forwarded": 4}), 3.0)
+    assert busy is not None and busy.next_status_s == 0.5
+    assert cadence.due(status(3.5, hosted={"Blob-1": "running"}), 3.5).next_status_s == 0.5
+
+
+def test_an_urgent_status_always_goes_out_and_announces_the_normal_period():
+    cadence = StatusCadence(0.5, 2.0)
+    cadence.due(status(0.0), 0.0)
+    cadence.due(status(0.5), 0.5)
+    assert cadence.due(status(1.0), 1.0) is None
+    urgent = cadence.due(status(1.0), 1.0, urgent=True)
+    assert urgent is not None and urgent.next_status_s == 0.5
+    assert cadence.due(status(1.5), 1.5).next_status_s == 2.0  # at rest again: said at once
+
+
+def test_the_silence_limit_follows_the_announced_period_never_below_the_lease_or_our_own():
+    assert silence_limit_s(2.0, 0.5, 0.0, 0.5) == 1.0  # nothing announced: our period, as before
+    assert silence_limit_s(2.0, 0.5, 0.5, 0.5) == 1.0
+    assert silence_limit_s(2.0, 0.5, 2.0, 0.5) == 4.0  # a node at rest
+    assert silence_limit_s(2.0, 0.5, 0.5, 3.0) == 3.0  # a long lease
+
+
+def test_a_resting_peer_is_not_declared_silent_between_its_statuses_and_is_when_they_stop(team):  # noqa: F811
+    hub, agents, _ = team
+    r1, r2 = agents["r1"], agents["r2"]
+    assert r2.publish_status()  # urgent (a link, a plan): out at once, the normal period
+    drain(hub, agents)
+    assert r1.statuses["r2"].next_status_s == 0.5
+    assert r2.publish_status(urgent=False)  # nothing new: it says the next comes in 2 s
+    drain(hub, agents)
+    assert r1.statuses["r2"].next_status_s == 2.0
+    assert not r2.publish_status(urgent=False)  # held back: nothing new, the rest period not over
+    heard = time.time()
+    r1._check_silence(heard + 1.2)  # a peer with the normal cadence would be out of sight by now
+    assert "r2" in r1.relayer.direct and "r2" not in r1._silent
+    r1._check_silence(heard + 4.2)  # two of its periods without a word: out of sight
+    assert "r2" in r1._silent and "r2" not in r1.relayer.direct
+    # it has something to say again: back in sight, and the normal cadence applies at once
+    r2.runtime.tally("forwarded")
+    assert r2.publish_status(urgent=False)
+    drain(hub, agents)
+    assert "r2" in r1.relayer.direct and r1.statuses["r2"].next_status_s == 0.5
+    r1._check_silence(time.time() + 1.2)
+    assert "r2" in r1._silent
+
+
+def voluntary_switches() -> int:
+    """How often this thread has gone to sleep so far."""
+    text = open(f"/proc/self/task/{threading.get_native_id()}/status").read()
+    return int(text.split("voluntary_ctxt_switches:")[1].split()[0])
+
+
+def test_a_signal_that_lands_on_another_thread_wakes_the_loop_at_once():
+    """Without polling: the queue sleeps its whole timeout unless a signal (or an event) comes."""
+    queue = EventQueue()
+    previous = signal.signal(signal.SIGUSR1, lambda *_: queue.post(StopRequested("SIGUSR1")))
+    try:
+        queue.wake_on_signals()
+        switches = voluntary_switches()
+        assert queue.get(1.0) is None  # nothing to do: it sleeps the timeout through, in one wait
+        assert voluntary_switches() - switches <= 3  # it did not wake every 0.1 s to look for signals
+        ready = threading.Event()
+
+        def elsewhere() -> None:  # a transport thread, blocked in native code, takes the signal
+            ready.wait()
+            time.sleep(0.2)
+            signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)
+            time.sleep(0.5)
+
+        thread = threading.Thread(target=elsewhere, daemon=True)
+        thread.start()
+        ready.set()
+        t0 = time.monotonic()
+        event = None
+        while event is None and time.monotonic() - t0 < 30.0:  # woken, it may return before the handler ran
+            event = queue.get(30.0)
+        assert isinstance(event, StopRequested) and time.monotonic() - t0 < 5.0
+        thread.join()
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+        old = signal.set_wakeup_fd(-1)
+        if old >= 0:
+            os.close(old)  # the wake-up thread reads the end of its pipe and stops
+
+
+def test_a_repeated_plan_is_not_decoded_again_and_an_older_one_is_still_ignored(team, monkeypatch):  # noqa: F811
+    """The base station repeats its plan every second for late joiners: at rest, that is most of what
+    an agent receives."""
+    import autopower.agent.node as node_module
+    from autopower.protocol import encode
+
+    _, agents, _ = team
+    rt = agents["r1"].runtime
+    decoded = []
+    real = node_module.decode
+    monkeypatch.setattr(node_module, "decode", lambda payload, kind: decoded.append(kind) or real(payload, kind))
+    current = encode(rt.plan)  # the very bytes the fixture's base station sent
+    assert rt.on_message(rt.keys.plan, current) and rt.plan_order == (0, 1)
+    assert decoded == []  # its repeat: not decoded again
+    newer = encode(dataclasses.replace(rt.plan, epoch=2))
+    assert rt.on_message(rt.keys.plan, newer) and rt.plan_order == (0, 2) and len(decoded) == 1
+    assert rt.on_message(rt.keys.plan, current) and rt.plan_order == (0, 2)  # an older one: decoded, ignored
+    assert len(decoded) == 2
+    assert rt.on_message(rt.keys.plan, current) and len(decoded) == 2 and rt.plan_order == (0, 2)
