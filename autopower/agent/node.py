@@ -480,7 +480,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                                 max_seq=l.max_seq, stale=l.stale, latency_ms_p50=l.latency_ms_p50,
                                 latency_ms_max=l.latency_ms_max, received_total=l.received_total,
                                 duplicates_total=l.duplicates_total, digest=l.digest,
-                                redundant_total=l.redundant_total)
+                                redundant_total=l.redundant_total, given_up_total=l.given_up_total)
                    for n, l in self.sinks.items()},
             links={n: n in self.alive for n in others},
             runs={n: h.runs for n, h in self.hosted.items() if h.runs},

@@ -25,6 +25,12 @@ T = TypeVar("T")
 MAX_MISSING = 256  # seqs listed as missing in one report (the lowest ones)
 GATE_MAX_GAP_S = 10.0  # wall seconds a gap may stay open (several resend rounds) before it is given up
 GATE_MAX_PENDING = 512  # inputs waiting behind a gap, at most (memory: camera frames are 230 kB)
+# Outputs a sink keeps above a gap before it gives the gap up. A gap its producer gave up on (a
+# stage's gate skipped those inputs) never fills, and everything after it then stayed in the
+# ledger: its report and journal grew with the mission (100,000 outputs: 4.4 ms a report, 97 ms a
+# journal snapshot; the whole mission at x55 fell behind after 9 minutes). 4,096 outputs are 18 s
+# of both camera chains at x55, far beyond custody's resends.
+SINK_MAX_AHEAD = 4096
 
 
 def missing_between(low: int, high: int, have) -> tuple[int, ...]:
@@ -146,7 +152,7 @@ class SinkLedger:
     """Counts one chain's outputs at its sink: received, duplicated, contiguous prefix."""
 
     run: int = -1
-    contiguous: int = 0  # every seq < contiguous has arrived
+    contiguous: int = 0  # every seq < contiguous has arrived (or was given up: see SINK_MAX_AHEAD)
     above: set[int] = field(default_factory=set)  # arrived seqs >= contiguous
     received: int = 0
     duplicates: int = 0
@@ -160,6 +166,9 @@ class SinkLedger:
     _waiting: dict[int, int] = field(default_factory=dict)  # CRC-32 of the data of seqs above the prefix
     redundant_total: int = 0  # second copies where a retransmission was involved (expected)
     _resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first received as a resend
+    given_up_total: int = 0  # seqs whose gap stayed open behind SINK_MAX_AHEAD outputs (lost, unless they come late)
+    late_total: int = 0  # given-up seqs that came after all (delivered, counted as received)
+    _given_up: deque = field(default_factory=lambda: deque(maxlen=SINK_MAX_AHEAD))  # recent given-up seqs
 
     def record(self, run: int, seq: int, latency_ms: float | None = None, data: bytes = b"",
                attempt: int = 0, crc: int | None = None) -> bool:
@@ -179,6 +188,13 @@ class SinkLedger:
             self.latencies_ms.clear()
             self.digest, self._waiting = 0, {}
             self._resent.clear()
+            self._given_up.clear()
+        if seq < self.contiguous and seq in self._given_up:  # late, not lost after all
+            self._given_up.remove(seq)
+            self.late_total += 1
+            self.received += 1
+            self.received_total += 1
+            return True
         if seq < self.contiguous or seq in self.above:
             if attempt > 0 or seq in self._resent:
                 self.redundant_total += 1
@@ -190,10 +206,13 @@ class SinkLedger:
             self._resent.append(seq)
         self.above.add(seq)
         self._waiting[seq] = zlib.crc32(data) if crc is None else crc
-        while self.contiguous in self.above:
-            self.above.remove(self.contiguous)
-            self.digest = fold_crc(self.digest, self.contiguous, self._waiting.pop(self.contiguous))
-            self.contiguous += 1
+        self._advance()
+        if len(self.above) > SINK_MAX_AHEAD:  # the gap below them will not fill: give it up
+            first = min(self.above)
+            self._given_up.extend(range(max(self.contiguous, first - SINK_MAX_AHEAD), first))
+            self.given_up_total += first - self.contiguous
+            self.contiguous = first  # the digest covers what arrived; a given-up seq is not in it
+            self._advance()
         self.received += 1
         self.received_total += 1
         self.max_seq = max(self.max_seq, seq)
@@ -201,6 +220,12 @@ class SinkLedger:
             self.latencies_ms.append(latency_ms)
             self.latency_ms_max = max(self.latency_ms_max, latency_ms)
         return True
+
+    def _advance(self) -> None:
+        while self.contiguous in self.above:
+            self.above.remove(self.contiguous)
+            self.digest = fold_crc(self.digest, self.contiguous, self._waiting.pop(self.contiguous))
+            self.contiguous += 1
 
     def report(self) -> Consumed | None:
         """What this sink has received (None before its first output)."""
@@ -215,7 +240,7 @@ class SinkLedger:
                 "waiting": {str(s): c for s, c in self._waiting.items()}, "received": self.received,
                 "max_seq": self.max_seq, "received_total": self.received_total,
                 "duplicates_total": self.duplicates_total, "redundant_total": self.redundant_total,
-                "digest": self.digest}
+                "digest": self.digest, "given_up_total": self.given_up_total, "late_total": self.late_total}
 
     @classmethod
     def from_state(cls, state: dict) -> "SinkLedger":
@@ -226,6 +251,7 @@ class SinkLedger:
                      duplicates_total=int(state["duplicates_total"]),
                      redundant_total=int(state["redundant_total"]), digest=int(state["digest"]))
         ledger._waiting = {int(s): int(c) for s, c in state["waiting"].items()}
+        ledger.given_up_total, ledger.late_total = int(state.get("given_up_total", 0)), int(state.get("late_total", 0))
         if set(ledger._waiting) != ledger.above or any(s < ledger.contiguous for s in ledger.above):
             raise ValueError("a sink state whose outputs above the prefix do not add up")
         return ledger

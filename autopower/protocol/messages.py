@@ -79,6 +79,7 @@ class SinkStats:
     duplicates_total: int
     digest: int  # sequencing.fold_digest over the outputs of seqs < contiguous
     redundant_total: int = 0  # copies of a retransmitted output that arrived twice (expected, dropped)
+    given_up_total: int = 0  # seqs the sink stopped waiting for (sequencing.SINK_MAX_AHEAD): lost unless late
 
 
 @struct

@@ -50,6 +50,34 @@ def test_sink_ledger():
     assert not ledger.record(0, 7) and ledger.stale == 1
 
 
+def test_a_sink_gives_up_a_gap_that_does_not_fill_and_stays_small():
+    """A gap its producer gave up on never fills: the ledger stops waiting once SINK_MAX_AHEAD
+    outputs sit above it (it kept every later output, and its report and journal grew with the
+    mission); the seq counts as lost, and as received if it comes late after all."""
+    import json
+
+    from autopower.agent.sequencing import SINK_MAX_AHEAD
+
+    ledger = SinkLedger()
+    for seq in range(3 * SINK_MAX_AHEAD):
+        if seq != 5:  # never produced: its inputs were given up upstream
+            assert ledger.record(0, seq, data=bytes([seq % 251]))
+    assert ledger.given_up_total == 1 and ledger.gaps == 1 and ledger.contiguous == 3 * SINK_MAX_AHEAD
+    assert not ledger.above and ledger.report().missing == ()
+    assert len(json.dumps(ledger.state())) < 1000  # not every output since the gap
+    assert ledger.record(0, 5, data=b"late")  # it came after all: delivered, not a duplicate
+    assert ledger.late_total == 1 and ledger.gaps == 0 and ledger.duplicates_total == 0
+    assert not ledger.record(0, 5, data=b"late")  # and once only
+    assert ledger.duplicates_total == 1
+    again = SinkLedger.from_state(ledger.state())
+    assert (again.given_up_total, again.late_total, again.contiguous) == (1, 1, ledger.contiguous)
+    # a gap that fills within the limit is waited for, as before
+    ledger = SinkLedger()
+    for seq in [0, *range(2, SINK_MAX_AHEAD), 1]:
+        assert ledger.record(0, seq)
+    assert ledger.given_up_total == 0 and ledger.contiguous == SINK_MAX_AHEAD
+
+
 def test_pad():
     assert pad(b"ab", 4, "x") == b"ab\0\0"
     with pytest.raises(ProtocolError, match="exceeds the chain's declared"):
