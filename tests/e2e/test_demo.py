@@ -54,9 +54,12 @@ def test_demo_json(tmp_path):
     assert shown.returncode == 0, shown.stderr[-3000:]
     replay = json.loads(shown.stdout)
     # the replay of the recording tells the story the demo measured live: the same faults, each
-    # seen and handled at the same wall time. Detection (the base station losing a robot's
-    # liveliness) and a subgroup's commit (the leader's decision) are stamped by the same process
-    # in both: within 0.1 s. A replan is done when the last robot acknowledges it: the recording
+    # seen and handled at the same wall time. A subgroup's commit (the leader's decision) is
+    # stamped by the same process in both: within 0.1 s. Detection is not quite the same fact: the
+    # replay counts a cut as seen when either end of the link saw it (r1 may lose the base station
+    # before the base station loses r1), the live figure when the base station knew (its own
+    # lease, or r1's report relayed through another robot), so the live one may be later by that
+    # delivery, never earlier. A replan is done when the last robot acknowledges it: the recording
     # stamps the acknowledgement where it is sent, the live figure when the base station has
     # heard it (relayed through another robot for r1), so the live one is later by that delivery.
     speed = replay["speed"]
@@ -64,7 +67,7 @@ def test_demo_json(tmp_path):
     for told, seen in zip(replay["faults"], out["live"]["faults"], strict=True):
         assert told["parts"] == seen["parts"]
         assert told["reconfigured_by"].split()[0] == seen["reconfigured_by"].split()[0]
-        assert abs(told["detected_wall_s"] - seen["detected_wall_s"]) <= 0.1, (told, seen)
+        assert -0.1 <= seen["detected_wall_s"] - told["detected_wall_s"] <= 0.4, (told, seen)
         late = seen["reconfigured_wall_s"] - told["reconfigured_wall_s"]
         if told["reconfigured_by"].startswith("subgroup"):
             assert abs(late) <= 0.1, (told, seen)
