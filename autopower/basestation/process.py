@@ -42,6 +42,7 @@ from autopower.protocol import (
     encode,
 )
 from autopower.protocol.access import TeamAccess, status_problem
+from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.cadence import StatusCadence
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
@@ -56,6 +57,7 @@ class Host(Protocol):
 
     started: bool
     clock: Any
+    errors: dict[str, int]  # counted troubles by kind (a status carries them)
 
     def on_message(self, key: str, payload: bytes) -> bool: ...
 
@@ -98,7 +100,8 @@ class BaseStation:
         self.config = config
         self.keys = Keys(config.team)
         self.node = config.scenario.basestation
-        self.events = EventQueue(bulk_keys=[self.keys.node_data(self.node)])
+        # everything it subscribes to is an encoded message: random bytes never take queue room
+        self.events = EventQueue(bulk_keys=[self.keys.node_data(self.node)], admit=looks_like_message)
         self._bus = bus
         self._owns_bus = bus is None
         self._handles: list = []
@@ -352,6 +355,7 @@ class BaseStation:
 
     def snapshot(self, base: dict[str, Any] | None = None) -> dict[str, Any]:
         snap = dict(base) if base is not None else self.coordinator.snapshot()
+        self.runtime.errors.update(self.events.counts())  # dropped before the loop saw them
         if self.runtime.started:
             status = self.runtime.status(self.config.status_window_s * self.runtime.clock.speed,
                                          self.events.depth())
@@ -395,6 +399,7 @@ class BaseStation:
                 next_status = max(next_status + self.config.status_period_s, now)
                 status = None
                 if rt.started:  # held back at rest: nothing new in it but what drifts with time
+                    rt.errors.update(self.events.counts())  # dropped before the loop saw them
                     status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
                                                         self.events.depth()), now)
                 if status is not None:

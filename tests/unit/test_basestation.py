@@ -23,6 +23,7 @@ from autopower.protocol import (
     decode,
     encode,
 )
+from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.events import StopRequested
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
@@ -273,7 +274,13 @@ def test_base_station_process_survives_garbage_on_every_key(sc):
         assert sum(not a.ok for a in answers) >= len(garbage) - 1
         assert decode(good.replies[0], OperatorReply).ok
         published_keys = len(keys.all_keys_of("laptop", basestation=True)) - 1
-        assert base.runtime.errors["garbled"] == published_keys * len(garbage) + len(garbage) - 1
+        # what does not even start like a message is dropped before it is queued (`not-a-message`,
+        # as at the agents); what does and fails to decode is `garbled`
+        not_messages = sum(not looks_like_message(junk) for junk in garbage)
+        assert base.events.rejected == published_keys * not_messages
+        assert base.runtime.errors["garbled"] == published_keys * (len(garbage) - not_messages) + len(garbage) - 1
+        base.snapshot()  # what an operator's `status` shows counts both
+        assert base.runtime.errors["not-a-message"] == published_keys * not_messages
         assert "internal-error" not in base.runtime.errors
 
 
