@@ -29,11 +29,17 @@ SMALL_SHARE = 0.1
 
 def repairable(problem: Problem) -> bool:
     """One fixed network, no quality variants or DVFS levels (their choices are not placements)."""
+    return len(problem.networks) == 1 and boundable(problem)
+
+
+def boundable(problem: Problem) -> bool:
+    """`own_bound` applies: no quality variants or DVFS levels (a robot's cheapest level is not
+    its power), any number of media choices (one bound each), and a robot to bound."""
     from autopower.model.dvfs import has_levels
     from autopower.model.variants import has_variants
 
-    return (len(problem.networks) == 1 and type(problem) is Problem
-            and not has_levels(problem.scenario) and not has_variants(problem.scenario))
+    return (type(problem) is Problem and not has_levels(problem.scenario) and not has_variants(problem.scenario)
+            and any(n != problem.networks[0].basestation for n in problem.networks[0].nodes))
 
 
 def own_bound(problem: Problem) -> tuple[float, dict[str, float]]:
