@@ -386,8 +386,8 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, start) -> 
     a bin-packing gap by branching (with a gap asked for, T is fixed that much above the bound).
     The plan is accepted when its evaluated T is within max(mip_rel_gap, 1e-9) of the bound
     (relative, as HiGHS's gap; the 1e-9: floating-point summation order); when the
-    bound is not reachable (infeasible, or not found within a quarter of the time limit) the
-    caller runs the optimising MILP.
+    bound is not reachable (infeasible, or not found within a quarter of the time limit, 10 s
+    without one) the caller runs the optimising MILP.
 
     The second pass (least total drain at that T) is a tie-break, not part of the proof: it gets
     as long as the search took and keeps the best plan it has by then (on the any-host
@@ -409,7 +409,8 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, start) -> 
     for bound, i in sorted(bounds):
         if bound > lowest:
             break  # a choice whose own bound is higher cannot reach the lowest
-        left = None if time_limit_s is None else max(0.1, time_limit_s * REACH_SHARE - (time.monotonic() - started))
+        share = REACH_UNLIMITED_S if time_limit_s is None else time_limit_s * REACH_SHARE
+        left = max(0.1, share - (time.monotonic() - started))
         sub = dataclasses.replace(problem, networks=[problem.networks[i]])
         built, t_col, sol = _first_pass(sub, left, mip_rel_gap, None, None, around_start=False, t_at=t_at)
         if not sol.has_solution:
@@ -432,6 +433,7 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, start) -> 
 
 
 REACH_SHARE = 0.25  # of the time limit, for the search of a plan that reaches the per-robot bound
+REACH_UNLIMITED_S = 10.0  # that search's limit when the MILP has none (a packing may be slow to prove infeasible)
 REACH_TOLERANCE = 1e-9  # relative: the same T summed in another order
 
 
