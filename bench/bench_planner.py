@@ -90,7 +90,7 @@ def replan_after_link_change(scenario, current, label: str = "") -> None:
         print(f"replan after {robot}-laptop link change ({scenario.name}{label}){way}: cold {cold_s:.2f} s, warm start {warm_s:.2f} s "
               f"(warm/cold {warm_s / cold_s:.2f}); proven optimal: cold {cold.optimal}, warm {warm.optimal}; "
               f"gap cold {cold.mip_gap:.3%}, warm {warm.mip_gap:.3%}; lifetime warm {warm.lifetime_s:.1f} s; "
-              f"warm: {warm.status} {proof(warm)}", flush=True)
+              f"warm: {warm.status} {proof(warm)}; cold: {cold.status} {proof(cold)}", flush=True)
 
 
 def any_host_thousand() -> None:

@@ -9,7 +9,9 @@ bound it is optimal; otherwise the caller solves the whole MILP, starting from t
 `own_bound` (per robot: idle power, its radios asleep, and each of its own chains placed where
 it costs *that robot* least) is valid because everything it leaves out only adds power:
 other robots' stages it hosts or relays, and send/receive power is never below sleep power
-(checked when a scenario loads). On the loaded fleets it equals the LP relaxation.
+(checked when a scenario loads). On the loaded fleets it equals the LP relaxation. The lowest
+of the media choices' bounds caps every plan; `milp._reach_bound` looks for a plan that meets
+it (cold or warm) before the optimising MILP.
 """
 
 from __future__ import annotations
