@@ -313,7 +313,7 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
 
     if reach_bound and repair.boundable(problem):
         began = time.monotonic()
-        reached = _reach_bound(problem, time_limit_s, mip_rel_gap, refine, start)
+        reached = _reach_bound(problem, time_limit_s, mip_rel_gap, refine)
         if reached is not None:
             return reached
         if time_limit_s is not None:
@@ -375,7 +375,7 @@ def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_
     return built.decode(sol.values)[0]
 
 
-def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, start) -> MilpResult | None:
+def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine) -> MilpResult | None:
     """A plan whose T equals the per-robot bound, proven optimal by it; None when none is found.
 
     No plan on any media choice has a T below that choice's `repair.own_bound`, so no plan at
@@ -387,7 +387,8 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, start) -> 
     The plan is accepted when its evaluated T is within max(mip_rel_gap, 1e-9) of the bound
     (relative, as HiGHS's gap; the 1e-9: floating-point summation order); when the
     bound is not reachable (infeasible, or not found within a quarter of the time limit, 10 s
-    without one) the caller runs the optimising MILP.
+    without one) the caller runs the optimising MILP. A plan in force is not handed to HiGHS
+    here: short of the bound, it is not a feasible start for this problem.
 
     The second pass (least total drain at that T) is a tie-break, not part of the proof: it gets
     as long as the search took and keeps the best plan it has by then (on the any-host

@@ -224,7 +224,7 @@ def test_a_plan_that_reaches_the_per_robot_bound_is_the_exhaustive_optimum(seed,
          random_scenario(seed, robots, chains, topology=topology, accounting=accounting, multi_stage=multi_stage))
     problem = make_problem(PlanRequest(scenario=s))
     best = exhaustive(problem)
-    reached = milp._reach_bound(problem, None, 1e-9, True, None)
+    reached = milp._reach_bound(problem, None, 1e-9, True)
     if not best:
         assert reached is None
         return
@@ -260,15 +260,18 @@ def test_reaching_the_bound_is_the_path_taken_when_the_optimum_meets_it():
 
 
 @pytest.mark.slow
-def test_the_any_host_hundred_robot_fleet_is_proven_optimal_by_the_per_robot_bound():
+def test_the_any_host_hundred_robot_fleet_is_proven_optimal_by_the_per_robot_bound(monkeypatch):
     """Issue 17: every robot runs three chains of its own, any node may host any stage. The MILP
     alone ends its 60 s 0.6 % short of a proof; a plan that reaches the lowest per-robot bound
-    (GSM + Bluetooth) exists and is found, which proves it optimal with no gap."""
+    (GSM + Bluetooth) exists and is found, which proves it optimal with no gap. (How fast is the
+    benchmark's business: the search is not limited here, so a loaded machine cannot fail it.)"""
+    from autopower.planner import milp
     from autopower.simulation.synthetic import loaded_fleet_scenario
 
+    monkeypatch.setattr(milp, "REACH_UNLIMITED_S", 3600.0)
     s = loaded_fleet_scenario(100, 3, hosts="any")
     problem = make_problem(PlanRequest(scenario=s))
-    m = solve_milp(problem, time_limit_s=60)
+    m = solve_milp(problem, refine=False)
     assert m.optimal and m.status == "Optimal (meets the per-robot bound)", m.status
     assert m.lifetime_s >= max(problem.energies_j.values()) / _lowest_own_bound(problem) * (1 - 1e-9)
     assert {l.medium for l in m.network.explicit} == {"gsm"} and m.network.cliques[0].medium == "bluetooth"
