@@ -9,7 +9,9 @@ bound it is optimal; otherwise the caller solves the whole MILP, starting from t
 `own_bound` (per robot: idle power, its radios asleep, and each of its own chains placed where
 it costs *that robot* least) is valid because everything it leaves out only adds power:
 other robots' stages it hosts or relays, and send/receive power is never below sleep power
-(checked when a scenario loads). On the loaded fleets it equals the LP relaxation.
+(checked when a scenario loads). On the loaded fleets it equals the LP relaxation. The lowest
+of the media choices' bounds caps every plan; `milp._reach_bound` looks for a plan that meets
+it (cold or warm) before the optimising MILP.
 """
 
 from __future__ import annotations
@@ -29,11 +31,17 @@ SMALL_SHARE = 0.1
 
 def repairable(problem: Problem) -> bool:
     """One fixed network, no quality variants or DVFS levels (their choices are not placements)."""
+    return len(problem.networks) == 1 and boundable(problem)
+
+
+def boundable(problem: Problem) -> bool:
+    """`own_bound` applies: no quality variants or DVFS levels (a robot's cheapest level is not
+    its power), any number of media choices (one bound each), and a robot to bound."""
     from autopower.model.dvfs import has_levels
     from autopower.model.variants import has_variants
 
-    return (len(problem.networks) == 1 and type(problem) is Problem
-            and not has_levels(problem.scenario) and not has_variants(problem.scenario))
+    return (type(problem) is Problem and not has_levels(problem.scenario) and not has_variants(problem.scenario)
+            and any(n != problem.networks[0].basestation for n in problem.networks[0].nodes))
 
 
 def own_bound(problem: Problem) -> tuple[float, dict[str, float]]:
