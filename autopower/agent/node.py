@@ -509,7 +509,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             elif key == self.keys.node_control(self.node):
                 self.on_control(payload)
             elif key == self.keys.plan:
-                # the base station repeats its plan every second (late joiners): the bytes handled
+                # the base station repeats its plan (to robots not yet running it): the bytes handled
                 # last need no decoding again (plans only move forward: what was applied or ignored
                 # once would be ignored now)
                 if payload != self._plan_payload:

@@ -92,6 +92,10 @@ class CoordinatorConfig:
     migration_timeout_s: float = 10.0  # wall seconds before a stuck migration is abandoned
     start_grace_s: float = 30.0  # wall seconds to wait for every robot before starting without some
     plan_republish_s: float = 1.0  # wall seconds between repeats of the current plan (late joiners)
+    # ... while a robot in reach does not say it runs it; once they all do, only this often (a
+    # listener that sends no status, e.g. a recorder joining late): a team at rest does not
+    # send, receive and compare the plan every second for nothing
+    plan_republish_settled_s: float = 10.0
     link_down_after_s: float = 3.0  # wall seconds a never-seen-up link must be reported down before it counts
     heal_hold_s: float = 2.0  # wall seconds a link must be back before plans may use it again (no flapping)
     variants: dict[str, str] = field(default_factory=dict)  # chain -> quality variant, fixed by the operator
@@ -174,6 +178,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self._foreign_noted = False
         self.first_seen_unix: float | None = None
         self.next_republish = 0.0
+        self.last_republish = 0.0  # when the plan last went out (new or repeated)
         self.next_periodic_replan: float | None = None
         self.events: deque[str] = deque(maxlen=50)
         self.downtimes_ms: list[float] = []
@@ -436,7 +441,19 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         if self.config.auto_replan:
             self._timed_decisions()
         if now_wall >= self.next_republish:
-            self.publish_plan(repeat=True)
+            if self._plan_unconfirmed() or now_wall >= self.last_republish + self.config.plan_republish_settled_s:
+                self.publish_plan(repeat=True)
+            else:
+                self.next_republish = now_wall + self.config.plan_republish_s
+
+    def _plan_unconfirmed(self) -> bool:
+        """A robot in reach whose last status does not say it runs the current plan (late, restarted,
+        back in reach, or its acknowledgement lost: statuses are best effort)."""
+        for robot in self.alive_nodes() & set(self.robots):
+            status = self.statuses.get(robot)
+            if status is None or not self.runs_plan(status, self.epoch) or status.plan_leader != self.leader:
+                return True
+        return False
 
 
     def next_deadline_unix(self) -> float:

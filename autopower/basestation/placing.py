@@ -189,5 +189,6 @@ class Placing:
         self.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
         self.bus.publish(self.keys.plan, payload)
         self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)
-        self.next_republish = self.wall() + self.config.plan_republish_s
+        self.last_republish = self.wall()
+        self.next_republish = self.last_republish + self.config.plan_republish_s
 

@@ -164,12 +164,12 @@ def setup_logging(level: str) -> None:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
-def zenoh_settings(listen: tuple[str, ...], connect: tuple[str, ...], lease_ms: int):
+def zenoh_settings(listen: tuple[str, ...], connect: tuple[str, ...], lease_ms: int, keep_alive: int = 4):
     from autopower.runtime.bus import ZenohSettings
 
     if lease_ms < 100:
         raise AutoPowerError(f"--lease-ms {lease_ms} is too short; use >= 100 ms")
-    return ZenohSettings(listen=tuple(listen), connect=tuple(connect), lease_ms=lease_ms)
+    return ZenohSettings(listen=tuple(listen), connect=tuple(connect), lease_ms=lease_ms, keep_alive=keep_alive)
 
 
 
@@ -255,6 +255,9 @@ def network_options(f):
                      help="Zenoh endpoint of a peer to connect to (repeatable; peers do not relay).")(f)
     f = click.option("--lease-ms", default=1000, show_default=True, type=LEASE_MS,
                      help="Zenoh lease: a frozen peer or cut link is noticed after about this long.")(f)
+    f = click.option("--keep-alive", default=4, show_default=True, type=click.IntRange(2, 16),
+                     help="Zenoh keep-alives per lease on an idle link: a link survives a silence of "
+                          "lease x (1 - 1/N) between them (lost or late keep-alives); fewer is less CPU at rest.")(f)
     f = click.option("--status-period", default=0.5, type=POSITIVE, show_default=True, help="Wall seconds between status messages.")(f)
     f = click.option("--duration", type=POSITIVE, default=None, help="Stop after this many wall seconds.")(f)
     f = click.option("--parent-pid", type=int, default=None, hidden=True)(f)

@@ -58,13 +58,13 @@ def exit_now(message: str) -> None:
 @click.option("--robot", "--node", "robot", default=None,
               help="Which robot of the scenario this agent is (with --fleet: which node directory).")
 @network_options
-def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
+def agent(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, status_period, duration, parent_pid, log_level,
           record_dir):
     """Run one robot's agent: host components, meter the battery, forward, publish status."""
     from autopower.agent.process import Agent, AgentConfig
 
     setup_logging(log_level)
-    robot, scenario_name, team, zenoh = _joining(robot, scenario_name, team, listen, connect, lease_ms, "robot")
+    robot, scenario_name, team, zenoh = _joining(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, "robot")
     if robot is None:
         raise AutoPowerError("which robot? pass --robot NAME (or --fleet DIR --node NAME)")
     scenario = build_scenario(scenario_name, to_run=True)  # imports and registers its plug-in components
@@ -87,11 +87,11 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, status_period, 
     exit_now(f"agent {robot} stopped: {reason}")
 
 
-def _joining(node, scenario_name, team, listen, connect, lease_ms, role: str):
+def _joining(node, scenario_name, team, listen, connect, lease_ms, keep_alive, role: str):
     """(node, scenario, team, Zenoh settings): from --fleet DIR when given, else the command line."""
     fleet = fleet_dir()
     if fleet is None:
-        return node, scenario_name, team, zenoh_settings(listen, connect, lease_ms)
+        return node, scenario_name, team, zenoh_settings(listen, connect, lease_ms, keep_alive)
     from autopower.deploy.bundle import load_bundle
 
     bundle = load_bundle(fleet, node)
@@ -123,7 +123,7 @@ def _recording_bus(record_dir, node: str, scenario, zenoh):
               help="Virtual seconds between re-plans with the remaining energies.")
 @click.option("--start-grace", type=NON_NEGATIVE, default=30.0, show_default=True,
               help="Wall seconds to wait for every robot before starting without the missing ones.")
-def basestation(scenario_name, team, listen, connect, lease_ms, status_period, duration, parent_pid, log_level,
+def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, status_period, duration, parent_pid, log_level,
                 record_dir, node, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
                 replan_interval, start_grace):
     """Run the base station: plan, place and migrate components; the operator's sink."""
@@ -136,7 +136,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     setup_logging(log_level)
     if not speed > 0:
         raise AutoPowerError(f"--speed must be > 0, got {speed}")
-    _, scenario_name, team, zenoh = _joining(node, scenario_name, team, listen, connect, lease_ms, "basestation")
+    _, scenario_name, team, zenoh = _joining(node, scenario_name, team, listen, connect, lease_ms, keep_alive, "basestation")
     scenario = build_scenario(scenario_name, energy, energy_scale, accounting, to_run=True)
     zenoh = secure(zenoh, scenario.basestation, scenario, team)
     media_choice = parse_pairs(media, "--media", "laptop-robot=gsm") or None

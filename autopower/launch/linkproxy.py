@@ -144,6 +144,12 @@ class LinkProxy:
             for s in (client, upstream):
                 if s is not None:
                     try:
+                        # close() alone neither wakes a pump blocked in recv on it nor sends a FIN
+                        # while that recv holds the socket: shut it down first
+                        s.shutdown(socket.SHUT_RDWR)
+                    except OSError:
+                        pass
+                    try:
                         s.close()
                     except OSError:
                         pass

@@ -30,7 +30,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from autopower.basestation.operator import OperatorClient
@@ -38,6 +38,7 @@ from autopower.errors import AutoPowerError
 from autopower.launch.supervisor import RestartPolicy, Supervisor, SupervisorEvent
 from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
+from autopower.runtime.bus import ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +113,11 @@ class TeamSpec:
     auto_replan: bool = True
     policy: str = "rebalance"  # the base station's --policy
     lease_ms: int = 1000
+    # Zenoh keep-alives per lease on an idle link: most of what a team at rest costs (each is
+    # received by Zenoh and copied by a link proxy). Two on loopback, where nothing is lost and a
+    # link still survives a quarter-second hiccup at a 0.5 s lease; the processes' own default
+    # (4) stays for links that lose packets (a radio under TCP waits out a retransmission).
+    keep_alive: int = 2
     status_period_s: float = 0.5
     team: str | None = None
     log_dir: Path | None = None
@@ -192,6 +198,7 @@ class LocalTeam:
     def _common(self, node: str) -> list[str]:
         args = ["--scenario", self.spec.scenario, "--team", self.team,
                 "--listen", endpoint(self.ports[node], scheme=self.scheme), "--lease-ms", str(self.spec.lease_ms),
+                "--keep-alive", str(self.spec.keep_alive),
                 "--status-period", str(self.spec.status_period_s),
                 "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level]
         for ep in self.connects[node]:
@@ -255,7 +262,11 @@ class LocalTeam:
         if self.supervisor is not None:
             self._supervisor_thread = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
             self._supervisor_thread.start()
-        self.client = OperatorClient(self.team, connect=(self.base_endpoint,), settings=self.operator_settings())
+        # `up`'s own session watches no radio and carries no frames (a snapshot every few seconds):
+        # the team's keep-alives, and no shared memory (whose watchdog threads wake 30 times a second)
+        own = self.operator_settings() or ZenohSettings(connect=(self.base_endpoint,))
+        self.client = OperatorClient(self.team, connect=(self.base_endpoint,),
+                                     settings=replace(own, keep_alive=self.spec.keep_alive, shared_memory=False))
 
     def session_security(self) -> dict:
         """What session.json needs for `autopower status` etc. to join as the operator (paths only)."""

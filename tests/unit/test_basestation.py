@@ -359,3 +359,37 @@ def test_a_robot_back_from_a_freeze_gets_a_grace_before_its_link_reports_count(s
     team.clock.advance(2.5)  # still reported down after the grace: a real cut
     team.report_status()
     assert frozenset({"r1", "r3"}) in co.links_down
+
+
+def test_the_plan_is_repeated_while_a_robot_in_reach_does_not_say_it_runs_it(sc):
+    """A team at rest does not get the same plan every second; a robot that comes back without it
+    (restarted, back in reach, its acknowledgement lost) gets it within the repeat period."""
+    team = SimTeam(sc)
+    team.join()
+    team.run_until(5.0)
+    co = team.coordinator
+    plans = []
+    team.hub.bus("listener").subscribe(team.keys.plan, lambda key, payload: plans.append(key))
+
+    def tick(seconds: float) -> None:
+        for _ in range(int(seconds * 4)):
+            team.clock.advance(0.25)
+            co.on_timer()
+            team.pump()
+
+    tick(2.0)  # no robot has said it runs the plan yet: it goes on being repeated
+    assert len(plans) >= 1
+    team.report_status()  # now every robot says it runs it
+    tick(0.5)
+    plans.clear()
+    tick(5.0)
+    assert plans == []  # settled: nothing repeated for nothing
+    behind = dataclasses.replace(team.nodes["r2"].status(10.0), plan_epoch=co.epoch - 1)
+    co.on_status(behind)  # r2 came back on an older plan
+    tick(1.25)
+    assert len(plans) == 1  # repeated within the repeat period
+    team.report_status()
+    tick(0.5)
+    plans.clear()
+    tick(co.config.plan_republish_settled_s)
+    assert len(plans) == 1  # a listener that says nothing (a late recorder) still gets it, rarely
