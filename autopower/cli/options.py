@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 import sys
 
@@ -263,6 +264,25 @@ def network_options(f):
     f = click.option("--log-level", default="info", show_default=True,
                      type=click.Choice(["debug", "info", "warning", "error"]))(f)
     return f
+
+
+STAGE_WORKER_CHOICES = ("off", "on", "auto")
+
+
+def stage_workers_option(f):
+    """``--stage-workers``: each hosted stage's component in a worker process of its own."""
+    return click.option(
+        "--stage-workers", type=click.Choice(STAGE_WORKER_CHOICES), default="auto", show_default=True,
+        help="Run each hosted stage's component in a worker process of its own, called asynchronously, so "
+             "stages run in parallel on several cores; auto: on for the base station on a multi-core "
+             "machine, off for a robot's agent.")(f)
+
+
+def stage_workers_wanted(choice: str, basestation: bool) -> bool:
+    """What ``--stage-workers CHOICE`` means for this process."""
+    if choice == "auto":
+        return basestation and len(os.sched_getaffinity(0)) > 1
+    return choice == "on"
 
 
 def mission_options(f):

@@ -111,6 +111,7 @@ class TeamSpec:
     pins: tuple[str, ...] = ()  # "Loc-2=r1"
     auto_replan: bool = True
     policy: str = "rebalance"  # the base station's --policy
+    stage_workers: str = "auto"  # every process's --stage-workers (off, on, auto)
     lease_ms: int = 1000
     status_period_s: float = 0.5
     team: str | None = None
@@ -193,7 +194,8 @@ class LocalTeam:
         args = ["--scenario", self.spec.scenario, "--team", self.team,
                 "--listen", endpoint(self.ports[node], scheme=self.scheme), "--lease-ms", str(self.spec.lease_ms),
                 "--status-period", str(self.spec.status_period_s),
-                "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level]
+                "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level,
+                "--stage-workers", self.spec.stage_workers]
         for ep in self.connects[node]:
             args += ["--connect", ep]
         if self.spec.record_dir is not None:
