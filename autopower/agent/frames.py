@@ -229,8 +229,8 @@ class Frames:
                             f"({worker.exit_text()})")
         elif reply[0] == "err":
             self.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {reply[1]}: {reply[2] if len(reply) > 2 else ''}")
-        elif reply[0] == "ok" and len(reply) == 3 and isinstance(reply[2], float):
-            self._ran(hosted, frame, reply[1], reply[2])
+        elif reply[0] == "ok" and len(reply) == 3 and isinstance(reply[1], float):  # ["ok", compute s, output]
+            self._ran(hosted, frame, reply[2], reply[1])
         else:  # ["bad", type name]: not bytes
             self._ran(hosted, frame, NotBytes(reply[-1]) if reply[0] == "bad" else reply, 0.0)
 

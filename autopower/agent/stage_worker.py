@@ -7,7 +7,8 @@ and then waits on its end of a socketpair (fd ``FD``). For each ``fork`` request
 socketpair (SCM_RIGHTS) with its pid. A worker builds one stage's component and serves
 ``run`` / ``export`` / ``import`` one at a time, in order, until its socket closes.
 
-Every message is a 4-byte big-endian length and a msgpack array. What a worker returns is data
+Every message is a msgpack array behind an 8-byte header; its last element, when it is bytes,
+travels raw after it (`send`). What a worker returns is data
 (bytes, a type name, an exception's text), never a pickled object: the node treats it as it
 treats what a component returns in-process, checked before use. Both processes die with their
 parent (PR_SET_PDEATHSIG), so a node killed with SIGKILL leaves no workers behind.
@@ -27,36 +28,62 @@ import time
 import msgpack
 
 MAX_MESSAGE = 256 * 2**20  # bytes: a frame or a state larger than this is refused (bounded memory)
-_HEADER = struct.Struct(">I")
+_HEADER = struct.Struct(">II")  # the msgpack part's length, the raw part's (NO_RAW: none)
+NO_RAW = 0xFFFFFFFF
+SOCKET_BUFFER = 1 << 20  # bytes (the kernel caps it at net.core.wmem_max)
 
 
-def send(sock: socket.socket, obj) -> None:
-    body = msgpack.packb(obj, use_bin_type=True)
-    sock.sendall(_HEADER.pack(len(body)) + body)
+def send(sock: socket.socket, msg: list) -> None:
+    """A message; a bytes last element (a camera frame, an output, a state) travels raw after the
+    msgpack part, never copied into it (230 KB frames at several hundred a second)."""
+    raw = msg[-1] if msg and isinstance(msg[-1], (bytes, bytearray, memoryview)) else None
+    body = msgpack.packb(msg if raw is None else msg[:-1], use_bin_type=True)
+    parts = [_HEADER.pack(len(body), NO_RAW if raw is None else len(raw)), body]
+    if raw is not None:
+        parts.append(raw)
+    sent = sock.sendmsg(parts)
+    for part in parts:  # a full socket buffer took part of it: the rest in order, without copying
+        if sent >= len(part):
+            sent -= len(part)
+            continue
+        sock.sendall(memoryview(part)[sent:])
+        sent = 0
 
 
-def receive(sock: socket.socket):
-    """The next message; None at end of stream (the other side closed or died)."""
+def receive(sock: socket.socket) -> list | None:
+    """The next message (its raw part as its last element); None at end of stream."""
     head = _read_exactly(sock, _HEADER.size)
     if head is None:
         return None
-    (size,) = _HEADER.unpack(head)
-    if size > MAX_MESSAGE:
-        raise ValueError(f"a stage worker message of {size} B exceeds {MAX_MESSAGE} B")
+    size, raw_size = _HEADER.unpack(head)
+    if size > MAX_MESSAGE or (raw_size != NO_RAW and raw_size > MAX_MESSAGE):
+        raise ValueError(f"a stage worker message of {max(size, raw_size)} B exceeds {MAX_MESSAGE} B")
     body = _read_exactly(sock, size)
     if body is None:
         return None
-    return msgpack.unpackb(body, raw=False, strict_map_key=False)
+    msg = msgpack.unpackb(body, raw=False, strict_map_key=False)
+    if not isinstance(msg, list):
+        raise ValueError("a stage worker message is not a list")
+    if raw_size != NO_RAW:
+        raw = _read_exactly(sock, raw_size)
+        if raw is None:
+            return None
+        msg.append(raw)
+    return msg
 
 
 def _read_exactly(sock: socket.socket, n: int) -> bytes | None:
-    buf = bytearray(n)
-    view, got = memoryview(buf), 0
-    while got < n:
-        k = sock.recv_into(view[got:])
-        if k == 0:
+    if n == 0:
+        return b""
+    first = sock.recv(n, socket.MSG_WAITALL)  # one copy: the kernel's buffer into a bytes object
+    if len(first) == n or not first:
+        return first or None
+    buf = bytearray(first)
+    while len(buf) < n:  # interrupted: the rest piece by piece
+        more = sock.recv(n - len(buf))
+        if not more:
             return None
-        got += k
+        buf += more
     return bytes(buf)
 
 
@@ -115,7 +142,7 @@ def serve(sock: socket.socket) -> None:
                 started = time.perf_counter()
                 out = component.run(msg[1])
                 spent = time.perf_counter() - started
-                reply = ["ok", out, spent] if isinstance(out, bytes) else ["bad", type(out).__name__]
+                reply = ["ok", spent, out] if isinstance(out, bytes) else ["bad", type(out).__name__]
             elif op == "export":
                 out = component.export_state()
                 reply = ["ok", out] if isinstance(out, bytes) else ["bad", type(out).__name__]
@@ -141,6 +168,9 @@ def zygote(sock: socket.socket) -> None:
         if msg is None or msg[0] != "fork":
             return
         mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        for end in (mine, theirs):  # room for a whole camera frame: one send, one receive
+            end.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER)
+            end.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
         pid = os.fork()
         if pid == 0:  # the worker
             try:

@@ -310,7 +310,7 @@ class WorkerComponent:
             self.import_state = self._import
 
     def run(self, payload: bytes) -> bytes:
-        return self._ok(self.worker.call("run", payload, timeout_s=self.timeout_s), "run")
+        return self._ok(self.worker.call("run", payload, timeout_s=self.timeout_s), "run")  # its output is last
 
     def _export(self) -> bytes:
         return self._ok(self.worker.call("export", timeout_s=self.timeout_s), "export_state")
@@ -321,7 +321,7 @@ class WorkerComponent:
     @staticmethod
     def _ok(reply: list, what: str):
         if reply[0] == "ok":
-            return reply[1]
+            return reply[-1]  # the constructor's capabilities, a run's output, a state
         if reply[0] == "bad":
             return NotBytes(reply[1])  # the caller checks isinstance(..., bytes), as in-process
         raise remote_error(str(reply[1]), str(reply[2]) if len(reply) > 2 else "")

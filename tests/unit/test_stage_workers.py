@@ -120,8 +120,8 @@ def test_runs_handed_over_at_once_come_back_in_order_and_the_state_moves(zygote)
         assert w.submit(seq, frame("r1", seq))
     done = finish(w)
     assert [item for item, _ in done] == list(range(40))
-    assert [msgpack.unpackb(reply[1]) for _, reply in done] == [[s, s + 1] for s in range(40)]
-    assert all(reply[0] == "ok" and reply[2] >= 0.0 for _, reply in done)  # the run's own compute time
+    assert [msgpack.unpackb(reply[2]) for _, reply in done] == [[s, s + 1] for s in range(40)]
+    assert all(reply[0] == "ok" and reply[1] >= 0.0 for _, reply in done)  # the run's own compute time
     state = component.export_state()
     w2, moved = worker(zygote)
     moved.import_state(state)
