@@ -43,6 +43,9 @@ log = logging.getLogger("autopower.agent.node")
 
 STAGE_QUEUE = 64  # inputs waiting for a stage's worker; more are dropped and counted ("stage-queue-full")
 ZYGOTE_START_S = 60.0  # wall seconds a zygote may take to import the components (a loaded machine)
+# wall seconds a worker may take to build its component: the first build imports the component's
+# module in the worker (seconds on a loaded machine); a constructor in-process has no limit at all
+BUILD_LIMIT_S = 60.0
 _IDLE_CPU_S = 0.001
 # what a worker may see of the node's environment: enough to find Python and its packages
 _ENV_KEEP = ("PATH", "LANG", "LC_ALL", "LC_CTYPE", "TMPDIR", "HOME", "VIRTUAL_ENV", "TZ")
@@ -172,10 +175,11 @@ class StageWorker:
                 return
 
     # ---- synchronous calls (the loop waits, with the hang rule) ------------------------------------
-    def call(self, op: str, *args: Any, timeout_s: float) -> list:
+    def call(self, op: str, *args: Any, timeout_s: float, wall_limit: bool = False) -> list:
         """The reply to ``op`` (["ok", ...], ["bad", type] or ["err", type, text]).
 
-        Raises `ComponentHung` (the worker is killed) or `WorkerCrashed`."""
+        Raises `ComponentHung` (the worker is killed) or `WorkerCrashed`. The hang rule is
+        `guard.py`'s, or with ``wall_limit`` ``timeout_s`` of wall time alone."""
         if self.inflight is not None:
             raise RuntimeError("a synchronous call while a run is in flight")
         try:
@@ -187,7 +191,9 @@ class StageWorker:
             try:
                 reply = self._responses.get(timeout=min(guard.BLOCKED_PROBE_S, timeout_s))
             except queue.Empty:
-                verdict = self.hung(started, timeout_s, time.monotonic())
+                waited = time.monotonic() - started
+                verdict = (f"no result after {waited:.3g} s (limit {timeout_s:.3g} s)" if waited >= timeout_s else None
+                           ) if wall_limit else self.hung(started, timeout_s, time.monotonic())
                 if verdict is not None:
                     self.kill()
                     raise ComponentHung(verdict) from None
@@ -302,7 +308,7 @@ class WorkerComponent:
 
     def __init__(self, worker: StageWorker, recipe: list, timeout_s: float):
         self.worker = worker
-        caps = self._ok(worker.call("build", recipe, timeout_s=timeout_s), "constructor")
+        caps = self._ok(worker.call("build", recipe, timeout_s=BUILD_LIMIT_S, wall_limit=True), "constructor")
         self.timeout_s = timeout_s
         if caps.get("export"):
             self.export_state = self._export
