@@ -274,14 +274,21 @@ def stage_workers_option(f):
     return click.option(
         "--stage-workers", type=click.Choice(STAGE_WORKER_CHOICES), default="auto", show_default=True,
         help="Run each hosted stage's component in a worker process of its own, called asynchronously, so "
-             "stages run in parallel on several cores; auto: on for the base station on a multi-core "
-             "machine, off for a robot's agent.")(f)
+             f"stages run in parallel on several cores; auto: on for the base station of a mission at x{AUTO_WORKERS_SPEED:g} "
+             "or faster on a multi-core machine, else off.")(f)
 
 
-def stage_workers_wanted(choice: str, basestation: bool) -> bool:
-    """What ``--stage-workers CHOICE`` means for this process."""
+# From this speed-up on `auto` puts the base station's stages in worker processes. Measured on a
+# 2-core machine (README "Live speed"): at x10 its loop keeps up alone and the workers only cost
+# CPU (+10 points of a core); at x20 the loop alone missed periods and with workers none were.
+AUTO_WORKERS_SPEED = 20.0
+
+
+def stage_workers_wanted(choice: str, basestation: bool, speed: float | None = None) -> bool:
+    """What ``--stage-workers CHOICE`` means for this process (``speed``: the mission's, if known)."""
     if choice == "auto":
-        return basestation and len(os.sched_getaffinity(0)) > 1
+        return (basestation and len(os.sched_getaffinity(0)) > 1
+                and speed is not None and speed >= AUTO_WORKERS_SPEED)
     return choice == "on"
 
 

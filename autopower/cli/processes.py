@@ -157,7 +157,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, status_period, d
     config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh, state_dir=state,
                                coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
 
-    workers = stage_workers_wanted(stage_workers, basestation=True)
+    workers = stage_workers_wanted(stage_workers, basestation=True, speed=speed)
 
     def host(**kwargs) -> NodeRuntime:
         runtime = NodeRuntime(**kwargs, stage_workers=workers)

@@ -309,3 +309,30 @@ def test_a_spinning_component_in_a_worker_is_killed_and_its_node_goes_on(monkeyp
         assert r2.hosted["Loc-2"].runs == r2.sources["Loc-2"].seq
     finally:
         close(team)
+
+
+# ---- the option -----------------------------------------------------------------------------------
+
+
+def test_auto_puts_the_base_stations_stages_in_workers_from_x20_on_several_cores(monkeypatch):
+    from autopower.cli import options
+
+    monkeypatch.setattr(options.os, "sched_getaffinity", lambda pid: {0, 1})
+    want = options.stage_workers_wanted
+    assert want("auto", basestation=True, speed=20.0) and want("auto", basestation=True, speed=55.0)
+    assert not want("auto", basestation=True, speed=10.0)  # its loop keeps up alone: workers only cost CPU
+    assert not want("auto", basestation=False, speed=100.0)  # a robot's agent
+    assert want("on", basestation=False) and not want("off", basestation=True, speed=100.0)
+    monkeypatch.setattr(options.os, "sched_getaffinity", lambda pid: {0})
+    assert not want("auto", basestation=True, speed=100.0)  # one core: nothing to run in parallel
+
+
+def test_a_bad_stage_workers_choice_is_one_line_and_exit_2():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = subprocess.run([str(Path(sys.executable).parent / "autopower"), "basestation", "--stage-workers", "maybe"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "--stage-workers" in out.stderr and "'maybe' is not one of 'off', 'on', 'auto'" in out.stderr
