@@ -30,7 +30,7 @@ import msgpack
 MAX_MESSAGE = 256 * 2**20  # bytes: a frame or a state larger than this is refused (bounded memory)
 _HEADER = struct.Struct(">II")  # the msgpack part's length, the raw part's (NO_RAW: none)
 NO_RAW = 0xFFFFFFFF
-SOCKET_BUFFER = 1 << 20  # bytes (the kernel caps it at net.core.wmem_max)
+SOCKET_BUFFER = 2 << 20  # bytes: a window of camera frames (the kernel caps it at net.core.wmem_max)
 
 
 def send(sock: socket.socket, msg: list) -> None:

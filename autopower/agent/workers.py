@@ -4,7 +4,8 @@ Why: a node's loop is one Python thread. The base station hosts all five stages 
 optimum; run on its loop they need one interpreter's worth of CPU and more from about x55 on
 (README "Performance"). With stage workers (``--stage-workers``) the loop hands a stage its next
 input and goes on; the result comes back as an event and the loop emits it as it always did
-(same sequence numbers, custody, acknowledgements, metering). One call is in flight per stage,
+(same sequence numbers, custody, acknowledgements, metering). A worker runs one input at a time
+in the order it was given them (up to `WINDOW` ahead: it never waits for the loop between runs),
 which keeps each stage's order; different stages run on different cores.
 
 How: a *zygote* (`stage_worker.py`) is started once per node with an explicit environment (no
@@ -41,7 +42,8 @@ from autopower.agent.stage_worker import receive, send
 
 log = logging.getLogger("autopower.agent.node")
 
-STAGE_QUEUE = 64  # inputs waiting for a stage's worker; more are dropped and counted ("stage-queue-full")
+WINDOW = 4  # inputs handed to a stage's worker ahead of its results (4 camera frames fit its socket buffer)
+STAGE_QUEUE = 64  # inputs waiting behind the window; more are dropped and counted ("stage-queue-full")
 ZYGOTE_START_S = 60.0  # wall seconds a zygote may take to import the components (a loaded machine)
 # wall seconds a worker may take to build its component: the first build imports the component's
 # module in the worker (seconds on a loaded machine); a constructor in-process has no limit at all
@@ -152,10 +154,11 @@ class StageWorker:
     def __init__(self, zygote: Zygote, notify: Callable[[], None] | None):
         self.sock, self.pid = zygote.fork()
         self._notify = notify
-        self._responses: queue.SimpleQueue = queue.SimpleQueue()
-        self.inflight: tuple[Any, float] | None = None  # (the input, when it was handed over)
-        self.waiting: deque = deque()  # inputs behind the one in flight
+        self._responses: queue.SimpleQueue = queue.SimpleQueue()  # (reply or None, when it arrived)
+        self.sent: deque = deque()  # (input, when sent): handed to the worker, no result yet, in order
+        self.waiting: deque = deque()  # (input, payload) behind a full window
         self.dropped = 0
+        self._last_reply_t = 0.0  # when the worker last finished a run (the next one starts then)
         self._probe: tuple[float, float] | None = None  # (when, CPU seconds) past the limit
         self.killed = False
         self._reader = threading.Thread(target=self._read, daemon=True, name=f"autopower-stage-worker-{self.pid}")
@@ -168,7 +171,7 @@ class StageWorker:
                 msg = receive(self.sock)
             except (OSError, ValueError, msgpack.UnpackException):
                 msg = None
-            self._responses.put(msg if isinstance(msg, list) and msg else None)
+            self._responses.put((msg if isinstance(msg, list) and msg else None, time.monotonic()))
             if self._notify is not None:
                 self._notify()
             if msg is None:
@@ -180,16 +183,17 @@ class StageWorker:
 
         Raises `ComponentHung` (the worker is killed) or `WorkerCrashed`. The hang rule is
         `guard.py`'s, or with ``wall_limit`` ``timeout_s`` of wall time alone."""
-        if self.inflight is not None:
-            raise RuntimeError("a synchronous call while a run is in flight")
+        if self.sent or self.waiting:
+            raise RuntimeError("a synchronous call while runs are outstanding")
         try:
             self._send([op, *args])
         except OSError as exc:
             raise WorkerCrashed(f"the worker process ended before {op} ({self.exit_text()})") from exc
         started = time.monotonic()
+        self._probe = None
         while True:
             try:
-                reply = self._responses.get(timeout=min(guard.BLOCKED_PROBE_S, timeout_s))
+                reply, _ = self._responses.get(timeout=min(guard.BLOCKED_PROBE_S, timeout_s))
             except queue.Empty:
                 waited = time.monotonic() - started
                 verdict = (f"no result after {waited:.3g} s (limit {timeout_s:.3g} s)" if waited >= timeout_s else None
@@ -203,10 +207,21 @@ class StageWorker:
             return reply
 
     # ---- asynchronous runs -------------------------------------------------------------------------
+    @property
+    def inflight(self) -> tuple[Any, float] | None:
+        """(the input the worker runs now, since when); None when it has nothing to do."""
+        if not self.sent:
+            return None
+        item, sent_t = self.sent[0]
+        return item, max(sent_t, self._last_reply_t)
+
     def submit(self, item: Any, payload: bytes) -> bool:
-        """Hand over an input (or queue it behind the one in flight); False: the queue is full."""
-        if self.inflight is None:
-            self._start_run(item, payload)
+        """Hand over an input; False: `STAGE_QUEUE` inputs already wait behind a full window.
+
+        Up to `WINDOW` inputs go to the worker at once (its socket is a FIFO: it runs them one at a
+        time, in order), so it never waits for the loop to collect a result before its next run."""
+        if len(self.sent) < WINDOW and not self.waiting:
+            self._send_run(item, payload)
             return True
         if len(self.waiting) >= STAGE_QUEUE:
             self.dropped += 1
@@ -215,20 +230,22 @@ class StageWorker:
         return True
 
     def poll(self, timeout_s: float = 0.0) -> tuple[Any, list | None] | None:
-        """(the input, its reply) of the run in flight once it has finished (reply None: the worker
-        died); None while it runs (waiting up to ``timeout_s``). The next waiting input is handed
-        over at once."""
-        if self.inflight is None:
+        """(the input, its reply) of the oldest run once it has finished (reply None: the worker
+        died); None while it runs (waiting up to ``timeout_s``). Waiting inputs fill the window."""
+        if not self.sent:
             return None
         try:
-            reply = self._responses.get(timeout=timeout_s) if timeout_s > 0 else self._responses.get_nowait()
+            reply, at = self._responses.get(timeout=timeout_s) if timeout_s > 0 else self._responses.get_nowait()
         except queue.Empty:
             return None
-        item = self.inflight[0]
-        self.inflight = None
+        item, _ = self.sent.popleft()
+        self._last_reply_t = at
         self._probe = None
-        if reply is not None and self.waiting:
-            self._start_run(*self.waiting.popleft())
+        if reply is None:  # the process ended: nothing else handed to it will come back
+            self.sent.clear()
+            self.waiting.clear()
+        while reply is not None and self.waiting and len(self.sent) < WINDOW:
+            self._send_run(*self.waiting.popleft())
         return item, reply
 
     def hung(self, started: float, limit_s: float, now: float) -> str | None:
@@ -252,9 +269,8 @@ class StageWorker:
     def run_hung(self, limit_s: float, now: float) -> str | None:
         return None if self.inflight is None else self.hung(self.inflight[1], limit_s, now)
 
-    def _start_run(self, item: Any, payload: bytes) -> None:
-        self.inflight = (item, time.monotonic())
-        self._probe = None
+    def _send_run(self, item: Any, payload: bytes) -> None:
+        self.sent.append((item, time.monotonic()))
         try:
             self._send(["run", payload])
         except OSError:
@@ -291,7 +307,7 @@ class StageWorker:
                 os.kill(self.pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
-        self.inflight = None
+        self.sent.clear()
         self.waiting.clear()
         try:
             self.sock.shutdown(socket.SHUT_RDWR)

@@ -21,6 +21,7 @@ import pytest
 from autopower.agent import guard
 from autopower.agent.workers import (
     STAGE_QUEUE,
+    WINDOW,
     ComponentHung,
     StageWorker,
     WorkerComponent,
@@ -116,7 +117,7 @@ def gone(pid: int, timeout_s: float = 5.0) -> bool:
 
 def test_runs_handed_over_at_once_come_back_in_order_and_the_state_moves(zygote):
     w, component = worker(zygote)
-    for seq in range(40):  # the loop does not wait: all 40 are handed over (one in flight, 39 queued)
+    for seq in range(40):  # the loop does not wait: all 40 are handed over (a window sent, the rest queued)
         assert w.submit(seq, frame("r1", seq))
     done = finish(w)
     assert [item for item, _ in done] == list(range(40))
@@ -154,10 +155,11 @@ def test_what_a_component_raises_returns_or_does_to_its_process_comes_back(zygot
         WorkerComponent(w, recipe_for(make, "Blob", "r1", 1, None), timeout_s=1.0)
 
 
-@pytest.mark.parametrize("robot, how, within", [("spin", "still running", (0.8, 3.0)), ("block", "blocked", (0.3, 2.0))])
-def test_a_hung_run_gets_its_worker_killed(zygote, monkeypatch, robot, how, within):
-    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.1)
-    monkeypatch.setattr(guard, "SPIN_FACTOR", 4)
+@pytest.mark.parametrize("robot, how, spin_factor, within", [("spin", "still running", 4, (0.8, 3.0)),
+                                                              ("block", "blocked", 10, (0.7, 2.0))])
+def test_a_hung_run_gets_its_worker_killed(zygote, monkeypatch, robot, how, spin_factor, within):
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.5)  # the product's: a starved spinner still gets CPU in 0.5 s
+    monkeypatch.setattr(guard, "SPIN_FACTOR", spin_factor)
     w, component = worker(zygote, robot)
     assert msgpack.unpackb(component.run(frame(robot, 0))) == [0, 1]
     w.submit(1, frame(robot, 1))
@@ -182,8 +184,8 @@ def test_a_hung_run_gets_its_worker_killed(zygote, monkeypatch, robot, how, with
 
 def test_the_queue_in_front_of_a_worker_is_bounded(zygote):
     w, _ = worker(zygote, "slow")
-    accepted = [w.submit(seq, frame("slow", seq)) for seq in range(STAGE_QUEUE + 3)]
-    assert accepted == [True] * (STAGE_QUEUE + 1) + [False, False]  # one in flight + the queue
+    accepted = [w.submit(seq, frame("slow", seq)) for seq in range(WINDOW + STAGE_QUEUE + 2)]
+    assert accepted == [True] * (WINDOW + STAGE_QUEUE) + [False, False]  # handed over + waiting
     assert w.dropped == 2
     w.kill()
 
@@ -289,7 +291,7 @@ def test_a_team_in_workers_delivers_exactly_once_and_migrates_with_state():
 
 def test_a_spinning_component_in_a_worker_is_killed_and_its_node_goes_on(monkeypatch):
     monkeypatch.setattr(guard, "HANG_MIN_WALL_S", 0.2)
-    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.1)
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.5)  # the product's: a starved spinner still gets CPU in 0.5 s
     monkeypatch.setattr(guard, "SPIN_FACTOR", 4)
     team = team_in_workers(make_spinning_blob2, speed=10.0, pins={"Blob-2": "r2", "Loc-2": "r2"})
     try:
