@@ -1,7 +1,7 @@
 """How fast a live team keeps up: missed periods, CPU per process and latency at each speed-up.
 
     .venv/bin/python bench/bench_live_speed.py [--seconds 20] [--speeds 10,20,50,100]
-                                               [--baseline-tree DIR] [--json]
+                                               [--stage-workers off,on] [--baseline-tree DIR] [--json]
 
 The mission is the paper's (paper-fig7, what `autopower up` and `demo` run by default): a real
 localhost team (base station + three agents, mutual TLS, real components) at each speed-up.
@@ -17,6 +17,10 @@ counted from the moment the team is ready: source periods missed (%), the CPU ea
 end-to-end latency p50. With ``--baseline-tree DIR`` (a checkout of the code before, e.g.
 ``git archive main | tar -x -C DIR``) the same runs are made first with the team's processes
 running that code (PYTHONPATH=DIR), so the ratio is measured in the same bench run.
+``--stage-workers off,on`` (the default) runs every speed with the processes' ``--stage-workers``
+off and then on (each hosted stage's component in a worker process: the base station's five
+stages in parallel), so the two are compared in the same bench run; a node's CPU includes its
+worker processes, and the base station's loop process alone is printed beside it ("loop %").
 Not a timed test: the machine's load average is printed beside every run.
 """
 
@@ -58,6 +62,27 @@ def cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / TICKS  # utime, stime (fields 14 and 15)
 
 
+def tree_cpu_s(pid: int) -> float | None:
+    """CPU seconds of ``pid`` and every live process below it (a node's stage workers)."""
+    own = cpu_s(pid)
+    if own is None:
+        return None
+    parents: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            parents.setdefault(ppid, []).append(int(entry))
+    total, todo = own, list(parents.get(pid, []))
+    while todo:
+        child = todo.pop()
+        total += cpu_s(child) or 0.0
+        todo += parents.get(child, [])
+    return total
+
+
 def missed(snap: dict) -> tuple[int, int]:
     produced = missed_ = 0
     for info in (snap.get("robots") or {}).values():
@@ -67,24 +92,27 @@ def missed(snap: dict) -> tuple[int, int]:
     return produced, missed_
 
 
-def run_once(speed: float, seconds: float, tree: str | None) -> dict:
+def run_once(speed: float, seconds: float, tree: str | None, workers: str = "auto") -> dict:
     scenario = build_scenario(SCENARIO)
     saved = os.environ.get("PYTHONPATH")
     if tree:
         os.environ["PYTHONPATH"] = tree  # the children run that code; this process keeps its own
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            spec = TeamSpec(scenario=SCENARIO, speed=speed, log_dir=Path(tmp), log_level="warning")
+            spec = TeamSpec(scenario=SCENARIO, speed=speed, log_dir=Path(tmp), log_level="warning",
+                            **({"stage_workers": workers} if not tree else {}))  # the code before has no option
             with LocalTeam(spec, scenario) as team:
                 team.wait_ready(120)
                 pids = {name: child.proc.pid for name, child in team.children.items()}
                 snap0 = team.snapshot()
-                cpu0 = {n: cpu_s(p) for n, p in pids.items()}
+                cpu0 = {n: tree_cpu_s(p) for n, p in pids.items()}
+                loop0 = cpu_s(pids[scenario.basestation])
                 wall0 = time.monotonic()
                 load0 = os.getloadavg()[0]
                 time.sleep(seconds)
                 snap1 = team.snapshot()
-                cpu1 = {n: cpu_s(p) for n, p in pids.items()}
+                cpu1 = {n: tree_cpu_s(p) for n, p in pids.items()}
+                loop1 = cpu_s(pids[scenario.basestation])
                 wall = time.monotonic() - wall0
                 load1 = os.getloadavg()[0]
     finally:
@@ -100,7 +128,8 @@ def run_once(speed: float, seconds: float, tree: str | None) -> dict:
     virtual = (snap1.get("t_virtual") or 0) - (snap0.get("t_virtual") or 0)
     return {"speed": speed, "wall_s": wall, "virtual_s": virtual, "produced": produced, "missed": miss,
             "missed_pct": 100.0 * miss / (produced + miss) if produced + miss else 0.0,
-            "cpu_pct": cpu, "latency_p50_ms": latencies, "load": (load0, load1)}
+            "cpu_pct": cpu, "latency_p50_ms": latencies, "load": (load0, load1),
+            "base_loop_pct": (loop1 - loop0) / wall * 100 if loop0 is not None and loop1 is not None else None}
 
 
 def show(label: str, r: dict, nodes: list[str]) -> None:
@@ -110,8 +139,10 @@ def show(label: str, r: dict, nodes: list[str]) -> None:
     cpu = " ".join(f"{r['cpu_pct'].get(n, float('nan')):>7.1f}" for n in nodes)
     total = sum(r["cpu_pct"].values())
     per_virtual_ms = total / 100 * r["wall_s"] / r["virtual_s"] * 1e3 if r["virtual_s"] else float("nan")
+    loop = r.get("base_loop_pct")
     print(f"{label:9} {r['speed']:>7.1f} {r['missed_pct']:>8.2f} {r['missed']:>6}/{r['produced'] + r['missed']:<6} "
-          f"{cpu} {total:>7.1f} {per_virtual_ms:>8.1f} {blob:>10.1f} {loc:>10.1f}  {r['load'][0]:.2f}/{r['load'][1]:.2f}")
+          f"{cpu} {loop if loop is not None else float('nan'):>7.1f} {total:>7.1f} {per_virtual_ms:>8.1f} "
+          f"{blob:>10.1f} {loc:>10.1f}  {r['load'][0]:.2f}/{r['load'][1]:.2f}")
 
 
 def main() -> None:
@@ -121,6 +152,8 @@ def main() -> None:
     ap.add_argument("--no-limit", action="store_true", help="do not run at the computed limit")
     ap.add_argument("--baseline-tree", default=None, metavar="DIR",
                     help="also run every speed with the team's processes on the code in DIR (before)")
+    ap.add_argument("--stage-workers", default="off,on", metavar="MODES",
+                    help="the processes' --stage-workers modes to run at every speed, in order (off, on, auto)")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON at the end")
     args = ap.parse_args()
 
@@ -138,18 +171,20 @@ def main() -> None:
     nodes = [scenario.basestation] + [r.name for r in scenario.robots]
     header = (f"{'code':9} {'speed':>7} {'missed%':>8} {'missed/periods':>13} "
               + " ".join(f"{n + ' %':>7}" for n in nodes)
-              + f" {'all %':>7} {'ms/virt':>8} {'Blob p50ms':>10} {'Loc p50ms':>10}  load 1-min start/end")
-    print(f"\nCPU in % of one core over {args.seconds:g} s of wall time after ready; ms/virt = the whole team's CPU "
+              + f" {'loop %':>7} {'all %':>7} {'ms/virt':>8} {'Blob p50ms':>10} {'Loc p50ms':>10}  load 1-min start/end")
+    print(f"\nCPU in % of one core over {args.seconds:g} s of wall time after ready (a node's worker processes "
+          "included; loop % = the base station's own process); ms/virt = the whole team's CPU "
           "ms per virtual second (compare with the components' need above); latency p50 = a sink's "
           "capture-to-receipt wall ms (worst chain of each kind)")
     print(header)
-    results: dict[str, list[dict]] = {"before": [], "after": []}
+    modes = [m for m in args.stage_workers.split(",") if m]
+    runs = [("before", args.baseline_tree, "auto")] if args.baseline_tree else []
+    runs += [(f"workers {m}", None, m) for m in modes]
+    results: dict[str, list[dict]] = {label: [] for label, _, _ in runs}
     for speed in speeds:
-        for label, tree in (("before", args.baseline_tree), ("after", None)):
-            if label == "before" and not tree:
-                continue
+        for label, tree, mode in runs:
             try:
-                r = run_once(speed, args.seconds, tree)
+                r = run_once(speed, args.seconds, tree, mode)
             except Exception as exc:  # one speed that cannot start must not lose the others' figures
                 print(f"{label:9} {speed:>7.1f} failed: {exc}".splitlines()[0])
                 continue

@@ -15,6 +15,7 @@ import zlib
 from autopower.agent.guard import ComponentHung
 from autopower.agent.sequencing import SinkLedger
 from autopower.agent.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
+from autopower.agent.workers import STAGE_QUEUE, NotBytes, type_name, worker_of
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Chain
 from autopower.protocol import (
@@ -159,10 +160,15 @@ class Frames:
                        f"seq {hosted.gate.next_seq} never arrived", logging.ERROR)
 
     def _run(self, hosted: HostedStage, frame: ChainFrame) -> None:
-        chain, index = hosted.chain, hosted.index
+        chain = hosted.chain
         if hosted.lifecycle is Lifecycle.FAILED:
             return  # inputs already admitted in this batch when it failed
-        target = index + 1
+        worker = worker_of(hosted.component)
+        if worker is not None:  # in its own process: handed over; `collect_stage_results` finishes it
+            if not worker.submit((hosted, frame), frame.data()):
+                self.count("stage-queue-full", f"{hosted.stage.name}: dropped seq {frame.seq} ({STAGE_QUEUE} inputs "
+                           "already wait for its worker)", logging.ERROR)
+            return
         started = time.perf_counter()
         # The component is code we do not control: whatever it does wrong stops this stage only.
         try:
@@ -173,14 +179,20 @@ class Frames:
         except Exception as exc:
             self.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {type(exc).__name__}: {exc}")
             return
+        self._ran(hosted, frame, output, time.perf_counter() - started)
+
+    def _ran(self, hosted: HostedStage, frame: ChainFrame, output, compute_s: float) -> None:
+        """A run's output (in-process or from its worker): checked, metered, emitted."""
+        chain, index = hosted.chain, hosted.index
+        target = index + 1
         if not isinstance(output, bytes):
-            self.fail_stage(hosted, "not-bytes", f"run(seq {frame.seq}) returned {type(output).__name__}, not bytes")
+            self.fail_stage(hosted, "not-bytes", f"run(seq {frame.seq}) returned {type_name(output)}, not bytes")
             return
         if len(output) > chain.message_bytes[target]:
             self.fail_stage(hosted, "oversize", f"run(seq {frame.seq}) returned {len(output)} B; the chain declares "
                             f"message_bytes {chain.message_bytes[target]} for this hop (raise it in the scenario)")
             return
-        hosted.compute_s += time.perf_counter() - started
+        hosted.compute_s += compute_s
         hosted.runs += 1
         # a stage started without state recomputes what its lost predecessor may have sent already:
         # an overhead of the failover, not the plan's steady work
@@ -196,6 +208,62 @@ class Frames:
             self.count("unplaced-stage", f"{chain.stages[target].name} has no host")
             return
         self.emit(out, dest)
+
+    # ---- stages in worker processes (`agent.workers`) -------------------------------------------------
+    def collect_stage_results(self) -> None:
+        """Finish the runs whose results came back from their workers (the loop, on a nudge or a tick)."""
+        for hosted in list(self.hosted.values()):
+            worker = worker_of(hosted.component)
+            while worker is not None and worker is worker_of(hosted.component):
+                done = worker.poll()
+                if done is None:
+                    break
+                (owner, frame), reply = done
+                self._finish_remote(owner, frame, reply, worker)
+
+    def _finish_remote(self, hosted: HostedStage, frame: ChainFrame, reply: list | None, worker) -> None:
+        if hosted.lifecycle is Lifecycle.FAILED or worker is not worker_of(hosted.component):
+            return  # stopped or replaced meanwhile: its result is no longer anyone's
+        if reply is None:
+            self.fail_stage(hosted, "crashed", f"run(seq {frame.seq}): its worker process ended "
+                            f"({worker.exit_text()})")
+        elif reply[0] == "err":
+            self.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {reply[1]}: {reply[2] if len(reply) > 2 else ''}")
+        elif reply[0] == "ok" and len(reply) == 3 and isinstance(reply[1], float):  # ["ok", compute s, output]
+            self._ran(hosted, frame, reply[2], reply[1])
+        else:  # ["bad", type name]: not bytes
+            self._ran(hosted, frame, NotBytes(reply[-1]) if reply[0] == "bad" else reply, 0.0)
+
+    def check_stage_workers(self) -> None:
+        """Kill the worker of a run that hung (`guard.py`'s rule); its stage has failed."""
+        now = time.monotonic()
+        for hosted in list(self.hosted.values()):
+            worker = worker_of(hosted.component)
+            if worker is None or worker.inflight is None:
+                continue
+            verdict = worker.run_hung(self.hang_limit_s(hosted.chain), now)
+            if verdict is not None:
+                seq = worker.inflight[0][1].seq
+                worker.kill()
+                self.fail_stage(hosted, "hung", f"run(seq {seq}): {verdict}; its worker process was killed")
+
+    def drain_stage(self, hosted: HostedStage) -> bool:
+        """Wait (on the loop) until a stage's worker has run every input handed to it; False if the
+        stage failed meanwhile."""
+        worker = worker_of(hosted.component)
+        limit = self.hang_limit_s(hosted.chain)
+        while worker is not None and worker.inflight is not None:
+            done = worker.poll(0.05)
+            if done is not None:
+                (owner, frame), reply = done
+                self._finish_remote(owner, frame, reply, worker)
+                continue
+            verdict = worker.run_hung(limit, time.monotonic())
+            if verdict is not None:
+                seq = worker.inflight[0][1].seq
+                worker.kill()
+                self.fail_stage(hosted, "hung", f"run(seq {seq}): {verdict}; its worker process was killed")
+        return hosted.lifecycle is not Lifecycle.FAILED
 
     def _sink(self, chain: Chain, frame: ChainFrame) -> None:
         if chain.sink != self.node:

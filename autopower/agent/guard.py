@@ -3,7 +3,9 @@
 A component is code the node does not control: it may raise, return garbage or never return.
 The first two are caught where it is called (`frames.py`, `hosting.py`); this module handles the
 third. Every call into a component or source (``run``, ``export_state``, ``import_state``,
-``produce``) goes to one worker thread of the node, and the loop waits for it.
+``produce``) goes to one worker thread of the node, and the loop waits for it; unless the node
+runs its stages in worker processes (``--stage-workers``, `workers.py`), which applies the same
+hang rule to a process and kills it.
 
 When is a call hung? Past its limit (`hang_limit_s`: 3 of the chain's periods, at least 2 s of
 wall time), a call whose thread used no CPU over the last `BLOCKED_PROBE_S` is blocked (a
@@ -23,8 +25,9 @@ A hung call's component (or source) is not used again, nor is its worker: the ne
 a new one. What this does not do, because Python cannot: kill the hung thread. It is a daemon
 thread and is abandoned; if it is blocked it costs nothing but memory; if it spins, it keeps
 using CPU until the process ends. Meanwhile the node's loop was stalled once, for the time the
-verdict took (the limit plus a probe; at most `SPIN_FACTOR` limits for a spinning call). Put a
-component that might spin in its own process.
+verdict took (the limit plus a probe; at most `SPIN_FACTOR` limits for a spinning call). A
+component that might spin belongs in a stage worker process (``--stage-workers on``), where a
+hung call's process is killed.
 """
 
 from __future__ import annotations

@@ -11,9 +11,11 @@ import logging
 import time
 
 from autopower.agent.guard import hang_limit_s
+from autopower.agent.workers import StageWorker, WorkerComponent, WorkerCrashed, Zygote, recipe_for, worker_of
 from autopower.agent.sequencing import SequenceGate
 from autopower.agent.stages import HostedStage, Lifecycle, chain_seed
 from autopower.model.scenario import Chain, Stage
+from autopower.model.variants import runtime_component
 from autopower.protocol import (
     Assign,
     MigrateOut,
@@ -52,9 +54,47 @@ class Hosting:
             self.on_release(msg)
 
     def _new_component(self, chain: Chain, stage: Stage):
-        return self.wrap_joined(self._build(self._make_component, stage.component, chain.source,
-                                            chain_seed(self.scenario, chain)),
+        return self.wrap_joined(self._component_instance(chain, stage),
                                 stage.name)  # a fan-in stage's join travels with its state
+
+    def _component_instance(self, chain: Chain, stage: Stage):
+        """A new instance of the stage's component: in a worker process of its own with
+        ``stage_workers`` (`agent.workers`), when the worker can build it; else in this process."""
+        seed = chain_seed(self.scenario, chain)
+        if self.stage_workers:
+            kind, parameters = runtime_component(self.scenario, stage.component)
+            recipe = recipe_for(self._make_component, kind, chain.source, seed, parameters)
+            if recipe is None:
+                self.tally("stage-in-process")  # a factory a worker cannot import: runs here as before
+            else:
+                if self._zygote is None:
+                    self._zygote = Zygote()
+                try:
+                    worker = StageWorker(self._zygote, self.notify_work)
+                except (OSError, WorkerCrashed) as exc:  # no worker to be had: the stage still runs, here
+                    self.count("stage-worker-unavailable", f"{stage.name}: {exc}", logging.ERROR)
+                else:
+                    try:
+                        return WorkerComponent(worker, recipe, self.hang_limit_s(chain))
+                    except BaseException:
+                        worker.kill()
+                        raise
+        return self._build(self._make_component, stage.component, chain.source, seed)
+
+    @staticmethod
+    def retire(component) -> None:
+        """An instance this node gives up: its worker process (if any) is killed at once."""
+        worker = worker_of(component)
+        if worker is not None:
+            worker.kill()
+
+    def close_workers(self) -> None:
+        """Kill every stage worker and the zygote (the node is stopping)."""
+        for hosted in self.hosted.values():
+            self.retire(hosted.component)
+        if self._zygote is not None:
+            self._zygote.close()
+            self._zygote = None
 
     def _reply(self, msg) -> None:
         self.send_to(self.scenario.basestation, self.keys.inbox, encode(msg))
@@ -79,6 +119,8 @@ class Hosting:
         if component is None:
             return
         self.failed.pop(msg.stage, None)
+        if current is not None:
+            self.retire(current.component)
         hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
                              gate=SequenceGate(next_seq=msg.resume_seq))
@@ -109,9 +151,12 @@ class Hosting:
             self.count("migrate-not-running", f"{msg.stage} is {hosted.lifecycle.value if hosted else 'absent'}",
                        logging.ERROR)
             return
-        # The current run has finished: runs are synchronous in this loop.
         hosted.lifecycle = Lifecycle.DRAINING
         stopped_unix = time.time()  # downtime counts from here: checking the state is part of it
+        # In-process runs are synchronous in this loop: the current one has finished. A stage in a
+        # worker finishes its queued inputs first (their outputs go out as usual).
+        if not self.drain_stage(hosted):
+            return  # it failed while draining: stopped here, the base station told (StageFailed)
         refused = self._exportable_state(hosted)
         if isinstance(refused, tuple):  # the stage keeps running here; the base station is told
             what, detail = refused
@@ -129,6 +174,7 @@ class Hosting:
         body = encode(transfer)
         hosted.lifecycle = Lifecycle.MIGRATED
         hosted.forward_to = msg.to_node
+        self.retire(hosted.component)
         hosted.component = None
         # The state crosses the network like any message: routed, forwarded, charged (real bytes).
         if msg.to_node == self.node:
@@ -147,10 +193,12 @@ class Hosting:
             self.count("stale-state", f"{msg.stage} generation {msg.generation}")
             return
         imported = True
+        component = None
         try:
             component = self._new_component(chain, stage)
             self._import(component, msg.state, chain)
         except Exception as exc:
+            self.retire(component)
             # It imported on the old host (checked before it was shipped), so this host runs other
             # code. The old instance is gone: go on here without the state, from where it stopped.
             self.count("import-failed", f"{msg.stage}: {exc}", logging.ERROR)
@@ -170,6 +218,8 @@ class Hosting:
                              gate=SequenceGate(next_seq=msg.next_seq))
         hosted.gate.resent.extend(msg.resent)  # late originals of these are redundant here too
         self.failed.pop(msg.stage, None)
+        if current is not None:
+            self.retire(current.component)
         self.hosted[msg.stage] = hosted
         self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
                                resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3),
@@ -195,11 +245,14 @@ class Hosting:
             return "export-failed", f"export_state: {type(exc).__name__}: {exc}"
         if not isinstance(state, bytes):
             return "export-failed", f"export_state returned {type(state).__name__}, not bytes"
+        probe = None
         try:
             probe = self._new_component(chain, hosted.stage)
             self.guard.call(probe.import_state, state, timeout_s=limit)
         except Exception as exc:
             return "import-failed", f"import_state: {type(exc).__name__}: {exc}"
+        finally:
+            self.retire(probe)
         return state
 
     def _import(self, component, state: bytes, chain: Chain) -> None:
@@ -218,6 +271,7 @@ class Hosting:
         """
         name = hosted.stage.name
         text = _bounded(f"{what}: {detail}")
+        self.retire(hosted.component)
         hosted.lifecycle, hosted.failure, hosted.component = Lifecycle.FAILED, text, None
         self.failed[name] = text
         self.count("stage-failed", f"{name}: {text}", logging.ERROR)
@@ -227,6 +281,7 @@ class Hosting:
     def on_release(self, msg: Release) -> None:
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:
+            self.retire(hosted.component)
             del self.hosted[msg.stage]
         self.orphans.pop(msg.stage, None)
 

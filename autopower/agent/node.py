@@ -72,7 +72,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
                  make_component: Callable | None = None, make_source: Callable | None = None,
-                 clock_factory: Callable[[MissionInfo], Clock] | None = None):
+                 clock_factory: Callable[[MissionInfo], Clock] | None = None, stage_workers: bool = False):
         if node not in scenario.node_names():
             raise AutoPowerError(f"node {node!r} is not in scenario {scenario.name} "
                                  f"(nodes: {', '.join(scenario.node_names())})")
@@ -128,6 +128,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # state directory): an output delivered before a crash is not delivered again after it
         self.sink_store: SinkStore | None = None
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
+        # each stage's component in a worker process of its own, called asynchronously (`agent.workers`)
+        self.stage_workers = stage_workers
+        self._zygote = None
+        # how a worker's result wakes the owning process's loop (it posts an event); without it
+        # results are collected at the next timer tick
+        self.notify_work: Callable[[], None] | None = None
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
         self.hung_sources: dict[str, int] = {}  # chain -> the run whose source hung here (not restarted)
         self._next_custody_check = 0.0
@@ -368,6 +374,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def on_timer(self) -> None:
         self.settle_relayed()
+        if self._zygote is not None:  # stages in worker processes: results in, hung runs killed
+            self.collect_stage_results()
+            self.check_stage_workers()
         wall = self.wall()
         if wall >= self._next_custody_check:
             self._acknowledge(self.node, wall, self.consumed())  # what we consumed ourselves

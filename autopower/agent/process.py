@@ -26,7 +26,7 @@ from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.cadence import StatusCadence, silence_limit_s
-from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
+from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
 from autopower.runtime.subgroup import SubgroupAgreement
@@ -98,6 +98,7 @@ class Agent:
         self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count, access=access,
                                signing=self.signing)
         self.runtime.send_to = self.relayer.send
+        self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
         self.runtime.in_sight = self.relayer.direct.__contains__  # what it may forward on arrival
         self.resume = ResumeFile(self.config.resume_path) if self.config.resume_path else None
         if self.resume is not None:
@@ -118,6 +119,8 @@ class Agent:
         return self
 
     def __exit__(self, *exc) -> None:
+        if self.runtime is not None:
+            self.runtime.close_workers()
         if self.resume is not None:
             self.resume.close()
         for handle in reversed(self._handles):
@@ -160,6 +163,8 @@ class Agent:
                         self._silent.discard(node)
                         return
                 self._sight(node, event.alive)
+        elif isinstance(event, WorkDone):
+            self.runtime.collect_stage_results()
         elif isinstance(event, OperatorRequest):
             event.request.close()
 

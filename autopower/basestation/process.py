@@ -45,7 +45,7 @@ from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.cadence import StatusCadence
-from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
+from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
 
@@ -133,6 +133,7 @@ class BaseStation:
         self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count, access=access,
                                signing=self.signing)
         self.runtime.send_to = self.relayer.send
+        self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
         self.coordinator.send_to = self.relayer.send
         self.coordinator.also_relay = self.relayer.send_beyond_sight
         self.coordinator.on_own_plan = self._own_plan
@@ -206,6 +207,9 @@ class BaseStation:
             pass
 
     def __exit__(self, *exc) -> None:
+        close_workers = getattr(self.runtime, "close_workers", None)  # the host's stage worker processes
+        if close_workers is not None:
+            close_workers()
         if (self._lock_fd is not None and self.stop_reason is not None and self.config.parent_pid is not None
                 and exc[0] is None):
             self._forget_state()
@@ -263,6 +267,8 @@ class BaseStation:
                     co.on_liveliness(node, False)
         elif isinstance(event, OperatorRequest):
             self._operator(event.request)
+        elif isinstance(event, WorkDone):
+            rt.collect_stage_results()
 
     def _settle_suspects(self) -> None:
         """Decide about robots we lost sight of: a cut link (relay) or a robot gone."""

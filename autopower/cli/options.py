@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 import sys
 
@@ -266,6 +267,35 @@ def network_options(f):
     f = click.option("--log-level", default="info", show_default=True,
                      type=click.Choice(["debug", "info", "warning", "error"]))(f)
     return f
+
+
+STAGE_WORKER_CHOICES = ("off", "on", "auto")
+
+
+def stage_workers_option(f):
+    """``--stage-workers``: each hosted stage's component in a worker process of its own."""
+    return click.option(
+        "--stage-workers", type=click.Choice(STAGE_WORKER_CHOICES), default="auto", show_default=True,
+        help="Run each hosted stage's component in a worker process of its own, called asynchronously, so "
+             f"stages run in parallel on several cores; auto: on for the base station of a mission at x{AUTO_WORKERS_SPEED:g} "
+             f"or faster on a machine with {AUTO_WORKERS_CORES} cores or more, else off.")(f)
+
+
+# When `auto` puts the base station's stages in worker processes. Measured on a 2-core machine
+# running the whole team (README "Live speed"): at x10 the loop keeps up alone and workers only
+# cost CPU (+10 points of a core); from x50 on the workers' extra CPU (+30-60 points) came out of
+# the robots' agents on the same 2 cores and more periods were missed than without. They pay where
+# cores are spare: not measured here (no such machine), hence at least 4.
+AUTO_WORKERS_SPEED = 20.0
+AUTO_WORKERS_CORES = 4
+
+
+def stage_workers_wanted(choice: str, basestation: bool, speed: float | None = None) -> bool:
+    """What ``--stage-workers CHOICE`` means for this process (``speed``: the mission's, if known)."""
+    if choice == "auto":
+        return (basestation and len(os.sched_getaffinity(0)) >= AUTO_WORKERS_CORES
+                and speed is not None and speed >= AUTO_WORKERS_SPEED)
+    return choice == "on"
 
 
 def mission_options(f):

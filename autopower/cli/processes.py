@@ -24,6 +24,8 @@ from autopower.cli.options import (
     parse_pairs,
     secure,
     setup_logging,
+    stage_workers_option,
+    stage_workers_wanted,
     zenoh_settings,
 )
 from autopower.errors import AutoPowerError
@@ -58,8 +60,9 @@ def exit_now(message: str) -> None:
 @click.option("--robot", "--node", "robot", default=None,
               help="Which robot of the scenario this agent is (with --fleet: which node directory).")
 @network_options
+@stage_workers_option
 def agent(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, status_period, duration, parent_pid, log_level,
-          record_dir):
+          record_dir, stage_workers):
     """Run one robot's agent: host components, meter the battery, forward, publish status."""
     from autopower.agent.process import Agent, AgentConfig
 
@@ -77,7 +80,7 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, sta
                          resume_path=team_dir(team) / AGENTS_DIR / f"{robot}.json")
     recorder, bus = _recording_bus(record_dir, robot, scenario, config.zenoh)
     try:
-        with Agent(config, bus=bus) as process:
+        with Agent(config, bus=bus, stage_workers=stage_workers_wanted(stage_workers, basestation=False)) as process:
             if recorder is not None:
                 recorder.attach(process.runtime)
             reason = run_until_signalled(process, duration)
@@ -123,9 +126,10 @@ def _recording_bus(record_dir, node: str, scenario, zenoh):
               help="Virtual seconds between re-plans with the remaining energies.")
 @click.option("--start-grace", type=NON_NEGATIVE, default=30.0, show_default=True,
               help="Wall seconds to wait for every robot before starting without the missing ones.")
+@stage_workers_option
 def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, status_period, duration, parent_pid, log_level,
                 record_dir, node, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
-                replan_interval, start_grace):
+                replan_interval, start_grace, stage_workers):
     """Run the base station: plan, place and migrate components; the operator's sink."""
     from autopower.agent.node import NodeRuntime
     from autopower.agent.sink_store import SinkStore
@@ -153,8 +157,10 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
     config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh, state_dir=state,
                                coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
 
+    workers = stage_workers_wanted(stage_workers, basestation=True, speed=speed)
+
     def host(**kwargs) -> NodeRuntime:
-        runtime = NodeRuntime(**kwargs)
+        runtime = NodeRuntime(**kwargs, stage_workers=workers)
         runtime.sink_store = SinkStore(state / "sinks.json")
         return runtime
 

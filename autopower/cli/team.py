@@ -21,6 +21,7 @@ from autopower.cli.options import (
     build_scenario,
     mission_options,
     parse_pairs,
+    stage_workers_option,
     warn_insecure,
 )
 from autopower.errors import AutoPowerError
@@ -60,9 +61,10 @@ RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still
 @click.option("--restart-interval", type=POSITIVE, default=RestartPolicy.interval_s, show_default=True,
               help="Seconds over which --restart-burst counts crashes.")
 @INSECURE_OPT
+@stage_workers_option
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
        policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir, restart_burst,
-       restart_interval, insecure):
+       restart_interval, insecure, stage_workers):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
@@ -84,7 +86,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         build_network(scenario, topology=topology, media=parse_pairs(media, "--media", "laptop-robot=gsm"))
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
-                    auto_replan=not no_replan, policy=policy,
+                    auto_replan=not no_replan, policy=policy, stage_workers=stage_workers,
                     lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
                     record_dir=Path(record_dir) if record_dir else None, secure=not insecure,
                     restart=RestartPolicy(burst=restart_burst, interval_s=restart_interval))

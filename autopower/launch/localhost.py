@@ -112,6 +112,7 @@ class TeamSpec:
     pins: tuple[str, ...] = ()  # "Loc-2=r1"
     auto_replan: bool = True
     policy: str = "rebalance"  # the base station's --policy
+    stage_workers: str = "auto"  # every process's --stage-workers (off, on, auto)
     lease_ms: int = 1000
     # Zenoh keep-alives per lease on an idle link: most of what a team at rest costs (each is
     # received by Zenoh and copied by a link proxy). Two on loopback, where nothing is lost and a
@@ -200,7 +201,8 @@ class LocalTeam:
                 "--listen", endpoint(self.ports[node], scheme=self.scheme), "--lease-ms", str(self.spec.lease_ms),
                 "--keep-alive", str(self.spec.keep_alive),
                 "--status-period", str(self.spec.status_period_s),
-                "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level]
+                "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level,
+                "--stage-workers", self.spec.stage_workers]
         for ep in self.connects[node]:
             args += ["--connect", ep]
         if self.spec.record_dir is not None:

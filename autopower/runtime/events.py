@@ -47,7 +47,12 @@ class StopRequested:
     reason: str
 
 
-Event = Received | LivelinessChanged | OperatorRequest | StopRequested
+@dataclass(frozen=True)
+class WorkDone:
+    """Work handed to another process finished (a stage worker's result waits to be collected)."""
+
+
+Event = Received | LivelinessChanged | OperatorRequest | StopRequested | WorkDone
 
 
 SIGNAL_SLICE_S = 0.1

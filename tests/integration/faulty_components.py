@@ -12,3 +12,13 @@ class RaisesAtTen(MotionDetector):
         if int.from_bytes(payload[8:12], "little") == 10:
             raise ValueError("RaisesAtTen: frame 10 is the end of the world")
         return super().run(payload)
+
+
+class SpinsAtTen(MotionDetector):
+    """The worked example's detector, until its 10th frame: then it computes for ever."""
+
+    def run(self, payload: bytes) -> bytes:
+        if int.from_bytes(payload[8:12], "little") == 10:
+            while True:
+                pass
+        return super().run(payload)

@@ -1,0 +1,340 @@
+"""Stage worker processes (`autopower.agent.workers`): a stage's component in a process of its own.
+
+The protocol: runs handed over asynchronously come back in order, one at a time; what a component
+raises, returns or does to its process comes back as the stage's failure; a hung call's worker
+is killed (no thread left spinning); a state exported from one worker imports into another; the
+queue in front of a worker is bounded. Then a whole team (`SimTeam`, real worker processes) with
+every node's stages in workers: outputs exactly once, a migration carries the state, and a
+spinning component is killed while the node's other stage goes on.
+
+The components below are module-level: a worker imports them by name (``tests.unit.test_stage_workers``).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import msgpack
+import pytest
+
+from autopower.agent import guard
+from autopower.agent.workers import (
+    STAGE_QUEUE,
+    WINDOW,
+    ComponentHung,
+    StageWorker,
+    WorkerComponent,
+    WorkerCrashed,
+    Zygote,
+    recipe_for,
+)
+from autopower.basestation.coordinator import CoordinatorConfig
+from autopower.model.loading import load_scenario
+from autopower.protocol import MigrateCommand
+from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+
+FC = {"laptop-robot": "802.11a", "robot-robot": "802.11a"}
+
+
+class Faulty(FakeComponent):
+    """Raises at seq 3, exits its process at seq 4, spins at seq 5, blocks at seq 6 (by robot)."""
+
+    def run(self, payload):
+        seq = msgpack.unpackb(payload)[1]
+        if self.robot == "raise" and seq == 3:
+            raise KeyError("no such blob")
+        if self.robot == "exit" and seq == 3:
+            os._exit(7)
+        if self.robot == "spin" and seq >= 2:
+            while True:
+                pass
+        if self.robot == "block" and seq >= 2:
+            time.sleep(3600)
+        if self.robot == "slow":
+            time.sleep(0.2)
+        if self.robot == "str":
+            return "not bytes"
+        if self.robot == "env":
+            return ",".join(sorted(os.environ)).encode()
+        return super().run(payload)
+
+
+def make(kind, robot, seed):
+    """The factory a worker imports: Faulty for the robots named after a fault, else FakeComponent."""
+    return Faulty(kind, robot, seed)
+
+
+class SpinsFromSeq2(FakeComponent):
+    def run(self, payload):
+        if msgpack.unpackb(payload)[1] >= 2:
+            while True:
+                pass
+        return super().run(payload)
+
+
+def make_spinning_blob2(kind, robot, seed):
+    """Blob-2 (r2's blob finder) spins from its seq 2; everything else counts."""
+    return (SpinsFromSeq2 if (kind, robot) == ("Blob", "r2") else FakeComponent)(kind, robot, seed)
+
+
+@pytest.fixture
+def zygote():
+    z = Zygote()
+    yield z
+    z.close()
+
+
+def worker(zygote, robot="r1", timeout_s=30.0):
+    w = StageWorker(zygote, None)
+    return w, WorkerComponent(w, recipe_for(make, "Blob", robot, 1, None), timeout_s=timeout_s)
+
+
+def frame(robot, seq):
+    return msgpack.packb([robot, seq])
+
+
+def finish(w, timeout_s=30.0):
+    """Every result of what was handed to ``w``, in the order they came back."""
+    out, deadline = [], time.monotonic() + timeout_s
+    while w.inflight is not None and time.monotonic() < deadline:
+        done = w.poll(0.1)
+        if done is not None:
+            out.append(done)
+    return out
+
+
+def gone(pid: int, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_runs_handed_over_at_once_come_back_in_order_and_the_state_moves(zygote):
+    w, component = worker(zygote)
+    for seq in range(40):  # the loop does not wait: all 40 are handed over (a window sent, the rest queued)
+        assert w.submit(seq, frame("r1", seq))
+    done = finish(w)
+    assert [item for item, _ in done] == list(range(40))
+    assert [msgpack.unpackb(reply[2]) for _, reply in done] == [[s, s + 1] for s in range(40)]
+    assert all(reply[0] == "ok" and reply[1] >= 0.0 for _, reply in done)  # the run's own compute time
+    state = component.export_state()
+    w2, moved = worker(zygote)
+    moved.import_state(state)
+    assert msgpack.unpackb(moved.run(frame("r1", 40))) == [40, 41]  # the count went on in the other process
+    component.close()
+    moved.close()
+    assert gone(w.pid) and gone(w2.pid)
+
+
+def test_what_a_component_raises_returns_or_does_to_its_process_comes_back(zygote):
+    w, _ = worker(zygote, "raise")
+    for seq in range(5):
+        w.submit(seq, frame("raise", seq))
+    replies = [reply for _, reply in finish(w)]
+    assert replies[3] == ["err", "KeyError", "'no such blob'"]
+    assert [r[0] for r in replies] == ["ok", "ok", "ok", "err", "err"]  # seq 4: "expected seq 4" after the gap
+    w, component = worker(zygote, "str")
+    w.submit(0, frame("str", 0))
+    assert finish(w)[0][1] == ["bad", "str"]
+    with pytest.raises(Exception) as raised:  # raised in the worker, named as in-process
+        worker(zygote, "raise")[1].import_state(b"\xc1")
+    assert type(raised.value).__name__ in ("ExtraData", "FormatError", "UnpackValueError", "ValueError")
+    w, _ = worker(zygote, "exit")
+    for seq in range(6):
+        w.submit(seq, frame("exit", seq))
+    done = finish(w)
+    assert [item for item, _ in done] == [0, 1, 2, 3] and done[3][1] is None  # None: the process ended
+    assert gone(w.pid)
+    with pytest.raises(WorkerCrashed):
+        WorkerComponent(w, recipe_for(make, "Blob", "r1", 1, None), timeout_s=1.0)
+
+
+@pytest.mark.parametrize("robot, how, spin_factor, within", [("spin", "still running", 4, (0.8, 3.0)),
+                                                              ("block", "blocked", 10, (0.7, 2.0))])
+def test_a_hung_run_gets_its_worker_killed(zygote, monkeypatch, robot, how, spin_factor, within):
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.5)  # the product's: a starved spinner still gets CPU in 0.5 s
+    monkeypatch.setattr(guard, "SPIN_FACTOR", spin_factor)
+    w, component = worker(zygote, robot)
+    assert msgpack.unpackb(component.run(frame(robot, 0))) == [0, 1]
+    w.submit(1, frame(robot, 1))
+    assert finish(w)[0][1][0] == "ok"
+    w.submit(2, frame(robot, 2))
+    started, verdict = time.monotonic(), None
+    while verdict is None and time.monotonic() - started < 10:
+        time.sleep(0.05)
+        verdict = w.run_hung(0.2, time.monotonic())
+    assert verdict is not None and f"({how}; limit 0.2 s)" in verdict
+    assert within[0] <= time.monotonic() - started < within[1]
+    w.kill()
+    assert gone(w.pid)  # killed: nothing keeps spinning (a thread could not be killed)
+    # a synchronous call that hangs is killed the same way
+    w, component = worker(zygote, robot, timeout_s=0.2)
+    component.run(frame(robot, 0))
+    component.run(frame(robot, 1))
+    with pytest.raises(ComponentHung, match=how):
+        component.run(frame(robot, 2))
+    assert gone(w.pid)
+
+
+def test_the_queue_in_front_of_a_worker_is_bounded(zygote):
+    w, _ = worker(zygote, "slow")
+    accepted = [w.submit(seq, frame("slow", seq)) for seq in range(WINDOW + STAGE_QUEUE + 2)]
+    assert accepted == [True] * (WINDOW + STAGE_QUEUE) + [False, False]  # handed over + waiting
+    assert w.dropped == 2
+    w.kill()
+
+
+def test_a_worker_inherits_no_secrets(zygote, monkeypatch):
+    monkeypatch.setenv("AUTOPOWER_TEST_SECRET", "hunter2")
+    monkeypatch.setenv("ZENOH_CONFIG", "/secret/zenoh.json5")
+    z = Zygote()  # started after the variables were set
+    try:
+        w = StageWorker(z, None)
+        component = WorkerComponent(w, recipe_for(make, "Blob", "env", 1, None), timeout_s=30.0)
+        names = component.run(frame("env", 0)).decode().split(",")
+    finally:
+        z.close()
+    assert "AUTOPOWER_TEST_SECRET" not in names and "ZENOH_CONFIG" not in names
+    assert "PYTHONPATH" in names and "OPENBLAS_NUM_THREADS" in names
+
+
+def test_a_factory_a_worker_cannot_import_runs_in_process():
+    from autopower import chains
+
+    assert recipe_for(lambda kind, robot, seed: None, "Blob", "r1", 1, None) is None
+    assert recipe_for(chains.make_component, "Blob", "r1", 1, None) == ["registry", "Blob", "r1", 1, None]
+    assert recipe_for(make, "Blob", "r1", 1, None) == ["call", "tests.unit.test_stage_workers:make", "Blob", "r1",
+                                                       1, None]
+
+
+# ---- a whole team with its stages in workers --------------------------------------------------------
+
+
+def team_in_workers(factory, *, speed=1.0, pins=None) -> SimTeam:
+    team = SimTeam(load_scenario("paper-fig7"),
+                   config=CoordinatorConfig(speed=speed, media=FC, auto_replan=False, pins=pins or {}),
+                   fake=True, speed=speed)
+    for rt in team.nodes.values():
+        rt._make_component = factory
+        rt._make_source = FakeSource
+        rt.stage_workers = True
+    return team
+
+
+def settle(team: SimTeam, until, timeout_s: float = 30.0) -> None:
+    """Collect the workers' results (wall time passes, virtual time does not) until ``until()``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for rt in team.nodes.values():
+            if rt._zygote is not None:
+                rt.collect_stage_results()
+                rt.check_stage_workers()
+        team.pump()
+        if until():
+            return
+        time.sleep(0.02)
+    raise AssertionError("the team did not settle")
+
+
+def idle(team: SimTeam) -> bool:
+    from autopower.agent.workers import worker_of
+
+    return all(getattr(worker_of(h.component), "inflight", None) is None
+               for rt in team.nodes.values() for h in rt.hosted.values())
+
+
+def close(team: SimTeam) -> None:
+    for rt in team.nodes.values():
+        rt.close_workers()
+
+
+def outputs_of(team: SimTeam) -> dict[str, list[tuple[int, bytes]]]:
+    out: dict[str, list[tuple[int, bytes]]] = {}
+    for rt in team.nodes.values():
+        rt.on_output = lambda chain, run, seq, data: out.setdefault(chain, []).append((seq, data))
+    return out
+
+
+def test_a_team_in_workers_delivers_exactly_once_and_migrates_with_state():
+    team = team_in_workers(FakeComponent, pins={"Blob-2": "r2"})
+    try:
+        outputs = outputs_of(team)
+        team.join()
+        team.run_until(5.0)
+        settle(team, lambda: idle(team))
+        r2 = team.nodes["r2"]
+        assert r2._zygote is not None and r2.hosted["Blob-2"].runs > 0  # it ran in a worker
+        co = team.coordinator
+        co.pins.pop("Blob-2")
+        assert co.on_operator(MigrateCommand(stage="Blob-2", to_node="r3")).ok
+        team.pump()
+        settle(team, lambda: co.placement["Blob-2"] == "r3" and not co.migrations)
+        team.run_until(15.0)
+        settle(team, lambda: idle(team) and all(
+            len(outputs.get(c.name, [])) == team.nodes[c.source].sources[c.name].seq for c in team.scenario.chains))
+        assert co.migrations_done == 1 and not co.aborted
+        for chain in team.scenario.chains:
+            produced = team.nodes[chain.source].sources[chain.name].seq
+            assert sorted(seq for seq, _ in outputs[chain.name]) == list(range(produced)), chain.name
+        counts = [msgpack.unpackb(data)[1] for _, data in sorted(outputs["Blob-2"])]
+        assert counts == list(range(1, len(counts) + 1))  # the count went on across the move: the state moved
+        assert not any(rt.failed for rt in team.nodes.values())
+    finally:
+        close(team)
+
+
+def test_a_spinning_component_in_a_worker_is_killed_and_its_node_goes_on(monkeypatch):
+    monkeypatch.setattr(guard, "HANG_MIN_WALL_S", 0.2)
+    monkeypatch.setattr(guard, "BLOCKED_PROBE_S", 0.5)  # the product's: a starved spinner still gets CPU in 0.5 s
+    monkeypatch.setattr(guard, "SPIN_FACTOR", 4)
+    team = team_in_workers(make_spinning_blob2, speed=10.0, pins={"Blob-2": "r2", "Loc-2": "r2"})
+    try:
+        outputs = outputs_of(team)
+        team.join()
+        team.run_until(3.0)
+        r2 = team.nodes["r2"]
+        pid = r2.hosted["Blob-2"].component.worker.pid
+        settle(team, lambda: "Blob-2" in r2.failed, timeout_s=20.0)
+        assert "hung: run(seq 2): no result after" in r2.failed["Blob-2"]
+        assert "(still running; limit 0.2 s); its worker process was killed" in r2.failed["Blob-2"]
+        assert gone(pid)
+        assert "Blob-2" in team.coordinator.disabled
+        team.run_until(10.0)
+        settle(team, lambda: idle(team) and len(outputs.get("Loc-2", [])) == r2.sources["Loc-2"].seq)
+        assert sorted(seq for seq, _ in outputs["Loc-2"]) == list(range(r2.sources["Loc-2"].seq))
+        assert r2.hosted["Loc-2"].runs == r2.sources["Loc-2"].seq
+    finally:
+        close(team)
+
+
+# ---- the option -----------------------------------------------------------------------------------
+
+
+def test_auto_puts_the_base_stations_stages_in_workers_from_x20_on_4_cores(monkeypatch):
+    from autopower.cli import options
+
+    monkeypatch.setattr(options.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
+    want = options.stage_workers_wanted
+    assert want("auto", basestation=True, speed=20.0) and want("auto", basestation=True, speed=55.0)
+    assert not want("auto", basestation=True, speed=10.0)  # its loop keeps up alone: workers only cost CPU
+    assert not want("auto", basestation=False, speed=100.0)  # a robot's agent
+    assert want("on", basestation=False) and not want("off", basestation=True, speed=100.0)
+    monkeypatch.setattr(options.os, "sched_getaffinity", lambda pid: {0, 1})
+    assert not want("auto", basestation=True, speed=100.0)  # 2 cores shared with the team: measured worse
+
+
+def test_a_bad_stage_workers_choice_is_one_line_and_exit_2():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = subprocess.run([str(Path(sys.executable).parent / "autopower"), "basestation", "--stage-workers", "maybe"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "--stage-workers" in out.stderr and "'maybe' is not one of 'off', 'on', 'auto'" in out.stderr
