@@ -112,7 +112,7 @@ class TeamSpec:
     pins: tuple[str, ...] = ()  # "Loc-2=r1"
     auto_replan: bool = True
     policy: str = "rebalance"  # the base station's --policy
-    stage_workers: str = "auto"  # every process's --stage-workers (off, on, auto)
+    stage_workers: str = "off"  # every process's --stage-workers (off, on, auto)
     lease_ms: int = 1000
     # Zenoh keep-alives per lease on an idle link: most of what a team at rest costs (each is
     # received by Zenoh and copied by a link proxy). Two on loopback, where nothing is lost and a
