@@ -43,7 +43,7 @@ from autopower.protocol import (
 )
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
-from autopower.runtime.cadence import StatusCadence
+from autopower.runtime.cadence import REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -394,6 +394,9 @@ class BaseStation:
             if now >= next_status:
                 next_status = max(next_status + self.config.status_period_s, now)
                 status = None
+                rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
+                if self._bus.repeated:  # statuses put again while the loop was held up
+                    rt.counters["status-repeats"] = self._bus.repeated
                 if rt.started:  # held back at rest: nothing new in it but what drifts with time
                     status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
                                                         self.events.depth()), now)
@@ -405,6 +408,8 @@ class BaseStation:
                     if rt.sink_store is not None:
                         rt.sink_store.commit()
                     self._bus.publish(key, payload, reliable=False)
+                    self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
+                                                REPEAT_EVERY_PERIODS * status.next_status_s)
                     # robots out of direct sight learn what our sinks received (their acks) via a relay
                     self.relayer.send_beyond_sight([r for r in co.robots if r in co.alive_nodes()], key, payload,
                                                    reliable=False)
