@@ -13,6 +13,9 @@ Zenoh traps this adapter handles (see ../shared/notes/zenoh-rerun.md):
   scouting are off so nothing leaves loopback and parallel test runs cannot find each other;
 - a callback subscriber buffers up to 256 samples of up to 1 GiB each on its way to Python: a
   subscriber here has an 8-sample channel and Zenoh takes no message over the codec's limit.
+
+Not a Zenoh trap but one of ours: a node's status is its peers' heartbeat, and a loop held up by
+one long event must not look like a cut link: `ZenohBus.repeat_until_next`.
 """
 
 from __future__ import annotations

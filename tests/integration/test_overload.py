@@ -94,3 +94,42 @@ def test_a_base_station_held_up_by_a_slow_stage_stays_in_the_team(plugin_path, t
     for chain, stats in sinks_of(later).items():
         assert stats["duplicates_total"] == 0, chain
         assert stats["digest"] == reference_digest(scenario, chain, stats["contiguous"]), chain
+
+
+def test_a_status_is_put_again_only_while_the_next_is_late_and_not_for_ever(monkeypatch):
+    """`ZenohBus.repeat_until_next` between two real sessions: copies while late, none while on time,
+    none after `REPEAT_FOR_S`, none after close."""
+    from autopower.launch.localhost import free_ports
+    from autopower.runtime import bus as bus_module
+
+    monkeypatch.setattr(bus_module, "REPEAT_FOR_S", 1.0)
+    at = endpoint(free_ports(1)[0])
+    got: list[tuple[float, bytes]] = []
+    with ZenohBus(ZenohSettings(listen=(at,))) as receiver, ZenohBus(ZenohSettings(connect=(at,))) as sender:
+        receiver.subscribe("st/x", lambda _k, p: got.append((time.monotonic(), p)))
+        deadline = time.monotonic() + 20
+        while not got:  # until the link is up
+            assert time.monotonic() < deadline, "the two sessions never connected"
+            sender.publish("st/x", b"hello", reliable=False)
+            time.sleep(0.05)
+        # on time: a new one every 0.1 s, each due within 0.3 s: no copy
+        got.clear()
+        for i in range(10):
+            sender.publish("st/x", b"on-time", reliable=False)
+            sender.repeat_until_next("st/x", b"on-time", 0.3, 0.1)
+            time.sleep(0.1)
+        assert sender.repeated == 0
+        # late: the loop is held up; copies after 0.3 s, then every 0.1 s, until REPEAT_FOR_S (1 s)
+        sender.publish("st/x", b"late", reliable=False)
+        sender.repeat_until_next("st/x", b"late", 0.3, 0.1)
+        time.sleep(1.6)
+        late = [t for t, p in got if p == b"late"]
+        assert 5 <= len(late) - 1 <= 9, len(late)  # the original, then about 7 copies
+        assert late[1] - late[0] > 0.25
+        assert late[-1] - late[0] < 1.1  # none after REPEAT_FOR_S
+        copies = sender.repeated
+        sender.publish("st/x", b"last", reliable=False)
+        sender.repeat_until_next("st/x", b"last", 0.3, 0.1)
+    time.sleep(0.5)  # closed before it was due: nothing more
+    assert [p for _, p in got].count(b"last") == 1
+    assert copies == len(late) - 1
