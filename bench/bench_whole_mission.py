@@ -105,11 +105,10 @@ def main() -> None:
     robots = snap.get("robots") or {}
     silent = {r: ((info.get("status") or {}).get("counters") or {}).get("silent-peers", 0) for r, info in robots.items()}
     base = snap.get("basestation") or {}
-    downs = [e for e in snap.get("events") or [] if " is down" in e or " left" in e]
-    result.update({"silent_peers": silent, "links_down_events": len(downs),
-                   "basestation_errors": base.get("errors"), "basestation_counters": base.get("counters")})
-    print(f"peers declared silent by the robots: {silent}; link-down/left events at the base station: {len(downs)}; "
-          f"base station errors {base.get('errors')}, status repeats {(base.get('counters') or {}).get('status-repeats', 0)}")
+    result.update({"silent_peers": silent, "basestation_errors": base.get("errors"),
+                   "basestation_counters": base.get("counters")})
+    print(f"peers declared silent by the robots (silent-peers): {silent}; base station errors {base.get('errors')}, "
+          f"status repeats {(base.get('counters') or {}).get('status-repeats', 0)}")
     if args.json:
         print(json.dumps(result, indent=1))
 
