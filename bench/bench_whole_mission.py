@@ -103,6 +103,14 @@ def main() -> None:
         print(f"restarted by the supervisor: {', '.join(sorted(restarted))} (CPU above covers the first process "
               f"only); {supervision}")
     print(f"placement at the end: {snap.get('placement')}")
+    # an overloaded base station must not look like a cut network (issue 17, item 4's failure mode)
+    robots = snap.get("robots") or {}
+    silent = {r: ((info.get("status") or {}).get("counters") or {}).get("silent-peers", 0) for r, info in robots.items()}
+    base = snap.get("basestation") or {}
+    result.update({"silent_peers": silent, "basestation_errors": base.get("errors"),
+                   "basestation_counters": base.get("counters")})
+    print(f"peers declared silent by the robots (silent-peers): {silent}; base station errors {base.get('errors')}, "
+          f"status repeats {(base.get('counters') or {}).get('status-repeats', 0)}")
     if args.json:
         print(json.dumps(result, indent=1))
 

@@ -25,7 +25,7 @@ from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMov
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
-from autopower.runtime.cadence import StatusCadence, silence_limit_s
+from autopower.runtime.cadence import REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence, silence_limit_s
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -416,6 +416,8 @@ class Agent:
         rt = self.runtime
         window = self.config.status_window_s * rt.clock.speed if rt.started else 0.0
         rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
+        if self._bus.repeated:  # statuses put again while the loop was held up
+            rt.counters["status-repeats"] = self._bus.repeated
         status = self.cadence.due(rt.status(window, self.events.depth()), time.time(), urgent=urgent)
         if status is None:
             return False
@@ -423,6 +425,8 @@ class Agent:
             self.save_resume()
         key, payload = self.keys.status(self.config.robot), encode(status)
         self._bus.publish(key, payload, reliable=False)
+        self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
+                                    REPEAT_EVERY_PERIODS * status.next_status_s)
         # out of the base station's sight: through a robot that still sees it; and to the robots
         # whose frames we consume, for whom the status is the acknowledgement
         dests = {self.config.scenario.basestation} | rt.producers()

@@ -44,7 +44,7 @@ from autopower.protocol import (
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
-from autopower.runtime.cadence import StatusCadence
+from autopower.runtime.cadence import REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -404,8 +404,10 @@ class BaseStation:
             if now >= next_status:
                 next_status = max(next_status + self.config.status_period_s, now)
                 status = None
+                rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
+                if self._bus.repeated:  # statuses put again while the loop was held up
+                    rt.counters["status-repeats"] = self._bus.repeated
                 if rt.started:  # held back at rest: nothing new in it but what drifts with time
-                    rt.errors.update(self.events.counts())  # dropped before the loop saw them
                     status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
                                                         self.events.depth()), now)
                 if status is not None:
@@ -416,6 +418,8 @@ class BaseStation:
                     if rt.sink_store is not None:
                         rt.sink_store.commit()
                     self._bus.publish(key, payload, reliable=False)
+                    self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
+                                                REPEAT_EVERY_PERIODS * status.next_status_s)
                     # robots out of direct sight learn what our sinks received (their acks) via a relay
                     self.relayer.send_beyond_sight([r for r in co.robots if r in co.alive_nodes()], key, payload,
                                                    reliable=False)

@@ -586,6 +586,13 @@ class RecordingBus:
     def query(self, key: str, payload: bytes, timeout_s: float = 2.0) -> list[bytes]:
         return self.inner.query(key, payload, timeout_s)
 
+    def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None:
+        self.inner.repeat_until_next(key, payload, after_s, every_s)  # a copy: recorded once, when first put
+
+    @property
+    def repeated(self) -> int:
+        return self.inner.repeated
+
     def close(self) -> None:
         try:
             self.inner.close()

@@ -13,6 +13,9 @@ Zenoh traps this adapter handles (see ../shared/notes/zenoh-rerun.md):
   scouting are off so nothing leaves loopback and parallel test runs cannot find each other;
 - a callback subscriber buffers up to 256 samples of up to 1 GiB each on its way to Python: a
   subscriber here has an 8-sample channel and Zenoh takes no message over the codec's limit.
+
+Not a Zenoh trap but one of ours: a node's status is its peers' heartbeat, and a loop held up by
+one long event must not look like a cut link: `ZenohBus.repeat_until_next`.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable, Protocol
@@ -60,6 +64,11 @@ class Bus(Protocol):
     def serve(self, key: str, callback: Callable[[Request], None]) -> Closeable: ...
 
     def query(self, key: str, payload: bytes, timeout_s: float = 2.0) -> list[bytes]: ...
+
+    def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None: ...
+
+    @property
+    def repeated(self) -> int: ...
 
     def close(self) -> None: ...
 
@@ -202,6 +211,7 @@ class ZenohBus:
         self._pumps: set[_Pump] = set()
         self._lock = threading.Lock()
         self._closed = False
+        self._repeater: _Repeater | None = None
 
     def __enter__(self) -> "ZenohBus":
         return self
@@ -258,10 +268,37 @@ class ZenohBus:
                 out.append(reply.ok.payload.to_bytes())
         return out
 
+    def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None:
+        """``payload`` was just put on ``key``; if no other follows within ``after_s``, put it again.
+
+        For a node's status, the heartbeat its peers' silence detectors listen to: the loop that
+        builds statuses can be held up by one long event (a stage run, a burst of inputs released
+        at once by a resent frame) for longer than the peers wait, and an overloaded node then
+        looked like a cut link. The copy goes out from a thread of ours, unreliable like the
+        status itself, after ``after_s`` and then every ``every_s`` until the next status is put
+        (more than one chance before a peer gives up: on a loaded machine this thread may wait
+        for a core too), for at most `REPEAT_FOR_S` (a loop stuck for good must fall silent).
+        Peers drop it as a duplicate (not newer than the last); what it proves is that this node
+        and its link are there.
+        """
+        if self._closed:
+            return
+        with self._lock:
+            if self._repeater is None:
+                self._repeater = _Repeater(lambda k, p: self._publisher(k, False).put(p))
+        self._repeater.arm(key, payload, after_s, every_s)
+
+    @property
+    def repeated(self) -> int:
+        """How many copies `repeat_until_next` put so far (a loop that was late that often)."""
+        return self._repeater.repeated if self._repeater is not None else 0
+
     def close(self) -> None:
         if self._closed:
             return
         self._closed = True
+        if self._repeater is not None:
+            self._repeater.stop()
         for pub in list(self._publishers.values()):
             try:
                 pub.undeclare()
@@ -316,6 +353,61 @@ class _Pump:
         if self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
         self._forget(self)
+
+
+# A loop held up longer than this is as good as gone: its peers may stop counting on it.
+REPEAT_FOR_S = 10.0
+
+
+class _Repeater:
+    """One thread that puts a key's last payload again while the loop that puts it is late."""
+
+    def __init__(self, put: Callable[[str, bytes], None]):
+        self._put = put
+        self._cond = threading.Condition()
+        self._armed: dict[str, tuple[bytes, float, float, float]] = {}  # key -> payload, every, due, until
+        self._stopped = False
+        self.repeated = 0
+        self._thread = threading.Thread(target=self._run, name="status-repeater", daemon=True)
+        self._thread.start()
+
+    def arm(self, key: str, payload: bytes, after_s: float, every_s: float) -> None:
+        now = time.monotonic()
+        with self._cond:
+            self._armed[key] = (payload, every_s, now + after_s, now + REPEAT_FOR_S)
+            self._cond.notify()
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stopped = True
+            self._cond.notify()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if self._stopped:
+                    return
+                now = time.monotonic()
+                due = [k for k, (_, _, at, _) in self._armed.items() if at <= now]
+                if not due:
+                    # at rest: one wake-up per status put (each one re-arms), none in between
+                    wake = min((at for _, _, at, _ in self._armed.values()), default=None)
+                    self._cond.wait(None if wake is None else wake - now)
+                    continue
+                puts = []
+                for key in due:
+                    payload, every_s, _, until = self._armed.pop(key)
+                    puts.append((key, payload))
+                    if now + every_s < until:
+                        self._armed[key] = (payload, every_s, now + every_s, until)
+            for key, payload in puts:  # outside the lock: the loop arms the next one meanwhile
+                try:
+                    self._put(key, payload)
+                    self.repeated += 1
+                except Exception:  # the session is going down
+                    log.debug("repeating %s failed", key, exc_info=True)
 
 
 class _Undeclare:
@@ -476,6 +568,11 @@ class InMemoryBus:
             if not bus._closed and key_matches(qkey, key):
                 callback(_MemRequest(qkey, bytes(payload), replies))
         return replies
+
+    def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None:
+        """Nothing to do: an in-memory loop is never late for its peers (unit tests drive time)."""
+
+    repeated = 0
 
     def close(self) -> None:
         if self._closed:

@@ -18,6 +18,12 @@ import dataclasses
 
 from autopower.protocol import NodeStatus
 
+# A status not followed by the next one within this many of the periods it announced is put again,
+# and again every REPEAT_EVERY_PERIODS (`Bus.repeat_until_next`), well inside the 2 periods a peer's
+# silence detector waits: a loop held up by one long event is not taken for a cut link.
+REPEAT_AFTER_PERIODS = 1.1
+REPEAT_EVERY_PERIODS = 0.5
+
 # What changes with time alone, also at rest: not a reason to speak before the rest period.
 DRIFTING = {"t_virtual": 0.0, "t_unix": 0.0, "battery_j": None, "energy_j": {}, "power_w": {},
             "cpu_utilisation": 0.0, "next_status_s": 0.0}
