@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
 
-import pytest
 
 from autopower.launch.localhost import LocalTeam, TeamSpec
 from autopower.cli.options import build_scenario
