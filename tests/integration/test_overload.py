@@ -24,28 +24,11 @@ from autopower.protocol import Keys, NodeStatus, decode
 from autopower.runtime.bus import ZenohBus, ZenohSettings
 from autopower.runtime.cadence import silence_limit_s
 from tests.integration.runtime_helpers import reference_digest, settled, sinks_of, wait_for
-from tests.integration.test_plugin_components import SCENARIO, plugin_path  # noqa: F401  (a fixture)
+from tests.integration.test_plugin_components import plugin_path, with_component  # noqa: F401  (a fixture)
 
 
 def slow_scenario(tmp_path):
-    text = SCENARIO.read_text().replace('''[[chains]]
-name = "Motion-1"
-source = "r1"
-sink = "operator"
-component = "Motion"''', '''[[chains]]
-name = "Motion-1"
-source = "r1"
-sink = "operator"
-component = "Slow"''').replace("state_bytes = { Motion = 3076 }", "state_bytes = { Motion = 3076, Slow = 3076 }")
-    text += '''
-[components.Slow]
-implementation = "tests.integration.faulty_components:SlowAtHundred"
-source = "motion_demo.camera:GreyCamera"
-latency_s = { laptop = 0.0005, sitsang = 0.025 }
-'''
-    path = tmp_path / "slow.toml"
-    path.write_text(text)
-    return path
+    return with_component(tmp_path, "Motion-1", "Slow", "tests.integration.faulty_components:SlowAtHundred")
 
 
 def test_a_base_station_held_up_by_a_slow_stage_stays_in_the_team(plugin_path, tmp_path):  # noqa: F811

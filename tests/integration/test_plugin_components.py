@@ -130,26 +130,28 @@ def test_metered_energy_matches_the_model_within_1_percent(team):
     assert_exactly_once_and_like_offline(scenario, team.snapshot())
 
 
+def with_component(tmp_path: Path, chain: str, name: str, implementation: str) -> Path:
+    """The example scenario with ``chain`` run by plug-in class ``implementation`` (as component
+    ``name``, same sizes and latencies as Motion), written to ``tmp_path``."""
+    motion = f'[[chains]]\nname = "{chain}"\nsource = "r{chain[-1]}"\nsink = "operator"\ncomponent = "Motion"'
+    text = SCENARIO.read_text()
+    assert motion in text, f"{chain} is not a Motion chain of {SCENARIO}"
+    text = text.replace(motion, motion.replace('component = "Motion"', f'component = "{name}"'))
+    text = text.replace("state_bytes = { Motion = 3076 }", f"state_bytes = {{ Motion = 3076, {name} = 3076 }}")
+    text += f'''
+[components.{name}]
+implementation = "{implementation}"
+source = "motion_demo.camera:GreyCamera"
+latency_s = {{ laptop = 0.0005, sitsang = 0.025 }}
+'''
+    path = tmp_path / f"{name.lower()}.toml"
+    path.write_text(text)
+    return path
+
+
 def test_a_component_that_raises_stops_its_stage_not_its_agent(plugin_path, tmp_path):
     # Motion-2 gets a detector that raises at its 10th frame; Motion-1 keeps the good one
-    text = SCENARIO.read_text()
-    text = text.replace('''[[chains]]
-name = "Motion-2"
-source = "r2"
-sink = "operator"
-component = "Motion"''', '''[[chains]]
-name = "Motion-2"
-source = "r2"
-sink = "operator"
-component = "Flaky"''').replace("state_bytes = { Motion = 3076 }", "state_bytes = { Motion = 3076, Flaky = 3076 }")
-    text += '''
-[components.Flaky]
-implementation = "tests.integration.faulty_components:RaisesAtTen"
-source = "motion_demo.camera:GreyCamera"
-latency_s = { laptop = 0.0005, sitsang = 0.025 }
-'''
-    path = tmp_path / "flaky.toml"
-    path.write_text(text)
+    path = with_component(tmp_path, "Motion-2", "Flaky", "tests.integration.faulty_components:RaisesAtTen")
     team = start(path, tmp_path / "logs", pins=("Motion-2=r2",))
     try:
         team.wait_ready(60)

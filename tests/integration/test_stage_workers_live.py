@@ -17,7 +17,7 @@ from autopower.launch.localhost import LocalTeam, TeamSpec
 from autopower.cli.options import build_scenario
 from autopower.protocol import MigrateCommand
 from tests.integration.runtime_helpers import sinks_of, wait_for
-from tests.integration.test_plugin_components import SCENARIO, assert_exactly_once_and_like_offline, plugin_path  # noqa: F401
+from tests.integration.test_plugin_components import assert_exactly_once_and_like_offline, plugin_path, with_component  # noqa: F401
 
 SPIN_AT_FRAME = 10
 
@@ -38,18 +38,7 @@ def children_of(pid: int) -> set[int]:
 
 def test_a_spinning_component_is_killed_the_other_stage_runs_on_and_a_stage_moves_with_its_state(
         plugin_path, tmp_path):  # noqa: F811
-    text = SCENARIO.read_text()
-    text = text.replace('name = "Motion-2"\nsource = "r2"\nsink = "operator"\ncomponent = "Motion"',
-                        'name = "Motion-2"\nsource = "r2"\nsink = "operator"\ncomponent = "Spinner"')
-    text = text.replace("state_bytes = { Motion = 3076 }", "state_bytes = { Motion = 3076, Spinner = 3076 }")
-    text += '''
-[components.Spinner]
-implementation = "tests.integration.faulty_components:SpinsAtTen"
-source = "motion_demo.camera:GreyCamera"
-latency_s = { laptop = 0.0005, sitsang = 0.025 }
-'''
-    path = tmp_path / "spinner.toml"
-    path.write_text(text)
+    path = with_component(tmp_path, "Motion-2", "Spinner", "tests.integration.faulty_components:SpinsAtTen")
     spec = TeamSpec(scenario=str(path), speed=10.0, auto_replan=False, log_dir=tmp_path / "logs",
                     pins=("Motion-1=laptop", "Motion-2=laptop"), stage_workers="on")
     team = LocalTeam(spec, build_scenario(str(path)))
