@@ -296,12 +296,37 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             return
         links = tuple(l for l in self.plan.links if l.a not in unreachable and l.b not in unreachable)
         self._set_plan(dataclasses.replace(self.plan, placement={**self.plan.placement, **placement}, links=links))
+        # the base station's prediction was for its placement: say the model's for this one
+        self.plan = dataclasses.replace(self.plan, predicted_w=self.predict_power())
         for stage, frames in list(self.orphans.items()):
             host = self.plan.placement.get(stage)
             if host is not None and host != self.node:
                 del self.orphans[stage]
                 for frame in frames:
                     self.send_frame(frame, host)
+
+    def predict_power(self) -> dict[str, float]:
+        """The model's power per robot for the plan this node runs (its placement, routing and
+        DVFS levels; a chain whose sink is out of reach buffers at its source). {} if the model
+        cannot price it (telemetry: never worth stopping for)."""
+        from autopower.model.dvfs import apply_levels
+        from autopower.model.energy import evaluate
+        from autopower.policies import effective_scenario
+
+        plan = self.plan
+        try:
+            scenario = apply_levels(self.scenario, dict(plan.levels)) if plan.levels else self.scenario
+            scenario, _ = effective_scenario(scenario, self.network)
+            placement = {s: n for s, n in plan.placement.items() if s in self.stage_index}
+            active = {self.stage_index[s][0].name for s in placement} & set(plan.running)
+            placement = {s: n for s, n in placement.items() if self.stage_index[s][0].name in active}
+            disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
+            ev = evaluate(scenario, self.network, placement, accounting=plan.mission.accounting,
+                          disabled_chains=disabled)
+        except (AutoPowerError, KeyError, ValueError) as exc:
+            log.info("%s: no model prediction for the placement %s: %s", self.node, dict(plan.placement), exc)
+            return {}
+        return {r: p.total_w for r, p in ev.robots.items()}
 
     def hold_output(self, frame: ChainFrame) -> None:
         if len(self.held_outputs) >= HELD_OUTPUT_LIMIT:
@@ -504,6 +529,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             mission=self.mission,
             generations={n: h.generation for n, h in self.hosted.items()},
             plan_operator=self.plan.operator if self.plan else None,
+            model_w=self.plan.predicted_w.get(self.node) if self.plan else None,
         )
 
     # ---- dispatch -----------------------------------------------------------------------------------------

@@ -363,6 +363,7 @@ class Agent:
         rt.override_placement(dict(proposal.placement), {base})
         if proposal.leader == me:
             self._publish_subgroup_prediction(proposal)
+        self.publish_status()  # what runs here now, and the model's power for it, at once
         rt.tally("subgroup-commits")
         if proposal.leader == me and self.agreement.agreement_s:
             rt.counters["subgroup-agreement-us"] = int(self.agreement.agreement_s[-1] * 1e6)
@@ -375,28 +376,16 @@ class Agent:
         """Say what the model predicts for the agreed placement (for the recording and replay).
 
         Published as a `PlanUpdate` with the current epoch: agents ignore it (not newer than
-        what they run), recorders log the model's power per robot from it.
+        what they run), recorders log it as a decision. Each member's own status carries its
+        share (`NodeRuntime.predict_power`, at the commit).
         """
         import dataclasses
 
-        from autopower.model.energy import evaluate
-
         rt = self.runtime
-        try:
-            placement = dict(rt.plan.placement)
-            from autopower.policies import effective_scenario
-
-            network = rt.network  # the base station's links are out of it already
-            scenario, _ = effective_scenario(self.config.scenario, network)
-            active = {rt.stage_index[s][0].name for s in placement}
-            disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
-            ev = evaluate(scenario, network, placement, accounting=rt.mission.accounting,
-                          disabled_chains=disabled)
-            update = dataclasses.replace(rt.plan, predicted_w={r: p.total_w for r, p in ev.robots.items()},
-                                         predicted_lifetime_s=None, plan_t_virtual=rt.now())
-            self._bus.publish(self.keys.plan, encode(update))
-        except Exception as exc:  # a prediction is telemetry: never worth stopping for
-            log.info("agent %s: no model prediction for the subgroup placement: %s", self.config.robot, exc)
+        if not rt.plan.predicted_w:
+            return
+        update = dataclasses.replace(rt.plan, predicted_lifetime_s=None, plan_t_virtual=rt.now())
+        self._bus.publish(self.keys.plan, encode(update))
 
     def save_resume(self) -> None:
         state = self.runtime.resume_state() if self.resume is not None else None

@@ -191,6 +191,29 @@ class Deciding:
         self.plan_t_virtual = self.now()
         self._reset_baselines()
 
+    def placement_w(self) -> dict[str, float]:
+        """The model's power per robot for what runs now: the confirmed placement of the chains
+        that run, at the plan's DVFS levels. While stages move this is not the target's
+        prediction, and a robot running a stage until its migration lands is drawing for it: the
+        plan tells each robot this figure, and the robot's status carries it to the recording
+        (replay checks the meter against it). {} when it cannot be evaluated."""
+        if self.placement == self.target and set(self.running) == {c.name for c in self.scenario.chains
+                                                                    if any(s.name in self.target for s in c.stages)}:
+            return dict(self.predicted_w)  # settled: the target's prediction is the placement's
+        running = {c.name for c in self.scenario.chains if c.name in self.running}
+        allocation = {s: n for s, n in self.placement.items() if self.chain_of[s].name in running}
+        if self.plan_network is None:
+            return {}
+        scenario = apply_levels(self.scenario, self.levels) if self.levels else self.scenario
+        network = self.plan_network.without_nodes({r for r in self.robots if r not in self.alive_nodes()})
+        disabled = frozenset(c.name for c in scenario.chains if c.name not in running)
+        try:
+            ev = evaluate(scenario, network, allocation, energies_j=self.remaining_energies(),
+                          disabled_chains=disabled)
+        except AutoPowerError:
+            return {}
+        return {r: p.total_w for r, p in ev.robots.items()}
+
     def _at_levels(self, ev):
         """DVFS: every robot at the cheapest frequency level at which its placement fits (a robot's
         level changes only its own power, so this is optimal for any policy's placement); the plan

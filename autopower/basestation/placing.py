@@ -180,7 +180,7 @@ class Placing:
         network = self.plan_network
         links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
         update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
-                            running=dict(self.running), links=links, predicted_w=dict(self.predicted_w),
+                            running=dict(self.running), links=links, predicted_w=self.placement_w(),
                             predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
                             policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels),
                             variants=dict(self.variants), incarnation=self.incarnation, leader=self.leader,

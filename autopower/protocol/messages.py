@@ -351,6 +351,9 @@ class NodeStatus:
     # wall seconds until this node's next status at the latest: its status period, or a longer one at
     # rest (nothing new to say; `runtime.cadence`); 0: not said (the receiver's own period applies)
     next_status_s: float = 0.0
+    # the model's power for what this node runs (its plan's prediction for it; after a subgroup
+    # commit, the subgroup's): what the recording checks the meter against. None: no prediction
+    model_w: float | None = None
 
 
 # ---------------------------------------------------------------------------------------------

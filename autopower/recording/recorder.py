@@ -20,10 +20,10 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
   ``total``), ``custody/<node>/resent|held|evicted`` (frames resent after a silent loss, kept
   until acknowledged, given up), ``robots/<r>/overhead_j/migration|recovery`` (cumulative energy outside the model's
   steady state, see `autopower.agent.meter`), ``team/links/<a>-<b>/up`` when a neighbour's visibility changes, sink and source
-  counters under ``components/<chain>/sink|source/...``;
-- `PlanUpdate` published -> ``team/allocation`` and ``team/network`` graphs, the model's power
-  per robot ``robots/<r>/model_w`` and a decision text event (type ``plan``, with the policy and
-  its reasons), at publication;
+  counters under ``components/<chain>/sink|source/...``, and the model's power for what the
+  robot runs ``robots/<r>/model_w`` (`NodeStatus.model_w`, logged when it changes);
+- `PlanUpdate` published -> ``team/allocation`` and ``team/network`` graphs and a decision text
+  event (type ``plan``, with the policy, its reasons and its ``predicted_w``), at publication;
 - a plan received -> this node's predicted battery line from its next status (the plan's
   ``predicted_w`` for it: ``predicted/<r>/battery_j`` and ``predicted/<r>/empty``, see
   `Telemetry.prediction`);
@@ -218,6 +218,7 @@ class Recorder:
         self._alive: set[str] = set()
         self._predicted: tuple[int, float] | None = None  # (plan epoch, this node's predicted W) to log
         self._predicted_epoch = -1
+        self._model_w: dict[str, float] = {}  # robot -> the model power last logged for it
         self._owns = owns_telemetry
         self.visualise = visualise
         # (chain, seq, output, variants) -> metrics against the ground truth (`recording.live.QualityScorer`)
@@ -372,6 +373,13 @@ class Recorder:
                     overhead[kind] += float(joules)
             for kind, joules in overhead.items():
                 tel.scalar(f"robots/{node}/overhead_j/{kind}", t, joules)
+            # the model's power for what the robot runs, by its own account: a plan names a robot
+            # it cannot reach, a subgroup's placement is not the base station's, a stage runs on
+            # until its migration lands; the robot knows which plan it runs
+            model_w = s.get("model_w")
+            if model_w is not None and self._model_w.get(node) != model_w:
+                self._model_w[node] = model_w
+                tel.scalar(f"robots/{node}/model_w", t, float(model_w))
         if s.get("plan_epoch") is not None and self._epochs_seen.get(node) != s["plan_epoch"]:
             # when each robot runs a plan: replay's "reconfigured" is when every robot runs it
             self._epochs_seen[node] = s["plan_epoch"]
@@ -418,8 +426,6 @@ class Recorder:
         network = SimpleNamespace(nodes=nodes, links=[SimpleNamespace(a=a, b=b, medium=m) for a, b, m in links])
         tel.network(t, network, list(self._all_links.values()))
         predicted = dict(p.get("predicted_w") or {})
-        for robot, watts in predicted.items():
-            tel.scalar(f"robots/{robot}/model_w", t, watts)
         life = p.get("predicted_lifetime_s")
         reasons = [str(r) for r in p.get("reasons") or ()]
         human = (f"plan epoch {epoch}: " + ", ".join(f"{s} → {h}" for s, h in sorted(placement.items()))

@@ -1,0 +1,86 @@
+"""The model's power a robot reports is the model's for what it runs, not for where the team is going.
+
+The replay checks each robot's meter against ``robots/<r>/model_w``, which comes from the robot's
+own status (`NodeStatus.model_w`). If a plan carried the prediction for its *target* while a
+stage still ran on its old host, or a robot in a subgroup kept the base station's figure, the
+check would compare the meter against power nobody drew (the demo's energy check failed 1 run in
+5 that way).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from autopower.basestation.coordinator import CoordinatorConfig
+from autopower.model.energy import evaluate
+from autopower.model.loading import load_scenario
+from autopower.policies import effective_scenario
+from autopower.protocol import MigrateCommand, PlanUpdate, decode
+from tests.unit.sim_team import SimTeam
+
+FC = {"laptop-robot": "802.11a", "robot-robot": "802.11a"}
+
+
+def _model_for(team: SimTeam, rt, plan: PlanUpdate) -> dict[str, float]:
+    """The model's power per robot for a plan's confirmed placement of its running chains, computed
+    from the message alone (independently of how the base station or the agent got theirs)."""
+    sc = team.scenario
+    chain_of = {s.name: c.name for c in sc.chains for s in c.stages}
+    placement = {s: n for s, n in plan.placement.items() if chain_of[s] in plan.running}
+    disabled = frozenset(c.name for c in sc.chains if c.name not in plan.running)
+    scenario, _ = effective_scenario(sc, rt.network)
+    ev = evaluate(scenario, rt.network, placement, disabled_chains=disabled)
+    return {r: p.total_w for r, p in ev.robots.items()}
+
+
+@pytest.fixture
+def team():
+    team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False))
+    plans: list[PlanUpdate] = []
+    team.hub.bus("observer").subscribe(team.keys.plan, lambda key, payload: plans.append(decode(payload, PlanUpdate)))
+    team.plans = plans
+    team.join()
+    team.run_until(5.0)
+    return team
+
+
+def test_a_plan_predicts_the_placement_in_force_while_a_stage_moves(team):
+    coord, r1 = team.coordinator, team.nodes["r1"]
+    assert coord.placement["Loc-1"] == "laptop"  # the paper's optimum: every stage on the laptop
+    settled = dict(r1.plan.predicted_w)
+    assert r1.status(1.0).model_w == pytest.approx(settled["r1"])
+    seen = len(team.plans)
+    reply = coord.on_operator(MigrateCommand(stage="Loc-1", to_node="r1"))
+    assert reply.ok, reply.message
+    team.pump()
+    team.run_until(10.0)
+    moving = [p for p in team.plans[seen:] if p.placement.get("Loc-1") == "laptop"]
+    landed = [p for p in team.plans[seen:] if p.placement.get("Loc-1") == "r1"]
+    assert moving and landed, "the move is published before and after it lands"
+    # published with Loc-1 still on the laptop: r1 draws what it drew, not what hosting Loc-1 costs
+    assert moving[0].predicted_w["r1"] == pytest.approx(settled["r1"])
+    assert landed[-1].predicted_w["r1"] > settled["r1"] + 0.05  # Loc-1 runs on r1's CPU now
+    for plan in moving + landed:
+        assert plan.predicted_w == pytest.approx(_model_for(team, r1, plan))
+    # and the robot says so in its status, which is where the recording takes it from
+    assert r1.plan.placement["Loc-1"] == "r1"
+    assert r1.status(1.0).model_w == pytest.approx(landed[-1].predicted_w["r1"])
+
+
+def test_a_subgroup_commit_predicts_its_own_placement(team):
+    r2 = team.nodes["r2"]
+    before = r2.plan.predicted_w["r2"]
+    # the base station is out of reach: every chain comes home (as a subgroup round commits them)
+    r2.override_placement({"Loc-1": "r1", "Loc-2": "r2", "Blob-2": "r2", "Loc-3": "r3", "Blob-3": "r3"}, {"laptop"})
+    after = r2.status(1.0).model_w
+    assert after == pytest.approx(r2.plan.predicted_w["r2"])
+    assert after == pytest.approx(_model_for(team, r2, r2.plan)["r2"])
+    assert after > before + 0.05  # r2 runs two stages now; the base station's figure was for none
+
+
+def test_a_placement_the_model_cannot_price_reports_no_figure(team):
+    r3 = team.nodes["r3"]
+    # Loc-3 left on the laptop, which the subgroup cannot reach: no route, no prediction, no guess
+    r3.override_placement({"Blob-3": "r3"}, {"laptop"})
+    assert r3.plan.predicted_w == {}
+    assert r3.status(1.0).model_w is None
