@@ -72,7 +72,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     A process that crashes is restarted with backoff while the others run on; one that keeps
     crashing is given up (reported; exit 2 at the end).
     """
-    from autopower.basestation.operator import clear_session, running_sessions, team_dir, write_session
+    from autopower.basestation.operator import running_sessions, team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
 
     if team_name in running_sessions():  # (which also removes the files of teams whose `up` died)
@@ -190,11 +190,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         except AutoPowerError:
             pass
     finally:
-        if control is not None:
-            control.close()
-        codes = team.stop()
-        clear_session(team.team)
-        signal.signal(signal.SIGTERM, previous)
+        codes = end_session(team, control, previous)
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
@@ -244,3 +240,17 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
 
 
 COMMANDS = (up,)
+
+
+def end_session(team, control, previous_sigterm) -> dict:
+    """Stop a team `up` or `testbed up` started: its fault socket first (no fault lands on a
+    stopping team), the processes, the session file `autopower status` finds it by, and our
+    SIGTERM handler. Returns each process's exit code."""
+    from autopower.basestation.operator import clear_session
+
+    if control is not None:
+        control.close()
+    codes = team.stop()
+    clear_session(team.team)
+    signal.signal(signal.SIGTERM, previous_sigterm)
+    return codes

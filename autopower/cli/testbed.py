@@ -10,6 +10,7 @@ import time
 import click
 
 from autopower.cli.live_table import render
+from autopower.cli.team import end_session
 from autopower.cli.options import DEFAULT_SPEED, build_scenario, parse_pairs
 from autopower.errors import AutoPowerError
 from autopower.launch.summary import run_summary
@@ -40,7 +41,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     `autopower status`, `chain`, `migrate`, `fault cut|heal|kill|freeze|thaw` and `replay` work on
     it as on `autopower up`; a cut drops the link's packets silently.
     """
-    from autopower.basestation.operator import clear_session, team_dir, write_session
+    from autopower.basestation.operator import team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
     from autopower.launch.localhost import TeamSpec
     from autopower.launch.netns import require_root
@@ -90,11 +91,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        if control is not None:
-            control.close()
-        codes = team.stop()
-        clear_session(team.team)
-        signal.signal(signal.SIGTERM, previous)
+        codes = end_session(team, control, previous)
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
                           wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary.update(interrupted=interrupted, testbed=team.net.run_id, shaped=not no_shaping,
