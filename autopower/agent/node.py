@@ -122,6 +122,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # at the first plan of the same mission; and who to tell when a source advanced
         self.resume_from: dict | None = None
         self.resumed: bool = False
+        self.down: tuple[float, float] | None = None  # see NodeStatus.down
         self.on_produced: Callable[[SourceRunner], None] | None = None
         self.custody = Custody()
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
@@ -246,6 +247,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         meter = self.meter
         self.source_totals.update(sources)
         self.resumed = True
+        # what `advance` charges for the time we were down (the robot drew idle current, radios asleep)
+        self.down = (meter.t, 0.0 if meter.mains else meter.platform.idle_w + sum(
+            self.scenario.radios[m].sleep_w for m in meter.media))
         log.warning("%s: resumed after a restart: battery %.1f J (consumed %.1f J up to t=%.1f s), sources %s",
                     self.node, meter.battery_j if not meter.mains else float("nan"), meter.consumed_j, meter.t,
                     {n: s["seq"] for n, s in saved.get("sources", {}).items()} or "none")
@@ -530,6 +534,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             generations={n: h.generation for n, h in self.hosted.items()},
             plan_operator=self.plan.operator if self.plan else None,
             model_w=self.plan.predicted_w.get(self.node) if self.plan else None,
+            down=self.down,
         )
 
     # ---- dispatch -----------------------------------------------------------------------------------------

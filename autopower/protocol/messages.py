@@ -354,6 +354,9 @@ class NodeStatus:
     # the model's power for what this node runs (its plan's prediction for it; after a subgroup
     # commit, the subgroup's): what the recording checks the meter against. None: no prediction
     model_w: float | None = None
+    # a restarted process: (virtual time its predecessor's metering stops, watts the meter charges
+    # for the time the robot was without it: idle CPU, radios asleep), so the model follows it too
+    down: tuple[float, float] | None = None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -219,6 +219,7 @@ class Recorder:
         self._predicted: tuple[int, float] | None = None  # (plan epoch, this node's predicted W) to log
         self._predicted_epoch = -1
         self._model_w: dict[str, float] = {}  # robot -> the model power last logged for it
+        self._down: dict[str, tuple] = {}  # robot -> the downtime last logged for it (NodeStatus.down)
         self._owns = owns_telemetry
         self.visualise = visualise
         # (chain, seq, output, variants) -> metrics against the ground truth (`recording.live.QualityScorer`)
@@ -376,6 +377,12 @@ class Recorder:
             # the model's power for what the robot runs, by its own account: a plan names a robot
             # it cannot reach, a subgroup's placement is not the base station's, a stage runs on
             # until its migration lands; the robot knows which plan it runs
+            down = s.get("down")
+            if down is not None and self._down.get(node) != tuple(down):
+                # restarted: while it was down the robot drew what its meter charges for that time
+                self._down[node] = tuple(down)
+                self._model_w[node] = float(down[1])
+                tel.scalar(f"robots/{node}/model_w", float(down[0]), float(down[1]))
             model_w = s.get("model_w")
             if model_w is not None and self._model_w.get(node) != model_w:
                 self._model_w[node] = model_w

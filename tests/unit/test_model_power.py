@@ -84,3 +84,33 @@ def test_a_placement_the_model_cannot_price_reports_no_figure(team):
     r3.override_placement({"Blob-3": "r3"}, {"laptop"})
     assert r3.plan.predicted_w == {}
     assert r3.status(1.0).model_w is None
+
+
+def test_a_restarted_robot_says_what_its_meter_charged_while_it_was_down(tmp_path):
+    from autopower.protocol import Keys, encode
+    from autopower.recording.recorder import Recorder
+    from autopower.recording.telemetry import Telemetry, read_recording
+    from tests.unit.test_agent_resume import _restarted
+
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    team.run_until(40.0)
+    old = team.nodes["r2"]
+    saved, consumed = old.resume_state(), old.meter.consumed_j
+    assert old.status(1.0).down is None  # a process that never restarted has no downtime to tell
+    team.clock.set(50.0)  # the process was down for 10 s of mission time
+    rt = _restarted(team, "r2", saved)
+    status = rt.status(1.0)
+    since, watts = status.down
+    assert since == pytest.approx(saved["t_virtual"])
+    # exactly what the meter charged for the time it was down (idle CPU, radios asleep) ...
+    assert rt.meter.consumed_j - consumed == pytest.approx(watts * (50.0 - since), rel=1e-9)
+    assert watts < old.plan.predicted_w["r2"]  # ... which is less than running the plan costs
+    # the recording's model follows the robot: the downtime from `since`, then the plan it runs
+    t = [50.0]
+    rec = Recorder(Telemetry(tmp_path / "r2.rrd", kind="live", properties={"scenario": "paper-fig7"}), "r2",
+                   clock=lambda: t[0])
+    rec.on_publish(Keys("sim").status("r2"), encode(status))
+    rec.close()
+    times, values = read_recording(tmp_path / "r2.rrd").series("robots/r2/model_w")
+    assert times == pytest.approx([since, 50.0]) and values == pytest.approx([watts, status.model_w])
