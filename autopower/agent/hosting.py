@@ -176,6 +176,8 @@ class Hosting:
         hosted.forward_to = msg.to_node
         self.retire(hosted.component)
         hosted.component = None
+        if self.plan is not None and self.plan.predicted_w:  # it runs there from now on, not here
+            self.model_override = self.predict_power({**self.plan.placement, msg.stage: msg.to_node})
         # The state crosses the network like any message: routed, forwarded, charged (real bytes).
         if msg.to_node == self.node:
             self.on_state(transfer)

@@ -123,6 +123,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.resume_from: dict | None = None
         self.resumed: bool = False
         self.down: tuple[float, float] | None = None  # see NodeStatus.down
+        # the model's power per robot once a stage has left us and before the plan says where it
+        # landed (`Hosting.on_migrate_out`): we no longer run it; None: the plan's prediction holds
+        self.model_override: dict[str, float] | None = None
         self.on_produced: Callable[[SourceRunner], None] | None = None
         self.custody = Custody()
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
@@ -273,6 +276,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def _set_plan(self, plan: PlanUpdate) -> None:
         self.plan = plan
+        self.model_override = None
         nodes = self.scenario.node_names()
         links = [Link(a=l.a, b=l.b, medium=l.medium, group="runtime") for l in plan.links
                  if l.a in nodes and l.b in nodes and l.medium in self.scenario.radios]
@@ -309,10 +313,17 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                 for frame in frames:
                     self.send_frame(frame, host)
 
-    def predict_power(self) -> dict[str, float]:
-        """The model's power per robot for the plan this node runs (its placement, routing and
-        DVFS levels; a chain whose sink is out of reach buffers at its source). {} if the model
-        cannot price it (telemetry: never worth stopping for)."""
+    @property
+    def model_w(self) -> float | None:
+        """The model's power for what this node runs now (`NodeStatus.model_w`)."""
+        if self.plan is None:
+            return None
+        return (self.model_override if self.model_override is not None else self.plan.predicted_w).get(self.node)
+
+    def predict_power(self, placement: dict[str, str] | None = None) -> dict[str, float]:
+        """The model's power per robot for the plan this node runs (its placement, or the one
+        given, routing and DVFS levels; a chain whose sink is out of reach buffers at its source).
+        {} if the model cannot price it (telemetry: never worth stopping for)."""
         from autopower.model.dvfs import apply_levels
         from autopower.model.energy import evaluate
         from autopower.policies import effective_scenario
@@ -321,7 +332,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         try:
             scenario = apply_levels(self.scenario, dict(plan.levels)) if plan.levels else self.scenario
             scenario, _ = effective_scenario(scenario, self.network)
-            placement = {s: n for s, n in plan.placement.items() if s in self.stage_index}
+            placement = {s: n for s, n in (placement or plan.placement).items() if s in self.stage_index}
             active = {self.stage_index[s][0].name for s in placement} & set(plan.running)
             placement = {s: n for s, n in placement.items() if self.stage_index[s][0].name in active}
             disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
@@ -533,7 +544,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             mission=self.mission,
             generations={n: h.generation for n, h in self.hosted.items()},
             plan_operator=self.plan.operator if self.plan else None,
-            model_w=self.plan.predicted_w.get(self.node) if self.plan else None,
+            model_w=self.model_w,
             down=self.down,
         )
 

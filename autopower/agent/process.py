@@ -248,11 +248,13 @@ class Agent:
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
             return
-        order = rt.plan_order
+        order, model_w = rt.plan_order, rt.model_w
         if not rt.on_message(key, payload):
             rt.count("unexpected-key", key)
         elif rt.plan_order != order:
             self.publish_status()  # acknowledges the new plan at once (reconfiguration is timed on it)
+        elif rt.model_w != model_w:
+            self.publish_status()  # a stage left: the recording's model steps down when it did
 
     # ---- subgroup (no base station) ---------------------------------------------------------------
     def _subgroup_tick(self) -> None:

@@ -15,7 +15,7 @@ from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.energy import evaluate
 from autopower.model.loading import load_scenario
 from autopower.policies import effective_scenario
-from autopower.protocol import MigrateCommand, PlanUpdate, decode
+from autopower.protocol import MigrateCommand, MigrateOut, PlanUpdate, decode
 from tests.unit.sim_team import SimTeam
 
 FC = {"laptop-robot": "802.11a", "robot-robot": "802.11a"}
@@ -65,6 +65,11 @@ def test_a_plan_predicts_the_placement_in_force_while_a_stage_moves(team):
     # and the robot says so in its status, which is where the recording takes it from
     assert r1.plan.placement["Loc-1"] == "r1"
     assert r1.status(1.0).model_w == pytest.approx(landed[-1].predicted_w["r1"])
+    # told to hand Loc-1 back: from the moment its state leaves, r1 no longer runs it, although the
+    # plan says r1 until the laptop reports it running
+    r1.on_migrate_out(MigrateOut(stage="Loc-1", generation=99, to_node="laptop"))
+    assert r1.plan.placement["Loc-1"] == "r1"
+    assert r1.status(1.0).model_w == pytest.approx(settled["r1"])
 
 
 def test_a_subgroup_commit_predicts_its_own_placement(team):
