@@ -73,6 +73,20 @@ class SpinsFromSeq2(FakeComponent):
         return super().run(payload)
 
 
+class Slow(FakeComponent):
+    def run(self, payload):
+        time.sleep(SLOW_RUN_S)
+        return super().run(payload)
+
+
+SLOW_RUN_S = 0.1
+
+
+def make_slow_blob2(kind, robot, seed):
+    """Blob-2 (r2's blob finder) takes `SLOW_RUN_S` a run: its worker holds inputs for a while."""
+    return (Slow if (kind, robot) == ("Blob", "r2") else FakeComponent)(kind, robot, seed)
+
+
 def make_spinning_blob2(kind, robot, seed):
     """Blob-2 (r2's blob finder) spins from its seq 2; everything else counts."""
     return (SpinsFromSeq2 if (kind, robot) == ("Blob", "r2") else FakeComponent)(kind, robot, seed)
@@ -118,7 +132,7 @@ def gone(pid: int, timeout_s: float = 5.0) -> bool:
 def test_runs_handed_over_at_once_come_back_in_order_and_the_state_moves(zygote):
     w, component = worker(zygote)
     for seq in range(40):  # the loop does not wait: all 40 are handed over (a window sent, the rest queued)
-        assert w.submit(seq, frame("r1", seq))
+        w.submit(seq, frame("r1", seq))
     done = finish(w)
     assert [item for item, _ in done] == list(range(40))
     assert [msgpack.unpackb(reply[2]) for _, reply in done] == [[s, s + 1] for s in range(40)]
@@ -182,12 +196,17 @@ def test_a_hung_run_gets_its_worker_killed(zygote, monkeypatch, robot, how, spin
     assert gone(w.pid)
 
 
-def test_the_queue_in_front_of_a_worker_is_bounded(zygote):
+def test_a_worker_says_how_much_room_it_has_and_what_it_still_holds(zygote):
     w, _ = worker(zygote, "slow")
-    accepted = [w.submit(seq, frame("slow", seq)) for seq in range(WINDOW + STAGE_QUEUE + 2)]
-    assert accepted == [True] * (WINDOW + STAGE_QUEUE) + [False, False]  # handed over + waiting
-    assert w.dropped == 2
+    assert w.room() == WINDOW + STAGE_QUEUE
+    for seq in range(WINDOW + STAGE_QUEUE):
+        w.submit(seq, frame("slow", seq))
+    assert w.room() == 0  # the node refuses the next input before its gate takes it (`Frames._no_room`)
+    assert len(w.sent) == WINDOW and list(w.outstanding()) == list(range(WINDOW + STAGE_QUEUE))
+    assert w.poll(5.0)[0] == 0  # one result taken: one more fits, and the oldest is no longer held
+    assert w.room() == 1 and next(iter(w.outstanding())) == 1
     w.kill()
+    assert list(w.outstanding()) == []
 
 
 def test_a_worker_inherits_no_secrets(zygote, monkeypatch):
@@ -309,6 +328,97 @@ def test_a_spinning_component_in_a_worker_is_killed_and_its_node_goes_on(monkeyp
         settle(team, lambda: idle(team) and len(outputs.get("Loc-2", [])) == r2.sources["Loc-2"].seq)
         assert sorted(seq for seq, _ in outputs["Loc-2"]) == list(range(r2.sources["Loc-2"].seq))
         assert r2.hosted["Loc-2"].runs == r2.sources["Loc-2"].seq
+    finally:
+        close(team)
+
+
+def custody_of(rt, chain: str, target: int = 0) -> list[int]:
+    """The seqs a producer still holds for a hop (sent, not acknowledged yet)."""
+    return sorted(seq for _, seq in rt.custody.hops.get((chain, target), {}))
+
+
+def drain_with_statuses(team: SimTeam, until, rounds: int = 60) -> None:
+    """Statuses every half second of the team's clock (acks, resends) until ``until()``."""
+    for _ in range(rounds):
+        team.clock.advance(0.5)
+        team.exchange_statuses()
+        settle(team, lambda: True)
+        if until():
+            return
+        time.sleep(0.05)  # the workers run on wall time
+    raise AssertionError("the team did not deliver everything")
+
+
+def test_inputs_in_a_worker_stay_in_their_producers_custody_and_a_crash_of_their_node_loses_none():
+    """The node hosting Blob-2 in a worker dies with inputs in it: Blob-2 restarted elsewhere
+    (cold, as after a crash) gets them from r2's custody; the operator sees every output once."""
+    from autopower.protocol import Assign
+
+    team = team_in_workers(make_slow_blob2, pins={"Blob-2": "r1"})
+    try:
+        outputs = outputs_of(team)
+        team.join()
+        r1, r2, r3, laptop = (team.nodes[n] for n in ("r1", "r2", "r3", "laptop"))
+        team.run_until(3.0)  # 12 camera frames at once: r1's worker runs them one per 0.1 s of wall time
+        settle(team, lambda: r1.hosted["Blob-2"].runs >= 2)
+        team.exchange_statuses()  # r1's acknowledgements reach r2, with inputs still in the worker
+        worker = r1.hosted["Blob-2"].component.worker
+        held = [frame.seq for _, frame in worker.outstanding()]
+        done = r1.hosted["Blob-2"].runs
+        assert len(held) >= 3 and held[0] == done, (held, done)
+        assert r1.hosted["Blob-2"].gate.next_seq == done + len(held)  # the gate took them all ...
+        report = r1.consumed()["Blob-2#0"]
+        assert report.next_seq == done and set(held) <= set(report.missing)  # ... it acknowledges only what ran
+        assert custody_of(r2, "Blob-2") == held  # so r2 still holds exactly those
+        assert sorted(seq for seq, _ in outputs["Blob-2"]) == list(range(done))
+
+        # r1 dies (SIGKILL: its worker with it, nothing more from it); Blob-2 starts on r3 without state
+        r1.close_workers()
+        for handle in team.subscriptions.pop("r1"):
+            handle.close()
+        for other in ("r2", "r3", "laptop"):
+            team.cut_silently("r1", other)
+        r3.on_assign(Assign(stage="Blob-2", generation=10**9, chain="Blob-2", run=r2.plan.running["Blob-2"],
+                            resume_seq=None))
+        for rt in (r2, r3, laptop):
+            rt.override_placement({"Blob-2": "r3"}, set())
+        team.run_until(6.0)
+        drain_with_statuses(team, lambda: idle(team) and len(outputs.get("Blob-2", [])) == r2.sources["Blob-2"].seq)
+        produced = r2.sources["Blob-2"].seq
+        assert sorted(seq for seq, _ in outputs["Blob-2"]) == list(range(produced))  # none lost, none twice
+        assert laptop.sinks["Blob-2"].duplicates_total == 0
+        assert r3.hosted["Blob-2"].gate.catch_up_below is not None and r2.custody.resent >= len(held)
+        assert "Blob-2" not in r3.failed
+    finally:
+        close(team)
+
+
+def test_an_input_a_full_worker_cannot_take_is_refused_before_its_gate_and_resent(monkeypatch):
+    """Its producer keeps it and resends it: delayed, not lost (the fake component raises on a gap)."""
+    from autopower.agent import workers
+
+    monkeypatch.setattr(workers, "WINDOW", 1)
+    monkeypatch.setattr(workers, "STAGE_QUEUE", 2)
+    team = team_in_workers(make_slow_blob2, pins={"Blob-2": "laptop"})
+    try:
+        outputs = outputs_of(team)
+        team.join()
+        r2, laptop = team.nodes["r2"], team.nodes["laptop"]
+        team.run_until(3.0)  # 12 frames at once: room for 3
+        hosted = laptop.hosted["Blob-2"]
+        assert hosted.gate.next_seq == 3 and not hosted.gate.pending  # the gate took only what fits
+        refused = laptop.counters["stage-queue-full"]
+        assert refused == r2.sources["Blob-2"].seq - 3
+        assert "stage-queue-full" not in laptop.errors  # a refusal is not a loss
+        team.exchange_statuses()
+        assert custody_of(r2, "Blob-2") == list(range(r2.sources["Blob-2"].seq))  # nothing acknowledged yet
+        drain_with_statuses(team, lambda: idle(team) and len(outputs.get("Blob-2", [])) == r2.sources["Blob-2"].seq)
+        produced = r2.sources["Blob-2"].seq
+        assert sorted(seq for seq, _ in outputs["Blob-2"]) == list(range(produced))
+        assert [msgpack.unpackb(d)[1] for _, d in sorted(outputs["Blob-2"])] == list(range(1, produced + 1))
+        assert r2.custody.resent >= refused and r2.custody.evicted == 0
+        assert laptop.sinks["Blob-2"].duplicates_total == 0 and not laptop.failed
+        assert sum(1 for _ in hosted.component.worker.outstanding()) == 0
     finally:
         close(team)
 
