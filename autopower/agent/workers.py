@@ -55,6 +55,11 @@ _IDLE_CPU_S = 0.001
 # what a worker may see of the node's environment: enough to find Python and its packages
 _ENV_KEEP = ("PATH", "LANG", "LC_ALL", "LC_CTYPE", "TMPDIR", "HOME", "VIRTUAL_ENV", "TZ")
 _THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+# glibc's malloc kept giving a worker's large temporaries (a blob finder's 0.6 MB label arrays)
+# back to the kernel after each run and faulting them in again on the next: 184 page faults and
+# 0.45 ms of system time a run, 1.3 ms of CPU against 0.8 ms in-process. Kept in the process
+# instead (at most this much idle memory a worker).
+_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(64 << 20)}
 
 
 class WorkerCrashed(Exception):
@@ -66,6 +71,7 @@ def worker_environment() -> dict[str, str]:
     env = {k: os.environ[k] for k in _ENV_KEEP if k in os.environ}
     env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)  # the modules the node can import
     env.update({k: "1" for k in _THREADS})  # one core per worker: parallelism comes from the workers
+    env.update(_MALLOC)
     env["PYTHONDONTWRITEBYTECODE"] = "1"
     return env
 
