@@ -58,7 +58,7 @@ _THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 # glibc's malloc kept giving a worker's large temporaries (a blob finder's 0.6 MB label arrays)
 # back to the kernel after each run and faulting them in again on the next: 184 page faults and
 # 0.45 ms of system time a run, 1.3 ms of CPU against 0.8 ms in-process. Kept in the process
-# instead (at most this much idle memory a worker).
+# instead: a worker holds on to its peak use (a few MB for the built-in components).
 _MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(64 << 20)}
 
 
