@@ -217,17 +217,20 @@ class Frames:
 
     # ---- stages in worker processes (`agent.workers`) -------------------------------------------------
     def _no_room(self, hosted: HostedStage, frame: ChainFrame) -> bool:
-        """Refuse a new input, before its gate takes it, when the stage's worker has no room for it
-        and what the gate would release with it (counted: ``stage-queue-full`` in the status's counters).
+        """Refuse a new input, before its gate takes it, when the stage's worker is full (counted:
+        ``stage-queue-full`` in the status's counters).
 
         Refused, it is not acknowledged: its producer keeps it in custody and resends it (after
         `custody.RESEND_AFTER_S`), so an overloaded worker delays inputs instead of losing them.
-        A second copy is left to the gate (dropped there, not counted as refused)."""
+        A second copy is left to the gate (dropped there, not counted as refused), and so is every
+        input while a gap is open in the gate: refusing those could refuse the very input the gate
+        waits for (a full gate then waited for ever, seen live), and its own bounds (inputs, seconds)
+        give the gap up. What the gap releases may take a worker past its bound, by at most those."""
         worker = worker_of(hosted.component)
         gate = hosted.gate
-        if worker is None or gate.next_seq is None or frame.seq < gate.next_seq or frame.seq in gate.pending:
+        if worker is None or gate.next_seq is None or frame.seq < gate.next_seq or gate.pending:
             return False
-        if worker.room() > len(gate.pending):  # it and everything waiting behind a gap fit
+        if worker.room() > 0:
             return False
         self.tally("stage-queue-full")  # a refusal, not a loss: counted with what happens, not with errors
         log.debug("%s: %s refused seq %d (its worker is full); its producer resends it", self.node,
