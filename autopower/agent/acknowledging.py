@@ -38,8 +38,8 @@ class Acknowledging:
         for hosted in self.hosted.values():
             if hosted.lifecycle is Lifecycle.RUNNING:
                 report = hosted.gate.report(hosted.run, hosted.generation)
-                if report is not None:
-                    out[hop_key(hosted.chain.name, hosted.index)] = report
+                if report is not None:  # less the inputs still in the stage's worker (their outputs are not out)
+                    out[hop_key(hosted.chain.name, hosted.index)] = self.acknowledged(hosted, report)
         for name, ledger in self.sinks.items():
             report = ledger.report()
             if report is not None and name in self.chains:

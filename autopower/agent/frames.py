@@ -13,13 +13,14 @@ import time
 import zlib
 
 from autopower.agent.guard import ComponentHung
-from autopower.agent.sequencing import SinkLedger
+from autopower.agent.sequencing import MAX_MISSING, SinkLedger
 from autopower.agent.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
-from autopower.agent.workers import STAGE_QUEUE, NotBytes, type_name, worker_of
+from autopower.agent.workers import NotBytes, type_name, worker_of
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Chain
 from autopower.protocol import (
     ChainFrame,
+    Consumed,
     Packet,
     StateTransfer,
     decode,
@@ -140,13 +141,20 @@ class Frames:
         else:
             self._admit(hosted, frame)
 
-    def _admit(self, hosted: HostedStage, frame: ChainFrame) -> None:
+    def _admit(self, hosted: HostedStage, frame: ChainFrame, refusable: bool = True) -> None:
+        """Offer an input to its stage's gate and run what it releases.
+
+        ``refusable``: False for an input the stage's previous instance had already acknowledged
+        (one of the inputs a migration carries): its producer no longer holds it, so it is taken
+        even when the stage's worker is full."""
         if frame.chain != hosted.chain.name:  # a DAG flow into this stage: joined by step
             self.admit_flow(hosted, frame)
             return
         if frame.run != hosted.run:
             self.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
                        logging.INFO)
+            return
+        if refusable and self._no_room(hosted, frame):
             return
         before, redundant, skipped = hosted.gate.duplicates, hosted.gate.redundant, hosted.gate.skipped
         for ready in hosted.gate.offer(frame.seq, frame, frame.floor, resent=frame.attempt > 0, now=self.wall()):
@@ -165,9 +173,7 @@ class Frames:
             return  # inputs already admitted in this batch when it failed
         worker = worker_of(hosted.component)
         if worker is not None:  # in its own process: handed over; `collect_stage_results` finishes it
-            if not worker.submit((hosted, frame), frame.data()):
-                self.count("stage-queue-full", f"{hosted.stage.name}: dropped seq {frame.seq} ({STAGE_QUEUE} inputs "
-                           "already wait for its worker)", logging.ERROR)
+            worker.submit((hosted, frame), frame.data())
             return
         started = time.perf_counter()
         # The component is code we do not control: whatever it does wrong stops this stage only.
@@ -210,6 +216,45 @@ class Frames:
         self.emit(out, dest)
 
     # ---- stages in worker processes (`agent.workers`) -------------------------------------------------
+    def _no_room(self, hosted: HostedStage, frame: ChainFrame) -> bool:
+        """Refuse a new input, before its gate takes it, when the stage's worker is full (counted:
+        ``stage-queue-full`` in the status's counters).
+
+        Refused, it is not acknowledged: its producer keeps it in custody and resends it (after
+        `custody.RESEND_AFTER_S`), so an overloaded worker delays inputs instead of losing them.
+        A second copy is left to the gate (dropped there, not counted as refused), and so is every
+        input while a gap is open in the gate: refusing those could refuse the very input the gate
+        waits for (a full gate then waited for ever, seen live), and its own bounds (inputs, seconds)
+        give the gap up. What the gap releases may take a worker past its bound, by at most those."""
+        worker = worker_of(hosted.component)
+        gate = hosted.gate
+        if worker is None or gate.next_seq is None or frame.seq < gate.next_seq or gate.pending:
+            return False
+        if worker.room() > 0:
+            return False
+        self.tally("stage-queue-full")  # a refusal, not a loss: counted with what happens, not with errors
+        log.debug("%s: %s refused seq %d (its worker is full); its producer resends it", self.node,
+                  hosted.stage.name, frame.seq)
+        return True
+
+    def acknowledged(self, hosted: HostedStage, report: Consumed) -> Consumed:
+        """What a stage acknowledges to its producers: its gate's report less the inputs still in its worker.
+
+        In-process, a stage emits an input's output (into this node's custody) in the same step as
+        its gate takes the input. In a worker the output comes later; until then the input stays
+        unacknowledged, in its producer's custody: a node killed meanwhile loses none of them (its
+        producer resends them to the stage's next instance) and the stage's sink sees each output
+        once. A resend of one that is only slow is dropped by the gate (redundant)."""
+        worker = worker_of(hosted.component)
+        if worker is None:
+            return report
+        held = sorted({frame.seq for owner, frame in worker.outstanding()
+                       if owner is hosted and frame.run == report.run and frame.seq < report.next_seq})
+        if not held:
+            return report
+        # every held seq is below the gate's next_seq, every missing one at or above it: still sorted
+        return dataclasses.replace(report, next_seq=held[0], missing=(tuple(held) + report.missing)[:MAX_MISSING])
+
     def collect_stage_results(self) -> None:
         """Finish the runs whose results came back from their workers (the loop, on a nudge or a tick)."""
         for hosted in list(self.hosted.values()):

@@ -128,8 +128,8 @@ class Hosting:
         self.hosted[msg.stage] = hosted
         self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=False,
                                resume_seq=msg.resume_seq, downtime_ms=0.0, buffered=len(held)))
-        for frame in sorted(held, key=lambda f: f.seq):
-            self._admit(hosted, frame)
+        for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
+            self._admit(hosted, frame, refusable=False)
 
     def on_prepare(self, msg: Prepare) -> None:
         chain, index = self.stage_index[msg.stage]
@@ -226,8 +226,8 @@ class Hosting:
         self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
                                resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3),
                                buffered=len(held)))
-        for frame in sorted(held, key=lambda f: f.seq):
-            self._admit(hosted, frame)
+        for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
+            self._admit(hosted, frame, refusable=False)
 
     def _exportable_state(self, hosted: HostedStage) -> bytes | tuple[str, str]:
         """The state to ship, checked to import into a fresh instance; or (what, why) it cannot move.

@@ -275,9 +275,10 @@ STAGE_WORKER_CHOICES = ("off", "on", "auto")
 def stage_workers_option(f):
     """``--stage-workers``: each hosted stage's component in a worker process of its own."""
     return click.option(
-        # off by default until a worker's inputs count as consumed only once their results are out:
-        # a node that crashes with inputs handed to its workers loses them (README "Known gaps")
-        "--stage-workers", type=click.Choice(STAGE_WORKER_CHOICES), default="off", show_default=True,
+        # auto by default: a worker's inputs are acknowledged only once their outputs are out and a
+        # full worker refuses inputs before the gate, so workers lose nothing a crash would not
+        # (README "Failures are contained"); auto keeps them where they were measured to pay
+        "--stage-workers", type=click.Choice(STAGE_WORKER_CHOICES), default="auto", show_default=True,
         help="Run each hosted stage's component in a worker process of its own, called asynchronously, so "
              f"stages run in parallel on several cores; auto: on for the base station of a mission at x{AUTO_WORKERS_SPEED:g} "
              f"or faster on a machine with {AUTO_WORKERS_CORES} cores or more, else off.")(f)

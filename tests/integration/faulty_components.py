@@ -39,3 +39,26 @@ class SlowAtHundred(MotionDetector):
             while time.monotonic() < until:  # busy, as an overloaded stage is (not blocked: not hung)
                 pass
         return super().run(payload)
+
+
+SLOW_EVERY = 100  # SlowEveryHundred computes for SLOW_BLOB_S on each instance's 101st, 201st, ... run
+SLOW_BLOB_S = 2.0  # wall seconds: ~80 camera frames at x10 pile up behind it (its worker holds them)
+
+
+class SlowEveryHundred:
+    """paper-fig7's blob finder (same outputs: stateless), computing for `SLOW_BLOB_S` on runs
+    `SLOW_EVERY` + 1, 2 * `SLOW_EVERY` + 1, ... of an instance (seqs 100, 200, ... of one that starts
+    at 0; busy, as an overloaded stage is: not hung)."""
+
+    def __init__(self, robot: str, seed: int):
+        from autopower.chains.blobfinder import BlobFinder
+
+        self.finder, self.runs = BlobFinder(robot), 0
+
+    def run(self, payload: bytes) -> bytes:
+        self.runs += 1
+        if self.runs % SLOW_EVERY == 1 and self.runs > 1:  # its 101st run: seq 100 of a first instance
+            until = time.monotonic() + SLOW_BLOB_S
+            while time.monotonic() < until:
+                pass
+        return self.finder.run(payload)
