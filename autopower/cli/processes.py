@@ -39,7 +39,20 @@ def run_until_signalled(process, duration: float | None) -> str:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     process.events.wake_on_signals()  # its loop then sleeps until its next due event, not in slices
-    return process.run(duration)
+    folder = os.environ.get("AUTOPOWER_PROFILE_DIR")
+    if not folder:
+        return process.run(duration)
+    # where the loop's CPU goes (bench/README: "Live speed"): cProfile timed by this thread's CPU
+    # time, so waiting and other processes' load do not count; written when the loop ends
+    import cProfile
+    import time
+
+    profiler = cProfile.Profile(time.thread_time)
+    try:
+        return profiler.runcall(process.run, duration)
+    finally:
+        name = getattr(process, "node", None) or getattr(process.config, "robot", "process")
+        profiler.dump_stats(os.path.join(folder, f"{name}-{os.getpid()}.prof"))
 
 
 def exit_now(message: str) -> None:
