@@ -334,7 +334,7 @@ class _Compiler:
             return out
         if isinstance(hint, type) and (hint in _STRUCTS or hint in _MESSAGES.values()):
             name = f"_build_{hint.__name__}"
-            self.ns[name] = lambda fields, cls=hint: _fast_builder(cls)(fields)
+            self.ns[name] = _lazy_builder(hint)  # compiled at its first use (a class may refer to itself)
             return f"{name}({src})"
         # anything else (a union of several types, a fixed tuple): the slow converter, unnamed
         name = f"_convert{self.var()}"
@@ -343,6 +343,16 @@ class _Compiler:
         self.emit(indent, f"try: {out} = {name}({src}, '')")
         self.emit(indent, "except ProtocolError: raise _Slow from None")
         return out
+
+
+def _lazy_builder(cls: type) -> Callable[[Any], Any]:
+    built: list[Callable[[Any], Any]] = []
+
+    def build(fields: Any) -> Any:
+        if not built:
+            built.append(_fast_builder(cls))
+        return built[0](fields)
+    return build
 
 
 @lru_cache(maxsize=None)
@@ -370,9 +380,15 @@ def _fast_builder(cls: type) -> Callable[[Any], Any]:
     return ns["build"]
 
 
+_FAST: dict[type, Callable[[Any], Any]] = {}  # message class -> its compiled builder
+
+
 def _decode_fields(cls: type, fields: Any, kind: str) -> Any:
+    build = _FAST.get(cls)
+    if build is None:
+        build = _FAST[cls] = _fast_builder(cls)
     try:
-        return _fast_builder(cls)(fields)
+        return build(fields)
     except _Slow:
         return _build(cls, fields, kind)  # accepts it after all, or says what is wrong and where
 
