@@ -38,6 +38,7 @@ from autopower.chains import profile_components
 from autopower.chains.profile import live_limit
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec
+from autopower.runtime.memory import keep_large_buffers
 from autopower.launch.summary import chain_latencies
 
 SCENARIO = "paper-fig7"
@@ -47,6 +48,7 @@ TICKS = os.sysconf("SC_CLK_TCK")
 def component_cpu_per_virtual_s(scenario, runs: int = 40) -> tuple[float, dict[str, float]]:
     """CPU seconds the mission's components need per virtual second (all of them on this machine)."""
     kinds = sorted({stage.component for chain in scenario.chains for stage in chain.stages})
+    keep_large_buffers()  # as `autopower profile` and the team's processes run them
     profile = profile_components(runs, types=kinds)
     need, _ = live_limit(scenario, profile, 1)
     return need, {k: p["latency_median_s"] for k, p in profile.items()}

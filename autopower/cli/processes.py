@@ -30,6 +30,7 @@ from autopower.cli.options import (
 )
 from autopower.errors import AutoPowerError
 from autopower.model.network import build_network
+from autopower.runtime.memory import keep_large_buffers
 
 
 def run_until_signalled(process, duration: float | None) -> str:
@@ -39,6 +40,7 @@ def run_until_signalled(process, duration: float | None) -> str:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     process.events.wake_on_signals()  # its loop then sleeps until its next due event, not in slices
+    keep_large_buffers()  # frames and the components' arrays reuse heap memory (`runtime.memory`)
     folder = os.environ.get("AUTOPOWER_PROFILE_DIR")
     if not folder:
         return process.run(duration)
