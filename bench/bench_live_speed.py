@@ -100,9 +100,12 @@ def stage_runs(snap: dict, node: str) -> int:
 
 def run_once(speed: float, seconds: float, tree: str | None, workers: str = "auto") -> dict:
     scenario = build_scenario(SCENARIO)
-    saved = os.environ.get("PYTHONPATH")
+    saved, cwd = os.environ.get("PYTHONPATH"), os.getcwd()
     if tree:
         os.environ["PYTHONPATH"] = tree  # the children run that code; this process keeps its own
+        # and from there: `python -m` puts the working directory first on sys.path, so children
+        # started in a checkout (the repository's root) imported its code, not the tree's
+        os.chdir(tree)
     try:
         with tempfile.TemporaryDirectory() as tmp:
             spec = TeamSpec(scenario=SCENARIO, speed=speed, log_dir=Path(tmp), log_level="warning",
@@ -123,6 +126,7 @@ def run_once(speed: float, seconds: float, tree: str | None, workers: str = "aut
                 load1 = os.getloadavg()[0]
     finally:
         if tree:
+            os.chdir(cwd)
             if saved is None:
                 os.environ.pop("PYTHONPATH", None)
             else:
