@@ -29,7 +29,7 @@ class Acknowledging:
         now = self.wall()
         # never newer than its arrival: a consumer whose clock runs ahead must not make
         # frames still in flight look lost
-        self._acknowledge(status.node, min(status.t_unix, now), status.consumed, status.queue_depth)
+        self._acknowledge(status.node, min(status.t_unix, now), status.consumed)
         self.resend_lost(now)
 
     def consumed(self) -> dict[str, Consumed]:
@@ -69,13 +69,13 @@ class Acknowledging:
         out |= self.flow_producers()
         return out - {None, self.node}
 
-    def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed], backlog: int = 0) -> None:
+    def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed]) -> None:
         for key, report in consumed.items():
             hop = parse_hop_key(key)
             if hop is None or hop[0] not in self.chains:
                 self.count("garbled", f"{node} reports an unknown hop {key!r}")
                 continue
-            self.custody.on_report(hop[0], hop[1], Report(node=node, t_unix=t_unix, consumed=report, backlog=backlog))
+            self.custody.on_report(hop[0], hop[1], Report(node=node, t_unix=t_unix, consumed=report))
 
     def resend_lost(self, now: float) -> None:
         """Resend what a consumer reported missing well after it was sent (throttled)."""

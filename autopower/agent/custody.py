@@ -10,15 +10,8 @@ The acknowledgement is the `Consumed` report every node already publishes in its
 (per hop: run, the in-order prefix it has consumed, the highest seq seen and the seqs missing
 below it). A frame is resent when a report made at least ``resend_after_s`` after the frame
 was last sent still lacks it: the report, not a timer, decides, so a frame that is only
-slow (queued behind a migration) is not resent while its consumer keeps receiving. Nor is a
-frame beyond the highest the consumer has seen while the consumer reports a backlog (events
-waiting in its queue): it is most likely among them. An overloaded consumer more than
-``resend_after_s`` behind was otherwise sent everything again that waited in its queue (a robot
-of a loaded team at x20 resent 1.7 camera frames per frame it produced), which it decoded and
-dropped: more work exactly where CPU was short. A frame lost in flight is still found: the
-frames after it make it a gap below the highest seen, and a consumer with an empty queue still
-calls a missing frame lost. Consumers drop second copies (the stage's sequence gate, the sink's
-ledger), so resending is safe.
+slow (queued behind a migration) is not resent while its consumer keeps receiving. Consumers
+drop second copies (the stage's sequence gate, the sink's ledger), so resending is safe.
 
 Responsibility moves downstream hop by hop: once a stage has consumed an input, its output is
 that stage's host's to keep, so a frame lost after a stateful stage (MCL) is resent from that
@@ -56,9 +49,6 @@ class Report:
     node: str
     t_unix: float
     consumed: Consumed
-    # events waiting in the consumer's queue when it reported (`NodeStatus.queue_depth`): a frame
-    # beyond the highest it has seen may be among them, not lost
-    backlog: int = 0
 
 
 Hop = tuple[str, int]  # (chain, target)
@@ -203,8 +193,7 @@ class Custody:
                 if (report is None or held.sent_unix is None
                         or report.t_unix < held.sent_unix + self.resend_after_s
                         or held.frame.run != report.consumed.run
-                        or is_consumed(report.consumed, held.frame.run, held.frame.seq)
-                        or (report.backlog and held.frame.seq > report.consumed.max_seq)):
+                        or is_consumed(report.consumed, held.frame.run, held.frame.seq)):
                     continue
                 out.append((report.node, held))
         return out

@@ -64,21 +64,6 @@ def test_acknowledged_frames_leave_custody_and_lost_ones_are_resent_once_a_late_
     assert len(custody) == 0 and custody.bytes == 0 and custody.evicted == 0
 
 
-def test_a_consumer_with_a_backlog_is_not_sent_again_what_may_wait_in_its_queue():
-    """Beyond the highest seq it has seen, a busy consumer's frames are most likely queued there:
-    not resent (that doubled an overloaded base station's input). A gap below it still is, and so
-    is everything once it reports an empty queue."""
-    custody = Custody(resend_after_s=1.0)
-    for seq in range(6):
-        custody.keep(frame(seq), now=0.0)
-    busy = report(next_seq=1, max_seq=2, missing=(1,), t=5.0)
-    custody.on_report("Blob-2", 0, Report(node=busy.node, t_unix=busy.t_unix, consumed=busy.consumed, backlog=40))
-    assert [held.frame.seq for _, held in custody.due(now=5.0)] == [1]  # the gap; 3-5 may be in its queue
-    idle = report(next_seq=1, max_seq=2, missing=(1,), t=6.0)
-    custody.on_report("Blob-2", 0, idle)  # backlog 0: what it still lacks was lost
-    assert [held.frame.seq for _, held in custody.due(now=6.0)] == [1, 3, 4, 5]
-
-
 def test_a_frame_not_on_the_wire_is_not_resent_and_reports_of_old_generations_are_ignored():
     custody = Custody(resend_after_s=0.0)
     custody.keep(frame(0), now=0.0)
