@@ -35,8 +35,10 @@ import time
 from pathlib import Path
 
 from autopower.chains import profile_components
+from autopower.chains.profile import live_limit
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec
+from autopower.runtime.memory import keep_large_buffers
 from autopower.launch.summary import chain_latencies
 
 SCENARIO = "paper-fig7"
@@ -46,11 +48,9 @@ TICKS = os.sysconf("SC_CLK_TCK")
 def component_cpu_per_virtual_s(scenario, runs: int = 40) -> tuple[float, dict[str, float]]:
     """CPU seconds the mission's components need per virtual second (all of them on this machine)."""
     kinds = sorted({stage.component for chain in scenario.chains for stage in chain.stages})
+    keep_large_buffers()  # as `autopower profile` and the team's processes run them
     profile = profile_components(runs, types=kinds)
-    need = 0.0
-    for chain in scenario.chains:
-        for stage in chain.stages:
-            need += profile[stage.component]["latency_median_s"] / chain.period_s
+    need, _ = live_limit(scenario, profile, 1)
     return need, {k: p["latency_median_s"] for k, p in profile.items()}
 
 
@@ -92,11 +92,20 @@ def missed(snap: dict) -> tuple[int, int]:
     return produced, missed_
 
 
+def stage_runs(snap: dict, node: str) -> int:
+    """Inputs the stages hosted on ``node`` have run so far (from its status in the snapshot)."""
+    status = snap.get("basestation") if node == "basestation" else ((snap.get("robots") or {}).get(node) or {}).get("status")
+    return sum(((status or {}).get("runs") or {}).values())
+
+
 def run_once(speed: float, seconds: float, tree: str | None, workers: str = "auto") -> dict:
     scenario = build_scenario(SCENARIO)
-    saved = os.environ.get("PYTHONPATH")
+    saved, cwd = os.environ.get("PYTHONPATH"), os.getcwd()
     if tree:
         os.environ["PYTHONPATH"] = tree  # the children run that code; this process keeps its own
+        # and from there: `python -m` puts the working directory first on sys.path, so children
+        # started in a checkout (the repository's root) imported its code, not the tree's
+        os.chdir(tree)
     try:
         with tempfile.TemporaryDirectory() as tmp:
             spec = TeamSpec(scenario=SCENARIO, speed=speed, log_dir=Path(tmp), log_level="warning",
@@ -117,6 +126,7 @@ def run_once(speed: float, seconds: float, tree: str | None, workers: str = "aut
                 load1 = os.getloadavg()[0]
     finally:
         if tree:
+            os.chdir(cwd)
             if saved is None:
                 os.environ.pop("PYTHONPATH", None)
             else:
@@ -125,10 +135,15 @@ def run_once(speed: float, seconds: float, tree: str | None, workers: str = "aut
     produced, miss = p1 - p0, m1 - m0
     cpu = {n: (cpu1[n] - cpu0[n]) / wall * 100 for n in pids if cpu0[n] is not None and cpu1[n] is not None}
     latencies = {c: v["p50_ms"] for c, v in chain_latencies(snap1).items()}
+    # the base station's CPU per input its stages ran (all of them, in the paper's optimum): what
+    # one camera or laser frame costs it, components included, whatever the machine's load
+    base_runs = stage_runs(snap1, "basestation") - stage_runs(snap0, "basestation")
+    base_cpu_s = cpu.get(scenario.basestation, 0.0) / 100 * wall
     virtual = (snap1.get("t_virtual") or 0) - (snap0.get("t_virtual") or 0)
     return {"speed": speed, "wall_s": wall, "virtual_s": virtual, "produced": produced, "missed": miss,
             "missed_pct": 100.0 * miss / (produced + miss) if produced + miss else 0.0,
-            "cpu_pct": cpu, "latency_p50_ms": latencies, "load": (load0, load1),
+            "cpu_pct": cpu, "latency_p50_ms": latencies, "load": (load0, load1), "base_runs": base_runs,
+            "base_ms_per_run": base_cpu_s / base_runs * 1e3 if base_runs else None,
             "base_loop_pct": (loop1 - loop0) / wall * 100 if loop0 is not None and loop1 is not None else None}
 
 
@@ -140,8 +155,10 @@ def show(label: str, r: dict, nodes: list[str]) -> None:
     total = sum(r["cpu_pct"].values())
     per_virtual_ms = total / 100 * r["wall_s"] / r["virtual_s"] * 1e3 if r["virtual_s"] else float("nan")
     loop = r.get("base_loop_pct")
+    per_run = r.get("base_ms_per_run")
     print(f"{label:9} {r['speed']:>7.1f} {r['missed_pct']:>8.2f} {r['missed']:>6}/{r['produced'] + r['missed']:<6} "
           f"{cpu} {loop if loop is not None else float('nan'):>7.1f} {total:>7.1f} {per_virtual_ms:>8.1f} "
+          f"{per_run if per_run is not None else float('nan'):>8.2f} "
           f"{blob:>10.1f} {loc:>10.1f}  {r['load'][0]:.2f}/{r['load'][1]:.2f}")
 
 
@@ -171,10 +188,12 @@ def main() -> None:
     nodes = [scenario.basestation] + [r.name for r in scenario.robots]
     header = (f"{'code':9} {'speed':>7} {'missed%':>8} {'missed/periods':>13} "
               + " ".join(f"{n + ' %':>7}" for n in nodes)
-              + f" {'loop %':>7} {'all %':>7} {'ms/virt':>8} {'Blob p50ms':>10} {'Loc p50ms':>10}  load 1-min start/end")
+              + f" {'loop %':>7} {'all %':>7} {'ms/virt':>8} {'base ms/in':>8} {'Blob p50ms':>10} {'Loc p50ms':>10}"
+              "  load 1-min start/end")
     print(f"\nCPU in % of one core over {args.seconds:g} s of wall time after ready (a node's worker processes "
           "included; loop % = the base station's own process); ms/virt = the whole team's CPU "
-          "ms per virtual second (compare with the components' need above); latency p50 = a sink's "
+          "ms per virtual second (compare with the components' need above); base ms/in = the base station's "
+          "CPU ms per input its stages ran (components included); latency p50 = a sink's "
           "capture-to-receipt wall ms (worst chain of each kind)")
     print(header)
     modes = [m for m in args.stage_workers.split(",") if m]
@@ -191,6 +210,14 @@ def main() -> None:
             results[label].append(r)
             show(label, r, nodes)
             sys.stdout.flush()
+    if args.baseline_tree:  # the base station's CPU per input, this code against the code before, same run
+        print("\nbase station CPU per input, after / before (same speed, alternating runs):")
+        for label in [lbl for lbl in results if lbl != "before"]:
+            before_at = {r["speed"]: r for r in results["before"]}
+            for after in results[label]:
+                b, a = (before_at.get(after["speed"]) or {}).get("base_ms_per_run"), after.get("base_ms_per_run")
+                if b and a:
+                    print(f"  x{after['speed']:g} {label}: {a:.2f} / {b:.2f} ms = {a / b:.2f}")
     if args.json:
         print(json.dumps({"cores": cores, "component_cpu_s_per_virtual_s": need, "limit": limit,
                           "medians_s": medians, **results}, indent=1))

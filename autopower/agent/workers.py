@@ -42,6 +42,7 @@ import msgpack
 import autopower.agent.guard as guard
 from autopower.agent.guard import ComponentHung
 from autopower.agent.stage_worker import receive, send
+from autopower.runtime.memory import MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES
 
 log = logging.getLogger("autopower.agent.node")
 
@@ -58,8 +59,10 @@ _THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 # glibc's malloc kept giving a worker's large temporaries (a blob finder's 0.6 MB label arrays)
 # back to the kernel after each run and faulting them in again on the next: 184 page faults and
 # 0.45 ms of system time a run, 1.3 ms of CPU against 0.8 ms in-process. Kept in the process
-# instead: a worker holds on to its peak use (a few MB for the built-in components).
-_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(64 << 20)}
+# instead: a worker holds on to its peak use (a few MB for the built-in components). The team
+# processes set the same thresholds with mallopt (`runtime.memory`); a zygote gets them through its
+# environment, so that they hold from its first allocation on and in every worker it forks.
+_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(MMAP_THRESHOLD_BYTES), "MALLOC_TRIM_THRESHOLD_": str(TRIM_THRESHOLD_BYTES)}
 
 
 class WorkerCrashed(Exception):

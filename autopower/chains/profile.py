@@ -53,6 +53,16 @@ def profile_components(runs: int = 50, *, robot: str = "r1", seed: int = 0,
     return result
 
 
+def live_limit(scenario, profile: dict[str, dict[str, Any]], cores: int) -> tuple[float, float]:
+    """(CPU seconds the mission's components need per virtual second, the speed-up that needs all
+    ``cores``): each chain's runs per virtual second times its component's median run here. A
+    team that ran live at that speed-up would spend all its CPU in the components, none in the
+    runtime: no mission runs live faster on this machine."""
+    need = sum(profile[stage.component]["latency_median_s"] / chain.period_s
+               for chain in scenario.chains for stage in chain.stages)
+    return need, cores / need if need > 0 else float("inf")
+
+
 # How much slower than this machine each platform runs a component, unless told otherwise: this
 # machine stands for the base station's laptop; the Sitsang (a 400 MHz XScale without an FPU) is
 # x50, the geometric mean of the paper's two components (blob finder x11, localisation x243).

@@ -30,6 +30,7 @@ from autopower.cli.options import (
 )
 from autopower.errors import AutoPowerError
 from autopower.model.network import build_network
+from autopower.runtime.memory import keep_large_buffers
 
 
 def run_until_signalled(process, duration: float | None) -> str:
@@ -39,7 +40,21 @@ def run_until_signalled(process, duration: float | None) -> str:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     process.events.wake_on_signals()  # its loop then sleeps until its next due event, not in slices
-    return process.run(duration)
+    keep_large_buffers()  # frames and the components' arrays reuse heap memory (`runtime.memory`)
+    folder = os.environ.get("AUTOPOWER_PROFILE_DIR")
+    if not folder:
+        return process.run(duration)
+    # where the loop's CPU goes (bench/README: "Live speed"): cProfile timed by this thread's CPU
+    # time, so waiting and other processes' load do not count; written when the loop ends
+    import cProfile
+    import time
+
+    profiler = cProfile.Profile(time.thread_time)
+    try:
+        return profiler.runcall(process.run, duration)
+    finally:
+        name = getattr(process, "node", None) or getattr(process.config, "robot", "process")
+        profiler.dump_stats(os.path.join(folder, f"{name}-{os.getpid()}.prof"))
 
 
 def exit_now(message: str) -> None:

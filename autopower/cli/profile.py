@@ -42,6 +42,9 @@ def profile(runs: int, out: str | None, component_path: str | None, source_path:
         return
     if runs < 1:
         raise AutoPowerError(f"--runs must be >= 1, got {runs}")
+    from autopower.runtime.memory import keep_large_buffers
+
+    keep_large_buffers()  # measured with the allocator the team's processes run with
     result = profile_components(runs)
     if as_json:
         click.echo(json.dumps(result, indent=2))
@@ -51,6 +54,7 @@ def profile(runs: int, out: str | None, component_path: str | None, source_path:
             table.add_row(name, f"{r['latency_mean_s'] * 1e3:.3f}", f"{r['latency_median_s'] * 1e3:.3f}",
                           f"{r['latency_max_s'] * 1e3:.3f}", str(r["input_bytes"]), str(r["output_bytes"]))
         console.print(table)
+        _print_limit(result)
     if out:
         lines = [f"# autopower profile: {runs} runs on {host.node()} ({host.processor() or host.machine()}), "
                  f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC",
@@ -62,6 +66,22 @@ def profile(runs: int, out: str | None, component_path: str | None, source_path:
         with open(out, "w", encoding="utf-8") as fh:
             fh.write("\n".join(lines) + "\n")
         click.echo(f"wrote {out}", err=as_json)
+
+
+def _print_limit(result) -> None:
+    """How fast the default mission (paper-fig7) could run live here at best (README: Live speed)."""
+    import os
+
+    from autopower.chains.profile import live_limit
+    from autopower.cli.options import build_scenario
+
+    scenario = build_scenario("paper-fig7")
+    if not all(stage.component in result for chain in scenario.chains for stage in chain.stages):
+        return
+    cores = os.cpu_count() or 1
+    need, limit = live_limit(scenario, result, cores)
+    console.print(f"live limit of {scenario.name} here: its components need {need * 1e3:.2f} ms of CPU per virtual "
+                  f"second -> x{limit:.0f} on {cores} cores (nothing left for the runtime at that speed-up)")
 
 
 def _profile_plugin(component_path, source_path, name, factor, runs, as_json) -> None:

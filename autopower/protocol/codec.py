@@ -73,6 +73,23 @@ def _field_names(cls: type) -> tuple[str, ...] | None:
     return tuple(f.name for f in dataclasses.fields(cls)) if dataclasses.is_dataclass(cls) else None
 
 
+@lru_cache(maxsize=None)
+def _fields_to_wire(cls: type) -> Callable[[Any], dict] | None:
+    """A dataclass's fields as a wire map, compiled once per class (None: not a dataclass): what
+    `_to_wire` does field by field, without a call for each field that goes on the wire as it is."""
+    names = _field_names(cls)
+    if names is None:
+        return None
+    lines = ["def fields(value):"]
+    for i, name in enumerate(names):
+        lines.append(f"    _f{i} = value.{name}")
+        lines.append(f"    if type(_f{i}) not in _PLAIN: _f{i} = _to_wire(_f{i})")
+    lines.append("    return {" + ", ".join(f"{name!r}: _f{i}" for i, name in enumerate(names)) + "}")
+    ns: dict[str, Any] = {"_PLAIN": _PLAIN, "_to_wire": _to_wire}
+    exec("\n".join(lines), ns)  # noqa: S102 - source generated from the class's own field names
+    return ns["fields"]
+
+
 def _to_wire(value: Any) -> Any:
     # the common cases first, by exact type: every frame of a live team goes through here
     t = type(value)
@@ -82,9 +99,9 @@ def _to_wire(value: Any) -> Any:
         if not math.isfinite(value):
             raise ValueError(f"non-finite number {value}")
         return value
-    names = _field_names(t)
-    if names is not None:
-        return {name: _to_wire(getattr(value, name)) for name in names}
+    fields = _fields_to_wire(t)
+    if fields is not None:
+        return fields(value)
     if isinstance(value, float) and not math.isfinite(value):
         raise ValueError(f"non-finite number {value}")  # the receiver would refuse it: fail at the sender
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
@@ -244,6 +261,138 @@ def _build(cls: type, fields: Any, where: str) -> Any:
         raise _fail(where, str(exc)) from exc
 
 
+# ---- the fast path: the same checks, compiled once per class ------------------------------------
+#
+# `_build` above names the place of every value it checks (an f-string per field and item, built
+# whether or not anything is wrong) and calls a converter per value: on a live team that was most
+# of what a status or a frame costs to decode. `_fast_builder(cls)` compiles one function per
+# class that checks the same things inline and builds the same object; on anything it does not
+# accept outright it gives up (`_Slow`) and the message is decoded again by `_build`, which accepts
+# or refuses it and says where. So the fast path may refuse more, never accept more: every value
+# it lets through has the exact type and range the slow path would have produced.
+
+
+class _Slow(Exception):
+    """The fast path does not vouch for this value: decode it again the slow way."""
+
+
+_PRIMITIVE_CHECK = {bool: "bool", int: "int", str: "str", bytes: "bytes"}
+
+
+class _Compiler:
+    """Python source of a class's fast builder (one function; nested structs call theirs)."""
+
+    def __init__(self, namespace: dict[str, Any]):
+        self.ns = namespace
+        self.lines: list[str] = []
+        self.n = 0
+
+    def var(self) -> str:
+        self.n += 1
+        return f"_v{self.n}"
+
+    def emit(self, indent: int, text: str) -> None:
+        self.lines.append("    " * indent + text)
+
+    def value(self, hint: Any, src: str, indent: int) -> str:
+        """Lines that check ``src`` against ``hint``; returns the expression of its converted value."""
+        if hint is Any:
+            return src
+        if hint in _PRIMITIVE_CHECK:
+            self.emit(indent, f"if type({src}) is not {_PRIMITIVE_CHECK[hint]}: raise _Slow")
+            return src
+        if hint is float:
+            out = self.var()
+            self.emit(indent, f"if type({src}) is float: {out} = {src}")
+            self.emit(indent, f"elif type({src}) is int and -_BIG < {src} < _BIG: {out} = float({src})")
+            self.emit(indent, "else: raise _Slow")
+            self.emit(indent, f"if {out} - {out} != 0.0: raise _Slow")  # NaN or an infinity
+            return out
+        origin, args = get_origin(hint), get_args(hint)
+        if origin in (Union, types.UnionType) and len(args) == 2 and type(None) in args:
+            (inner,) = [a for a in args if a is not type(None)]
+            out = self.var()
+            self.emit(indent, f"if {src} is None: {out} = None")
+            self.emit(indent, "else:")
+            self.emit(indent + 1, f"{out} = {self.value(inner, src, indent + 1)}")
+            return out
+        if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
+            out, item = self.var(), self.var()
+            self.emit(indent, f"if type({src}) is not list: raise _Slow")
+            self.emit(indent, f"{out} = []")
+            self.emit(indent, f"for {item} in {src}:")
+            self.emit(indent + 1, f"{out}.append({self.value(args[0], item, indent + 1)})")
+            return f"tuple({out})"
+        if origin is dict:
+            out, key, val = self.var(), self.var(), self.var()
+            self.emit(indent, f"if type({src}) is not dict: raise _Slow")
+            self.emit(indent, f"{out} = {{}}")
+            self.emit(indent, f"for {key}, {val} in {src}.items():")
+            k = self.value(args[0], key, indent + 1)
+            v = self.value(args[1], val, indent + 1)
+            self.emit(indent + 1, f"{out}[{k}] = {v}")
+            return out
+        if isinstance(hint, type) and (hint in _STRUCTS or hint in _MESSAGES.values()):
+            name = f"_build_{hint.__name__}"
+            self.ns[name] = _lazy_builder(hint)  # compiled at its first use (a class may refer to itself)
+            return f"{name}({src})"
+        # anything else (a union of several types, a fixed tuple): the slow converter, unnamed
+        name = f"_convert{self.var()}"
+        self.ns[name] = _converter(hint)
+        out = self.var()
+        self.emit(indent, f"try: {out} = {name}({src}, '')")
+        self.emit(indent, "except ProtocolError: raise _Slow from None")
+        return out
+
+
+def _lazy_builder(cls: type) -> Callable[[Any], Any]:
+    built: list[Callable[[Any], Any]] = []
+
+    def build(fields: Any) -> Any:
+        if not built:
+            built.append(_fast_builder(cls))
+        return built[0](fields)
+    return build
+
+
+@lru_cache(maxsize=None)
+def _fast_builder(cls: type) -> Callable[[Any], Any]:
+    names, _, _ = _plan(cls)
+    hints = _hints(cls)
+    ns: dict[str, Any] = {"_Slow": _Slow, "ProtocolError": ProtocolError, "_cls": cls, "_BIG": 2.0**1023,
+                          "_new": object.__new__}
+    c = _Compiler(ns)
+    c.emit(0, "def build(fields):")
+    c.emit(1, f"if type(fields) is not dict or len(fields) != {len(names)}: raise _Slow")
+    for i, name in enumerate(names):
+        c.emit(1, f"_f{i} = fields.get({name!r}, _Slow)")
+        c.emit(1, f"if _f{i} is _Slow: raise _Slow")
+    values = [c.value(hints[name], f"_f{i}", 1) for i, name in enumerate(names)]
+    # what the frozen dataclass's __init__ does (every field is on the wire: no defaults to fill),
+    # without its object.__setattr__ per field; its __post_init__ still judges the values
+    c.emit(1, "obj = _new(_cls)")
+    c.emit(1, "obj.__dict__.update(" + ", ".join(f"{n}={v}" for n, v in zip(names, values)) + ")")
+    if hasattr(cls, "__post_init__"):
+        c.emit(1, "try: obj.__post_init__()")
+        c.emit(1, "except (TypeError, ValueError): raise _Slow from None")
+    c.emit(1, "return obj")
+    exec("\n".join(c.lines), ns)  # noqa: S102 - source generated above from the class's own type hints
+    return ns["build"]
+
+
+_FAST: dict[type, Callable[[Any], Any]] = {}  # message class -> its compiled builder
+
+
+def _decode_fields(cls: type, fields: Any, kind: str) -> Any:
+    build = _FAST.get(cls)
+    if build is None:
+        build = _FAST[cls] = _fast_builder(cls)
+    try:
+        return build(fields)
+    except _Slow:
+        return _build(cls, fields, kind)  # accepts it after all, or says what is wrong and where
+
+
 def looks_like_message(data: bytes) -> bool:
     """Whether ``data`` starts like an encoded message (any version); `decode` still judges the rest."""
     return data[:len(_PREFIX)] == _PREFIX
@@ -273,7 +422,7 @@ def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...]
         if cls not in allowed:
             raise ProtocolError(f"message kind {kind!r} is not accepted here "
                                 f"(expected {', '.join(c.KIND for c in allowed)})")
-    return _build(cls, fields, kind)
+    return _decode_fields(cls, fields, kind)
 
 
 __all__ = ["MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "decode", "encode", "looks_like_message", "message", "message_kinds", "struct"]

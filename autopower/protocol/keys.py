@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from functools import cached_property
 
 ROOT = "autopower"
 _NAME = re.compile(r"^[A-Za-z0-9_.+-]+$")  # a key chunk: no '/', '*', '$', '?', '#'
+_MEMO_KEYS = 1024  # node keys a `Keys` remembers (names from the network must not grow it without bound)
+_MEMO_NAME_CHARS = 64
 
 
 def check_name(name: str, what: str = "name") -> str:
@@ -45,22 +48,33 @@ class Keys:
     def __post_init__(self) -> None:
         check_name(self.team, "team")
 
-    @property
+    @cached_property
     def prefix(self) -> str:
         return f"{ROOT}/{self.team}"
 
+    def _node_key(self, node: str, what: str) -> str:
+        # asked for every message a node sends or takes in: each node's keys are built (and its
+        # name checked) once; a team has a handful of nodes, so a few names are remembered
+        memo = self.__dict__.setdefault("_node_keys", {})
+        key = memo.get((node, what))
+        if key is None:
+            key = f"{self.prefix}/node/{check_name(node, 'node')}/{what}"
+            if len(memo) < _MEMO_KEYS and len(node) <= _MEMO_NAME_CHARS:
+                memo[(node, what)] = key
+        return key
+
     # data and control addressed to one node (robot agent or the base station's host)
     def node_data(self, node: str) -> str:
-        return f"{self.prefix}/node/{check_name(node, 'node')}/data"
+        return self._node_key(node, "data")
 
     def node_control(self, node: str) -> str:
-        return f"{self.prefix}/node/{check_name(node, 'node')}/control"
+        return self._node_key(node, "control")
 
     def node_relay(self, node: str) -> str:
         """Control-plane messages another node asks this one to carry on (`Relayed`)."""
-        return f"{self.prefix}/node/{check_name(node, 'node')}/relay"
+        return self._node_key(node, "relay")
 
-    @property
+    @cached_property
     def subgroup(self) -> str:
         """Subgroup agreement rounds among robots (propose, votes, decision)."""
         return f"{self.prefix}/subgroup"
@@ -69,7 +83,7 @@ class Keys:
     def alive(self, node: str) -> str:
         return f"{self.prefix}/alive/{check_name(node, 'node')}"
 
-    @property
+    @cached_property
     def alive_all(self) -> str:
         return f"{self.prefix}/alive/*"
 
@@ -83,7 +97,7 @@ class Keys:
     def status(self, node: str) -> str:
         return f"{self.prefix}/status/{check_name(node, 'node')}"
 
-    @property
+    @cached_property
     def status_all(self) -> str:
         return f"{self.prefix}/status/*"
 
@@ -94,15 +108,15 @@ class Keys:
         return None
 
     # coordinator
-    @property
+    @cached_property
     def plan(self) -> str:
         return f"{self.prefix}/base/plan"
 
-    @property
+    @cached_property
     def inbox(self) -> str:
         return f"{self.prefix}/base/inbox"
 
-    @property
+    @cached_property
     def operator(self) -> str:
         return f"{self.prefix}/base/operator"
 

@@ -108,6 +108,28 @@ def test_profile_writes_a_file_the_planner_uses(tmp_path):
     assert json.loads(res.output)["lifetime_s"] > 45715.2
 
 
+def test_profile_prints_the_live_limit_of_the_default_mission():
+    """The speed-up at which paper-fig7's components alone would take every core here, as measured."""
+    import os
+    import re
+
+    from autopower.chains.profile import live_limit
+    from autopower.model.loading import load_scenario
+
+    res = CliRunner().invoke(cli, ["profile", "--runs", "3"])
+    assert res.exit_code == 0, res.output
+    found = re.search(r"live limit of paper-fig7 here: its components need ([0-9.]+) ms of CPU per virtual second "
+                      r"-> x([0-9]+) on ([0-9]+) cores", " ".join(res.output.split()))
+    assert found, res.output
+    need_ms, limit, cores = float(found[1]), int(found[2]), int(found[3])
+    assert cores == (os.cpu_count() or 1)
+    assert abs(limit - cores / (need_ms / 1e3)) <= 0.5 + limit * 0.01  # the line is self-consistent
+    # and the need is the chains' runs per virtual second times the medians: Blob at 0.1 s, Loc at 1 s
+    profile = {"Blob": {"latency_median_s": 0.1}, "Loc": {"latency_median_s": 1.0}}
+    need, limit = live_limit(load_scenario("paper-fig7"), profile, 2)
+    assert need == pytest.approx(2 * 0.1 / 0.25 + 3 * 1.0 / 2.0) and limit == pytest.approx(2 / need)
+
+
 def test_bad_profile_is_a_clear_error(tmp_path):
     bad = tmp_path / "p.toml"
     bad.write_text("[latency_s]\nBlob = -1\n")
