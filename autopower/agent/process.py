@@ -109,7 +109,7 @@ class Agent:
                                            on_commit=self._subgroup_commit, on_abort=self._subgroup_aborted,
                                            objection=self._subgroup_objection,
                                            timeout_s=self.config.subgroup_timeout_s, signing=self.signing)
-        self._handles.append(bus.subscribe(keys.node_data(robot), self._on_data, heavy=True))
+        self._handles.append(bus.subscribe(keys.node_data(robot), self._on_data))
         for key in (keys.node_control(robot), keys.plan, keys.node_relay(robot), keys.status_all, keys.subgroup):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))

@@ -137,8 +137,8 @@ class BaseStation:
         self.coordinator.send_to = self.relayer.send
         self.coordinator.also_relay = self.relayer.send_beyond_sight
         self.coordinator.on_own_plan = self._own_plan
-        self._handles.append(bus.subscribe(keys.node_data(self.node), self.events.on_message, heavy=True))
-        for key in (keys.node_control(self.node), keys.plan, keys.inbox, keys.status_all, keys.node_relay(self.node)):
+        for key in (keys.node_data(self.node), keys.node_control(self.node), keys.plan, keys.inbox,
+                    keys.status_all, keys.node_relay(self.node)):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.serve(keys.operator, self.events.on_request))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))

@@ -559,14 +559,14 @@ class RecordingBus:
         self.inner.publish(key, payload, reliable=reliable)
         self.recorder.on_publish(key, payload)
 
-    def subscribe(self, key_expr: str, callback, *, heavy: bool = False):
+    def subscribe(self, key_expr: str, callback):
         rec = self.recorder
 
         def tapped(key: str, payload: bytes) -> None:
             rec.on_receive(key, payload)
             callback(key, payload)
 
-        return self.inner.subscribe(key_expr, tapped, heavy=heavy)
+        return self.inner.subscribe(key_expr, tapped)
 
     def declare_token(self, key: str):
         return self.inner.declare_token(key)

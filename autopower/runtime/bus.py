@@ -2,9 +2,8 @@
 
 The agent and the base station only use this small surface (publish, subscribe, liveliness,
 query/reply), so their logic runs unchanged on the `InMemoryBus` in unit tests and on
-`ZenohBus` between real processes. Callbacks run on other threads (Zenoh's own, zenoh-python's,
-or the thread that drains a heavy subscriber's bounded channel): they must only enqueue (the
-event loops do the work).
+`ZenohBus` between real processes. Callbacks run on other threads (Zenoh's, or the thread that
+drains a subscriber's bounded channel): they must only enqueue (the event loops do the work).
 
 Zenoh traps this adapter handles (see ../shared/notes/zenoh-rerun.md):
 - the default congestion control drops under load: ``reliable=True`` publishes with BLOCK;
@@ -12,10 +11,8 @@ Zenoh traps this adapter handles (see ../shared/notes/zenoh-rerun.md):
 - peers do not relay for other peers: every process connects explicitly to the endpoints it is
   given (one per peer pair, so a test can put a proxy on any single link), multicast and gossip
   scouting are off so nothing leaves loopback and parallel test runs cannot find each other;
-- a callback subscriber buffers up to 256 samples of up to 1 GiB each on its way to Python, and
-  a channel subscriber's ``recv`` wakes every 100 ms: a subscriber here is called on Zenoh's own
-  thread with nothing in between, or (``heavy``) has an 8-sample channel; and Zenoh takes no
-  message over the codec's limit.
+- a callback subscriber buffers up to 256 samples of up to 1 GiB each on its way to Python: a
+  subscriber here has an 8-sample channel and Zenoh takes no message over the codec's limit.
 
 Not a Zenoh trap but one of ours: a node's status is its peers' heartbeat, and a loop held up by
 one long event must not look like a cut link: `ZenohBus.repeat_until_next`.
@@ -58,7 +55,7 @@ class Request(Protocol):
 class Bus(Protocol):
     def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None: ...
 
-    def subscribe(self, key_expr: str, callback: MessageCallback, *, heavy: bool = False) -> Closeable: ...
+    def subscribe(self, key_expr: str, callback: MessageCallback) -> Closeable: ...
 
     def declare_token(self, key: str) -> Closeable: ...
 
@@ -239,18 +236,7 @@ class ZenohBus:
             return
         self._publisher(key, reliable).put(payload)
 
-    def subscribe(self, key_expr: str, callback: MessageCallback, *, heavy: bool = False):
-        """``callback(key, payload)`` for each sample on ``key_expr``, on another thread.
-
-        ``heavy``: a key that carries the mission's frames (a node's data, relayed on arrival):
-        its samples leave Zenoh's thread at once through a bounded channel and are handed over on
-        a thread of ours (`_Pump`), so that Zenoh's receiving threads never wait for the GIL at
-        the mission's rate nor put on another link themselves. The others (statuses, plans,
-        control: a few a second) are called on Zenoh's thread (`_Subscriber`): a pump's thread
-        wakes 10 times a second even when nothing comes.
-        """
-        if not heavy:
-            return _Subscriber(self.session, key_expr, callback, self._zenoh.handlers)
+    def subscribe(self, key_expr: str, callback: MessageCallback):
         pump = _Pump(self.session, key_expr, callback, self._zenoh.handlers.FifoChannel(SUBSCRIBER_CHANNEL),
                      forget=self._pumps.discard)
         # held here: a subscriber with a channel is undeclared when dropped, and a caller that
@@ -322,37 +308,6 @@ class ZenohBus:
         self.session.close()  # ends every pump's iteration
         for pump in list(self._pumps):
             pump.close()
-
-
-class _Subscriber:
-    """A subscriber whose samples go straight from Zenoh's receiving thread to ``callback``.
-
-    No channel in between (``Callback(indirect=False)``): a subscriber with a Zenoh channel
-    needs a thread of ours to take samples out, and zenoh-python's ``recv`` on a channel waits
-    in slices of 100 ms (to check for signals), 10 wake-ups a second each at rest; the
-    default callback subscriber (``indirect=True``) has a 256-sample channel to its thread,
-    a quarter of a gigabyte of 1 MB garbage under a flood. Here nothing waits in between at
-    all: the callback only enqueues into the event queue, which bounds itself in bytes and counts
-    what it drops, and while it runs the link it came on reads nothing more (the sender is
-    slowed down, nothing piles up). Zenoh takes the GIL for the call; undeclaring and closing
-    release it (zenoh-python waits with the GIL released), so neither waits on a callback that
-    waits for the GIL.
-    """
-
-    def __init__(self, session, key_expr: str, callback: MessageCallback, handlers):
-        def on_sample(sample) -> None:
-            try:
-                callback(str(sample.key_expr), sample.payload.to_bytes())
-            except Exception:  # a callback only enqueues; never let one bad sample reach Zenoh
-                log.exception("subscriber callback failed on %s", sample.key_expr)
-
-        self._sub = session.declare_subscriber(key_expr, handlers.Callback(on_sample, indirect=False))
-
-    def close(self) -> None:
-        try:
-            self._sub.undeclare()
-        except Exception:  # already undeclared, or the session is closed
-            pass
 
 
 # How many samples Zenoh holds for one subscriber before the link they come on waits (the
@@ -565,7 +520,7 @@ class InMemoryBus:
             if not sub.liveliness and not sub.bus._closed and key_matches(sub.key_expr, key):
                 self.hub._deliver(lambda cb=sub.callback: cb(key, payload))
 
-    def subscribe(self, key_expr: str, callback: MessageCallback, *, heavy: bool = False):
+    def subscribe(self, key_expr: str, callback: MessageCallback):
         sub = _Sub(self, key_expr, callback)
         self.hub.subs.append(sub)
         return _MemHandle(lambda: self._remove(sub))
