@@ -1,9 +1,11 @@
 """CPU of processes with nothing to do: a base station waiting for robots, a whole team at rest.
 
     .venv/bin/python bench/bench_idle.py [--baseline DIR | PATH/TO/autopower] [--seconds S] [--variants]
+                                         [--rounds N]
 
-Not a timed test. CPU is read from /proc (user + system ticks of every thread) over S wall
-seconds and shown as a percentage of one core:
+Not a timed test. CPU is read from /proc (each thread's time on a core from its schedstat, in
+nanoseconds, finer than the user + system ticks) over S wall seconds and shown as a percentage
+of one core:
 - a lone base station waiting for its robots (no agent ever comes);
 - a whole team under `up` (`up` itself with its link proxies and supervisor, the base station,
   three agents) running the default mission, then at rest (every chain disabled): per process,
@@ -14,6 +16,9 @@ a source checkout (``git worktree add /tmp/before main`` or ``git archive main a
 -x -C DIR``; it runs on this venv with PYTHONPATH=DIR), or the `autopower` command of another
 venv (then only the waiting base station). --variants also measures this build's team at rest
 without link proxies (``up --direct-links``) and with a 2 s Zenoh lease: where the rest goes.
+--rounds N (with a source checkout as --baseline) then measures both teams at rest N more times
+each, alternating, so that the load other work puts on the machine falls on both alike, and
+prints the ratio of their medians.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import argparse
 import json
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -29,12 +35,11 @@ import time
 from pathlib import Path
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
-TICKS = os.sysconf("SC_CLK_TCK")
 ZENOH_THREADS = ("rx-", "tx-", "net-", "acc-", "app-", "Watchdog")  # Zenoh's runtime threads (by name)
 
 
 def threads(pid: int) -> dict[int, tuple[str, int]]:
-    """tid -> (thread name, user + system ticks so far)."""
+    """tid -> (thread name, nanoseconds on a core so far)."""
     out = {}
     try:
         tasks = list(Path(f"/proc/{pid}/task").iterdir())
@@ -42,15 +47,15 @@ def threads(pid: int) -> dict[int, tuple[str, int]]:
         return out
     for task in tasks:
         try:
-            stat = (task / "stat").read_text()
-        except OSError:
+            name = (task / "comm").read_text().rstrip("\n")
+            ran_ns = int((task / "schedstat").read_text().split()[0])
+        except (OSError, ValueError, IndexError):
             continue
-        fields = stat.rsplit(")", 1)[1].split()
-        out[int(task.name)] = (stat[stat.index("(") + 1:stat.rindex(")")], int(fields[11]) + int(fields[12]))
+        out[int(task.name)] = (name, ran_ns)
     return out
 
 
-def cpu_ticks(pids) -> int:
+def cpu_ns(pids) -> int:
     return sum(t for pid in pids for _, t in threads(pid).values())
 
 
@@ -69,10 +74,10 @@ def tree(pid: int) -> list[int]:
 
 
 def percent_of_core(pids_fn, seconds: float) -> float:
-    before, t0 = cpu_ticks(pids_fn()), time.monotonic()
+    before, t0 = cpu_ns(pids_fn()), time.monotonic()
     time.sleep(seconds)
-    after, t1 = cpu_ticks(pids_fn()), time.monotonic()
-    return 100.0 * (after - before) / TICKS / (t1 - t0)
+    after, t1 = cpu_ns(pids_fn()), time.monotonic()
+    return 100.0 * (after - before) / 1e9 / (t1 - t0)
 
 
 def per_process(pids: dict[str, int], seconds: float) -> dict[str, tuple[float, float]]:
@@ -87,7 +92,7 @@ def per_process(pids: dict[str, int], seconds: float) -> dict[str, tuple[float, 
             used = ticks - before[name].get(tid, (comm, 0))[1]  # a thread started meanwhile: all of it
             total += used
             zenoh += used if comm.startswith(ZENOH_THREADS) else 0
-        out[name] = (100.0 * total / TICKS / dt, 100.0 * zenoh / TICKS / dt)
+        out[name] = (100.0 * total / 1e9 / dt, 100.0 * zenoh / 1e9 / dt)
     return out
 
 
@@ -183,6 +188,8 @@ def main() -> None:
                                                          "or its `autopower` command")
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--variants", action="store_true", help="also at rest without proxies, and with a 2 s lease")
+    parser.add_argument("--rounds", type=int, default=0, help="then both teams at rest N more times each, "
+                                                               "alternating (needs a source checkout as --baseline)")
     args = parser.parse_args()
     src = cmd = None
     if args.baseline:
@@ -206,6 +213,17 @@ def main() -> None:
         print("  this build at rest, where the rest goes (% of one core in all, of which Zenoh's threads):")
         for label, m in (("up --direct-links (no link proxies)", direct), ("up --lease-ms 2000 (keep-alives 4x rarer)", lease)):
             print(f"    {label:44s} {sum(v[0] for v in m.values()):6.2f} ({sum(v[1] for v in m.values()):5.2f})")
+    if src and args.rounds > 0:
+        total = lambda m: sum(v[0] for v in m.values())  # noqa: E731
+        rest: dict[str, list[float]] = {"before": [], "this build": []}
+        print(f"  both teams at rest, alternating {args.rounds} times (% of one core in all; load average):")
+        for _ in range(args.rounds):
+            for label, where in (("before", src), ("this build", None)):
+                rest[label].append(total(team(args.seconds, where, running=False)["rest"]))
+                print(f"    {label:10s} {rest[label][-1]:6.2f}   ({load()})")
+        medians = {k: statistics.median(v) for k, v in rest.items()}
+        print(f"  medians: this build {medians['this build']:.2f} %, before {medians['before']:.2f} %; "
+              f"ratio {medians['this build'] / medians['before']:.2f}")
     print(f"  load average after: {load()}")
 
 
