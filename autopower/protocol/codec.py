@@ -162,8 +162,8 @@ def _converter(hint: Any) -> Callable[[Any, str], Any]:
             for choice in choices:
                 try:
                     return choice(value, where)
-                except ProtocolError as exc:
-                    errors.append(str(exc))
+                except ProtocolError as exc:  # each says where already: said once, below
+                    errors.append(str(exc).removeprefix(f"{where}: "))
             raise _fail(where, "; ".join(errors) or f"unexpected {type(value).__name__}")
         return union
     if hint is bool:

@@ -148,6 +148,15 @@ def test_strict_rejection(data, match):
         decode(data)
 
 
+def test_an_optional_field_that_is_wrong_is_named_once():
+    status = next(m for m in SAMPLES if isinstance(m, NodeStatus))
+    for field, value, said in (("model_w", "a", "status.model_w: expected float, got str"),
+                               ("down", [3.0], "status.down: expected 2 items, got 1")):
+        with pytest.raises(ProtocolError) as caught:
+            decode(_raw("status", {**_fields(status), field: value}))
+        assert str(caught.value) == said
+
+
 def test_non_finite_numbers_are_refused_at_the_sender_too():
     bad = dataclasses.replace(SAMPLES[8], downtime_ms=math.inf)
     with pytest.raises(ProtocolError, match="non-finite"):
