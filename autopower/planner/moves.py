@@ -169,16 +169,18 @@ class MoveSearch:
                 r[:] = before
         return moved
 
-    def reach(self, choice: dict[str, int], deadline: float) -> bool:
-        """Move stages until no row exceeds its limit (True); False at the deadline or after
-        `STALE_BREAKOUTS` breakouts that did not lower the total excess. When no move lowers
+    def reach(self, choice: dict[str, int], deadline: float, cpu_s: float = np.inf) -> bool:
+        """Move stages until no row exceeds its limit (True); False at the (monotonic) deadline,
+        after `cpu_s` seconds of this thread's CPU (a budget of work that a loaded machine does not
+        shrink) or after `STALE_BREAKOUTS` breakouts that did not lower the total excess. When no move lowers
         the (weighted) excess, the rows still over their limits weigh twice as much (a breakout
         from the local minimum: a packing's stages are pushed off the rows that stay full)."""
         unit = 1.0 / np.maximum(1e-3, np.abs(np.where(self.upper < INF, self.upper, 1.0)))  # rows in their own scale
         self.weight = unit.copy()
         best, stale = np.inf, 0
+        cpu_end = time.thread_time() + cpu_s
         r = self.activity(choice)
-        while time.monotonic() <= deadline:
+        while time.monotonic() <= deadline and time.thread_time() <= cpu_end:
             if not self.excess(r).any():
                 r = self.activity(choice)  # summed afresh: no drift from the moves' increments
                 if not self.excess(r).any():
