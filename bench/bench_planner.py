@@ -37,10 +37,19 @@ from autopower.planner.problem import make_problem
 from autopower.simulation.synthetic import fleet_scenario, loaded_fleet_scenario
 
 
+CPU = {}  # id(result) -> CPU seconds of this process (HiGHS's threads included) that made it
+
+
 def timed(fn):
-    t = time.perf_counter()
+    """(result, wall seconds); the CPU seconds go to CPU (on a loaded machine wall >> CPU)."""
+    t, c = time.perf_counter(), time.process_time()
     out = fn()
+    CPU[id(out)] = time.process_time() - c
     return out, time.perf_counter() - t
+
+
+def cpu(result) -> str:
+    return f"{CPU.get(id(result), float('nan')):.2f} CPU s"
 
 
 PREVIOUS = "--previous" in sys.argv
@@ -82,13 +91,13 @@ def row(name, problem, build_s, limit, gap, run_greedy=True):
     print(f"{name:40} {build_s:8.2f} {g_time:9.3f} {m_time:8.2f} {ratio:17.4f} {str(m.optimal):>7} {m.mip_gap:7.3%} {ex_time:>13}",
           flush=True)
     if m.proven_s is not None:
-        print(f"{'':40} {proof(m)}; {tie_break(problem, m)}", flush=True)
+        print(f"{'':40} {cpu(m)}; {proof(m)}; {tie_break(problem, m)}", flush=True)
     if previous is not None:
         print(f"{'  without moves (moves=False)':40} {'':8} {'':9} {n_time:8.2f} {no_moves.lifetime_s / m.lifetime_s:17.4f} "
-              f"{str(no_moves.optimal):>7} {no_moves.mip_gap:7.3%}   (lifetime / this build's; time ratio {n_time / m_time:.1f}x) "
+              f"{str(no_moves.optimal):>7} {no_moves.mip_gap:7.3%}   (lifetime / this build's; time ratio {n_time / m_time:.1f}x, {cpu(no_moves)}) "
               f"{proof(no_moves)}; {tie_break(problem, no_moves)}", flush=True)
         print(f"{'  previous way (reach_bound=False)':40} {'':8} {'':9} {p_time:8.2f} {previous.lifetime_s / m.lifetime_s:17.4f} "
-              f"{str(previous.optimal):>7} {previous.mip_gap:7.3%}   (lifetime / this build's; time ratio {p_time / m_time:.1f}x)",
+              f"{str(previous.optimal):>7} {previous.mip_gap:7.3%}   (lifetime / this build's; time ratio {p_time / m_time:.1f}x, {cpu(previous)})",
               flush=True)
     return m, previous
 
@@ -113,7 +122,8 @@ def replan_after_link_change(scenario, current, label: str = "") -> None:
         warm, warm_s = timed(lambda: solve_milp(problem, time_limit_s=60, start=current.allocation, **kwargs))
         if cold.optimal and warm.optimal:
             assert abs(cold.lifetime_s - warm.lifetime_s) <= 1e-6 * cold.lifetime_s, (cold.lifetime_s, warm.lifetime_s)
-        print(f"replan after {robot}-laptop link change ({scenario.name}{label}){way}: cold {cold_s:.2f} s, warm start {warm_s:.2f} s "
+        print(f"replan after {robot}-laptop link change ({scenario.name}{label}){way}: cold {cold_s:.2f} s ({cpu(cold)}), "
+              f"warm start {warm_s:.2f} s ({cpu(warm)}) "
               f"(warm/cold {warm_s / cold_s:.2f}); proven optimal: cold {cold.optimal}, warm {warm.optimal}; "
               f"gap cold {cold.mip_gap:.3%}, warm {warm.mip_gap:.3%}; lifetime warm {warm.lifetime_s:.1f} s; "
               f"warm: {warm.status} {proof(warm)}; cold: {cold.status} {proof(cold)}", flush=True)

@@ -477,12 +477,14 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, own=None,
             result = found
         elif search is not None:
             choice = search.choice_of(found.allocation, found.allocation)
+            # T at the plan's own (below t_at when a gap was asked for): the tie-break keeps its lifetime
+            search.set_t(min(t_at, max(problem.energies_j[r] for r in built.robots) / found.lifetime_s))
             search.least_drain(choice, time.monotonic() + max(0.1, proven_s))
             result = _finish(sub, built, t_col, _moved(built, search, choice, t_col, t_at), False, None)
         else:
             result = _finish(sub, built, t_col, sol, True, max(0.1, proven_s))
-        if gap_of(result) > gap_of(found):  # the tie-break may trade the last 1e-9 of T for less drain
-            result = found
+        if gap_of(result) > gap_of(found) or not result.lifetime_s >= found.lifetime_s * (1 - 1e-12):
+            result = found  # the tie-break may trade the last 1e-9 of T for less drain: never the proven lifetime
         gap = gap_of(result)
         result.optimal, result.mip_gap, result.proven_s = True, gap, proven_s
         result.untied_allocation, result.found_by = found.allocation, {MOVES_STATUS: "moves", NEAR_STATUS: "moves near the plan in force"}.get(sol.status, "highs")

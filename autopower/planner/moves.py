@@ -39,10 +39,11 @@ class MoveSearch:
         rows = np.repeat(np.arange(len(lp.row_lower)), np.diff(lp.starts))
         cols = np.asarray(lp.index, dtype=np.int64)
         vals = np.asarray(lp.value, dtype=float)
-        upper = np.asarray(lp.row_upper, dtype=float).copy()
+        self.row_upper = np.asarray(lp.row_upper, dtype=float)
         at_t = cols == t_col
-        np.subtract.at(upper, rows[at_t], vals[at_t] * t_value)  # T is a constant here
-        limited = (np.asarray(lp.row_lower) == -INF) & (upper < INF)  # not the "one host per stage" rows
+        self.t_coef = np.zeros(len(lp.row_lower))
+        np.add.at(self.t_coef, rows[at_t], vals[at_t])  # T is a constant here (set_t)
+        limited = (np.asarray(lp.row_lower) == -INF) & (self.row_upper < INF)  # not the "one host per stage" rows
         keep = ~at_t & limited[rows]
         rows, cols, vals = rows[keep], cols[keep], vals[keep]
         order = np.argsort(cols, kind="stable")
@@ -50,8 +51,8 @@ class MoveSearch:
         n = len(lp.lower)
         self.col_start = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(np.bincount(self.cols, minlength=n), out=self.col_start[1:])
-        self.upper = np.where(limited, upper, INF)
-        self.tolerance = ROW_TOLERANCE * np.maximum(1.0, np.abs(np.where(limited, upper, 0.0)))
+        self.limited = limited
+        self.set_t(t_value)
         # the drain objective: sum_i P_i / E_i
         self.drain = np.zeros(n)
         for robot, expr in model.power_rows.items():
@@ -71,6 +72,12 @@ class MoveSearch:
             idx = np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
             owner = np.repeat(np.arange(len(scols)), [len(p) for p in parts])
             self._entries[stage] = (self.rows[idx], self.vals[idx], owner)
+
+    def set_t(self, t_value: float) -> None:
+        """Every row's limit with T at `t_value` (power rows: P_i <= (E_i / E_ref) T)."""
+        upper = self.row_upper - self.t_coef * t_value
+        self.upper = np.where(self.limited, upper, INF)
+        self.tolerance = ROW_TOLERANCE * np.maximum(1.0, np.abs(np.where(self.limited, upper, 0.0)))
 
     @staticmethod
     def applicable(model) -> bool:
@@ -151,8 +158,9 @@ class MoveSearch:
                 delta[a] = 0.0
                 b = int(np.argmin(delta))
                 better = delta[b] < -1e-15
-            else:  # least drain, no row worse than it was
-                worse = np.bincount(owner, weights=(new_excess > self.excess(before[rows], rows)).astype(float),
+            else:  # least drain; a row may rise only to its limit (no tolerance), and not at all above it
+                new = r[rows] + vals
+                worse = np.bincount(owner, weights=(new > np.maximum(self.upper[rows], before[rows])).astype(float),
                                     minlength=len(scols)) > 0
                 gain = self.drain[scols] - self.drain[ca]
                 gain[worse] = np.inf
@@ -196,7 +204,8 @@ class MoveSearch:
         return not self.excess(self.activity(choice)).any()
 
     def least_drain(self, choice: dict[str, int], deadline: float) -> None:
-        """Move stages while one lowers the total drain without making any row worse."""
+        """Move stages while one lowers the total drain and takes no row above its limit (nor
+        raises one already there): with T set (`set_t`) at the plan's own, its lifetime stays."""
         r = self.activity(choice)
         while time.monotonic() < deadline and self._sweep(choice, r, "drain"):
             r = self.activity(choice)  # summed afresh: no drift from the moves' increments
