@@ -90,8 +90,7 @@ def row(name, problem, build_s, limit, gap, run_greedy=True):
     ratio = m.lifetime_s / g[2] if g else float("nan")
     print(f"{name:40} {build_s:8.2f} {g_time:9.3f} {m_time:8.2f} {ratio:17.4f} {str(m.optimal):>7} {m.mip_gap:7.3%} {ex_time:>13}",
           flush=True)
-    if m.proven_s is not None:
-        print(f"{'':40} {cpu(m)}; {proof(m)}; {tie_break(problem, m)}", flush=True)
+    print(f"{'':40} {cpu(m)}; {proof(m)}; {tie_break(problem, m)}", flush=True)
     if previous is not None:
         print(f"{'  without moves (moves=False)':40} {'':8} {'':9} {n_time:8.2f} {no_moves.lifetime_s / m.lifetime_s:17.4f} "
               f"{str(no_moves.optimal):>7} {no_moves.mip_gap:7.3%}   (lifetime / this build's; time ratio {n_time / m_time:.1f}x, {cpu(no_moves)}) "
