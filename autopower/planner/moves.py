@@ -6,10 +6,11 @@ asking HiGHS (about 1.5 s of presolve and search on the any-host 100-robot fleet
 the placement the per-robot bound assumes) and move one stage at a time to the host that most
 lowers the rows' total excess over their limits. When the excess reaches zero the plan meets
 the bound: optimal, found in a fraction of a second. Then `least_drain` is the tie-break among
-plans at that lifetime: moves that lower the total normalised drain `sum_i P_i / E_i` and make
-no row worse, so the lifetime the proof found is kept by construction (and checked again by the
-evaluator afterwards). Both stop at a local optimum: `reach` is a heuristic in front of the
-exact search, never a replacement for it, and `least_drain` states what it bought.
+plans at that lifetime: moves that lower the total normalised drain `sum_i P_i / E_i` and take
+no row above its limit with T at the plan's own (`set_t`), so the lifetime the proof found is
+kept by construction (and checked again by the evaluator afterwards). Both stop at a local
+optimum: `reach` is a heuristic in front of the exact search, never a replacement for it, and
+`least_drain`'s drain is not proven least (bench_planner prints what it bought, in joules).
 
 Applies when every row is linear in the stage-host binaries with non-negative coefficients: one
 fixed network (no media binaries), no binary products (single-stage chains, no DAG flows), no
