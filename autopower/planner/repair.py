@@ -59,11 +59,14 @@ def own_bound(problem: Problem, cheapest: dict[str, str] | None = None) -> tuple
         power[robot] = platform.idle_w + sum(scenario.radios[m].sleep_w for m in network.media_of(robot))
     direct: dict[tuple[str, str], str | None] = {}  # (u, v) -> the medium of their link, looked up once
     for chain in problem.chains:
-        options = problem.options(chain)
-        if chain.source not in power or len(options) > MAX_OPTIONS:
-            if cheapest is not None and options:
-                cheapest.update(zip((s.name for s in chain.stages), options[0]))
+        n_options = 1
+        for stage in chain.stages:
+            n_options *= len(problem.hosts[stage.name])
+        if chain.source not in power or not n_options or n_options > MAX_OPTIONS:
+            if cheapest is not None and n_options:  # (its first option: the bound says nothing about it)
+                cheapest.update((s.name, problem.hosts[s.name][0]) for s in chain.stages)
             continue
+        options = problem.options(chain)
         cost = _own_cost(problem, chain, direct)
         costs = list(map(cost, options))
         best = min(range(len(options)), key=costs.__getitem__)
