@@ -418,8 +418,8 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, own=None,
     quarter of the time limit, 10 s without one) the caller runs the optimising MILP.
 
     The tie-break (least total drain at that T) is not part of the proof. Where moves apply it is
-    `MoveSearch.least_drain` (no row made worse, so the lifetime stays; checked again by the
-    evaluator), run until no move lowers the drain; otherwise a second HiGHS pass with as long
+    `MoveSearch.least_drain` (no row above its limit with T at the found plan's own, so its
+    lifetime stays; checked again by the evaluator), run until no move lowers the drain; otherwise a second HiGHS pass with as long
     as the search took. `untied_allocation` is the plan before it.
     """
     started = time.monotonic()
@@ -487,7 +487,8 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, own=None,
             result = found  # the tie-break may trade the last 1e-9 of T for less drain: never the proven lifetime
         gap = gap_of(result)
         result.optimal, result.mip_gap, result.proven_s = True, gap, proven_s
-        result.untied_allocation, result.found_by = found.allocation, {MOVES_STATUS: "moves", NEAR_STATUS: "moves near the plan in force"}.get(sol.status, "highs")
+        result.untied_allocation = found.allocation
+        result.found_by = {MOVES_STATUS: "moves", NEAR_STATUS: "moves near the plan in force"}.get(sol.status, "highs")
         result.status = ("Optimal (meets the per-robot bound)" if gap <= REACH_TOLERANCE
                          else f"Optimal (within {gap:.3%} of the per-robot bound)")
         result.runtime_s = time.monotonic() - (called or started)
@@ -496,9 +497,9 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, own=None,
 
 
 def _moved(model: PlacementModel, search: MoveSearch, choice, t_col: int, t_at: float,
-           status: str = "Feasible (single-stage moves)") -> Solution:
+           status: str | None = None) -> Solution:
     """A plan the moves found, as the solver's answer would be."""
-    return Solution(status=status, optimal=True, has_solution=True,
+    return Solution(status=status or MOVES_STATUS, optimal=True, has_solution=True,
                     values=search.values(choice, len(model.lp.lower), t_col, t_at), duals=None,
                     objective=t_at, mip_gap=0.0, dual_bound=t_at, runtime_s=0.0)
 
