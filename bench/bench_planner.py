@@ -12,11 +12,16 @@ one link changes medium in the loaded 100-robot fleet, cold vs warm-started from
 of a proven bound in 60 s, building the model included) and any host (refused: 3 million
 stage-host binaries; the refusal and its reason are printed). --loaded runs the loaded fleets only.
 
---previous also runs every MILP case and replan the previous way (`solve_milp(reach_bound=False)`:
-no search for a plan that reaches the per-robot bound before the optimising MILP) in the same
-run, and replans the any-host fleet from the plan that way leaves in force too. "proven at" is
-when a plan reaching the bound was found, before the tie-break pass (least total drain).
+--previous also runs every MILP case and replan two earlier ways in the same run: without moves
+(`solve_milp(moves=False)`: HiGHS alone looks for the plan at the per-robot bound, and a second
+HiGHS pass is the tie-break) and without the search for that plan (`reach_bound=False`: the
+optimising MILP only), and replans the any-host fleet from the plan the latter leaves in force
+too. "proven at" is when a plan reaching the bound was found, before the tie-break (least total
+drain); "tie-break" states what it bought: the team's joules spent until the first robot
+depletes, before and after (same lifetime). The load average is printed at the start and end.
 """
+
+import os
 
 import sys
 import time
@@ -32,17 +37,42 @@ from autopower.planner.problem import make_problem
 from autopower.simulation.synthetic import fleet_scenario, loaded_fleet_scenario
 
 
+CPU = {}  # id(result) -> CPU seconds of this process (HiGHS's threads included) that made it
+
+
 def timed(fn):
-    t = time.perf_counter()
+    """(result, wall seconds); the CPU seconds go to CPU (on a loaded machine wall >> CPU)."""
+    t, c = time.perf_counter(), time.process_time()
     out = fn()
+    CPU[id(out)] = time.process_time() - c
     return out, time.perf_counter() - t
+
+
+def cpu(result) -> str:
+    return f"{CPU.get(id(result), float('nan')):.2f} CPU s"
 
 
 PREVIOUS = "--previous" in sys.argv
 
 
 def proof(m) -> str:
-    return f"proven at {m.proven_s:.2f} s" if m.proven_s is not None else ""
+    return f"proven at {m.proven_s:.2f} s (found by {m.found_by})" if m.proven_s is not None else ""
+
+
+def team_joules(problem, m, allocation) -> tuple[float, float]:
+    """(joules the whole team spends until its first robot depletes, that lifetime)."""
+    from autopower.model.energy import evaluate
+
+    ev = evaluate(problem.scenario, m.network, allocation, accounting=problem.accounting, energies_j=problem.energies_j)
+    return sum(p.total_w for p in ev.robots.values()) * ev.lifetime_s, ev.lifetime_s
+
+
+def tie_break(problem, m) -> str:
+    if m.untied_allocation is None:
+        return ""
+    (before, life_before), (after, life_after) = team_joules(problem, m, m.untied_allocation), team_joules(problem, m, m.allocation)
+    return (f"tie-break: team {before / 1e3:,.1f} kJ -> {after / 1e3:,.1f} kJ ({(after - before) / 1e3:+,.1f} kJ, "
+            f"{after / before - 1:+.3%}) at lifetime {life_before:,.3f} -> {life_after:,.3f} s")
 
 
 def row(name, problem, build_s, limit, gap, run_greedy=True):
@@ -50,6 +80,7 @@ def row(name, problem, build_s, limit, gap, run_greedy=True):
     m, m_time = timed(lambda: solve_milp(problem, time_limit_s=limit, mip_rel_gap=gap))
     previous = None
     if PREVIOUS:
+        no_moves, n_time = timed(lambda: solve_milp(problem, time_limit_s=limit, mip_rel_gap=gap, moves=False))
         previous, p_time = timed(lambda: solve_milp(problem, time_limit_s=limit, mip_rel_gap=gap, reach_bound=False))
     ex_time = ""
     if problem.combinations() <= 200_000:
@@ -59,11 +90,13 @@ def row(name, problem, build_s, limit, gap, run_greedy=True):
     ratio = m.lifetime_s / g[2] if g else float("nan")
     print(f"{name:40} {build_s:8.2f} {g_time:9.3f} {m_time:8.2f} {ratio:17.4f} {str(m.optimal):>7} {m.mip_gap:7.3%} {ex_time:>13}",
           flush=True)
-    if m.proven_s is not None:
-        print(f"{'':40} {proof(m)}", flush=True)
+    print(f"{'':40} {cpu(m)}; {proof(m)}; {tie_break(problem, m)}", flush=True)
     if previous is not None:
+        print(f"{'  without moves (moves=False)':40} {'':8} {'':9} {n_time:8.2f} {no_moves.lifetime_s / m.lifetime_s:17.4f} "
+              f"{str(no_moves.optimal):>7} {no_moves.mip_gap:7.3%}   (lifetime / this build's; time ratio {n_time / m_time:.1f}x, {cpu(no_moves)}) "
+              f"{proof(no_moves)}; {tie_break(problem, no_moves)}", flush=True)
         print(f"{'  previous way (reach_bound=False)':40} {'':8} {'':9} {p_time:8.2f} {previous.lifetime_s / m.lifetime_s:17.4f} "
-              f"{str(previous.optimal):>7} {previous.mip_gap:7.3%}   (lifetime / this build's; time ratio {p_time / m_time:.1f}x)",
+              f"{str(previous.optimal):>7} {previous.mip_gap:7.3%}   (lifetime / this build's; time ratio {p_time / m_time:.1f}x, {cpu(previous)})",
               flush=True)
     return m, previous
 
@@ -81,13 +114,15 @@ def replan_after_link_change(scenario, current, label: str = "") -> None:
     changed = Network(current.network.nodes, current.network.basestation, links, current.network.topology,
                       current.network.cliques)
     problem = make_problem(PlanRequest(scenario=scenario, network=changed))
-    ways = [("", True)] + ([(" [previous way]", False)] if PREVIOUS else [])
-    for way, reach in ways:
-        cold, cold_s = timed(lambda: solve_milp(problem, time_limit_s=60, reach_bound=reach))
-        warm, warm_s = timed(lambda: solve_milp(problem, time_limit_s=60, start=current.allocation, reach_bound=reach))
+    ways = [("", {})] + ([(" [without moves]", {"moves": False}), (" [previous way]", {"reach_bound": False})]
+                         if PREVIOUS else [])
+    for way, kwargs in ways:
+        cold, cold_s = timed(lambda: solve_milp(problem, time_limit_s=60, **kwargs))
+        warm, warm_s = timed(lambda: solve_milp(problem, time_limit_s=60, start=current.allocation, **kwargs))
         if cold.optimal and warm.optimal:
             assert abs(cold.lifetime_s - warm.lifetime_s) <= 1e-6 * cold.lifetime_s, (cold.lifetime_s, warm.lifetime_s)
-        print(f"replan after {robot}-laptop link change ({scenario.name}{label}){way}: cold {cold_s:.2f} s, warm start {warm_s:.2f} s "
+        print(f"replan after {robot}-laptop link change ({scenario.name}{label}){way}: cold {cold_s:.2f} s ({cpu(cold)}), "
+              f"warm start {warm_s:.2f} s ({cpu(warm)}) "
               f"(warm/cold {warm_s / cold_s:.2f}); proven optimal: cold {cold.optimal}, warm {warm.optimal}; "
               f"gap cold {cold.mip_gap:.3%}, warm {warm.mip_gap:.3%}; lifetime warm {warm.lifetime_s:.1f} s; "
               f"warm: {warm.status} {proof(warm)}; cold: {cold.status} {proof(cold)}", flush=True)
@@ -121,6 +156,7 @@ def main() -> None:
     ]
     if big:
         cases.append(("1000 / 3000 loaded, own robot or laptop", loaded_fleet_scenario(1000, 3, hosts="own"), 60, 0.01))
+    print(f"load average at the start: {os.getloadavg()}", flush=True)
     print(f"{'case':40} {'build s':>8} {'greedy s':>9} {'MILP s':>8} {'MILP/greedy life':>17} {'proven':>7} {'gap':>7} {'exhaustive s':>13}")
     results = {}
     for name, scenario, limit, gap in cases:
@@ -138,6 +174,7 @@ def main() -> None:
     replan_after_link_change(any_host, in_force, ", plan in force made at a 1 % gap")
     if big:
         any_host_thousand()
+    print(f"load average at the end: {os.getloadavg()}", flush=True)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,8 @@ from autopower.model.energy import airtime_s, flow_rate_hz
 from autopower.model.network import Clique, Link, Network
 from autopower.planner import repair
 from autopower.planner.choices import add_selection_row, dvfs_cpu_power
-from autopower.planner.lp import INF, LinearProgram
+from autopower.planner.lp import INF, LinearProgram, Solution
+from autopower.planner.moves import MoveSearch
 from autopower.planner.problem import Problem
 
 TERM = tuple[int, ...]  # product of binary columns; () = the constant 1
@@ -46,6 +47,8 @@ class MilpResult:
     columns: int
     rows: int
     proven_s: float | None = None  # when a plan reached the per-robot bound: seconds to find it (before the tie-break)
+    untied_allocation: dict[str, str] | None = None  # that plan as found, before the tie-break (least total drain)
+    found_by: str | None = None  # who found it: "moves" (moves.MoveSearch.reach), "moves near the plan in force" or "highs"
 
 
 class PlacementModel:
@@ -138,6 +141,7 @@ class PlacementModel:
                 expr[col] = expr.get(col, 0.0) + coef
 
         platform = {n: self.scenario.platform_of(n).name for n in self.nodes}  # (a fleet asks 100,000 times)
+        hop_media: dict[tuple[str, str], list] = {}  # (u, v) -> its route's hops and their media: flows share pairs
         for chain in self.problem.chains:
             for stage in chain.stages:
                 latency = self.scenario.components[stage.component].latency_s
@@ -157,8 +161,12 @@ class PlacementModel:
                 for (u_node, u_term), (v_node, v_term) in product(ends[k], ends[k + 1]):
                     if u_node == v_node:
                         continue
-                    for a, b, _ in self.structure.route(u_node, v_node):
-                        for medium, m_term in self.media_terms(a, b):
+                    hops = hop_media.get((u_node, v_node))
+                    if hops is None:
+                        hops = hop_media[u_node, v_node] = [(a, b, self.media_terms(a, b))
+                                                            for a, b, _ in self.structure.route(u_node, v_node)]
+                    for a, b, hop_terms in hops:
+                        for medium, m_term in hop_terms:
                             air = air_of[medium]
                             term = u_term + v_term + m_term
                             add(send[(a, medium)], self.const_send, (a, medium), term, air)
@@ -279,7 +287,8 @@ MAX_HOST_BINARIES = 1_000_000
 
 
 def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_gap: float = 1e-9,
-               refine: bool = True, start: Mapping[str, str] | None = None, reach_bound: bool = True) -> MilpResult:
+               refine: bool = True, start: Mapping[str, str] | None = None, reach_bound: bool = True,
+               moves: bool = True) -> MilpResult:
     """Min-max lifetime placement; optionally a second pass to minimise total normalised drain.
 
     With few media combinations (a named topology has 4) one MILP per combination is much smaller
@@ -294,7 +303,8 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
 
     `reach_bound`: before the whole MILP, look for a plan whose T *equals* the per-robot bound
     (`_reach_bound`): a feasibility MILP, often found in a second where the optimising MILP
-    spends minutes proving the last fraction of a percent.
+    spends minutes proving the last fraction of a percent. `moves=False`: that search and its
+    tie-break by HiGHS alone, without single-stage moves (`autopower.planner.moves`).
     """
     binaries = sum(len(hosts) for hosts in problem.hosts.values())
     if binaries > MAX_HOST_BINARIES:
@@ -302,9 +312,12 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
             f"the placement MILP would need {binaries:,} stage-host binaries per media choice "
             f"({len(problem.hosts):,} stages on up to {max(map(len, problem.hosts.values())):,} hosts each; "
             f"the limit is {MAX_HOST_BINARIES:,}): give the stages fewer hosts (e.g. hosts = [robot, base station])")
-    if start and repair.repairable(problem):
+    called = time.monotonic()
+    warm = bool(start) and repair.repairable(problem)
+    own = _own_bounds(problem) if warm or (reach_bound and repair.boundable(problem)) else None
+    if warm:
         began = time.monotonic()
-        repaired = _repair_start(problem, start, time_limit_s, mip_rel_gap, refine)
+        repaired = _repair_start(problem, start, time_limit_s, mip_rel_gap, refine, own[0])
         if isinstance(repaired, MilpResult):
             return repaired
         start = repaired or start
@@ -313,7 +326,7 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
 
     if reach_bound and repair.boundable(problem):
         began = time.monotonic()
-        reached = _reach_bound(problem, time_limit_s, mip_rel_gap, refine)
+        reached = _reach_bound(problem, time_limit_s, mip_rel_gap, refine, own, start, called, moves)
         if reached is not None:
             return reached
         if time_limit_s is not None:
@@ -355,10 +368,19 @@ def solve_milp(problem: Problem, *, time_limit_s: float | None = None, mip_rel_g
     return result
 
 
-def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_rel_gap, refine):
+def _own_bounds(problem: Problem) -> list[tuple[float, dict[str, float], dict[str, str]]]:
+    """Per media choice: `repair.own_bound` (T, per robot) and the placement it assumes."""
+    out = []
+    for network in problem.networks:
+        cheapest: dict[str, str] = {}
+        out.append((*repair.own_bound(dataclasses.replace(problem, networks=[network]), cheapest), cheapest))
+    return out
+
+
+def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_rel_gap, refine, own):
     """The plan in force repaired (repair.neighbourhood): a MilpResult when the per-robot bound
     proves it optimal, else its allocation (a better start for the whole MILP) or None."""
-    bound, per_robot = repair.own_bound(problem)
+    bound, per_robot, _ = own
     free = repair.neighbourhood(problem, start, per_robot, bound)
     stages = sum(len(c.stages) for c in problem.chains)
     if len(free) > max(repair.SMALL_NEIGHBOURHOOD, stages * repair.SMALL_SHARE):
@@ -375,27 +397,35 @@ def _repair_start(problem: Problem, start: Mapping[str, str], time_limit_s, mip_
     return built.decode(sol.values)[0]
 
 
-def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine) -> MilpResult | None:
+def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine, own=None,
+                 start: Mapping[str, str] | None = None, called: float | None = None,
+                 moves: bool = True) -> MilpResult | None:
     """A plan whose T equals the per-robot bound, proven optimal by it; None when none is found.
 
     No plan on any media choice has a T below that choice's `repair.own_bound`, so no plan at
     all has one below the smallest of them. A plan on that media choice reaching it is optimal:
     with T fixed there, the MILP is a pure feasibility problem (place every stage so that each
     robot's power stays within its energy's share, CPU and radios within their limits: a
-    generalised assignment), which HiGHS answers at its first feasible point instead of closing
-    a bin-packing gap by branching (with a gap asked for, T is fixed that much above the bound).
-    The plan is accepted when its evaluated T is within max(mip_rel_gap, 1e-9) of the bound
-    (relative, as HiGHS's gap; the 1e-9: floating-point summation order); when the
-    bound is not reachable (infeasible, or not found within a quarter of the time limit, 10 s
-    without one) the caller runs the optimising MILP. A plan in force is not handed to HiGHS
-    here: short of the bound, it is not a feasible start for this problem.
+    generalised assignment). First single-stage moves look for one (`moves.MoveSearch.reach`,
+    from `start`, the plan in force, else from every chain where it costs its own robot least;
+    at most `MOVES_LIMIT_S` of CPU and half the search's share of the time limit; warm, first
+    with every stage pinned where the plan in force has it except those `repair.neighbourhood`
+    frees, then all of them); if they find none, HiGHS is asked, and answers at its first
+    feasible point instead of closing a bin-packing gap by branching (with a gap asked for, T is
+    fixed that much above the bound). The plan is accepted when its evaluated T is within
+    max(mip_rel_gap, 1e-9) of the bound (relative, as HiGHS's gap; the 1e-9: floating-point
+    summation order); when the bound is not reachable (infeasible, or not found within a
+    quarter of the time limit, 10 s without one) the caller runs the optimising MILP.
 
-    The second pass (least total drain at that T) is a tie-break, not part of the proof: it gets
-    as long as the search took and keeps the best plan it has by then (on the any-host
-    100-robot fleet HiGHS improved nothing in 0.3 s to 60 s: its presolve alone takes ~1 s).
+    The tie-break (least total drain at that T) is not part of the proof. Where moves apply it is
+    `MoveSearch.least_drain` (no row above its limit with T at the found plan's own, so its
+    lifetime stays; checked again by the evaluator), run until no move lowers the drain; otherwise a second HiGHS pass with as long
+    as the search took. `untied_allocation` is the plan before it.
     """
     started = time.monotonic()
-    bounds = [(repair.own_bound(dataclasses.replace(problem, networks=[n]))[0], i) for i, n in enumerate(problem.networks)]
+    own = own or _own_bounds(problem)
+    cheapest = [c for _, _, c in own]  # per media choice: every chain where it costs its robot least
+    bounds = [(b, i) for i, (b, _, _) in enumerate(own)]
     lowest = min(bounds)[0]
     tolerance = max(mip_rel_gap, REACH_TOLERANCE)
     # with a gap asked for, any plan within it of the bound will do (an easier packing)
@@ -411,37 +441,81 @@ def _reach_bound(problem: Problem, time_limit_s, mip_rel_gap, refine) -> MilpRes
         if bound > lowest:
             break  # a choice whose own bound is higher cannot reach the lowest
         share = REACH_UNLIMITED_S if time_limit_s is None else time_limit_s * REACH_SHARE
-        left = max(0.1, share - (time.monotonic() - started))
         sub = dataclasses.replace(problem, networks=[problem.networks[i]])
-        built, t_col, sol = _first_pass(sub, left, mip_rel_gap, None, None, around_start=False, t_at=t_at)
+        sol = None
+        if moves and start and len(problem.networks) == 1:
+            # warm: first move only the stages the plan in force gets wrong (a model of those)
+            free = repair.neighbourhood(sub, start, own[i][1], own[i][0])
+            if len(free) < len(sub.hosts):
+                near = repair.restricted(sub, start, free)
+                built, t_col = _placement_model(near, t_at)
+                if MoveSearch.applicable(built):
+                    search = MoveSearch(built, t_col, t_at)
+                    choice = search.choice_of(start, cheapest[i])
+                    left = max(0.0, share - (time.monotonic() - started))
+                    if search.reach(choice, time.monotonic() + left / 4, cpu_s=MOVES_LIMIT_S / 2):
+                        sol, sub = _moved(built, search, choice, t_col, t_at, NEAR_STATUS), near
+        if sol is None:
+            built, t_col = _placement_model(sub, t_at)
+            search = MoveSearch(built, t_col, t_at) if moves and MoveSearch.applicable(built) else None
+        if search is not None and sol is None:
+            choice = search.choice_of(start or cheapest[i], cheapest[i])
+            left = max(0.0, share - (time.monotonic() - started))
+            if search.reach(choice, time.monotonic() + left / 2, cpu_s=MOVES_LIMIT_S):
+                sol = _moved(built, search, choice, t_col, t_at)
+        if sol is None:
+            left = max(0.1, share - (time.monotonic() - started))
+            sol = built.lp.solve(time_limit_s=left, mip_rel_gap=mip_rel_gap)
         if not sol.has_solution:
             continue
         found = _finish(sub, built, t_col, sol, False, None)  # the plan as found, evaluated
         if gap_of(found) > tolerance:
             continue
-        proven_s = time.monotonic() - started
+        proven_s = time.monotonic() - (called or started)  # (the bounds and a failed repair included)
         sol.optimal = True  # (for the tie-break pass)
-        result = _finish(sub, built, t_col, sol, True, max(0.1, proven_s)) if refine else found
-        if gap_of(result) > gap_of(found):  # the tie-break may trade the last 1e-9 of T for less drain
+        if not refine:
             result = found
+        elif search is not None:
+            choice = search.choice_of(found.allocation, found.allocation)
+            # T at the plan's own (below t_at when a gap was asked for): the tie-break keeps its lifetime
+            search.set_t(min(t_at, max(problem.energies_j[r] for r in built.robots) / found.lifetime_s))
+            search.least_drain(choice, time.monotonic() + max(0.1, proven_s))
+            result = _finish(sub, built, t_col, _moved(built, search, choice, t_col, t_at), False, None)
+        else:
+            result = _finish(sub, built, t_col, sol, True, max(0.1, proven_s))
+        if gap_of(result) > gap_of(found) or not result.lifetime_s >= found.lifetime_s * (1 - 1e-12):
+            result = found  # the tie-break may trade the last 1e-9 of T for less drain: never the proven lifetime
         gap = gap_of(result)
         result.optimal, result.mip_gap, result.proven_s = True, gap, proven_s
+        result.untied_allocation = found.allocation
+        result.found_by = {MOVES_STATUS: "moves", NEAR_STATUS: "moves near the plan in force"}.get(sol.status, "highs")
         result.status = ("Optimal (meets the per-robot bound)" if gap <= REACH_TOLERANCE
                          else f"Optimal (within {gap:.3%} of the per-robot bound)")
-        result.runtime_s = time.monotonic() - started
+        result.runtime_s = time.monotonic() - (called or started)
         return result
     return None
 
 
+def _moved(model: PlacementModel, search: MoveSearch, choice, t_col: int, t_at: float,
+           status: str | None = None) -> Solution:
+    """A plan the moves found, as the solver's answer would be."""
+    return Solution(status=status or MOVES_STATUS, optimal=True, has_solution=True,
+                    values=search.values(choice, len(model.lp.lower), t_col, t_at), duals=None,
+                    objective=t_at, mip_gap=0.0, dual_bound=t_at, runtime_s=0.0)
+
+
+MOVES_STATUS = "Feasible (single-stage moves)"
+NEAR_STATUS = "Feasible (single-stage moves of the stages the plan in force gets wrong)"
+# The move search's budget before HiGHS is asked, in CPU seconds of its thread (a loaded machine
+# must not make it give up early: it reached the any-host 100-robot fleet's bound in 0.15-0.25 s)
+MOVES_LIMIT_S = 1.0
 REACH_SHARE = 0.25  # of the time limit, for the search of a plan that reaches the per-robot bound
 REACH_UNLIMITED_S = 10.0  # that search's limit when the MILP has none (a packing may be slow to prove infeasible)
 REACH_TOLERANCE = 1e-9  # relative: the same T summed in another order
 
 
-def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None, around_start=True,
-                t_at: float | None = None):
-    """The min-max MILP's first pass; with `t_at`, T is fixed there and the MILP only looks
-    for a feasible plan (`_reach_bound`)."""
+def _placement_model(problem: Problem, t_at: float | None = None) -> tuple[PlacementModel, int]:
+    """The min-max model and its T column (fixed at `t_at` when given)."""
     model = PlacementModel(problem)
     lp = model.lp
     e_ref = max(problem.energies_j[r] for r in model.robots)
@@ -452,6 +526,15 @@ def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None,
         # P_i - (E_i/E_ref) T <= 0  ->  expr - k T <= -const
         model.power_rows[robot] = expr
         lp.row({**expr, t_col: -problem.energies_j[robot] / e_ref}, -INF, -const)
+    return model, t_col
+
+
+def _first_pass(problem: Problem, time_limit_s, mip_rel_gap, cutoff, start=None, around_start=True,
+                t_at: float | None = None):
+    """The min-max MILP's first pass; with `t_at`, T is fixed there and the MILP only looks
+    for a feasible plan (`_reach_bound`)."""
+    model, t_col = _placement_model(problem, t_at)
+    lp = model.lp
     relaxed = None
     if cutoff is not None or (start and around_start):
         integer, lp.integer = lp.integer, [False] * len(lp.integer)

@@ -44,8 +44,12 @@ def boundable(problem: Problem) -> bool:
             and any(n != problem.networks[0].basestation for n in problem.networks[0].nodes))
 
 
-def own_bound(problem: Problem) -> tuple[float, dict[str, float]]:
-    """(T bound, robot -> its own bound on T), T in the MILP's units: max_i P_i * E_ref / E_i."""
+def own_bound(problem: Problem, cheapest: dict[str, str] | None = None) -> tuple[float, dict[str, float]]:
+    """(T bound, robot -> its own bound on T), T in the MILP's units: max_i P_i * E_ref / E_i.
+
+    `cheapest`, when given, is filled with stage -> host: every chain where it costs its source
+    robot least (the placement the bound assumes for each robot; `milp._reach_bound` starts its
+    move search there)."""
     scenario, network = problem.scenario, problem.networks[0]
     robots = [n for n in network.nodes if n != network.basestation]
     e_ref = max(problem.energies_j[r] for r in robots)
@@ -53,19 +57,27 @@ def own_bound(problem: Problem) -> tuple[float, dict[str, float]]:
     for robot in robots:
         platform = scenario.platform_of(robot)
         power[robot] = platform.idle_w + sum(scenario.radios[m].sleep_w for m in network.media_of(robot))
+    direct: dict[tuple[str, str], str | None] = {}  # (u, v) -> the medium of their link, looked up once
     for chain in problem.chains:
-        if chain.source not in power:
+        n_options = 1
+        for stage in chain.stages:
+            n_options *= len(problem.hosts[stage.name])
+        if chain.source not in power or not n_options or n_options > MAX_OPTIONS:
+            if cheapest is not None and n_options:  # (its first option: the bound says nothing about it)
+                cheapest.update((s.name, problem.hosts[s.name][0]) for s in chain.stages)
             continue
         options = problem.options(chain)
-        if len(options) > MAX_OPTIONS:
-            continue
-        cost = _own_cost(problem, chain)
-        power[chain.source] += min(map(cost, options))
+        cost = _own_cost(problem, chain, direct)
+        costs = list(map(cost, options))
+        best = min(range(len(options)), key=costs.__getitem__)
+        power[chain.source] += costs[best]
+        if cheapest is not None:
+            cheapest.update(zip((s.name for s in chain.stages), options[best]))
     per_robot = {r: power[r] * e_ref / problem.energies_j[r] for r in robots}
     return max(per_robot.values()), per_robot
 
 
-def _own_cost(problem: Problem, chain):
+def _own_cost(problem: Problem, chain, direct_medium: dict):
     """hosts -> the power the chain with its stages there costs its source robot (as
     PlacementModel.power counts it: CPU above idle, radios above sleep)."""
     scenario, network = problem.scenario, problem.networks[0]
@@ -85,7 +97,9 @@ def _own_cost(problem: Problem, chain):
             u, v = ends[k], ends[k + 1]
             if u == v or watts is None:
                 continue
-            direct = network.medium_between(u, v)
+            direct = direct_medium.get((u, v), False)
+            if direct is False:  # (chains' options share their endpoints: looked up once)
+                direct = direct_medium[u, v] = network.medium_between(u, v)
             if direct is not None:  # one hop, the only shortest route: no route to look up
                 if me in (u, v):
                     total += watts[direct][0 if u == me else 1]
