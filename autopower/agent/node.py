@@ -332,7 +332,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         try:
             scenario = apply_levels(self.scenario, dict(plan.levels)) if plan.levels else self.scenario
             scenario, _ = effective_scenario(scenario, self.network)
-            placement = {s: n for s, n in (placement or plan.placement).items() if s in self.stage_index}
+            placement = {s: n for s, n in (plan.placement if placement is None else placement).items() if s in self.stage_index}
             active = {self.stage_index[s][0].name for s in placement} & set(plan.running)
             placement = {s: n for s, n in placement.items() if self.stage_index[s][0].name in active}
             disabled = frozenset(c.name for c in scenario.chains if c.name not in active)

@@ -171,13 +171,19 @@ class Deciding:
                 allocation[stage] = node
         return allocation
 
-    def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float]):
-        if network is None or not allocation:
+    def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float],
+                  running: set[str] | None = None, levels: dict[str, str] | None = None):
+        """The model for an allocation on the network of the nodes alive; None if it has no answer.
+
+        ``running``: the chains that run (default: those with a stage in the allocation; given, an
+        empty allocation is a team whose chains are stopped). ``levels``: DVFS levels to price at."""
+        if network is None or (not allocation and running is None):
             return None
-        active = {self.chain_of[s].name for s in allocation}
-        disabled = frozenset(c.name for c in self.scenario.chains if c.name not in active)
+        active = running if running is not None else {self.chain_of[s].name for s in allocation}
+        scenario = apply_levels(self.scenario, levels) if levels else self.scenario
+        disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
         try:
-            return evaluate(self.scenario, network.without_nodes(
+            return evaluate(scenario, network.without_nodes(
                 {r for r in self.robots if r not in self.alive_nodes()}), allocation,
                 energies_j=energies, disabled_chains=disabled)
         except AutoPowerError:
@@ -200,19 +206,10 @@ class Deciding:
         if self.placement == self.target and set(self.running) == {c.name for c in self.scenario.chains
                                                                     if any(s.name in self.target for s in c.stages)}:
             return dict(self.predicted_w)  # settled: the target's prediction is the placement's
-        running = {c.name for c in self.scenario.chains if c.name in self.running}
+        running = set(self.running)
         allocation = {s: n for s, n in self.placement.items() if self.chain_of[s].name in running}
-        if self.plan_network is None:
-            return {}
-        scenario = apply_levels(self.scenario, self.levels) if self.levels else self.scenario
-        network = self.plan_network.without_nodes({r for r in self.robots if r not in self.alive_nodes()})
-        disabled = frozenset(c.name for c in scenario.chains if c.name not in running)
-        try:
-            ev = evaluate(scenario, network, allocation, energies_j=self.remaining_energies(),
-                          disabled_chains=disabled)
-        except AutoPowerError:
-            return {}
-        return {r: p.total_w for r, p in ev.robots.items()}
+        ev = self._evaluate(allocation, self.plan_network, {}, running=running, levels=self.levels)
+        return {r: p.total_w for r, p in ev.robots.items()} if ev else {}
 
     def _at_levels(self, ev):
         """DVFS: every robot at the cheapest frequency level at which its placement fits (a robot's
@@ -221,11 +218,7 @@ class Deciding:
         self.levels = best_levels(self.scenario, ev.utilisation) if ev is not None and has_levels(self.scenario) else {}
         if not self.levels:
             return ev
-        nominal, self.scenario = self.scenario, apply_levels(self.scenario, self.levels)
-        try:
-            return self._evaluate(self.target, self.plan_network, self.remaining_energies())
-        finally:
-            self.scenario = nominal
+        return self._evaluate(self.target, self.plan_network, self.remaining_energies(), levels=self.levels)
 
     def _reset_baselines(self) -> None:
         self.baselines.clear()  # re-anchored from the next status that reflects the settled plan
