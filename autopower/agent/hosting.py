@@ -30,6 +30,8 @@ from autopower.protocol import (
 )
 from autopower.protocol.messages import CONTROL_MESSAGES
 
+log = logging.getLogger("autopower.agent.node")
+
 
 class Hosting:
     """The node's stage lifecycle. Mixed into `NodeRuntime`, whose state it uses."""
@@ -96,8 +98,18 @@ class Hosting:
             self._zygote.close()
             self._zygote = None
 
-    def _reply(self, msg) -> None:
-        self.send_to(self.scenario.basestation, self.keys.inbox, encode(msg))
+    def _reply(self, msg) -> bytes:
+        payload = encode(msg)
+        self.send_to(self.scenario.basestation, self.keys.inbox, payload)
+        return payload
+
+    def _answer_again(self, hosted: HostedStage, order: str) -> None:
+        """A repeated order this node has carried out already: its answer goes again, nothing is redone."""
+        self.tally("repeated-order")
+        log.info("%s: %s for %s again (generation %d): answered again", self.node, order, hosted.stage.name,
+                 hosted.generation)
+        if hosted.answer:
+            self.send_to(self.scenario.basestation, self.keys.inbox, hosted.answer)
 
     def _construct(self, msg, chain, stage):
         """A new instance of the stage's component, or None when its constructor raised (reported)."""
@@ -115,6 +127,9 @@ class Hosting:
         current = self.hosted.get(msg.stage)
         if current and current.generation > msg.generation:
             return
+        if current and current.generation == msg.generation and current.lifecycle is not Lifecycle.STARTING:
+            self._answer_again(current, "Assign")  # a new instance would start its inputs over
+            return
         component = self._construct(msg, chain, stage)
         if component is None:
             return
@@ -126,14 +141,18 @@ class Hosting:
                              gate=SequenceGate(next_seq=msg.resume_seq))
         held = (current.buffer if current else []) + self.orphans.pop(msg.stage, [])
         self.hosted[msg.stage] = hosted
-        self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=False,
-                               resume_seq=msg.resume_seq, downtime_ms=0.0, buffered=len(held)))
+        hosted.answer = self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node,
+                                               imported_state=False, resume_seq=msg.resume_seq, downtime_ms=0.0,
+                                               buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
             self._admit(hosted, frame, refusable=False)
 
     def on_prepare(self, msg: Prepare) -> None:
         chain, index = self.stage_index[msg.stage]
         current = self.hosted.get(msg.stage)
+        if current is not None and current.generation == msg.generation:
+            self._answer_again(current, "Prepare")  # waiting for the state, or running with it already
+            return
         if current is not None and current.lifecycle in (Lifecycle.RUNNING, Lifecycle.DRAINING):
             self.count("prepare-while-running", msg.stage, logging.ERROR)
             return
@@ -143,10 +162,17 @@ class Hosting:
         if current is not None and current.lifecycle is Lifecycle.STARTING:
             hosted.buffer = current.buffer + hosted.buffer
         self.hosted[msg.stage] = hosted
-        self._reply(Prepared(stage=msg.stage, generation=msg.generation, node=self.node))
+        hosted.answer = self._reply(Prepared(stage=msg.stage, generation=msg.generation, node=self.node))
 
     def on_migrate_out(self, msg: MigrateOut) -> None:
         hosted = self.hosted.get(msg.stage)
+        if hosted is not None and hosted.shipped is not None and hosted.shipped[:2] == (msg.generation, msg.to_node):
+            # shipped already: the state (or the new host's answer) was lost on the way; it goes again
+            # as it was, and the new host imports it once
+            self.tally("state-resent")
+            log.info("%s: MigrateOut of %s to %s again: its state sent again", self.node, msg.stage, msg.to_node)
+            self._ship(msg.to_node, hosted.shipped[2], hosted.chain.name)
+            return
         if hosted is None or hosted.lifecycle is not Lifecycle.RUNNING:
             self.count("migrate-not-running", f"{msg.stage} is {hosted.lifecycle.value if hosted else 'absent'}",
                        logging.ERROR)
@@ -174,15 +200,19 @@ class Hosting:
         body = encode(transfer)
         hosted.lifecycle = Lifecycle.MIGRATED
         hosted.forward_to = msg.to_node
+        hosted.shipped = (msg.generation, msg.to_node, body)
         self.retire(hosted.component)
         hosted.component = None
         if self.plan is not None and self.plan.predicted_w:  # it runs there from now on, not here
             self.model_override = self.predict_power({**self.plan.placement, msg.stage: msg.to_node})
+        self._ship(msg.to_node, body, hosted.chain.name)
+
+    def _ship(self, to_node: str, body: bytes, chain: str) -> None:
         # The state crosses the network like any message: routed, forwarded, charged (real bytes).
-        if msg.to_node == self.node:
-            self.on_state(transfer)
+        if to_node == self.node:
+            self.on_state(decode(body, StateTransfer))
         else:
-            self.send_routed(msg.to_node, body, len(body), 1.0, "migration", hosted.chain.name)
+            self.send_routed(to_node, body, len(body), 1.0, "migration", chain)
 
     def on_state(self, msg: StateTransfer) -> None:
         if msg.stage not in self.stage_index:
@@ -193,6 +223,13 @@ class Hosting:
         current = self.hosted.get(msg.stage)
         if current is not None and current.generation > msg.generation:
             self.count("stale-state", f"{msg.stage} generation {msg.generation}")
+            return
+        if current is not None and current.generation == msg.generation and current.lifecycle is not Lifecycle.STARTING:
+            # imported already (its sender was asked again): importing it twice would run inputs twice
+            if current.lifecycle is Lifecycle.RUNNING:
+                self._answer_again(current, "StateTransfer")
+            else:
+                self.tally("repeated-order")
             return
         imported = True
         component = None
@@ -223,9 +260,9 @@ class Hosting:
         if current is not None:
             self.retire(current.component)
         self.hosted[msg.stage] = hosted
-        self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
-                               resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3),
-                               buffered=len(held)))
+        hosted.answer = self._reply(StageReady(
+            stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
+            resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3), buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
             self._admit(hosted, frame, refusable=False)
 

@@ -193,6 +193,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.weights.update(self.flow_weights(plan.mission.accounting))
             self._resume(plan.mission)
         self._set_plan(plan)
+        for hosted in self.hosted.values():
+            if hosted.shipped is not None and plan.placement.get(hosted.stage.name) == hosted.forward_to:
+                hosted.shipped = None  # it has landed: nobody will ask for its state again
         # stages that have landed elsewhere: frames held here for them can go now
         for stage, frames in list(self.orphans.items()):
             host = plan.placement.get(stage)

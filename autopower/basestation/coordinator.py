@@ -90,6 +90,7 @@ class CoordinatorConfig:
     drift_tolerance: float = 0.03  # relative drift of a battery from the plan that triggers a re-plan
     drift_min_window_s: float = 60.0  # virtual seconds of a plan before drift is judged
     migration_timeout_s: float = 10.0  # wall seconds before a stuck migration is abandoned
+    migration_resend_s: float = 1.0  # wall seconds an order of a migration waits for its answer before it goes again
     start_grace_s: float = 30.0  # wall seconds to wait for every robot before starting without some
     plan_republish_s: float = 1.0  # wall seconds between repeats of the current plan (late joiners)
     # ... while a robot in reach does not say it runs it; once they all do, only this often (a
@@ -186,6 +187,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.migrations_done = 0
         self.assignments_done = 0
         self.aborted = 0
+        self.order_resends = 0  # migration orders sent again for want of an answer (`Placing.resend_orders`)
         self.replans = 0
         self.first_depletion: dict[str, float] | None = None
         # faults as the base station saw them: detection and when the team ran its new plan
@@ -433,9 +435,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             self._mark_reconfigured()
         for stage, m in list(self.migrations.items()):
             if now_wall - m.started_unix > self.config.migration_timeout_s:
-                self._abort(stage, f"no answer in {self.config.migration_timeout_s:g} s")
+                self._abort(stage, f"no answer in {self.config.migration_timeout_s:g} s", restart_at_target=True)
                 self.reconcile()
                 self.publish_plan()
+        self.resend_orders()
         if self.mission is None:
             return
         if self.config.auto_replan:
@@ -459,6 +462,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
     def next_deadline_unix(self) -> float:
         """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
         deadlines = [m.started_unix + self.config.migration_timeout_s for m in self.migrations.values()]
+        deadlines += [self.order_resend_unix(m) for m in self.migrations.values() if m.order]
         if self.mission is not None:
             deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
         elif self.first_seen_unix is not None:

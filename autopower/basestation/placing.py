@@ -35,6 +35,12 @@ class Migration:
     from_node: str | None  # None: a fresh assignment
     phase: str  # "assigning" | "preparing" | "transferring"
     started_unix: float
+    # The order of its phase (Assign, Prepare or MigrateOut), kept encoded to be sent again as it
+    # was while unanswered: the order or its answer can be lost with a link that changes under it.
+    order: bytes = b""
+    order_to: str = ""
+    sent_unix: float = 0.0
+    resends: int = 0
 
 
 class Placing:
@@ -60,11 +66,11 @@ class Placing:
             if have is None or have not in alive:
                 self.placement.pop(stage, None)
                 run, resume = self._run_for(chain)
-                self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.wall())
-                self._send(want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))
+                m = self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.wall())
+                self._order(m, want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))
             else:
-                self.migrations[stage] = Migration(stage, gen, want, have, "preparing", self.wall())
-                self._send(want, Prepare(stage=stage, generation=gen, from_node=have))
+                m = self.migrations[stage] = Migration(stage, gen, want, have, "preparing", self.wall())
+                self._order(m, want, Prepare(stage=stage, generation=gen, from_node=have))
         self._update_running()
 
     def _run_for(self, chain) -> tuple[int, int | None]:
@@ -95,7 +101,36 @@ class Placing:
         if m is None or m.generation != msg.generation or m.phase != "preparing" or msg.node != m.to_node:
             return
         m.phase = "transferring"
-        self._send(m.from_node, MigrateOut(stage=msg.stage, generation=m.generation, to_node=m.to_node))
+        m.resends = 0
+        self._order(m, m.from_node, MigrateOut(stage=msg.stage, generation=m.generation, to_node=m.to_node))
+
+    def _order(self, m: Migration, node: str, msg) -> None:
+        m.order, m.order_to, m.sent_unix = encode(msg), node, self.wall()
+        self.send_to(node, self.keys.node_control(node), m.order)
+
+    def order_resend_unix(self, m: Migration) -> float:
+        """When an unanswered order goes again: after ``migration_resend_s``, then twice as long
+        each time (a slow state transfer is not flooded with requests to send it again)."""
+        return m.sent_unix + self.config.migration_resend_s * 2 ** min(m.resends, 4)
+
+    def resend_orders(self) -> None:
+        """Send again each order still unanswered after its wait.
+
+        A node answers a repeated order without acting twice (`agent.hosting`): a Prepare or an
+        Assign it has carried out is answered again, a MigrateOut it has carried out sends the
+        same state again, and a state that arrives twice is imported once. So a lost order, a lost
+        answer or a lost state costs a resend, not the stage's state and the inputs it held
+        (which is what abandoning the migration after ``migration_timeout_s`` costs).
+        """
+        now = self.wall()
+        for m in self.migrations.values():
+            if m.order and now >= self.order_resend_unix(m) and m.order_to in self.alive_nodes():
+                m.resends += 1
+                self.order_resends += 1
+                m.sent_unix = now
+                log.info("coordinator: %s: no answer to its %s order to %s; sent again (%d)", m.stage, m.phase,
+                         m.order_to, m.resends)
+                self.send_to(m.order_to, self.keys.node_control(m.order_to), m.order)
 
     def on_stage_ready(self, msg: StageReady) -> None:
         m = self.migrations.get(msg.stage)
@@ -162,12 +197,19 @@ class Placing:
         self.note(f"{msg.stage} failed on {msg.node} ({why}); chain {chain.name} stopped (enable it to restart)")
         self.replan(f"{msg.stage} failed")
 
-    def _abort(self, stage: str, why: str) -> None:
+    def _abort(self, stage: str, why: str, *, restart_at_target: bool = False) -> None:
+        """Give a migration up: its ends release the stage, which restarts without its state.
+
+        ``restart_at_target``: the caller reconciles at once and the target is still the new
+        host, so that host is not told to release: the Assign that follows replaces its waiting
+        instance and keeps the inputs it holds (acknowledged to their producers: nobody else has them).
+        """
         m = self.migrations.pop(stage)
         self.aborted += 1
         self.note(f"{stage}: {m.phase} to {m.to_node} abandoned ({why}); restarting it without state")
         gen = self._next_generation()
-        for node in {m.to_node, m.from_node} - {None}:
+        keep = m.to_node if restart_at_target and self.target.get(stage) == m.to_node else None
+        for node in {m.to_node, m.from_node} - {None, keep}:
             if node in self.alive_nodes():
                 self._send(node, Release(stage=stage, generation=gen))
         self.placement.pop(stage, None)

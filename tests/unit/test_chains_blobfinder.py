@@ -40,8 +40,9 @@ def test_finds_every_victim_of_the_ground_truth(seed, n_victims, frame):
     for victim in truth:
         blob = by_colour[victim.colour]
         assert abs(blob.x_px - victim.x_px) < 1.0 and abs(blob.y_px - victim.y_px) < 1.0
-        # Only a speck touching the victim could add a few pixels.
-        assert victim.area_px <= blob.area_px <= victim.area_px + 9
+        # Only specks of its colour touching the victim can add pixels: at most 9 each, and two
+        # may touch it (seed 2_069_776_675, 3 victims, frame 198: +12 px, found by hypothesis).
+        assert victim.area_px <= blob.area_px <= victim.area_px + 2 * 9
         assert all(abs(a - b) <= 3 for a, b in zip(blob.bbox_px, victim.bbox_px))
     assert [b.area_px for b in report.blobs] == sorted((b.area_px for b in report.blobs), reverse=True)
 
