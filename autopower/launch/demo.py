@@ -42,7 +42,9 @@ _BASE_OUT = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) INFO autopower.
 TAKEOVER_WAIT_S = 15.0  # how long the demo waits for a restarted base station to adopt the team
 
 
-def _wait(team, predicate, timeout_s: float, what: str) -> dict:
+def _wait(team, predicate, timeout_s: float, what: str, unless=None) -> dict:
+    """The first snapshot ``predicate`` accepts; or, once ``unless()`` is true (asked whether or
+    not the base station answers), the last snapshot it gave ({} if none)."""
     deadline = time.monotonic() + timeout_s
     snap: dict = {}
     while time.monotonic() < deadline:
@@ -50,11 +52,21 @@ def _wait(team, predicate, timeout_s: float, what: str) -> dict:
         try:
             snap = team.snapshot(timeout_s=2.0)
         except AutoPowerError:
+            if unless is not None and unless():
+                return snap
             continue
-        if predicate(snap):
+        if predicate(snap) or (unless is not None and unless()):
             return snap
         time.sleep(0.05)
     raise AutoPowerError(f"demo: timed out after {timeout_s:g} s waiting for {what} (logs in {team.log_dir})")
+
+
+def _snapshot_or(team, last: dict) -> dict:
+    """A fresh snapshot, or ``last`` when the base station does not answer (it may be starting)."""
+    try:
+        return team.snapshot(timeout_s=2.0)
+    except AutoPowerError:
+        return last
 
 
 def _handled(snap: dict, before: int, kind: str, target: str | None = None) -> list[dict]:
@@ -301,10 +313,16 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
 
         # 5. the rest of the mission
         remaining = max(5.0, mission_wall_s + 15 - (time.monotonic() - mission_started))
-        snap = _wait(team, lambda s: bool(s.get("first_depletion")), remaining, "the first robot to run dry")
-        _say(quiet, f"demo: {snap['first_depletion']['robot']} ran dry at t={snap['first_depletion']['t_virtual']:.0f} s")
+        # A robot that runs dry leaves (its agent exits 0): on a loaded machine that can happen
+        # while the restarted base station is still starting, and it will never hear of it.
+        snap = _wait(team, lambda s: bool(s.get("first_depletion")), remaining, "the first robot to run dry",
+                     unless=lambda: bool(team.exited_cleanly() & set(robots))) or snap
         time.sleep(0.6)  # its last status and the base's reaction
-        snap = team.snapshot()
+        snap = _snapshot_or(team, snap)
+        dry = snap.get("first_depletion")
+        _say(quiet, f"demo: {dry['robot']} ran dry at t={dry['t_virtual']:.0f} s" if dry else
+             f"demo: {', '.join(sorted(team.exited_cleanly() & set(robots)))} ran dry while no base station "
+             "was up to see it (the recording says when)")
     finally:
         try:
             codes = team.stop()
@@ -340,6 +358,9 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     result["supervision"] = team.supervision()
     if record_dir is not None:
         result.update(_recording(record_dir, quiet))
+        dry = result.get("first_dry")
+        if result["first_depletion"] is None and dry:  # no base station was up to see it: the recording saw it
+            result["first_depletion"] = {"robot": dry["robot"], "t_virtual": dry["at_s"], "seen_by": "recording"}
         # what only the launcher knows (restart, rejoin, takeover) joins the replay's view of the crashes
         live_crashes = {(f["kind"], f["target"]): f for f in faults_out if f["kind"].startswith("crash-")}
         for fault in result["faults"]:

@@ -296,6 +296,12 @@ class LocalTeam:
             self._pending_events = []
         return events
 
+    def exited_cleanly(self) -> set[str]:
+        """The children that left on their own with status 0 (a robot whose battery ran dry)."""
+        with self._lock:
+            return {c.name for c in self.children.values()
+                    if c.proc.poll() == 0 and c.name not in self.expected_exits and not self._stopping}
+
     def _supervise(self) -> None:
         pidfds: dict[int, int] = {}  # pid -> its pidfd: readable once that child has exited
         try:
