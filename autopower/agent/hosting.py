@@ -150,6 +150,9 @@ class Hosting:
     def on_prepare(self, msg: Prepare) -> None:
         chain, index = self.stage_index[msg.stage]
         current = self.hosted.get(msg.stage)
+        if current is not None and current.generation > msg.generation:
+            self.tally("stale-order")  # a repeat that arrives after a newer order: it must change nothing
+            return
         if current is not None and current.generation == msg.generation:
             self._answer_again(current, "Prepare")  # waiting for the state, or running with it already
             return
@@ -167,11 +170,17 @@ class Hosting:
     def on_migrate_out(self, msg: MigrateOut) -> None:
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.shipped is not None and hosted.shipped[:2] == (msg.generation, msg.to_node):
+            if not hosted.shipped[2]:  # it has landed there (the plan says so): a late copy of the order
+                self.tally("stale-order")
+                return
             # shipped already: the state (or the new host's answer) was lost on the way; it goes again
             # as it was, and the new host imports it once
             self.tally("state-resent")
             log.info("%s: MigrateOut of %s to %s again: its state sent again", self.node, msg.stage, msg.to_node)
             self._ship(msg.to_node, hosted.shipped[2], hosted.chain.name)
+            return
+        if hosted is not None and hosted.generation > msg.generation:
+            self.tally("stale-order")  # a repeat that arrives after a newer order: it must change nothing
             return
         if hosted is None or hosted.lifecycle is not Lifecycle.RUNNING:
             self.count("migrate-not-running", f"{msg.stage} is {hosted.lifecycle.value if hosted else 'absent'}",
@@ -222,7 +231,8 @@ class Hosting:
         stage = chain.stages[index]
         current = self.hosted.get(msg.stage)
         if current is not None and current.generation > msg.generation:
-            self.count("stale-state", f"{msg.stage} generation {msg.generation}")
+            # a second copy of a state (its sender was asked again) arriving after a newer order
+            self.tally("stale-state")
             return
         if current is not None and current.generation == msg.generation and current.lifecycle is not Lifecycle.STARTING:
             # imported already (its sender was asked again): importing it twice would run inputs twice

@@ -194,8 +194,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self._resume(plan.mission)
         self._set_plan(plan)
         for hosted in self.hosted.values():
-            if hosted.shipped is not None and plan.placement.get(hosted.stage.name) == hosted.forward_to:
-                hosted.shipped = None  # it has landed: nobody will ask for its state again
+            if hosted.shipped and hosted.shipped[2] and plan.placement.get(hosted.stage.name) not in (None, self.node):
+                # it has landed (there, or on beyond): nobody will ask for its state again, and a
+                # late copy of the order is known for one
+                hosted.shipped = (*hosted.shipped[:2], b"")
         # stages that have landed elsewhere: frames held here for them can go now
         for stage, frames in list(self.orphans.items()):
             host = plan.placement.get(stage)

@@ -67,8 +67,9 @@ class HostedStage:
     failure: str | None = None  # FAILED: why
     # The answer sent to the order that made this instance (Prepared, then StageReady), and for
     # a MIGRATED one the state it shipped (the migration's generation, its new host, the encoded
-    # StateTransfer): sent again as they were if the base station repeats the order, which it
-    # does when the order or its answer was lost (`basestation.placing.Placing.resend_orders`).
+    # StateTransfer; the body dropped, b"", once the plan shows the stage landed): sent again as
+    # they were if the base station repeats the order, which it does when the order or its answer
+    # was lost (`basestation.placing.Placing.resend_orders`).
     answer: bytes = b""
     shipped: tuple[int, str, bytes] | None = None
 

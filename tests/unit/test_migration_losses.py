@@ -141,3 +141,55 @@ def test_a_move_that_never_gets_its_state_restarts_where_its_inputs_wait():
 class _Forgetful(set):
     def __contains__(self, item) -> bool:
         return False
+
+
+class LateCopies(LossyMigrations):
+    """Delivers every message of the migration protocol, and a second copy of it later (a resend
+    whose original was only slow), after whatever orders came in between."""
+
+    def __init__(self, team: SimTeam):
+        super().__init__(team, lambda msg: False)
+        self.copies: list[tuple[str, str, bytes]] = []  # (sender, key, payload)
+
+    def _lose(self, key: str, payload: bytes, sender: str) -> bool:
+        if self._migration_message(key, payload) is not None:
+            self.copies.append((sender, key, payload))
+        return False
+
+    def release(self, rng: random.Random) -> None:
+        copies, self.copies = self.copies, []
+        rng.shuffle(copies)
+        for sender, key, payload in copies:
+            bus = self.team.coordinator.bus if sender == self.team.scenario.basestation else self.team.hub.bus(sender)
+            bus.publish(key, payload)
+
+
+@pytest.mark.parametrize("topology", ["fully-connected", "relay"])
+def test_late_second_copies_of_every_order_answer_and_state_change_nothing(topology):
+    rng = random.Random(11)
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, topology=topology, media=FC, auto_replan=False))
+    outputs = collect(team)
+    team.join()
+    late = LateCopies(team)
+    stages, nodes = sc.stage_names(), sc.node_names()
+    co, moves, t, released = team.coordinator, 0, 1.0, 0
+    while moves < 200:
+        team.run_until(t)
+        stage, node = rng.choice(stages), rng.choice(nodes)
+        if stage not in co.migrations:
+            assert co.on_operator(MigrateCommand(stage=stage, to_node=node)).ok
+            moves += 1
+        if rng.random() < 0.3:  # the copies come back after a few more moves
+            released += len(late.copies)
+            late.release(rng)
+        t += rng.choice([0.1, 0.5, 1.0])
+    released += len(late.copies)
+    late.release(rng)
+    team.run_until(t + 20)
+    assert released > 600
+    assert co.aborted == 0 and not co.migrations and co.migrations_done > 100
+    check_exactly_once(team, outputs)  # and no node counted an error
+    repeats = sum(rt.counters.get(k, 0) for rt in team.nodes.values()
+                  for k in ("repeated-order", "stale-order", "stale-state", "state-resent"))
+    assert repeats > 100
