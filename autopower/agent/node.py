@@ -45,6 +45,7 @@ from autopower.agent.relaying import Relaying
 from autopower.agent.sequencing import SinkLedger
 from autopower.agent.sink_store import SinkStore
 from autopower.agent.stages import HELD_OUTPUT_LIMIT, SENSOR_QUEUE, HostedStage, SourceRunner, chain_seed, pad
+from autopower.agent.workers import Zygote
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
 from autopower.model.network import Link, Network
@@ -135,6 +136,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # each stage's component in a worker process of its own, called asynchronously (`agent.workers`)
         self.stage_workers = stage_workers
         self._zygote = None
+        if stage_workers:  # started now, off the loop (`Zygote.prestart`)
+            self._zygote = Zygote()
+            self._zygote.prestart()
         # how a worker's result wakes the owning process's loop (it posts an event); without it
         # results are collected at the next timer tick
         self.notify_work: Callable[[], None] | None = None

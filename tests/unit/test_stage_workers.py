@@ -481,3 +481,27 @@ def test_a_bad_stage_workers_choice_is_one_line_and_exit_2():
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "--stage-workers" in out.stderr and "'maybe' is not one of 'off', 'on', 'auto'" in out.stderr
+
+
+def test_a_prestarted_zygote_imports_while_the_node_goes_on():
+    """A node with stage workers starts its worker factory at once and does not wait for it:
+    seen in a live test, the first stage a robot took in a subgroup commit waited on its loop
+    for the factory's start, and the loop stopped for 4.9 s (load ~8) while the base station
+    took the team over without that robot."""
+    from autopower.agent.workers import Zygote
+
+    zygote = Zygote()
+    started = time.monotonic()
+    zygote.prestart()
+    try:
+        assert time.monotonic() - started < 0.5  # a spawn, not its imports
+        assert zygote._proc is not None and not zygote._ready
+        time.sleep(3.0)  # its imports happen meanwhile (0.6 s at load 5)
+        assert zygote._proc.poll() is None, "the factory died (it dies with the thread that started it)"
+        forked = time.monotonic()
+        sock, pid = zygote.fork()
+        assert zygote._ready and time.monotonic() - forked < 1.0  # a fork, not a start
+        sock.close()
+        os.kill(pid, 9)
+    finally:
+        zygote.close()
