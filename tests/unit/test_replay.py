@@ -149,3 +149,26 @@ def test_a_real_process_exits_2_without_a_traceback(tmp_path):
                           text=True, timeout=60, env={**os.environ, "RERUN_ANALYTICS": "0"})
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.startswith(f"error: {bad}") and "Traceback" not in done.stderr
+
+
+def test_a_killed_robot_is_not_waited_for_by_the_plan_made_before_it_was_known_gone():
+    """Demo run 2026-11-24: r2 SIGKILLed at t=79.7; its links to r1 and r3 were reported down first,
+    and that plan (epoch 22) still had r2. r1 and r3 ran the plan without r2 (epoch 24) at 81.1;
+    r2 ran anything again only once restarted, at 106.2. The team was reconfigured at 81.1."""
+    import math
+
+    from autopower.recording.replay import _reconfiguration
+
+    class Rec:
+        properties = {"basestation": "laptop"}
+        epochs = {"r1": ([80.31, 81.08], [22.0, 24.0]), "r3": ([80.31, 81.1], [22.0, 24.0]),
+                  "r2": ([106.23], [24.0])}
+
+        def series(self, entity):
+            robot = entity.split("/")[1]
+            return self.epochs.get(robot, ([], [])) if entity.endswith("/plan_epoch") else ([], [])
+
+    plans = [(80.0, 22, ["laptop", "r1", "r2", "r3"]), (80.9, 24, ["laptop", "r1", "r3"])]
+    assert _reconfiguration(Rec(), "live", 79.7, math.inf, plans, [], [], [], {"r2"}) == (81.1, "plan epoch 24")
+    # a cut (nobody killed) still waits for every robot of the first plan's network
+    assert _reconfiguration(Rec(), "live", 79.7, math.inf, plans, [], [], []) == (106.23, "plan epoch 22")
