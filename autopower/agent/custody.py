@@ -17,9 +17,10 @@ A report speaks only for what reached its consumer's loop: frames still waiting 
 consumer's event queue are in none of its counts. The status says how long the oldest of them
 had waited (`NodeStatus.queue_wait_s`), and that much is taken off the report's time before it
 may call a frame lost. Without it a consumer more than ``resend_after_s`` behind was sent again
-its whole queue, which it decoded only to drop: under overload producers resent 0.6-1.2 frames
-per frame produced, and the consumer, already short of CPU, fell further behind (a resend storm
-that lasted until the load dropped). A frame is only resent later, never held back for good:
+its whole queue, which it decoded only to drop: at x55 on a loaded machine each camera robot
+resent half as many frames as it produced (1.2 per frame in the worst seconds), and the base
+station, already short of CPU, fell further behind (a resend storm that lasted until the load
+dropped). A frame is only resent later, never held back for good:
 once the queue is taken in, a report that still lacks it calls it lost.
 
 Responsibility moves downstream hop by hop: once a stage has consumed an input, its output is
