@@ -12,7 +12,8 @@ component's median run time, measured here as `autopower profile` measures it). 
 kept up at the limit would spend all its CPU in the components and none in the runtime.
 
 For each speed (10x, 20x, 50x, 100x and the limit) it prints, over ``--seconds`` of wall time
-counted from the moment the team is ready: source periods missed (%), the CPU each process used
+counted from the moment the team is ready: source periods missed (%), frames resent by custody,
+chain data dropped by a full event queue and resent inputs dropped as redundant, the CPU each process used
 (utime + stime from /proc/PID/stat over that window, in % of one core), and each sink's
 end-to-end latency p50. With ``--baseline-tree DIR`` (a checkout of the code before, e.g.
 ``git archive main | tar -x -C DIR``) the same runs are made first with the team's processes
@@ -92,6 +93,17 @@ def missed(snap: dict) -> tuple[int, int]:
     return produced, missed_
 
 
+def resends(snap: dict) -> tuple[int, int, int]:
+    """Frames resent by every node (custody), chain data the nodes' event queues dropped when full,
+    and resent inputs their stages dropped as redundant (they had arrived, only late), so far."""
+    statuses = [(info.get("status") or {}) for info in (snap.get("robots") or {}).values()]
+    statuses.append(snap.get("basestation") or {})
+    resent = sum((s.get("counters") or {}).get("resent-frames", 0) for s in statuses)
+    shed = sum((s.get("errors") or {}).get("queue-full", 0) for s in statuses)
+    redundant = sum((s.get("counters") or {}).get("redundant-input", 0) for s in statuses)
+    return resent, shed, redundant
+
+
 def stage_runs(snap: dict, node: str) -> int:
     """Inputs the stages hosted on ``node`` have run so far (from its status in the snapshot)."""
     status = snap.get("basestation") if node == "basestation" else ((snap.get("robots") or {}).get(node) or {}).get("status")
@@ -132,6 +144,7 @@ def run_once(speed: float, seconds: float, tree: str | None, workers: str = "aut
             else:
                 os.environ["PYTHONPATH"] = saved
     (p0, m0), (p1, m1) = missed(snap0), missed(snap1)
+    resent, shed, redundant = (b - a for a, b in zip(resends(snap0), resends(snap1)))
     produced, miss = p1 - p0, m1 - m0
     cpu = {n: (cpu1[n] - cpu0[n]) / wall * 100 for n in pids if cpu0[n] is not None and cpu1[n] is not None}
     latencies = {c: v["p50_ms"] for c, v in chain_latencies(snap1).items()}
@@ -142,6 +155,7 @@ def run_once(speed: float, seconds: float, tree: str | None, workers: str = "aut
     virtual = (snap1.get("t_virtual") or 0) - (snap0.get("t_virtual") or 0)
     return {"speed": speed, "wall_s": wall, "virtual_s": virtual, "produced": produced, "missed": miss,
             "missed_pct": 100.0 * miss / (produced + miss) if produced + miss else 0.0,
+            "resent": resent, "queue_full": shed, "redundant": redundant,
             "cpu_pct": cpu, "latency_p50_ms": latencies, "load": (load0, load1), "base_runs": base_runs,
             "base_ms_per_run": base_cpu_s / base_runs * 1e3 if base_runs else None,
             "base_loop_pct": (loop1 - loop0) / wall * 100 if loop0 is not None and loop1 is not None else None}
@@ -157,6 +171,7 @@ def show(label: str, r: dict, nodes: list[str]) -> None:
     loop = r.get("base_loop_pct")
     per_run = r.get("base_ms_per_run")
     print(f"{label:9} {r['speed']:>7.1f} {r['missed_pct']:>8.2f} {r['missed']:>6}/{r['produced'] + r['missed']:<6} "
+          f"{r.get('resent', 0):>6} {r.get('queue_full', 0):>6} {r.get('redundant', 0):>6} "
           f"{cpu} {loop if loop is not None else float('nan'):>7.1f} {total:>7.1f} {per_virtual_ms:>8.1f} "
           f"{per_run if per_run is not None else float('nan'):>8.2f} "
           f"{blob:>10.1f} {loc:>10.1f}  {r['load'][0]:.2f}/{r['load'][1]:.2f}")
@@ -186,14 +201,16 @@ def main() -> None:
     if not args.no_limit:
         speeds.append(round(limit))
     nodes = [scenario.basestation] + [r.name for r in scenario.robots]
-    header = (f"{'code':9} {'speed':>7} {'missed%':>8} {'missed/periods':>13} "
+    header = (f"{'code':9} {'speed':>7} {'missed%':>8} {'missed/periods':>13} {'resent':>6} {'q-full':>6} {'redund':>6} "
               + " ".join(f"{n + ' %':>7}" for n in nodes)
               + f" {'loop %':>7} {'all %':>7} {'ms/virt':>8} {'base ms/in':>8} {'Blob p50ms':>10} {'Loc p50ms':>10}"
               "  load 1-min start/end")
     print(f"\nCPU in % of one core over {args.seconds:g} s of wall time after ready (a node's worker processes "
           "included; loop % = the base station's own process); ms/virt = the whole team's CPU "
           "ms per virtual second (compare with the components' need above); base ms/in = the base station's "
-          "CPU ms per input its stages ran (components included); latency p50 = a sink's "
+          "CPU ms per input its stages ran (components included); resent = frames the nodes resent "
+          "(custody), q-full = chain data their event queues dropped when full, redund = resent inputs "
+          "dropped on arrival as redundant (they had come, only late); latency p50 = a sink's "
           "capture-to-receipt wall ms (worst chain of each kind)")
     print(header)
     modes = [m for m in args.stage_workers.split(",") if m]

@@ -27,9 +27,11 @@ class Acknowledging:
         if status.node == self.node:
             return
         now = self.wall()
+        # a peer's word, bounded: custody gives a frame up after max_age_s whatever the wait
+        wait = min(max(status.queue_wait_s, 0.0), self.custody.max_age_s)
         # never newer than its arrival: a consumer whose clock runs ahead must not make
         # frames still in flight look lost
-        self._acknowledge(status.node, min(status.t_unix, now), status.consumed)
+        self._acknowledge(status.node, min(status.t_unix, now), status.consumed, wait)
         self.resend_lost(now)
 
     def consumed(self) -> dict[str, Consumed]:
@@ -69,13 +71,15 @@ class Acknowledging:
         out |= self.flow_producers()
         return out - {None, self.node}
 
-    def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed]) -> None:
+    def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed],
+                     queue_wait_s: float = 0.0) -> None:
         for key, report in consumed.items():
             hop = parse_hop_key(key)
             if hop is None or hop[0] not in self.chains:
                 self.count("garbled", f"{node} reports an unknown hop {key!r}")
                 continue
-            self.custody.on_report(hop[0], hop[1], Report(node=node, t_unix=t_unix, consumed=report))
+            self.custody.on_report(hop[0], hop[1], Report(node=node, t_unix=t_unix, consumed=report,
+                                                          queue_wait_s=queue_wait_s))
 
     def resend_lost(self, now: float) -> None:
         """Resend what a consumer reported missing well after it was sent (throttled)."""

@@ -517,7 +517,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.alive.discard(node)
 
     # ---- status ----------------------------------------------------------------------------------------
-    def status(self, window_s: float, queue_depth: int = 0) -> NodeStatus:
+    def status(self, window_s: float, queue_depth: int = 0, queue_wait_s: float = 0.0) -> NodeStatus:
         self.settle_relayed()
         now = self.now()
         power, utilisation = self.meter.window(now, window_s) if self.meter else ({}, 0.0)
@@ -555,6 +555,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             plan_operator=self.plan.operator if self.plan else None,
             model_w=self.model_w,
             down=self.down,
+            queue_wait_s=queue_wait_s,
         )
 
     # ---- dispatch -----------------------------------------------------------------------------------------

@@ -409,7 +409,7 @@ class Agent:
         rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
         if self._bus.repeated:  # statuses put again while the loop was held up
             rt.counters["status-repeats"] = self._bus.repeated
-        status = self.cadence.due(rt.status(window, self.events.depth()), time.time(), urgent=urgent)
+        status = self.cadence.due(rt.status(window, self.events.depth(), self.events.bulk_wait_s()), time.time(), urgent=urgent)
         if status is None:
             return False
         if save_resume:

@@ -75,7 +75,7 @@ class Host(Protocol):
 
     def next_deadline(self) -> float | None: ...
 
-    def status(self, window_s: float, queue_depth: int = 0) -> NodeStatus: ...
+    def status(self, window_s: float, queue_depth: int = 0, queue_wait_s: float = 0.0) -> NodeStatus: ...
 
     def count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None: ...
 
@@ -370,7 +370,7 @@ class BaseStation:
         self.runtime.errors.update(self.events.counts())  # dropped before the loop saw them
         if self.runtime.started:
             status = self.runtime.status(self.config.status_window_s * self.runtime.clock.speed,
-                                         self.events.depth())
+                                         self.events.depth(), self.events.bulk_wait_s())
             snap["basestation"] = dataclasses.asdict(status)
         else:
             snap["basestation"] = None
@@ -420,7 +420,7 @@ class BaseStation:
                     rt.counters["status-repeats"] = self._bus.repeated
                 if rt.started:  # held back at rest: nothing new in it but what drifts with time
                     status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
-                                                        self.events.depth()), now)
+                                                        self.events.depth(), self.events.bulk_wait_s()), now)
                 if status is not None:
                     key, payload = self.keys.status(self.node), encode(status)
                     # what this status acknowledges is kept first: the sink's notes here, the recording

@@ -357,6 +357,10 @@ class NodeStatus:
     # a restarted process: (virtual time its predecessor's metering stops, watts the meter charges
     # for the time the robot was without it: idle CPU, radios asleep), so the model follows it too
     down: tuple[float, float] | None = None
+    # wall seconds the oldest chain data waiting in this node's event queue had waited when the status
+    # was made: whatever reached it longer ago than that has been taken in, so `consumed` speaks for the
+    # frames sent before (t_unix - queue_wait_s) only (its producers' custody waits that much longer)
+    queue_wait_s: float = 0.0
 
 
 # ---------------------------------------------------------------------------------------------

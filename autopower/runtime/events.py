@@ -82,6 +82,7 @@ class EventQueue:
         self._cond = threading.Condition(threading.RLock())
         self._urgent: deque[Event] = deque()
         self._bulk: deque[Event] = deque()
+        self._bulk_since: deque[float] = deque()  # when each bulk event was queued (monotonic), in step
         self._bytes = {False: 0, True: 0}  # payload bytes queued, by bulk
         self._limits = {False: urgent_limit, True: bulk_limit}
         self.bulk_keys = set(bulk_keys)
@@ -104,6 +105,8 @@ class EventQueue:
                 self._drop(event, bulk)
                 return
             queue.append(event)
+            if bulk:
+                self._bulk_since.append(time.monotonic())
             self._bytes[bulk] += size
             self._cond.notify()
 
@@ -122,6 +125,8 @@ class EventQueue:
 
     def _take(self, queue: deque, bulk: bool) -> Event:
         event = queue.popleft()
+        if bulk:
+            self._bulk_since.popleft()
         if isinstance(event, Received):
             self._bytes[bulk] -= len(event.payload)
         return event
@@ -178,6 +183,16 @@ class EventQueue:
 
     def bulk_depth(self) -> int:
         return len(self._bulk)
+
+    def bulk_wait_s(self) -> float:
+        """How long the oldest bulk event has waited (0 if none does).
+
+        The queue is a FIFO: whatever arrived before that long ago has been taken by the loop. A
+        node's status says so, so that its producers do not take frames still waiting here for lost
+        (`agent.custody`).
+        """
+        with self._cond:
+            return time.monotonic() - self._bulk_since[0] if self._bulk_since else 0.0
 
     # Bus callbacks: enqueue and return, nothing else.
     def on_message(self, key: str, payload: bytes) -> None:

@@ -61,6 +61,12 @@ def test_a_base_station_held_up_by_a_slow_stage_stays_in_the_team(plugin_path, t
         logs = {name: child.log_path.read_text() for name, child in team.children.items()}
     # the loop was held up (else this tested nothing), and its status went out all the same
     assert later["basestation"]["counters"].get("status-repeats", 0) >= 1, later["basestation"]["counters"]
+    # the frames that waited in its queue meanwhile were not taken for lost: its statuses said how long
+    # its queue waited, so the robots resent none of them (before: each one waiting over 1 s, decoded
+    # by the base station only to be dropped as redundant); nothing was lost on the way, so none at all
+    resent = {r: (info["status"].get("counters") or {}).get("resent-frames", 0) for r, info in later["robots"].items()}
+    assert not any(resent.values()), resent
+    assert later["basestation"]["counters"].get("redundant-input", 0) == 0, later["basestation"]["counters"]
     # each status came before the robots' silence detectors stopped waiting for it (what the one
     # before it announced: 2 periods, at rest 2 rest periods, never less than the lease)
     assert len(arrivals) > 10

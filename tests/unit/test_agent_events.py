@@ -22,6 +22,23 @@ def test_urgent_events_overtake_bulk_data():
     assert q.get(0) is None
 
 
+def test_the_queue_says_how_long_its_oldest_chain_data_has_waited():
+    q = EventQueue(bulk_keys=["data"])
+    assert q.bulk_wait_s() == 0.0
+    q.on_message("control", b"c")  # urgent: taken first, not what a producer's frames wait behind
+    assert q.bulk_wait_s() == 0.0
+    q.on_message("data", b"0")
+    time.sleep(0.05)
+    before_1 = time.monotonic()
+    q.on_message("data", b"1")
+    assert 0.05 <= q.bulk_wait_s() < 5.0
+    assert q.get(0) == Received("control", b"c") and q.bulk_wait_s() >= 0.05
+    assert q.get(0) == Received("data", b"0")
+    assert q.bulk_wait_s() <= time.monotonic() - before_1  # now the younger one is the oldest
+    q.get(0)
+    assert q.bulk_wait_s() == 0.0
+
+
 def test_get_waits_and_wakes_on_post():
     q = EventQueue()
     threading.Timer(0.05, lambda: q.post(StopRequested("x"))).start()

@@ -64,6 +64,21 @@ def test_acknowledged_frames_leave_custody_and_lost_ones_are_resent_once_a_late_
     assert len(custody) == 0 and custody.bytes == 0 and custody.evicted == 0
 
 
+def test_a_report_speaks_only_for_what_had_left_its_consumers_queue():
+    # the consumer's loop had frames waiting 2.5 s when it reported: frames sent after 10.0 - 2.5
+    # may still be in its queue, so its report does not call them lost yet
+    custody = Custody(resend_after_s=1.0)
+    custody.keep(frame(0), now=5.0)
+    custody.keep(frame(1), now=7.0)
+    lagging = report(next_seq=0, max_seq=-1, t=10.0)
+    custody.on_report("Blob-2", 0, Report(node="laptop", t_unix=10.0, consumed=lagging.consumed, queue_wait_s=2.5))
+    assert [held.frame.seq for _, held in custody.due(now=10.0)] == [0]  # sent at 5.0: had 4 s to get in
+    custody.on_report("Blob-2", 0, Report(node="laptop", t_unix=10.5, consumed=lagging.consumed, queue_wait_s=2.6))
+    assert [held.frame.seq for _, held in custody.due(now=10.5)] == [0]  # 10.5 - 2.6 < 7.0 + 1.0: seq 1 waits
+    custody.on_report("Blob-2", 0, Report(node="laptop", t_unix=11.0, consumed=lagging.consumed, queue_wait_s=0.0))
+    assert [held.frame.seq for _, held in custody.due(now=11.0)] == [0, 1]  # its queue is empty: lost
+
+
 def test_a_frame_not_on_the_wire_is_not_resent_and_reports_of_old_generations_are_ignored():
     custody = Custody(resend_after_s=0.0)
     custody.keep(frame(0), now=0.0)
@@ -181,6 +196,74 @@ def test_a_lost_mcl_pose_is_resent_from_custody_not_recomputed():
     assert laptop.counters.get("resent-frames", 0) >= 1  # the laptop resent poses it had computed
     assert team.nodes["r2"].counters.get("resent-frames", 0) == 0  # no scan was lost: none resent
     assert laptop.hosted["Loc-2"].runs == team.nodes["r2"].sources["Loc-2"].seq  # each scan run once
+    check_exactly_once(team, outputs)
+
+
+def run_with_backlog(*, say_wait: bool, drop_every: int = 7):
+    """The laptop's loop falls 3 s behind for a while (its frames wait in its event queue, and one
+    in ``drop_every`` finds the queue full and is dropped), then catches up."""
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Blob-2": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    laptop, data_key = team.nodes["laptop"], team.keys.node_data("laptop")
+    backlog: list[tuple[float, str, bytes]] = []  # (queued at, key, payload): the laptop's bulk queue
+    arrived, dropped, send = [0], [0], team._send
+
+    def slow_laptop(sender, dest, key, payload, bus):
+        if dest == "laptop" and key == data_key and 10.0 <= team.clock.t < 20.0:
+            arrived[0] += 1
+            if arrived[0] % drop_every:
+                backlog.append((team.clock.wall(), key, payload))
+            else:
+                dropped[0] += 1  # "queue-full": lost on arrival
+            return
+        send(sender, dest, key, payload, bus)
+
+    team._send = slow_laptop
+    next_status = [0.5]
+
+    def tick(t: float) -> None:
+        now = team.clock.wall()
+        while backlog and (now - backlog[0][0] >= 3.0 or t >= 20.0):  # the loop takes what waited 3 s
+            _, key, payload = backlog.pop(0)
+            laptop.on_message(key, payload)
+        team.pump()
+        if t >= next_status[0]:
+            wait = now - backlog[0][0] if backlog else 0.0
+            statuses = {name: rt.status(10.0, queue_wait_s=wait if say_wait and name == "laptop" else 0.0)
+                        for name, rt in team.nodes.items() if rt.started}
+            for name, rt in team.nodes.items():  # as the wire carries them
+                for other, status in statuses.items():
+                    if other != name:
+                        rt.on_peer_status(decode(encode(status), NodeStatus))
+            team.pump()
+            next_status[0] = t + 0.5
+
+    team.run_until(30.0, on_tick=tick)
+    for _ in range(6):  # the last reports after the last frames
+        team.clock.advance(0.5)
+        team.exchange_statuses()
+    return team, outputs, dropped[0]
+
+
+def test_a_consumer_behind_on_its_queue_is_resent_only_what_its_queue_dropped():
+    team, outputs, dropped = run_with_backlog(say_wait=True)
+    assert dropped >= 10
+    # each frame the queue dropped was resent (a resend the queue dropped again, again), and none
+    # of those that only waited in it
+    assert sum(rt.custody.resent for rt in team.nodes.values()) == dropped
+    assert team.nodes["laptop"].counters.get("redundant-input", 0) == 0
+    check_exactly_once(team, outputs)
+
+
+def test_a_consumer_that_does_not_say_how_far_behind_it_is_gets_its_queue_again():
+    # the same backlog with the wait left out of the laptop's status (how it was): the camera frames
+    # waiting in its queue are resent, decoded there and dropped as redundant, and still exactly once
+    team, outputs, dropped = run_with_backlog(say_wait=False)
+    resent = sum(rt.custody.resent for rt in team.nodes.values())
+    assert resent > 2 * dropped
+    assert team.nodes["laptop"].counters.get("redundant-input", 0) > dropped
     check_exactly_once(team, outputs)
 
 
