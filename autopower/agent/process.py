@@ -473,7 +473,8 @@ class Agent:
         """
         rt = self.runtime
         deadline = None if max_wall_s is None else time.time() + max_wall_s
-        next_status = time.time()
+        next_status, period = time.time(), self.config.status_period_s
+        news = False  # an event handled since the last status was built (not our own status back)
         while True:
             now = time.time()
             quiet = self._quiet()
@@ -501,12 +502,17 @@ class Agent:
                     break
             now = time.time()
             resting = quiet and self.cadence.resting
-            if (now >= self.cadence.next_build(next_status, quiet=quiet)
-                    or (resting and event is not None and not self._own_status(event))):
+            news = news or (event is not None and not self._own_status(event))
+            due = now >= self.cadence.next_build(next_status, quiet=quiet) or (resting and news)
+            # at rest, statuses come in clusters: all of them first, then one status (an event still
+            # queued counts in it as something new: two statuses for nothing); a stream of events does
+            # not hold back the heartbeat for more than a period
+            if due and not (resting and self.events.depth()
+                            and now < self.cadence.next_build(next_status, quiet=True) + period):
+                news = False
                 self.publish_status(urgent=False, save_resume=True)
                 # on the tick grid; one built at rest (its rest period over, or for an event) starts a new grid
-                next_status = now + self.config.status_period_s if resting \
-                    else max(next_status + self.config.status_period_s, now)
+                next_status = now + period if resting else max(next_status + period, now)
                 if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                     self.stop_reason = "parent exited"
                     break

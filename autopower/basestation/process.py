@@ -391,8 +391,9 @@ class BaseStation:
         """
         rt, co = self.runtime, self.coordinator
         deadline = None if max_wall_s is None else time.time() + max_wall_s
-        next_status = time.time()
+        next_status, period = time.time(), self.config.status_period_s
         own_status = self.keys.status(self.node)  # Zenoh gives our own puts to our subscribers too
+        news = False  # an event handled since the last status was built (not our own status back)
         while True:
             now = time.time()
             quiet = self._quiet()
@@ -407,7 +408,6 @@ class BaseStation:
             # (at most a batch's worth of wall time): at x50 the base station takes ~1,000 messages
             # a second, and the timers' work after each one cost more than most of them did
             batch_end = time.monotonic() + BATCH_S
-            news = False  # an event the next status could say something about (not our own status back)
             while event is not None and not isinstance(event, StopRequested):
                 news = news or not (isinstance(event, Received) and event.key == own_status)
                 try:
@@ -429,10 +429,13 @@ class BaseStation:
                 rt.on_timer()
             now = time.time()
             resting = quiet and self.cadence.resting
-            if now >= self.cadence.next_build(next_status, quiet=quiet) or (resting and news):
+            due = now >= self.cadence.next_build(next_status, quiet=quiet) or (resting and news)
+            # at rest: the events that came meanwhile first, then one status (see the agent's loop)
+            if due and not (resting and self.events.depth()
+                            and now < self.cadence.next_build(next_status, quiet=True) + period):
+                news = False
                 # on the tick grid; one built at rest (its rest period over, or for an event) starts a new grid
-                next_status = now + self.config.status_period_s if resting \
-                    else max(next_status + self.config.status_period_s, now)
+                next_status = now + period if resting else max(next_status + period, now)
                 status = None
                 rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
                 if self._bus.repeated:  # statuses put again while the loop was held up
