@@ -451,7 +451,8 @@ class Agent:
         peer's silence deadline, a source tick, the subgroup's settle or round deadline, the time limit."""
         rt = self.runtime
         wake = [self.cadence.next_build(next_status, quiet=quiet)]
-        if (silent_at := next_silence_s(self._heard_direct, self._silence_limits())) is not None:
+        # (a loop that is not quiet wakes every status period and looks then, as it always did)
+        if quiet and (silent_at := next_silence_s(self._heard_direct, self._silence_limits())) is not None:
             wake.append(silent_at + SILENCE_SLACK_S)  # found when its limit passes (the check is strict)
         if deadline is not None:
             wake.append(deadline)
@@ -502,7 +503,7 @@ class Agent:
                     break
             now = time.time()
             resting = quiet and self.cadence.resting
-            news = news or (event is not None and not self._own_status(event))
+            news = news or (quiet and event is not None and not self._own_status(event))
             due = now >= self.cadence.next_build(next_status, quiet=quiet) or (resting and news)
             # at rest, statuses come in clusters: all of them first, then one status (an event still
             # queued counts in it as something new: two statuses for nothing); a stream of events does

@@ -409,7 +409,7 @@ class BaseStation:
             # a second, and the timers' work after each one cost more than most of them did
             batch_end = time.monotonic() + BATCH_S
             while event is not None and not isinstance(event, StopRequested):
-                news = news or not (isinstance(event, Received) and event.key == own_status)
+                news = news or (quiet and not (isinstance(event, Received) and event.key == own_status))
                 try:
                     self._handle(event)
                 except Exception:  # never let one bad event stop the coordinator
