@@ -421,6 +421,15 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         """Virtual time of the next source tick (None: nothing scheduled)."""
         return min((r.next_t for r in self.sources.values()), default=None)
 
+    def idle(self) -> bool:
+        """Nothing here is timed: no source, no stage hosted, no frame in custody, held or parked.
+
+        The loop of an idle node may sleep until an event or its next status (`StatusCadence.next_build`)
+        instead of calling `on_timer` every status period.
+        """
+        return not (self.sources or self.hosted or self.custody or self.orphans or self.held_outputs
+                    or self.parked_transfers)
+
     def on_timer(self) -> None:
         self.settle_relayed()
         if self._zygote is not None:  # stages in worker processes: results in, hung runs killed

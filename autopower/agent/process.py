@@ -25,13 +25,17 @@ from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMov
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
-from autopower.runtime.cadence import REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence, silence_limit_s
+from autopower.runtime.cadence import (REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence, next_silence_s,
+                                       silence_limit_s)
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
 from autopower.runtime.subgroup import SubgroupAgreement
 
 log = logging.getLogger(__name__)
+
+# A peer's silence is judged strictly after its limit: the loop wakes this much later for it.
+SILENCE_SLACK_S = 0.001
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -83,6 +87,7 @@ class Agent:
         self._silent: set[str] = set()  # nodes with a token but no direct status for too long
         self._announced: dict[str, float] = {}  # node -> when its next status is due at the latest (it said)
         self.cadence = StatusCadence(config.status_period_s, config.status_rest_period_s)
+        self._asleep_at_rest = False  # the loop sleeps past the status period (`run`)
         self.subgroup_log: list[dict] = []
         self.stop_reason: str | None = None
 
@@ -140,6 +145,9 @@ class Agent:
             done = False
         if not done:
             self.events.on_message(key, payload)
+        elif self._asleep_at_rest:  # the loop charges what was forwarded; asleep for its rest period, it
+            self._asleep_at_rest = False  # would only at its next status: wake it once
+            self.events.post(WorkDone())
 
     def request_stop(self, reason: str) -> None:
         """Thread- and signal-safe."""
@@ -191,18 +199,22 @@ class Agent:
         # taking them declared every peer silent (the testbed physics test's flake)
         if self.events.urgent_waiting():
             return
-        cfg = self.config
-        for node in sorted(self._tokens - self._silent):
+        for node, limit in sorted(self._silence_limits().items()):
             heard = self._heard_direct.get(node)
-            # a node at rest sends its status less often and says so: silent is silent for its cadence
-            limit = silence_limit_s(cfg.silence_periods, cfg.status_period_s, self._announced.get(node, 0.0),
-                                    cfg.zenoh.lease_ms / 1000.0)
             if heard is not None and now - heard > limit:
                 log.info("agent %s: %s out of sight (no status for %.1f s; its token is still here)",
                          self.config.robot, self._who(node), now - heard)
                 self._silent.add(node)
                 self.runtime.tally("silent-peers")
                 self._sight(node, False)
+
+    def _silence_limits(self) -> dict[str, float]:
+        """Node in sight by its token (not already silent) -> how long its statuses may stay away."""
+        cfg = self.config
+        # a node at rest sends its status less often and says so: silent is silent for its cadence
+        return {node: silence_limit_s(cfg.silence_periods, cfg.status_period_s, self._announced.get(node, 0.0),
+                                      cfg.zenoh.lease_ms / 1000.0)
+                for node in self._tokens - self._silent}
 
     def _heard(self, node: str) -> None:
         """A status from ``node`` arrived directly (not relayed)."""
@@ -424,25 +436,52 @@ class Agent:
         self.relayer.send_beyond_sight(sorted(dests), key, payload, reliable=False)
         return True
 
+    def _quiet(self) -> bool:
+        """Nothing here is timed but the status (`StatusCadence.next_build`): no source, stage or frame
+        in custody (`NodeRuntime.idle`), no subgroup round or settle under way."""
+        return self.runtime.idle() and self._base_lost_at is None and self.agreement.round is None
+
+    def _own_status(self, event) -> bool:
+        """Our own status, back from the bus (Zenoh delivers a put to the session's own subscribers too):
+        nothing happened that the next status could say."""
+        return isinstance(event, Received) and event.key == self.keys.status(self.config.robot)
+
+    def _next_wake(self, now: float, next_status: float, deadline: float | None, quiet: bool) -> float:
+        """When the loop must wake if no event comes first (wall time): the next status to build, a
+        peer's silence deadline, a source tick, the subgroup's settle or round deadline, the time limit."""
+        rt = self.runtime
+        wake = [self.cadence.next_build(next_status, quiet=quiet)]
+        # (a loop that is not quiet wakes every status period and looks then, as it always did)
+        if quiet and (silent_at := next_silence_s(self._heard_direct, self._silence_limits())) is not None:
+            wake.append(silent_at + SILENCE_SLACK_S)  # found when its limit passes (the check is strict)
+        if deadline is not None:
+            wake.append(deadline)
+        if rt.started and (t := rt.next_deadline()) is not None:
+            wake.append(rt.clock.wall_at(t))
+        if self._base_lost_at is not None:  # the subgroup forms when the settle ends, not at the next event
+            settled = max(self._base_lost_at + self.config.subgroup_settle_s, self._subgroup_retry_at)
+            if settled > now:  # once past, waking for it again would spin the loop (a core at 100 %)
+                wake.append(settled)
+        if rt.started and self.agreement.round is not None:  # a subgroup round times out on its own deadline
+            wake.append(self.agreement.round.deadline)
+        return min(wake)
+
     def run(self, max_wall_s: float | None = None) -> str:
-        """Run until stopped, depleted or ``max_wall_s``; return why it stopped."""
+        """Run until stopped, depleted or ``max_wall_s``; return why it stopped.
+
+        At rest (`_quiet`) the loop wakes only for an event or a deadline (`_next_wake`), not every
+        status period: an event then gets the status built at once (sent if it says something new).
+        """
         rt = self.runtime
         deadline = None if max_wall_s is None else time.time() + max_wall_s
-        next_status = time.time()
+        next_status, period = time.time(), self.config.status_period_s
+        news = False  # an event handled since the last status was built (not our own status back)
         while True:
             now = time.time()
-            wake = [next_status]
-            if deadline is not None:
-                wake.append(deadline)
-            if rt.started and (t := rt.next_deadline()) is not None:
-                wake.append(rt.clock.wall_at(t))
-            if self._base_lost_at is not None:  # the subgroup forms when the settle ends, not at the next event
-                settled = max(self._base_lost_at + self.config.subgroup_settle_s, self._subgroup_retry_at)
-                if settled > now:  # once past, waking for it again would spin the loop (a core at 100 %)
-                    wake.append(settled)
-            if rt.started and self.agreement.round is not None:  # a subgroup round times out on its own deadline
-                wake.append(self.agreement.round.deadline)
-            event = self.events.get(max(0.0, min(wake) - now))
+            quiet = self._quiet()
+            self._asleep_at_rest = quiet and self.cadence.resting
+            event = self.events.get(max(0.0, self._next_wake(now, next_status, deadline, quiet) - now))
+            self._asleep_at_rest = False
             if isinstance(event, StopRequested):
                 self.stop_reason = event.reason
                 break
@@ -463,9 +502,18 @@ class Agent:
                     self.stop_reason = "depleted"
                     break
             now = time.time()
-            if now >= next_status:
+            resting = quiet and self.cadence.resting
+            news = news or (quiet and event is not None and not self._own_status(event))
+            due = now >= self.cadence.next_build(next_status, quiet=quiet) or (resting and news)
+            # at rest, statuses come in clusters: all of them first, then one status (an event still
+            # queued counts in it as something new: two statuses for nothing); a stream of events does
+            # not hold back the heartbeat for more than a period
+            if due and not (resting and self.events.depth()
+                            and now < self.cadence.next_build(next_status, quiet=True) + period):
+                news = False
                 self.publish_status(urgent=False, save_resume=True)
-                next_status = max(next_status + self.config.status_period_s, now)
+                # on the tick grid; one built at rest (its rest period over, or for an event) starts a new grid
+                next_status = now + period if resting else max(next_status + period, now)
                 if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                     self.stop_reason = "parent exited"
                     break

@@ -477,7 +477,19 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         # nothing else is timed before the first robot appears: the next event wakes us
         if self.clock is not None and self.revisit_at_s is not None:
             deadlines.append(self.clock.wall_at(self.revisit_at_s))
+        # the periodic decision and a rejoined robot's report time are due by the clock too (a loop
+        # at rest no longer wakes every status period to look)
+        if self.mission is not None and self.config.auto_replan and self.next_periodic_replan is not None:
+            deadlines.append(self.clock.wall_at(self.next_periodic_replan))
+        deadlines += self._awaiting_actual.values()
         return min(deadlines, default=math.inf)
+
+    def idle(self) -> bool:
+        """The mission runs and nothing is under way that only time moves on: no migration, no
+        rejoined robot whose report is awaited, no link down (its heal is timed), no fault
+        waiting to be reconfigured. The loop may then sleep until an event or `next_deadline_unix`."""
+        return (self.mission is not None and not self.migrations and not self._awaiting_actual
+                and not self.links.down and all(f["reconfigured_unix"] is not None for f in self.faults))
 
 
     # ---- operator ---------------------------------------------------------------------------------------------

@@ -75,6 +75,8 @@ class Host(Protocol):
 
     def next_deadline(self) -> float | None: ...
 
+    def idle(self) -> bool: ...
+
     def status(self, window_s: float, queue_depth: int = 0, queue_wait_s: float = 0.0) -> NodeStatus: ...
 
     def count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None: ...
@@ -376,13 +378,26 @@ class BaseStation:
             snap["basestation"] = None
         return snap
 
+    def _quiet(self) -> bool:
+        """Nothing here is timed but the status and the coordinator's deadlines: the host is idle, the
+        coordinator too (`Coordinator.idle`), no robot out of sight awaits the others' word."""
+        return self.runtime.idle() and self.coordinator.idle() and not self._suspects
+
     def run(self, max_wall_s: float | None = None) -> str:
+        """Run until stopped or ``max_wall_s``; return why it stopped.
+
+        At rest (`_quiet`, its status held back) the loop wakes only for an event or a deadline, not
+        every status period: an event then gets the status built at once (sent if it says something new).
+        """
         rt, co = self.runtime, self.coordinator
         deadline = None if max_wall_s is None else time.time() + max_wall_s
-        next_status = time.time()
+        next_status, period = time.time(), self.config.status_period_s
+        own_status = self.keys.status(self.node)  # Zenoh gives our own puts to our subscribers too
+        news = False  # an event handled since the last status was built (not our own status back)
         while True:
             now = time.time()
-            wake = [next_status, co.next_deadline_unix()]
+            quiet = self._quiet()
+            wake = [self.cadence.next_build(next_status, quiet=quiet), co.next_deadline_unix()]
             wake += [t + self.config.suspect_settle_s for t in self._suspects.values()]
             if deadline is not None:
                 wake.append(deadline)
@@ -394,6 +409,7 @@ class BaseStation:
             # a second, and the timers' work after each one cost more than most of them did
             batch_end = time.monotonic() + BATCH_S
             while event is not None and not isinstance(event, StopRequested):
+                news = news or (quiet and not (isinstance(event, Received) and event.key == own_status))
                 try:
                     self._handle(event)
                 except Exception:  # never let one bad event stop the coordinator
@@ -412,8 +428,14 @@ class BaseStation:
             if rt.started:
                 rt.on_timer()
             now = time.time()
-            if now >= next_status:
-                next_status = max(next_status + self.config.status_period_s, now)
+            resting = quiet and self.cadence.resting
+            due = now >= self.cadence.next_build(next_status, quiet=quiet) or (resting and news)
+            # at rest: the events that came meanwhile first, then one status (see the agent's loop)
+            if due and not (resting and self.events.depth()
+                            and now < self.cadence.next_build(next_status, quiet=True) + period):
+                news = False
+                # on the tick grid; one built at rest (its rest period over, or for an event) starts a new grid
+                next_status = now + period if resting else max(next_status + period, now)
                 status = None
                 rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
                 if self._bus.repeated:  # statuses put again while the loop was held up

@@ -149,7 +149,13 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         if as_json or not sys.stdout.isatty():  # a pipe or a log: no live table, a plain line now and then
             last_line = time.monotonic()
             while not done():
-                time.sleep(0.25)
+                # asleep until the next thing due (a snapshot, a line, the end) or a supervisor event
+                # (printed as it happens), not woken every 0.25 s to look
+                due = [last_poll + (SNAPSHOT_EVERY_S if snap.get("running") else SNAPSHOT_AT_REST_S)]
+                due += [] if as_json else [last_line + STATUS_LINE_EVERY_S]
+                due += [run_started + duration] if duration is not None else []
+                due += [last_record_check + RECORDING_CHECK_EVERY_S] if record_dir else []
+                team.wait_for_news(min(due) - time.monotonic())
                 for event in team.check_children():  # a crash restarts that process; the rest run on
                     click.echo(f"supervisor: {event.line()}", err=True)
                 now = time.monotonic()

@@ -190,8 +190,22 @@ class FaultServer:
             os.umask(previous)
         os.chmod(self.path, 0o600)
         self._server.daemon_threads = True
-        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.1},
-                                        name="fault-server", daemon=True)
+        # it sleeps in `select` until a request or `close` (a pipe) wakes it: socketserver's
+        # serve_forever looks for its shutdown flag every poll_interval (10 wake-ups a second at 0.1)
+        self._wake_r, self._wake_w = os.pipe()
+        self._stopping = False
+        self._thread = threading.Thread(target=self._serve, name="fault-server", daemon=True)
+
+    def _serve(self) -> None:
+        import selectors
+
+        with selectors.DefaultSelector() as selector:
+            selector.register(self._server, selectors.EVENT_READ)
+            selector.register(self._wake_r, selectors.EVENT_READ)
+            while not self._stopping:
+                ready = selector.select()
+                if not self._stopping and any(key.fileobj is self._server for key, _ in ready):
+                    self._server.handle_request()  # one connection, ready: accept does not wait
 
     def __enter__(self) -> "FaultServer":
         self._thread.start()
@@ -201,7 +215,14 @@ class FaultServer:
         self.close()
 
     def close(self) -> None:
-        self._server.shutdown()
+        if self._stopping:
+            return
+        self._stopping = True
+        os.write(self._wake_w, b"x")
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+        os.close(self._wake_r)
+        os.close(self._wake_w)
         self._server.server_close()
         try:
             self.path.unlink()

@@ -188,6 +188,7 @@ class LocalTeam:
         self._lock = threading.RLock()  # the supervisor thread and the callers of check_children
         self._pending_events: list[SupervisorEvent] = []
         self._supervisor_thread: threading.Thread | None = None
+        self._news = threading.Event()  # set when the supervisor thread has events for `check_children`
         self.mission: dict | None = None  # the base station's mission clock, for recording events
         self.client: OperatorClient | None = None
         self.exit_codes: dict[str, int | None] = {}
@@ -302,6 +303,17 @@ class LocalTeam:
             return {c.name for c in self.children.values()
                     if c.proc.poll() == 0 and c.name not in self.expected_exits and not self._stopping}
 
+    def wait_for_news(self, timeout_s: float) -> None:
+        """Sleep until the supervisor has events for `check_children` (a crash, a restart) or ``timeout_s``.
+
+        Without a supervisor thread (no restart policy) nobody else looks: at most `SUPERVISE_IDLE_S`.
+        """
+        if self._supervisor_thread is None:
+            time.sleep(max(0.0, min(timeout_s, SUPERVISE_IDLE_S)))
+            return
+        if self._news.wait(max(0.0, timeout_s)):
+            self._news.clear()
+
     def _supervise(self) -> None:
         pidfds: dict[int, int] = {}  # pid -> its pidfd: readable once that child has exited
         try:
@@ -310,6 +322,7 @@ class LocalTeam:
                 if events:
                     with self._lock:
                         self._pending_events.extend(events)
+                    self._news.set()
                 self._wait_for_children(pidfds)
         finally:
             for fd in pidfds.values():

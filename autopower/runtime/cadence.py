@@ -10,11 +10,17 @@ Every status announces when the next one is due (``NodeStatus.next_status_s``): 
 status-silence detector waits that long, not its own period, so it neither fires at a resting
 node nor waits longer than today for an active one. The status that first finds the node at
 rest announces the rest period, so no receiver ever expects the short one when it is not coming.
+
+A node's loop need not even wake to build a status that would be held back: while it rests and
+nothing it does is timed (no source, no stage, nothing in custody: the loop knows), it sleeps until
+the rest period ends, its peers' silence deadlines (`next_silence_s`) or an event, and builds the
+status when an event comes instead of at the next tick (`StatusCadence.next_build`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 
 from autopower.protocol import NodeStatus
 
@@ -38,6 +44,20 @@ class StatusCadence:
         self._last: NodeStatus | None = None  # the last status sent, drifting fields blanked
         self._last_wall: float | None = None
         self._last_announced = period_s
+
+    @property
+    def resting(self) -> bool:
+        """The last status went out announcing the rest period (nothing new in it)."""
+        return self._last_wall is not None and self._last_announced == self.rest_period_s
+
+    def next_build(self, tick: float, *, quiet: bool) -> float:
+        """When the loop must next build a status (wall time): at its next ``tick`` (every period),
+        or, while the node rests and nothing it does is timed (``quiet``), only once the rest period
+        since the last status has passed (a status built before would be held back). Whatever
+        happens meanwhile comes as an event, and the loop builds one then (`due` decides)."""
+        if quiet and self.resting:
+            return max(tick, self._last_wall + self.rest_period_s)
+        return tick
 
     def due(self, status: NodeStatus, now: float, *, urgent: bool = False) -> NodeStatus | None:
         """``status`` with the announcement to publish now, or None (held back: nothing new).
@@ -63,3 +83,13 @@ def silence_limit_s(periods: float, own_period_s: float, announced_s: float, lea
     ``periods`` of its announced period (ours if it announced none), never sooner than the lease.
     """
     return max(periods * max(own_period_s, announced_s), lease_s)
+
+
+def next_silence_s(heard: Mapping[str, float], limits: Mapping[str, float]) -> float | None:
+    """When the first of the watched nodes (``limits``: node -> its silence limit) counts as silent,
+    from when each was last ``heard`` (wall times); None if none of them was heard yet.
+
+    A loop that wakes only for its deadlines wakes for this one: a silent peer is found when its
+    limit passes, not at whatever tick comes next.
+    """
+    return min((heard[n] + limit for n, limit in limits.items() if n in heard), default=None)

@@ -13,6 +13,7 @@ import socket
 import stat
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -98,6 +99,25 @@ def test_state_is_private_whatever_the_umask(state):
         write_session({"team": "alpha", "pid": os.getpid(), "control": str(server.path)})
         assert request_fault({"op": "list"}, team="alpha") == {"ok": True, "echo": {"op": "list"}}
     assert not server.path.exists()
+
+
+def test_the_control_socket_sleeps_until_a_request_and_closes_at_once(state):
+    """No wake-up every 0.1 s to look for a shutdown flag (socketserver's serve_forever): `up` at rest."""
+    write_session({"team": "alpha", "pid": os.getpid()})
+    server = FaultServer(_Echo(), team_dir("alpha") / SOCKET_NAME).__enter__()
+    try:
+        write_session({"team": "alpha", "pid": os.getpid(), "control": str(server.path)})
+        assert request_fault({"op": "list"}, team="alpha")["ok"]
+        task = f"/proc/self/task/{server._thread.native_id}/status"
+        switches = lambda: int(open(task).read().split("voluntary_ctxt_switches:")[1].split()[0])  # noqa: E731
+        before = switches()
+        time.sleep(1.0)
+        assert switches() - before <= 1  # asleep the whole second (was ~10 wake-ups)
+        assert request_fault({"op": "list"}, team="alpha") == {"ok": True, "echo": {"op": "list"}}
+    finally:
+        started = time.monotonic()
+        server.close()
+    assert time.monotonic() - started < 1.0 and not server._thread.is_alive() and not server.path.exists()
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as another user")
