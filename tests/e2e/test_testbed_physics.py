@@ -56,6 +56,8 @@ def blob_figures(pins, tmp_path) -> tuple[dict, list[str]]:
                       # frames per virtual second of the run: the two runs last different times, and a
                       # source whose chain was paused (its consumer out of reach) counts no period at all
                       "rate": produced / max(source_t, 1e-9),
+                      # outputs at the sink per virtual second: what crossed the radio
+                      "delivered": (sinks[chain]["received_total"] if chain in sinks else 0) / max(source_t, 1e-9),
                       "missed_ratio": missed / max(1, produced + missed),
                       # no output through at all (the laptop's one GSM radio receives for every
                       # robot): its latency is unbounded
@@ -79,7 +81,12 @@ def test_an_infeasible_allocation_falls_behind_while_the_optimum_keeps_up(tmp_pa
         assert good["placement"] != "laptop" and bad["placement"] == "laptop"
         assert good["latency_ms_p50"] < 500 and good["missed_ratio"] < 0.15, good
         assert bad["latency_ms_p50"] > 1000, bad  # frames wait behind the radio
-        # it misses periods and gets less than half the optimum's frames through per virtual second
-        # (a rate: the runs last different times, the wait above for a late status is longer
-        # behind a saturated radio)
-        assert bad["missed_ratio"] > 0.2 and bad["rate"] < good["rate"] / 2, (bad, good)
+        # it misses periods, and gets far fewer outputs through per virtual second (a rate: the runs
+        # last different times, the wait above for a late status is longer behind a saturated
+        # radio). The model: the laptop's GSM radio would have to be busy 1564 % of the time, so at
+        # most ~1/16 of the frames cross it; asserted with room: under a quarter of the optimum's.
+        # (Until 2026-11-24 this compared the frames *produced*, < half the optimum's: that
+        # measured how soon custody's buffers filled and paused the source, not the radio; with
+        # no frame resent only for waiting in a queue, the source paused less: 51 % of the
+        # optimum's in one CI run.)
+        assert bad["missed_ratio"] > 0.2 and bad["delivered"] < good["delivered"] / 4, (bad, good)
