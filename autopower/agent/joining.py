@@ -12,8 +12,9 @@ A step runs, in step order, as soon as every expected input (those whose produce
 there; an input that has not come `join_wait_s` wall seconds after the step's first input is
 declared *missing* and the step runs with what is present, the absent producers listed in the
 join message (`autopower.chains.teammap.encode_join`) and counted: "join-missing" (an error) when
-that edge had delivered before, "join-not-started" (a counter) when its producer had not produced
-anything yet (sources start a period or two apart when a team starts). An input that arrives
+that edge had delivered an input for an earlier step, "join-not-started" (a counter) when it had
+not (sources start a period or two apart when a team starts). A producer whose first output (seq
+0 of its run) came for a later step is not waited for at all: its input for this step never comes. An input that arrives
 after its step ran is *late*: consumed (acknowledged, never run twice), dropped and counted
 ("join-late"). A step none of whose inputs came is skipped (`join_stats`: empty_steps).
 The bound is above the custody resend time (about 1 s), so a lost frame that a resend recovers in
@@ -126,6 +127,9 @@ class JoinState:
         self.waiting: dict[int, dict[str, tuple[bytes, float]]] = {}  # step -> flow -> (data, t_unix)
         self.first_seen: dict[int, float] = {}  # step -> wall time its first input came
         self.next_step: int | None = None
+        # when each producer started: a step before that is "not started", not a loss
+        self.first_step: dict[str, int] = {}  # flow -> the earliest step it delivered an input for
+        self.began: dict[str, tuple[int, int]] = {}  # flow -> (run, step) of its latest run's seq 0
         self.joined = 0
         self.late = 0
         self.missing = 0  # inputs absent from a step whose edge had delivered before
@@ -137,6 +141,9 @@ class JoinState:
         verdict = self.gates[flow].admit(frame.run, frame.seq, frame.floor)
         if verdict != "new":
             return verdict
+        self.first_step[flow] = min(step, self.first_step.get(flow, step))
+        if frame.seq == 0 and frame.run >= self.began.get(flow, (-1, 0))[0]:
+            self.began[flow] = (frame.run, step)
         if self.next_step is not None and step < self.next_step:
             self.late += 1
             return "late"
@@ -162,11 +169,12 @@ class JoinState:
                 self.next_step = oldest
                 continue
             absent = sorted(expected - set(inputs))
-            if absent and now - self.first_seen[k] < wait_s:
+            awaited = [name for name in absent if not self.starts_after(name, k)]
+            if awaited and now - self.first_seen[k] < wait_s:
                 break
             del self.waiting[k]
             del self.first_seen[k]
-            lost = [name for name in absent if self.gates[name].run >= 0]
+            lost = [name for name in absent if self.delivered_before(name, k)]
             self.missing += len(lost)
             self.not_started += len(absent) - len(lost)
             producers = {self.flows[name].producer: data for name, (data, _) in inputs.items()}
@@ -177,6 +185,19 @@ class JoinState:
             self.joined += 1
             self.next_step = k + 1
         return out
+
+    def starts_after(self, flow: str, step: int) -> bool:
+        """The flow's producer certainly began after ``step``: the first output of its run (seq 0)
+        came, for a later step (an older run's frames are stale once a newer one came). Its input
+        for ``step`` will never come: the step need not wait for it."""
+        began = self.began.get(flow)
+        return began is not None and began[0] == self.gates[flow].run and began[1] > step
+
+    def delivered_before(self, flow: str, step: int) -> bool:
+        """The flow had delivered an input for a step before ``step``: its absence is a loss (or a
+        late input). Otherwise its producer had not started yet (start-up: sources begin a period
+        or two apart), whatever came for later steps since."""
+        return self.first_step.get(flow, step) < step
 
     def consumed(self, generation: int) -> dict[str, Consumed]:
         out = {}
@@ -192,6 +213,7 @@ class JoinState:
                 "waiting": [[k, n, d, t] for k, inputs in self.waiting.items() for n, (d, t) in inputs.items()],
                 "first_seen_age": {str(k): time.time() - t for k, t in self.first_seen.items()},
                 "next_step": self.next_step,
+                "first_step": self.first_step, "began": {n: list(b) for n, b in self.began.items()},
                 "counts": [self.joined, self.late, self.missing, self.empty_steps, self.not_started]}
 
     def restore(self, obj: dict) -> None:
@@ -209,6 +231,11 @@ class JoinState:
         for k, age in obj["first_seen_age"].items():
             self.first_seen[int(k)] = now - float(age)
         self.next_step = None if obj["next_step"] is None else int(obj["next_step"])
+        first_step, began = obj.get("first_step", {}), obj.get("began", {})  # absent from an older node's state
+        if not set(first_step) <= set(self.flows) or not set(began) <= set(self.flows):
+            raise ValueError(f"join state: start steps of unknown flows {sorted({*first_step, *began} - set(self.flows))}")
+        self.first_step = {name: int(step) for name, step in first_step.items()}
+        self.began = {name: (int(run), int(step)) for name, (run, step) in began.items()}
         self.joined, self.late, self.missing, self.empty_steps, self.not_started = (int(v) for v in obj["counts"])
 
 

@@ -105,7 +105,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     snap: dict = {}
     failure = None
     interrupted = False
-    ready_after = None
+    ready_after = at_ready = None
     all_depleted = False
     recording_failure = None
     console = None
@@ -126,7 +126,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
         if record_dir and not as_json:
             click.echo(f"recording into {record_dir}; if this run is cut short, "
                        f"`autopower recording merge {record_dir}` builds {Path(record_dir) / 'run.rrd'}")
-        snap = team.wait_ready(ready_timeout)
+        snap = at_ready = team.wait_ready(ready_timeout)
         ready_after = time.monotonic() - started
         run_started = last_poll = last_record_check = time.monotonic()
         nodes = [scenario.basestation] + [r.name for r in scenario.robots]
@@ -197,7 +197,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
             pass
     finally:
         codes = end_session(team, control, previous)
-    summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
+    summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0, at_ready=at_ready,
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
     summary["all_depleted"] = all_depleted

@@ -59,7 +59,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
 
     previous = signal.signal(signal.SIGTERM, on_term)
     team = TestbedTeam(spec, scenario, shaping=not no_shaping)
-    started, snap, ready_after, control, interrupted = time.monotonic(), {}, None, None, False
+    started, snap, ready_after, at_ready, control, interrupted = time.monotonic(), {}, None, None, None, False
     try:
         team.start()
         control = FaultServer(FaultController(team), team_dir(team.team) / SOCKET_NAME).__enter__()
@@ -70,7 +70,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
             click.echo(f"testbed {team.net.run_id}: {len(team.nodes)} namespaces, {len(team.net.links)} links "
                        f"({'shaped to rate x ' + format(speed, 'g') if not no_shaping else 'unshaped'}), "
                        f"mutual TLS + access control; team {team.team}, logs in {team.log_dir}")
-        snap = team.wait_ready(ready_timeout)
+        snap = at_ready = team.wait_ready(ready_timeout)
         ready_after = time.monotonic() - started
         run_started = time.monotonic()
         if as_json:
@@ -92,7 +92,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
         interrupted = True
     finally:
         codes = end_session(team, control, previous)
-    summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0,
+    summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0, at_ready=at_ready,
                           wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary.update(interrupted=interrupted, testbed=team.net.run_id, shaped=not no_shaping,
                    supervision=team.supervision(),  # crashed children restarted in their namespace

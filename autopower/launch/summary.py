@@ -62,21 +62,40 @@ def supervisor_line(supervision: dict) -> str:
     return line
 
 
+def placed_power_w(status: dict, at_ready: dict | None) -> float | None:
+    """A robot's metered mean power since the team was ready (every stage where the plan wants it,
+    the configuration the model predicts a power for), from two of its own statuses: battery and
+    virtual time each from the same status. None without a usable status at ready."""
+    before = (at_ready or {}).get("status") or {}
+    b0, t0 = before.get("battery_j"), before.get("t_virtual")
+    b1, t1 = status.get("battery_j"), status.get("t_virtual")
+    if None in (b0, t0, b1, t1) or t1 - t0 <= 0:
+        return None
+    return (b0 - b1) / (t1 - t0)
+
+
 def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wall_s: float,
-              exit_codes: dict | None = None, log_dir: str = "") -> dict:
-    """The JSON summary of a run: placement, batteries vs the model, sources, sinks, errors."""
+                exit_codes: dict | None = None, log_dir: str = "", at_ready: dict | None = None) -> dict:
+    """The JSON summary of a run: placement, batteries vs the model, sources, sinks, errors.
+
+    ``at_ready``: the snapshot taken when the team was first ready. ``power_error`` compares the
+    power metered since then with the model's for the plan (``placed_power_w``); the start-up before
+    it (no stage placed yet: seconds of virtual time, more on a loaded machine) is in
+    ``mean_power_w``, the whole run's mean, but not in the comparison."""
     robots = {}
     for name, info in snap.get("robots", {}).items():
         st = info.get("status") or {}
         initial, battery, t = st.get("initial_j"), st.get("battery_j"), st.get("t_virtual") or 0.0
         consumed = (initial - battery) if initial is not None and battery is not None else None
         measured = consumed / t if consumed is not None and t > 0 else None
+        placed = placed_power_w(st, ((at_ready or {}).get("robots") or {}).get(name))
+        compared = placed if at_ready is not None else measured
         predicted = info.get("predicted_w")
         robots[name] = {
             "present": info.get("present"), "departed": info.get("departed"),
             "initial_j": initial, "battery_j": battery, "consumed_j": consumed, "t_virtual": t,
-            "mean_power_w": measured, "predicted_w": predicted,
-            "power_error": (measured / predicted - 1) if measured and predicted else None,
+            "mean_power_w": measured, "placed_power_w": placed, "predicted_w": predicted,
+            "power_error": (compared / predicted - 1) if compared and predicted else None,
             "window_power_w": sum(st.get("power_w", {}).values()) if st else None,
             "cpu_utilisation": st.get("cpu_utilisation"), "hosted": st.get("hosted", {}),
             "sources": st.get("sources", {}), "sinks": st.get("sinks", {}),

@@ -223,3 +223,46 @@ def test_a_producer_that_has_not_started_is_not_a_loss():
     join.offer(b, _frame(2, 4.0, b"x"), 2, now=5.0)
     assert [(j.step, j.lost) for j in join.ready({a, b, c}, now=8.5, wait_s=3.0)] == [(1, []), (2, ["Loc-3"])]
     assert (join.missing, join.not_started) == (1, 1)  # now Loc-3 had delivered: its absence is a loss
+
+
+def test_a_producer_that_starts_later_is_not_waited_for_nor_a_loss():
+    """The CI failure of 2026-11-24: on a loaded machine Loc-3's source began two steps after the
+    others. The map held every step behind step 0 for the whole bound waiting for a Loc-3 input that
+    could never come, then ran it counting Loc-3 as lost (an error) because by then Loc-3 had
+    delivered later steps. Once a producer's first output (seq 0) is there for a later step, the
+    earlier steps run at once without it, counted as not started."""
+    flows = SC.chain("TeamMap").inputs
+    join = JoinState(flows)
+    a, b, c = (f.name for f in flows)
+    for step in (0, 1, 2):
+        join.offer(a, _frame(step, 2.0 * step, b"A"), step, now=0.1 * step)
+        join.offer(b, _frame(step, 2.0 * step, b"B"), step, now=0.1 * step)
+    assert join.ready({a, b, c}, now=0.3, wait_s=3.0) == []  # c might still deliver step 0
+    join.offer(c, _frame(0, 4.0, b"C"), 2, now=0.4)  # its first output is for step 2
+    ran = join.ready({a, b, c}, now=0.4, wait_s=3.0)  # long before the bound
+    assert [(j.step, j.missing, j.lost) for j in ran] == [(0, ["Loc-3"], []), (1, ["Loc-3"], []), (2, [], [])]
+    assert (join.missing, join.not_started) == (0, 2)
+    # the state migrates with it: a step later is still judged against when Loc-3 began
+    moved = JoinState(flows)
+    moved.restore(join.export())
+    moved.offer(a, _frame(3, 6.0, b"A"), 3, now=1.0)
+    moved.offer(b, _frame(3, 6.0, b"B"), 3, now=1.0)
+    assert moved.ready({a, b, c}, now=2.0, wait_s=3.0) == []  # Loc-3 began before step 3: wait for it
+    [late] = moved.ready({a, b, c}, now=4.5, wait_s=3.0)
+    assert (late.step, late.lost) == (3, ["Loc-3"]) and moved.missing == 1
+
+
+def test_a_first_output_that_is_not_seq_0_still_waits_but_is_not_a_loss():
+    """Loc-3's seq 0 was lost and its seq 1 (step 2) came first: step 0's Loc-3 input may be that
+    seq 0, resent, so the step waits the bound; if it does not come, Loc-3 had delivered nothing
+    for an earlier step: not started, not a loss."""
+    flows = SC.chain("TeamMap").inputs
+    join = JoinState(flows)
+    a, b, c = (f.name for f in flows)
+    join.offer(a, _frame(0, 0.0, b"A"), 0, now=0.0)
+    join.offer(b, _frame(0, 0.0, b"B"), 0, now=0.0)
+    join.offer(c, _frame(1, 4.0, b"C"), 2, now=0.2)
+    assert join.ready({a, b, c}, now=1.0, wait_s=3.0) == []
+    [first] = join.ready({a, b, c}, now=3.1, wait_s=3.0)
+    assert (first.step, first.missing, first.lost) == (0, ["Loc-3"], [])
+    assert (join.missing, join.not_started) == (0, 1)

@@ -1,0 +1,35 @@
+"""`run_summary`'s power comparison (README "Running a team"): the metered power since the team was
+ready against the model's for the plan, the start-up left out of the comparison but not hidden."""
+
+from __future__ import annotations
+
+import pytest
+
+from autopower.launch.summary import placed_power_w, run_summary
+
+
+def _snap(t: float, battery: float, predicted: float = 2.0) -> dict:
+    return {"robots": {"r1": {"present": True, "predicted_w": predicted,
+                              "status": {"initial_j": 1000.0, "battery_j": battery, "t_virtual": t}}}}
+
+
+def test_power_error_compares_the_placed_configuration_not_the_start_up():
+    # 5 s of start-up at 0.4 W (no stage placed yet), then 95 s at 2.0 W, the model's figure
+    at_ready = _snap(5.0, 1000.0 - 5 * 0.4)
+    end = _snap(100.0, 1000.0 - 5 * 0.4 - 95 * 2.0)
+    r1 = run_summary(end, team="t", speed=10, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)["robots"]["r1"]
+    assert r1["placed_power_w"] == pytest.approx(2.0)
+    assert r1["power_error"] == pytest.approx(0.0, abs=1e-12)
+    assert r1["mean_power_w"] == pytest.approx(1.92)  # the whole run's mean keeps the start-up
+    # a meter off by 3 % in the placed configuration is still seen
+    off = _snap(100.0, 1000.0 - 5 * 0.4 - 95 * 2.06)
+    assert run_summary(off, team="t", speed=10, ready_after_s=1.0, wall_s=10.0,
+                       at_ready=at_ready)["robots"]["r1"]["power_error"] == pytest.approx(0.03)
+    # without the snapshot at ready (the demo), the whole run's mean is compared
+    assert run_summary(end, team="t", speed=10, ready_after_s=-1.0,
+                       wall_s=10.0)["robots"]["r1"]["power_error"] == pytest.approx(1.92 / 2.0 - 1)
+
+
+@pytest.mark.parametrize("at_ready", [None, {}, {"status": {}}, {"status": {"battery_j": 990.0, "t_virtual": 100.0}}])
+def test_no_usable_status_at_ready_gives_no_placed_power(at_ready):
+    assert placed_power_w({"battery_j": 900.0, "t_virtual": 100.0}, at_ready) is None
