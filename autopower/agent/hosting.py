@@ -100,8 +100,11 @@ class Hosting:
 
     def _reply(self, msg) -> bytes:
         payload = encode(msg)
-        self.send_to(self.scenario.basestation, self.keys.inbox, payload)
+        self._to_basestation(payload)
         return payload
+
+    def _to_basestation(self, payload: bytes) -> None:
+        self.send_to(self.scenario.basestation, self.keys.inbox, payload)
 
     def _answer_again(self, hosted: HostedStage, order: str) -> None:
         """A repeated order this node has carried out already: its answer goes again, nothing is redone."""
@@ -109,7 +112,7 @@ class Hosting:
         log.info("%s: %s for %s again (generation %d): answered again", self.node, order, hosted.stage.name,
                  hosted.generation)
         if hosted.answer:
-            self.send_to(self.scenario.basestation, self.keys.inbox, hosted.answer)
+            self._to_basestation(hosted.answer)
 
     def _construct(self, msg, chain, stage):
         """A new instance of the stage's component, or None when its constructor raised (reported)."""

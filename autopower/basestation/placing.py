@@ -106,7 +106,10 @@ class Placing:
 
     def _order(self, m: Migration, node: str, msg) -> None:
         m.order, m.order_to, m.sent_unix = encode(msg), node, self.wall()
-        self.send_to(node, self.keys.node_control(node), m.order)
+        self._send_order(m)
+
+    def _send_order(self, m: Migration) -> None:
+        self.send_to(m.order_to, self.keys.node_control(m.order_to), m.order)
 
     def order_resend_unix(self, m: Migration) -> float:
         """When an unanswered order goes again: after ``migration_resend_s``, then twice as long
@@ -130,7 +133,7 @@ class Placing:
                 m.sent_unix = now
                 log.info("coordinator: %s: no answer to its %s order to %s; sent again (%d)", m.stage, m.phase,
                          m.order_to, m.resends)
-                self.send_to(m.order_to, self.keys.node_control(m.order_to), m.order)
+                self._send_order(m)
 
     def on_stage_ready(self, msg: StageReady) -> None:
         m = self.migrations.get(msg.stage)

@@ -86,24 +86,37 @@ def test_a_move_whose_message_is_lost_completes_with_its_state(lost):
     assert team.nodes["laptop"].hosted["Loc-2"].runs > 0
 
 
-@pytest.mark.parametrize("topology", ["fully-connected", "relay"])
-def test_hundreds_of_moves_with_half_their_messages_lost_once_lose_and_repeat_nothing(topology):
-    rng = random.Random(7)
-    sc = load_scenario("paper-fig7")
-    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, topology=topology, media=FC, auto_replan=False))
+def _started_team(topology: str) -> tuple[SimTeam, dict]:
+    team = SimTeam(load_scenario("paper-fig7"),
+                   config=CoordinatorConfig(speed=1.0, topology=topology, media=FC, auto_replan=False))
     outputs = collect(team)
     team.join()
-    lossy = LossyMigrations(team, lambda msg: rng.random() < 0.5)
-    stages, nodes = sc.stage_names(), sc.node_names()
-    co, moves, t = team.coordinator, 0, 1.0
-    while moves < 150:
+    return team, outputs
+
+
+def _random_moves(team: SimTeam, rng: random.Random, n: int, steps: list[float], between=lambda: None) -> float:
+    """``n`` operator moves of random stages to random nodes (a stage still moving is left alone),
+    ``rng.choice(steps)`` virtual seconds apart; returns the time of the last."""
+    stages, nodes, co = team.scenario.stage_names(), team.scenario.node_names(), team.coordinator
+    moves, t = 0, 1.0
+    while moves < n:
         team.run_until(t)
         stage, node = rng.choice(stages), rng.choice(nodes)
         if stage not in co.migrations:
             assert co.on_operator(MigrateCommand(stage=stage, to_node=node)).ok
             moves += 1
-        t += rng.choice([0.5, 1.0, 2.0, 4.0])
-    team.run_until(t + 30)
+        between()
+        t += rng.choice(steps)
+    return t
+
+
+@pytest.mark.parametrize("topology", ["fully-connected", "relay"])
+def test_hundreds_of_moves_with_half_their_messages_lost_once_lose_and_repeat_nothing(topology):
+    rng = random.Random(7)
+    team, outputs = _started_team(topology)
+    lossy = LossyMigrations(team, lambda msg: rng.random() < 0.5)
+    co = team.coordinator
+    team.run_until(_random_moves(team, rng, 150, [0.5, 1.0, 2.0, 4.0]) + 30)
     assert len(lossy.dropped) > 100 and {"MigrateOut", "StateTransfer", "Prepared"} <= set(lossy.dropped)
     assert co.aborted == 0, [e for e in co.events if "abandoned" in e]
     assert not co.migrations and co.migrations_done > 60 and co.order_resends >= len(lossy.dropped) // 2
@@ -167,23 +180,17 @@ class LateCopies(LossyMigrations):
 @pytest.mark.parametrize("topology", ["fully-connected", "relay"])
 def test_late_second_copies_of_every_order_answer_and_state_change_nothing(topology):
     rng = random.Random(11)
-    sc = load_scenario("paper-fig7")
-    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, topology=topology, media=FC, auto_replan=False))
-    outputs = collect(team)
-    team.join()
+    team, outputs = _started_team(topology)
     late = LateCopies(team)
-    stages, nodes = sc.stage_names(), sc.node_names()
-    co, moves, t, released = team.coordinator, 0, 1.0, 0
-    while moves < 200:
-        team.run_until(t)
-        stage, node = rng.choice(stages), rng.choice(nodes)
-        if stage not in co.migrations:
-            assert co.on_operator(MigrateCommand(stage=stage, to_node=node)).ok
-            moves += 1
+    co, released = team.coordinator, 0
+
+    def now_and_then() -> None:
+        nonlocal released
         if rng.random() < 0.3:  # the copies come back after a few more moves
             released += len(late.copies)
             late.release(rng)
-        t += rng.choice([0.1, 0.5, 1.0])
+
+    t = _random_moves(team, rng, 200, [0.1, 0.5, 1.0], between=now_and_then)
     released += len(late.copies)
     late.release(rng)
     team.run_until(t + 20)
