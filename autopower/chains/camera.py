@@ -46,6 +46,17 @@ _NOISE_LEVELS = 8  # per-channel uniform pixel noise in [-8, +8]
 # Sensor noise is cut per frame from a larger field drawn once per camera, at an offset drawn per
 # frame: drawing 230,400 fresh random numbers took 0.5 of the 0.85 ms a frame cost (x50: 400 frames a second).
 _NOISE_MARGIN_PX = 64
+_MASK64 = (1 << 64) - 1
+
+
+def _noise_offset(seed: int, frame: int) -> tuple[int, int]:
+    """Frame ``frame``'s (dy, dx) into the noise field: splitmix64 of (seed, frame), a few
+    microseconds in Python where seeding a numpy generator per frame took 0.14 of a frame's 0.88 ms."""
+    z = (seed * 0x9E3779B97F4A7C15 + frame * 0xD1B54A32D192ED03 + 0x9015E) & _MASK64
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK64
+    z ^= z >> 31
+    return (z & 0xFFFFFFFF) % (_NOISE_MARGIN_PX + 1), (z >> 32) % (_NOISE_MARGIN_PX + 1)
 
 
 @dataclass(frozen=True)
@@ -152,7 +163,7 @@ class SyntheticCamera:
             h, w = mask.shape
             image[y0:y0 + h, x0:x0 + w][mask] = VICTIM_COLOURS_RGB[victim.colour]
         # Sensor noise, different in every frame and reproducible from (seed, frame), computed in place
-        dy, dx = np.random.default_rng([self.seed, 0x9015E, frame]).integers(0, _NOISE_MARGIN_PX + 1, size=2)
+        dy, dx = _noise_offset(self.seed, frame)
         h, w, _ = image.shape
         noisy = self._noise[dy:dy + h, dx:dx + w] + image  # int16
         np.clip(noisy, 0, 255, out=out, casting="unsafe")

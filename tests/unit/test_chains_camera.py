@@ -78,3 +78,14 @@ def test_victim_count_is_validated(bad):
 def test_negative_frame_is_rejected():
     with pytest.raises(ValueError, match="seq"):
         CameraSource("r1", seed=0).produce(-1)
+
+
+def test_the_noise_offset_is_a_pure_function_of_seed_and_frame_and_covers_the_field():
+    from autopower.chains.camera import _NOISE_MARGIN_PX, _noise_offset
+
+    offsets = [_noise_offset(5, f) for f in range(100_000)]  # 4,225 windows: each drawn ~24 times
+    assert offsets[:1000] == [_noise_offset(5, f) for f in range(1000)]
+    assert all(0 <= dy <= _NOISE_MARGIN_PX and 0 <= dx <= _NOISE_MARGIN_PX for dy, dx in offsets)
+    assert len(set(offsets)) == (_NOISE_MARGIN_PX + 1) ** 2  # every window of the field is used
+    assert sum(a == b for a, b in zip(offsets, offsets[1:])) < 100  # ~24 expected by chance  # consecutive frames' noise differs
+    assert offsets[:50] != [_noise_offset(6, f) for f in range(50)]  # another camera, another noise

@@ -9,6 +9,8 @@ and that it is the consumers' reports that bring the frames back.
 from __future__ import annotations
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from autopower.agent.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
 from autopower.agent.sequencing import MAX_MISSING, SequenceGate, SinkLedger
@@ -430,3 +432,27 @@ def test_a_migrated_stage_still_knows_which_inputs_came_as_resends():
     r3.deliver_frame(dataclasses.replace(resend, attempt=0))  # the late original, at the new host
     assert r3.hosted["Blob-2"].gate.redundant == 1 and r3.hosted["Blob-2"].gate.duplicates == 0
     assert "duplicate-input" not in r3.errors
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["keep", "ack", "evict", "floor"]), st.integers(0, 1),
+                          st.integers(0, 40)), max_size=300))
+def test_the_floor_is_the_lowest_seq_held_whatever_was_kept_and_dropped(ops):
+    """The floor every frame sent carries (`ChainFrame.floor`) against a scan of what is held,
+    over random keeps (any order, two runs), acknowledgements, evictions and reports."""
+    custody = Custody(max_frames_per_hop=25)  # small: evictions too
+    for i, (op, run, seq) in enumerate(ops):
+        if op == "keep":
+            custody.keep(ChainFrame(chain="c", run=run, seq=seq, target=1, t_virtual=0.0, t_unix=0.0,
+                                    payload_len=1, payload=b"x"), now=0.0)
+        elif op in ("ack", "evict"):
+            hop = custody.hops.get(("c", 1), {})
+            if (run, seq) in hop:
+                custody._drop(hop, (run, seq), evicted=op == "evict")
+        else:
+            custody.on_report("c", 1, Report(node="n", t_unix=float(i), consumed=Consumed(
+                run=run, generation=0, next_seq=seq, max_seq=seq - 1, missing=())))
+        for r in (0, 1):
+            held = [s for (hr, s) in custody.hops.get(("c", 1), {}) if hr == r]
+            assert custody.floor("c", 1, r, default=-1) == (min(held) if held else -1)
+    assert sum(len(h) for h in custody._seqs.values()) <= 2 * 25 * 2 + 2 * 64 + 2  # dropped seqs do not pile up
