@@ -210,3 +210,26 @@ def test_frame_latency_is_well_under_20_ms():
         latencies.append(time.perf_counter() - start)
     assert len(frames[0]) == FRAME_BYTES
     assert statistics.median(latencies) < 0.020
+
+
+def test_every_pixel_gets_the_class_of_its_colour_box_in_yuv():
+    # classify builds a 15-bit index in place and looks it up; check it pixel by pixel against
+    # the class boxes themselves, for every 8-bit value of each channel (a random image, and a
+    # ramp through all 256 levels so every quantisation bin and its edges are hit).
+    from autopower.chains.blobfinder import DEFAULT_CLASSES, _rgb_to_yuv, build_class_table, classify
+
+    rng = np.random.default_rng(11)
+    ramp = np.stack(np.meshgrid(np.arange(256), np.arange(0, 256, 3), indexing="ij"), axis=-1)
+    ramp = np.concatenate([ramp, ramp[..., :1][:, ::-1]], axis=-1).astype(np.uint8)  # (256, 86, 3)
+    image = np.concatenate([ramp, rng.integers(0, 256, size=(256, 64, 3), dtype=np.uint8)], axis=1)
+    got = classify(image, build_class_table(DEFAULT_CLASSES))
+    # Each pixel is classified by the centre of its 5-bit bin, the first matching box winning.
+    centre = (image.astype(np.int32) >> 3) * 8 + 4
+    y, u, v = _rgb_to_yuv(centre[..., 0], centre[..., 1], centre[..., 2])
+    expected = np.zeros(image.shape[:2], dtype=np.uint8)
+    for index, cls in reversed(list(enumerate(DEFAULT_CLASSES, start=1))):
+        inside = ((cls.y_range[0] <= y) & (y <= cls.y_range[1]) & (cls.u_range[0] <= u) & (u <= cls.u_range[1])
+                  & (cls.v_range[0] <= v) & (v <= cls.v_range[1]))
+        expected[inside] = index
+    assert np.array_equal(got, expected)
+    assert len(np.unique(got)) == len(DEFAULT_CLASSES) + 1  # the test image reaches every class
