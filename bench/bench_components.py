@@ -1,19 +1,61 @@
 """Measure the real components on this machine (the paper's Fig. 5 numbers for this platform).
 
-    .venv/bin/python bench/bench_components.py [runs]
+    .venv/bin/python bench/bench_components.py [runs] [--baseline-tree DIR]
+
+Each component runs its source's messages for seq 0..runs-1 (`autopower.chains.profile_components`).
+With ``--baseline-tree DIR`` (a checkout of the code before: ``git archive REV | tar -x -C DIR``)
+the same is measured on that code in a child process, alternating with this one three times, and
+each component's median is printed against the baseline's (after / before, the medians of the
+three rounds: the machine's load falls on both alike).
 """
 
+import argparse
+import json
+import os
+import statistics
+import subprocess
 import sys
 
 from autopower.chains import profile_components
 
+ROUNDS = 3
+
 
 def main() -> None:
-    runs = int(sys.argv[1]) if len(sys.argv) > 1 else 50
-    print(f"{'component':<10}{'mean ms':>10}{'median ms':>11}{'max ms':>9}{'in B':>9}{'out B':>8}")
-    for name, p in profile_components(runs).items():
-        print(f"{name:<10}{p['latency_mean_s'] * 1e3:>10.2f}{p['latency_median_s'] * 1e3:>11.2f}"
-              f"{p['latency_max_s'] * 1e3:>9.2f}{p['input_bytes']:>9}{p['output_bytes']:>8}")
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("runs", nargs="?", type=int, default=50)
+    ap.add_argument("--baseline-tree", default=None, metavar="DIR")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # the baseline's run: JSON out
+    args = ap.parse_args()
+    if not 1 <= args.runs <= 100_000:
+        raise SystemExit("runs must be within 1..100000")
+    if args.child:
+        print(json.dumps(profile_components(args.runs)))
+        return
+    if not args.baseline_tree:
+        print(f"{'component':<10}{'mean ms':>10}{'median ms':>11}{'max ms':>9}{'in B':>9}{'out B':>8}")
+        for name, p in profile_components(args.runs).items():
+            print(f"{name:<10}{p['latency_mean_s'] * 1e3:>10.2f}{p['latency_median_s'] * 1e3:>11.2f}"
+                  f"{p['latency_max_s'] * 1e3:>9.2f}{p['input_bytes']:>9}{p['output_bytes']:>8}")
+        return
+    env = {**os.environ, "PYTHONPATH": os.path.abspath(args.baseline_tree)}
+    now: dict[str, list[float]] = {}
+    before: dict[str, list[float]] = {}
+    for _ in range(ROUNDS):
+        child = subprocess.run([sys.executable, __file__, str(args.runs), "--child"], env=env,
+                               capture_output=True, text=True, check=True)
+        for name, p in json.loads(child.stdout).items():
+            before.setdefault(name, []).append(p["latency_median_s"])
+        for name, p in profile_components(args.runs).items():
+            now.setdefault(name, []).append(p["latency_median_s"])
+    print(f"{'component':<10}{'median ms':>11}{'before ms':>11}{'after/before':>14}   (median of {ROUNDS} alternating rounds)")
+    for name, medians in now.items():
+        after_ms = statistics.median(medians) * 1e3
+        line = f"{name:<10}{after_ms:>11.2f}"
+        if name in before:
+            before_ms = statistics.median(before[name]) * 1e3
+            line += f"{before_ms:>11.2f}{after_ms / before_ms:>14.2f}"
+        print(line)
 
 
 if __name__ == "__main__":

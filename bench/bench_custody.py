@@ -24,10 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-if not os.environ.get("PYTHONPATH"):  # a baseline child gets the tree it measures from PYTHONPATH
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from autopower.agent.custody import Custody, Report  # noqa: E402
+from autopower.agent.custody import Custody, Report
 from autopower.protocol import ChainFrame, Consumed, encode  # noqa: E402
 
 
@@ -82,18 +79,18 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=20_000)
     parser.add_argument("--late-held", type=int, default=2_000, help="frames a late consumer leaves held")
     parser.add_argument("--baseline-tree", default=None, metavar="DIR")
-    parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # the baseline child's output
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # the baseline's run: JSON out
     args = parser.parse_args()
     if not 100 <= args.frames <= 1_000_000 or not 0 <= args.late_held <= 100_000:
         raise SystemExit("--frames must be within 100..1000000, --late-held within 0..100000")
     before = None
     if args.baseline_tree:
         child = subprocess.run([sys.executable, __file__, "--frames", str(args.frames), "--late-held",
-                                str(args.late_held), "--json"], capture_output=True, text=True, check=True,
+                                str(args.late_held), "--child"], capture_output=True, text=True, check=True,
                                env={**os.environ, "PYTHONPATH": str(Path(args.baseline_tree).resolve())})
         before = json.loads(child.stdout)
     now = measure(args.frames, args.late_held)
-    if args.json:
+    if args.child:
         print(json.dumps(now))
         return
     for label, cost in now.items():
