@@ -50,6 +50,10 @@ OUTPUT_VERSION = 1
 STATE_FORMAT = "autopower.chains.mcl"
 STATE_VERSION = 1
 N_REPORTED_PARTICLES = 40  # top-weighted particles in the output: 799-805 bytes in all
+# Odometry no robot's mission reaches (1,000 km, and a heading of 10^6 rad if it is not wrapped):
+# a reading beyond it is refused, as a NaN would be.
+MAX_ODOM_M = 1e6
+MAX_ODOM_RAD = 1e6
 
 # Motion noise (Probabilistic Robotics' alpha1..alpha4), a little wider than the simulated
 # odometry's, plus a floor so particles keep some diversity when the robot stands still.
@@ -246,6 +250,12 @@ class MonteCarloLocaliser:
         odom = msg["odom"]
         if len(odom) != 3 or not all(_is_finite_number(v) for v in odom):
             raise MalformedInputError(f"{what}: odom must be 3 finite floats [x_m, y_m, theta_rad], got {odom!r}")
+        # Finite is not enough: the motion is a difference of two odometry readings, and two near
+        # the float range overflow to inf, which would leave every particle NaN for good.
+        if max(abs(odom[0]), abs(odom[1])) > MAX_ODOM_M or abs(odom[2]) > MAX_ODOM_RAD:
+            raise MalformedInputError(
+                f"{what}: odom {odom!r} is beyond what a robot integrates (|x|, |y| <= {MAX_ODOM_M:g} m, "
+                f"|theta| <= {MAX_ODOM_RAD:g} rad); the message was not applied")
         laser = msg["laser"]
         if laser.get("beams") != BEAMS_PER_SCANNER or laser.get("max_mm") != MAX_RANGE_MM:
             raise MalformedInputError(

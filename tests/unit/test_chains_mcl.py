@@ -267,6 +267,8 @@ def _input_with(**changes):
     (LocSource("r2", seed=0).produce(0), "from robot 'r2' but this filter localises 'r1'"),
     (_input_with(front=b"\x00" * 10), "front is 10 bytes"),
     (_input_with(odom=[0.0, float("nan"), 0.0]), "odom must be 3 finite floats"),
+    (_input_with(odom=[1.7e308, 0.0, 0.0]), "beyond what a robot integrates"),
+    (_input_with(odom=[0.0, 0.0, -1e300]), "beyond what a robot integrates"),
     (_input_with(laser={"beams": 181, "max_mm": 8000}), "differs from the configured"),
     (_input_with(v=2), "version 2"),
     (_input_with(seq=True), "seq"),
@@ -345,3 +347,18 @@ def test_sensor_update_equals_the_beam_by_beam_reference_also_off_the_map():
         close = np.isclose(mcl._weights, expected, rtol=1e-9, atol=1e-15)
         assert close.sum() >= 297, (seq, np.flatnonzero(~close))
         mcl._last_odom = odom
+
+
+def test_a_refused_reading_leaves_the_filter_as_it_was():
+    # Two finite readings near the float range would overflow their difference to inf and leave
+    # every particle NaN for good; the reading is refused before anything moves.
+    source = LocSource("r1", seed=0)
+    mcl = MonteCarloLocaliser("r1", seed=0)
+    _run(mcl, source, range(3))
+    before = mcl.export_state()
+    for odom in ([1.7e308, 0.0, 0.0], [-1.7e308, 0.0, 0.0]):
+        with pytest.raises(MalformedInputError, match="beyond what a robot integrates"):
+            mcl.run(_input_with(seq=3, odom=odom))
+    assert mcl.export_state() == before
+    scores = score_estimate(source.ground_truth(3), mcl.run(source.produce(3)))
+    assert scores["position_error_m"] < 0.3
