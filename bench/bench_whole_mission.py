@@ -1,6 +1,7 @@
 """The paper's whole mission live: Fig. 7's fully-connected 802.11a optimum until the first robot is empty.
 
     .venv/bin/python bench/bench_whole_mission.py [--speed 55] [--max-wall-s 1200] [--stage-workers auto]
+                                                  [--stall-probe] [--log-dir DIR] [--json]
 
 A real localhost team (base station + three agents, mutual TLS, the real components) runs
 paper-fig7 with full batteries (64 kJ each), both radios pinned to 802.11a, the static policy
@@ -10,7 +11,9 @@ lifetime against the model's, CPU per node (utime + stime from /proc over the ru
 worker processes included) and the load average. ``--stage-workers`` is every process's
 (auto: the base station's stages in worker processes on a multi-core machine). The target of issue 17: <= 15 minutes of wall time, 0 missed periods, metered
 lifetime within 1 % of the model (45,715 s / 15 min needs x51). Not a test: about 15 minutes of a
-loaded machine.
+loaded machine. ``--stall-probe`` tells the team's missed periods from the machine's: a process
+outside the team notes every moment the whole machine stopped, and each period an agent skipped is
+matched with those moments (`stall_probe.py`).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from autopower.launch.localhost import LocalTeam, TeamSpec
 from autopower.launch.summary import chain_latencies, missed_periods
 
 sys.path.insert(0, str(Path(__file__).parent))
+import stall_probe  # noqa: E402
 from bench_live_speed import tree_cpu_s  # noqa: E402  (the same /proc reading)
 
 SCENARIO = "paper-fig7"
@@ -40,15 +44,23 @@ def main() -> None:
     ap.add_argument("--max-wall-s", type=float, default=1200.0, help="give up after this long")
     ap.add_argument("--log-dir", default=None, help="keep the processes' logs here (default: a temporary directory)")
     ap.add_argument("--stage-workers", choices=("off", "on", "auto"), default="auto")
+    ap.add_argument("--stall-probe", action="store_true",
+                    help="run a probe outside the team that logs when the whole machine stops, the agents at "
+                         "'info' (they log each skipped period), and match the two (bench/stall_probe.py)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     scenario = build_scenario(SCENARIO)
     loads = [os.getloadavg()[0]]
     print(f"== whole mission: {SCENARIO} fully-connected 802.11a, static policy, x{args.speed:g}, "
           f"--stage-workers {args.stage_workers} (load average {loads[0]:.2f}, {os.cpu_count()} cores) ==", flush=True)
+    stalls = None
     with tempfile.TemporaryDirectory() as tmp:
-        spec = TeamSpec(scenario=SCENARIO, speed=args.speed, media=MEDIA, policy="static",
-                        log_dir=Path(args.log_dir or tmp), log_level="warning", stage_workers=args.stage_workers)
+        log_dir = Path(args.log_dir or tmp)
+        log_dir.mkdir(parents=True, exist_ok=True)
+        spec = TeamSpec(scenario=SCENARIO, speed=args.speed, media=MEDIA, policy="static", log_dir=log_dir,
+                        log_level="info" if args.stall_probe else "warning", stage_workers=args.stage_workers)
+        probe_out = log_dir / "stall-probe.txt"
+        probe = stall_probe.start(probe_out, args.max_wall_s + 300) if args.stall_probe else None
         started = time.monotonic()
         with LocalTeam(spec, scenario) as team:
             snap = team.wait_ready(120)
@@ -80,6 +92,10 @@ def main() -> None:
             wall = time.monotonic() - t0
             supervision = team.supervision()
             restarted = {n: c.proc.pid for n, c in team.children.items() if c.proc.pid != pids[n]}
+        if probe is not None:
+            probe.terminate()
+            probe.wait()
+            stalls = stall_probe.attribute(stall_probe.stalls(probe_out), stall_probe.skipped(log_dir))
     first = snap.get("first_depletion")
     produced, missed, pct = missed_periods(snap)
     cpu = {n: (cpu1[n] - cpu0[n]) / wall * 100 for n in pids if cpu0[n] is not None and cpu1[n] is not None}
@@ -90,7 +106,7 @@ def main() -> None:
               "latency_p50_ms": {c: v["p50_ms"] for c, v in chain_latencies(snap).items()},
               "load_min": min(loads), "load_max": max(loads), "load_mean": sum(loads) / len(loads),
               "supervision": supervision, "restarted": sorted(restarted), "events": snap.get("events"),
-              "placement_at_end": snap.get("placement")}
+              "placement_at_end": snap.get("placement"), "stalls": stalls}
     if first:
         print(f"first depletion: {first['robot']} at t={first['t_virtual']:.1f} s virtual; model {planned} s "
               f"({result['lifetime_error']:+.3%}); wall {wall / 60:.1f} min")
@@ -111,6 +127,8 @@ def main() -> None:
                    "basestation_counters": base.get("counters")})
     print(f"peers declared silent by the robots (silent-peers): {silent}; base station errors {base.get('errors')}, "
           f"status repeats {(base.get('counters') or {}).get('status-repeats', 0)}")
+    if stalls is not None:
+        print(stall_probe.describe(stalls))
     if args.json:
         print(json.dumps(result, indent=1))
 

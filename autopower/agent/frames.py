@@ -206,8 +206,13 @@ class Frames:
         latency = self.scenario.components[hosted.stage.component].latency_s[self.platform.name]
         self.meter.charge_run(latency, self.now(), "recovery" if recomputed else "chain")
         payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
+        # An input that came as a resend was resent because its acknowledgement had not come: the
+        # instance it first went to may have run it and sent its output before it died or moved on.
+        # This output is then a second copy of that one, and a retransmission made it: marked as
+        # such, a sink that has the first drops it as redundant instead of delivering it again.
+        again = recomputed or frame.attempt > 0
         out = ChainFrame(chain=chain.name, run=frame.run, seq=frame.seq, target=target, t_virtual=frame.t_virtual,
-                         t_unix=frame.t_unix, payload_len=len(output), payload=payload, attempt=int(recomputed))
+                         t_unix=frame.t_unix, payload_len=len(output), payload=payload, attempt=int(again))
         self.emit_flows(hosted, frame, output)  # DAG fan-out: the same output along each flow it feeds
         dest = chain.sink if target == len(chain.stages) else self.plan.placement.get(chain.stages[target].name)
         if dest is None:

@@ -370,6 +370,50 @@ def test_a_stage_restarted_without_state_catches_up_on_what_never_reached_its_ol
     assert r2.sinks["Loc-2"].duplicates_total == 0
 
 
+def test_a_stage_restarted_cold_recomputes_what_its_dead_host_delivered_without_a_duplicate():
+    """The base station's Loc-2 ran r2's scans and r2, the sink, had the poses; the base station
+    died before a status of its acknowledged those scans. The Loc-2 r2 restarts (cold, as a subgroup
+    does) gets them again from r2's custody, so its poses for them are second copies of what the
+    sink has: redundant (a resend made them), dropped, and not duplicates (seen live in the testbed
+    demo: `duplicate-output` at r3 after the base station's SIGKILL, and the pose delivered twice)."""
+    from autopower.protocol import Assign
+
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Loc-2": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    r2 = team.nodes["r2"]
+    for t in range(1, 10):
+        team.run_until(float(t))
+        team.exchange_statuses()  # the laptop's acknowledgements reach r2 up to t = 9 ...
+    team.run_until(15.0)  # ... and none after: the scans of t = 10-14 ran, their poses reached r2
+    held = {h.frame.seq for (chain, _), frames in r2.custody.hops.items() if chain == "Loc-2"
+            for h in frames.values()}
+    delivered = {seq for _, seq, _ in outputs["Loc-2"]}
+    assert held and held <= delivered  # delivered, not acknowledged: the window this is about
+    team.cut_silently("laptop", "r2")  # the base station is gone
+    r2.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
+                        resume_seq=None))
+    r2.override_placement({"Loc-2": "r2"}, set())
+    # The resends reach the new instance before any new scan (as live, where custody sent them on
+    # at once): its first input is a resend, so nothing marks a catch-up range below a new one.
+    for (chain, _), frames in list(r2.custody.hops.items()):
+        if chain == "Loc-2":
+            for h in sorted(frames.values(), key=lambda h: h.frame.seq):
+                r2.send_frame(r2.custody.resend(h, r2.wall()), "r2", purpose="recovery")
+    team.pump()
+    assert r2.hosted["Loc-2"].gate.catch_up_below is None
+    team.run_until(30.0)
+    for _ in range(6):
+        team.clock.advance(0.5)
+        team.exchange_statuses()
+    ledger = r2.sinks["Loc-2"]
+    assert ledger.duplicates_total == 0
+    assert ledger.redundant_total >= len(held)  # each held scan was recomputed, its pose dropped
+    seqs = [seq for _, seq, _ in outputs["Loc-2"]]
+    assert sorted(seqs) == list(range(r2.sources["Loc-2"].seq))  # every pose once, none twice
+
+
 def test_a_node_knows_whose_frames_it_consumes_so_its_acks_reach_them():
     sc = load_scenario("paper-fig7")
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False,
