@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 from autopower.agent.custody import Custody, Report
-from autopower.protocol import ChainFrame, Consumed, encode  # noqa: E402
+from autopower.protocol import ChainFrame, Consumed, encode
 
 
 def frames(n: int, size: int) -> list[ChainFrame]:

@@ -15,6 +15,7 @@ Used by `bench_whole_mission.py --stall-probe`; run alone it probes for the seco
 from __future__ import annotations
 
 import datetime
+import os
 import re
 import subprocess
 import sys
@@ -29,9 +30,10 @@ BEFORE_S, AFTER_S = 0.2, 0.5
 SKIPPED = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) .*: source (\S+) is (\d+) period\(s\) late; skipped them")
 
 
-def probe(seconds: float) -> None:
+def probe(seconds: float, parent: int | None = None) -> None:
+    """Probe for ``seconds``, or until process ``parent`` is gone (the bench, however it ended)."""
     end = time.monotonic() + seconds
-    while time.monotonic() < end:
+    while time.monotonic() < end and (parent is None or os.getppid() == parent):
         start = time.perf_counter()
         time.sleep(SLEEP_S)
         late_ms = (time.perf_counter() - start - SLEEP_S) * 1e3
@@ -40,9 +42,10 @@ def probe(seconds: float) -> None:
 
 
 def start(out: Path, seconds: float) -> subprocess.Popen:
-    """The probe in a process of its own, writing to ``out`` for at most ``seconds``."""
+    """The probe in a process of its own, writing to ``out`` for at most ``seconds`` and no longer
+    than this process lives."""
     with open(out, "w") as sink:
-        return subprocess.Popen([sys.executable, __file__, str(seconds)], stdout=sink)
+        return subprocess.Popen([sys.executable, __file__, str(seconds), str(os.getpid())], stdout=sink)
 
 
 def stalls(out: Path) -> list[tuple[float, float]]:
@@ -81,20 +84,21 @@ def skipped(log_dir: Path) -> list[tuple[float, str, int]]:
 def attribute(stall_list: list[tuple[float, float]], skips: list[tuple[float, str, int]]) -> dict:
     """How many skipped periods fell next to a machine stall, and the stalls that cost periods."""
     near = 0
-    costly: dict[float, int] = {}
+    costly: dict[tuple[float, float], int] = {}  # stall -> periods skipped next to it
     for t, _, periods in skips:
         hits = [s for s in stall_list if s[0] - BEFORE_S <= t <= s[0] + AFTER_S]
         if hits:
             near += periods
             worst = max(hits, key=lambda s: s[1])
-            costly[worst[1]] = costly.get(worst[1], 0) + periods
+            costly[worst] = costly.get(worst, 0) + periods
     return {"stalls": len(stall_list), "longest_ms": max((ms for _, ms in stall_list), default=0.0),
             "skipped": sum(p for _, _, p in skips), "skipped_near_a_stall": near,
-            "periods_by_stall_ms": dict(sorted(costly.items(), reverse=True))}
+            # [ms late, periods] of each stall that cost periods, the longest first
+            "costly_stalls": sorted(([ms, n] for (_, ms), n in costly.items()), reverse=True)}
 
 
 def describe(result: dict) -> str:
-    costs = ", ".join(f"{ms:.0f} ms -> {n}" for ms, n in result["periods_by_stall_ms"].items()) or "none"
+    costs = ", ".join(f"{ms:.0f} ms -> {n}" for ms, n in result["costly_stalls"]) or "none"
     return (f"machine stalls seen by a probe outside the team (a 2 ms sleep woken > {LATE_MS:g} ms late): "
             f"{result['stalls']}, longest {result['longest_ms']:.0f} ms; periods the agents logged as skipped: "
             f"{result['skipped']}, of which {result['skipped_near_a_stall']} within "
@@ -102,4 +106,4 @@ def describe(result: dict) -> str:
 
 
 if __name__ == "__main__":
-    probe(float(sys.argv[1]) if len(sys.argv) > 1 else 60.0)
+    probe(float(sys.argv[1]) if len(sys.argv) > 1 else 60.0, int(sys.argv[2]) if len(sys.argv) > 2 else None)
