@@ -102,7 +102,6 @@ def measure(virtual_s: float) -> dict:
                         rt.on_peer_status(status)
             next_status += status_every_v
     total_s = time.process_time() - t
-    base = nodes[sc.basestation]
     outputs = sum(ledger.received_total for rt in nodes.values() for ledger in rt.sinks.values())
     errors = {n: rt.errors for n, rt in nodes.items() if rt.errors}
     return {"virtual_s": virtual_s, "components_ms": comp_s / virtual_s * 1e3, "sources_ms": src_s / virtual_s * 1e3,

@@ -186,7 +186,7 @@ def test_a_warm_replan_re_places_only_what_the_plan_in_force_gets_wrong(monkeypa
         problem = make_problem(PlanRequest(scenario=s, network=new))
         in_force = dict(milp.solve_milp(make_problem(PlanRequest(scenario=s, network=old))).allocation)
         rng = np.random.default_rng(seed)
-        for stage in [st for st in in_force if st.endswith("-r2")]:
+        for stage in [name for name in in_force if name.endswith("-r2")]:
             hosts = problem.hosts[stage]
             in_force[stage] = hosts[int(rng.integers(len(hosts)))]
         m = milp.solve_milp(problem, start=in_force)
