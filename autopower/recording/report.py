@@ -3,11 +3,17 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 
 def _s(x: float | None, unit: str = "s", digits: int = 1) -> str:
     return "—" if x is None else f"{x:,.{digits}f} {unit}"
+
+
+def _joules(x: float) -> str:
+    # rounded first: a battery metered a fraction of a joule past empty printed as "-0"
+    return f"{round(x):,}" if math.isfinite(x) else f"{x}"
 
 
 def render_text(summary: dict[str, Any]) -> str:
@@ -18,9 +24,9 @@ def render_text(summary: dict[str, Any]) -> str:
              f"({s['mission']['covered_s']:,.1f} s)", ""]
     lines.append(f"{'robot':<8}{'initial J':>12}{'final J':>12}{'power W':>10}{'lifetime':>16}")
     for r, v in s["robots"].items():
-        life = _s(v["lifetime_s"]) + ("" if v["ran_dry_at_s"] is not None else "*")
-        lines.append(f"{r:<8}{v['initial_j']:>12,.0f}{v['final_j']:>12,.0f}"
-                     f"{(v['power_w'] or 0):>10.3f}{life:>16}")
+        life = _s(v["lifetime_s"]) + (" " if v["ran_dry_at_s"] is not None else "*")  # the column stays aligned
+        lines.append(f"{r:<8}{_joules(v['initial_j']):>12}{_joules(v['final_j']):>12}"
+                     f"{(v['power_w'] or 0):>10.3f}{life:>17}")
     fd = s["first_dry"]
     if fd:
         lines.append(f"first to run dry: {fd['robot']} at {fd['at_s']:,.1f} s"

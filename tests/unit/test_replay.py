@@ -172,3 +172,21 @@ def test_a_killed_robot_is_not_waited_for_by_the_plan_made_before_it_was_known_g
     assert _reconfiguration(Rec(), "live", 79.7, math.inf, plans, [], [], [], {"r2"}) == (81.1, "plan epoch 24")
     # a cut (nobody killed) still waits for every robot of the first plan's network
     assert _reconfiguration(Rec(), "live", 79.7, math.inf, plans, [], [], []) == (106.23, "plan epoch 22")
+
+
+def test_the_robot_table_prints_no_negative_zero_and_keeps_its_columns(simulated):
+    """A battery metered a fraction of a joule past empty reads 0 J, not "-0"; the projected mark
+    does not shift its row against the others."""
+    from autopower.recording.report import render_text
+
+    path, _ = simulated
+    s = summarize(load(path), path)
+    robots = list(s["robots"])
+    s["robots"][robots[0]].update(final_j=-0.3, ran_dry_at_s=100.0, lifetime_s=100.0)
+    s["robots"][robots[1]].update(final_j=12.6, ran_dry_at_s=None, lifetime_s=4321.0)
+    rows = {line.split()[0]: line for line in render_text(s).splitlines() if line.split()[:1] == [robots[0]]
+            or line.split()[:1] == [robots[1]]}
+    assert rows[robots[0]].split()[2] == "0"
+    assert rows[robots[1]].split()[2] == "13" and rows[robots[1]].endswith("4,321.0 s*")
+    assert rows[robots[0]].endswith("100.0 s ")
+    assert len(rows[robots[0]]) == len(rows[robots[1]])
