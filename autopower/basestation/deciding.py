@@ -10,7 +10,7 @@ from autopower.errors import AutoPowerError
 from autopower.model.dvfs import apply_levels, best_levels, has_levels
 from autopower.model.energy import evaluate, round_lifetime
 from autopower.model.mission_events import MissionEvent
-from autopower.model.network import Network
+from autopower.model.network import Network, describe_media
 from autopower.policies import (
     Decision,
     TeamState,
@@ -157,7 +157,7 @@ class Deciding:
             self.note(f"decision ({reason}): {line}")
         planned = round_lifetime(decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
         self.note(f"plan ({reason}, policy {decision.policy}): predicted lifetime {planned} s, media "
-                  f"{decision.network.media_by_group()}, {len(changed)} stage(s) to place"
+                  f"{describe_media(decision.network.media_by_group())}, {len(changed)} stage(s) to place"
                   + (f", dropped {', '.join(decision.dropped)}" if decision.dropped else "")
                   + (f", next decision at t={self.revisit_at_s:.1f}s" if self.revisit_at_s is not None else ""))
         self._predict()

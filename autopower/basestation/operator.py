@@ -94,18 +94,23 @@ def running_sessions(clean_stale: bool = True) -> dict[str, dict]:
     return out
 
 
-def read_session(team: str | None = None) -> dict:
-    """The session of `team`, or of the only running team; a clear error naming the running ones."""
+def read_session(team: str | None = None, *, remote_hint: bool = True) -> dict:
+    """The session of `team`, or of the only running team; a clear error naming the running ones.
+
+    ``remote_hint``: the error also says how to reach a base station elsewhere (--connect), which
+    commands that only work on a team `up` started here (`fault`) must not suggest.
+    """
     sessions = running_sessions()
     names = ", ".join(sessions) or "none"
     if team is not None:
         if team not in sessions:
             raise AutoPowerError(f"no running team {team!r} on this machine (running: {names}); start it with "
-                                 "`autopower up`, or pass --connect ENDPOINT to reach a base station elsewhere")
+                                 "`autopower up`" + (", or pass --connect ENDPOINT to reach a base station elsewhere"
+                                                     if remote_hint else ""))
         return sessions[team]
     if not sessions:
         raise AutoPowerError(f"no running team found (nothing in {state_dir() / TEAMS_DIR}); start one with "
-                             "`autopower up`, or pass --connect ENDPOINT --team TEAM")
+                             "`autopower up`" + (", or pass --connect ENDPOINT --team TEAM" if remote_hint else ""))
     if len(sessions) > 1:
         raise AutoPowerError(f"{len(sessions)} teams are running ({names}); choose one with --team NAME")
     return next(iter(sessions.values()))

@@ -15,7 +15,7 @@ from autopower.cli.options import ACCOUNTING_OPT, ENERGY_OPT, JSON_OPT, SCENARIO
 from autopower.errors import ScenarioError
 from autopower.model.dag import active_flows, chain_of_stage
 from autopower.model.energy import Evaluation, active_chains, evaluate, flow_rate_hz
-from autopower.model.network import Network, build_network
+from autopower.model.network import Network, build_network, describe_media
 from autopower.model.scenario import TOPOLOGIES, Scenario
 
 
@@ -144,8 +144,8 @@ def evaluate_cmd(scenario, place, media, topology, energy, accounting, as_json) 
 
 
 def _print(r: dict) -> None:
-    media = ", ".join(f"{g}={m}" for g, m in r["media"].items())
-    console.print(f"[bold]{r['scenario']}[/bold] ({r['accounting']} accounting, {r['topology']}, media {media})")
+    console.print(f"[bold]{r['scenario']}[/bold] ({r['accounting']} accounting, {r['topology']}, "
+                  f"media {describe_media(r['media'])})")
     console.print("allocation: " + ", ".join(f"{s}→{h}" for s, h in r["allocation"].items()))
     for note in r["notes"]:
         console.print(f"  note: {note}")

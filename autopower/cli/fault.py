@@ -18,6 +18,23 @@ def _run(request: dict, as_json: bool) -> None:
 _json = click.option("--json", "as_json", is_flag=True, help="Print the reply as JSON.")
 
 
+def _store_team(ctx, _param, team):
+    # `fault cut r1 laptop --team T` reads as naturally as `fault --team T cut r1 laptop` (as in
+    # `status --team T`); the subcommand's is parsed after the group's callback stored that one
+    meta = ctx.find_root().meta
+    if team is not None:
+        given = meta.get("fault_team")
+        if given is not None and given != team:
+            raise click.UsageError(f"two teams given: {given!r} before the command, {team!r} after it; give one")
+        meta["fault_team"] = team
+    return team
+
+
+def _team(f):
+    return click.option("--team", default=None, type=TEAM_NAME, expose_value=False, callback=_store_team,
+                        help="Which running team (default: the only one on this machine).")(f)
+
+
 @click.group("fault")
 @click.option("--team", default=None, type=TEAM_NAME,
               help="Which running team (default: the only one on this machine).")
@@ -31,6 +48,7 @@ def fault(ctx, team) -> None:
 @click.argument("a")
 @click.argument("b")
 @_json
+@_team
 def fault_cut(a, b, as_json):
     """Cut the radio link A-B silently (no FIN, no RST: only the Zenoh lease notices)."""
     _run({"op": "cut", "a": a, "b": b}, as_json)
@@ -40,6 +58,7 @@ def fault_cut(a, b, as_json):
 @click.argument("a")
 @click.argument("b")
 @_json
+@_team
 def fault_heal(a, b, as_json):
     """Bring the link A-B back."""
     _run({"op": "heal", "a": a, "b": b}, as_json)
@@ -48,6 +67,7 @@ def fault_heal(a, b, as_json):
 @fault.command("kill")
 @click.argument("robot")
 @_json
+@_team
 def fault_kill(robot, as_json):
     """SIGKILL a robot's agent for good (the robot is lost: `up` does not restart it)."""
     _run({"op": "kill", "robot": robot}, as_json)
@@ -56,6 +76,7 @@ def fault_kill(robot, as_json):
 @fault.command("crash")
 @click.argument("node")
 @_json
+@_team
 def fault_crash(node, as_json):
     """SIGKILL a robot's agent or the base station as a crash: `up` restarts it after a backoff."""
     _run({"op": "crash", "robot": node}, as_json)
@@ -64,6 +85,7 @@ def fault_crash(node, as_json):
 @fault.command("freeze")
 @click.argument("robot")
 @_json
+@_team
 def fault_freeze(robot, as_json):
     """SIGSTOP a robot's agent (it stops answering; its lease expires)."""
     _run({"op": "freeze", "robot": robot}, as_json)
@@ -72,6 +94,7 @@ def fault_freeze(robot, as_json):
 @fault.command("thaw")
 @click.argument("robot")
 @_json
+@_team
 def fault_thaw(robot, as_json):
     """SIGCONT a frozen robot's agent."""
     _run({"op": "thaw", "robot": robot}, as_json)
@@ -83,6 +106,7 @@ def fault_thaw(robot, as_json):
 @click.option("--robot", "robot_medium", type=click.Choice(MEDIA_CHOICES), default=None,
               help="The robot's radio to other robots.")
 @_json
+@_team
 def fault_radio(robot, laptop, robot_medium, as_json):
     """A robot's radio hardware fails over (the paper's V.C fault): the base station replans."""
     _run({"op": "radio", "robot": robot, "laptop": laptop, "robot_medium": robot_medium}, as_json)
@@ -91,6 +115,7 @@ def fault_radio(robot, laptop, robot_medium, as_json):
 @fault.command("list")
 @click.option("--json", "as_json", is_flag=True, help="Accepted for uniformity: the answer is always JSON "
                                                         "(with it, a failure is JSON on stdout too).")
+@_team
 def fault_list(as_json):
     """The faults injected so far and the state of every link, as JSON."""
     team = click.get_current_context().find_root().meta.get("fault_team")

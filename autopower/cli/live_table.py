@@ -12,11 +12,12 @@ def render(snap: dict, speed: float):
     from rich.text import Text
 
     from autopower.launch.summary import chain_latencies, keep_up_warning, supervisor_line
+    from autopower.model.network import describe_media
 
     revisit = snap.get("revisit_at_s")
     parts = [f"{snap.get('scenario')}", f"{snap.get('accounting')} accounting",
              f"t = {snap.get('t_virtual', 0):.0f} s virtual (x{speed:g})", f"policy {snap.get('policy')}",
-             f"planned lifetime {snap.get('planned_lifetime_s')} s", f"media {snap.get('media')}"]
+             f"planned lifetime {snap.get('planned_lifetime_s')} s", f"media {describe_media(snap.get('media'))}"]
     if revisit is not None:  # a time-sharing schedule switches configuration then
         parts.append(f"next phase at t = {revisit:.0f} s")
     if not snap.get("ready"):

@@ -239,7 +239,7 @@ def request_fault(request: dict, timeout_s: float = 10.0, team: str | None = Non
     """Send one request to a running team's supervisor (`team`, default the only one; its session file)."""
     from autopower.basestation.operator import read_session
 
-    session = read_session(team)
+    session = read_session(team, remote_hint=False)  # faults are injected by the `up` on this machine only
     path = session.get("control")
     if not path:
         raise AutoPowerError("the running team was started without a fault control channel; "

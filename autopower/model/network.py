@@ -327,3 +327,8 @@ def build_network(scenario: Scenario, topology: str | None = None, media: Mappin
     return Network(scenario.node_names(), scenario.basestation, links, topology, cliques)
 
 
+def describe_media(media: dict[str, str] | None) -> str:
+    """Each link group's medium for people to read: "laptop-robot=802.11a, robot-robot=802.11a"."""
+    if not media:
+        return "—"
+    return ", ".join(f"{group}={medium}" for group, medium in media.items())

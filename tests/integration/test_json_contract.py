@@ -185,3 +185,21 @@ def test_analyze_shows_an_infeasible_media_pair_with_its_reason(env, tmp_path):
     assert text.returncode == 0
     said = " ".join(text.stdout.split())  # the console wraps long lines
     assert "explicit uplink=bluetooth, cam-amy=802.11a, cam-zed=802.11a: infeasible: no allocation meets" in said
+
+
+@pytest.mark.parametrize("args", [["fault", "cut", "r1", "laptop", "--team", "nope"],
+                                  ["fault", "--team", "nope", "cut", "r1", "laptop"],
+                                  ["fault", "list", "--team", "nope"]])
+def test_fault_takes_the_team_before_or_after_its_command(env, args):
+    """`--team` reads the same wherever a user puts it, and the error names the team that is not
+    running without suggesting --connect, which `fault` does not have (it talks to `up` here)."""
+    result = subprocess.run([AUTOPOWER, *args], env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "no running team 'nope'" in result.stderr and "--connect" not in result.stderr
+    assert "No such option" not in result.stderr
+
+
+def test_fault_refuses_two_different_teams(env):
+    result = subprocess.run([AUTOPOWER, "fault", "--team", "a", "heal", "r1", "laptop", "--team", "b"], env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "two teams given: 'a' before the command, 'b' after it" in result.stderr
