@@ -47,3 +47,15 @@ def test_the_live_table_shows_each_chains_end_to_end_latency():
     assert rows["Blob-2"] == ["base station", "120", "42.2 ms", "180 ms", "0", "0"]
     assert rows["Blob-3"] == ["r2", "9", "2,500 ms", "4,100 ms", "0", "0"]
     assert rows["Loc-1"] == ["base station", "30", "7.5 ms", "12.0 ms", "2", "0"]
+
+
+def test_the_header_names_each_link_groups_medium_for_people():
+    def header(media) -> str:
+        out = io.StringIO()
+        Console(file=out, width=200, color_system=None).print(render({**snapshot(), "media": media}, 5.0))
+        return out.getvalue().splitlines()[0]
+
+    assert "media laptop-robot=gsm, robot-robot=bluetooth" in header({"laptop-robot": "gsm",
+                                                                      "robot-robot": "bluetooth"})
+    assert "media —" in header(None)  # before the first plan
+    assert "{" not in header({"laptop-robot": "gsm"})
