@@ -27,7 +27,31 @@ from autopower.cli import (
 from autopower.cli.entry import run_command
 
 
+def _versions() -> str:
+    """This package's version and those of what a bug report needs (Zenoh's wire protocol, Rerun's
+    file format and HiGHS change between releases)."""
+    import platform
+    from importlib.metadata import PackageNotFoundError, version
+
+    def of(dist: str) -> str:
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            return "not installed"
+
+    deps = ", ".join(f"{d} {of(d)}" for d in ("eclipse-zenoh", "rerun-sdk", "highspy", "numpy"))
+    return f"autopower {of('autopower')} ({deps}; Python {platform.python_version()})"
+
+
+def _print_version(ctx, _param, value) -> None:
+    if value and not ctx.resilient_parsing:
+        click.echo(_versions())
+        ctx.exit()
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_print_version,
+              help="Print the versions of autopower and of the libraries it talks through, and exit.")
 def cli() -> None:
     """AutoPower: energy-aware placement of robot software across a multi-robot team.
 

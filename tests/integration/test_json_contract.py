@@ -203,3 +203,14 @@ def test_fault_refuses_two_different_teams(env):
     result = subprocess.run([AUTOPOWER, "fault", "--team", "a", "heal", "r1", "laptop", "--team", "b"], env=env,
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "two teams given: 'a' before the command, 'b' after it" in result.stderr
+
+
+def test_version_names_autopower_and_the_libraries_it_talks_through(env):
+    import tomllib
+
+    expected = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    result = subprocess.run([AUTOPOWER, "--version"], env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stderr == ""
+    line, = result.stdout.splitlines()
+    assert line.startswith(f"autopower {expected} (eclipse-zenoh ") and "rerun-sdk " in line
+    assert "not installed" not in line
