@@ -44,7 +44,15 @@ from autopower.agent.meter import BatteryMeter
 from autopower.agent.relaying import Relaying
 from autopower.agent.sequencing import SinkLedger
 from autopower.agent.sink_store import SinkStore
-from autopower.agent.stages import HELD_OUTPUT_LIMIT, SENSOR_QUEUE, HostedStage, SourceRunner, chain_seed, pad
+from autopower.agent.stages import (
+    HELD_OUTPUT_LIMIT,
+    SENSOR_QUEUE,
+    STOPPED_AFTER_S,
+    HostedStage,
+    SourceRunner,
+    chain_seed,
+    pad,
+)
 from autopower.agent.workers import Zygote
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
@@ -104,6 +112,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.orphans: dict[str, list[ChainFrame]] = {}
         self.sources: dict[str, SourceRunner] = {}
         self.source_totals: dict[str, SourceStats] = {}
+        self._last_turn_wall: float | None = None  # `on_timer`'s last turn (a node away a second was stopped)
         self.sinks: dict[str, SinkLedger] = {}
         self.last_output: dict[str, bytes] = {}
         self.alive: set[str] = set()
@@ -249,7 +258,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         fresh = copy.copy(self.meter)
         try:
             sources = {name: SourceStats(run=int(src["run"]), produced=int(src["seq"]),
-                                         missed=int(src.get("missed", 0)), produced_total=int(src["produced_total"]))
+                                         missed=int(src.get("missed", 0)), produced_total=int(src["produced_total"]),
+                                         missed_stopped=int(src.get("missed_stopped", 0)))
                        for name, src in saved.get("sources", {}).items() if name in self.chains}
             self.meter.restore(saved)
         except (AttributeError, KeyError, TypeError, ValueError) as exc:  # a damaged file must not crash-loop us
@@ -274,11 +284,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         from autopower.agent.resume import mission_key
 
         meter = self.meter
-        sources = {n: {"run": s.run, "seq": s.produced, "missed": s.missed, "produced_total": s.produced_total}
+        sources = {n: {"run": s.run, "seq": s.produced, "missed": s.missed, "produced_total": s.produced_total,
+                       "missed_stopped": s.missed_stopped}
                    for n, s in self.source_totals.items()}
         for name, runner in self.sources.items():
             sources[name] = {"run": runner.run, "seq": runner.seq, "missed": runner.missed,
-                             "produced_total": runner.produced_total}
+                             "produced_total": runner.produced_total, "missed_stopped": runner.missed_stopped}
         return {"node": self.node, "mission": mission_key(self.mission), "t_virtual": meter.t,
                 "initial_j": meter.initial_j, "energy_j": dict(meter.energy_j), "cpu_busy_s": meter.cpu_busy_s,
                 "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources}
@@ -405,6 +416,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                                               # by the other (it restarted at 0 with each new run, so a
                                               # chain re-planned while late reported no missed period)
                                               missed=before.missed if before else 0,
+                                              missed_stopped=before.missed_stopped if before else 0,
                                               # the same run after a restart: go on from its next seq
                                               seq=before.produced if before and before.run == run else 0)
 
@@ -414,7 +426,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def source_stats(self, runner: SourceRunner) -> SourceStats:
         return SourceStats(run=runner.run, produced=runner.seq, missed=runner.missed,
-                           produced_total=runner.produced_total)
+                           produced_total=runner.produced_total, missed_stopped=runner.missed_stopped)
 
     # ---- timers --------------------------------------------------------------------------------
     def next_deadline(self) -> float | None:
@@ -441,6 +453,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.resend_lost(wall)
         self.join_tick()  # fan-in steps whose wait is over
         now = self.now()
+        away_s = wall - self._last_turn_wall if self._last_turn_wall is not None else 0.0
+        self._last_turn_wall = wall
         for runner in list(self.sources.values()):
             if runner.next_t > now:
                 continue
@@ -451,7 +465,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                 runner.missed += late
                 runner.next_t += late * period
                 self.tally("missed-periods", late)
-                log.info("%s: source %s is %d period(s) late; skipped them", self.node, runner.chain.name, late)
+                stopped = away_s >= STOPPED_AFTER_S
+                if stopped:
+                    runner.missed_stopped += late
+                    self.tally("missed-periods-stopped", late)
+                log.info("%s: source %s is %d period(s) late; skipped them%s", self.node, runner.chain.name, late,
+                         f" (this node was stopped for {away_s:.1f} s)" if stopped else "")
             while runner.next_t <= now and runner.chain.name in self.sources:
                 if runner.next_t + period <= now:
                     self.tally("late-captures")  # taken from the sensor's queue, after a later one was due

@@ -109,7 +109,7 @@ class Agent:
         if self.resume is not None:
             self.runtime.resume_from = self.resume.load()
             self.runtime.on_produced = lambda r: self.resume.note_source(r.chain.name, r.run, r.seq, r.missed,
-                                                                         r.produced_total)
+                                                                         r.produced_total, r.missed_stopped)
         self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
                                            on_commit=self._subgroup_commit, on_abort=self._subgroup_aborted,
                                            objection=self._subgroup_objection,

@@ -63,9 +63,11 @@ class ResumeFile:
         out = []
         for line in lines:  # a line cut short by the crash is not valid JSON: skipped
             try:
-                chain, run, seq, missed, total = json.loads(line)
+                # a journal written before `missed_stopped` existed has five fields
+                chain, run, seq, missed, total, *more = json.loads(line)
                 out.append((str(chain), {"run": int(run), "seq": int(seq), "missed": int(missed),
-                                         "produced_total": int(total)}))
+                                         "produced_total": int(total),
+                                         "missed_stopped": int(more[0]) if more else 0}))
             except (ValueError, TypeError):
                 continue
         return out
@@ -85,12 +87,14 @@ class ResumeFile:
         except OSError as exc:
             self._warn(exc)
 
-    def note_source(self, chain: str, run: int, seq: int, missed: int, produced_total: int) -> None:
+    def note_source(self, chain: str, run: int, seq: int, missed: int, produced_total: int,
+                    missed_stopped: int = 0) -> None:
         """A source moved on (its next seq): one append, before the frame leaves."""
         if self._journal is None:
             return  # no snapshot yet (before the mission): nothing to resume from anyway
         try:
-            os.write(self._journal, (json.dumps([chain, run, seq, missed, produced_total]) + "\n").encode())
+            os.write(self._journal, (json.dumps([chain, run, seq, missed, produced_total, missed_stopped])
+                                     + "\n").encode())
         except OSError as exc:
             self._warn(exc)
 

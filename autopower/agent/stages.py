@@ -23,6 +23,12 @@ HELD_OUTPUT_LIMIT = 512  # results held for a sink out of reach (oldest dropped,
 # missed a camera period whenever a laser scan took longer than one camera period to produce
 # (every scan at x100, where the camera's period is 2.5 ms of wall time).
 SENSOR_QUEUE = 8
+# A node whose loop comes back this long (wall seconds) after its last turn was stopped, not slow:
+# SIGSTOP (`autopower fault freeze`), a suspended host, a debugger. The periods it then finds
+# missed are counted apart (`missed_stopped`), so that `up` does not blame the speed-up for them.
+# A loop starved by an overloaded machine turns many times a second and misses periods on most
+# of its turns; it is never away for a whole second at once without missing periods before too.
+STOPPED_AFTER_S = 1.0
 
 
 class Lifecycle(enum.Enum):
@@ -83,3 +89,4 @@ class SourceRunner:
     seq: int = 0
     missed: int = 0
     produced_total: int = 0
+    missed_stopped: int = 0  # of missed: found after the node was stopped (`STOPPED_AFTER_S`)

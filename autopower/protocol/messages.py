@@ -62,6 +62,9 @@ class SourceStats:
     produced: int  # frames produced in this run (the next seq)
     missed: int  # periods skipped because the agent was late, over every run (like produced_total)
     produced_total: int
+    # of missed: those the agent found when it came back after being stopped for a second or more
+    # (SIGSTOP, a suspended host), which no speed-up is to blame for (`agent.stages.STOPPED_AFTER_S`)
+    missed_stopped: int = 0
 
 
 @struct

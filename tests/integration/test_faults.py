@@ -15,7 +15,7 @@ import pytest
 from autopower.cli.options import build_scenario
 from autopower.launch.faults import FaultController
 from autopower.launch.localhost import LocalTeam, TeamSpec
-from autopower.launch.summary import lost_outputs, team_sinks
+from autopower.launch.summary import lost_outputs, missed_while_stopped, status_line, team_sinks
 from tests.integration.runtime_helpers import wait_for
 
 DETECT_S = 1.0
@@ -75,11 +75,18 @@ def test_cut_heal_kill_freeze(team):
     assert "r2" not in snap["placement"].values()
 
     # SIGSTOP: only the lease notices
+    t_frozen = time.time()
     snap, detected, reconfigured = _fault(team, controller, {"op": "freeze", "robot": "r3"}, "node-left", "r3")
     assert detected <= DETECT_S and reconfigured <= RECONFIGURE_S, (detected, reconfigured)
     assert snap["robots"]["r1"]["present"]
+    time.sleep(max(0.0, 2.0 - (time.time() - t_frozen)))  # stopped for 2 s at least: 40 camera periods at x5
     controller.apply({"op": "thaw", "robot": "r3"})
     wait_for(team, lambda s: s["robots"]["r3"]["present"], 10, "r3 back after thaw")
+    # what r3 found missed when it came back is counted as missed while stopped, not as too fast a speed-up
+    snap = wait_for(team, lambda s: missed_while_stopped(s) > 0, 10, "r3's periods missed while stopped reported")
+    blob = snap["robots"]["r3"]["status"]["sources"]["Blob-3"]
+    assert 0 < blob["missed_stopped"] <= blob["missed"]
+    assert "of them while an agent was stopped" in status_line(snap, 5.0)
 
 
 def test_bad_fault_requests_are_refused_clearly(team):

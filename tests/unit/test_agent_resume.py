@@ -100,3 +100,16 @@ def test_source_positions_after_the_snapshot_come_from_the_journal(tmp_path):
     store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 12, "missed": 0, "produced_total": 12}}})
     assert store.journal_path.stat().st_size == 0 and store.load()["sources"]["Blob-2"]["seq"] == 12
     store.close()
+
+
+def test_the_journal_keeps_periods_missed_while_stopped_and_reads_an_older_one(tmp_path):
+    store = ResumeFile(tmp_path / "r2.json")
+    store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}}})
+    store.note_source("Blob-2", 1, 8, 150, 8, 142)
+    assert store.load()["sources"]["Blob-2"] == {"run": 1, "seq": 8, "missed": 150, "produced_total": 8,
+                                                 "missed_stopped": 142}
+    with open(store.journal_path, "a") as f:
+        f.write('["Loc-2", 1, 3, 2, 3]\n')  # a line of the build before: five fields
+    assert store.load()["sources"]["Loc-2"] == {"run": 1, "seq": 3, "missed": 2, "produced_total": 3,
+                                                "missed_stopped": 0}
+    store.close()

@@ -39,3 +39,43 @@ def test_a_late_tick_takes_the_queued_captures_in_order_each_at_its_own_time(lat
     assert not r2.errors and not laptop.errors
     # a capture that waited in the queue says so in its latency: the oldest waited the longest
     assert ledger.latency_ms_max >= (late_periods - missed) * period / 10.0 * 1e3 - 1e-6
+
+
+def test_periods_found_missed_after_the_node_was_stopped_are_counted_apart():
+    """A node whose loop comes back a second or more after its last turn was stopped (SIGSTOP by
+    `fault freeze`, a suspended host): what it finds missed is `missed_stopped` too, which `up`
+    does not blame on the speed-up. A loop late by a fraction of a second is merely slow."""
+    from autopower.agent.stages import STOPPED_AFTER_S
+
+    team = _team()
+    r2 = team.nodes["r2"]
+    blob = r2.sources["Blob-2"]
+    period = blob.chain.period_s
+    team.clock.set(blob.next_t + 20 * period)  # 0.25 s of wall time at x10: slow, not stopped
+    r2.on_timer()
+    assert (blob.missed, blob.missed_stopped) == (20 + 1 - SENSOR_QUEUE, 0)
+    away_s = 2.5
+    assert away_s >= STOPPED_AFTER_S
+    team.clock.set(team.clock.t + away_s * 10.0)
+    missed_before = blob.missed
+    r2.on_timer()
+    found = blob.missed - missed_before
+    assert found >= away_s * 10.0 / period - SENSOR_QUEUE - 1 and blob.missed_stopped == found
+    stats = r2.status(1.0).sources["Blob-2"]
+    assert (stats.missed, stats.missed_stopped) == (blob.missed, found)
+    assert r2.resume_state()["sources"]["Blob-2"]["missed_stopped"] == found  # kept across a restart
+
+
+def test_up_does_not_blame_the_speed_up_for_periods_missed_while_an_agent_was_stopped():
+    from autopower.launch.summary import keep_up_warning, status_line
+
+    def snap(missed: int, stopped: int) -> dict:
+        source = {"run": 0, "produced": 1000, "missed": missed, "produced_total": 1000, "missed_stopped": stopped}
+        return {"t_virtual": 100.0, "ready": True,
+                "robots": {"r2": {"present": True, "status": {"sources": {"Blob-2": source}}}}}
+
+    assert keep_up_warning(snap(100, 100), 10.0) is None  # a freeze, on any machine
+    assert "missed 100 (9.1 %, 100 of them while an agent was stopped)" in status_line(snap(100, 100), 10.0)
+    warning = keep_up_warning(snap(100, 40), 10.0)  # 60 of them with nothing stopped: too fast
+    assert warning.startswith("60 source periods missed (5.5 %) with no agent stopped") and "--speed 10" in warning
+    assert keep_up_warning(snap(5, 0), 10.0) is None  # start-up jitter
