@@ -142,6 +142,11 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.failed_stages: dict[str, str] = {}  # stage -> "node: what: why" its component was stopped
         self.running: dict[str, int] = {}
         self.runs: dict[str, int] = {}  # chain -> current run number
+        # chains of a team taken over whose source robot had not spoken: their run is the one it
+        # reports (`_learn_runs`); until then none of their stages is assigned afresh and the chain
+        # is not declared running (a run made up here could be older than the robot's, whose
+        # outputs every sink would then drop as stale)
+        self.runs_unknown: set[str] = set()
         self.run_live: dict[str, bool] = {}  # has the current run produced anything yet
         self.decision: Decision | None = None  # the policy's last decision (None: nothing decided yet)
         self.chosen: dict[str, str] = {}  # the policy's allocation, before operator pins
@@ -164,6 +169,9 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.plan_t_virtual = 0.0
         self.baselines: dict[str, Baseline] = {}
         self.plan_error: str | None = None
+        # why the last `replan` did not decide though nothing was wrong (robots to report, none in
+        # reach): an operator's command is then noted and carried out by the re-plan that follows
+        self.replan_waiting: str | None = None
         self.epoch = 0
         self.generation = 0
         # which start of a base station this is (plans are ordered by (incarnation, epoch)): one above
@@ -378,6 +386,8 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         if status.node not in self.robots:
             return
         self.statuses[status.node] = status
+        if self.runs_unknown:
+            self._learn_runs(status)
         if status.depleted:
             if status.node not in self.departed:
                 self.departed.add(status.node)
@@ -395,6 +405,27 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
                 self.replan(f"{status.node} joined (from what the robots report hosting)", after_rejoin=True)
         self._check_links(status)
         self._check_drift(status)
+
+    def _learn_runs(self, status: NodeStatus) -> None:
+        """The run of each chain ``status.node`` is the source of, when a takeover did not know it.
+
+        A source robot reports the last run of every chain it ever ran (`NodeRuntime.status`); one
+        that reports none for a chain never ran it, and the chain starts a fresh run.
+        """
+        learned = []
+        for name in sorted(self.runs_unknown):
+            if self.scenario.chain(name).source != status.node:
+                continue
+            self.runs_unknown.discard(name)
+            stats = status.sources.get(name)
+            if stats is not None:
+                self.runs[name] = max(self.runs.get(name, -1), stats.run)
+                self.run_live[name] = True  # its sequence goes on
+            learned.append(f"{name} run {self.runs.get(name, 'new')}")
+        if learned:
+            self.note(f"learned from {status.node}: {', '.join(learned)}")
+            self.reconcile()
+            self.publish_plan()
 
     def _adopt_actual(self, status: NodeStatus) -> None:
         """Take the stages a returning robot runs as placed there (and stop our stale copies)."""

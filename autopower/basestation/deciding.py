@@ -90,14 +90,18 @@ class Deciding:
         as events. True when the policy answered (a new configuration, or keep the current one);
         False when it could not be asked (no mission, robots still to report) or found nothing.
         """
+        self.replan_waiting = None
         if self.mission is None:
             return False
         if self._awaiting_actual and not after_rejoin:
             # robots are back and have not said what they run yet: decide once they have
-            self.note(f"decision ({reason}) deferred until {', '.join(sorted(self._awaiting_actual))} report")
+            waiting = ", ".join(sorted(self._awaiting_actual))
+            self.note(f"decision ({reason}) deferred until {waiting} report")
+            self.replan_waiting = f"the re-plan waits until {waiting} report what they run"
             return False
         if len(self._unavailable()) == len(self.robots):
             self.note(f"no robot left ({reason}); nothing to run")
+            self.replan_waiting = "no robot is in reach of the base station; the re-plan waits until one is back"
             self.target, self.chosen = {}, {}
             self.schedule, self.revisit_at_s = (), None
             self._pending_events.clear()

@@ -28,7 +28,10 @@ class Operating:
             if isinstance(cmd, SnapshotRequest):
                 return OperatorReply(ok=True, message="snapshot", snapshot=self.snapshot())
             if self.mission is None:
-                return OperatorReply(ok=False, message="the mission has not started yet (waiting for agents)",
+                # a new base station, or one restarted while the robots run: it decides once it has heard them
+                return OperatorReply(ok=False, message="no mission here yet: this base station is waiting to hear its "
+                                                       "robots (it starts the mission, or takes over the running one, "
+                                                       "once they speak); try again in a moment",
                                      snapshot=self.snapshot())
             if isinstance(cmd, ChainCommand):
                 self.scenario.chain(cmd.chain)
@@ -39,8 +42,8 @@ class Operating:
                     for stage in self.scenario.chain(cmd.chain).stages:
                         self.failed_stages.pop(stage.name, None)
                 self._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
-                ok = self.replan(f"operator {'enabled' if cmd.enabled else 'disabled'} {cmd.chain}")
-                return OperatorReply(ok=ok, message=self._summary(ok))
+                what = "enabled" if cmd.enabled else "disabled"
+                return self._after_replan(self.replan(f"operator {what} {cmd.chain}"))
             if isinstance(cmd, MigrateCommand):
                 self._check_pin(cmd.stage, cmd.to_node)
                 if cmd.to_node not in self.alive_nodes():
@@ -55,12 +58,10 @@ class Operating:
                 return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
             if isinstance(cmd, AutoCommand):
                 self._clear_pins()
-                ok = self.replan("operator cleared pins")
-                return OperatorReply(ok=ok, message=self._summary(ok))
+                return self._after_replan(self.replan("operator cleared pins"))
             if isinstance(cmd, LinkCommand):
                 self._operator_link(cmd)
-                ok = self.replan(f"operator changed links of {cmd.node}")
-                return OperatorReply(ok=ok, message=self._summary(ok))
+                return self._after_replan(self.replan(f"operator changed links of {cmd.node}"))
         except AutoPowerError as exc:
             return OperatorReply(ok=False, message=str(exc))
         return OperatorReply(ok=False, message=f"unsupported command {type(cmd).__name__}")
@@ -114,9 +115,17 @@ class Operating:
         self._event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
                     note="operator")
 
+    def _after_replan(self, ok: bool) -> OperatorReply:
+        """The reply to a command the team's plan carries out. A re-plan that waits (robots to
+        report, none in reach) is no failure: the command is noted, and the re-plan that follows
+        carries it out. (It was refused as "re-plan failed: no change", though it then applied.)"""
+        if not ok and self.replan_waiting is not None:
+            return OperatorReply(ok=True, message=f"noted; {self.replan_waiting}")
+        return OperatorReply(ok=ok, message=self._summary(ok))
+
     def _summary(self, ok: bool) -> str:
         if not ok:
-            return f"re-plan failed: {self.plan_error or 'no change'}"
+            return f"re-plan failed: {self.plan_error or 'nothing feasible'}"
         planned = self.planned_lifetime_s()
         return (f"re-planned ({self.policy.name}): lifetime {planned} s; target "
                 + ", ".join(f"{s}->{n}" for s, n in self.target.items()))

@@ -62,6 +62,8 @@ class Placing:
                 continue
             have = self.placement.get(stage)
             chain = self.chain_of[stage]
+            if (have is None or have not in alive) and chain.name in self.runs_unknown:
+                continue  # a fresh instance needs its chain's run: assigned once the source robot says it
             gen = self._next_generation()
             if have is None or have not in alive:
                 self.placement.pop(stage, None)
@@ -91,6 +93,8 @@ class Placing:
         running = {}
         for chain in self.scenario.chains:
             names = [s.name for s in chain.stages]
+            if chain.name in self.runs_unknown:
+                continue  # not declared running before its run is known (`Coordinator._learn_runs`)
             if names and all(s in self.target and s in self.placement for s in names):
                 running[chain.name] = self.runs[chain.name]
                 self.run_live[chain.name] = True

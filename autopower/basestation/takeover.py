@@ -107,6 +107,8 @@ class TakingOver:
             if runs:
                 self.runs[chain.name] = max(runs)
                 self.run_live[chain.name] = True  # its sequence goes on: a new instance starts where inputs are
+            elif chain.source in self.robots and chain.source not in reports:
+                self.runs_unknown.add(chain.name)  # its source robot has not spoken: `_learn_runs`
         self._update_running()
         for node, stage in stale:
             self._send(node, Release(stage=stage, generation=self._next_generation()))

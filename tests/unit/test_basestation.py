@@ -393,3 +393,25 @@ def test_the_plan_is_repeated_while_a_robot_in_reach_does_not_say_it_runs_it(sc)
     plans.clear()
     tick(co.config.plan_republish_settled_s)
     assert len(plans) == 1  # a listener that says nothing (a late recorder) still gets it, rarely
+
+
+def test_a_command_while_no_robot_is_in_reach_is_noted_and_carried_out_when_they_are_back(sc):
+    """Every robot cut from the base station: the operator's radio change is not refused (it was,
+    as "re-plan failed: no change", though it then applied); it is noted, and the re-plan that
+    follows the robots' return carries it out."""
+    team = SimTeam(sc)
+    team.join()
+    co = team.coordinator
+    for robot in ("r1", "r2", "r3"):
+        co.on_liveliness(robot, False)
+    team.pump()
+    reply = co.on_operator(LinkCommand(node="r3", laptop_robot="gsm", robot_robot="bluetooth"))
+    assert reply.ok and reply.message.startswith("noted; no robot is in reach of the base station"), reply.message
+    reply = co.on_operator(ChainCommand(chain="Blob-2", enabled=False))
+    assert reply.ok and reply.message.startswith("noted;"), reply.message
+    for robot in ("r1", "r2", "r3"):
+        co.on_liveliness(robot, True)
+    team.report_status()
+    team.run_until(co.now() + 6.0)
+    assert "Blob-2" not in co.target
+    assert co.placement["Loc-3"] == "r1" and co.plan_network.medium_between("r3", "laptop") == "gsm"

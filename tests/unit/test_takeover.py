@@ -274,3 +274,41 @@ def test_a_launched_base_station_that_stops_cleanly_leaves_no_state(sc, tmp_path
         (state / "sinks.json").write_text("{}")
         assert base.run(max_wall_s=0.05) == "time limit"
     assert not state.exists()  # its launcher (`up`) owned the team: nothing is left for a restart
+
+
+def test_a_takeover_that_did_not_hear_a_chains_source_robot_waits_for_its_run(sc):
+    """Found by a random-fault run against `up`: a base station restarted while r3 was still cut
+    off adopted Loc-3 running on r1 without knowing Loc-3's run (only its source, r3, reports it)
+    and raised KeyError on every later decision, so the team was never reconfigured again. Now the
+    chain is not declared running, none of its stages is assigned afresh, and the run r3 reports
+    when it speaks is the one the plan goes on with."""
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, pins={"Loc-3": "r1"}))
+    team.join()
+    team.run_until(60.0)
+    team.report_status()
+    r3_run = team.nodes["r3"].status(10.0).sources["Loc-3"].run
+    new = new_base_station(team, learn_team_s=2.0)
+    for robot in ("r1", "r2"):  # r3 is still cut off from the new base station
+        new.on_liveliness(robot, True)
+        new.learn(team.nodes[robot].status(10.0))
+    assert new.mission is None
+    team.clock.advance(3.0)  # listened long enough
+    new.learn(team.nodes["r1"].status(10.0))
+    assert new.mission is not None and new.takeover["stages"] >= 1  # Loc-3 on r1 among them
+    assert new.runs_unknown == {"Loc-3", "Blob-3"}  # r3's chains: only r3 knows their runs
+    assert "Loc-3" not in new.running and "Blob-3" not in new.running
+    new.on_timer()  # deciding and reconciling no longer fail on the unknown run
+    assert not any(m for s, m in new.migrations.items() if new.chain_of[s].name == "Loc-3" and m.phase == "assigning")
+    new.on_liveliness("r3", True)
+    new.on_status(team.nodes["r3"].status(10.0))
+    # learned: a run made up here would have been 0, r3's own, and its restart could not be told apart
+    assert not new.runs_unknown and new.runs["Loc-3"] >= r3_run
+    team.pump()
+    team.report_status()
+    team.run_until(team.clock.t + 20.0)
+    team.report_status()
+    run = new.running["Loc-3"]
+    assert run > r3_run  # its host was released, so the chain starts anew: a run above the one r3 ran
+    assert team.nodes["r3"].status(10.0).sources["Loc-3"].run == run  # r3's source follows the plan
+    assert team.nodes["r3"].sinks["Loc-3"].run == run and team.nodes["r3"].sinks["Loc-3"].received > 0
+    assert not any(rt.errors.get("internal-error") for rt in team.nodes.values())
