@@ -411,8 +411,11 @@ class Recorder:
             if sep and isinstance(c, dict) and "next_seq" in c:
                 tel.scalar(component_path(consumer, f"inputs/{producer}/consumed"), t, c["next_seq"])
         counters = s.get("counters") or {}
-        for name, what in (("custody-resent", "resent"), ("custody-frames", "held"), ("custody-evicted", "evicted")):
-            if name in counters:  # frames lost in flight and resent (see autopower.agent.custody)
+        for name, what in (("custody-resent", "resent"), ("custody-frames", "held"), ("custody-evicted", "evicted"),
+                           ("held-outputs-dropped", "held_dropped")):
+            # frames lost in flight and resent (see autopower.agent.custody); results a robot cut off
+            # from their sink dropped from its full hold (`agent.stages.HELD_OUTPUT_LIMIT`)
+            if name in counters:
                 tel.scalar(f"custody/{node}/{what}", t, counters[name])
 
     def _plan(self, p: dict) -> None:

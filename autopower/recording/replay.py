@@ -44,6 +44,7 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
                                        "overhead_j": {"migration": float, "recovery": float}}}},
       "outputs": {"recorded": bool, "lost": int, "duplicated": int, "resent": int, "given_up": int,
+                  "held_dropped": int,  # of lost: dropped by robots cut off from the sink, their hold full
                   "chains": {chain: {"outputs": int, "distinct": int, "lost": int, "duplicated": int,
                                      "runs": [int]}}},
       "quality": {chain: {metric: float}},          # measured quality, mean over the chain's outputs
@@ -237,7 +238,9 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         {"name": "every output exactly once at its sink",
          "ok": (outputs["lost"] == 0 and outputs["duplicated"] == 0) if outputs["recorded"] else None,
          "detail": (f"{outputs['lost']} lost, {outputs['duplicated']} duplicated over "
-                    f"{sum(c['outputs'] for c in outputs['chains'].values())} outputs")
+                    f"{sum(c['outputs'] for c in outputs['chains'].values())} outputs"
+                    + (f" ({outputs['held_dropped']} dropped by robots cut off from their sink, their hold full)"
+                       if outputs["held_dropped"] else ""))
          if outputs["recorded"] else "no component outputs in this recording (simulations model, not run, them)"},
         {"name": "sinks counted no duplicate", "ok": (max(sink_dups) == 0) if sink_dups else None,
          "detail": f"max duplicates_total {max(sink_dups):.0f}" if sink_dups else "no sink counters recorded"},
@@ -565,11 +568,25 @@ def _outputs(rec: Recording) -> dict[str, Any]:
         dup_all += dup
     for c in chains.values():
         c["runs"].sort()
-    custody = {what: sum(values[-1] for e, (_, values) in rec.scalars.items()
-                         if e.startswith("custody/") and e.endswith(f"/{what}") and values)
-               for what in ("resent", "evicted")}
+    custody = {what: sum(_counter_total(times, values) for e, (times, values) in rec.scalars.items()
+                         if e.startswith("custody/") and e.endswith(f"/{what}"))
+               for what in ("resent", "evicted", "held_dropped")}
     return {"recorded": bool(chains), "lost": lost_all, "duplicated": dup_all,
             "resent": int(custody["resent"]), "given_up": int(custody["evicted"]),
-            "chains": dict(sorted(chains.items()))}
+            "held_dropped": int(custody["held_dropped"]), "chains": dict(sorted(chains.items()))}
+
+
+def _counter_total(times, values) -> float:
+    """What a node's counter counted over the whole run. A restarted process counts from 0 again
+    on the same entity, so each fall starts a new count (the last value alone was the restarted
+    process's share only)."""
+    total = last = 0.0
+    for _, value in sorted(zip(times, values)):
+        if not math.isfinite(value):
+            continue
+        if value < last:
+            total += last
+        last = value
+    return total + last
 
 

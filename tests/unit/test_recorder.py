@@ -231,3 +231,28 @@ def test_a_fault_tool_writes_its_own_file_of_the_run(tmp_path):
     [fault] = s["faults"]
     assert (fault["kind"], fault["target"], fault["at_mission_s"]) == ("cut", "r1-laptop", 100.0)
     assert fault["detected_mission_s"] == pytest.approx(0.4) and fault["reconfigured_mission_s"] == pytest.approx(0.6)
+
+
+def test_results_dropped_by_a_robot_cut_off_from_their_sink_are_named_with_the_lost_ones(tmp_path):
+    """A robot that holds results for a sink out of its reach keeps 512 and drops the oldest
+    (`held-outputs-dropped`): the replay says how many of the lost outputs went so, over the
+    robot's restarts too (a restarted process counts from 0 again on the same entity)."""
+    from autopower.recording.report import render_text
+
+    t = [0.0]
+    rec = Recorder(Telemetry(tmp_path / "x.rrd", kind="live", properties={"scenario": "paper-fig7"}), "laptop",
+                   clock=lambda: t[0])
+    rec.telemetry.battery(0.0, "r2", 100.0)
+    rec.telemetry.battery(1.0, "r2", 90.0)
+    for seq in (*range(0, 5), *range(605, 610)):  # 600 results never reached the sink
+        t[0] += 0.1
+        rec.on_output("Blob-2", 0, seq, b"")
+    rec._status({"node": "r2", "t_virtual": 1.0, "counters": {"held-outputs-dropped": 300}})
+    rec._status({"node": "r2", "t_virtual": 2.0, "counters": {"held-outputs-dropped": 570}})
+    rec._status({"node": "r2", "t_virtual": 3.0, "counters": {"held-outputs-dropped": 30}})  # restarted
+    rec.close()
+    s = summarize(load(tmp_path / "x.rrd"), tmp_path / "x.rrd")
+    assert s["outputs"]["lost"] == 600 and s["outputs"]["held_dropped"] == 600
+    detail = next(i["detail"] for i in s["invariants"] if i["name"] == "every output exactly once at its sink")
+    assert "600 dropped by robots cut off from their sink" in detail
+    assert "600 dropped by robots cut off from their sink too long (each holds a bounded number" in render_text(s)
