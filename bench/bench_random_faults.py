@@ -1,0 +1,177 @@
+"""Random faults against a real team under `up`, then the replay's verdict. Not a timed test.
+
+    .venv/bin/python bench/bench_random_faults.py [--seed 1] [--faults 20] [--speed 10] [--json]
+
+`up` starts the paper's mission (three agents, the base station, every link through its proxy,
+a recording). Then ``--faults`` faults, drawn with ``--seed``, go through the real command line
+(`autopower fault ...`), 0.5 to 4 s apart: a cut of any link, every robot cut from the base
+station at once, a heal, a crash (SIGKILL, `up` restarts it) of any node including the base
+station, a freeze of 0.2-1.5 s (SIGSTOP, then SIGCONT), a radio change. Everything cut is healed
+at the end, the team runs 15 s more, `up` is stopped and the recording replayed.
+
+Printed: each fault with its exit status (and the refusal, if any), the replay's lost and
+duplicated outputs (and how many of the lost a robot cut off from its sink dropped, by design),
+the energy model's error, every invariant that failed, and every ERROR line or traceback in the
+processes' logs. Bounded: one team, ``--faults`` faults, every wait has a deadline, and `up` is
+stopped whatever happens. Found in its first runs (2026-11-25): a restarted base station that
+raised KeyError on every decision after adopting a chain whose source robot it had not heard, a
+freeze blamed on the speed-up, and commands refused as "re-plan failed: no change".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+AUTOPOWER = str(Path(sys.executable).parent / "autopower")
+NODES = ("laptop", "r1", "r2", "r3")
+ROBOTS = NODES[1:]
+READY_S = 90.0
+SETTLE_S = 15.0
+
+
+class Team:
+    def __init__(self, workdir: Path, speed: float, team: str):
+        self.workdir, self.team = workdir, team
+        self.env = {**os.environ, "AUTOPOWER_STATE_DIR": str(workdir / "state"), "RERUN_ANALYTICS": "0"}
+        self.up = subprocess.Popen([AUTOPOWER, "up", "--team", team, "--speed", f"{speed:g}",
+                                    "--log-dir", str(workdir / "logs"), "--record-dir", str(workdir / "rec")],
+                                   stdout=open(workdir / "up.out", "w"), stderr=open(workdir / "up.err", "w"),
+                                   env=self.env, cwd=workdir)
+
+    def cli(self, *args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([AUTOPOWER, *args, "--team", self.team], env=self.env, capture_output=True,
+                              text=True, timeout=30)
+
+    def status(self) -> dict:
+        out = self.cli("status", "--json", "--timeout", "3")
+        try:
+            return json.loads(out.stdout) if out.returncode == 0 else {}
+        except ValueError:
+            return {}
+
+    def wait_ready(self) -> None:
+        deadline = time.monotonic() + READY_S
+        while not self.status().get("ready"):
+            if time.monotonic() > deadline or self.up.poll() is not None:
+                raise SystemExit(f"the team did not get ready within {READY_S:g} s (logs in {self.workdir})")
+            time.sleep(1.0)
+
+    def stop(self) -> int | None:
+        if self.up.poll() is None:
+            self.up.send_signal(signal.SIGTERM)
+            try:
+                self.up.wait(60)
+            except subprocess.TimeoutExpired:
+                self.up.kill()
+                self.up.wait()
+        return self.up.returncode
+
+
+def inject(team: Team, rng: random.Random, cut: set, log: list, t0: float) -> None:
+    """One random fault through the command line; what was cut is remembered for the heal."""
+    kind = rng.choice(["cut", "cut", "heal", "crash", "freeze", "radio", "cut-base"])
+    if kind == "heal" and not cut:
+        kind = "cut"
+    if kind == "cut":
+        a, b = rng.sample(NODES, 2)
+        commands = [["fault", "cut", a, b]]
+        cut.add(tuple(sorted((a, b))))
+    elif kind == "cut-base":
+        commands = [["fault", "cut", r, "laptop"] for r in ROBOTS]
+        cut.update(tuple(sorted((r, "laptop"))) for r in ROBOTS)
+    elif kind == "heal":
+        a, b = rng.choice(sorted(cut))
+        commands = [["fault", "heal", a, b]]
+        cut.discard((a, b))
+    elif kind == "crash":
+        commands = [["fault", "crash", rng.choice(NODES)]]
+    elif kind == "freeze":
+        robot = rng.choice(ROBOTS)
+        commands = [["fault", "freeze", robot], ["sleep", f"{rng.uniform(0.2, 1.5):.2f}"], ["fault", "thaw", robot]]
+    else:
+        commands = [["fault", "radio", rng.choice(ROBOTS), "--laptop", rng.choice(["802.11a", "gsm"]),
+                     "--robot", rng.choice(["802.11a", "bluetooth"])]]
+    for args in commands:
+        if args[0] == "sleep":
+            time.sleep(float(args[1]))
+            continue
+        done = team.cli(*args)
+        refusal = done.stderr.strip().splitlines()[-1][:160] if done.returncode and done.stderr.strip() else ""
+        log.append({"t_s": round(time.monotonic() - t0, 1), "fault": " ".join(args[1:]), "exit": done.returncode,
+                    "refusal": refusal})
+
+
+def log_errors(logs: Path) -> dict[str, int]:
+    """ERROR lines and tracebacks in the processes' logs, counted by message (numbers folded)."""
+    out: dict[str, int] = {}
+    for path in sorted(logs.glob("*.log")):
+        for line in path.read_text(errors="replace").splitlines():
+            if " ERROR " in line or line.startswith("Traceback") or "Error:" in line[:40]:
+                message = re.sub(r"\d+", "N", line.split(" ", 2)[-1])[:160]
+                out[message] = out.get(message, 0) + 1
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--faults", type=int, default=20)
+    parser.add_argument("--speed", type=float, default=10.0)
+    parser.add_argument("--json", action="store_true", help="one JSON object on stdout, nothing else")
+    args = parser.parse_args()
+    rng = random.Random(args.seed)
+    workdir = Path(tempfile.mkdtemp(prefix=f"random-faults-{args.seed}-"))
+    team = Team(workdir, args.speed, f"rf{os.getpid()}")
+    log: list[dict] = []
+    try:
+        team.wait_ready()
+        t0, cut = time.monotonic(), set()
+        for _ in range(args.faults):
+            inject(team, rng, cut, log, t0)
+            time.sleep(rng.uniform(0.5, 4.0))
+        for a, b in sorted(cut):
+            team.cli("fault", "heal", a, b)
+        time.sleep(SETTLE_S)
+    finally:
+        up_exit = team.stop()
+    recordings = sorted((workdir / "rec").rglob("run.rrd"))
+    result: dict = {"seed": args.seed, "faults": log, "up_exit": up_exit, "workdir": str(workdir),
+                    "log_errors": log_errors(workdir / "logs")}
+    if recordings:
+        replay = subprocess.run([AUTOPOWER, "replay", str(recordings[-1]), "--json"], env=team.env,
+                                capture_output=True, text=True, timeout=120)
+        s = json.loads(replay.stdout)
+        result.update(recording=str(recordings[-1]), lost=s["lost_outputs"], duplicated=s["duplicated_outputs"],
+                      held_dropped=s["outputs"].get("held_dropped", 0),
+                      energy_model_error_pct=s["energy_model_error_pct"],
+                      energy_error_pct_per_robot={r: v["error_pct"] for r, v in s["energy"]["per_robot"].items()},
+                      failed_invariants=[i for i in s["invariants"] if i["ok"] is False])
+    if args.json:
+        print(json.dumps(result))
+        return
+    for entry in log:
+        print(f"{entry['t_s']:6.1f} s  {entry['fault']}: exit {entry['exit']}"
+              + (f" ({entry['refusal']})" if entry["refusal"] else ""))
+    print(f"up exited with {up_exit}; logs and recording in {workdir}")
+    if recordings:
+        print(f"replay: {result['lost']} lost ({result['held_dropped']} dropped by robots cut off from their sink), "
+              f"{result['duplicated']} duplicated; energy vs model {result['energy_model_error_pct']:+.2f} % "
+              f"(per robot {', '.join(f'{r} {v:+.1f}' for r, v in result['energy_error_pct_per_robot'].items())})")
+        for inv in result["failed_invariants"]:
+            print(f"  FAILED {inv['name']}: {inv['detail']}")
+    for message, count in result["log_errors"].items():
+        print(f"  {count:4d} x {message}")
+
+
+if __name__ == "__main__":
+    main()
