@@ -365,7 +365,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def hold_output(self, frame: ChainFrame) -> None:
         if len(self.held_outputs) >= HELD_OUTPUT_LIMIT:
-            self.held_outputs.popleft()
+            self.custody.forget(self.held_outputs.popleft())
             self.held_dropped += 1
             self.tally("held-outputs-dropped")
         self.held_outputs.append(frame)

@@ -500,3 +500,53 @@ def test_the_floor_is_the_lowest_seq_held_whatever_was_kept_and_dropped(ops):
             held = [s for (hr, s) in custody.hops.get(("c", 1), {}) if hr == r]
             assert custody.floor("c", 1, r, default=-1) == (min(held) if held else -1)
     assert sum(len(h) for h in custody._seqs.values()) <= 2 * 25 * 2 + 2 * 64 + 2  # dropped seqs do not pile up
+
+
+def test_frames_past_a_truncated_missing_list_are_kept_and_not_resent_until_it_names_them():
+    """A consumer reports at most MAX_MISSING missing seqs, the lowest. A frame past the last of
+    them was counted as received and dropped from custody, unsent: after a gap longer than that
+    (random faults, seed 10: a robot's 512 held results sent into a link that had just come back,
+    all lost) every frame beyond the list was lost and nothing counted it. Now it is kept, and
+    resent once a later report names it."""
+    custody = Custody(resend_after_s=0.1)
+    for seq in range(2 * MAX_MISSING):
+        custody.keep(ChainFrame(chain="Blob-2", run=0, seq=seq, target=1, t_virtual=0.0, t_unix=0.0,
+                                payload_len=0, payload=b""), 0.0)
+    lost_all = Consumed(run=0, generation=0, next_seq=0, max_seq=2 * MAX_MISSING + 5,
+                        missing=tuple(range(MAX_MISSING)))
+    custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=1.0, consumed=lost_all))
+    assert len(custody) == 2 * MAX_MISSING  # nothing given up on a truncated list
+    assert sorted(held.frame.seq for _, held in custody.due(1.0)) == list(range(MAX_MISSING))  # listed ones only
+    assert not is_consumed(lost_all, 0, MAX_MISSING + 3)
+    # the first half arrived (resent); the next report names the rest
+    rest = Consumed(run=0, generation=0, next_seq=MAX_MISSING, max_seq=2 * MAX_MISSING + 5,
+                    missing=tuple(range(MAX_MISSING, 2 * MAX_MISSING)))
+    custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=2.0, consumed=rest))
+    assert len(custody) == MAX_MISSING
+    assert sorted(held.frame.seq for _, held in custody.due(2.0)) == list(range(MAX_MISSING, 2 * MAX_MISSING))
+    # a complete list (shorter than the cap) still acknowledges what it does not name
+    done = Consumed(run=0, generation=0, next_seq=MAX_MISSING, max_seq=2 * MAX_MISSING + 5, missing=(MAX_MISSING,))
+    assert is_consumed(done, 0, MAX_MISSING + 1) and not is_consumed(done, 0, MAX_MISSING)
+
+
+def test_a_result_a_full_hold_lets_go_leaves_custody_too():
+    """A robot cut off from a sink holds HELD_OUTPUT_LIMIT results and drops the oldest (counted
+    as held-outputs-dropped). The dropped one stayed in custody, never resendable (it was held
+    back, not sent) and keeping the hop's floor at its seq until custody's max age."""
+    from autopower.agent.stages import HELD_OUTPUT_LIMIT
+
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False))
+    team.join()
+    team.run_until(2.0)
+    r2 = team.nodes["r2"]
+    frames = [ChainFrame(chain="Blob-2", run=0, seq=10_000 + i, target=1, t_virtual=0.0, t_unix=0.0,
+                         payload_len=0, payload=b"") for i in range(HELD_OUTPUT_LIMIT + 3)]
+    before = len(r2.custody)
+    for frame in frames:
+        r2.custody.keep(frame, r2.wall(), sent=False)
+        r2.hold_output(frame)
+    assert len(r2.held_outputs) == HELD_OUTPUT_LIMIT and r2.held_dropped == 3
+    assert len(r2.custody) == before + HELD_OUTPUT_LIMIT  # the three dropped ones are not held any more
+    assert r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
+    assert r2.custody.evicted == 0  # counted once, as held-outputs-dropped
