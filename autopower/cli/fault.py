@@ -20,7 +20,7 @@ _json = click.option("--json", "as_json", is_flag=True, help="Print the reply as
 
 def _store_team(ctx, _param, team):
     # `fault cut r1 laptop --team T` reads as naturally as `fault --team T cut r1 laptop` (as in
-    # `status --team T`); the subcommand's is parsed after the group's callback stored that one
+    # `status --team T`): the group and every subcommand take it; the group's is parsed first
     meta = ctx.find_root().meta
     if team is not None:
         given = meta.get("fault_team")
@@ -36,12 +36,9 @@ def _team(f):
 
 
 @click.group("fault")
-@click.option("--team", default=None, type=TEAM_NAME,
-              help="Which running team (default: the only one on this machine).")
-@click.pass_context
-def fault(ctx, team) -> None:
+@_team
+def fault() -> None:
     """Inject faults into a team started by `autopower up` (real, silent link cuts; signals)."""
-    ctx.find_root().meta["fault_team"] = team
 
 
 @fault.command("cut")

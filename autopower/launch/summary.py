@@ -6,10 +6,15 @@ from __future__ import annotations
 KEEP_UP_THRESHOLD_PCT = 1.0  # source periods missed beyond startup jitter: the speed-up is too fast
 
 
+def _sources(snap: dict) -> list[dict]:
+    """Every robot's source statistics in a snapshot (`protocol.SourceStats` as a dict)."""
+    return [s for info in (snap.get("robots") or {}).values()
+            for s in ((info.get("status") or {}).get("sources") or {}).values()]
+
+
 def missed_periods(snap: dict) -> tuple[int, int, float]:
     """(frames produced, periods missed, missed %) over every robot's sources in a snapshot."""
-    sources = [s for info in (snap.get("robots") or {}).values()
-               for s in ((info.get("status") or {}).get("sources") or {}).values()]
+    sources = _sources(snap)
     produced = sum(s.get("produced_total", 0) for s in sources)
     missed = sum(s.get("missed", 0) for s in sources)
     return produced, missed, (100.0 * missed / (produced + missed) if produced + missed else 0.0)
@@ -18,8 +23,7 @@ def missed_periods(snap: dict) -> tuple[int, int, float]:
 def missed_while_stopped(snap: dict) -> int:
     """Of the periods missed, those agents found when they came back from being stopped (a frozen
     agent, a suspended host): the speed-up is not to blame for them."""
-    return sum(s.get("missed_stopped", 0) for info in (snap.get("robots") or {}).values()
-               for s in ((info.get("status") or {}).get("sources") or {}).values())
+    return sum(s.get("missed_stopped", 0) for s in _sources(snap))
 
 
 def keep_up_warning(snap: dict, speed: float) -> str | None:
