@@ -37,7 +37,7 @@ import heapq
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 
-from autopower.agent.sequencing import MAX_MISSING
+from autopower.agent.sequencing import MAX_MISSING, in_ranges
 from autopower.protocol import ChainFrame, Consumed
 
 RESEND_AFTER_S = 1.0  # wall seconds between a send and a report that may call the frame lost
@@ -89,19 +89,18 @@ def is_consumed(report: Consumed, run: int, seq: int) -> bool:
         return True
     if seq > report.max_seq:
         return False
-    if seq in report.missing:
+    if in_ranges(report.missing, seq):
         return False
-    # Beyond a truncated missing list nothing is known. It was counted as received, and dropped
-    # from custody: after a gap of more than MAX_MISSING (a robot's held results sent into a link
-    # that had just come back, all lost) every frame past the first MAX_MISSING was given up
-    # unsent and never counted (random faults, seed 10: 512 outputs). It stays held now, and is
-    # not resent either (`beyond_known`) until a later report lists it or moves past it.
+    # Beyond a truncated missing list nothing is known. Such a frame was once counted as received
+    # and dropped from custody unsent (random faults, seed 10: 512 outputs, when the list named
+    # seqs, not ranges). It stays held, and is not resent either (`beyond_known`) until a later
+    # report lists it or moves past it.
     return not beyond_known(report, seq)
 
 
 def beyond_known(report: Consumed, seq: int) -> bool:
-    """``seq`` is past the last seq a truncated missing list names: neither confirmed nor reported lost."""
-    return len(report.missing) >= MAX_MISSING and report.missing[-1] < seq <= report.max_seq
+    """``seq`` is past the last range a truncated missing list names: neither confirmed nor reported lost."""
+    return len(report.missing) >= MAX_MISSING and report.missing[-1][1] < seq <= report.max_seq
 
 
 class Custody:

@@ -13,7 +13,7 @@ import time
 import zlib
 
 from autopower.agent.guard import ComponentHung
-from autopower.agent.sequencing import MAX_MISSING, SinkLedger
+from autopower.agent.sequencing import MAX_MISSING, SinkLedger, ranges_of
 from autopower.agent.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
 from autopower.agent.workers import NotBytes, type_name, worker_of
 from autopower.errors import ProtocolError
@@ -258,7 +258,14 @@ class Frames:
         if not held:
             return report
         # every held seq is below the gate's next_seq, every missing one at or above it: still sorted
-        return dataclasses.replace(report, next_seq=held[0], missing=(tuple(held) + report.missing)[:MAX_MISSING])
+        missing = list(ranges_of(held))
+        if report.missing and report.missing[0][0] == missing[-1][1] + 1:  # adjacent: one range
+            missing[-1] = (missing[-1][0], report.missing[0][1])
+            missing += report.missing[1:]
+        else:
+            missing += report.missing
+        return dataclasses.replace(report, next_seq=held[0], max_seq=max(report.max_seq, held[-1]),
+                                   missing=tuple(missing[:MAX_MISSING]))
 
     def collect_stage_results(self) -> None:
         """Finish the runs whose results came back from their workers (the loop, on a nudge or a tick)."""

@@ -11,6 +11,8 @@ buffers (`autopower.agent.custody`) act on, so a frame lost on a silently cut li
 
 from __future__ import annotations
 
+import bisect
+import math
 import statistics
 import struct
 import zlib
@@ -19,10 +21,11 @@ from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
 from autopower.protocol import Consumed
+from autopower.protocol.messages import MAX_MISSING_RANGES
 
 T = TypeVar("T")
 
-MAX_MISSING = 256  # seqs listed as missing in one report (the lowest ones)
+MAX_MISSING = MAX_MISSING_RANGES  # missing ranges listed in one report (the lowest ones)
 GATE_MAX_GAP_S = 10.0  # wall seconds a gap may stay open (several resend rounds) before it is given up
 GATE_MAX_PENDING = 512  # inputs waiting behind a gap, at most (memory: camera frames are 230 kB)
 # Outputs a sink keeps above a gap before it gives the gap up. A gap its producer gave up on (a
@@ -33,15 +36,37 @@ GATE_MAX_PENDING = 512  # inputs waiting behind a gap, at most (memory: camera f
 SINK_MAX_AHEAD = 4096
 
 
-def missing_between(low: int, high: int, have) -> tuple[int, ...]:
-    """Seqs in [low, high] not in ``have``, lowest first, at most MAX_MISSING."""
+def missing_between(low: int, high: int, have) -> tuple[tuple[int, int], ...]:
+    """The seqs in [low, high] not in ``have``, as inclusive (first, last) ranges, lowest first, at
+    most MAX_MISSING of them (`Consumed.missing`). Walks what is there, not the whole span."""
     out = []
-    for seq in range(low, high + 1):
-        if seq not in have:
-            out.append(seq)
+    start = low
+    for seq in sorted(s for s in have if low <= s <= high):
+        if seq > start:
+            out.append((start, seq - 1))
             if len(out) == MAX_MISSING:
-                break
+                return tuple(out)
+        start = seq + 1
+    if start <= high and len(out) < MAX_MISSING:
+        out.append((start, high))
     return tuple(out)
+
+
+def ranges_of(seqs) -> tuple[tuple[int, int], ...]:
+    """Sorted, distinct seqs as inclusive (first, last) ranges."""
+    out: list[list[int]] = []
+    for seq in seqs:
+        if out and seq == out[-1][1] + 1:
+            out[-1][1] = seq
+        else:
+            out.append([seq, seq])
+    return tuple((a, b) for a, b in out)
+
+
+def in_ranges(ranges: tuple[tuple[int, int], ...], seq: int) -> bool:
+    """Is ``seq`` in one of the sorted, disjoint ``ranges``?"""
+    i = bisect.bisect_right(ranges, (seq, math.inf)) - 1
+    return i >= 0 and ranges[i][0] <= seq <= ranges[i][1]
 
 
 @dataclass

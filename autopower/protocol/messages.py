@@ -85,6 +85,9 @@ class SinkStats:
     given_up_total: int = 0  # seqs the sink stopped waiting for (sequencing.SINK_MAX_AHEAD): lost unless late
 
 
+MAX_MISSING_RANGES = 256  # missing ranges in one `Consumed` (the lowest ones)
+
+
 @struct
 @dataclass(frozen=True, kw_only=True)
 class Consumed:
@@ -98,7 +101,21 @@ class Consumed:
     generation: int  # of the stage instance (0 for a sink): the newest report wins
     next_seq: int  # every seq below has been consumed
     max_seq: int  # highest seq received so far, -1 for none
-    missing: tuple[int, ...]  # seqs in [next_seq, max_seq] not received, lowest first (bounded)
+    # Seqs in [next_seq, max_seq] not received, as inclusive (first, last) ranges, sorted and
+    # disjoint, the lowest MAX_MISSING_RANGES of them. Ranges, not seqs: a robot's full hold drops
+    # hundreds of results in a row, which never come; as a list of seqs they filled the report and
+    # the frames lost past them were never named, so never resent (random faults, seed 10).
+    missing: tuple[tuple[int, int], ...]
+
+    def __post_init__(self) -> None:
+        if len(self.missing) > MAX_MISSING_RANGES:
+            raise ValueError(f"{len(self.missing)} missing ranges; at most {MAX_MISSING_RANGES}")
+        low = self.next_seq
+        for first, last in self.missing:
+            if not low <= first <= last <= self.max_seq:
+                raise ValueError(f"missing range ({first}, {last}) is not sorted, disjoint and within "
+                                 f"[{self.next_seq}, {self.max_seq}]")
+            low = last + 2  # disjoint and not adjacent: adjacent ranges are one range
 
 
 # ---------------------------------------------------------------------------------------------

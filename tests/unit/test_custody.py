@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from autopower.agent.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
-from autopower.agent.sequencing import MAX_MISSING, SequenceGate, SinkLedger
+from autopower.agent.sequencing import MAX_MISSING, SequenceGate, SinkLedger, in_ranges, missing_between, ranges_of
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
 from autopower.protocol import ChainFrame, Consumed, NodeStatus, decode, encode
@@ -29,7 +29,7 @@ def frame(seq: int, run: int = 0, target: int = 0, chain: str = "Blob-2", size: 
 def report(next_seq: int, max_seq: int, missing=(), run: int = 0, generation: int = 1, t: float = 10.0,
            node: str = "laptop") -> Report:
     return Report(node=node, t_unix=t, consumed=Consumed(run=run, generation=generation, next_seq=next_seq,
-                                                         max_seq=max_seq, missing=tuple(missing)))
+                                                         max_seq=max_seq, missing=ranges_of(missing)))
 
 
 # ---- the pieces ------------------------------------------------------------------------------------
@@ -43,7 +43,7 @@ def test_hop_keys_round_trip_and_reject_garbage():
 
 
 def test_consumed_means_below_the_prefix_or_seen_and_not_missing():
-    c = Consumed(run=1, generation=0, next_seq=5, max_seq=9, missing=(6, 8))
+    c = Consumed(run=1, generation=0, next_seq=5, max_seq=9, missing=((6, 6), (8, 8)))
     assert [s for s in range(12) if is_consumed(c, 1, s)] == [0, 1, 2, 3, 4, 5, 7, 9]
     assert is_consumed(c, 0, 100)  # an older run: obsolete
     assert not is_consumed(c, 2, 0)  # a newer run: the consumer has not started it
@@ -114,7 +114,7 @@ def test_gate_reports_its_gaps_and_gives_up_a_gap_that_stays_open():
     gate.offer(0, "a")
     for seq in (2, 4):
         gate.offer(seq, seq)
-    assert gate.report(0, 3) == Consumed(run=0, generation=3, next_seq=1, max_seq=4, missing=(1, 3))
+    assert gate.report(0, 3) == Consumed(run=0, generation=3, next_seq=1, max_seq=4, missing=((1, 1), (3, 3)))
     assert gate.offer(3, 3) == [] and gate.offer(5, 5) == []
     assert gate.offer(6, 6) == [2, 3, 4, 5, 6]  # seq 1 never came: given up after 4 waited behind it
     assert gate.skipped == 1 and gate.next_seq == 7
@@ -125,7 +125,7 @@ def test_sink_ledger_tells_redundant_resends_from_real_duplicates():
     ledger = SinkLedger()
     assert ledger.report() is None
     assert ledger.record(0, 0) and ledger.record(0, 2, attempt=1)
-    assert ledger.report() == Consumed(run=0, generation=0, next_seq=1, max_seq=2, missing=(1,))
+    assert ledger.report() == Consumed(run=0, generation=0, next_seq=1, max_seq=2, missing=((1, 1),))
     assert not ledger.record(0, 2)  # the late original of a resent output
     assert not ledger.record(0, 0, attempt=1)  # a resend of one that had arrived
     assert (ledger.redundant_total, ledger.duplicates_total) == (2, 0)
@@ -321,7 +321,7 @@ def test_random_migrations_under_random_silent_cuts_lose_and_duplicate_nothing(t
 def test_a_gate_started_without_state_starts_at_the_producers_floor_and_marks_recomputed_seqs():
     gate = SequenceGate()
     assert gate.offer(10, 10, floor=7) == []  # 7, 8, 9 are still held by the producer: wait for them
-    assert gate.report(0, 1).missing == (7, 8, 9)
+    assert gate.report(0, 1).missing == ((7, 9),)
     assert gate.offer(8, 8, floor=7) == [] and gate.offer(7, 7, floor=7) == [7, 8]
     assert gate.offer(9, 9, floor=7) == [9, 10]
     assert gate.catch_up_below == 10
@@ -503,30 +503,64 @@ def test_the_floor_is_the_lowest_seq_held_whatever_was_kept_and_dropped(ops):
 
 
 def test_frames_past_a_truncated_missing_list_are_kept_and_not_resent_until_it_names_them():
-    """A consumer reports at most MAX_MISSING missing seqs, the lowest. A frame past the last of
-    them was counted as received and dropped from custody, unsent: after a gap longer than that
-    (random faults, seed 10: a robot's 512 held results sent into a link that had just come back,
-    all lost) every frame beyond the list was lost and nothing counted it. Now it is kept, and
-    resent once a later report names it."""
+    """A consumer reports at most MAX_MISSING missing ranges, the lowest. A frame past the last of
+    them was counted as received and dropped from custody, unsent (random faults, seed 10: a
+    robot's 512 held results sent into a link that had just come back, all lost, when the list
+    named seqs). Now it is kept, and resent once a later report names it."""
     custody = Custody(resend_after_s=0.1)
-    for seq in range(2 * MAX_MISSING):
+    top = 4 * MAX_MISSING
+    for seq in range(top):
         custody.keep(ChainFrame(chain="Blob-2", run=0, seq=seq, target=1, t_virtual=0.0, t_unix=0.0,
                                 payload_len=0, payload=b""), 0.0)
-    lost_all = Consumed(run=0, generation=0, next_seq=0, max_seq=2 * MAX_MISSING + 5,
-                        missing=tuple(range(MAX_MISSING)))
+    evens = list(range(0, top - 2, 2))  # every other frame lost: one range each, about twice what a report holds
+    lost_all = Consumed(run=0, generation=0, next_seq=0, max_seq=top + 5, missing=ranges_of(evens)[:MAX_MISSING])
     custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=1.0, consumed=lost_all))
-    assert len(custody) == 2 * MAX_MISSING  # nothing given up on a truncated list
-    assert sorted(held.frame.seq for _, held in custody.due(1.0)) == list(range(MAX_MISSING))  # listed ones only
-    assert not is_consumed(lost_all, 0, MAX_MISSING + 3)
+    last_named = evens[MAX_MISSING - 1]
+    # the odd seqs below the last named range arrived; nothing past it is given up
+    assert len(custody) == top - last_named // 2
+    assert sorted(held.frame.seq for _, held in custody.due(1.0)) == evens[:MAX_MISSING]  # listed ones only
+    assert not is_consumed(lost_all, 0, last_named + 1)
     # the first half arrived (resent); the next report names the rest
-    rest = Consumed(run=0, generation=0, next_seq=MAX_MISSING, max_seq=2 * MAX_MISSING + 5,
-                    missing=tuple(range(MAX_MISSING, 2 * MAX_MISSING)))
+    rest = Consumed(run=0, generation=0, next_seq=last_named + 1, max_seq=top + 5, missing=ranges_of(evens[MAX_MISSING:]))
     custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=2.0, consumed=rest))
-    assert len(custody) == MAX_MISSING
-    assert sorted(held.frame.seq for _, held in custody.due(2.0)) == list(range(MAX_MISSING, 2 * MAX_MISSING))
+    assert len(custody) == len(evens) - MAX_MISSING
+    assert sorted(held.frame.seq for _, held in custody.due(2.0)) == evens[MAX_MISSING:]
     # a complete list (shorter than the cap) still acknowledges what it does not name
-    done = Consumed(run=0, generation=0, next_seq=MAX_MISSING, max_seq=2 * MAX_MISSING + 5, missing=(MAX_MISSING,))
-    assert is_consumed(done, 0, MAX_MISSING + 1) and not is_consumed(done, 0, MAX_MISSING)
+    done = Consumed(run=0, generation=0, next_seq=last_named + 1, max_seq=top + 5, missing=((top - 2, top - 2),))
+    assert is_consumed(done, 0, top - 4) and not is_consumed(done, 0, top - 2)
+
+
+def test_a_sink_names_the_frames_lost_past_a_run_of_results_that_will_never_come():
+    """Random faults, seed 10: a robot cut off from the sink held 512 results, dropped the oldest
+    (they never come), then lost the next ones in flight when the link came back. The sink listed
+    its missing seqs one by one, the lowest 256: all of them the dropped results, so the lost
+    frames past them were never named and their producer never resent them (319 outputs lost).
+    Missing ranges name both runs."""
+    ledger, custody = SinkLedger(), Custody(resend_after_s=0.1)
+    dropped = range(100, 612)  # let go by the robot's full hold: never sent
+    lost = range(621, 921)  # sent into the link that had just come back, lost
+    for seq in range(1000):
+        if seq not in dropped:
+            custody.keep(ChainFrame(chain="Blob-2", run=0, seq=seq, target=1, t_virtual=0.0, t_unix=0.0,
+                                    payload_len=0, payload=b""), 0.0)
+        if seq not in dropped and seq not in lost:
+            ledger.record(0, seq)
+    assert ledger.report().missing == ((100, 611), (621, 920))
+    custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=1.0, consumed=ledger.report()))
+    assert sorted(held.frame.seq for _, held in custody.due(1.0)) == list(lost)  # all resent, nothing else
+    assert len(custody) == len(lost)
+
+
+def test_missing_ranges_are_what_is_absent_lowest_first_and_bounded():
+    assert missing_between(3, 10, {3, 5, 6, 10}) == ((4, 4), (7, 9))
+    assert missing_between(3, 10, set()) == ((3, 10),)
+    assert missing_between(3, 2, set()) == ()
+    assert missing_between(0, 3 * MAX_MISSING, set(range(0, 3 * MAX_MISSING, 2))) == tuple(
+        (s, s) for s in range(1, 2 * MAX_MISSING, 2))
+    assert ranges_of([1, 2, 3, 7, 9, 10]) == ((1, 3), (7, 7), (9, 10))
+    ranges = ((1, 3), (7, 7), (9, 10))
+    assert [s for s in range(12) if in_ranges(ranges, s)] == [1, 2, 3, 7, 9, 10]
+    assert not in_ranges((), 5)
 
 
 def test_a_result_a_full_hold_lets_go_leaves_custody_too():

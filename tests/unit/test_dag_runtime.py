@@ -196,13 +196,13 @@ def test_edge_gate_reports_what_custody_must_resend():
     gate = EdgeGate()
     assert [gate.admit(0, s) for s in (0, 2, 2, 3)] == ["new", "new", "duplicate", "new"]
     report = gate.report(generation=5)
-    assert (report.next_seq, report.max_seq, report.missing, report.generation) == (1, 3, (1,), 5)
+    assert (report.next_seq, report.max_seq, report.missing, report.generation) == (1, 3, ((1, 1),), 5)
     assert gate.admit(1, 0) == "new" and gate.admit(0, 9) == "stale"  # a new run of the producer resets it
     # a gate started fresh (failover without state) starts at the producer's floor: what is below
     # was consumed by the previous instance, and is not asked for again
     fresh = EdgeGate()
     assert fresh.admit(0, 50, floor=48) == "new"
-    assert fresh.report(generation=1).missing == (48, 49) and fresh.admit(0, 47) == "duplicate"
+    assert fresh.report(generation=1).missing == ((48, 49),) and fresh.admit(0, 47) == "duplicate"
     assert fresh.admit(0, 52, floor=52) == "new" and fresh.report(generation=1).next_seq == 48
 
 

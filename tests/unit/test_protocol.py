@@ -16,6 +16,7 @@ from autopower.protocol import (
     PROTOCOL_VERSION,
     Assign,
     AutoCommand,
+    Consumed,
     ChainCommand,
     ChainFrame,
     Keys,
@@ -68,7 +69,7 @@ SAMPLES = [
     PlanUpdate(epoch=3, mission=MISSION, placement={"Loc-1": "laptop"}, running={"Loc-1": 0},
                links=(LinkInfo(a="r1", b="laptop", medium="802.11a"),), predicted_w={"r1": 1.35},
                predicted_lifetime_s=None, plan_t_virtual=0.0),
-    NodeStatus(node="r1", t_virtual=3.0, t_unix=1.0, plan_epoch=3, initial_j=64000.0, battery_j=63990.0,
+    STATUS := NodeStatus(node="r1", t_virtual=3.0, t_unix=1.0, plan_epoch=3, initial_j=64000.0, battery_j=63990.0,
                energy_j={"cpu_idle": 10.0}, power_w={"cpu_idle": 1.34}, cpu_utilisation=0.0,
                hosted={"Loc-1": "running"},
                sources={"Loc-1": SourceStats(run=0, produced=2, missed=0, produced_total=2)},
@@ -76,7 +77,8 @@ SAMPLES = [
                                          latency_ms_p50=1.0, latency_ms_max=2.0, received_total=2,
                                          duplicates_total=0, digest=12345)},
                links={"laptop": True}, runs={}, compute_ms={}, queue_depth=0, errors={}, counters={},
-               depleted=False),
+               depleted=False,
+               consumed={"Blob-2#1": Consumed(run=0, generation=2, next_seq=4, max_seq=20, missing=((4, 6), (9, 9)))}),
     ChainCommand(chain="Blob-2", enabled=False),
     MigrateCommand(stage="Loc-2", to_node="r1"),
     AutoCommand(),
@@ -142,6 +144,12 @@ def _fields(msg) -> dict:
     (_raw("frame", {**_fields(FRAME), "payload_len": 99}), "exceeds"),
     (_raw("state", {**_fields(SAMPLES[2]), "pending": [{"chain": "x"}]}), "missing field"),
     (_raw("plan", {**_fields(SAMPLES[9]), "links": [{"a": "r1", "b": "laptop"}]}), "missing field"),
+    *[(_raw("status", {**_fields(STATUS), "consumed": {"Blob-2#1": {
+        "run": 0, "generation": 1, "next_seq": 4, "max_seq": 20, "missing": missing}}}), match)
+      for missing, match in (([[6, 5]], "not sorted"), ([[2, 5]], "within"), ([[8, 9], [4, 5]], "not sorted"),
+                             ([[4, 5], [6, 7]], "disjoint"), ([[4, 21]], "within"),
+                             ([[2 * i + 4, 2 * i + 4] for i in range(300)], "at most 256"),
+                             ([4, 5], "expected"))],
 ])
 def test_strict_rejection(data, match):
     with pytest.raises(ProtocolError, match=match):
