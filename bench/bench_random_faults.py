@@ -164,7 +164,8 @@ def main() -> None:
               + (f" ({entry['refusal']})" if entry["refusal"] else ""))
     print(f"up exited with {up_exit}; logs and recording in {workdir}")
     if recordings:
-        print(f"replay: {result['lost']} lost ({result['held_dropped']} dropped by robots cut off from their sink), "
+        print(f"replay: {result['lost']} lost (besides {result['held_dropped']} a robot cut off from their sink "
+              "let go from its full hold, by design), "
               f"{result['duplicated']} duplicated; energy vs model {result['energy_model_error_pct']:+.2f} % "
               f"(per robot {', '.join(f'{r} {v:+.1f}' for r, v in result['energy_error_pct_per_robot'].items())})")
         for inv in result["failed_invariants"]:

@@ -128,6 +128,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
         self.parked_transfers: list[tuple[str, bytes, str]] = []
         self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
+        # every result this node's full hold let go (chain, run, seq): the recording tells these
+        # outputs, lost by design, from lost ones (`autopower.recording.replay`)
+        self.on_held_dropped: Callable[[str, int, int], None] | None = None
         # where a restarted process carries on (`autopower.agent.resume`): its saved state, applied
         # at the first plan of the same mission; and who to tell when a source advanced
         self.resume_from: dict | None = None
@@ -365,9 +368,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def hold_output(self, frame: ChainFrame) -> None:
         if len(self.held_outputs) >= HELD_OUTPUT_LIMIT:
-            self.custody.forget(self.held_outputs.popleft())
+            dropped = self.held_outputs.popleft()
+            self.custody.forget(dropped)
             self.held_dropped += 1
             self.tally("held-outputs-dropped")
+            if self.on_held_dropped is not None:
+                self.on_held_dropped(dropped.chain, dropped.run, dropped.seq)
         self.held_outputs.append(frame)
         self.custody.mark(frame, None)  # not on the wire: no resend is due until it is
         if len(self.held_outputs) == 1:

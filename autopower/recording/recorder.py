@@ -35,7 +35,8 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
   and fault text events (phase ``detected`` / ``restored``);
 - sink stats in a status -> ``components/<chain>/sink/received_total``, ``duplicates_total``,
   ``missing`` (seqs below the highest seen not arrived yet), ``latency_ms_p50|max`` (end to end);
-- outputs reaching this node as their sink (`on_output`) -> ``components/<chain>/run/<run>/seq``
+- outputs reaching this node as their sink (`on_output`) -> ``components/<chain>/run/<run>/seq``;
+  results its full hold let go (`on_held_dropped`) -> ``components/<chain>/run/<run>/held_dropped``
   (one scalar per output: replay checks exactly-once per (chain, run, seq)) and, at most every
   `visual_every_s`, what the injected `visualise` draws (the deploy layer's draws a downscaled
   camera frame on ``components/<chain>/camera`` with the blobs as ``Boxes2D`` on ``.../blobs``,
@@ -135,6 +136,11 @@ def run_recording_id(run_dir: str | Path) -> str:
 def output_path(chain: str, run: int) -> str:
     """Entity of a chain's outputs at its sink in one run: one scalar (the seq) per output."""
     return f"{component_path(chain, f'run/{int(run)}')}/seq"
+
+
+def held_dropped_path(chain: str, run: int) -> str:
+    """Entity of a chain's results dropped in one run by a robot's full hold: one scalar (the seq) each."""
+    return f"{component_path(chain, f'run/{int(run)}')}/held_dropped"
 
 
 def record_fault(telemetry: Telemetry, t_s: float, *, kind: str, target: str, phase: str = "injected",
@@ -247,7 +253,9 @@ class Recorder:
         return RecordingBus(bus, self)
 
     def attach(self, runtime) -> None:
-        """Record every output reaching `runtime` (a `NodeRuntime`) as its chain's sink."""
+        """Record every output reaching `runtime` (a `NodeRuntime`) as its chain's sink, and every
+        result its full hold lets go."""
+        runtime.on_held_dropped = self.on_held_dropped
         previous = getattr(runtime, "on_output", None)
         if previous is None:
             runtime.on_output = self.on_output
@@ -347,6 +355,11 @@ class Recorder:
     def on_output(self, chain: str, run: int, seq: int, data: bytes) -> None:
         """An output reached this node, its chain's sink (hook for `NodeRuntime.on_output`)."""
         self._guard("output", self._output, chain, run, seq, data)
+
+    def on_held_dropped(self, chain: str, run: int, seq: int) -> None:
+        """A result this node held for a sink out of its reach was let go (hook for
+        `NodeRuntime.on_held_dropped`): lost by design, and the replay says so."""
+        self._guard("held-dropped", lambda: self.telemetry.scalar(held_dropped_path(chain, run), self.now(), seq))
 
     def fault(self, *, kind: str, target: str, phase: str = "injected", reason: str = "") -> None:
         with self._lock:

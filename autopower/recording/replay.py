@@ -43,9 +43,13 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                  "overhead_j": {"migration": float, "recovery": float},
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
                                        "overhead_j": {"migration": float, "recovery": float}}}},
-      "outputs": {"recorded": bool, "lost": int, "duplicated": int, "resent": int, "given_up": int,
-                  "held_dropped": int,  # of lost: dropped by robots cut off from the sink, their hold full
+      "outputs": {"recorded": bool,
+                  "lost": int,  # missing below the highest seq delivered, and not dropped by a hold
+                  "duplicated": int, "resent": int, "given_up": int,
+                  "held_dropped": int,  # results robots cut off from the sink let go, their hold full
+                  "held_dropped_known": bool,  # which seqs (else only counts: then "lost" includes them)
                   "chains": {chain: {"outputs": int, "distinct": int, "lost": int, "duplicated": int,
+                                     "held_dropped": int,  # of its missing seqs, dropped by a hold
                                      "runs": [int]}}},
       "quality": {chain: {metric: float}},          # measured quality, mean over the chain's outputs
                                                     # (blob recall, localisation error; see chains.variants)
@@ -78,6 +82,7 @@ from autopower.recording.recorder import parse_event
 from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGES, MIGRATIONS, Recording, read_recording
 
 _OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/seq$")
+_HELD_DROPPED = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/held_dropped$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
 _SIM_MOVE = re.compile(r"^(?P<stage>\S+): (?P<src>\S+) → (?P<dst>\S+),")
 _EPS = 1e-6
@@ -239,8 +244,10 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
          "ok": (outputs["lost"] == 0 and outputs["duplicated"] == 0) if outputs["recorded"] else None,
          "detail": (f"{outputs['lost']} lost, {outputs['duplicated']} duplicated over "
                     f"{sum(c['outputs'] for c in outputs['chains'].values())} outputs"
-                    + (f" ({outputs['held_dropped']} dropped by robots cut off from their sink, their hold full)"
-                       if outputs["held_dropped"] else ""))
+                    + (f" (besides {outputs['held_dropped']} dropped by robots cut off from their sink, their "
+                       "hold full: by design)" if outputs["held_dropped"] and outputs["held_dropped_known"]
+                       else f" ({outputs['held_dropped']} dropped by robots cut off from their sink, their hold "
+                       "full)" if outputs["held_dropped"] else ""))
          if outputs["recorded"] else "no component outputs in this recording (simulations model, not run, them)"},
         {"name": "sinks counted no duplicate", "ok": (max(sink_dups) == 0) if sink_dups else None,
          "detail": f"max duplicates_total {max(sink_dups):.0f}" if sink_dups else "no sink counters recorded"},
@@ -547,33 +554,50 @@ def _quality(rec: Recording) -> dict[str, dict[str, float]]:
 
 
 def _outputs(rec: Recording) -> dict[str, Any]:
-    chains: dict[str, Any] = {}
-    lost_all = dup_all = 0
+    """Outputs per chain: recorded, distinct, lost, duplicated, and dropped by a full hold.
+
+    A seq missing below the highest a run delivered is *lost*, unless a robot cut off from the
+    sink let it go from its full hold (``.../held_dropped``, logged by that robot): that is by
+    design, and counted apart (``held_dropped``). A recording without those entities (older) can
+    only give the robots' drop counters, and counts every gap as lost."""
+    seqs_of: dict[tuple[str, int], list[int]] = {}
+    dropped_of: dict[tuple[str, int], set[int]] = {}
     for entity, (_, values) in rec.scalars.items():
-        m = _OUTPUT.match(entity)
+        m = _OUTPUT.match(entity) or _HELD_DROPPED.match(entity)
         if not m:
             continue
-        chain, run = m["chain"], int(m["run"])
-        c = chains.setdefault(chain, {"outputs": 0, "distinct": 0, "lost": 0, "duplicated": 0, "runs": []})
-        seqs = [int(v) for v in values if math.isfinite(v)]
+        finite = [int(v) for v in values if math.isfinite(v)]
+        if entity.endswith("/seq"):
+            seqs_of.setdefault((m["chain"], int(m["run"])), []).extend(finite)
+        else:
+            dropped_of.setdefault((m["chain"], int(m["run"])), set()).update(finite)
+    chains: dict[str, Any] = {}
+    lost_all = dup_all = 0
+    for (chain, run), seqs in seqs_of.items():
+        c = chains.setdefault(chain, {"outputs": 0, "distinct": 0, "lost": 0, "duplicated": 0, "held_dropped": 0,
+                                      "runs": []})
         distinct = set(seqs)
-        lost = (max(distinct) + 1 - len(distinct)) if distinct else 0
+        gaps = (max(distinct) + 1 - len(distinct)) if distinct else 0
+        # dropped seqs that are gaps (one dropped past the last delivered is in no gap)
+        dropped = sum(1 for seq in dropped_of.get((chain, run), ()) if seq not in distinct and seq < max(distinct))
         dup = len(seqs) - len(distinct)
         c["outputs"] += len(seqs)
         c["distinct"] += len(distinct)
-        c["lost"] += lost
+        c["lost"] += gaps - dropped
+        c["held_dropped"] += dropped
         c["duplicated"] += dup
         c["runs"].append(run)
-        lost_all += lost
+        lost_all += gaps - dropped
         dup_all += dup
     for c in chains.values():
         c["runs"].sort()
     custody = {what: sum(_counter_total(times, values) for e, (times, values) in rec.scalars.items()
                          if e.startswith("custody/") and e.endswith(f"/{what}"))
                for what in ("resent", "evicted", "held_dropped")}
+    held = sum(len(d) for d in dropped_of.values()) if dropped_of else int(custody["held_dropped"])
     return {"recorded": bool(chains), "lost": lost_all, "duplicated": dup_all,
             "resent": int(custody["resent"]), "given_up": int(custody["evicted"]),
-            "held_dropped": int(custody["held_dropped"]), "chains": dict(sorted(chains.items()))}
+            "held_dropped": held, "held_dropped_known": bool(dropped_of), "chains": dict(sorted(chains.items()))}
 
 
 def _counter_total(times, values) -> float:

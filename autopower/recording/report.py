@@ -65,8 +65,9 @@ def render_text(summary: dict[str, Any]) -> str:
                      f"custody after silent losses" + (f", {o['given_up']} given up" if o.get("given_up") else "")
                      # (`agent.stages.HELD_OUTPUT_LIMIT` results kept per robot; the recording layer
                      # does not import the agent's)
-                     + (f"; {o['held_dropped']} dropped by robots cut off from their sink too long (each holds "
-                        "a bounded number of results, the oldest go)" if o.get("held_dropped") else ""))
+                     + (f"; {o['held_dropped']} {'more ' if o.get('held_dropped_known') else ''}dropped by "
+                        "robots cut off from their sink too long (each holds a bounded number of results, the "
+                        "oldest go)" if o.get("held_dropped") else ""))
     lines += ["", "invariants:"]
     for inv in s["invariants"]:
         mark = {True: "ok  ", False: "FAIL", None: "n/a "}[inv["ok"]]

@@ -577,10 +577,13 @@ def test_a_result_a_full_hold_lets_go_leaves_custody_too():
     frames = [ChainFrame(chain="Blob-2", run=0, seq=10_000 + i, target=1, t_virtual=0.0, t_unix=0.0,
                          payload_len=0, payload=b"") for i in range(HELD_OUTPUT_LIMIT + 3)]
     before = len(r2.custody)
+    told = []
+    r2.on_held_dropped = lambda chain, run, seq: told.append((chain, run, seq))  # the recorder's hook
     for frame in frames:
         r2.custody.keep(frame, r2.wall(), sent=False)
         r2.hold_output(frame)
     assert len(r2.held_outputs) == HELD_OUTPUT_LIMIT and r2.held_dropped == 3
+    assert told == [("Blob-2", 0, 10_000), ("Blob-2", 0, 10_001), ("Blob-2", 0, 10_002)]
     assert len(r2.custody) == before + HELD_OUTPUT_LIMIT  # the three dropped ones are not held any more
     assert r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
     assert r2.custody.evicted == 0  # counted once, as held-outputs-dropped
