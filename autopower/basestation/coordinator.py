@@ -186,6 +186,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self._rival_seen: str | None = None
         self._foreign_noted = False
         self.first_seen_unix: float | None = None
+        self.seen_unix: dict[str, float] = {}  # robot -> when it last came into sight (it must speak before we decide)
         self.next_republish = 0.0
         self.last_republish = 0.0  # when the plan last went out (new or repeated)
         self.next_periodic_replan: float | None = None
@@ -353,6 +354,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
                 return
             self.present.add(node)
             self.departed.discard(node)
+            self.seen_unix[node] = self.wall()
             if self.first_seen_unix is None:
                 self.first_seen_unix = self.wall()
             self.note(f"{node} joined")
@@ -502,8 +504,8 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             now, listening = self.wall(), []
             if self._running_reports() and not self._listened_enough():
                 listening.append(self.up_unix + self.config.learn_team_s)
-            if not all(r in self.heard for r in self.present - self.departed):
-                listening.append(self.first_seen_unix + self.config.learn_team_s)
+            listening += [self.seen_unix.get(r, self.first_seen_unix) + self.config.learn_team_s
+                          for r in self.present - self.departed if r not in self.heard]
             deadlines += [t for t in listening if t > now]
         # nothing else is timed before the first robot appears: the next event wakes us
         if self.clock is not None and self.revisit_at_s is not None:

@@ -174,6 +174,27 @@ def test_a_robot_that_never_speaks_delays_the_start_only_for_the_listening_time(
     assert co.mission is not None
 
 
+def test_a_robot_that_comes_into_sight_late_is_heard_before_a_new_mission_starts(sc):
+    """Random faults, seed 6: the base station crashed; r1 and r2 crashed too while it was down, and
+    came back knowing no mission; r3 ran it, cut off. The restarted base station heard r1 and r2
+    (no mission), and when r3 came into sight 4 s later it started a second mission at once: the
+    listening time ran from the first robot seen, so r3 was never waited for."""
+    team = running_team(sc, t_end=10.0)
+    old = team.coordinator
+    new = new_base_station(team, learn_team_s=2.0)
+    for robot in ("r1", "r2"):  # restarted while the base station was down: no plan, no mission
+        new.on_liveliness(robot, True)
+        new.learn(dataclasses.replace(team.nodes[robot].status(10.0), mission=None, plan_epoch=-1))
+    team.clock.advance(4.0)
+    new.on_timer()
+    assert new.mission is None  # r3 is out of sight: the robots in sight know no mission, but 1 of 3 is missing
+    new.on_liveliness("r3", True)
+    assert new.mission is None  # r3 is in sight and must say what it runs first
+    assert new.next_deadline_unix() == pytest.approx(team.clock.wall() + 2.0)
+    new.learn(team.nodes["r3"].status(10.0))
+    assert new.mission == old.mission and new.takeover["from_robots"] == ["r3"]
+
+
 def test_plans_are_ordered_by_incarnation_then_epoch(sc):
     team = running_team(sc, t_end=10.0)
     rt = team.nodes["r1"]
