@@ -26,6 +26,7 @@ What a node hosts is described in `stages.py`.
 
 from __future__ import annotations
 
+import base64
 import copy
 import dataclasses
 import logging
@@ -69,11 +70,17 @@ from autopower.protocol import (
     SourceStats,
     StageFailed,
     decode,
+    encode,
 )
 from autopower.runtime.bus import Bus
 from autopower.runtime.clock import Clock, VirtualClock
 
 log = logging.getLogger(__name__)
+
+# A restarted agent goes on alone with the plan it ran (`NodeRuntime.saved_plan`) only if that was
+# saved this recently: a crash is restarted within seconds (up's supervisor, systemd's RestartSec);
+# an older file is another run's.
+RESUME_ALONE_MAX_AGE_S = 300.0
 
 
 class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
@@ -295,7 +302,30 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                              "produced_total": runner.produced_total, "missed_stopped": runner.missed_stopped}
         return {"node": self.node, "mission": mission_key(self.mission), "t_virtual": meter.t,
                 "initial_j": meter.initial_j, "energy_j": dict(meter.energy_j), "cpu_busy_s": meter.cpu_busy_s,
-                "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources}
+                "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources,
+                # the plan we run (a subgroup round's placement included): see `saved_plan`
+                "plan": base64.b64encode(encode(self.plan)).decode("ascii") if self.plan is not None else None,
+                "saved_unix": self.wall()}
+
+    def saved_plan(self, max_age_s: float = RESUME_ALONE_MAX_AGE_S) -> PlanUpdate | None:
+        """The plan a crashed process of this node ran, from its resume state, if it was saved less
+        than ``max_age_s`` ago and is whole (None otherwise: a stale file must not restart an old
+        mission). A robot restarted while the base station is out of reach goes on with it
+        (`AgentProcess._resume_alone`) instead of idling until the base station returns."""
+        from autopower.agent.resume import mission_key
+
+        saved = self.resume_from
+        if not saved or saved.get("node") != self.node or not isinstance(saved.get("plan"), str):
+            return None
+        try:
+            age = self.wall() - float(saved["saved_unix"])
+            plan = decode(base64.b64decode(saved["plan"], validate=True), PlanUpdate)
+        except (KeyError, TypeError, ValueError, ProtocolError) as exc:  # binascii.Error is a ValueError
+            log.warning("%s: the saved plan is unusable (%s); waiting for the base station", self.node, exc)
+            return None
+        if not 0.0 <= age <= max_age_s or mission_key(plan.mission) != saved.get("mission"):
+            return None
+        return plan
 
     def _set_plan(self, plan: PlanUpdate) -> None:
         self.plan = plan

@@ -36,6 +36,9 @@ log = logging.getLogger(__name__)
 
 # A peer's silence is judged strictly after its limit: the loop wakes this much later for it.
 SILENCE_SLACK_S = 0.001
+# Wall seconds a restarted agent with no plan waits for the base station (its liveliness, then its
+# plan: a lease and a status period) before it goes on alone with the plan it ran (`_resume_alone`).
+RESUME_ALONE_AFTER_S = 3.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -80,6 +83,8 @@ class Agent:
         self.agreement: SubgroupAgreement | None = None
         self.statuses: dict = {}  # robot -> its last NodeStatus (battery for subgroup decisions)
         self._base_lost_at: float | None = None
+        self._started_unix = time.time()  # a restarted agent waits for a plan from then (`_resume_alone`)
+        self._resumed_alone = False
         self._subgroup_done: tuple | None = None  # (members, epoch) already handled
         self._subgroup_retry_at = 0.0  # after an aborted round: not before fresh statuses are in
         self._heard_direct: dict[str, float] = {}  # node -> wall time of its last status received directly
@@ -322,6 +327,48 @@ class Agent:
         generation = int(time.time() * 1000)
         self.agreement.propose(members, placement, moves, generation, "; ".join(proposal.reasons[:1]))
 
+    def _resume_alone(self) -> None:
+        """Restarted while the base station is out of reach: go on with the plan this robot ran.
+
+        Without it the robot idled (no plan: no mission clock, no sources, no subgroup) until the
+        base station came back, however long that took; its peers went on without its chains
+        (random faults: a robot restarted during a base-station outage). Its battery and sources go
+        on from the resume state as they would on the base station's plan, and the subgroup rounds
+        that follow place its stages among the robots in reach. The base station's next plan
+        (a higher epoch, or a higher incarnation after a takeover) replaces it.
+        """
+        rt = self.runtime
+        if (self._resumed_alone or self.relayer.reachable(self.config.scenario.basestation)
+                or time.time() - self._started_unix < RESUME_ALONE_AFTER_S):
+            return
+        self._resumed_alone = True  # once: a file without a usable plan is not read again every tick
+        plan = rt.saved_plan()
+        if plan is None:
+            return
+        me = self.config.robot
+        rt.on_plan(plan)
+        # What the plan put here is started again (its state died with the process), unless a peer
+        # reports running it now (a round while we were down moved it there: two instances would
+        # each deliver its outputs). Left unstarted, the peers, whose plan says it runs here, never
+        # restarted it either: our sources' frames piled up here for a stage nobody ran.
+        elsewhere = {stage: peer for peer, status in self.statuses.items() if peer != me
+                     for stage, state in (status.hosted or {}).items()
+                     if state in (Lifecycle.RUNNING.value, Lifecycle.STARTING.value) and stage in rt.stage_index}
+        if elsewhere:
+            rt.override_placement(elsewhere, set())
+        generation = int(time.time() * 1000)  # above the crashed instances' (a base station's or a round's)
+        restarted = []
+        for stage, host in sorted(rt.plan.placement.items()):
+            chain, _ = rt.stage_index.get(stage, (None, 0))
+            if host == me and chain is not None and chain.name in rt.plan.running and stage not in elsewhere:
+                rt.on_assign(Assign(stage=stage, generation=generation, chain=chain.name,
+                                    run=rt.plan.running[chain.name], resume_seq=None))
+                restarted.append(stage)
+        log.warning("agent %s: restarted with the base station out of reach: going on with the plan it ran "
+                    "(epoch %d) until the base station returns; %s", me, plan.epoch,
+                    f"restarted {', '.join(restarted)} here" if restarted else "no stage to restart here")
+        self.publish_status()
+
     def _running_placement(self, members: tuple[str, ...]) -> dict[str, str]:
         """Where the stages run now, as the members see it: a round starts from this, not the plan alone.
 
@@ -462,6 +509,10 @@ class Agent:
             settled = max(self._base_lost_at + self.config.subgroup_settle_s, self._subgroup_retry_at)
             if settled > now:  # once past, waking for it again would spin the loop (a core at 100 %)
                 wake.append(settled)
+        if not rt.started and not self._resumed_alone and rt.resume_from and self.config.subgroup:
+            alone_at = self._started_unix + RESUME_ALONE_AFTER_S  # `_resume_alone` looks then
+            if alone_at > now:
+                wake.append(alone_at)
         if rt.started and self.agreement.round is not None:  # a subgroup round times out on its own deadline
             wake.append(self.agreement.round.deadline)
         return min(wake)
@@ -492,6 +543,8 @@ class Agent:
                     log.exception("agent %s: error handling %r", self.config.robot, type(event).__name__)
                     rt.count("internal-error")
             self._check_silence(time.time())
+            if not rt.started and self.config.subgroup:
+                self._resume_alone()  # restarted with the base station out of reach: our saved plan
             if rt.started:
                 self._subgroup_tick()
                 rt.on_timer()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 from autopower.launch.summary import lost_outputs
@@ -129,3 +130,55 @@ def test_a_crash_loop_is_given_up_and_the_rest_of_the_team_goes_on(tmp_path):
     assert "gave up restarting r3" in summary["error"] and "gave up restarting r3" in err  # ... and in words
     assert set(summary["supervision"]["given_up"]) == {"r3"} and summary["supervision"]["restarts"] == {"r3": 2}
     assert summary["exit_codes"]["r1"] == summary["exit_codes"]["r2"] == summary["exit_codes"]["laptop"] == 0
+
+
+def test_an_agent_restarted_while_the_base_station_is_out_of_reach_goes_on_with_its_plan(tmp_path):
+    """Every robot cut off from the base station, then r2 killed: restarted, it had no plan (the
+    base station sends plans) and idled, sources stopped, until the base station came back. Now it
+    goes on with the plan it ran, and its peers' next subgroup round counts it in."""
+    proc, session, env = _start(tmp_path, "sup3")
+    logs = tmp_path / "logs"
+    try:
+        def produced(s: dict) -> int:
+            return sum(x["produced_total"] for x in s["robots"]["r2"]["status"]["sources"].values())
+
+        first = _status(env, proc)
+        time.sleep(2.0)
+        before = _status(env, proc)
+        rate = (produced(before) - produced(first)) / (before["robots"]["r2"]["status"]["t_unix"]
+                                                        - first["robots"]["r2"]["status"]["t_unix"])
+        assert rate > 0
+        for robot in ("r1", "r2", "r3"):
+            result = run_cli(["fault", "cut", robot, "laptop", "--json"], env)
+            assert result.returncode == 0, result.stderr
+        wait_until(lambda: "committed" in (logs / "r1.log").read_text(), 20, "the robots' subgroup round")
+        assert run_cli(["fault", "crash", "r2", "--json"], env).returncode == 0
+        t_crash = time.time()
+        line = wait_until(lambda: next((ln for ln in (logs / "r2.log").read_text().splitlines()
+                                        if "going on with the plan it ran" in ln), None), 20,
+                          "the restarted r2 to go on with its plan")
+        t_resumed = time.time()
+        # the stages the robots' round had put on r2 run there again (their state died with it)
+        committed = next(ln for ln in (logs / "r1.log").read_text().splitlines() if "committed:" in ln)
+        on_r2 = sorted(m.split()[0] for m in committed.split("committed: ")[1].split(", ") if m.endswith("->r2"))
+        assert on_r2 and line.endswith(f"restarted {', '.join(on_r2)} here"), (committed, line)
+        time.sleep(3.0)
+        t_heal = time.time()
+        for robot in ("r1", "r2", "r3"):
+            assert run_cli(["fault", "heal", robot, "laptop", "--json"], env).returncode == 0
+        after = wait_until(lambda: (s := _status(env, proc)) and s.get("ready")
+                           and s["robots"]["r2"]["status"]["t_unix"] > t_heal and s, 30, "the team back together")
+        # r2's sources ran while the base station was out of reach, not only after it came back
+        during = produced(after) - produced(before)
+        assert during >= 0.5 * rate * ((t_heal - t_resumed) + (after["robots"]["r2"]["status"]["t_unix"] - t_heal)), \
+            (during, rate, t_heal - t_resumed)
+        st = after["robots"]["r2"]["status"]
+        assert st["initial_j"] == before["robots"]["r2"]["status"]["initial_j"]  # the same mission goes on
+        assert st["battery_j"] < before["robots"]["r2"]["status"]["battery_j"]  # its battery from where it was
+        assert t_resumed - t_crash < 20
+        assert "orphan-overflow" not in (logs / "r2.log").read_text()  # its frames found their stages
+    finally:
+        code, summary, err = _finish(proc)
+    assert code == 0, err[-3000:]
+    assert summary["supervision"]["restarts"] == {"r2": 1}
+    assert all(s["duplicates_total"] == 0 for s in _sinks(summary))

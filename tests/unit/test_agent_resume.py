@@ -113,3 +113,48 @@ def test_the_journal_keeps_periods_missed_while_stopped_and_reads_an_older_one(t
     assert store.load()["sources"]["Loc-2"] == {"run": 1, "seq": 3, "missed": 2, "produced_total": 3,
                                                 "missed_stopped": 0}
     store.close()
+
+
+def _fresh(team: SimTeam, robot: str, saved: dict | None) -> NodeRuntime:
+    """A restarted process of ``robot`` that has heard no plan yet."""
+    rt = NodeRuntime(node=robot, scenario=team.scenario, bus=team.hub.bus(robot + "-fresh"), keys=team.keys,
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
+    rt.wall = team.clock.wall
+    rt.resume_from = saved
+    return rt
+
+
+def test_a_restarted_robot_can_go_on_with_the_plan_it_ran_subgroup_rounds_included(tmp_path):
+    """A robot restarted while the base station is out of reach had no plan, so no mission clock, no
+    sources, no part in subgroup rounds: it idled until the base station came back. Its resume state
+    now holds the plan it ran (with a subgroup round's placement), which it can go on with."""
+    import json
+
+    team = _team_at(40.0)
+    old = team.nodes["r2"]
+    old.override_placement({"Loc-2": "r2", "Blob-2": "r2"}, {"laptop"})  # a subgroup round, base out of reach
+    store = ResumeFile(tmp_path / "r2.json")
+    store.save(old.resume_state())
+    saved = json.loads(json.dumps(store.load()))
+    rt = _fresh(team, "r2", saved)
+    plan = rt.saved_plan()
+    assert plan == old.plan and plan.placement["Blob-2"] == "r2"
+    consumed = old.meter.consumed_j
+    rt.on_plan(plan)  # what `AgentProcess._resume_alone` does
+    assert rt.resumed and rt.meter.consumed_j >= consumed  # battery goes on, not from the mission's energies
+    assert set(rt.sources) == set(old.sources) and all(rt.sources[n].seq >= old.sources[n].seq for n in rt.sources)
+    status = rt.status(1.0)  # what its peers' next subgroup round starts from: the mission, and nothing hosted
+    assert status.mission == old.mission and status.plan_epoch == old.plan.epoch and not status.hosted
+
+
+def test_a_stale_or_damaged_saved_plan_is_not_gone_on_with(caplog):
+    team = _team_at(40.0)
+    saved = team.nodes["r2"].resume_state()
+    assert _fresh(team, "r2", dict(saved)).saved_plan() is not None
+    assert _fresh(team, "r2", {**saved, "saved_unix": saved["saved_unix"] - 301.0}).saved_plan() is None  # stale
+    assert _fresh(team, "r1", dict(saved)).saved_plan() is None  # another robot's file
+    assert _fresh(team, "r2", {**saved, "plan": "bm90IGEgcGxhbg=="}).saved_plan() is None  # "not a plan"
+    assert _fresh(team, "r2", {**saved, "plan": "%%%"}).saved_plan() is None
+    assert "the saved plan is unusable" in caplog.text
+    assert _fresh(team, "r2", {**saved, "mission": {"scenario": "x"}}).saved_plan() is None
+    assert _fresh(team, "r2", {k: v for k, v in saved.items() if k != "plan"}).saved_plan() is None  # an older file
