@@ -124,6 +124,31 @@ class Hosting:
                                     detail=_bounded(f"constructor: {type(exc).__name__}: {exc}"), running=False))
             return None
 
+    def follow_plan_runs(self, plan) -> None:
+        """Start afresh, in the plan's run, a stage here whose chain the plan runs in a newer run.
+
+        A chain restarted without state gets a new run (the base station's). An instance the base
+        station then adopted as running (a subgroup had restarted it while the base station was
+        away) kept the old run and got no order: its source followed the plan's new run, and the
+        stage dropped every frame as stale-run, for good (random faults, seed 4: Blob-3 delivered
+        nothing more, and its source's custody filled and evicted until the end). A new run means
+        the chain starts over, so the instance does: a fresh component and gate, same generation.
+        """
+        for name, hosted in list(self.hosted.items()):
+            run = plan.running.get(hosted.chain.name)
+            if (run is None or run <= hosted.run or hosted.lifecycle is not Lifecycle.RUNNING
+                    or plan.placement.get(name) != self.node):
+                continue
+            order = Assign(stage=name, generation=hosted.generation, chain=hosted.chain.name, run=run, resume_seq=None)
+            component = self._construct(order, hosted.chain, hosted.stage)
+            if component is None:
+                continue
+            self.retire(hosted.component)
+            self.tally("stage-new-run")  # not an error: counted with what happens
+            log.info("%s: %s runs in run %d, the plan's chain in run %d: started afresh in it", self.node, name,
+                     hosted.run, run)
+            hosted.component, hosted.run, hosted.gate = component, run, SequenceGate()
+
     def on_assign(self, msg: Assign) -> None:
         chain, index = self.stage_index[msg.stage]
         stage = chain.stages[index]

@@ -216,6 +216,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.weights.update(self.flow_weights(plan.mission.accounting))
             self._resume(plan.mission)
         self._set_plan(plan)
+        self.follow_plan_runs(plan)
         for hosted in self.hosted.values():
             if hosted.shipped and hosted.shipped[2] and plan.placement.get(hosted.stage.name) not in (None, self.node):
                 # it has landed (there, or on beyond): nobody will ask for its state again, and a

@@ -186,6 +186,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self._rival_seen: str | None = None
         self._foreign_noted = False
         self.first_seen_unix: float | None = None
+        self._far_generation: set[str] = set()  # robots that reported a generation too far ahead (warned)
         self.seen_unix: dict[str, float] = {}  # robot -> when it last came into sight (it must speak before we decide)
         self.next_republish = 0.0
         self.last_republish = 0.0  # when the plan last went out (new or repeated)
@@ -388,6 +389,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         if status.node not in self.robots:
             return
         self.statuses[status.node] = status
+        self._pass_generations(status)
         if self.runs_unknown:
             self._learn_runs(status)
         if status.depleted:
@@ -407,6 +409,25 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
                 self.replan(f"{status.node} joined (from what the robots report hosting)", after_rejoin=True)
         self._check_links(status)
         self._check_drift(status)
+
+    def _pass_generations(self, status: NodeStatus) -> None:
+        """Hand out generations above every instance a robot reports hosting.
+
+        Robots start instances without us (subgroup rounds, a robot restarted alone) with
+        time-based generations, far above our counter. We jumped past them only for a stage
+        adopted from a new host; one restarted on the host the plan already named kept its
+        generation above ours, and the robot then ignored every order for it as stale and its
+        producers ignored the reports of the instance we placed next. A generation more than a
+        day ahead of our clock is not taken (a robot's clock or message gone wrong).
+        """
+        top = max(status.generations.values(), default=0)
+        if top > self.generation:
+            if top <= int(self.wall() * 1000) + 86_400_000:
+                self.generation = top
+            elif status.node not in self._far_generation:
+                self._far_generation.add(status.node)  # said once: it comes with every status
+                log.warning("coordinator: %s reports a stage generation %d, more than a day ahead of this "
+                            "clock; not followed (check the robot's clock)", status.node, top)
 
     def _learn_runs(self, status: NodeStatus) -> None:
         """The run of each chain ``status.node`` is the source of, when a takeover did not know it.

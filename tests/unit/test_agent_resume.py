@@ -158,3 +158,30 @@ def test_a_stale_or_damaged_saved_plan_is_not_gone_on_with(caplog):
     assert "the saved plan is unusable" in caplog.text
     assert _fresh(team, "r2", {**saved, "mission": {"scenario": "x"}}).saved_plan() is None
     assert _fresh(team, "r2", {k: v for k, v in saved.items() if k != "plan"}).saved_plan() is None  # an older file
+
+
+def test_a_stage_follows_the_plans_newer_run_of_its_chain():
+    """Random faults, seed 4: the base station restarted Blob-3 as a new run, then adopted the
+    instance a subgroup round had started (old run) as running, with no order. The source followed
+    the plan's run, the stage dropped every frame as stale-run, and the chain delivered nothing
+    more. A stage whose chain the plan runs in a newer run starts afresh in it."""
+    import dataclasses
+
+    from autopower.basestation.coordinator import CoordinatorConfig
+
+    team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, pins={"Blob-3": "r3"},
+                                                                          auto_replan=False))
+    team.join()
+    team.run_until(20.0)
+    r3 = team.nodes["r3"]
+    assert r3.hosted["Blob-3"].run == 0 and team.nodes["laptop"].sinks["Blob-3"].run == 0
+    plan = r3.plan
+    newer = dataclasses.replace(plan, epoch=plan.epoch + 50, running={**plan.running, "Blob-3": 1})
+    for rt in team.nodes.values():  # the plan reaches everyone; no Assign for the new run
+        rt.on_plan(newer)
+    assert r3.hosted["Blob-3"].run == 1 and r3.counters["stage-new-run"] == 1
+    received = team.nodes["laptop"].sinks["Blob-3"].received
+    team.run_until(40.0)
+    sink = team.nodes["laptop"].sinks["Blob-3"]
+    assert sink.run == 1 and sink.received > 5, (sink.run, sink.received, received)
+    assert "stale-run" not in r3.errors

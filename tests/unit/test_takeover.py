@@ -333,3 +333,30 @@ def test_a_takeover_that_did_not_hear_a_chains_source_robot_waits_for_its_run(sc
     assert team.nodes["r3"].status(10.0).sources["Loc-3"].run == run  # r3's source follows the plan
     assert team.nodes["r3"].sinks["Loc-3"].run == run and team.nodes["r3"].sinks["Loc-3"].received > 0
     assert not any(rt.errors.get("internal-error") for rt in team.nodes.values())
+
+
+def test_orders_go_above_a_generation_a_robot_started_without_the_base_station():
+    """A robot restarted alone (or a subgroup round) restarts a stage on the host the plan already
+    names, with a time-based generation far above the base station's counter. The base station
+    jumped past such generations only for a stage adopted from a new host, so its next order for
+    the stage was lower: the robot ignored it as stale and the stage could never move again."""
+    from autopower.protocol import Assign, MigrateCommand
+
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, pins={"Loc-2": "r2"}, auto_replan=False))
+    team.join()
+    team.run_until(10.0)
+    co, r2 = team.coordinator, team.nodes["r2"]
+    assert co.placement["Loc-2"] == "r2"
+    restarted = int(team.clock.wall() * 1000)  # what `AgentProcess._resume_alone` hands out (wall ms)
+    r2.on_assign(Assign(stage="Loc-2", generation=restarted, chain="Loc-2", run=r2.plan.running["Loc-2"],
+                        resume_seq=None))
+    team.report_status()
+    assert co.generation >= restarted
+    reply = co.on_operator(MigrateCommand(stage="Loc-2", to_node="laptop"))
+    assert reply.ok, reply.message
+    team.pump()
+    team.run_until(20.0)
+    assert co.placement["Loc-2"] == "laptop" and "Loc-2" in team.nodes["laptop"].hosted
+    assert team.nodes["laptop"].hosted["Loc-2"].generation > restarted
+    assert r2.counters.get("stale-order", 0) == 0
