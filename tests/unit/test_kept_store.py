@@ -89,19 +89,3 @@ def test_a_restarted_robot_takes_back_what_it_kept_and_its_consumers_get_it(tmp_
     rt.on_peer_status(team.nodes["laptop"].status(1.0))  # acknowledged
     rt.settle_kept()
     assert KeptStore(tmp_path / "r2.kept").load(mission_key(rt.mission)) == []
-
-
-def test_a_frame_for_a_consumer_on_the_same_node_is_not_journaled(tmp_path):
-    """Delivered in the same call: nothing is in flight. Journaled, a restarted robot took back the
-    results of its own chains (Loc-1: source, stage and sink on r1) and handed them to its fresh
-    sink a second time (random faults, seed 3: 76 outputs recorded twice)."""
-    team = SimTeam(load_scenario("paper-fig7"))
-    team.join()
-    team.run_until(20.0)
-    r1 = team.nodes["r1"]
-    r1.kept_store = KeptStore(tmp_path / "r1.kept")
-    pose = ChainFrame(chain="Loc-1", run=0, seq=90_000, target=1, t_virtual=0.0, t_unix=0.0, payload_len=3,
-                      payload=b"abc")
-    r1.emit(pose, "r1")
-    r1.emit(_result(90_001), "laptop")
-    assert [f.seq for f in KeptStore(tmp_path / "r1.kept").load(mission_key(r1.mission))] == [90_001]
