@@ -37,7 +37,6 @@ class Frames:
         """Send a frame this node produced, keeping it until its consumer acknowledges it."""
         frame = dataclasses.replace(frame, floor=self.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
         self.custody.keep(frame, self.wall())
-        self.journal_kept(frame)
         self.send_frame(frame, dest)
 
     def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0, purpose: str = "chain") -> None:

@@ -44,7 +44,7 @@ from autopower.agent.joining import Joining
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.relaying import Relaying
 from autopower.agent.sequencing import SinkLedger
-from autopower.agent.kept_store import MAX_KEPT_BYTES, KeptStore
+from autopower.agent.held_store import HeldStore
 from autopower.agent.sink_store import SinkStore
 from autopower.agent.stages import (
     HELD_OUTPUT_LIMIT,
@@ -152,9 +152,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
         # state directory): an output delivered before a crash is not delivered again after it
         self.sink_store: SinkStore | None = None
-        # the small frames in custody, on disk too (`agent.kept_store`): a crash loses none
-        self.kept_store: KeptStore | None = None
-        self._kept_journaled: dict[tuple[str, int, int, int], ChainFrame] = {}  # (chain, target, run, seq)
+        # results held for a sink out of reach, on disk (`agent.held_store`): a crash loses none
+        self.held_store: HeldStore | None = None
+        self._held_journaled: dict[tuple[str, int, int, int], ChainFrame] = {}  # (chain, target, run, seq)
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
         # each stage's component in a worker process of its own, called asynchronously (`agent.workers`)
         self.stage_workers = stage_workers
@@ -284,7 +284,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         meter = self.meter
         self.source_totals.update(sources)
         self.resumed = True
-        self.take_back_kept(mission)
+        self._take_back_held(mission)
         # what `advance` charges for the time we were down (the robot drew idle current, radios asleep)
         self.down = (meter.t, 0.0 if meter.mains else meter.platform.idle_w + sum(
             self.scenario.radios[m].sleep_w for m in meter.media))
@@ -420,59 +420,58 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                 self.on_held_dropped(dropped.chain, dropped.run, dropped.seq)
         self.held_outputs.append(frame)
         self.custody.mark(frame, None)  # not on the wire: no resend is due until it is
+        self._journal_held(frame)
         if len(self.held_outputs) == 1:
             log.info("%s: the sink of %s is out of reach; holding its results here (at most %d, oldest "
                      "dropped) until it returns", self.node, frame.chain, HELD_OUTPUT_LIMIT)
 
-    def journal_kept(self, frame: ChainFrame) -> None:
-        """A frame entered custody: on disk too, if it is small (`agent.kept_store`)."""
-        if self.kept_store is None or self.mission is None or len(frame.payload) > MAX_KEPT_BYTES:
+    def _journal_held(self, frame: ChainFrame) -> None:
+        key = (frame.chain, frame.target, frame.run, frame.seq)
+        if self.held_store is None or self.mission is None or key in self._held_journaled:
             return
         from autopower.agent.resume import mission_key
 
-        self.kept_store.append(mission_key(self.mission), frame)
-        self._kept_journaled[(frame.chain, frame.target, frame.run, frame.seq)] = frame
+        self.held_store.append(mission_key(self.mission), frame)
+        self._held_journaled[key] = frame
 
-    def settle_kept(self) -> None:
-        """Drop from the disk the frames custody is done with (acknowledged, or let go): the file is
-        rewritten with the rest once most of it is done with, emptied once all of it is. At each
-        status tick."""
-        if self.kept_store is None or self.mission is None or not self._kept_journaled:
+    def settle_held_store(self) -> None:
+        """Drop from the disk the held results that are done with (acknowledged by their sink, or
+        let go by a full hold): the file is rewritten with the rest once most of it is done with,
+        emptied once all of it is (`agent.held_store`). At each status tick."""
+        if self.held_store is None or self.mission is None or not self._held_journaled:
             return
         from autopower.agent.resume import mission_key
 
-        kept = {key: frame for key, frame in self._kept_journaled.items()
-                if (frame.run, frame.seq) in self.custody.hops.get((frame.chain, frame.target), {})}
-        if len(kept) == len(self._kept_journaled):
+        at_risk = {key: frame for key, frame in self._held_journaled.items()
+                   if (frame.run, frame.seq) in self.custody.hops.get((frame.chain, frame.target), {})}
+        if len(at_risk) == len(self._held_journaled):
             return
-        self._kept_journaled = kept
-        if not kept or self.kept_store.records > 2 * len(kept) + 64:
-            self.kept_store.rewrite(mission_key(self.mission), list(kept.values()))
+        self._held_journaled = at_risk
+        if not at_risk or self.held_store.records > 2 * len(at_risk) + 64:
+            self.held_store.rewrite(mission_key(self.mission), list(at_risk.values()))
 
-    def take_back_kept(self, mission: MissionInfo) -> None:
-        """A restarted process takes back into custody the frames the crashed one kept (same mission
-        only). They count as sent now: their consumers' next reports say which ones are missing, and
-        those are resent (a result whose sink is still out of reach is held again on the way)."""
-        if self.kept_store is None:
+    def _take_back_held(self, mission: MissionInfo) -> None:
+        """A restarted process takes back the results the crashed one held (same mission only)."""
+        if self.held_store is None:
             return
         from autopower.agent.resume import mission_key
 
-        frames = [f for f in self.kept_store.load(mission_key(mission)) if f.chain in self.chains]
+        # the newest HELD_OUTPUT_LIMIT: older ones in the file were let go by a full hold since the
+        # last settle (counted then), and the hold is a memory bound
+        frames = [f for f in self.held_store.load(mission_key(mission)) if f.chain in self.chains][-HELD_OUTPUT_LIMIT:]
         for frame in frames:
-            self.custody.keep(frame, self.wall())
-        self._kept_journaled = {(f.chain, f.target, f.run, f.seq): f for f in frames
-                                if (f.run, f.seq) in self.custody.hops.get((f.chain, f.target), {})}
-        self.kept_store.rewrite(mission_key(mission), list(self._kept_journaled.values()))  # ours from now on
+            self.custody.keep(frame, self.wall(), sent=False)
+            self.held_outputs.append(frame)
+            self._held_journaled[(frame.chain, frame.target, frame.run, frame.seq)] = frame
+        self.held_store.rewrite(mission_key(mission), frames)  # this process's journal from now on
         if frames:
-            spans: dict[tuple[str, int, int], tuple[int, int]] = {}
+            spans = {}
             for frame in frames:
-                key = (frame.chain, frame.run, frame.target)
-                low, high = spans.get(key, (frame.seq, frame.seq))
-                spans[key] = (min(low, frame.seq), max(high, frame.seq))
-            log.warning("%s: took back %d frame(s) kept before the restart (%s); resent as their consumers "
-                        "report them missing", self.node, len(frames),
-                        ", ".join(f"{c} run {r} to stage {t} seq {low}-{high}"
-                                  for (c, r, t), (low, high) in sorted(spans.items())))
+                low, high = spans.get(frame.chain, (frame.seq, frame.seq))
+                spans[frame.chain] = (min(low, frame.seq), max(high, frame.seq))
+            log.warning("%s: took back %d result(s) held before the restart (%s); they go to their sink once "
+                        "it is in reach", self.node, len(frames),
+                        ", ".join(f"{c} seq {low}-{high}" for c, (low, high) in sorted(spans.items())))
 
     def flush_held_outputs(self) -> None:
         if not self.held_outputs or self.network is None:

@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from autopower.agent.kept_store import KeptStore
+from autopower.agent.held_store import HeldStore
 from autopower.agent.node import NodeRuntime
 from autopower.agent.resume import ResumeFile
 from autopower.agent.stages import Lifecycle
@@ -113,7 +113,7 @@ class Agent:
         self.runtime.in_sight = self.relayer.direct.__contains__  # what it may forward on arrival
         self.resume = ResumeFile(self.config.resume_path) if self.config.resume_path else None
         if self.resume is not None:
-            self.runtime.kept_store = KeptStore(self.resume.path.with_name(f"{robot}.kept"))
+            self.runtime.held_store = HeldStore(self.resume.path.with_name(f"{robot}.held"))
             self.runtime.resume_from = self.resume.load()
             self.runtime.on_produced = lambda r: self.resume.note_source(r.chain.name, r.run, r.seq, r.missed,
                                                                          r.produced_total, r.missed_stopped)
@@ -135,8 +135,8 @@ class Agent:
             self.runtime.close_workers()
         if self.resume is not None:
             self.resume.close()
-        if self.runtime is not None and self.runtime.kept_store is not None:
-            self.runtime.kept_store.close()
+        if self.runtime is not None and self.runtime.held_store is not None:
+            self.runtime.held_store.close()
         for handle in reversed(self._handles):
             handle.close()
         self._handles.clear()
@@ -453,7 +453,7 @@ class Agent:
         self._bus.publish(self.keys.plan, encode(update))
 
     def save_resume(self) -> None:
-        self.runtime.settle_kept()
+        self.runtime.settle_held_store()
         state = self.runtime.resume_state() if self.resume is not None else None
         if state is not None:
             self.resume.save(state)

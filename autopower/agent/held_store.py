@@ -1,24 +1,21 @@
-"""The small frames a robot keeps in custody, on disk too, so a crash of its process loses none.
+"""Results a robot holds for a sink out of its reach, kept on disk so a crash does not lose them.
 
-Every frame a node produces stays in its custody (`autopower.agent.custody`) until its consumer
-acknowledges it: a source's input for the next stage, a stage's output, the results it holds for
-a sink out of its reach. That lived only in memory: a robot killed while cut off lost all of it
-(random faults, seed 3: 532 Blob-2 results held by r2 for the base station, and 159 Loc-2 scans r2
-kept for a stage on a robot it could not reach). So each frame of at most `MAX_KEPT_BYTES` is
-appended here as it enters custody, and a restarted process of the same mission takes them back
-into custody (`NodeRuntime.take_back_kept`), from where the consumers' reports get them resent.
-Camera frames (230 kB) are not written: what a stage had not run yet at the kill is lost, like
-the data of a sensor that was switched off.
+A robot cut off from a chain's sink holds the chain's results (`NodeRuntime.hold_output`, at
+most `agent.stages.HELD_OUTPUT_LIMIT`) until the sink is back. They lived only in memory: a
+robot killed while cut off lost all of them (random faults, seed 3: 532 Blob-2 results lost when
+r2 was SIGKILLed during a base-station outage). So each held result is appended here as it is
+held, and a restarted process of the same mission takes them back (`load`), holds them again
+and sends them once the sink is in reach; custody then keeps them until the sink acknowledges.
 
 The file is a journal: a header line naming the mission (its `resume.mission_key`), then one
-record per frame: its length (4 bytes, little-endian) and the encoded `ChainFrame`. An append is
-one ``write`` (~10 us); a kill leaves whole records and at most one torn last record, which is
-skipped. Frames their consumers acknowledged are dropped by rewriting the file with those still
-kept (`rewrite`, to a temporary file renamed over it) once most of it is done with, and it is
-emptied when none is (`NodeRuntime.settle_kept`, at status ticks). Written 0600 beside the resume
-state, in a 0700 directory.
+record per held result: its length (4 bytes, little-endian) and the encoded `ChainFrame`. An
+append is one ``write``; a kill leaves whole records and at most one torn last record, which is
+skipped. Results the sink acknowledged are dropped by rewriting the file with those still at risk
+(`rewrite`, to a temporary file renamed over it) when most of it is done with, and it is emptied
+when none is. Written 0600 beside the resume state. Results are small (a pose, a list of blobs),
+and only held results are written: the camera frames in custody are not.
 
-A file that cannot be read is reported and ignored: the robot then starts with nothing kept, as
+A file that cannot be read is reported and ignored: the robot then starts with nothing held, as
 it did before this existed. Nothing here raises.
 """
 
@@ -37,10 +34,9 @@ log = logging.getLogger(__name__)
 
 _LENGTH = struct.Struct("<I")
 MAX_RECORD_BYTES = 64 * 2**20  # a length above this is garbage (a frame's payload is bounded the same way)
-MAX_KEPT_BYTES = 64 * 1024  # frames with a larger payload (camera images) are kept in memory only
 
 
-class KeptStore:
+class HeldStore:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self._tmp = self.path.with_name(self.path.name + ".tmp")
@@ -50,20 +46,20 @@ class KeptStore:
         self.failed = False
 
     def load(self, mission: dict) -> list[ChainFrame]:
-        """The frames a crashed process of this mission kept (oldest first); [] for another mission."""
+        """The results a crashed process of this mission held (oldest first); [] for another mission."""
         try:
             data = self.path.read_bytes()
         except FileNotFoundError:
             return []
         except OSError as exc:
-            log.warning("kept frames %s unreadable (%s); starting with none", self.path, exc)
+            log.warning("held results %s unreadable (%s); starting with none held", self.path, exc)
             return []
         header, sep, body = data.partition(b"\n")
         try:
             if not sep or json.loads(header) != {"version": 1, "mission": mission}:
                 return []  # another mission's (or not ours): nothing to carry on
         except (ValueError, UnicodeDecodeError):
-            log.warning("kept frames %s have no valid header; starting with none", self.path)
+            log.warning("held results %s have no valid header; starting with none held", self.path)
             return []
         frames, offset = [], 0
         while offset + _LENGTH.size <= len(body):
@@ -75,11 +71,11 @@ class KeptStore:
             try:
                 frames.append(decode(record, ChainFrame))
             except ProtocolError as exc:
-                log.warning("kept frames %s: a damaged record skipped (%s)", self.path, exc)
+                log.warning("held results %s: a damaged record skipped (%s)", self.path, exc)
         return frames
 
     def append(self, mission: dict, frame: ChainFrame) -> None:
-        """One frame entered custody (one ``write``)."""
+        """One result held now (one ``write``)."""
         if self.failed:
             return
         try:
@@ -92,7 +88,7 @@ class KeptStore:
             self._fail(exc)
 
     def rewrite(self, mission: dict, frames: list[ChainFrame]) -> None:
-        """Keep only ``frames`` (those not acknowledged yet): the file replaced atomically, or emptied."""
+        """Keep only ``frames`` (those still at risk): the file replaced atomically, or emptied."""
         if self.failed:
             return
         try:
@@ -119,7 +115,7 @@ class KeptStore:
 
     def _fail(self, exc: OSError) -> None:
         self.failed = True
-        log.warning("kept frames not written to %s (%s): a crash would lose what this robot keeps", self.path, exc)
+        log.warning("held results not written to %s (%s): a crash would lose what this robot holds", self.path, exc)
 
     def close(self) -> None:
         if self._fd is not None:
