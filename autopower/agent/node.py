@@ -235,7 +235,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                     self.send_frame(frame, host)
         self._sync_sources()
         for chain in {hop[0] for hop in self.custody.hops} - set(plan.running) - self.running_flows():
-            self.custody.forget_chain(chain)  # stopped: nobody will consume its frames
+            stopped = self.chains.get(chain)  # nobody will consume the frames for its stages; its sink
+            results = len(stopped.stages) if stopped is not None and stopped.sink else None  # takes results
+            self.custody.forget_chain(chain, keep_target=results)
         parked, self.parked_transfers = self.parked_transfers, []
         for dest, body, chain in parked:
             self.send_routed(dest, body, len(body), 1.0, "migration", chain)

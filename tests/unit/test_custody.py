@@ -8,6 +8,8 @@ and that it is the consumers' reports that bring the frames back.
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -587,3 +589,27 @@ def test_a_result_a_full_hold_lets_go_leaves_custody_too():
     assert len(r2.custody) == before + HELD_OUTPUT_LIMIT  # the three dropped ones are not held any more
     assert r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
     assert r2.custody.evicted == 0  # counted once, as held-outputs-dropped
+
+
+def test_a_stopped_chains_results_stay_in_custody_until_its_sink_has_them():
+    """Random faults, seed 4: the base station lost r2 for a moment and stopped its chains; r2 got
+    that plan (relayed) and dropped the chain's frames from custody, results included, as
+    acknowledged. Adopted again in the same run a second later, the chain went on, but the results
+    that had been lost in flight were never resent (14 Blob-2 results at a time). The frames for
+    its stages go (no instance will take them); its results stay until its sink has them."""
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, pins={"Blob-2": "r2"}, auto_replan=False))
+    team.join()
+    team.run_until(5.0)
+    r2 = team.nodes["r2"]
+    result = ChainFrame(chain="Blob-2", run=0, seq=50_000, target=1, t_virtual=0.0, t_unix=0.0, payload_len=0,
+                        payload=b"")
+    camera = ChainFrame(chain="Blob-2", run=0, seq=50_000, target=0, t_virtual=0.0, t_unix=0.0, payload_len=0,
+                        payload=b"")
+    r2.custody.keep(result, r2.wall())  # lost in flight to the laptop
+    r2.custody.keep(camera, r2.wall())
+    running = {c: r for c, r in r2.plan.running.items() if c != "Blob-2"}
+    stopped = dataclasses.replace(r2.plan, epoch=r2.plan.epoch + 1, running=running)
+    r2.on_plan(stopped)
+    assert (0, 50_000) in r2.custody.hops[("Blob-2", 1)]  # the result waits for its sink
+    assert (0, 50_000) not in r2.custody.hops.get(("Blob-2", 0), {})  # the input has no consumer
