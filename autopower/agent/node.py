@@ -234,9 +234,15 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                 for frame in frames:
                     self.send_frame(frame, host)
         self._sync_sources()
-        for chain in {hop[0] for hop in self.custody.hops} - set(plan.running) - self.running_flows():
-            stopped = self.chains.get(chain)  # nobody will consume the frames for its stages; its sink
-            results = len(stopped.stages) if stopped is not None and stopped.sink else None  # takes results
+        for chain in ({hop[0] for hop in self.custody.hops} - set(plan.running) - self.running_flows()) \
+                & set(plan.operator.disabled):
+            # Stopped by the operator (or a failed component): nobody will consume the frames for its
+            # stages; its sink still takes its results. A chain stopped because the base station lost
+            # a robot for a moment keeps all of them: it is adopted again in the same run when the
+            # robot is back, and what was lost in flight meanwhile is then resent (acknowledgements,
+            # a newer run or custody's age limit clear the rest).
+            stopped = self.chains.get(chain)
+            results = len(stopped.stages) if stopped is not None and stopped.sink else None
             self.custody.forget_chain(chain, keep_target=results)
         parked, self.parked_transfers = self.parked_transfers, []
         for dest, body, chain in parked:

@@ -596,7 +596,8 @@ def test_a_stopped_chains_results_stay_in_custody_until_its_sink_has_them():
     that plan (relayed) and dropped the chain's frames from custody, results included, as
     acknowledged. Adopted again in the same run a second later, the chain went on, but the results
     that had been lost in flight were never resent (14 Blob-2 results at a time). The frames for
-    its stages go (no instance will take them); its results stay until its sink has them."""
+    its stages go only when the operator stopped it (no instance will take them); its results stay
+    until its sink has them."""
     sc = load_scenario("paper-fig7")
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, pins={"Blob-2": "r2"}, auto_replan=False))
     team.join()
@@ -609,7 +610,11 @@ def test_a_stopped_chains_results_stay_in_custody_until_its_sink_has_them():
     r2.custody.keep(result, r2.wall())  # lost in flight to the laptop
     r2.custody.keep(camera, r2.wall())
     running = {c: r for c, r in r2.plan.running.items() if c != "Blob-2"}
-    stopped = dataclasses.replace(r2.plan, epoch=r2.plan.epoch + 1, running=running)
-    r2.on_plan(stopped)
-    assert (0, 50_000) in r2.custody.hops[("Blob-2", 1)]  # the result waits for its sink
-    assert (0, 50_000) not in r2.custody.hops.get(("Blob-2", 0), {})  # the input has no consumer
+    lost_robot = dataclasses.replace(r2.plan, epoch=r2.plan.epoch + 1, running=running)
+    r2.on_plan(lost_robot)  # stopped because the base station lost r2: adopted again when it is back
+    assert (0, 50_000) in r2.custody.hops[("Blob-2", 1)] and (0, 50_000) in r2.custody.hops[("Blob-2", 0)]
+    operator = dataclasses.replace(lost_robot, epoch=lost_robot.epoch + 1,
+                                   operator=dataclasses.replace(lost_robot.operator, disabled=("Blob-2",)))
+    r2.on_plan(operator)  # stopped by the operator: its stages' frames have no consumer any more
+    assert (0, 50_000) in r2.custody.hops[("Blob-2", 1)]  # the result still waits for its sink
+    assert (0, 50_000) not in r2.custody.hops.get(("Blob-2", 0), {})
