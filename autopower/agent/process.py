@@ -337,9 +337,9 @@ class Agent:
         Without it the robot idled (no plan: no mission clock, no sources, no subgroup) until the
         base station came back, however long that took; its peers went on without its chains
         (random faults: a robot restarted during a base-station outage). Its battery and sources go
-        on from the resume state as they would on the base station's plan, and the subgroup rounds
-        that follow place its stages among the robots in reach. The base station's next plan
-        (a higher epoch, or a higher incarnation after a takeover) replaces it.
+        on from the resume state as they would on the base station's plan, it hosts again what the
+        plan puts on it, and the subgroup rounds that follow count it in. The base station's next
+        plan (a higher epoch, or a higher incarnation after a takeover) replaces it.
         """
         rt = self.runtime
         if (self._resumed_alone or self.relayer.reachable(self.config.scenario.basestation)
