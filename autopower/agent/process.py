@@ -19,6 +19,7 @@ from pathlib import Path
 from autopower.agent.held_store import HeldStore
 from autopower.agent.node import NodeRuntime
 from autopower.agent.resume import ResumeFile
+from autopower.agent.sink_store import SinkStore
 from autopower.agent.stages import Lifecycle
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
@@ -114,6 +115,9 @@ class Agent:
         self.resume = ResumeFile(self.config.resume_path) if self.config.resume_path else None
         if self.resume is not None:
             self.runtime.held_store = HeldStore(self.resume.path.with_name(f"{robot}.held"))
+            # a robot is the sink of its own chains (Loc-*): a restarted one must not take the
+            # results its producers resend (their acknowledgements were lost) for new ones
+            self.runtime.sink_store = SinkStore(self.resume.path.with_name(f"{robot}.sinks.json"))
             self.runtime.resume_from = self.resume.load()
             self.runtime.on_produced = lambda r: self.resume.note_source(r.chain.name, r.run, r.seq, r.missed,
                                                                          r.produced_total, r.missed_stopped)
@@ -135,8 +139,10 @@ class Agent:
             self.runtime.close_workers()
         if self.resume is not None:
             self.resume.close()
-        if self.runtime is not None and self.runtime.held_store is not None:
-            self.runtime.held_store.close()
+        if self.runtime is not None:
+            for store in (self.runtime.held_store, self.runtime.sink_store):
+                if store is not None:
+                    store.close()
         for handle in reversed(self._handles):
             handle.close()
         self._handles.clear()
@@ -478,6 +484,8 @@ class Agent:
             return False
         if save_resume:
             self.save_resume()
+        if rt.sink_store is not None:  # the outputs this status acknowledges are kept first (as the base station's)
+            rt.sink_store.commit()
         key, payload = self.keys.status(self.config.robot), encode(status)
         self._bus.publish(key, payload, reliable=False)
         self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,

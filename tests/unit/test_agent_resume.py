@@ -185,3 +185,35 @@ def test_a_stage_follows_the_plans_newer_run_of_its_chain():
     sink = team.nodes["laptop"].sinks["Blob-3"]
     assert sink.run == 1 and sink.received > 5, (sink.run, sink.received, received)
     assert "stale-run" not in r3.errors
+
+
+def test_a_restarted_robot_sink_does_not_take_a_resent_result_for_a_new_one(tmp_path):
+    """Random faults, seed 10: r3, the sink of its own Loc-3, was killed; the robot whose Loc-3
+    stage had sent it result 94 had not had the acknowledgement (a cut), resent it to the restarted
+    r3, and r3's empty ledger handed it on as new: recorded twice. Robots keep their sinks' ledgers
+    on disk as the base station does (`agent.sink_store`), committed before each status."""
+    from autopower.agent.sink_store import SinkStore
+    from autopower.basestation.coordinator import CoordinatorConfig
+    from autopower.protocol import ChainFrame
+
+    team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, pins={"Loc-3": "r1"},
+                                                                          auto_replan=False))
+    team.join()
+    old = team.nodes["r3"]
+    old.sink_store = SinkStore(tmp_path / "r3.sinks.json")
+    team.run_until(30.0)
+    ledger = old.sinks["Loc-3"]
+    assert ledger.received > 3
+    old.sink_store.commit()  # what `AgentProcess.publish_status` does before each status
+    saved = old.resume_state()
+    rt = NodeRuntime(node="r3", scenario=team.scenario, bus=team.hub.bus("r3-again"), keys=team.keys,
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
+    rt.sink_store = SinkStore(tmp_path / "r3.sinks.json")
+    rt.resume_from = saved
+    rt.on_plan(old.plan)
+    outputs = []
+    rt.on_output = lambda chain, run, seq, data: outputs.append(seq)
+    resent = ChainFrame(chain="Loc-3", run=ledger.run, seq=ledger.contiguous - 1, target=1, t_virtual=0.0,
+                        t_unix=0.0, payload_len=0, payload=b"", attempt=1)
+    rt.deliver_frame(resent, 0)
+    assert outputs == [] and rt.sinks["Loc-3"].redundant_total == 1
