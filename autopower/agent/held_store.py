@@ -104,10 +104,10 @@ class HeldStore:
             for frame in frames:
                 record = encode(frame)
                 os.write(fd, _LENGTH.pack(len(record)) + record)
+            os.replace(self._tmp, self.path)
         except OSError:
-            os.close(fd)
+            os.close(fd)  # a failed write or rename must not leak the descriptor
             raise
-        os.replace(self._tmp, self.path)
         if self._fd is not None:
             os.close(self._fd)
         os.lseek(fd, 0, os.SEEK_END)

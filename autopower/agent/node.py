@@ -39,12 +39,12 @@ from autopower.agent.acknowledging import Acknowledging
 from autopower.agent.custody import Custody
 from autopower.agent.frames import Frames
 from autopower.agent.guard import ComponentHung, GuardedCalls
+from autopower.agent.held_store import HeldStore
 from autopower.agent.hosting import Hosting
 from autopower.agent.joining import Joining
 from autopower.agent.meter import BatteryMeter
 from autopower.agent.relaying import Relaying
 from autopower.agent.sequencing import SinkLedger
-from autopower.agent.held_store import HeldStore
 from autopower.agent.sink_store import SinkStore
 from autopower.agent.stages import (
     HELD_OUTPUT_LIMIT,
@@ -406,9 +406,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             scenario = apply_levels(self.scenario, dict(plan.levels)) if plan.levels else self.scenario
             scenario, _ = effective_scenario(scenario, self.network)
             placement = {s: n for s, n in (plan.placement if placement is None else placement).items() if s in self.stage_index}
-            active = {self.stage_index[s][0].name for s in placement} & set(plan.running)
-            placement = {s: n for s, n in placement.items() if self.stage_index[s][0].name in active}
-            active -= _unroutable(scenario, self.network, placement)
+            active = ({self.stage_index[s][0].name for s in placement} & set(plan.running)) \
+                - _unroutable(scenario, self.network, placement)
             placement = {s: n for s, n in placement.items() if self.stage_index[s][0].name in active}
             disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
             ev = evaluate(scenario, self.network, placement, accounting=plan.mission.accounting,
