@@ -87,7 +87,7 @@ class Agent:
         self._base_lost_at: float | None = None
         self._started_unix = time.time()  # a restarted agent waits for a plan from then (`_resume_alone`)
         self._resumed_alone = False
-        self._subgroup_done: tuple | None = None  # (members, epoch) already handled
+        self._subgroup_done: tuple | None = None  # (members, plan order, where stages run) handled
         self._subgroup_retry_at = 0.0  # after an aborted round: not before fresh statuses are in
         self._heard_direct: dict[str, float] = {}  # node -> wall time of its last status received directly
         self._tokens: set[str] = set()  # nodes whose liveliness token we see
@@ -300,9 +300,16 @@ class Agent:
             return
         robots = [r.name for r in cfg.scenario.robots]
         members = tuple(sorted({cfg.robot} | {r for r in robots if self.relayer.reachable(r)}))
-        key = (members, rt.plan_order)
         if (now - self._base_lost_at < cfg.subgroup_settle_s or members[0] != cfg.robot
-                or self.agreement.busy or self._subgroup_done == key or now < self._subgroup_retry_at):
+                or self.agreement.busy or now < self._subgroup_retry_at):
+            return
+        running = self._running_placement(members)
+        # The same members and plan are not the same situation: another leader's round (rounds keep
+        # the epoch) may have moved a stage out of this subgroup since ours, to a robot cut off
+        # since. Keyed on members and plan alone, that stage was never restarted (random faults,
+        # seed 3: 159 scans lost). Where the stages run is part of what a round handled.
+        key = (members, rt.plan_order, tuple(sorted(running.items())))
+        if self._subgroup_done == key:
             return
         self._subgroup_done = key
         from autopower.policies import subgroup_reallocation
@@ -310,12 +317,17 @@ class Agent:
         network = rt.network
         for r in robots:
             network = network.without_link(r, base) if network.medium_between(r, base) else network
+        # a robot out of reach is cut off from every member (it would be a member through one that
+        # reached it): a stage it runs for a member's chain is stranded there, as on the laptop
+        for r in robots:
+            for m in members if r not in members else ():
+                network = network.without_link(r, m) if network.medium_between(r, m) else network
         energies = {}
         for r in members:
             battery = rt.meter.battery_j if r == cfg.robot else getattr(self.statuses.get(r), "battery_j", None)
             energies[r] = max(1e-6, battery) if battery is not None else cfg.scenario.robot(r).energy_j
         try:
-            proposal = subgroup_reallocation(cfg.scenario, network, members, self._running_placement(members), energies,
+            proposal = subgroup_reallocation(cfg.scenario, network, members, running, energies,
                                              accounting=rt.mission.accounting)
         except Exception as exc:  # a decision that cannot be made must not stop the robot
             log.warning("agent %s: subgroup %s: no reallocation: %s", cfg.robot, ",".join(members), exc)

@@ -191,3 +191,56 @@ def test_statuses_waiting_in_the_queue_are_taken_before_anyone_is_called_silent(
     assert not r1._silent
     r1._check_silence(time.time() + 5.0)  # and a real silence is still seen once the queue is empty
     assert r1._silent == {"r2", "r3"}
+
+
+def cut(agents: dict[str, Agent], who: str, others) -> None:
+    for other in others:
+        agents[who].relayer.on_liveliness(other, False)
+        agents[who].runtime.on_liveliness(other, False)
+
+
+def test_a_leader_runs_a_new_round_when_a_stage_moved_out_of_its_subgroup_since_its_last_one(team):
+    """Random faults, seed 3: r2 led a round with r3; r1 then led one that moved Loc-2 from r2 to
+    r1, and was cut off. The members (r2, r3) and the plan's order (rounds keep the epoch) were
+    those of r2's first round again, so r2 took the situation as handled: nobody ran Loc-2 and its
+    scans waited in r2's custody until they died with it (159 lost)."""
+    hub, agents, _ = team
+    r2 = agents["r2"]
+    # the laptop and r1 out of r2's and r3's reach: r2 leads a round with r3
+    for robot in ("r2", "r3"):
+        cut(agents, robot, ["r1"])
+    cut(agents, "r1", ["r2", "r3"])
+    for robot in ("r2", "r3"):
+        agents[robot].publish_status()
+    drain(hub, agents)
+    assert not r2.relayer.reachable("r1")
+    r2._subgroup_tick()
+    r2._subgroup_tick()
+    assert r2.agreement.counter == 1, "r2 proposed no round"
+    drain(hub, agents)
+    assert running(agents).get("Loc-2") == ["r2"]
+
+    # r1 back in reach of both; a round r1 leads moves Loc-2 from r2 to r1
+    for robot in ROBOTS:
+        see(agents, robot, [r for r in ROBOTS if r != robot])
+    for agent in agents.values():
+        agent.publish_status()
+    drain(hub, agents)
+    move = (SubgroupMove(stage="Loc-2", from_node="r2", to_node="r1"),)
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, move, int(time.time() * 1000), "to r1")
+    drain(hub, agents)
+    assert running(agents).get("Loc-2") == ["r1"]
+
+    # r1 is cut off again: r2 and r3 are the members of r2's first round once more
+    for robot in ("r2", "r3"):
+        cut(agents, robot, ["r1"])
+        agents[robot].publish_status()
+    drain(hub, agents)
+    assert not r2.relayer.reachable("r1")
+    r2._subgroup_tick()
+    assert r2.agreement.counter == 2, "r2 took the situation for the one its first round handled"
+    drain(hub, agents)
+    # the members run Loc-2 again, once (r1, cut off, still runs its own instance in its partition)
+    members_run = [h for h in running(agents)["Loc-2"] if h != "r1"]
+    assert len(members_run) == 1, running(agents)
+    assert all(agents[r].runtime.plan.placement["Loc-2"] == members_run[0] for r in ("r2", "r3"))
