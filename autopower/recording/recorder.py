@@ -208,6 +208,7 @@ class Recorder:
             self.keys = Keys(team)
         self._clock = clock
         self._mission = None  # MissionInfo from the first PlanUpdate
+        self._runtime = None  # the NodeRuntime `attach` records the outputs of
         self._lock = threading.RLock()
         self.flush_every_s = flush_every_s
         self.visual_every_s = visual_every_s
@@ -256,6 +257,9 @@ class Recorder:
         """Record every output reaching `runtime` (a `NodeRuntime`) as its chain's sink, and every
         result its full hold lets go."""
         runtime.on_held_dropped = self.on_held_dropped
+        # the mission clock of a runtime that started without a plan on the bus (a robot restarted
+        # out of the base station's reach goes on with its saved plan): its outputs were logged at 0
+        self._runtime = runtime
         previous = getattr(runtime, "on_output", None)
         if previous is None:
             runtime.on_output = self.on_output
@@ -272,7 +276,8 @@ class Recorder:
             return float(self._clock())
         m = self._mission
         if m is None:
-            return 0.0
+            clock = getattr(self._runtime, "clock", None)
+            return max(0.0, float(clock.now())) if clock is not None else 0.0
         return max(0.0, (time.time() - m.epoch_unix) * m.speed)
 
     # ---- entry points (called from the bus wrapper; each catches everything) -------------------------

@@ -594,7 +594,10 @@ def _outputs(rec: Recording) -> dict[str, Any]:
     custody = {what: sum(_counter_total(times, values) for e, (times, values) in rec.scalars.items()
                          if e.startswith("custody/") and e.endswith(f"/{what}"))
                for what in ("resent", "evicted", "held_dropped")}
-    held = sum(len(d) for d in dropped_of.values()) if dropped_of else int(custody["held_dropped"])
+    # a seq logged as let go that reached the sink all the same is no drop (a restarted robot logs
+    # again every result its journal had past what it takes back, acknowledged ones included)
+    held = (sum(len(d - set(seqs_of.get(k, ()))) for k, d in dropped_of.items()) if dropped_of
+            else int(custody["held_dropped"]))
     return {"recorded": bool(chains), "lost": lost_all, "duplicated": dup_all,
             "resent": int(custody["resent"]), "given_up": int(custody["evicted"]),
             "held_dropped": held, "held_dropped_known": bool(dropped_of), "chains": dict(sorted(chains.items()))}

@@ -56,6 +56,7 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     team.run_until(20.0)
     old = team.nodes["r2"]
     old.held_store = HeldStore(tmp_path / "r2.held")
+    old.on_held_dropped = lambda chain, run, seq: None  # logged into a recording batch the kill loses
     results = [_result(100_000 + i) for i in range(HELD_OUTPUT_LIMIT + 4)]
     for frame in results:  # as `Frames.emit` and `send_routed` do with the sink out of reach
         old.custody.keep(frame, old.wall(), sent=False)
@@ -69,7 +70,11 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     rt.wall = team.clock.wall
     rt.held_store = HeldStore(tmp_path / "r2.held")
     rt.resume_from = saved
+    logged = []
+    rt.on_held_dropped = lambda chain, run, seq: logged.append((chain, run, seq))
     rt.on_plan(old.plan)
+    # the four the crashed process let go are in its journal: the new one logs them as let go
+    assert logged == [("Blob-2", 0, f.seq) for f in results[:4]]
     team.pump()
     sink = team.nodes["laptop"].sinks["Blob-2"]
     delivered = {f.seq for f in results if f.seq < sink.contiguous or f.seq in sink.above}

@@ -276,7 +276,9 @@ def test_the_replay_tells_results_a_full_hold_dropped_from_lost_ones(tmp_path):
     for seq in (*range(0, 5), *range(605, 610)):
         t[0] += 0.1
         sink.on_output("Blob-2", 0, seq, b"")
-    for seq in (*range(5, 602), 700):  # 602-604 were not dropped: lost; 700 is past the last delivered
+    # 602-604 were not dropped: lost; 700 is past the last delivered; 606 reached the sink (a
+    # restarted robot logs every result of its journal it does not take back, acknowledged or not)
+    for seq in (*range(5, 602), 700, 606):
         runtime.on_held_dropped("Blob-2", 0, seq)
     sink.close()
     robot.close()
@@ -287,3 +289,23 @@ def test_the_replay_tells_results_a_full_hold_dropped_from_lost_ones(tmp_path):
     inv = next(i for i in s["invariants"] if i["name"] == "every output exactly once at its sink")
     assert inv["ok"] is False and inv["detail"].startswith("3 lost, 0 duplicated over 10 outputs (besides 598 dropped")
     assert "3 lost" in render_text(s) and "598 more dropped by robots" in render_text(s)
+
+
+def test_outputs_of_a_runtime_that_started_without_a_plan_on_the_bus_get_its_mission_time(tmp_path):
+    """A robot restarted out of the base station's reach goes on with its saved plan: no plan
+    crosses its bus, so its recorder knew no mission and logged every output at t = 0 (random
+    faults, seed 3: the Loc outputs of three restarted robots, all at the mission's start)."""
+    from autopower.runtime.clock import ManualClock
+
+    run_dir = tmp_path / "run-4"
+    robot = Recorder.open(run_dir, "r1")
+    runtime = SimpleNamespace(on_output=None, clock=None)
+    robot.attach(runtime)
+    robot.telemetry.battery(0.0, "r1", 100.0)
+    robot.on_output("Loc-1", 0, 0, b"")  # before the runtime has a clock: 0, as before
+    runtime.clock = ManualClock(t=478.5)
+    robot.on_output("Loc-1", 0, 1, b"")
+    robot.telemetry.battery(480.0, "r1", 90.0)
+    robot.close()
+    times, values = load(merge_run(run_dir)).scalars["components/Loc-1/run/0/seq"]
+    assert sorted(zip(values, times)) == [(0.0, 0.0), (1.0, 478.5)]
