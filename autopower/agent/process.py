@@ -293,13 +293,15 @@ class Agent:
         base = cfg.scenario.basestation
         if self.relayer.reachable(base):
             self._base_lost_at = None
+            self._model_out_of_reach(frozenset())
             return
+        robots = [r.name for r in cfg.scenario.robots]
+        members = tuple(sorted({cfg.robot} | {r for r in robots if self.relayer.reachable(r)}))
+        self._model_out_of_reach(frozenset({base, *robots}) - set(members))
         now = time.time()
         if self._base_lost_at is None:
             self._base_lost_at = now
             return
-        robots = [r.name for r in cfg.scenario.robots]
-        members = tuple(sorted({cfg.robot} | {r for r in robots if self.relayer.reachable(r)}))
         if (now - self._base_lost_at < cfg.subgroup_settle_s or members[0] != cfg.robot
                 or self.agreement.busy or now < self._subgroup_retry_at):
             return
@@ -348,6 +350,14 @@ class Agent:
         # above any generation the base station handed out; it jumps past these when it returns
         generation = int(time.time() * 1000)
         self.agreement.propose(members, placement, moves, generation, "; ".join(proposal.reasons[:1]))
+
+    def _model_out_of_reach(self, nodes: frozenset[str]) -> None:
+        """Price the model without the nodes out of reach; a changed figure goes out at once."""
+        rt = self.runtime
+        model_w = rt.model_w
+        rt.set_out_of_reach(nodes)
+        if rt.model_w != model_w:
+            self.publish_status()
 
     def _resume_alone(self) -> None:
         """Restarted while the base station is out of reach: go on with the plan this robot ran.

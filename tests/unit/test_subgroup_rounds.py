@@ -232,10 +232,20 @@ def test_a_leader_runs_a_new_round_when_a_stage_moved_out_of_its_subgroup_since_
     assert running(agents).get("Loc-2") == ["r1"]
 
     # r1 is cut off again: r2 and r3 are the members of r2's first round once more
+    r1 = agents["r1"]
     for robot in ("r2", "r3"):
         cut(agents, robot, ["r1"])
         agents[robot].publish_status()
+    cut(agents, "r1", ["r2", "r3"])
     drain(hub, agents)
+    # r1's model no longer counts Loc-2: its scans cannot reach it (they go to r2's own instance)
+    r1._subgroup_tick()
+    assert r1.runtime.out_of_reach == {"laptop", "r2", "r3"}
+    assert r1.runtime.plan.placement["Loc-2"] == "r1"
+    without = r1.runtime.predict_power({**r1.runtime.plan.placement, "Loc-2": "r2"})["r1"]
+    assert r1.runtime.model_w == pytest.approx(without)
+    r1.runtime.out_of_reach = frozenset({"laptop"})  # had r2 been in reach, Loc-2 would count
+    assert r1.runtime.predict_power()["r1"] > without + 0.1
     assert not r2.relayer.reachable("r1")
     r2._subgroup_tick()
     assert r2.agreement.counter == 2, "r2 took the situation for the one its first round handled"
