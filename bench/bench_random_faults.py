@@ -153,6 +153,7 @@ def main() -> None:
         s = json.loads(replay.stdout)
         result.update(recording=str(recordings[-1]), lost=s["lost_outputs"], duplicated=s["duplicated_outputs"],
                       held_dropped=s["outputs"].get("held_dropped", 0),
+                      died_with_process=s["outputs"].get("died_with_process", 0),
                       energy_model_error_pct=s["energy_model_error_pct"],
                       energy_error_pct_per_robot={r: v["error_pct"] for r, v in s["energy"]["per_robot"].items()},
                       failed_invariants=[i for i in s["invariants"] if i["ok"] is False])
@@ -165,7 +166,8 @@ def main() -> None:
     print(f"up exited with {up_exit}; logs and recording in {workdir}")
     if recordings:
         print(f"replay: {result['lost']} lost (besides {result['held_dropped']} a robot cut off from their sink "
-              "let go from its full hold, by design), "
+              f"let go from its full hold, by design, and {result['died_with_process']} of a robot's own chain "
+              "that died with its crashed process), "
               f"{result['duplicated']} duplicated; energy vs model {result['energy_model_error_pct']:+.2f} % "
               f"(per robot {', '.join(f'{r} {v:+.1f}' for r, v in result['energy_error_pct_per_robot'].items())})")
         for inv in result["failed_invariants"]:

@@ -77,6 +77,8 @@ from autopower.runtime.bus import Bus
 from autopower.runtime.clock import Clock, VirtualClock
 
 log = logging.getLogger(__name__)
+# the wall time a crash can take frames with it: a status period (the sink's commit) and its delay
+DIED_WITH_PROCESS_S = 2.0
 
 # A restarted agent goes on alone with the plan it ran (`NodeRuntime.saved_plan`) only if that was
 # saved this recently: a crash is restarted within seconds (up's supervisor, systemd's RestartSec);
@@ -142,6 +144,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # every result this node's full hold let go (chain, run, seq): the recording tells these
         # outputs, lost by design, from lost ones (`autopower.recording.replay`)
         self.on_held_dropped: Callable[[str, int, int], None] | None = None
+        # a seq of a chain sourced and sunk here that died with the crashed process (`_died_with_process`)
+        self.on_died_with_process: Callable[[str, int, int], None] | None = None
         # where a restarted process carries on (`autopower.agent.resume`): its saved state, applied
         # at the first plan of the same mission; and who to tell when a source advanced
         self.resume_from: dict | None = None
@@ -296,12 +300,45 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.source_totals.update(sources)
         self.resumed = True
         self._take_back_held(mission)
+        self._died_with_process(sources, mission)
         # what `advance` charges for the time we were down (the robot drew idle current, radios asleep)
         self.down = (meter.t, 0.0 if meter.mains else meter.platform.idle_w + sum(
             self.scenario.radios[m].sleep_w for m in meter.media))
         log.warning("%s: resumed after a restart: battery %.1f J (consumed %.1f J up to t=%.1f s), sources %s",
                     self.node, meter.battery_j if not meter.mains else float("nan"), meter.consumed_j, meter.t,
                     {n: s["seq"] for n, s in saved.get("sources", {}).items()} or "none")
+
+    def _died_with_process(self, sources: dict[str, SourceStats], mission: MissionInfo) -> None:
+        """Say which outputs of this robot's own chains (source and sink here) died with the crashed process.
+
+        A source notes each seq on disk before its frame leaves (`ResumeFile.note_source`), and the
+        sink notes what it delivered with each status (`SinkStore.commit`). A frame between the two
+        at the kill (in a stage's queue here, or its output delivered since the last status) existed
+        only in the process's memory: the restarted source goes on after it, and the sink never gets
+        it (random faults: one or two Loc outputs per crash). They are logged apart (as a full
+        hold's drops are), so the replay tells what a crash costs from what the team lost. Only the
+        tail after the last output the sink had committed counts, and only if it is short (a crash
+        explains a few periods, not an older gap: longer tails are left to count as lost).
+        """
+        for name, src in sources.items():
+            chain, ledger = self.chains.get(name), self.sinks.get(name)
+            if chain is None or chain.source != self.node or chain.sink != self.node or ledger is None \
+                    or ledger.run != src.run:
+                continue
+            first = max(ledger.contiguous, max(ledger.above, default=-1) + 1)
+            tail = range(first, src.produced)
+            if not tail:
+                continue
+            if len(tail) > DIED_WITH_PROCESS_S * mission.speed / chain.period_s + 2:
+                log.warning("%s: %s seq %d-%d never reached this sink before the restart; more than a crash "
+                            "explains: counted as lost", self.node, name, tail[0], tail[-1])
+                continue
+            self.tally("died-with-process", len(tail))
+            log.warning("%s: %s seq %d-%d died with the crashed process (in its memory only)", self.node, name,
+                        tail[0], tail[-1])
+            if self.on_died_with_process is not None:
+                for seq in tail:
+                    self.on_died_with_process(name, src.run, seq)
 
     def resume_state(self) -> dict | None:
         """What a restarted process needs to carry on (None before the mission starts)."""

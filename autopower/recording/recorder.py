@@ -143,6 +143,12 @@ def held_dropped_path(chain: str, run: int) -> str:
     return f"{component_path(chain, f'run/{int(run)}')}/held_dropped"
 
 
+def died_with_process_path(chain: str, run: int) -> str:
+    """Entity of a chain's outputs that died with a crashed process of their robot (source and sink
+    there, the frame in its memory only): one scalar (the seq) each, logged by the restarted process."""
+    return f"{component_path(chain, f'run/{int(run)}')}/died_with_process"
+
+
 def record_fault(telemetry: Telemetry, t_s: float, *, kind: str, target: str, phase: str = "injected",
                  reason: str = "", observer: str | None = None) -> None:
     """Log a fault event replay understands: `kind` (``cut``, ``kill``, ``freeze``, ``radio``,
@@ -257,6 +263,7 @@ class Recorder:
         """Record every output reaching `runtime` (a `NodeRuntime`) as its chain's sink, and every
         result its full hold lets go."""
         runtime.on_held_dropped = self.on_held_dropped
+        runtime.on_died_with_process = self.on_died_with_process
         # the mission clock of a runtime that started without a plan on the bus (a robot restarted
         # out of the base station's reach goes on with its saved plan): its outputs were logged at 0
         self._runtime = runtime
@@ -365,6 +372,12 @@ class Recorder:
         """A result this node held for a sink out of its reach was let go (hook for
         `NodeRuntime.on_held_dropped`): lost by design, and the replay says so."""
         self._guard("held-dropped", lambda: self.telemetry.scalar(held_dropped_path(chain, run), self.now(), seq))
+
+    def on_died_with_process(self, chain: str, run: int, seq: int) -> None:
+        """An output of this robot's own chain that died with its crashed process (hook for
+        `NodeRuntime.on_died_with_process`, called by the restarted one): the replay counts it apart."""
+        self._guard("died-with-process",
+                    lambda: self.telemetry.scalar(died_with_process_path(chain, run), self.now(), seq))
 
     def fault(self, *, kind: str, target: str, phase: str = "injected", reason: str = "") -> None:
         with self._lock:

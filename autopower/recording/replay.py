@@ -44,12 +44,14 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
                                        "overhead_j": {"migration": float, "recovery": float}}}},
       "outputs": {"recorded": bool,
-                  "lost": int,  # missing below the highest seq delivered, and not dropped by a hold
+                  "lost": int,  # missing below the highest seq delivered, not dropped by a hold, not died in a crash
                   "duplicated": int, "resent": int, "given_up": int,
                   "held_dropped": int,  # results robots cut off from the sink let go, their hold full
                   "held_dropped_known": bool,  # which seqs (else only counts: then "lost" includes them)
+                  "died_with_process": int,  # outputs of a robot's own chain that died with its crashed process
                   "chains": {chain: {"outputs": int, "distinct": int, "lost": int, "duplicated": int,
                                      "held_dropped": int,  # of its missing seqs, dropped by a hold
+                                     "died_with_process": int,  # of its missing seqs, died in a crash
                                      "runs": [int]}}},
       "quality": {chain: {metric: float}},          # measured quality, mean over the chain's outputs
                                                     # (blob recall, localisation error; see chains.variants)
@@ -83,6 +85,7 @@ from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGE
 
 _OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/seq$")
 _HELD_DROPPED = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/held_dropped$")
+_DIED = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/died_with_process$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
 _SIM_MOVE = re.compile(r"^(?P<stage>\S+): (?P<src>\S+) → (?P<dst>\S+),")
 _EPS = 1e-6
@@ -247,7 +250,9 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
                     + (f" (besides {outputs['held_dropped']} dropped by robots cut off from their sink, their "
                        "hold full: by design)" if outputs["held_dropped"] and outputs["held_dropped_known"]
                        else f" ({outputs['held_dropped']} dropped by robots cut off from their sink, their hold "
-                       "full)" if outputs["held_dropped"] else ""))
+                       "full)" if outputs["held_dropped"] else "")
+                    + (f" (besides {outputs['died_with_process']} of a robot's own chain that died with its "
+                       "crashed process, in its memory only)" if outputs["died_with_process"] else ""))
          if outputs["recorded"] else "no component outputs in this recording (simulations model, not run, them)"},
         {"name": "sinks counted no duplicate", "ok": (max(sink_dups) == 0) if sink_dups else None,
          "detail": f"max duplicates_total {max(sink_dups):.0f}" if sink_dups else "no sink counters recorded"},
@@ -554,40 +559,50 @@ def _quality(rec: Recording) -> dict[str, dict[str, float]]:
 
 
 def _outputs(rec: Recording) -> dict[str, Any]:
-    """Outputs per chain: recorded, distinct, lost, duplicated, and dropped by a full hold.
+    """Outputs per chain: recorded, distinct, lost, duplicated, dropped by a full hold, died in a crash.
 
     A seq missing below the highest a run delivered is *lost*, unless a robot cut off from the
     sink let it go from its full hold (``.../held_dropped``, logged by that robot): that is by
-    design, and counted apart (``held_dropped``). A recording without those entities (older) can
-    only give the robots' drop counters, and counts every gap as lost."""
+    design, and counted apart (``held_dropped``); or unless it was an output of a robot's own chain
+    (source and sink there) that died with its crashed process (``.../died_with_process``, logged by
+    the restarted one, `NodeRuntime._died_with_process`), also counted apart. A recording without
+    those entities (older) can only give the robots' drop counters, and counts every gap as lost."""
     seqs_of: dict[tuple[str, int], list[int]] = {}
     dropped_of: dict[tuple[str, int], set[int]] = {}
+    died_of: dict[tuple[str, int], set[int]] = {}
     for entity, (_, values) in rec.scalars.items():
-        m = _OUTPUT.match(entity) or _HELD_DROPPED.match(entity)
+        m = _OUTPUT.match(entity) or _HELD_DROPPED.match(entity) or _DIED.match(entity)
         if not m:
             continue
         finite = [int(v) for v in values if math.isfinite(v)]
+        key = (m["chain"], int(m["run"]))
         if entity.endswith("/seq"):
-            seqs_of.setdefault((m["chain"], int(m["run"])), []).extend(finite)
+            seqs_of.setdefault(key, []).extend(finite)
+        elif entity.endswith("/held_dropped"):
+            dropped_of.setdefault(key, set()).update(finite)
         else:
-            dropped_of.setdefault((m["chain"], int(m["run"])), set()).update(finite)
+            died_of.setdefault(key, set()).update(finite)
     chains: dict[str, Any] = {}
-    lost_all = dup_all = 0
+    lost_all = dup_all = died_all = 0
     for (chain, run), seqs in seqs_of.items():
         c = chains.setdefault(chain, {"outputs": 0, "distinct": 0, "lost": 0, "duplicated": 0, "held_dropped": 0,
-                                      "runs": []})
+                                      "died_with_process": 0, "runs": []})
         distinct = set(seqs)
         gaps = (max(distinct) + 1 - len(distinct)) if distinct else 0
         # dropped seqs that are gaps (one dropped past the last delivered is in no gap)
-        dropped = sum(1 for seq in dropped_of.get((chain, run), ()) if seq not in distinct and seq < max(distinct))
+        in_gaps = {seq for seq in dropped_of.get((chain, run), ()) if seq not in distinct and seq < max(distinct)}
+        died = {seq for seq in died_of.get((chain, run), ())
+                if seq not in distinct and seq < max(distinct) and seq not in in_gaps}
         dup = len(seqs) - len(distinct)
         c["outputs"] += len(seqs)
         c["distinct"] += len(distinct)
-        c["lost"] += gaps - dropped
-        c["held_dropped"] += dropped
+        c["lost"] += gaps - len(in_gaps) - len(died)
+        c["held_dropped"] += len(in_gaps)
+        c["died_with_process"] += len(died)
         c["duplicated"] += dup
         c["runs"].append(run)
-        lost_all += gaps - dropped
+        lost_all += gaps - len(in_gaps) - len(died)
+        died_all += len(died)
         dup_all += dup
     for c in chains.values():
         c["runs"].sort()
@@ -600,7 +615,8 @@ def _outputs(rec: Recording) -> dict[str, Any]:
             else int(custody["held_dropped"]))
     return {"recorded": bool(chains), "lost": lost_all, "duplicated": dup_all,
             "resent": int(custody["resent"]), "given_up": int(custody["evicted"]),
-            "held_dropped": held, "held_dropped_known": bool(dropped_of), "chains": dict(sorted(chains.items()))}
+            "held_dropped": held, "held_dropped_known": bool(dropped_of), "died_with_process": died_all,
+            "chains": dict(sorted(chains.items()))}
 
 
 def _counter_total(times, values) -> float:

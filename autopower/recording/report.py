@@ -67,7 +67,9 @@ def render_text(summary: dict[str, Any]) -> str:
                      # does not import the agent's)
                      + (f"; {o['held_dropped']} {'more ' if o.get('held_dropped_known') else ''}dropped by "
                         "robots cut off from their sink too long (each holds a bounded number of results, the "
-                        "oldest go)" if o.get("held_dropped") else ""))
+                        "oldest go)" if o.get("held_dropped") else "")
+                     + (f"; {o['died_with_process']} of a robot's own chain died with its crashed process"
+                        if o.get("died_with_process") else ""))
     lines += ["", "invariants:"]
     for inv in s["invariants"]:
         mark = {True: "ok  ", False: "FAIL", None: "n/a "}[inv["ok"]]
