@@ -154,6 +154,7 @@ def main() -> None:
         result.update(recording=str(recordings[-1]), lost=s["lost_outputs"], duplicated=s["duplicated_outputs"],
                       held_dropped=s["outputs"].get("held_dropped", 0),
                       died_with_process=s["outputs"].get("died_with_process", 0),
+                      outputs_recorded=sum(c["outputs"] for c in s["outputs"]["chains"].values()),
                       energy_model_error_pct=s["energy_model_error_pct"],
                       energy_error_pct_per_robot={r: v["error_pct"] for r, v in s["energy"]["per_robot"].items()},
                       failed_invariants=[i for i in s["invariants"] if i["ok"] is False])

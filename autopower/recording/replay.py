@@ -246,13 +246,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         {"name": "every output exactly once at its sink",
          "ok": (outputs["lost"] == 0 and outputs["duplicated"] == 0) if outputs["recorded"] else None,
          "detail": (f"{outputs['lost']} lost, {outputs['duplicated']} duplicated over "
-                    f"{sum(c['outputs'] for c in outputs['chains'].values())} outputs"
-                    + (f" (besides {outputs['held_dropped']} dropped by robots cut off from their sink, their "
-                       "hold full: by design)" if outputs["held_dropped"] and outputs["held_dropped_known"]
-                       else f" ({outputs['held_dropped']} dropped by robots cut off from their sink, their hold "
-                       "full)" if outputs["held_dropped"] else "")
-                    + (f" (besides {outputs['died_with_process']} of a robot's own chain that died with its "
-                       "crashed process, in its memory only)" if outputs["died_with_process"] else ""))
+                    f"{sum(c['outputs'] for c in outputs['chains'].values())} outputs" + _apart(outputs))
          if outputs["recorded"] else "no component outputs in this recording (simulations model, not run, them)"},
         {"name": "sinks counted no duplicate", "ok": (max(sink_dups) == 0) if sink_dups else None,
          "detail": f"max duplicates_total {max(sink_dups):.0f}" if sink_dups else "no sink counters recorded"},
@@ -556,6 +550,21 @@ def _quality(rec: Recording) -> dict[str, dict[str, float]]:
         if "victims_total" in q and q["victims_total"] > 0:
             q["recall"] = q.get("victims_found", 0.0) / q["victims_total"]
     return out
+
+
+def _apart(outputs: dict[str, Any]) -> str:
+    """What the exactly-once detail counts apart from lost outputs: by design, and a crash's cost."""
+    parts = []
+    if outputs["held_dropped"]:
+        parts.append(f"{outputs['held_dropped']} dropped by robots cut off from their sink, their hold full"
+                     + (": by design" if outputs["held_dropped_known"] else ""))
+    if outputs.get("died_with_process"):
+        parts.append(f"{outputs['died_with_process']} of a robot's own chain that died with its crashed process, "
+                     "in its memory only")
+    if not parts:
+        return ""
+    return (" (besides " if outputs["held_dropped_known"] or not outputs["held_dropped"] else " (") \
+        + "; and ".join(parts) + ")"
 
 
 def _outputs(rec: Recording) -> dict[str, Any]:

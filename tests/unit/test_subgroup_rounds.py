@@ -254,3 +254,46 @@ def test_a_leader_runs_a_new_round_when_a_stage_moved_out_of_its_subgroup_since_
     members_run = [h for h in running(agents)["Loc-2"] if h != "r1"]
     assert len(members_run) == 1, running(agents)
     assert all(agents[r].runtime.plan.placement["Loc-2"] == members_run[0] for r in ("r2", "r3"))
+
+
+def test_an_instance_a_newer_one_supersedes_stops_when_its_peer_says_it_runs_that(team):
+    """Random faults, seed 9: r1, frozen, was not in the round that restarted Loc-3 on r3. Thawed,
+    it ran its own instance on: no scans came any more, and its model counted the work (7.8 %
+    under the model). A peer's status showing a newer instance running stops the older one; the
+    inputs waiting in its gate go to the newer one."""
+    hub, agents, _ = team
+    for robot in ROBOTS:
+        see(agents, robot, [r for r in ROBOTS if r != robot])
+    on_r1 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r1"),)
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
+    drain(hub, agents)
+    assert running(agents) == {"Loc-2": ["r1"]}
+    r1 = agents["r1"]
+    waiting = [encode_frame(seq) for seq in (7, 8)]  # a gap below them: they wait in r1's gate
+    hosted = r1.runtime.hosted["Loc-2"]
+    for frame in waiting:
+        r1.runtime._admit(hosted, frame)
+    assert sorted(hosted.gate.pending) == [7, 8]
+    # r1 frozen: r2 and r3 restart Loc-2 on r2 without it (a newer generation)
+    for robot in ("r2", "r3"):
+        cut(agents, robot, ["r1"])
+    on_r2 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
+    assert agents["r2"].agreement.propose(("r2", "r3"), {"Loc-2": "r2"}, on_r2, 200, "on r2")
+    # r1 thawed: the status r2 sends with the commit reaches it (the in-memory hub cuts nothing)
+    drain(hub, agents)
+    assert running(agents) == {"Loc-2": ["r2"]}  # before: r1's instance ran on, with no inputs
+    assert r1.runtime.plan.placement["Loc-2"] == "r2"
+    assert r1.runtime.counters.get("superseded-instances") == 1
+    gate = agents["r2"].runtime.hosted["Loc-2"].gate
+    assert {7, 8} <= set(gate.pending) | set(range(gate.next_seq or 0))  # the waiting inputs went there
+    # an older instance elsewhere changes nothing here
+    r1.publish_status()
+    drain(hub, agents)
+    assert running(agents) == {"Loc-2": ["r2"]}
+
+
+def encode_frame(seq: int):
+    from autopower.protocol import ChainFrame
+
+    return ChainFrame(chain="Loc-2", run=0, seq=seq, target=0, t_virtual=0.0, t_unix=time.time(), payload_len=3,
+                      payload=b"abc", floor=5)

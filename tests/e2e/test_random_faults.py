@@ -1,0 +1,69 @@
+"""Random faults through the command line against a team under `up`, then the replay's verdict.
+
+`bench/bench_random_faults.py` starts the paper's mission under `autopower up` (three agents, the
+base station, every link through its proxy, a recording), injects faults drawn from a seed with
+`autopower fault ...` (cuts of any link, every robot cut from the base station, heals, SIGKILLs of
+any node, freezes, radio changes), heals everything, lets the team run 15 s more, stops `up` and
+replays the recording with `autopower replay --json`. This runs a short one (12 faults, seed 6:
+every robot cut from the base station three times, r1 and the base station SIGKILLed, the base
+station twice, a freeze, a heal, a radio change) as a subprocess, in its own session so that a
+timeout kills `up` and its children too. Bounded: 12 faults, one team, 420 s.
+
+What a user relies on: every command is taken or refused with its reason, `up` stops cleanly, no output reaches its sink
+twice, no process raises, the metered energy agrees with the model, and what is missing at the
+sinks is what the design lets go (results a robot cut off from its sink drops from its full hold;
+outputs of a robot's own chain that died in its memory at a SIGKILL), counted apart by the replay.
+One race is still open (README, *Random faults*: a migration during a partition, seed 4 at 20
+faults lost 108 Loc-2 outputs), so lost outputs are bounded, not required to be 0.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench_random_faults.py"
+SEED, FAULTS = 6, 12
+TIMEOUT_S = 420.0
+
+
+def test_a_team_under_random_faults_repeats_nothing_and_its_energy_agrees_with_the_model(tmp_path):
+    env = {**os.environ, "TMPDIR": str(tmp_path), "RERUN_ANALYTICS": "0"}
+    proc = subprocess.Popen([sys.executable, str(BENCH), "--seed", str(SEED), "--faults", str(FAULTS), "--json"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # the bench, `up` and every process of the team
+        proc.communicate()
+        raise AssertionError(f"the random-fault run took over {TIMEOUT_S:g} s (files in {tmp_path})")
+    assert proc.returncode == 0, err[-3000:]
+    result = json.loads(out)  # --json: one object on stdout, nothing else
+    where = f"(logs and recording in {result['workdir']})"
+
+    assert len(result["faults"]) >= FAULTS
+    # taken, or refused with exit 2 and the reason (a command the base station cannot apply while it
+    # listens to its robots after a restart, say): never a crash, never a silent failure
+    assert all(f["exit"] == 0 or (f["exit"] == 2 and f["refusal"].startswith("error:")) for f in result["faults"]), \
+        [f for f in result["faults"] if f["exit"]]
+    assert sum(f["exit"] == 0 for f in result["faults"]) >= FAULTS - 2
+    assert result["up_exit"] == 0, where
+    assert not [m for m in result["log_errors"] if "Traceback" in m or "Error:" in m], result["log_errors"]
+
+    assert result["duplicated"] == 0, where
+    outputs = result["outputs_recorded"]
+    assert outputs > 500, where  # the chains ran (and the sinks recorded) across the faults
+    # cut off from the base station three times: results a full hold let go, counted apart
+    assert result["held_dropped"] > 0, where
+    assert result["lost"] <= 0.01 * outputs, (result["lost"], outputs, where)
+    failed = [i["name"] for i in result["failed_invariants"] if i["name"] != "every output exactly once at its sink"]
+    assert not failed, (result["failed_invariants"], where)
+
+    assert abs(result["energy_model_error_pct"]) <= 3.0, (result["energy_model_error_pct"], where)
+    for robot, error in result["energy_error_pct_per_robot"].items():
+        assert error is not None and abs(error) <= 10.0, (robot, error, where)
