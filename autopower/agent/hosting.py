@@ -356,11 +356,31 @@ class Hosting:
                                 detail=_bounded(detail), running=False))
 
     def on_release(self, msg: Release) -> None:
+        """Stop hosting a stage. The inputs waiting in its gate are kept for its next instance.
+
+        A gate's report counts the inputs waiting behind a gap as consumed (their producers drop
+        them from custody), so a stage released with inputs waiting lost them: the base station
+        stopped Loc-2 on the laptop when r2 left its reach while 97 scans waited behind one that had
+        not come, and all 98 were lost (random faults, seed 4). They are kept as orphans, sent to
+        the stage's host once a plan places it (same run: a newer instance's gate drops what it
+        has). Only a chain the operator stopped, or whose component failed, drops them.
+        """
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:
             self.retire(hosted.component)
             del self.hosted[msg.stage]
-        self.orphans.pop(msg.stage, None)
+            waiting = hosted.gate.take_pending()
+            if waiting and not self._disabled(hosted.chain.name):
+                self.orphans.setdefault(msg.stage, []).extend(waiting)
+                log.info("%s: %s released with %d input(s) waiting; kept for its next instance", self.node,
+                         msg.stage, len(waiting))
+        chain = self.stage_index.get(msg.stage, (None, 0))[0]
+        if chain is None or self._disabled(chain.name):
+            self.orphans.pop(msg.stage, None)
+
+    def _disabled(self, chain: str) -> bool:
+        """The operator stopped the chain (or its component failed): nobody will consume its inputs."""
+        return self.plan is None or chain in self.plan.operator.disabled
 
 
 def _bounded(text: str, limit: int = 300) -> str:

@@ -233,10 +233,14 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                 # it has landed (there, or on beyond): nobody will ask for its state again, and a
                 # late copy of the order is known for one
                 hosted.shipped = (*hosted.shipped[:2], b"")
-        # stages that have landed elsewhere: frames held here for them can go now
+        # stages that have landed elsewhere: frames held here for them can go now (and those of a
+        # chain the operator stopped will never be consumed)
         for stage, frames in list(self.orphans.items()):
             host = plan.placement.get(stage)
-            if host is not None and host != self.node:
+            chain = self.stage_index.get(stage, (None, 0))[0]
+            if chain is None or chain.name in plan.operator.disabled:
+                del self.orphans[stage]
+            elif host is not None and host != self.node:
                 del self.orphans[stage]
                 for frame in frames:
                     self.send_frame(frame, host)

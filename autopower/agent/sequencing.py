@@ -94,25 +94,29 @@ class SequenceGate(Generic[T]):
         *redundant* when a resend is involved (``resent``, now or the first time: the original
         was only late), as at the sink (`SinkLedger.record`); otherwise it is a *duplicate*.
         """
+        early: list[T] = []
         if self.next_seq is None:
             self.next_seq = seq if floor is None else min(seq, floor)
             if self.next_seq < seq:
                 self.catch_up_below = seq
-        elif floor is not None and floor > self.next_seq and not any(s < floor for s in self.pending):
-            # everything below the floor was acknowledged by some instance of this stage: it
-            # will not come here (a previous instance ran it)
-            self.consumed_elsewhere += floor - self.next_seq
-            self.next_seq = floor
+        elif floor is not None and floor > self.next_seq:
+            # everything below the floor was acknowledged by some instance of this stage: what is
+            # not waiting here will not come (a previous instance ran it). What waits here runs,
+            # in order, past those gaps: it is acknowledged by this gate, and it waited for a seq
+            # another instance had consumed (random faults, seed 6: a stage restarted by a round
+            # waited for two scans the laptop had acknowledged before it was cut off, until a
+            # crash took the 50 behind them)
+            early = self._release_below(floor)
         if seq < self.next_seq or seq in self.pending:
             if resent or seq in self.resent:
                 self.redundant += 1
             else:
                 self.duplicates += 1
-            return []
+            return early
         if resent:
             self.resent.append(seq)
         self.pending[seq] = item
-        ready = self.drain()
+        ready = early + self.drain()
         if not self.pending:
             self._gap_since = None
             return ready
@@ -129,6 +133,20 @@ class SequenceGate(Generic[T]):
             self.next_seq = first
             ready += self.drain()
         return ready
+
+    def _release_below(self, floor: int) -> list[T]:
+        """Move to ``floor``, counting the seqs below it that are not here as consumed elsewhere and
+        releasing, in order, those that are."""
+        released = []
+        for seq in sorted(s for s in self.pending if s < floor):
+            self.consumed_elsewhere += seq - self.next_seq
+            released.append(self.pending.pop(seq))
+            self.next_seq = seq + 1
+        self.consumed_elsewhere += floor - self.next_seq
+        self.next_seq = floor
+        if not self.pending:
+            self._gap_since = None
+        return released
 
     def report(self, run: int, generation: int) -> Consumed | None:
         """What this gate has consumed (None before its first input: it starts wherever that is)."""

@@ -336,6 +336,22 @@ def test_a_gate_stops_waiting_for_what_its_producer_says_another_instance_consum
     assert gate.offer(8, 8, floor=8) == [8, 9]
 
 
+def test_a_gate_runs_what_waits_below_the_floor_past_what_another_instance_consumed():
+    """Random faults, seed 6: a restarted stage waited behind 15 and 16, which the laptop's instance
+    had acknowledged before it was cut off; 13 and 14 were resent and 17 on waited too. The
+    producer's floor rising past them says they will not come: what waits runs, in order."""
+    gate = SequenceGate(next_seq=13)
+    assert gate.offer(13, 13, floor=13) == [13]
+    assert gate.offer(14, 14, floor=13) == [14]
+    assert gate.offer(17, 17, floor=13) == [] and gate.offer(18, 18, floor=13) == []  # 15, 16 not here
+    assert gate.report(0, 1).missing == ((15, 16),)
+    # 17 and 18 acknowledged here, 15 and 16 by the laptop: the producer holds nothing below 19
+    assert gate.offer(19, 19, floor=19) == [17, 18, 19]
+    assert gate.next_seq == 20 and gate.consumed_elsewhere == 2 and gate.skipped == 0 and not gate.pending
+    # a gap the floor does not cover still waits
+    assert gate.offer(22, 22, floor=21) == [] and gate.next_seq == 21 and gate.consumed_elsewhere == 3
+
+
 def test_a_stage_restarted_without_state_catches_up_on_what_never_reached_its_old_host():
     """What a subgroup does when the base station is cut off: restart the stage on a robot, cold."""
     from autopower.protocol import Assign

@@ -297,3 +297,51 @@ def encode_frame(seq: int):
 
     return ChainFrame(chain="Loc-2", run=0, seq=seq, target=0, t_virtual=0.0, t_unix=time.time(), payload_len=3,
                       payload=b"abc", floor=5)
+
+
+def test_a_released_stage_keeps_the_inputs_waiting_in_its_gate_for_its_next_instance(team):
+    """Random faults, seed 4: the base station stopped Loc-2 on the laptop (r2 had left its reach)
+    while 97 scans waited in its gate behind one that had not come. The gate's report had counted
+    them as consumed, so r2 had dropped them from custody: 98 lost. They now go to the stage's next
+    host; a chain the operator stopped drops them."""
+    from autopower.protocol import Release
+
+    hub, agents, _ = team
+    for robot in ROBOTS:
+        see(agents, robot, [r for r in ROBOTS if r != robot])
+    on_r1 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r1"),)
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
+    drain(hub, agents)
+    rt = agents["r1"].runtime
+    for seq in (7, 8):
+        rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
+    report = rt.consumed()["Loc-2#0"]
+    assert report.max_seq == 8 and (7, 8) not in report.missing  # acknowledged, though not run
+    rt.on_release(Release(stage="Loc-2", generation=101))
+    assert "Loc-2" not in rt.hosted
+    assert [f.seq for f in rt.orphans["Loc-2"]] == [7, 8]
+    # a round restarts it on r2: the kept inputs go there
+    on_r2 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
+    assert agents["r2"].agreement.propose(ROBOTS, {"Loc-2": "r2"}, on_r2, 200, "on r2")
+    drain(hub, agents)
+    assert "Loc-2" not in rt.orphans
+    gate = agents["r2"].runtime.hosted["Loc-2"].gate
+    assert {7, 8} <= set(gate.pending)
+
+
+def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team):
+    import dataclasses
+
+    from autopower.protocol import Release
+
+    hub, agents, _ = team
+    rt = agents["r1"].runtime
+    for robot in ROBOTS:
+        see(agents, robot, [r for r in ROBOTS if r != robot])
+    on_r1 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r1"),)
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
+    drain(hub, agents)
+    rt._admit(rt.hosted["Loc-2"], encode_frame(7))
+    rt.plan = dataclasses.replace(rt.plan, operator=dataclasses.replace(rt.plan.operator, disabled=("Loc-2",)))
+    rt.on_release(Release(stage="Loc-2", generation=101))
+    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.orphans
