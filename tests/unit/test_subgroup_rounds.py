@@ -76,6 +76,20 @@ def running(agents: dict[str, Agent]) -> dict[str, list[str]]:
     return out
 
 
+def see_all(agents: dict[str, Agent]) -> None:
+    for robot in ROBOTS:
+        see(agents, robot, [r for r in ROBOTS if r != robot])
+
+
+def loc2_on_r1(hub: InMemoryHub, agents: dict[str, Agent]) -> None:
+    """Everyone in reach of everyone; a round r1 leads starts Loc-2 on r1 (generation 100)."""
+    see_all(agents)
+    on_r1 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r1"),)
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
+    drain(hub, agents)
+    assert running(agents) == {"Loc-2": ["r1"]}
+
+
 def test_a_later_round_starts_from_what_the_first_one_placed_and_restarts_nothing(team):
     hub, agents, stages = team
     assert all(a.runtime.started and a.runtime.plan.epoch == 1 for a in agents.values())
@@ -92,8 +106,7 @@ def test_a_later_round_starts_from_what_the_first_one_placed_and_restarts_nothin
     assert agents["r1"].runtime.plan.placement["Loc-2"] == "laptop"  # r1 missed round 1
 
     # r1 comes into their reach; everyone has everyone's status; r1 (lowest name) leads round 2
-    for robot in ROBOTS:
-        see(agents, robot, [r for r in ROBOTS if r != robot])
+    see_all(agents)
     for agent in agents.values():
         agent.publish_status()
     drain(hub, agents)
@@ -121,8 +134,7 @@ def test_a_later_round_starts_from_what_the_first_one_placed_and_restarts_nothin
 
 def test_a_member_refuses_a_round_that_would_start_elsewhere_what_it_runs(team):
     hub, agents, _ = team
-    for robot in ROBOTS:
-        see(agents, robot, [r for r in ROBOTS if r != robot])
+    see_all(agents)
     restart = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
     assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r2"}, restart, 100, "round 1")
     drain(hub, agents)
@@ -221,8 +233,7 @@ def test_a_leader_runs_a_new_round_when_a_stage_moved_out_of_its_subgroup_since_
     assert running(agents).get("Loc-2") == ["r2"]
 
     # r1 back in reach of both; a round r1 leads moves Loc-2 from r2 to r1
-    for robot in ROBOTS:
-        see(agents, robot, [r for r in ROBOTS if r != robot])
+    see_all(agents)
     for agent in agents.values():
         agent.publish_status()
     drain(hub, agents)
@@ -262,12 +273,7 @@ def test_an_instance_a_newer_one_supersedes_stops_when_its_peer_says_it_runs_tha
     under the model). A peer's status showing a newer instance running stops the older one; the
     inputs waiting in its gate go to the newer one."""
     hub, agents, _ = team
-    for robot in ROBOTS:
-        see(agents, robot, [r for r in ROBOTS if r != robot])
-    on_r1 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r1"),)
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
-    drain(hub, agents)
-    assert running(agents) == {"Loc-2": ["r1"]}
+    loc2_on_r1(hub, agents)
     r1 = agents["r1"]
     waiting = [encode_frame(seq) for seq in (7, 8)]  # a gap below them: they wait in r1's gate
     hosted = r1.runtime.hosted["Loc-2"]
@@ -307,11 +313,7 @@ def test_a_released_stage_keeps_the_inputs_waiting_in_its_gate_for_its_next_inst
     from autopower.protocol import Release
 
     hub, agents, _ = team
-    for robot in ROBOTS:
-        see(agents, robot, [r for r in ROBOTS if r != robot])
-    on_r1 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r1"),)
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
-    drain(hub, agents)
+    loc2_on_r1(hub, agents)
     rt = agents["r1"].runtime
     for seq in (7, 8):
         rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
@@ -336,11 +338,7 @@ def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team):
 
     hub, agents, _ = team
     rt = agents["r1"].runtime
-    for robot in ROBOTS:
-        see(agents, robot, [r for r in ROBOTS if r != robot])
-    on_r1 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r1"),)
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
-    drain(hub, agents)
+    loc2_on_r1(hub, agents)
     rt._admit(rt.hosted["Loc-2"], encode_frame(7))
     rt.plan = dataclasses.replace(rt.plan, operator=dataclasses.replace(rt.plan.operator, disabled=("Loc-2",)))
     rt.on_release(Release(stage="Loc-2", generation=101))
