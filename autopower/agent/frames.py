@@ -338,8 +338,11 @@ class Frames:
             if ledger.redundant_total != redundant:
                 self.tally("redundant-output")  # a resent copy of what arrived late: dropped, as designed
                 return
-            self.count("duplicate-output" if frame.run >= ledger.run else "stale-output",
-                       f"{chain.name} run {frame.run} seq {frame.seq}", logging.ERROR)
+            # an older run's output, late or resent after its chain started over, is no error (its
+            # run is over at this sink); either is still handed on, so the recording shows it
+            stale = frame.run < ledger.run
+            self.count("stale-output" if stale else "duplicate-output", f"{chain.name} run {frame.run} seq {frame.seq}",
+                       logging.INFO if stale else logging.ERROR)
         elif frame.attempt:
             self.tally("recovered-outputs")  # lost in flight, delivered by a resend
         self.last_output[chain.name] = frame.data()
