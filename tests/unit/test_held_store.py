@@ -77,6 +77,7 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     assert logged == [("Blob-2", 0, f.seq) for f in results[:4]]
     team.pump()
     sink = team.nodes["laptop"].sinks["Blob-2"]
+    assert sink.duplicates_total == 0
     delivered = {f.seq for f in results if f.seq < sink.contiguous or f.seq in sink.above}
     # the four the full hold let go are gone by design; every other one reached the sink
     assert delivered == {f.seq for f in results[4:]}
@@ -85,3 +86,40 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     rt.on_peer_status(team.nodes["laptop"].status(1.0))
     rt.settle_held_store()
     assert HeldStore(tmp_path / "r2.held").load(mission_key(rt.mission)) == []
+
+
+def test_held_results_the_sink_already_had_are_dropped_there_as_redundant_not_counted_twice(tmp_path):
+    """The testbed demo: r2 delivered its held results, the base station acknowledged them, and r2
+    was killed before its next status tick rewrote the journal. The restarted process took them
+    back and sent them as new: the sink counted and recorded 50 Blob-2 outputs twice. They go
+    again as retransmissions now, and a sink that has them drops them as redundant."""
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    team.run_until(20.0)
+    old = team.nodes["r2"]
+    old.held_store = HeldStore(tmp_path / "r2.held")
+    sink_node = team.nodes["laptop"]
+    results = [_result(200_000 + i) for i in range(6)]
+    for frame in results:
+        old.custody.keep(frame, old.wall(), sent=False)
+        old.hold_output(frame)
+    old.flush_held_outputs()  # the sink is in reach: delivered
+    team.pump()
+    sink = sink_node.sinks["Blob-2"]
+    had = {f.seq for f in results if f.seq < sink.contiguous or f.seq in sink.above}
+    assert had == {f.seq for f in results}
+    saved = old.resume_state()
+    old.held_store.close()  # killed before the journal was rewritten: it still lists all six
+    recorded = []
+    previous = sink_node.on_output
+    sink_node.on_output = lambda chain, run, seq, data: recorded.append(seq)
+    rt = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-again"), keys=team.keys,
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
+    rt.wall = team.clock.wall
+    rt.held_store = HeldStore(tmp_path / "r2.held")
+    rt.resume_from = saved
+    rt.on_plan(old.plan)
+    team.pump()
+    sink_node.on_output = previous
+    assert not [seq for seq in recorded if seq >= 200_000]  # none handed on (recorded) again
+    assert sink.duplicates_total == 0 and sink.redundant_total >= 6
