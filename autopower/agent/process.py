@@ -415,9 +415,7 @@ class Agent:
         # reports running it now (a round while we were down moved it there: two instances would
         # each deliver its outputs). Left unstarted, the peers, whose plan says it runs here, never
         # restarted it either: our sources' frames piled up here for a stage nobody ran.
-        elsewhere = {stage: peer for peer, status in self.statuses.items() if peer != me
-                     for stage, state in (status.hosted or {}).items()
-                     if state in (Lifecycle.RUNNING.value, Lifecycle.STARTING.value) and stage in rt.stage_index}
+        elsewhere = {stage: peer for peer in self.statuses if peer != me for stage in self._running_on(peer)}
         if elsewhere:
             rt.override_placement(elsewhere, set())
         generation = int(time.time() * 1000)  # above the crashed instances' (a base station's or a round's)
@@ -442,18 +440,22 @@ class Agent:
         twice. So a stage whose planned host is outside the subgroup, but that a member runs (our
         own stages, the others' last statuses), starts from that member.
         """
-        rt, me = self.runtime, self.config.robot
-        placement = dict(rt.plan.placement)
+        placement = dict(self.runtime.plan.placement)
         for member in members:
-            if member == me:
-                hosted = {s: h.lifecycle.value for s, h in rt.hosted.items()}
-            else:
-                hosted = getattr(self.statuses.get(member), "hosted", None) or {}
-            for stage, state in sorted(hosted.items()):
-                if (state in (Lifecycle.RUNNING.value, Lifecycle.STARTING.value) and stage in rt.stage_index
-                        and placement.get(stage) not in members):
+            for stage in sorted(self._running_on(member)):
+                if placement.get(stage) not in members:
                     placement[stage] = member
         return placement
+
+    def _running_on(self, node: str) -> set[str]:
+        """The stages ``node`` runs or is starting: ours as hosted here, a peer's from its last status."""
+        rt = self.runtime
+        if node == self.config.robot:
+            hosted = {s: h.lifecycle.value for s, h in rt.hosted.items()}
+        else:
+            hosted = getattr(self.statuses.get(node), "hosted", None) or {}
+        return {stage for stage, state in hosted.items()
+                if state in (Lifecycle.RUNNING.value, Lifecycle.STARTING.value) and stage in rt.stage_index}
 
     def _runs_here(self, stage: str) -> bool:
         hosted = self.runtime.hosted.get(stage)
