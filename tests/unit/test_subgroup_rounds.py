@@ -9,7 +9,9 @@ they were; a member also restarted a stage the round proposed where it already r
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 
+import msgpack
 import pytest
 
 from autopower.agent.process import Agent, AgentConfig
@@ -299,17 +301,20 @@ def test_an_instance_a_newer_one_supersedes_stops_when_its_peer_says_it_runs_tha
 
 
 def encode_frame(seq: int):
+    """A scan of r2's (what `FakeSource` produces) for Loc-2, its producer holding 5 and above."""
     from autopower.protocol import ChainFrame
 
-    return ChainFrame(chain="Loc-2", run=0, seq=seq, target=0, t_virtual=0.0, t_unix=time.time(), payload_len=3,
-                      payload=b"abc", floor=5)
+    payload = msgpack.packb(["r2", seq])
+    return ChainFrame(chain="Loc-2", run=0, seq=seq, target=0, t_virtual=0.0, t_unix=time.time(),
+                      payload_len=len(payload), payload=payload, floor=5)
 
 
-def test_a_released_stage_keeps_the_inputs_waiting_in_its_gate_for_its_next_instance(team):
+def test_a_released_stage_runs_the_inputs_waiting_in_its_gate_before_it_stops(team):
     """Random faults, seed 4: the base station stopped Loc-2 on the laptop (r2 had left its reach)
     while 97 scans waited in its gate behind one that had not come. The gate's report had counted
-    them as consumed, so r2 had dropped them from custody: 98 lost. They now go to the stage's next
-    host; a chain the operator stopped drops them."""
+    them as consumed, so r2 had dropped them from custody: 98 lost. Kept for the next instance, they
+    reached it after its gate had started above them (seeds 4, 14, 15). The released stage now
+    gives the gap up and runs them before it stops; their outputs reach the sink."""
     from autopower.protocol import Release
 
     hub, agents, _ = team
@@ -319,16 +324,38 @@ def test_a_released_stage_keeps_the_inputs_waiting_in_its_gate_for_its_next_inst
         rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
     report = rt.consumed()["Loc-2#0"]
     assert report.max_seq == 8 and (7, 8) not in report.missing  # acknowledged, though not run
+    runs = rt.hosted["Loc-2"].runs
+    hosted = rt.hosted["Loc-2"]
     rt.on_release(Release(stage="Loc-2", generation=101))
-    assert "Loc-2" not in rt.hosted
+    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.orphans
+    assert hosted.runs == runs + 2 and rt.counters.get("released-inputs-run") == 2
+    drain(hub, agents)
+    sink = agents["r2"].runtime.sinks["Loc-2"]  # Loc-2's sink is r2
+    assert {7, 8} <= set(sink.above) | set(range(sink.contiguous))
+
+
+def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team, monkeypatch):
+    """A stage in a worker process cannot run them before it stops (the worker goes with it): they
+    are kept, and go to the stage's next host once a plan places it."""
+    from autopower.agent import hosting
+    from autopower.protocol import Release
+
+    hub, agents, _ = team
+    loc2_on_r1(hub, agents)
+    rt = agents["r1"].runtime
+    for seq in (7, 8):
+        rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
+    killed = []
+    monkeypatch.setattr(hosting, "worker_of", lambda component: SimpleNamespace(kill=lambda: killed.append(1)))
+    rt.on_release(Release(stage="Loc-2", generation=101))  # as if in a worker
+    monkeypatch.undo()
+    assert killed == [1]
     assert [f.seq for f in rt.orphans["Loc-2"]] == [7, 8]
-    # a round restarts it on r2: the kept inputs go there
     on_r2 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
     assert agents["r2"].agreement.propose(ROBOTS, {"Loc-2": "r2"}, on_r2, 200, "on r2")
     drain(hub, agents)
     assert "Loc-2" not in rt.orphans
-    gate = agents["r2"].runtime.hosted["Loc-2"].gate
-    assert {7, 8} <= set(gate.pending)
+    assert {7, 8} <= set(agents["r2"].runtime.hosted["Loc-2"].gate.pending)
 
 
 def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team):
