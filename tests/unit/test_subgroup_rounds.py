@@ -14,10 +14,10 @@ from types import SimpleNamespace
 import msgpack
 import pytest
 
-from autopower.agent.process import Agent, AgentConfig
+from autopower.agent.process import LOST_AFTER_PERIODS, Agent, AgentConfig
 from autopower.agent.stages import Lifecycle
 from autopower.model.loading import load_scenario
-from autopower.protocol import LinkInfo, MissionInfo, PlanUpdate, SubgroupMove, encode
+from autopower.protocol import LinkInfo, MissionInfo, PlanUpdate, Release, SubgroupMove, encode
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.clock import ManualClock
 from tests.unit.sim_team import FakeComponent, FakeSource
@@ -370,3 +370,45 @@ def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team):
     rt.plan = dataclasses.replace(rt.plan, operator=dataclasses.replace(rt.plan.operator, disabled=("Loc-2",)))
     rt.on_release(Release(stage="Loc-2", generation=101))
     assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.orphans
+
+
+def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarted_by_the_next_round(team):
+    """CI 2026-11-25: r2 was killed between a round's commit and saving it. It came back with the
+    plan before the round (Blob-2 on the laptop, out of reach) and did not restart Blob-2; r1 and
+    r3, whose plans put it on r2, did not either, so Blob-2 ran nowhere until the base station
+    returned. A status from r2 well after the round, without Blob-2, now makes the next round
+    restart it."""
+    hub, agents, _ = team
+    r1, r2 = agents["r1"], agents["r2"]
+    see_all(agents)
+    on_r2 = (SubgroupMove(stage="Blob-2", from_node=None, to_node="r2"),)
+    assert r1.agreement.propose(ROBOTS, {"Blob-2": "r2"}, on_r2, 100, "on r2")
+    drain(hub, agents)
+    assert running(agents) == {"Blob-2": ["r2"]}
+    # r2 killed and back with the plan before the round: nothing of Blob-2 runs on it
+    r2.runtime.on_release(Release(stage="Blob-2", generation=100))
+    r2.runtime.override_placement({"Blob-2": "laptop"}, set())
+    r2.publish_status()
+    drain(hub, agents)
+    assert "Blob-2" not in running(agents) and r1.runtime.plan.placement["Blob-2"] == "r2"
+    r1._subgroup_tick()  # the base station is out of reach from now
+    r1._subgroup_tick()  # the round for the stranded stages of the laptop
+    drain(hub, agents)
+    assert "Blob-2" not in running(agents)  # a status r2 sent before r1 knew of the placement: not taken
+    rounds = r1.agreement.counter
+    time.sleep(LOST_AFTER_PERIODS * r1.config.status_period_s + 0.05)
+    r2.publish_status()
+    drain(hub, agents)
+    r1._subgroup_tick()
+    drain(hub, agents)
+    assert r1.agreement.counter == rounds + 1, "r1 proposed no round for Blob-2"
+    assert len(running(agents).get("Blob-2", [])) == 1, running(agents)
+    host = running(agents)["Blob-2"][0]
+    assert all(a.runtime.plan.placement["Blob-2"] == host for a in agents.values())
+    # and once it runs, nothing more happens
+    for agent in agents.values():
+        agent.publish_status()
+    drain(hub, agents)
+    r1._subgroup_tick()
+    drain(hub, agents)
+    assert running(agents)["Blob-2"] == [host]
