@@ -154,6 +154,7 @@ def main() -> None:
         result.update(recording=str(recordings[-1]), lost=s["lost_outputs"], duplicated=s["duplicated_outputs"],
                       held_dropped=s["outputs"].get("held_dropped", 0),
                       died_with_process=s["outputs"].get("died_with_process", 0),
+                      unrecorded=s["outputs"].get("unrecorded", 0),
                       outputs_recorded=sum(c["outputs"] for c in s["outputs"]["chains"].values()),
                       energy_model_error_pct=s["energy_model_error_pct"],
                       energy_error_pct_per_robot={r: v["error_pct"] for r, v in s["energy"]["per_robot"].items()},
@@ -168,7 +169,8 @@ def main() -> None:
     if recordings:
         print(f"replay: {result['lost']} lost (besides {result['held_dropped']} a robot cut off from their sink "
               f"let go from its full hold, by design, and {result['died_with_process']} of a robot's own chain "
-              "that died with its crashed process), "
+              f"that died with its crashed process, and {result['unrecorded']} a killed sink delivered "
+              "before it flushed their recording), "
               f"{result['duplicated']} duplicated; energy vs model {result['energy_model_error_pct']:+.2f} % "
               f"(per robot {', '.join(f'{r} {v:+.1f}' for r, v in result['energy_error_pct_per_robot'].items())})")
         for inv in result["failed_invariants"]:

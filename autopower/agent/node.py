@@ -146,6 +146,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.on_held_dropped: Callable[[str, int, int], None] | None = None
         # a seq of a chain sourced and sunk here that died with the crashed process (`_died_with_process`)
         self.on_died_with_process: Callable[[str, int, int], None] | None = None
+        # an output the crashed sink here had delivered in its last commit, said by the restarted one
+        # (its recording may have died with the process: `SinkStore.last_batch`)
+        self.on_sink_journal: Callable[[str, int, int], None] | None = None
         # where a restarted process carries on (`autopower.agent.resume`): its saved state, applied
         # at the first plan of the same mission; and who to tell when a source advanced
         self.resume_from: dict | None = None
@@ -217,6 +220,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             if self.sink_store is not None:  # a restarted sink goes on from what it had delivered
                 self.sinks.update(self.sink_store.load(plan.mission.epoch_unix))
             self.clock = self._clock_factory(plan.mission)
+            if self.sink_store is not None and self.on_sink_journal is not None:  # at mission time
+                for chain, run, seq in self.sink_store.last_batch:
+                    self.on_sink_journal(chain, run, seq)
             if not self.platform.mains and self.node not in plan.mission.energies_j:
                 raise AutoPowerError(f"the mission gives no starting energy for {self.node}")
             self._use_variants(plan.variants)

@@ -528,6 +528,10 @@ class Agent:
                 rt.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
                                     resume_seq=None))
         rt.override_placement(dict(proposal.placement), {base})
+        # a member's status from before it applied this round says nothing of what runs there now
+        # (a round restarting a stage on the host the plan already named: `_lost_on`)
+        now = time.time()
+        self._placed_since.update({stage: (host, now) for stage, host in proposal.placement.items()})
         # kept at once, not with the next periodic status: killed in between, this robot came back
         # with the plan before the round and did not restart what the round had put on it
         self.save_resume()

@@ -20,6 +20,16 @@ flushes on truncate and rename); a kill at any instant leaves whole lines and at
 last line, which is skipped. When the journal grows past ``COMPACT_BYTES`` it is rewritten as a
 snapshot (to a temporary file renamed over it). A file that cannot be read is reported and
 ignored: the sink then starts empty, as it did before this existed.
+
+Each commit's notes end with a marker line (``{"commit": n}``). The notes are written before the
+recording is flushed, so a kill between the two leaves outputs delivered and noted whose recording
+died with the process; the resent copies are redundant to the new sink and are not recorded again
+(a testbed demo, 2026-11-25: 10 Blob-2 and 10 Blob-3 outputs missing from the recording though the
+operator had them). Only the last commit can be in that window (each flush comes before the next
+commit), and the markers say where it starts: `load` gives its outputs as `last_batch`, and the
+restarted sink logs them to the recording (`NodeRuntime.on_sink_journal`), so replay does not count
+them as lost. Noting after the flush instead would turn the same window into duplicates delivered to
+the operator.
 """
 
 from __future__ import annotations
@@ -47,6 +57,9 @@ class SinkStore:
         self.failed = False  # a write failed (reported once; the sink goes on without)
         self._pending: list[bytes] = []  # notes taken since the last commit
         self._rewrite_due: tuple[float, dict[str, SinkLedger]] | None = None
+        self._commits = 0
+        # after `load`: the outputs the crashed sink's last commit noted, (chain, run, seq) each
+        self.last_batch: list[tuple[str, int, int]] = []
 
     # ---- reading -----------------------------------------------------------------------------
     def load(self, mission_epoch_unix: float) -> dict[str, SinkLedger]:
@@ -67,16 +80,26 @@ class SinkStore:
             log.warning("sink state %s is not a sink state (%s); starting the sinks empty", self.path, exc)
             return {}
         replayed = 0
+        closed: list[tuple[str, int, int]] = []  # the notes of the last commit whose marker is written
+        trailing: list[tuple[str, int, int]] = []  # the notes after the last marker
         for number, line in enumerate(lines[2:], start=3):
             if not line:
                 continue
             try:
-                chain, run, seq, crc = json.loads(line)
+                note = json.loads(line)
+                if isinstance(note, dict) and "commit" in note:
+                    closed, trailing = trailing, []
+                    continue
+                chain, run, seq, crc = note
                 ledgers.setdefault(str(chain), SinkLedger()).record(int(run), int(seq), crc=int(crc))
+                trailing.append((str(chain), int(run), int(seq)))
                 replayed += 1
             except (TypeError, ValueError, UnicodeDecodeError):
                 if number < len(lines) - 1:  # only the last line may be torn (a kill mid-write)
                     log.warning("sink state %s: line %d is damaged; skipped", self.path, number)
+        # a kill while the last commit was written leaves notes after the last marker: that commit's
+        # (older files, without markers, give every note after the snapshot)
+        self.last_batch = trailing or closed
         log.info("sinks go on from %s (%d output(s) after its snapshot): %s", self.path, replayed,
                  ", ".join(f"{c} run {l.run} seq {l.contiguous}" for c, l in sorted(ledgers.items())) or "none")
         return ledgers
@@ -104,7 +127,9 @@ class SinkStore:
                 self._rewrite_due = None
                 self._rewrite(mission, sinks)
                 return
-            lines, self._pending = b"".join(self._pending), []
+            self._commits += 1
+            marker = json.dumps({"commit": self._commits}, separators=(",", ":")).encode() + b"\n"
+            lines, self._pending = b"".join(self._pending) + marker, []
             os.write(self._fd, lines)
             self._size += len(lines)
         except OSError as exc:

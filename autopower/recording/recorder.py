@@ -36,7 +36,9 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
 - sink stats in a status -> ``components/<chain>/sink/received_total``, ``duplicates_total``,
   ``missing`` (seqs below the highest seen not arrived yet), ``latency_ms_p50|max`` (end to end);
 - outputs reaching this node as their sink (`on_output`) -> ``components/<chain>/run/<run>/seq``;
-  results its full hold let go (`on_held_dropped`) -> ``components/<chain>/run/<run>/held_dropped``
+  results its full hold let go (`on_held_dropped`) -> ``components/<chain>/run/<run>/held_dropped``;
+  outputs a restarted sink's journal says its crashed process delivered in its last commit
+  (`on_sink_journal`: their recording may have died with it) -> ``.../run/<run>/sink_journal``
   (one scalar per output: replay checks exactly-once per (chain, run, seq)) and, at most every
   `visual_every_s`, what the injected `visualise` draws (the deploy layer's draws a downscaled
   camera frame on ``components/<chain>/camera`` with the blobs as ``Boxes2D`` on ``.../blobs``,
@@ -147,6 +149,12 @@ def died_with_process_path(chain: str, run: int) -> str:
     """Entity of a chain's outputs that died with a crashed process of their robot (source and sink
     there, the frame in its memory only): one scalar (the seq) each, logged by the restarted process."""
     return f"{component_path(chain, f'run/{int(run)}')}/died_with_process"
+
+
+def sink_journal_path(chain: str, run: int) -> str:
+    """Entity of a chain's outputs that a restarted sink's journal says the crashed process delivered
+    in its last commit (`SinkStore.last_batch`): one scalar (the seq) each."""
+    return f"{component_path(chain, f'run/{int(run)}')}/sink_journal"
 
 
 def record_fault(telemetry: Telemetry, t_s: float, *, kind: str, target: str, phase: str = "injected",
@@ -264,6 +272,7 @@ class Recorder:
         result its full hold lets go."""
         runtime.on_held_dropped = self.on_held_dropped
         runtime.on_died_with_process = self.on_died_with_process
+        runtime.on_sink_journal = self.on_sink_journal
         # the mission clock of a runtime that started without a plan on the bus (a robot restarted
         # out of the base station's reach goes on with its saved plan): its outputs were logged at 0
         self._runtime = runtime
@@ -372,6 +381,11 @@ class Recorder:
         """A result this node held for a sink out of its reach was let go (hook for
         `NodeRuntime.on_held_dropped`): lost by design, and the replay says so."""
         self._guard("held-dropped", lambda: self.telemetry.scalar(held_dropped_path(chain, run), self.now(), seq))
+
+    def on_sink_journal(self, chain: str, run: int, seq: int) -> None:
+        """An output the crashed sink here had delivered and noted in its last commit (hook for
+        `NodeRuntime.on_sink_journal`, called by the restarted one): the replay takes it as delivered."""
+        self._guard("sink-journal", lambda: self.telemetry.scalar(sink_journal_path(chain, run), self.now(), seq))
 
     def on_died_with_process(self, chain: str, run: int, seq: int) -> None:
         """An output of this robot's own chain that died with its crashed process (hook for

@@ -49,9 +49,12 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                   "held_dropped": int,  # results robots cut off from the sink let go, their hold full
                   "held_dropped_known": bool,  # which seqs (else only counts: then "lost" includes them)
                   "died_with_process": int,  # outputs of a robot's own chain that died with its crashed process
+                  "unrecorded": int,  # delivered by a sink killed before its recording was flushed
+                                      # (named by the restarted sink's journal): not lost, not recorded
                   "chains": {chain: {"outputs": int, "distinct": int, "lost": int, "duplicated": int,
                                      "held_dropped": int,  # of its missing seqs, dropped by a hold
                                      "died_with_process": int,  # of its missing seqs, died in a crash
+                                     "unrecorded": int,  # of its missing seqs, delivered (sink journal)
                                      "runs": [int]}}},
       "quality": {chain: {metric: float}},          # measured quality, mean over the chain's outputs
                                                     # (blob recall, localisation error; see chains.variants)
@@ -86,6 +89,7 @@ from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGE
 _OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/seq$")
 _HELD_DROPPED = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/held_dropped$")
 _DIED = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/died_with_process$")
+_SINK_JOURNAL = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/sink_journal$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
 _SIM_MOVE = re.compile(r"^(?P<stage>\S+): (?P<src>\S+) → (?P<dst>\S+),")
 _EPS = 1e-6
@@ -561,6 +565,9 @@ def _apart(outputs: dict[str, Any]) -> str:
     if outputs.get("died_with_process"):
         parts.append(f"{outputs['died_with_process']} of a robot's own chain that died with its crashed process, "
                      "in its memory only")
+    if outputs.get("unrecorded"):
+        parts.append(f"{outputs['unrecorded']} delivered by a sink killed before it flushed their recording "
+                     "(named by its journal)")
     if not parts:
         return ""
     return (" (besides " if outputs["held_dropped_known"] or not outputs["held_dropped"] else " (") \
@@ -574,44 +581,56 @@ def _outputs(rec: Recording) -> dict[str, Any]:
     sink let it go from its full hold (``.../held_dropped``, logged by that robot): that is by
     design, and counted apart (``held_dropped``); or unless it was an output of a robot's own chain
     (source and sink there) that died with its crashed process (``.../died_with_process``, logged by
-    the restarted one, `NodeRuntime._died_with_process`), also counted apart. A recording without
-    those entities (older) can only give the robots' drop counters, and counts every gap as lost."""
+    the restarted one, `NodeRuntime._died_with_process`), also counted apart; or unless the sink
+    had delivered it and was killed before its recording was flushed (``.../sink_journal``, logged
+    by the restarted sink from its journal, `SinkStore.last_batch`): delivered, counted apart as
+    ``unrecorded``. A recording without those entities (older) can only give the robots' drop
+    counters, and counts every gap as lost."""
     seqs_of: dict[tuple[str, int], list[int]] = {}
-    dropped_of: dict[tuple[str, int], set[int]] = {}
-    died_of: dict[tuple[str, int], set[int]] = {}
+    apart_of: dict[str, dict[tuple[str, int], set[int]]] = {"held_dropped": {}, "died_with_process": {},
+                                                              "sink_journal": {}}
     for entity, (_, values) in rec.scalars.items():
-        m = _OUTPUT.match(entity) or _HELD_DROPPED.match(entity) or _DIED.match(entity)
+        m = (_OUTPUT.match(entity) or _HELD_DROPPED.match(entity) or _DIED.match(entity)
+             or _SINK_JOURNAL.match(entity))
         if not m:
             continue
         finite = [int(v) for v in values if math.isfinite(v)]
         key = (m["chain"], int(m["run"]))
-        if entity.endswith("/seq"):
+        what = entity.rsplit("/", 1)[1]
+        if what == "seq":
             seqs_of.setdefault(key, []).extend(finite)
-        elif entity.endswith("/held_dropped"):
-            dropped_of.setdefault(key, set()).update(finite)
         else:
-            died_of.setdefault(key, set()).update(finite)
+            apart_of[what].setdefault(key, set()).update(finite)
+    dropped_of = apart_of["held_dropped"]
     chains: dict[str, Any] = {}
-    lost_all = dup_all = died_all = 0
+    lost_all = dup_all = died_all = unrecorded_all = 0
     for (chain, run), seqs in seqs_of.items():
         c = chains.setdefault(chain, {"outputs": 0, "distinct": 0, "lost": 0, "duplicated": 0, "held_dropped": 0,
-                                      "died_with_process": 0, "runs": []})
+                                      "died_with_process": 0, "unrecorded": 0, "runs": []})
         distinct = set(seqs)
         gaps = (max(distinct) + 1 - len(distinct)) if distinct else 0
-        # dropped seqs that are gaps (one dropped past the last delivered is in no gap)
-        in_gaps = {seq for seq in dropped_of.get((chain, run), ()) if seq not in distinct and seq < max(distinct)}
-        died = {seq for seq in died_of.get((chain, run), ())
-                if seq not in distinct and seq < max(distinct) and seq not in in_gaps}
+
+        def in_gaps(what: str, *besides: set[int]) -> set[int]:
+            """The seqs counted apart as ``what`` that are gaps (one past the last delivered is in none)."""
+            return {seq for seq in apart_of[what].get((chain, run), ())
+                    if seq not in distinct and seq < max(distinct) and not any(seq in b for b in besides)}
+
+        unrecorded = in_gaps("sink_journal")  # delivered: before a drop or a crash's tail is thought of
+        dropped = in_gaps("held_dropped", unrecorded)
+        died = in_gaps("died_with_process", unrecorded, dropped)
+        lost = gaps - len(dropped) - len(died) - len(unrecorded)
         dup = len(seqs) - len(distinct)
         c["outputs"] += len(seqs)
         c["distinct"] += len(distinct)
-        c["lost"] += gaps - len(in_gaps) - len(died)
-        c["held_dropped"] += len(in_gaps)
+        c["lost"] += lost
+        c["held_dropped"] += len(dropped)
         c["died_with_process"] += len(died)
+        c["unrecorded"] += len(unrecorded)
         c["duplicated"] += dup
         c["runs"].append(run)
-        lost_all += gaps - len(in_gaps) - len(died)
+        lost_all += lost
         died_all += len(died)
+        unrecorded_all += len(unrecorded)
         dup_all += dup
     for c in chains.values():
         c["runs"].sort()
@@ -620,11 +639,13 @@ def _outputs(rec: Recording) -> dict[str, Any]:
                for what in ("resent", "evicted", "held_dropped")}
     # a seq logged as let go that reached the sink all the same is no drop (a restarted robot logs
     # again every result its journal had past what it takes back, acknowledged ones included)
-    held = (sum(len(d - set(seqs_of.get(k, ()))) for k, d in dropped_of.items()) if dropped_of
+    held = (sum(len(d - set(seqs_of.get(k, ())) - apart_of["sink_journal"].get(k, set()))
+                for k, d in dropped_of.items()) if dropped_of
             else int(custody["held_dropped"]))
     return {"recorded": bool(chains), "lost": lost_all, "duplicated": dup_all,
             "resent": int(custody["resent"]), "given_up": int(custody["evicted"]),
             "held_dropped": held, "held_dropped_known": bool(dropped_of), "died_with_process": died_all,
+            "unrecorded": unrecorded_all,
             "chains": dict(sorted(chains.items()))}
 
 

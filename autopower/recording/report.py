@@ -69,7 +69,9 @@ def render_text(summary: dict[str, Any]) -> str:
                         "robots cut off from their sink too long (each holds a bounded number of results, the "
                         "oldest go)" if o.get("held_dropped") else "")
                      + (f"; {o['died_with_process']} of a robot's own chain died with its crashed process"
-                        if o.get("died_with_process") else ""))
+                        if o.get("died_with_process") else "")
+                     + (f"; {o['unrecorded']} delivered by a sink killed before it flushed their recording "
+                        "(named by its journal)" if o.get("unrecorded") else ""))
     lines += ["", "invariants:"]
     for inv in s["invariants"]:
         mark = {True: "ok  ", False: "FAIL", None: "n/a "}[inv["ok"]]

@@ -137,7 +137,7 @@ def test_lost_and_duplicated_outputs_are_counted(tmp_path):
     rec.close()
     s = summarize(load(tmp_path / "x.rrd"))
     assert s["outputs"]["chains"]["Blob-2"] == {"outputs": 8, "distinct": 5, "lost": 1, "duplicated": 3, "held_dropped": 0,
-                                               "died_with_process": 0, "runs": [0, 1]}
+                                               "died_with_process": 0, "unrecorded": 0, "runs": [0, 1]}
     assert s["lost_outputs"] == 1 and s["duplicated_outputs"] == 3
     inv = {i["name"]: i["ok"] for i in s["invariants"]}
     assert inv["every output exactly once at its sink"] is False and not s["ok"]
