@@ -491,6 +491,13 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.tally("held-outputs-dropped")
             if self.on_held_dropped is not None:
                 self.on_held_dropped(dropped.chain, dropped.run, dropped.seq)
+        # Sent late, as a retransmission: the sink may have had this output meanwhile from another
+        # instance (a released stage runs the inputs waiting in its gate, while their producer, its
+        # acknowledgement cut off, resends them to the stage's next instance). Random faults, seed 3:
+        # the laptop held Loc-1 seq 11 through a cut, r1's own restarted Loc-1 delivered it, and 50 s
+        # later the held copy reached r1's sink, restarted since (what came as a resend is not kept
+        # on disk), as new: delivered twice. Marked, a sink that has it drops it as redundant.
+        frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
         self.held_outputs.append(frame)
         self.custody.mark(frame, None)  # not on the wire: no resend is due until it is
         self._journal_held(frame)

@@ -504,6 +504,11 @@ class Agent:
     def _subgroup_objection(self, proposal: SubgroupPropose) -> str | None:
         """Why we vote no: the round would start elsewhere a stage that runs here (it would run twice)."""
         me = self.config.robot
+        if self.runtime.plan is None:
+            # restarted, not yet going on with its saved plan (`_resume_alone`): it could apply
+            # nothing (random faults, seed 3: the commit raised here and the round's leader took
+            # this robot for one running what the round put on it); the leader tries again later
+            return f"{me} has no plan yet (restarted {time.time() - self._started_unix:.1f} s ago)"
         for move in proposal.moves:
             if move.to_node != me and move.from_node != me and self._runs_here(move.stage):
                 return f"{move.stage} runs on {me}, the round starts it on {move.to_node}"

@@ -123,3 +123,31 @@ def test_held_results_the_sink_already_had_are_dropped_there_as_redundant_not_co
     sink_node.on_output = previous
     assert not [seq for seq in recorded if seq >= 200_000]  # none handed on (recorded) again
     assert sink.duplicates_total == 0 and sink.redundant_total >= 6
+
+
+def test_a_held_result_that_reaches_its_sink_late_is_redundant_where_another_instance_delivered_it():
+    """Random faults, seed 3: the laptop, cut off from r1, ran the inputs waiting in its released
+    Loc-1 and held the result for seq 11; r1's own restarted Loc-1 ran seq 11 again from its
+    source's resend and delivered it. r1's sink was then restarted (what came as a resend is not
+    kept on disk), and 50 s later the held copy came, sent as new: delivered and recorded twice."""
+    import dataclasses
+
+    from autopower.agent.sequencing import SinkLedger
+
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    team.run_until(20.0)
+    r2, laptop = team.nodes["r2"], team.nodes["laptop"]
+    frame = _result(300_000)
+    r2.custody.keep(frame, r2.wall(), sent=False)
+    r2.hold_output(frame)  # its sink out of reach
+    # the stage's next instance ran the resent input: its copy reaches the sink first
+    laptop.deliver_frame(dataclasses.replace(frame, attempt=1), 0)
+    sink = laptop.sinks["Blob-2"]
+    assert 300_000 in sink.above
+    laptop.sinks["Blob-2"] = sink = SinkLedger.from_state(sink.state())  # the sink restarted since
+    handed_on = []
+    laptop.on_output = lambda chain, run, seq, data: handed_on.append(seq)
+    r2.flush_held_outputs()  # back in reach: the held copy goes
+    team.pump()
+    assert handed_on == [] and sink.duplicates_total == 0 and sink.redundant_total == 1

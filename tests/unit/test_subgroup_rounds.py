@@ -412,3 +412,22 @@ def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarte
     r1._subgroup_tick()
     drain(hub, agents)
     assert running(agents)["Blob-2"] == [host]
+
+
+def test_a_restarted_member_without_a_plan_refuses_a_round(team):
+    """Random faults, seed 3: r3, just restarted and not yet going on with its saved plan, accepted a
+    round; the commit raised in it (no plan to apply it to) and the leader took r3 for running what
+    the round put there. It now votes no, and the leader tries again once r3 has its plan."""
+    hub, agents, _ = team
+    agents["r3"].__exit__(None, None, None)
+    config = AgentConfig(robot="r3", scenario=agents["r1"].config.scenario, team="t", subgroup_settle_s=0.0)
+    agents["r3"] = Agent(config, bus=hub.bus("r3"), make_component=FakeComponent, make_source=FakeSource).__enter__()
+    assert agents["r3"].runtime.plan is None
+    drain(hub, agents)  # the old r3's token went, the new one's came
+    see_all(agents)
+    on_r3 = (SubgroupMove(stage="Loc-3", from_node=None, to_node="r3"),)
+    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-3": "r3"}, on_r3, 100, "on r3")
+    drain(hub, agents)
+    assert agents["r1"].agreement.aborted == 1 and agents["r1"].agreement.committed == 0
+    assert agents["r3"].agreement.committed == 0 and not agents["r3"].runtime.errors.get("internal-error")
+    assert "Loc-3" not in running(agents)
