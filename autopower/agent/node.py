@@ -232,6 +232,11 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
             self.weights.update(self.flow_weights(plan.mission.accounting))
             self._resume(plan.mission)
+            if not self.resumed and self.held_store is not None:
+                # a process without a resume state keeps its held results on disk all the same (the
+                # base station's host): random faults, seed 6, the laptop held Loc-1 seq 10 for r1,
+                # cut off, and was killed; r1 had had the acknowledgement, so nobody had it any more
+                self._take_back_held(plan.mission)
         self._set_plan(plan)
         self.follow_plan_runs(plan)
         for hosted in self.hosted.values():

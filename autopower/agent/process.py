@@ -67,12 +67,6 @@ class AgentConfig:
     silence_periods: float = 2.0
 
 
-# A member's status shows a stage our plan puts on it only after the member applied the round that
-# put it there; this many status periods after we learnt of the placement, a status without it means
-# the stage runs nowhere (`Agent._lost_on`).
-LOST_AFTER_PERIODS = 2.0
-
-
 class Agent:
     """A robot's agent (a context manager: the session, token and subscriptions close on exit)."""
 
@@ -97,8 +91,7 @@ class Agent:
         self._subgroup_done: tuple | None = None  # (members, plan order, where stages run) handled
         self._subgroup_retry_at = 0.0  # after an aborted round: not before fresh statuses are in
         self._heard_direct: dict[str, float] = {}  # node -> wall time of its last status received directly
-        self._heard_any: dict[str, float] = {}  # node -> wall time of its last status, direct or relayed
-        # stage -> (member our plan puts it on, since when we know it): see `_lost_on`
+        # stage -> (member our plan puts it on, mission time since we know it): see `_lost_on`
         self._placed_since: dict[str, tuple[str, float]] = {}
         self._tokens: set[str] = set()  # nodes whose liveliness token we see
         self._silent: set[str] = set()  # nodes with a token but no direct status for too long
@@ -281,7 +274,6 @@ class Agent:
                 if not relayed:
                     self.relayer.on_direct(status.node)
                 self.statuses[status.node] = status
-                self._heard_any[status.node] = time.time()
                 rt.on_peer_status(status)  # what it consumed: acks for our custody buffer
                 self._yield_to_newer(status)
             except ProtocolError as exc:
@@ -455,23 +447,24 @@ class Agent:
             for stage in sorted(self._running_on(member)):
                 if placement.get(stage) not in members:
                     placement[stage] = member
-        now = time.time()
         for stage, host in list(placement.items()):
-            if host in members and self._lost_on(stage, host, now):
+            if host in members and self._lost_on(stage, host):
                 del placement[stage]  # runs nowhere: the round restarts it (`subgroup_reallocation`)
         return placement
 
-    def _lost_on(self, stage: str, member: str, now: float) -> bool:
-        """Our plan puts ``stage`` of a running chain on ``member``, and a status ``member`` sent well
-        after we learnt that shows no instance of it, in any state: it runs nowhere.
+    def _lost_on(self, stage: str, member: str) -> bool:
+        """Our plan puts ``stage`` of a running chain on ``member``, whose process was restarted since
+        we learnt that, and which does not host it now: it runs nowhere.
 
         A member killed between a round's commit and saving it came back with the plan before the
         round, so it did not restart what the round had put on it; the others' plans still named it
         as the host, and no round restarted the stage until the base station came back (CI
-        2026-11-25: Blob-2 and Loc-2 left unrun). A status that had not yet seen the commit must not
-        count: the member's status is taken only once `LOST_AFTER_PERIODS` status periods have passed
-        since we learnt where the stage runs (the member publishes one at its commit). A member that
-        does run it votes against a round that would start it elsewhere (`_subgroup_objection`).
+        2026-11-25: Blob-2 and Loc-2 left unrun). A restarted process says so in its statuses (`down`:
+        the mission time its predecessor's metering stopped, at most a status period before it died),
+        and what it hosts is all it has. Only a restart tells: a stage on its way to a member in a
+        migration is hosted nowhere for a while (the old host reports it migrated, the new one has yet
+        to take the state in). A member that died after voting for the round but before its commit
+        counts too: the margin is a round's time and a status period.
         """
         rt, me = self.runtime, self.config.robot
         chain, _ = rt.stage_index.get(stage, (None, 0))
@@ -479,13 +472,12 @@ class Agent:
             return False  # a stage of a chain the operator stopped runs nowhere on purpose
         known = self._placed_since.get(stage)
         if known is None or known[0] != member:
-            self._placed_since[stage] = known = (member, now)
-        if member == me:
-            return stage not in rt.hosted
+            self._placed_since[stage] = known = (member, rt.now())
         status = self.statuses.get(member)
-        if status is None or stage in (status.hosted or {}):
-            return False
-        return self._heard_any.get(member, 0.0) - known[1] >= LOST_AFTER_PERIODS * self.config.status_period_s
+        if member == me or status is None or status.down is None or stage in (status.hosted or {}):
+            return False  # (our own restart goes on with the plan we saved: `_resume_alone`)
+        margin = (self.config.subgroup_timeout_s + self.config.status_period_s) * rt.clock.speed
+        return status.down[0] >= known[1] - margin
 
     def _running_on(self, node: str) -> set[str]:
         """The stages ``node`` runs or is starting: ours as hosted here, a peer's from its last status."""
@@ -533,10 +525,10 @@ class Agent:
                 rt.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
                                     resume_seq=None))
         rt.override_placement(dict(proposal.placement), {base})
-        # a member's status from before it applied this round says nothing of what runs there now
-        # (a round restarting a stage on the host the plan already named: `_lost_on`)
-        now = time.time()
-        self._placed_since.update({stage: (host, now) for stage, host in proposal.placement.items()})
+        # the moved stages are placed now: a member restarted before this round started what the
+        # round put on it (`_lost_on`)
+        now = rt.now()
+        self._placed_since.update({m.stage: (m.to_node, now) for m in proposal.moves})
         # kept at once, not with the next periodic status: killed in between, this robot came back
         # with the plan before the round and did not restart what the round had put on it
         self.save_resume()

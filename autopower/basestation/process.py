@@ -81,6 +81,8 @@ class Host(Protocol):
 
     def count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None: ...
 
+    def settle_held_store(self) -> None: ...  # held results acknowledged since: off the disk
+
 
 @dataclass(frozen=True, kw_only=True)
 class BaseStationConfig:
@@ -450,6 +452,7 @@ class BaseStation:
                     # snapshot builds a status too but acknowledges nothing, so it keeps nothing
                     if rt.sink_store is not None:
                         rt.sink_store.commit()
+                    rt.settle_held_store()  # what the robots acknowledged leaves the held journal
                     self._bus.publish(key, payload, reliable=False)
                     self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
                                                 REPEAT_EVERY_PERIODS * status.next_status_s)

@@ -147,6 +147,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
                 replan_interval, start_grace, stage_workers):
     """Run the base station: plan, place and migrate components; the operator's sink."""
     from autopower.agent.node import NodeRuntime
+    from autopower.agent.held_store import HeldStore
     from autopower.agent.sink_store import SinkStore
     from autopower.basestation.coordinator import CoordinatorConfig
     from autopower.basestation.operator import team_dir
@@ -177,6 +178,8 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
     def host(**kwargs) -> NodeRuntime:
         runtime = NodeRuntime(**kwargs, stage_workers=workers)
         runtime.sink_store = SinkStore(state / "sinks.json")
+        # results it holds for a robot's chain whose sink is out of reach: a restart takes them back
+        runtime.held_store = HeldStore(state / f"{scenario.basestation}.held")
         return runtime
 
     recorder, bus = _recording_bus(record_dir, scenario.basestation, scenario, config.zenoh)

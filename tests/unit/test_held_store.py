@@ -151,3 +151,31 @@ def test_a_held_result_that_reaches_its_sink_late_is_redundant_where_another_ins
     r2.flush_held_outputs()  # back in reach: the held copy goes
     team.pump()
     assert handed_on == [] and sink.duplicates_total == 0 and sink.redundant_total == 1
+
+
+def test_the_base_stations_host_takes_back_what_it_held_after_a_restart(tmp_path):
+    """Random faults, seed 6: the laptop, cut off from r1, ran the Loc-1 inputs waiting in its
+    released stage and held their results for r1's sink; r1 had had their acknowledgement. The
+    laptop was then killed and the held results died in its memory: Loc-1 seq 10 was lost. The
+    base station's host has no resume state, and now keeps its held results on disk all the same."""
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    team.run_until(20.0)
+    old = team.nodes["laptop"]
+    old.held_store = HeldStore(tmp_path / "laptop.held")
+    results = [ChainFrame(chain="Loc-1", run=0, seq=400_000 + i, target=1, t_virtual=0.0, t_unix=0.0,
+                          payload_len=3, payload=b"abc") for i in range(3)]
+    for frame in results:
+        old.custody.keep(frame, old.wall(), sent=False)
+        old.hold_output(frame)
+    old.held_store.close()
+    # killed; the restarted base station's host gets the plan of the same mission (no resume state)
+    rt = NodeRuntime(node="laptop", scenario=team.scenario, bus=team.hub.bus("laptop-again"), keys=team.keys,
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
+    rt.wall = team.clock.wall
+    rt.held_store = HeldStore(tmp_path / "laptop.held")
+    rt.on_plan(old.plan)
+    team.pump()
+    sink = team.nodes["r1"].sinks["Loc-1"]
+    assert all(f.seq in sink.above for f in results), sorted(sink.above)  # r1 in reach: delivered
+    assert sink.duplicates_total == 0 and not rt.held_outputs
