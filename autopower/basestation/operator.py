@@ -116,12 +116,18 @@ def read_session(team: str | None = None, *, remote_hint: bool = True) -> dict:
     return next(iter(sessions.values()))
 
 
+# What a team's base station keeps in the team's folder across its restarts (`basestation.process`:
+# lock, incarnation; `agent.sink_store`: the operator sink's ledgers; `agent.held_store`: results it
+# holds for a robot's sink out of reach), with the temporary files of their atomic rewrites
+# (the lock last: removed while this process still holds it, nothing of the team is left then)
+BASESTATION_STATE_FILES = ("sinks.json", "sinks.json.tmp", "basestation.held", "basestation.held.tmp",
+                           "basestation.json", "basestation.json.tmp", "basestation.lock")
+
+
 def remove_team_files(team: str) -> None:
     """Remove one team's session file, control socket and directory; nothing of any other team."""
     folder = state_dir() / TEAMS_DIR / check_name(team, "team")
-    # with what the team's base station keeps across its restarts (process.py, agent/sink_store.py)
-    for name in (SESSION_FILE, SESSION_FILE.replace(".json", ".tmp"), "control.sock", "basestation.lock",
-                 "basestation.json", "basestation.json.tmp", "sinks.json", "sinks.json.tmp"):
+    for name in (SESSION_FILE, SESSION_FILE.replace(".json", ".tmp"), "control.sock", *BASESTATION_STATE_FILES):
         try:
             (folder / name).unlink()
         except FileNotFoundError:

@@ -203,8 +203,10 @@ class BaseStation:
         """A base station whose launcher owns the team (``parent_pid``: `up`, the test launcher) that
         stops cleanly leaves nothing behind: the team ends with it. Under a service manager (no
         parent) the files stay for the next start; after a kill they stay for the restart."""
+        from autopower.basestation.operator import BASESTATION_STATE_FILES
+
         folder = Path(self.config.state_dir)
-        for name in ("sinks.json", "sinks.json.tmp", "basestation.json", "basestation.json.tmp", "basestation.lock"):
+        for name in BASESTATION_STATE_FILES:
             try:
                 (folder / name).unlink()
             except FileNotFoundError:
