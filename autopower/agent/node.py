@@ -551,11 +551,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             # Blob results between logged drops). One its sink had acknowledged is no gap there.
             for frame in let_go:
                 self.on_held_dropped(frame.chain, frame.run, frame.seq)
-        # Each is sent again as a retransmission: the crashed process may have delivered it, and its
-        # sink acknowledged it, before the journal was next rewritten (at a status tick). A sink that
-        # has it then drops the copy as redundant; sent as new, it counted and recorded a duplicate
-        # (the testbed demo: r2 killed right after delivering its held results, 50 Blob-2 twice).
-        frames = [dataclasses.replace(f, attempt=max(f.attempt, 1)) for f in frames]
+        # Each goes again as the retransmission `hold_output` journaled it as: the crashed process
+        # may have delivered it, and its sink acknowledged it, before the journal was next rewritten
+        # (at a status tick); a sink that has it drops the copy as redundant (the testbed demo: r2
+        # killed right after delivering its held results, sent as new, 50 Blob-2 twice).
         for frame in frames:
             self.custody.keep(frame, self.wall(), sent=False)
             self.held_outputs.append(frame)

@@ -86,10 +86,9 @@ from autopower.model.parts import OVERHEAD_KINDS
 from autopower.recording.recorder import parse_event
 from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGES, MIGRATIONS, Recording, read_recording
 
-_OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/seq$")
-_HELD_DROPPED = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/held_dropped$")
-_DIED = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/died_with_process$")
-_SINK_JOURNAL = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/sink_journal$")
+# one scalar (the seq) per output of a chain's run: delivered at its sink, or counted apart (`_outputs`)
+_APART = ("held_dropped", "died_with_process", "sink_journal")
+_PER_OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/(?P<what>seq|" + "|".join(_APART) + ")$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
 _SIM_MOVE = re.compile(r"^(?P<stage>\S+): (?P<src>\S+) → (?P<dst>\S+),")
 _EPS = 1e-6
@@ -587,16 +586,14 @@ def _outputs(rec: Recording) -> dict[str, Any]:
     ``unrecorded``. A recording without those entities (older) can only give the robots' drop
     counters, and counts every gap as lost."""
     seqs_of: dict[tuple[str, int], list[int]] = {}
-    apart_of: dict[str, dict[tuple[str, int], set[int]]] = {"held_dropped": {}, "died_with_process": {},
-                                                              "sink_journal": {}}
+    apart_of: dict[str, dict[tuple[str, int], set[int]]] = {what: {} for what in _APART}
     for entity, (_, values) in rec.scalars.items():
-        m = (_OUTPUT.match(entity) or _HELD_DROPPED.match(entity) or _DIED.match(entity)
-             or _SINK_JOURNAL.match(entity))
+        m = _PER_OUTPUT.match(entity)
         if not m:
             continue
         finite = [int(v) for v in values if math.isfinite(v)]
         key = (m["chain"], int(m["run"]))
-        what = entity.rsplit("/", 1)[1]
+        what = m["what"]
         if what == "seq":
             seqs_of.setdefault(key, []).extend(finite)
         else:
