@@ -19,6 +19,8 @@ import subprocess
 import sys
 import time
 
+import results
+
 
 def messages() -> dict[str, tuple[object, object]]:
     """name -> (the message on the wire, the frame its body carries or None)"""
@@ -46,7 +48,7 @@ def messages() -> dict[str, tuple[object, object]]:
         queue_depth=0, errors={}, counters={"forwarded": 0, "late-captures": 12, "custody-frames": 210,
                                             "custody-bytes": 48_000_000, "custody-resent": 0},
         depleted=False,
-        consumed={f"{c}#1": Consumed(run=0, generation=1, next_seq=1234, max_seq=1240, missing=(1236,)) for c in chains},
+        consumed={f"{c}#1": Consumed(run=0, generation=1, next_seq=1234, max_seq=1240, missing=((1236, 1236),)) for c in chains},
     )
     camera, laser, output = frame("Blob-2", 230415, 0), frame("Loc-2", 1059, 0), frame("Loc-2", 805, 1)
     return {"camera frame 230 kB": (packet(camera), camera), "laser frame 1 kB": (packet(laser), laser),
@@ -54,20 +56,41 @@ def messages() -> dict[str, tuple[object, object]]:
 
 
 def measure(rounds: int = 5) -> dict[str, dict[str, float]]:
+    import msgpack
+
     from autopower.protocol import Packet, decode, encode
+
+    def unpack(b: bytes):
+        return msgpack.unpackb(b, raw=False, strict_map_key=False)
 
     out = {}
     for name, (msg, inner) in messages().items():
         data = encode(msg)
         n = max(200, int(2e6 // len(data)))
+        wire = unpack(data)  # the baseline: bare msgpack of the same bytes, no field checked
+        wire_inner = unpack(wire[3]["body"]) if inner is not None else None
 
-        def decode_all() -> None:
+        def decode_bare(n=n, data=data, inner=inner) -> None:  # this message's values, bound explicitly
+            for _ in range(n):
+                m = unpack(data)
+                if inner is not None:
+                    unpack(m[3]["body"])
+
+        def encode_bare(n=n, wire=wire, wire_inner=wire_inner) -> None:
+            for _ in range(n):
+                if wire_inner is not None:
+                    msgpack.packb([*wire[:3], {**wire[3], "body": msgpack.packb(wire_inner, use_bin_type=True)}],
+                                  use_bin_type=True)
+                else:
+                    msgpack.packb(wire, use_bin_type=True)
+
+        def decode_all(n=n, data=data, msg=msg, inner=inner) -> None:  # this message's values, bound explicitly
             for _ in range(n):
                 m = decode(data, type(msg))
                 if inner is not None:
                     decode(m.body, type(inner))
 
-        def encode_all() -> None:
+        def encode_all(n=n, msg=msg, inner=inner) -> None:
             for _ in range(n):
                 if inner is not None:  # as a sender does: the frame, then the packet around it
                     encode(Packet(path=msg.path, media=msg.media, hop=1, charge_bytes=msg.charge_bytes,
@@ -75,7 +98,8 @@ def measure(rounds: int = 5) -> dict[str, dict[str, float]]:
                 else:
                     encode(msg)
         row = {}
-        for what, fn in (("decode", decode_all), ("encode", encode_all)):
+        for what, fn in (("decode", decode_all), ("encode", encode_all), ("decode_msgpack", decode_bare),
+                         ("encode_msgpack", encode_bare)):
             best = float("inf")
             for _ in range(rounds):
                 t = time.process_time()
@@ -90,6 +114,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--baseline-tree", default=None, metavar="DIR")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    results.add_json_out(ap)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(measure()))
@@ -111,6 +136,20 @@ def main() -> None:
             cells.append(f"{row[what]:>8.1f} {old if old is not None else float('nan'):>8.1f} "
                          f"{row[what] / old if old else float('nan'):>6.2f}")
         print(f"{name:22} {cells[0]}   {cells[1]}")
+    print("bare msgpack of the same bytes (no field checked), us: " + "; ".join(
+        f"{name} decode {row['decode_msgpack']:.1f}, encode {row['encode_msgpack']:.1f}" for name, row in after.items()))
+    figures = []
+    for name, row in after.items():
+        for what in ("decode", "encode"):
+            figures.append(results.figure(f"{what}, {name}", row[what], "us", "bare msgpack", row[f"{what}_msgpack"],
+                                          note="msgpack of the same bytes with no field checked (CPU, best of 5)"))
+            if before and before.get(name, {}).get(what):
+                figures.append(results.figure(f"{what}, {name}", row[what], "us", "code before",
+                                              before[name][what], group="against the code before",
+                                              note=f"the same on --baseline-tree {args.baseline_tree}"))
+    results.write_result("codec", {"baseline_tree": args.baseline_tree}, figures, args.json_out,
+                         what="CPU of the strict codec per message a live team exchanges, against bare msgpack "
+                              "on the same bytes.")
 
 
 if __name__ == "__main__":

@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+import results
+
 from autopower.agent.custody import Custody, Report
 from autopower.protocol import ChainFrame, Consumed, encode
 
@@ -80,6 +82,7 @@ def main() -> None:
     parser.add_argument("--late-held", type=int, default=2_000, help="frames a late consumer leaves held")
     parser.add_argument("--baseline-tree", default=None, metavar="DIR")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)  # the baseline's run: JSON out
+    results.add_json_out(parser)
     args = parser.parse_args()
     if not 100 <= args.frames <= 1_000_000 or not 0 <= args.late_held <= 100_000:
         raise SystemExit("--frames must be within 100..1000000, --late-held within 0..100000")
@@ -101,6 +104,21 @@ def main() -> None:
         if before is not None and label in before:
             line += f"; before {before[label] * 1e6:8.2f} us/frame, after/before {cost / before[label]:5.2f}"
         print(line)
+    figures = []
+    for label, cost in now.items():
+        if label.endswith("encode"):
+            continue
+        kind = label.split(":")[0] if not label.startswith("late") else "blob result, 200 B"
+        enc = now[kind + ": encode"]
+        figures.append(results.figure(label, cost * 1e6, "us/frame", f"encode, {kind}", enc * 1e6,
+                                      note="msgpack encode of the same frame, what every frame costs anyway"))
+        if before is not None and label in before:
+            figures.append(results.figure(label, cost * 1e6, "us/frame", "code before", before[label] * 1e6,
+                                          group="against the code before",
+                                          note=f"the same on --baseline-tree {args.baseline_tree}"))
+    results.write_result("custody", {"frames": args.frames, "late_held": args.late_held,
+                                     "baseline_tree": args.baseline_tree}, figures, args.json_out,
+                         what=__doc__.splitlines()[0])
 
 
 if __name__ == "__main__":

@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+import results
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 LEASE_MS = 500
@@ -207,6 +209,7 @@ def main() -> None:
     parser.add_argument("--baseline-cuts", type=int, default=10)
     parser.add_argument("--speed", type=float, default=5.0)
     parser.add_argument("--subgroup-rounds", type=int, default=5)
+    results.add_json_out(parser)
     args = parser.parse_args()
     if not 1 <= args.cuts <= 200:
         raise SystemExit("--cuts must be within 1..200")
@@ -223,8 +226,41 @@ def main() -> None:
           f"{figures['recovered']} outputs reached a sink only by a resend); lost at the sinks {figures['lost']}, "
           f"duplicated {figures['duplicated']}, redundant copies dropped at sinks {figures['redundant']}; worst "
           f"output latency {figures['latency_ms_max']:.0f} ms")
+    subgroup = []
     if args.subgroup_rounds > 0:
-        print(_fmt("subgroup agreement (2PC, 3 robots)", subgroup_rounds(min(args.subgroup_rounds, 20), args.speed)))
+        subgroup = subgroup_rounds(min(args.subgroup_rounds, 20), args.speed)
+        print(_fmt("subgroup agreement (2PC, 3 robots)", subgroup))
+    def med(v: list[float]) -> float | None:
+        return statistics.median(v) * 1e3 if v else None
+
+    def worst(v: list[float]) -> float | None:
+        return max(v) * 1e3 if v else None
+
+    floor = f"raw liveliness (n={len(base)})"
+    note = (f"two bare Zenoh sessions through a link proxy, lease {LEASE_MS} ms, idle, cut the same way: "
+            "the floor of any detection built on the lease")
+    g = f"silent cuts of r1-laptop, lease {LEASE_MS} ms, x{args.speed:g}"
+    out = [
+        results.figure(f"detection, median (n={len(detected)})", med(detected), "ms", floor, med(base), group=g,
+                       note=note),
+        results.figure("detection, worst", worst(detected), "ms", floor, worst(base), group=g, note=note),
+        results.figure(f"cut to reconfigured, median (n={len(reconfigured)})", med(reconfigured), "ms", floor,
+                       med(base), group=g, note=note),
+        results.figure("cut to reconfigured, worst", worst(reconfigured), "ms", floor, worst(base), group=g,
+                       note=note),
+    ]
+    if subgroup:
+        out.append(results.figure(f"subgroup agreement (2PC, 3 robots), median (n={len(subgroup)})", med(subgroup),
+                                  "ms", "the team's detection", med(detected), group=g,
+                                  note="the team's median detection of a cut, same run"))
+    for name, key in (("outputs lost at the sinks", "lost"), ("outputs duplicated at the sinks", "duplicated"),
+                      ("frames resent from custody", "resent"), ("outputs that came only by a resend", "recovered")):
+        out.append(results.figure(name, figures[key], "outputs", "outputs received", figures["outputs"],
+                                  group="delivery over the cuts",
+                                  note="every output the sinks received over the cuts"))
+    results.write_result("faults", {"cuts": args.cuts, "baseline_cuts": args.baseline_cuts, "speed": args.speed,
+                                    "subgroup_rounds": args.subgroup_rounds, "lease_ms": LEASE_MS}, out,
+                         args.json_out, what=__doc__.splitlines()[0])
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ import threading
 import time
 from pathlib import Path
 
+import results
 import zenoh
 
 from autopower.protocol import Keys, NodeStatus, decode
@@ -143,7 +144,9 @@ def main() -> None:
                         help="garbage that starts like an AutoPower message (is queued, fails to decode)")
     parser.add_argument("--shared-memory", action="store_true",
                         help="flood through Zenoh's shared memory (a local attacker) instead of TCP")
+    results.add_json_out(parser)
     args = parser.parse_args()
+    figures = []
     with tempfile.TemporaryDirectory() as tmp:
         builds = [("this build", [AUTOPOWER], {})]
         if args.baseline:
@@ -163,6 +166,18 @@ def main() -> None:
                 print(f"{name:>11} {messages:>9} {r['rest']:>8.0f} {r['peak']:>8.0f} {r['after']:>9.0f} "
                       f"{r['peak'] / r['rest']:>9.2f}x {r['after'] / r['rest']:>10.2f}x {r['took']:>8.1f} "
                       f"{r['drop_logs']:>10}  {counted}", flush=True)
+                g = f"{name}: {messages} messages of {args.mb:g} MB"
+                note = "the agent's resident memory at rest, before the flood"
+                figures += [
+                    results.figure("resident memory at the peak", r["peak"], "MB", "at rest", r["rest"], group=g,
+                                   note=note, detail=f"flood took {r['took']:.1f} s"),
+                    results.figure("resident memory 3 s after", r["after"], "MB", "at rest", r["rest"], group=g,
+                                   note=note, detail=f"{r['drop_logs']} drop warnings logged"),
+                ]
+    results.write_result("flood", {"messages": args.messages, "mb": args.mb, "baseline_ref": args.baseline_ref,
+                                   "baseline": args.baseline, "enveloped": args.enveloped,
+                                   "shared_memory": args.shared_memory}, figures, args.json_out,
+                         what=__doc__.splitlines()[0])
 
 
 if __name__ == "__main__":

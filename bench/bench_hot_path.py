@@ -23,6 +23,8 @@ import subprocess
 import sys
 import time
 
+import results
+
 SPEED = 50.0
 STATUS_EVERY_WALL_S = 0.5
 
@@ -121,6 +123,7 @@ def main() -> None:
     ap.add_argument("--virtual-s", type=float, default=60.0)
     ap.add_argument("--baseline-tree", default=None, metavar="DIR")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    results.add_json_out(ap)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(measure(args.virtual_s)))
@@ -129,14 +132,38 @@ def main() -> None:
           f"load average {os.getloadavg()[0]:.2f} ==")
     print(f"{'code':8} {'components ms':>12} {'sources ms':>10} {'runtime ms':>10} {'total ms':>10} {'outputs':>8} "
           f"{'total/comp.':>12} {'unacked':>9}")
+    before = None
     if args.baseline_tree:
         env = {**os.environ, "PYTHONPATH": args.baseline_tree}
         out = subprocess.run([sys.executable, __file__, "--child", "--virtual-s", str(args.virtual_s)], env=env,
                              capture_output=True, text=True, check=True).stdout
-        show("before", json.loads(out.strip().splitlines()[-1]))
-    show("after", measure(args.virtual_s))
+        before = json.loads(out.strip().splitlines()[-1])
+        show("before", before)
+    after = measure(args.virtual_s)
+    show("after", after)
     print("runtime = everything but the components' and the sources' own calls (produce, run): per-frame work of "
           "the nodes (encode/decode, padding, routing, meter, custody, sequencing, sinks, statuses)")
+    comp = after["components_ms"]
+    note = "the mission's components alone on the same inputs, CPU ms per virtual second (the limit's need)"
+    figures = [
+        results.figure("everything (four nodes in one process)", after["total_ms"], "CPU ms per virtual s",
+                       "components alone", comp, note=note),
+        results.figure("runtime (all but the components and the sources)",
+                       after["total_ms"] - comp - after["sources_ms"], "CPU ms per virtual s", "components alone",
+                       comp, note=note),
+        results.figure("sources alone", after["sources_ms"], "CPU ms per virtual s", "components alone", comp,
+                       note=note),
+    ]
+    if before is not None:
+        figures.append(results.figure("everything (four nodes in one process)", after["total_ms"],
+                                      "CPU ms per virtual s", "code before", before["total_ms"],
+                                      group="against the code before",
+                                      note=f"the same on --baseline-tree {args.baseline_tree}"))
+    results.write_result("hot_path", {"virtual_s": args.virtual_s, "speed": SPEED,
+                                      "baseline_tree": args.baseline_tree}, figures, args.json_out,
+                         what="CPU of the team's hot path per virtual second, the four nodes of the paper's mission "
+                              "in one process (load-independent), against the components alone.",
+                         extra={"after": after, "before": before})
 
 
 if __name__ == "__main__":

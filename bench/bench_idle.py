@@ -34,6 +34,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import results
+
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 ZENOH_THREADS = ("rx-", "tx-", "net-", "acc-", "app-", "Watchdog")  # Zenoh's runtime threads (by name)
 
@@ -168,9 +170,9 @@ def show(label: str, this: dict, before: dict | None) -> None:
         def cell(m):
             if m is None:
                 return ""
-            if name == "total":
+            if name == "total":  # noqa: B023 (called in this iteration)
                 return f"{sum(v[0] for v in m.values()):6.2f} ({sum(v[1] for v in m.values()):5.2f})"
-            v = m.get(name)
+            v = m.get(name)  # noqa: B023 (called in this iteration)
             return f"{v[0]:6.2f} ({v[1]:5.2f})" if v else ""
         row = f"    {name:13s} this build {cell(this):16s}"
         if before is not None:
@@ -190,6 +192,7 @@ def main() -> None:
     parser.add_argument("--variants", action="store_true", help="also at rest without proxies, and with a 2 s lease")
     parser.add_argument("--rounds", type=int, default=0, help="then both teams at rest N more times each, "
                                                                "alternating (needs a source checkout as --baseline)")
+    results.add_json_out(parser)
     args = parser.parse_args()
     src = cmd = None
     if args.baseline:
@@ -198,23 +201,57 @@ def main() -> None:
         else:
             cmd = args.baseline
     print(f"CPU over {args.seconds:g} s wall, % of one core ({os.cpu_count()} cores; load average {load()})")
-    print(f"  base station waiting for robots (this build): {waiting_basestation(AUTOPOWER, args.seconds):6.2f} %")
+    waiting = waiting_basestation(AUTOPOWER, args.seconds)
+    print(f"  base station waiting for robots (this build): {waiting:6.2f} %")
+    waiting_before = None
     if src or cmd:
-        print(f"  base station waiting for robots (before):     "
-              f"{waiting_basestation(cmd or AUTOPOWER, args.seconds, src):6.2f} %")
+        waiting_before = waiting_basestation(cmd or AUTOPOWER, args.seconds, src)
+        print(f"  base station waiting for robots (before):     {waiting_before:6.2f} %")
     before = team(args.seconds, src) if src else None
     this = team(args.seconds)
     show("whole team running the default mission (chains enabled)", this["running"],
          before and before["running"])
     show("the same team at rest (every chain disabled)", this["rest"], before and before["rest"])
+    def total(m: dict) -> float:
+        return sum(v[0] for v in m.values())
+
+    def zenoh(m: dict) -> float:
+        return sum(v[1] for v in m.values())
+
+    rest, running = this["rest"], this["running"]
+    g = f"% of one core over {args.seconds:g} s"
+    figures = [
+        results.figure("whole team at rest (every chain disabled)", total(rest), "% of a core",
+                       "the same team running", total(running), group=g,
+                       note="the same team running the default mission just before, all processes"),
+        results.figure("whole team at rest: Zenoh's own threads", zenoh(rest), "% of a core", "the team at rest",
+                       total(rest), group=g, note="all the team's threads at rest"),
+        results.figure("base station waiting for robots", waiting, "% of a core", "base station at rest",
+                       rest.get("base station", (None,))[0], group=g,
+                       note="the base station of the team at rest (its robots present, every chain disabled)"),
+    ]
+    for name, (pct, _z) in rest.items():
+        if name in running:
+            figures.append(results.figure(f"{name} at rest", pct, "% of a core", "running", running[name][0],
+                                          group="per process", note="the same process running the mission"))
+    if before is not None:
+        figures.append(results.figure("whole team at rest", total(rest), "% of a core", "code before",
+                                      total(before["rest"]), group="against the code before",
+                                      note=f"the same on --baseline {args.baseline}"))
+    if waiting_before is not None:
+        figures.append(results.figure("base station waiting for robots", waiting, "% of a core", "code before",
+                                      waiting_before, group="against the code before",
+                                      note=f"the same on --baseline {args.baseline}"))
     if args.variants:
         direct = team(args.seconds, extra=("--direct-links",), running=False)["rest"]
         lease = team(args.seconds, extra=("--lease-ms", "2000"), running=False)["rest"]
         print("  this build at rest, where the rest goes (% of one core in all, of which Zenoh's threads):")
         for label, m in (("up --direct-links (no link proxies)", direct), ("up --lease-ms 2000 (keep-alives 4x rarer)", lease)):
             print(f"    {label:44s} {sum(v[0] for v in m.values()):6.2f} ({sum(v[1] for v in m.values()):5.2f})")
+            figures.append(results.figure(f"team at rest, {label}", total(m), "% of a core", "the team at rest",
+                                          total(rest), group="where the rest goes",
+                                          note="this build's team at rest as `up` starts it"))
     if src and args.rounds > 0:
-        total = lambda m: sum(v[0] for v in m.values())  # noqa: E731
         rest: dict[str, list[float]] = {"before": [], "this build": []}
         print(f"  both teams at rest, alternating {args.rounds} times (% of one core in all; load average):")
         for _ in range(args.rounds):
@@ -225,6 +262,9 @@ def main() -> None:
         print(f"  medians: this build {medians['this build']:.2f} %, before {medians['before']:.2f} %; "
               f"ratio {medians['this build'] / medians['before']:.2f}")
     print(f"  load average after: {load()}")
+    results.write_result("idle", {"seconds": args.seconds, "variants": args.variants, "rounds": args.rounds,
+                                  "baseline": args.baseline}, figures, args.json_out, what=__doc__.splitlines()[0],
+                         extra={"rest": rest, "running": running})
 
 
 if __name__ == "__main__":

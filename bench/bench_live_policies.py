@@ -21,6 +21,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import results
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -54,6 +56,7 @@ def main() -> None:
     parser.add_argument("--speed", type=float, default=10.0)
     parser.add_argument("--topology", default="relay")
     parser.add_argument("--max-wall", type=float, default=600.0)
+    results.add_json_out(parser)
     args = parser.parse_args()
     if not 0.001 <= args.energy_scale <= 0.05 or not 1 <= args.speed <= 40:
         raise SystemExit("--energy-scale must be within 0.001..0.05 and --speed within 1..40")
@@ -75,6 +78,21 @@ def main() -> None:
     if a and b:
         print(f"live rebalance / static: {b / a:.4f}x   (simulated: "
               f"{rows['rebalance']['simulated_s'] / rows['static']['simulated_s']:.4f}x)")
+    g = f"paper-fig7, {args.topology}, batteries x{args.energy_scale:g}, x{args.speed:g}"
+    figures = [
+        results.figure("rebalance, live lifetime", b, "s", "static, live", a, group=g,
+                       note="the same mission live under the static policy, same run",
+                       detail=f"{rows['rebalance']['migrations']} migrations"),
+        results.figure("rebalance, simulated lifetime", rows["rebalance"]["simulated_s"], "s", "static, simulated",
+                       rows["static"]["simulated_s"], group=g, note="the simulator, same scenario, static policy"),
+    ]
+    for policy, r in rows.items():
+        figures.append(results.figure(f"{policy}, live lifetime", r["lifetime_s"], "s", "simulated",
+                                      r["simulated_s"], group=g, detail=f"first empty: {r['robot']}",
+                                      note="the simulator's lifetime for the same scenario and policy"))
+    results.write_result("live_policies", {"energy_scale": args.energy_scale, "speed": args.speed,
+                                           "topology": args.topology, "max_wall": args.max_wall}, figures,
+                         args.json_out, what=__doc__.splitlines()[0], extra=rows)
 
 
 if __name__ == "__main__":

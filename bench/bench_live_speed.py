@@ -35,12 +35,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import results
+
 from autopower.chains import profile_components
 from autopower.chains.profile import live_limit
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec
-from autopower.runtime.memory import keep_large_buffers
 from autopower.launch.summary import chain_latencies
+from autopower.runtime.memory import keep_large_buffers
 
 SCENARIO = "paper-fig7"
 TICKS = os.sysconf("SC_CLK_TCK")
@@ -144,7 +146,7 @@ def run_once(speed: float, seconds: float, tree: str | None, workers: str = "aut
             else:
                 os.environ["PYTHONPATH"] = saved
     (p0, m0), (p1, m1) = missed(snap0), missed(snap1)
-    resent, shed, redundant = (b - a for a, b in zip(resends(snap0), resends(snap1)))
+    resent, shed, redundant = (b - a for a, b in zip(resends(snap0), resends(snap1), strict=True))
     produced, miss = p1 - p0, m1 - m0
     cpu = {n: (cpu1[n] - cpu0[n]) / wall * 100 for n in pids if cpu0[n] is not None and cpu1[n] is not None}
     latencies = {c: v["p50_ms"] for c, v in chain_latencies(snap1).items()}
@@ -187,6 +189,7 @@ def main() -> None:
     ap.add_argument("--stage-workers", default="off,on", metavar="MODES",
                     help="the processes' --stage-workers modes to run at every speed, in order (off, on, auto)")
     ap.add_argument("--json", action="store_true", help="print the figures as JSON at the end")
+    results.add_json_out(ap)
     args = ap.parse_args()
 
     scenario = build_scenario(SCENARIO)
@@ -216,7 +219,7 @@ def main() -> None:
     modes = [m for m in args.stage_workers.split(",") if m]
     runs = [("before", args.baseline_tree, "auto")] if args.baseline_tree else []
     runs += [(f"workers {m}", None, m) for m in modes]
-    results: dict[str, list[dict]] = {label: [] for label, _, _ in runs}
+    measured: dict[str, list[dict]] = {label: [] for label, _, _ in runs}
     for speed in speeds:
         for label, tree, mode in runs:
             try:
@@ -224,20 +227,65 @@ def main() -> None:
             except Exception as exc:  # one speed that cannot start must not lose the others' figures
                 print(f"{label:9} {speed:>7.1f} failed: {exc}".splitlines()[0])
                 continue
-            results[label].append(r)
+            measured[label].append(r)
             show(label, r, nodes)
             sys.stdout.flush()
     if args.baseline_tree:  # the base station's CPU per input, this code against the code before, same run
         print("\nbase station CPU per input, after / before (same speed, alternating runs):")
-        for label in [lbl for lbl in results if lbl != "before"]:
-            before_at = {r["speed"]: r for r in results["before"]}
-            for after in results[label]:
+        for label in [lbl for lbl in measured if lbl != "before"]:
+            before_at = {r["speed"]: r for r in measured["before"]}
+            for after in measured[label]:
                 b, a = (before_at.get(after["speed"]) or {}).get("base_ms_per_run"), after.get("base_ms_per_run")
                 if b and a:
                     print(f"  x{after['speed']:g} {label}: {a:.2f} / {b:.2f} ms = {a / b:.2f}")
+    write(args, scenario, need, limit, measured)
     if args.json:
         print(json.dumps({"cores": cores, "component_cpu_s_per_virtual_s": need, "limit": limit,
-                          "medians_s": medians, **results}, indent=1))
+                          "medians_s": medians, **measured}, indent=1))
+
+
+def write(args, scenario, need: float, limit: float, measured: dict[str, list[dict]]) -> None:
+    """Per speed and mode: periods missed against periods due, the team's CPU per virtual second against
+    the components' own need, each kind of chain's latency against its period, and the base station's
+    CPU per input with stage workers on against off (or against the code before)."""
+    periods = {kind: min(c.period_s for c in scenario.chains if c.name.startswith(kind)) for kind in ("Blob", "Loc")}
+    need_note = ("CPU ms the mission's components need per virtual second, measured here as `autopower profile` "
+                 f"does (the limit, {os.cpu_count()} cores / that, is x{limit:.0f})")
+    figures = []
+    for label, runs in measured.items():
+        for r in runs:
+            g = f"x{r['speed']:g}, {label}"
+            due = r["produced"] + r["missed"]
+            total = sum(r["cpu_pct"].values())
+            per_virtual = total / 100 * r["wall_s"] / r["virtual_s"] * 1e3 if r["virtual_s"] else None
+            figures += [
+                results.figure("source periods missed", r["missed"], "periods", "periods due", due, group=g,
+                               note=f"every source period over {args.seconds:g} s of wall time"),
+                results.figure("the team's CPU per virtual second", per_virtual, "ms", "the components' need",
+                               need * 1e3, group=g, note=need_note),
+            ]
+            for kind, period in periods.items():
+                lat = [v for c, v in r["latency_p50_ms"].items() if c.startswith(kind) and v is not None]
+                if lat:
+                    figures.append(results.figure(f"{kind} latency p50, worst chain", max(lat), "ms",
+                                                  f"{kind} period", period / r["speed"] * 1e3, group=g,
+                                                  note="the chain's period in wall time at that speed"))
+    pairs = [("workers on", "workers off")] + [(label, "before") for label in measured if label != "before"]
+    for label, base_label in pairs:
+        base_at = {r["speed"]: r for r in measured.get(base_label, [])}
+        for r in measured.get(label, []):
+            b = base_at.get(r["speed"], {}).get("base_ms_per_run")
+            if b and r.get("base_ms_per_run"):
+                figures.append(results.figure(
+                    f"x{r['speed']:g}, {label}: base station CPU per input", r["base_ms_per_run"], "ms", base_label,
+                    b, group=f"base station CPU per input, against {base_label}",
+                    note=f"the same on --baseline-tree {args.baseline_tree}" if base_label == "before"
+                    else f"the same speed with stage {base_label}"))
+    results.write_result("live_speed", {"seconds": args.seconds, "speeds": args.speeds, "no_limit": args.no_limit,
+                                        "stage_workers": args.stage_workers, "baseline_tree": args.baseline_tree,
+                                        "limit": limit}, figures, args.json_out,
+                         what="How fast a live team keeps up: missed periods, CPU and latency at each speed-up.",
+                         extra={"need_cpu_s_per_virtual_s": need, "runs": measured})
 
 
 if __name__ == "__main__":

@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import results as bench_results
+
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 
 HEAD = """\
@@ -95,7 +97,7 @@ def check(path: Path) -> tuple[float, float]:
     return wall, usage.ru_maxrss / 1024  # Linux reports KiB
 
 
-def main(sizes: list[int]) -> None:
+def main(sizes: list[int], json_out: str | None = None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         results = []
         for n in sizes:
@@ -110,7 +112,18 @@ def main(sizes: list[int]) -> None:
             print(f"{n:>7} {size / 1024:>7.0f}KB {wall:>8.2f} {rss:>8.0f} {ratio:>15.2f}x")
         print("(time includes the CLI's start-up, which the smallest fleet is mostly made of; "
               "a ratio at or below 1x means loading grows no faster than linearly)")
+    note = f"the smallest fleet ({base_n} robots), checked the same way in the same run"
+    figures = []
+    for n, wall, rss, _size in results[1:]:
+        figures += [
+            bench_results.figure(f"{n} robots: check time per robot", wall / n * 1e3, "ms", f"{base_n} robots",
+                           base_wall / base_n * 1e3, note=note),
+            bench_results.figure(f"{n} robots: check time", wall, "s", f"{base_n} robots", base_wall, note=note),
+            bench_results.figure(f"{n} robots: peak memory", rss, "MB", f"{base_n} robots", base_rss, note=note),
+        ]
+    bench_results.write_result("loading", {"robots": sizes}, figures, json_out, what=__doc__.splitlines()[0])
 
 
 if __name__ == "__main__":
-    main([int(a) for a in sys.argv[1:]] or [250, 2000])
+    out = bench_results.pop_json_out()
+    main([int(a) for a in sys.argv[1:]] or [250, 2000], out)

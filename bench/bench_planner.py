@@ -1,7 +1,7 @@
 """Planner benchmark: MILP time and lifetime vs a greedy baseline measured in the same run.
 
 Run: ./run bench  (or .venv/bin/python bench/bench_planner.py [--big]). Not a timed test: the
-figures are printed, with ratios, for the README and the notes.
+figures are printed, with ratios, for docs/performance.md.
 
 Cases: the paper's scenarios; sparse fleets (chains spread over the robots at random, many robots
 idle); loaded fleets where every robot runs three chains of its own (localisation, blob finder,
@@ -22,9 +22,10 @@ depletes, before and after (same lifetime). The load average is printed at the s
 """
 
 import os
-
 import sys
 import time
+
+import results as bench_results
 
 from autopower.errors import AutoPowerError
 from autopower.model.loading import load_scenario
@@ -36,8 +37,9 @@ from autopower.planner.milp import solve_milp
 from autopower.planner.problem import make_problem
 from autopower.simulation.synthetic import fleet_scenario, loaded_fleet_scenario
 
-
 CPU = {}  # id(result) -> CPU seconds of this process (HiGHS's threads included) that made it
+FIGURES: list[dict] = []  # what --json-out writes
+LIFETIME, TIME, REPLAN = "Lifetime of the plan", "Time to plan", "Replan after one link changes medium"
 
 
 def timed(fn):
@@ -91,6 +93,17 @@ def row(name, problem, build_s, limit, gap, run_greedy=True):
     print(f"{name:40} {build_s:8.2f} {g_time:9.3f} {m_time:8.2f} {ratio:17.4f} {str(m.optimal):>7} {m.mip_gap:7.3%} {ex_time:>13}",
           flush=True)
     print(f"{'':40} {cpu(m)}; {proof(m)}; {tie_break(problem, m)}", flush=True)
+    state = f"{'proven optimal' if m.optimal else 'not proven'}, gap {m.mip_gap:.3%}"
+    if g:
+        FIGURES.append(bench_results.figure(name, m.lifetime_s, "s", "greedy", g[2], group=LIFETIME, detail=state,
+                                            note="greedy list scheduling on the same problem, same run"))
+        FIGURES.append(bench_results.figure(f"{name}: MILP", m_time, "s", "greedy", g_time, group=TIME,
+                                            detail=f"{cpu(m)}; build {build_s:.2f} s",
+                                            note="greedy list scheduling on the same problem, same run (wall s)"))
+    if ex_time:
+        FIGURES.append(bench_results.figure(f"{name}: exhaustive search", float(ex_time), "s", "greedy", g_time,
+                                            group=TIME, detail="the exact optimum, equal to the MILP's",
+                                            note="greedy list scheduling on the same problem, same run (wall s)"))
     if previous is not None:
         print(f"{'  without moves (moves=False)':40} {'':8} {'':9} {n_time:8.2f} {no_moves.lifetime_s / m.lifetime_s:17.4f} "
               f"{str(no_moves.optimal):>7} {no_moves.mip_gap:7.3%}   (lifetime / this build's; time ratio {n_time / m_time:.1f}x, {cpu(no_moves)}) "
@@ -117,10 +130,14 @@ def replan_after_link_change(scenario, current, label: str = "") -> None:
     ways = [("", {})] + ([(" [without moves]", {"moves": False}), (" [previous way]", {"reach_bound": False})]
                          if PREVIOUS else [])
     for way, kwargs in ways:
-        cold, cold_s = timed(lambda: solve_milp(problem, time_limit_s=60, **kwargs))
-        warm, warm_s = timed(lambda: solve_milp(problem, time_limit_s=60, start=current.allocation, **kwargs))
+        cold, cold_s = timed(lambda: solve_milp(problem, time_limit_s=60, **kwargs))  # noqa: B023 (called in this iteration)
+        warm, warm_s = timed(lambda: solve_milp(problem, time_limit_s=60, start=current.allocation, **kwargs))  # noqa: B023 (called in this iteration)
         if cold.optimal and warm.optimal:
             assert abs(cold.lifetime_s - warm.lifetime_s) <= 1e-6 * cold.lifetime_s, (cold.lifetime_s, warm.lifetime_s)
+        FIGURES.append(bench_results.figure(
+            f"{scenario.name}{label}{way}: warm start", warm_s, "s", "cold start", cold_s, group=REPLAN,
+            detail=f"{'proven optimal' if warm.optimal else 'not proven'}, gap {warm.mip_gap:.3%}; {cpu(warm)}",
+            note="the same replan with no plan in force to start from (wall s)"))
         print(f"replan after {robot}-laptop link change ({scenario.name}{label}){way}: cold {cold_s:.2f} s ({cpu(cold)}), "
               f"warm start {warm_s:.2f} s ({cpu(warm)}) "
               f"(warm/cold {warm_s / cold_s:.2f}); proven optimal: cold {cold.optimal}, warm {warm.optimal}; "
@@ -142,6 +159,7 @@ def any_host_thousand() -> None:
 
 
 def main() -> None:
+    json_out = bench_results.pop_json_out()
     big = "--big" in sys.argv
     cases = [] if "--loaded" in sys.argv else [
         ("paper-fig7", load_scenario("paper-fig7"), None, 1e-9),
@@ -160,7 +178,7 @@ def main() -> None:
     print(f"{'case':40} {'build s':>8} {'greedy s':>9} {'MILP s':>8} {'MILP/greedy life':>17} {'proven':>7} {'gap':>7} {'exhaustive s':>13}")
     results = {}
     for name, scenario, limit, gap in cases:
-        problem, build_s = timed(lambda: make_problem(PlanRequest(scenario=scenario)))
+        problem, build_s = timed(lambda: make_problem(PlanRequest(scenario=scenario)))  # noqa: B023 (called in this iteration)
         results[name] = (scenario, row(name, problem, build_s, limit, gap))
     own = results["100 / 300 loaded, own robot or laptop"]
     replan_after_link_change(own[0], own[1][0])
@@ -175,6 +193,15 @@ def main() -> None:
     if big:
         any_host_thousand()
     print(f"load average at the end: {os.getloadavg()}", flush=True)
+    groups = {LIFETIME: {"what": "The MILP's plan against greedy list scheduling on the same problem.",
+                         "value": "MILP lifetime", "baseline_value": "greedy lifetime", "detail": "MILP"},
+              TIME: {"what": "Wall seconds to plan (the CPU seconds, HiGHS's threads included, beside them).",
+                     "value": "time", "baseline_value": "greedy's time", "detail": "CPU; building the model"},
+              REPLAN: {"what": "One robot's laptop link switches medium; the replan from the plan in force "
+                               "against the same replan from nothing.",
+                       "value": "warm start", "baseline_value": "cold start", "detail": "warm start's result"}}
+    bench_results.write_result("planner", {"big": big, "loaded_only": "--loaded" in sys.argv, "previous": PREVIOUS},
+                               FIGURES, json_out, what=__doc__.splitlines()[0], groups=groups)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ Prints (1) every policy's lifetime as a fraction of the planner's time-sharing b
 paper's scenarios (Fig. 7 and Fig. 8 energies, both accountings, both topologies) and on random
 scenarios, (2) each policy against static under the shipped event files and random event
 sequences, (3) simulator speed in simulated hours per wall second, with static as the baseline
-measured in the same run. Not a timed test: figures for the README and the notes.
+measured in the same run. Not a timed test: figures for docs/results.md and docs/performance.md.
 """
 
 from __future__ import annotations
@@ -15,12 +15,38 @@ import statistics
 import sys
 import time
 
+import results
+
 from autopower.errors import InfeasibleError
 from autopower.model.loading import load_scenario
 from autopower.model.mission_events import load_events, random_events
 from autopower.policies import POLICY_NAMES
 from autopower.simulation.simulator import simulate, time_sharing_reference
 from autopower.simulation.synthetic import random_scenario
+
+FIGURES: list[dict] = []  # what --json-out writes
+PAPER, RANDOM, EVENTS, SPEED = ("Paper scenarios", "Random scenarios, the worst case of each set",
+                                "Under events", "Simulator speed")
+STATIC = ("static optimum", "the best fixed plan for the whole mission (the planner's optimum), simulated with no "
+                            "events")
+BOUND = ("time-sharing bound", "the planner's upper bound: the best schedule of plans switched during the mission, "
+                               "migration free")
+GROUPS = {
+    PAPER: {"what": "Each policy's simulated lifetime on the paper's scenarios (both accountings, both topologies), "
+                    "against the best fixed plan and against the time-sharing upper bound.",
+            "value": "simulated lifetime", "baseline_value": "static optimum (best fixed plan)",
+            "ratio": "/ static", "also": ["time-sharing bound (upper bound)"], "also_ratio": ["/ bound"],
+            "detail": "moves"},
+    RANDOM: {"what": "Random scenarios, each set's worst case for each policy against that case's time-sharing "
+                     "bound; the detail gives the mean over the set.",
+             "value": "simulated lifetime", "baseline_value": "time-sharing bound (upper bound)", "ratio": "/ bound",
+             "detail": "over the set"},
+    EVENTS: {"what": "Each policy under the shipped event files and random event sequences, against the static "
+                     "policy under the same events.",
+             "value": "simulated lifetime", "baseline_value": "static policy, same events", "ratio": "/ static"},
+    SPEED: {"what": "Simulated hours per wall second of each policy, against the static policy on the same case.",
+            "value": "simulated hours per wall second", "baseline_value": "static policy", "ratio": "/ static"},
+}
 
 
 def paper_table() -> list[float]:
@@ -37,6 +63,12 @@ def paper_table() -> list[float]:
                 ratios = {p: r.lifetime_s / bound.lifetime_s for p, r in runs.items()}
                 best.append(max(ratios.values()))
                 rb = runs["rebalance"]
+                for p, r in runs.items():
+                    FIGURES.append(results.figure(
+                        f"{name}, {accounting}, {topology}: {p}", r.lifetime_s, "s", STATIC[0],
+                        static_plan.lifetime_s, note=STATIC[1], group=PAPER,
+                        also=[(BOUND[0], bound.lifetime_s, BOUND[1])],
+                        detail=f"{len(r.migrations)} ({r.migration_energy_j:.2f} J)" if r.migrations else ""))
                 print(f"{name:11} {accounting:10} {topology:16} {bound.lifetime_s:10.1f} "
                       f"{bound.lifetime_s / static_plan.lifetime_s - 1:+10.2%} "
                       + " ".join(f"{ratios[p]:10.4%}" for p in POLICY_NAMES)
@@ -50,6 +82,7 @@ def random_table(sizes, seeds) -> None:
           + " ".join(f"{p + ' min':>14} {p + ' mean':>15}" for p in POLICY_NAMES) + f" {'wall s':>7}")
     for robots, chains in sizes:
         ratios = {p: [] for p in POLICY_NAMES}
+        worst: dict[str, tuple[float, float, float, int]] = {}  # policy -> (ratio, lifetime, bound, seed)
         gains = []
         started = time.perf_counter()
         for seed in seeds:
@@ -62,8 +95,16 @@ def random_table(sizes, seeds) -> None:
                 continue
             gains.append(bound.lifetime_s / best.lifetime_s - 1)
             for p in POLICY_NAMES:
-                ratios[p].append(simulate(s, policy=p).lifetime_s / bound.lifetime_s)
+                life = simulate(s, policy=p).lifetime_s
+                ratios[p].append(life / bound.lifetime_s)
+                if p not in worst or ratios[p][-1] < worst[p][0]:
+                    worst[p] = (ratios[p][-1], life, bound.lifetime_s, seed)
         wall = time.perf_counter() - started
+        for p, (_r, life, bound_s, seed) in worst.items():
+            FIGURES.append(results.figure(
+                f"{robots} robots x {chains} chains, {len(gains)} cases: {p} (worst: seed {seed})", life, "s",
+                BOUND[0], bound_s, note=BOUND[1], group=RANDOM,
+                detail=f"mean {statistics.mean(ratios[p]):.4f} of the bound"))
         print(f"{f'{robots} x {chains}':16} {len(gains):5d} {sum(g > 1e-3 for g in gains):14d} {max(gains):+9.2%} "
               + " ".join(f"{min(ratios[p]):14.4%} {statistics.mean(ratios[p]):15.4%}" for p in POLICY_NAMES)
               + f" {wall:7.1f}")
@@ -77,11 +118,17 @@ def events_table(random_runs: int) -> None:
         script = load_events(name, fig7, topology=topology)
         runs = {p: simulate(fig7, script, policy=p, topology=topology) for p in POLICY_NAMES}
         static = runs["static"].lifetime_s
+        for p, r in runs.items():
+            if p != "static":
+                FIGURES.append(results.figure(f"{name}{' (relay)' if topology else ''}: {p}", r.lifetime_s, "s",
+                                              "static", static, note="the static policy under the same events",
+                                              group=EVENTS))
         print(f"{name + (' (relay)' if topology else ''):28} "
               + " ".join(f"{runs[p].lifetime_s / static:10.4f}" for p in POLICY_NAMES)
               + f" {len(runs['rebalance'].migrations):18d}")
     # random event sequences: how often does knowing better now cost later?
     ratios = {p: [] for p in POLICY_NAMES}
+    worst: dict[str, tuple[float, float, float, int]] = {}  # policy -> (ratio, lifetime, static's, seed)
     for seed in range(random_runs):
         topology = ("fully-connected", "relay")[seed % 2]
         s = random_scenario(seed, 3, 4, topology=topology, accounting=("paper", "physical")[(seed // 2) % 2])
@@ -92,7 +139,16 @@ def events_table(random_runs: int) -> None:
             continue
         for p in POLICY_NAMES:
             ratios[p].append(runs[p].lifetime_s / runs["static"].lifetime_s)
+            if p not in worst or ratios[p][-1] < worst[p][0]:
+                worst[p] = (ratios[p][-1], runs[p].lifetime_s, runs["static"].lifetime_s, seed)
     n = len(ratios["static"])
+    for p, (_r, life, static, seed) in worst.items():
+        if p != "static":
+            FIGURES.append(results.figure(
+                f"random events ({n} runs): {p}, worst run (seed {seed})", life, "s", "static", static,
+                note="the static policy under the same events", group=EVENTS,
+                detail=f"mean {statistics.mean(ratios[p]):.4f} of static; "
+                       f"{sum(r >= 1 - 1e-9 for r in ratios[p])} of {n} runs at least static's"))
     print(f"{f'random events ({n} runs): min':28} " + " ".join(f"{min(ratios[p]):10.4f}" for p in POLICY_NAMES))
     print(f"{'  mean':28} " + " ".join(f"{statistics.mean(ratios[p]):10.4f}" for p in POLICY_NAMES))
     print(f"{'  runs >= static':28} " + " ".join(f"{sum(r >= 1 - 1e-9 for r in ratios[p]):10d}" for p in POLICY_NAMES))
@@ -121,15 +177,23 @@ def speed_table(repeats: int) -> None:
             speeds[p] = life / 3600 / statistics.median(walls)
         print(f"{label:26} " + " ".join(f"{speeds[p]:14,.0f} {speeds[p] / speeds['static']:5.2f}x"
                                          for p in POLICY_NAMES))
+        for p in POLICY_NAMES:
+            if p != "static":
+                FIGURES.append(results.figure(f"{label}: {p}", speeds[p], "h/s", "static",
+                                              speeds["static"], group=SPEED,
+                                              note=f"the static policy on the same case, median of {repeats}"))
 
 
 def main() -> None:
+    json_out = results.pop_json_out()
     quick = "--quick" in sys.argv
     best = paper_table()
     print(f"best policy on the paper scenarios: min {min(best):.4%} of the bound")
     random_table([(3, 5), (4, 6)] if not quick else [(3, 4)], range(24 if not quick else 6))
     events_table(40 if not quick else 8)
     speed_table(5 if not quick else 2)
+    results.write_result("policies", {"quick": quick}, FIGURES, json_out, what=__doc__.splitlines()[0],
+                         groups=GROUPS)
 
 
 if __name__ == "__main__":

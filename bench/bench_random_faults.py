@@ -13,9 +13,7 @@ Printed: each fault with its exit status (and the refusal, if any), the replay's
 duplicated outputs (and how many of the lost a robot cut off from its sink dropped, by design),
 the energy model's error, every invariant that failed, and every ERROR line or traceback in the
 processes' logs. Bounded: one team, ``--faults`` faults, every wait has a deadline, and `up` is
-stopped whatever happens. Found in its first runs (2026-11-25): a restarted base station that
-raised KeyError on every decision after adopting a chain whose source robot it had not heard, a
-freeze blamed on the speed-up, and commands refused as "re-plan failed: no change".
+stopped whatever happens.
 """
 
 from __future__ import annotations
@@ -31,6 +29,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import results
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 NODES = ("laptop", "r1", "r2", "r3")
@@ -122,12 +122,47 @@ def log_errors(logs: Path) -> dict[str, int]:
     return out
 
 
+def write(args, result: dict) -> None:
+    """The replay's verdict against what the run did: outputs lost or duplicated against outputs recorded,
+    faults refused against faults sent, invariants failed against checked, energy metered against the model."""
+    faults = result["faults"]
+    g = f"seed {args.seed}, {args.faults} faults, x{args.speed:g}"
+    figures = [results.figure("fault commands refused", sum(1 for f in faults if f["exit"]), "commands",
+                              "fault commands sent", len(faults), group=g, note="every `autopower fault` command sent")]
+    if "lost" in result:
+        outputs = result["outputs_recorded"]
+        note = "every output the recording holds"
+        figures += [
+            results.figure("outputs lost", result["lost"], "outputs", "outputs recorded", outputs, group=g, note=note),
+            results.figure("outputs duplicated", result["duplicated"], "outputs", "outputs recorded", outputs,
+                           group=g, note=note),
+            results.figure("outputs a robot cut off from its sink let go (by design)", result["held_dropped"],
+                           "outputs", "outputs recorded", outputs, group=g, note=note),
+            results.figure("outputs that died with a crashed process", result["died_with_process"], "outputs",
+                           "outputs recorded", outputs, group=g, note=note),
+            results.figure("invariants failed", len(result["failed_invariants"]), "invariants", "invariants checked",
+                           result["invariants_checked"], group=g, note="every invariant the replay checks"),
+            results.figure("team energy metered (steady state)", result["energy_metered_steady_j"], "J",
+                           "the energy model", result["energy_model_j"], group=g,
+                           note="the model's power integrated over the same run (migrations and recovery, "
+                                "reported apart, left out of the metered side)"),
+        ]
+    figures.append(results.figure("ERROR lines or tracebacks in the logs", sum(result["log_errors"].values()),
+                                  "lines", "fault commands sent", len(faults), group=g,
+                                  note="every `autopower fault` command sent"))
+    results.write_result("random_faults", {"seed": args.seed, "faults": args.faults, "speed": args.speed}, figures,
+                         args.json_out, what="Random faults against a real team under `up`, then the replay's verdict.",
+                         extra={"faults": faults, "log_errors": result["log_errors"],
+                                "failed_invariants": result.get("failed_invariants")})
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--faults", type=int, default=20)
     parser.add_argument("--speed", type=float, default=10.0)
     parser.add_argument("--json", action="store_true", help="one JSON object on stdout, nothing else")
+    results.add_json_out(parser)
     args = parser.parse_args()
     rng = random.Random(args.seed)
     workdir = Path(tempfile.mkdtemp(prefix=f"random-faults-{args.seed}-"))
@@ -158,7 +193,11 @@ def main() -> None:
                       outputs_recorded=sum(c["outputs"] for c in s["outputs"]["chains"].values()),
                       energy_model_error_pct=s["energy_model_error_pct"],
                       energy_error_pct_per_robot={r: v["error_pct"] for r, v in s["energy"]["per_robot"].items()},
-                      failed_invariants=[i for i in s["invariants"] if i["ok"] is False])
+                      failed_invariants=[i for i in s["invariants"] if i["ok"] is False],
+                      invariants_checked=sum(i["ok"] is not None for i in s["invariants"]),
+                      energy_metered_steady_j=s["energy"]["metered_j"] - sum(s["energy"]["overhead_j"].values()),
+                      energy_model_j=s["energy"]["model_j"])
+    write(args, result)
     if args.json:
         print(json.dumps(result))
         return

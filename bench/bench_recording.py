@@ -21,6 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import results
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 
@@ -85,6 +87,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-n", type=int, default=20_000)
     ap.add_argument("--repeat", type=int, default=3)
+    results.add_json_out(ap)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -104,6 +107,18 @@ def main() -> None:
           f"of which Rerun itself (rerun - noop): {us['rerun'] - us['noop']:.2f} µs/message")
     print(f"  ratio rerun/noop {best['rerun'] / best['noop']:.2f}x, rerun/bare {best['rerun'] / best['bare']:.2f}x")
     print(f"  recording size {size / args.n:.0f} B/message")
+    figures = [
+        results.figure("publish with the Rerun recorder", us["rerun"], "us/message", "bare publish", us["bare"],
+                       note="the same messages published with no recorder"),
+        results.figure("publish with the Rerun recorder", us["rerun"], "us/message", "no-op recorder", us["noop"],
+                       note="the recorder's tap with a telemetry that does nothing (decode and dispatch only)"),
+        results.figure("publish through the no-op recorder", us["noop"], "us/message", "bare publish", us["bare"],
+                       note="the same messages published with no recorder"),
+        results.figure("recording size", size / args.n, "B/message", "encoded status", len(encode(status(1))),
+                       note="one status message as published"),
+    ]
+    results.write_result("recording", {"n": args.n, "repeat": args.repeat}, figures, args.json_out,
+                         what="Rerun logging overhead per status message, against baselines measured in the same run.")
 
 
 if __name__ == "__main__":

@@ -31,6 +31,8 @@ import threading
 import time
 from pathlib import Path
 
+import results
+
 from autopower.launch.localhost import endpoint, free_ports
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
@@ -137,7 +139,7 @@ def start_mission(bus: ZenohBus, keys: Keys, log_path: Path) -> dict:
     return latest
 
 
-def bench_relay(n: int = 400) -> None:
+def bench_relay(n: int = 400, json_out: str | None = None) -> list[dict]:
     print("\n== one relay hop: laptop -> agent r1 -> laptop vs a raw Zenoh echo (real processes, 127.0.0.1) ==")
     team = "bench-relay"
     keys = Keys(team)
@@ -194,7 +196,26 @@ def bench_relay(n: int = 400) -> None:
     print(f"agent r1: {delta('forwarded')} of {sent_total} packets forwarded, {delta('forwarded-on-arrival')} on "
           f"arrival (the rest through its loop), {delta('relay-congested')} congested puts; "
           f"load average (1 min) {min(load):.2f}-{max(load):.2f} on {os.cpu_count()} cores")
+    note = "a bare Zenoh process republishing from its subscriber callback, interleaved in blocks"
+    figures = []
+    for size, times in rows:
+        raw = statistics.median(times["raw"]) * 1e3
+        figures += [
+            results.figure(f"agent relay, {size} B, round trip p50", statistics.median(times["agent"]) * 1e3, "ms",
+                           "raw echo", raw, note=note),
+            results.figure(f"echo via a loop thread, {size} B, round trip p50", statistics.median(times["loop"]) * 1e3,
+                           "ms", "raw echo", raw, note=note),
+            results.figure(f"agent relay, {size} B, round trip p99", pct(times["agent"], 0.99) * 1e3, "ms",
+                           "raw echo p99", pct(times["raw"], 0.99) * 1e3, note=note),
+        ]
+    figures.append(results.figure("packets the agent forwarded on arrival", delta("forwarded-on-arrival"), "packets",
+                                  "packets forwarded", delta("forwarded"),
+                                  note="every packet the agent forwarded, on arrival or through its loop"))
+    results.write_result("relay", {"round_trips_per_size": n, "sizes": list(SIZES)}, figures, json_out,
+                         what=__doc__.splitlines()[0])
+    return figures
 
 
 if __name__ == "__main__":
-    bench_relay(int(sys.argv[1]) if len(sys.argv) > 1 else 400)
+    out = results.pop_json_out()
+    bench_relay(int(sys.argv[1]) if len(sys.argv) > 1 else 400, out)

@@ -15,6 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import results
+
 from autopower.agent.node import NodeRuntime
 from autopower.agent.stages import chain_seed
 from autopower.chains import make_component, make_source
@@ -68,13 +70,14 @@ class NullComponent:
         pass
 
 
-def bench_overhead(runs: int = 300) -> None:
+def bench_overhead(runs: int = 300) -> list[dict]:
     scenario = load_scenario("paper-fig7")
     keys = Keys("bench")
     print("\n== agent overhead per component run (in-process) ==")
     print("baseline: the real component's bare run() on this machine; overhead: everything the agent does per "
           "input\n(decode packet, meter, sequence, pad, encode, route, publish), measured with a null component")
     print(f"{'chain':8} {'in B':>7} {'out B':>6} {'bare run ms':>12} {'agent overhead ms':>18} {'overhead/run':>13}")
+    figures = []
     for name in ("Loc-2", "Blob-2"):
         chain = scenario.chain(name)
         seed = chain_seed(scenario, chain)
@@ -91,7 +94,7 @@ def bench_overhead(runs: int = 300) -> None:
         hub = InMemoryHub()
         out_size = chain.message_bytes[1]
         rt = NodeRuntime(node="r1", scenario=scenario, bus=hub.bus("r1"), keys=keys,
-                         make_component=lambda *a: NullComponent(out_size), make_source=make_source)
+                         make_component=lambda *a: NullComponent(out_size), make_source=make_source)  # noqa: B023 (rt lives in this iteration)
         rt.on_plan(PlanUpdate(epoch=1, mission=mission(scenario), placement={name: "r1"}, running={},
                               links=links(scenario), predicted_w={}, predicted_lifetime_s=None, plan_t_virtual=0.0))
         rt.on_assign(Assign(stage=name, generation=1, chain=name, run=0, resume_seq=0))
@@ -111,6 +114,10 @@ def bench_overhead(runs: int = 300) -> None:
         agent_s = statistics.median(times)
         assert rt.hosted[name].runs == runs and not rt.errors, rt.errors
         print(f"{name:8} {size:>7} {out_size:>6} {bare_s * 1e3:>12.3f} {agent_s * 1e3:>18.3f} {agent_s / bare_s:>12.1%}")
+        figures.append(results.figure(f"{name}: agent's work per input, median", agent_s * 1e3, "ms",
+                                      "the component's bare run", bare_s * 1e3, group="agent overhead per run",
+                                      note="the real component's run() alone on the same inputs, median"))
+    return figures
 
 
 # ---------------------------------------------------------------------------------------------
@@ -118,10 +125,10 @@ def bench_overhead(runs: int = 300) -> None:
 # ---------------------------------------------------------------------------------------------
 
 
-def bench_hop() -> None:
+def bench_hop() -> list[dict]:
     from bench_relay import bench_relay  # bench/ is the script's directory: on sys.path
 
-    bench_relay()
+    return [dict(f, group="one relay hop") for f in bench_relay()]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -129,7 +136,7 @@ def bench_hop() -> None:
 # ---------------------------------------------------------------------------------------------
 
 
-def bench_migration(moves: int = 40, speed: float = 10.0) -> None:
+def bench_migration(moves: int = 40, speed: float = 10.0) -> list[dict]:
     print(f"\n== migration downtime (real processes, speed x{speed:g}) ==")
     scenario = build_scenario("paper-fig7")
     with tempfile.TemporaryDirectory() as tmp:
@@ -162,6 +169,7 @@ def bench_migration(moves: int = 40, speed: float = 10.0) -> None:
             print(f"{'stage':7} {'moves':>6} {'period ms':>10} {'steady latency p50 ms':>22} {'downtime p50 ms':>16} "
                   f"{'max ms':>7} {'p50 in periods':>15} {'max in periods':>15} {'op->landed p50 ms':>18} "
                   f"{'state KB':>9}")
+            figures = []
             for stage in ("Loc-2", "Blob-2"):
                 chain = scenario.chain(stage)
                 period_wall_ms = chain.period_s / speed * 1e3
@@ -172,17 +180,39 @@ def bench_migration(moves: int = 40, speed: float = 10.0) -> None:
                 print(f"{stage:7} {len(downs):>6} {period_wall_ms:>10.1f} {sinks0[stage]['latency_ms_p50']:>22.2f} "
                       f"{p50:>16.2f} {max(downs):>7.2f} {p50 / period_wall_ms:>15.3f} "
                       f"{max(downs) / period_wall_ms:>15.3f} {statistics.median(ops):>18.1f} {state_kb:>9.1f}")
+                g, note = f"migration at x{speed:g}", f"the chain's period in wall time at x{speed:g}"
+                figures += [
+                    results.figure(f"{stage}: downtime p50 ({len(downs)} moves)", p50, "ms", "its period",
+                                   period_wall_ms, group=g, note=note),
+                    results.figure(f"{stage}: downtime, worst", max(downs), "ms", "its period", period_wall_ms,
+                                   group=g, note=note),
+                    results.figure(f"{stage}: command to landed, p50", statistics.median(ops), "ms", "its period",
+                                   period_wall_ms, group=g, note=note),
+                ]
             print(f"source periods missed during the {len(log)} migrations: {missed} (sources never stop; inputs "
                   f"that arrive during a move are held and run on the new host)")
             dups = sum(s["duplicates_total"] for s in {**end["basestation"]["sinks"], **{
                 c: s for r in end["robots"].values() for c, s in r["status"]["sinks"].items()}}.values())
             print(f"duplicated outputs: {dups}")
+            outputs = sum(s["received_total"] for s in {**end["basestation"]["sinks"], **{
+                c: s for r in end["robots"].values() for c, s in r["status"]["sinks"].items()}}.values())
+            figures += [
+                results.figure(f"source periods missed during {len(log)} migrations", missed, "periods",
+                               "migrations", len(log), group=g, note="the moves made"),
+                results.figure("duplicated outputs", dups, "outputs", "outputs received", outputs, group=g,
+                               note="every output the sinks received in the run"),
+            ]
+            return figures
 
 
 def main() -> None:
+    json_out = results.pop_json_out()
     which = sys.argv[1:] or ["overhead", "migration"]  # hop: bench_relay.py runs on its own in `./run bench`
+    figures = []
     for name in which:
-        {"overhead": bench_overhead, "hop": bench_hop, "migration": bench_migration}[name]()
+        figures += {"overhead": bench_overhead, "hop": bench_hop, "migration": bench_migration}[name]()
+    results.write_result("runtime", {"parts": which}, figures, json_out,
+                         what="Agent overhead per run and migration downtime, each beside a baseline of the same run.")
 
 
 if __name__ == "__main__":

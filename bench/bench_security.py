@@ -26,6 +26,8 @@ import threading
 import time
 from pathlib import Path
 
+import results
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from autopower.deploy.pki import TeamCA  # noqa: E402
@@ -224,6 +226,7 @@ def main() -> None:
     ap.add_argument("--opens", type=int, default=9)
     ap.add_argument("--pings", type=int, default=300)
     ap.add_argument("--frames", type=int, default=40)
+    results.add_json_out(ap)
     args = ap.parse_args()
     directory = Path(tempfile.mkdtemp(prefix="bench-security-"))
     ids = identities(directory)
@@ -242,12 +245,30 @@ def main() -> None:
           f"unsigned {plain_hop * 1e3:.3f} ms, signed {signed_hop * 1e3:.3f} ms, ratio {signed_hop / plain_hop:.2f}; "
           f"one ECDSA P-256 sign {sign_us:.0f} us, one verify {verify_us:.0f} us; "
           f"+{signed_bytes - plain_bytes} B per relayed message (certificate + signature)")
+    figures = [
+        results.figure("session open, mTLS + access control", tls_open * 1e3, "ms", "plain tcp", tcp_open * 1e3,
+                       note=f"the same session opened over plain tcp, median of {args.opens}"),
+        results.figure("one relay hop round trip, mTLS + access control", tls_hop * 1e3, "ms", "plain tcp",
+                       tcp_hop * 1e3, note=f"the same round trip over plain tcp, median of {args.pings}"),
+        results.figure("relayed through Relayer, signed", signed_hop * 1e3, "ms", "unsigned", plain_hop * 1e3,
+                       note="the same round trip through the agents' Relayer without signatures, over mTLS + ACL"),
+        results.figure("one ECDSA P-256 verify", verify_us, "us", "one sign", sign_us,
+                       note="signing the same relayed message"),
+        results.figure("relayed message, signed", signed_bytes, "B", "unsigned", plain_bytes,
+                       note="the same message without certificate and signature"),
+    ]
     if os.geteuid() == 0:
         got, configured = shaped_throughput(directory, ids, args.frames)
         print(f"230 KB frames over a shaped 802.11a link: {got:.1f} Mbit/s of {configured:.0f} Mbit/s configured "
               f"({got / configured:.0%})")
+        figures.append(results.figure("230 KB frames over a shaped 802.11a link, mTLS", got, "Mbit/s",
+                                      "configured rate", configured,
+                                      note="the rate the testbed shapes the link to (tc on a veth pair)"))
     else:
         print("throughput over a shaped link: skipped (needs root for the testbed's namespaces)")
+    results.write_result("security", {"opens": args.opens, "pings": args.pings, "frames": args.frames}, figures,
+                         args.json_out, what="What mutual TLS, access control and signatures cost, and what a "
+                                             "shaped 802.11a link carries.")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,8 @@ import struct
 import sys
 import time
 
+import results
+
 FRAMES = 50
 
 
@@ -90,6 +92,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=400)
     parser.add_argument("--json", action="store_true")
+    results.add_json_out(parser)
     args = parser.parse_args()
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the worker imports Probe by name
     global Probe
@@ -100,16 +103,31 @@ def main() -> None:
     source = make_source("Blob", "r2", 1234)
     frames = [source.produce(i) for i in range(FRAMES)]
     load = [os.getloadavg()[0]]
-    results = {"in-process": in_process(frames, args.runs),
+    measured = {"in-process": in_process(frames, args.runs),
                "worker": in_worker(frames, args.runs, malloc_defaults=False),
                "worker, malloc defaults": in_worker(frames, args.runs, malloc_defaults=True)}
     load.append(os.getloadavg()[0])
-    base = results["in-process"]["cpu_ms"]
+    base = measured["in-process"]["cpu_ms"]
+    note = "the same runs in this process (no worker), CPU per run inside the component's run"
+    figures = []
+    for name in ("worker", "worker, malloc defaults"):
+        figures.append(results.figure(f"{name}: CPU per run", measured[name]["cpu_ms"], "ms", "in-process", base,
+                                      note=note))
+        figures.append(results.figure(f"{name}: page faults per run", measured[name]["faults"], "faults",
+                                      "in-process", measured["in-process"]["faults"],
+                                      note="minor page faults per run in this process"))
+        if measured[name]["process_cpu_ms"] is not None:
+            figures.append(results.figure(f"{name}: its process's CPU per run (hand-over included)",
+                                          measured[name]["process_cpu_ms"], "ms", "in-process",
+                                          measured["in-process"]["process_cpu_ms"],
+                                          note="this process's CPU per run, the loop around the call included"))
+    results.write_result("stage_worker_cpu", {"runs": args.runs}, figures, args.json_out,
+                         what=__doc__.splitlines()[0])
     if args.json:
-        print(json.dumps({"load_average": load, "results": results}))
+        print(json.dumps({"load_average": load, "results": measured}))
         return
     print(f"blob finder, {args.runs} runs each; load average {load[0]:.1f} -> {load[1]:.1f} on {os.cpu_count()} cores")
-    for name, r in results.items():
+    for name, r in measured.items():
         whole = "" if r["process_cpu_ms"] is None else f", its process {r['process_cpu_ms']:.3f} ms/run"
         print(f"  {name:26s} run CPU {r['cpu_ms']:.3f} ms (system {r['system_ms']:.3f}), x{r['cpu_ms'] / base:.2f} "
               f"in-process; page faults {r['faults']:.0f}/run{whole}")

@@ -26,6 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import results
+
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec
 from autopower.launch.summary import chain_latencies, missed_periods
@@ -48,6 +50,7 @@ def main() -> None:
                     help="run a probe outside the team that logs when the whole machine stops, the agents at "
                          "'info' (they log each skipped period), and match the two (bench/stall_probe.py)")
     ap.add_argument("--json", action="store_true")
+    results.add_json_out(ap)
     args = ap.parse_args()
     scenario = build_scenario(SCENARIO)
     loads = [os.getloadavg()[0]]
@@ -129,6 +132,28 @@ def main() -> None:
           f"status repeats {(base.get('counters') or {}).get('status-repeats', 0)}")
     if stalls is not None:
         print(stall_probe.describe(stalls))
+    g = f"paper-fig7, fully connected, 802.11a, static policy, x{args.speed:g}"
+    figures = [
+        results.figure("metered lifetime (first robot empty)", first["t_virtual"] if first else None, "s",
+                       "the model", planned, group=g, detail=f"first empty: {first['robot']}" if first else "none empty",
+                       note="the lifetime the planner's model predicts for this plan"),
+        results.figure("wall time", wall / 60, "min", "model lifetime / speed",
+                       planned / args.speed / 60 if planned else None, group=g,
+                       note="the model's lifetime at the asked speed-up"),
+        results.figure("source periods missed", missed, "periods", "periods due", produced + missed, group=g,
+                       note="every source period of the run"),
+    ]
+    for kind in ("Blob", "Loc"):
+        period = min(c.period_s for c in scenario.chains if c.name.startswith(kind))
+        lat = [v for c, v in result["latency_p50_ms"].items() if c.startswith(kind) and v is not None]
+        if lat:
+            figures.append(results.figure(f"{kind} latency p50, worst chain", max(lat), "ms", f"{kind} period",
+                                          period / args.speed * 1e3, group=g,
+                                          note="the chain's period in wall time at that speed"))
+    results.write_result("whole_mission", {"speed": args.speed, "stage_workers": args.stage_workers,
+                                           "max_wall_s": args.max_wall_s, "stall_probe": args.stall_probe},
+                         figures, args.json_out, what=__doc__.splitlines()[0],
+                         extra={k: v for k, v in result.items() if k not in ("events",)})
     if args.json:
         print(json.dumps(result, indent=1))
 

@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import results
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_idle, beside this file
 from bench_idle import cpu_ns, load  # noqa: E402
 
@@ -162,6 +164,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--team", action="store_true", help="also the whole team at rest (bench_idle), same run")
     parser.add_argument("--json", action="store_true", help="one JSON object on stdout, nothing else")
+    results.add_json_out(parser)
     args = parser.parse_args()
     out: dict = {"load_start": load()}
     with tempfile.TemporaryDirectory(prefix="zenoh-floor-") as tmp:
@@ -178,6 +181,23 @@ def main() -> None:
         out["team_at_rest_zenoh_threads_pct"] = sum(v[1] for v in rest.values())
         out["floor_share_of_team"] = out["floor"]["total_pct"] / out["team_at_rest_pct"]
     out["load_end"] = load()
+    floor = out["floor"]["total_pct"]
+    note = ("five processes holding only Zenoh sessions, linked as a team is: mutual TLS, 0.5 s lease, "
+            "2 keep-alives per lease, shared memory on")
+    figures = [results.figure(f"five sessions, {label}", out[key]["total_pct"], "% of a core", "the team's links",
+                              floor, note=note)
+               for key, label in (("lease_2s", "TLS, 2 s lease"), ("plain_tcp", "plain tcp, 0.5 s lease"),
+                                  ("no_shared_memory", "TLS, 0.5 s lease, no shared memory"))]
+    if args.team:
+        figures.insert(0, results.figure("whole team at rest (bench_idle, every chain disabled)",
+                                         out["team_at_rest_pct"], "% of a core", "the team's links", floor,
+                                         note=note))
+    else:
+        figures.insert(0, results.figure("five sessions, the team's links", floor, "% of a core",
+                                         "the team's links", floor, note=note))
+    results.write_result("zenoh_floor", {"seconds": args.seconds, "team": args.team}, figures, args.json_out,
+                         what="What Zenoh alone costs a team at rest: the floor under the team's own CPU at rest.",
+                         extra=out)
     if args.json:
         print(json.dumps(out))
         return

@@ -5,7 +5,7 @@ late (unix time at the wake-up, how late in ms). It carries no load of the team,
 sees is the machine's (the kernel, the hypervisor), not the team's. `attribute` then matches the
 periods the agents logged as skipped (their `info` log: "source X is N period(s) late; skipped
 them") with those stalls: on a machine measured here every missed period of the whole mission at
-x55 fell within 0.1 s of a machine-wide stall (README, "The whole mission live").
+x55 fell within 0.1 s of a machine-wide stall (docs/performance.md).
 
 Used by `bench_whole_mission.py --stall-probe`; run alone it probes for the seconds given:
 
