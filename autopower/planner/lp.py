@@ -6,9 +6,6 @@ so rows are collected as plain lists and handed to HiGHS as one CSR matrix.
 
 from __future__ import annotations
 
-import os
-import sys
-import threading
 from dataclasses import dataclass, field
 
 import highspy
@@ -16,44 +13,25 @@ import numpy as np
 
 INF = highspy.kHighsInf
 
-_banner_lock = threading.Lock()
-_banner_done = False
+
+class _SilentHighs(highspy.Highs):
+    """A Highs whose output is off before it can write anything.
+
+    HiGHS writes its log header (version and copyright) to the C-level stdout on the first call
+    that logs, and ``highspy.Highs.__init__`` makes one: it registers the Python callback bridge
+    through `enableCallbacks`. Switching ``output_flag`` off there, before that call, keeps every
+    line of HiGHS off both stdout and stderr: `autopower plan` prints only the plan, and
+    ``--json`` output is one JSON document.
+    """
+
+    def enableCallbacks(self) -> None:
+        self.setOptionValue("output_flag", False)
+        super().enableCallbacks()
 
 
 def new_highs() -> highspy.Highs:
-    """A silent HiGHS instance; the only place AutoPower creates one.
-
-    HiGHS writes its banner ("Running HiGHS ...") to the C-level stdout while the *first* Highs
-    object of the process is constructed, before any option can switch output off; that broke
-    every `--json` reader. The first construction therefore runs with file descriptor 1 pointed
-    at stderr (where logs and banners belong), then output is switched off for good.
-    """
-    global _banner_done
-    with _banner_lock:
-        if _banner_done:
-            h = highspy.Highs()
-        else:
-            sys.stdout.flush()
-            saved = os.dup(1)
-            try:
-                os.dup2(2, 1)
-                h = highspy.Highs()
-                _flush_c_stdio()  # a pipe makes C stdio buffer the banner: flush it while fd 1 is stderr
-            finally:
-                os.dup2(saved, 1)
-                os.close(saved)
-            _banner_done = True
-    h.setOptionValue("output_flag", False)
-    return h
-
-
-def _flush_c_stdio() -> None:
-    try:
-        import ctypes
-
-        ctypes.CDLL(None).fflush(None)
-    except (OSError, AttributeError):  # no C library to reach (exotic platform): nothing buffered there
-        pass
+    """A silent HiGHS instance; the only place AutoPower creates one."""
+    return _SilentHighs()
 
 
 @dataclass
