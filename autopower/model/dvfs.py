@@ -1,4 +1,4 @@
-"""Dynamic voltage and frequency scaling (the paper's future work, issue 16 item 3).
+"""Dynamic voltage and frequency scaling (the paper's future work).
 
 A platform may declare frequency levels, each with its own idle and busy power and a latency
 factor (how much longer every component run takes than at the platform's nominal latencies).
@@ -140,8 +140,7 @@ def parse_levels(parser, obj: Any, path: str) -> tuple[FrequencyLevel, ...]:
     out = []
     for name, spec in obj.items():
         lpath = f"{path}.{name}"
-        spec = parser.table(spec, lpath, ["idle_w", "busy_w", "latency_factor", "mhz", "core_v"],
-                            ["idle_w", "busy_w", "latency_factor"])
+        spec = parser.section(spec, lpath, "platforms.<platform>.levels.<level>")
         idle = parser.number(spec, "idle_w", lpath, minimum=0.0)
         busy = parser.number(spec, "busy_w", lpath, minimum=0.0)
         if busy < idle:

@@ -1,8 +1,9 @@
 """Scenario files: a complete, validated description of one mission.
 
-A scenario is TOML (see README "Scenario format"). `load_scenario` turns it into frozen
+A scenario is TOML (docs/reference/scenario.md). `load_scenario` turns it into frozen
 dataclasses and rejects anything it does not understand: every error names the file, the field,
-the line where it can be found, what was found and what was expected.
+the line where it can be found, what was found and what was expected. Which keys each table
+accepts and requires comes from `autopower.model.schema`, which the reference page is rendered from.
 """
 
 from __future__ import annotations
@@ -15,13 +16,12 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from autopower.errors import ScenarioError
 import networkx as nx
 
+from autopower.errors import ScenarioError
+from autopower.model import schema
 from autopower.model.dag import Flow, find_cycle
 from autopower.model.dvfs import parse_levels
-from autopower.model.variants import check_chain_variants, parse_variants
-
 from autopower.model.scenario import (
     ACCOUNTING_MODES,
     TOPOLOGIES,
@@ -36,10 +36,12 @@ from autopower.model.scenario import (
     Scenario,
     Stage,
 )
+from autopower.model.variants import check_chain_variants, parse_variants
 
 IMPORT_PATH = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
 
 
+INPUT_KEYS = schema.required("chains[].stages[].inputs[]")  # a DAG input is exactly { from, bytes }
 MAX_SCENARIO_BYTES = 64 * 2**20  # a 2,000-robot fleet is well under 1 MB
 MAX_INTEGER = 2**53  # beyond this a float loses integers, and nothing physical is that large
 MAX_MESSAGE_BYTES = 2**30  # one message of a gigabyte is already far past any radio here
@@ -196,8 +198,12 @@ class ScenarioParser:
         if missing:
             names = ", ".join(repr(k) for k in missing)
             raise self.fail(path or "(top level)", f"missing required key{'s' if len(missing) > 1 else ''} {names}",
-                            "every one of them (see README, Scenario format)")
+                            "every one of them (see docs/reference/scenario.md)")
         return obj
+
+    def section(self, obj: Any, path: str, schema_path: str) -> dict:
+        """`table` with the keys `autopower.model.schema` lists for `schema_path` (e.g. ``robots[]``)."""
+        return self.table(obj, path, schema.allowed(schema_path), schema.required(schema_path))
 
     def number(self, obj: dict, key: str, path: str, *, minimum: float | None = None,
                positive: bool = False, default: float | None = None) -> float:
@@ -245,17 +251,11 @@ class ScenarioParser:
 
     # ---- sections --------------------------------------------------------------------------
     def scenario(self) -> Scenario:
-        top = self.table(
-            self.data, "",
-            ["scenario", "platforms", "radios", "robots", "basestation", "network", "components",
-             "chains", "reference_rows", "migration", "mission"],
-            ["scenario", "platforms", "radios", "robots", "basestation", "network", "components", "chains"],
-        )
-        head = self.table(top["scenario"], "scenario",
-                          ["name", "description", "accounting", "lifetime_rounding_s"], ["name"])
+        top = self.section(self.data, "", "")
+        head = self.section(top["scenario"], "scenario", "scenario")
         platforms = self.platforms(top["platforms"])
         radios = self.radios(top["radios"])
-        base = self.table(top["basestation"], "basestation", ["name", "platform", "limit_radios"], ["name", "platform"])
+        base = self.section(top["basestation"], "basestation", "basestation")
         limit_radios = base.get("limit_radios", False)
         if not isinstance(limit_radios, bool):
             raise self.fail("basestation.limit_radios", f"found {limit_radios!r}", "true or false")
@@ -306,7 +306,7 @@ class ScenarioParser:
                             "not supported yet)")
 
     def quality_weight(self, obj: Any) -> float:
-        mission = self.table(obj, "mission", ["quality_weight"])
+        mission = self.section(obj, "mission", "mission")
         weight = self.number(mission, "quality_weight", "mission", minimum=0.0, default=0.0)
         if weight > 1:
             raise self.fail("mission.quality_weight", f"found {weight}", "a weight in [0, 1] (0: lifetime only)")
@@ -319,7 +319,7 @@ class ScenarioParser:
         out = {}
         for name, spec in obj.items():
             path = f"platforms.{name}"
-            spec = self.table(spec, path, ["idle_w", "busy_w", "mains", "levels"])
+            spec = self.section(spec, path, "platforms.<platform>")
             mains = spec.get("mains", False)
             if not isinstance(mains, bool):
                 raise self.fail(f"{path}.mains", f"found {mains!r}", "true or false")
@@ -336,8 +336,7 @@ class ScenarioParser:
         out = {}
         for name, spec in obj.items():
             path = f"radios.{name}"
-            spec = self.table(spec, path, ["kbps", "sleep_w", "send_w", "receive_w"],
-                              ["kbps", "sleep_w", "send_w", "receive_w"])
+            spec = self.section(spec, path, "radios.<medium>")
             radio = Radio(
                 name=name,
                 kbps=self.number(spec, "kbps", path, positive=True),
@@ -362,8 +361,7 @@ class ScenarioParser:
         out, seen = [], set()
         for i, spec in enumerate(obj):
             path = f"robots[{i}]"
-            spec = self.table(spec, path, ["name", "platform", "energy_j", "sensors"],
-                              ["name", "platform", "energy_j"])
+            spec = self.section(spec, path, "robots[]")
             name = self.string(spec, "name", path)
             if name in seen or name == base:
                 raise self.fail(f"{path}.name", f"duplicate node name {name!r}", "unique robot names")
@@ -382,8 +380,7 @@ class ScenarioParser:
 
     def network(self, obj: Any, radios: dict[str, Radio], robots: tuple[Robot, ...], base: str) -> NetworkSpec:
         path = "network"
-        obj = self.table(obj, path, ["topology", "relay", "laptop_robot_media", "robot_robot_media",
-                                     "links", "analyze_topologies"], ["topology"])
+        obj = self.section(obj, path, "network")
         topology = self.string(obj, "topology", path, choices=TOPOLOGIES)
         names = [r.name for r in robots]
         relay = obj.get("relay")
@@ -400,7 +397,7 @@ class ScenarioParser:
             nodes = names + [base]
             for i, spec in enumerate(raw):
                 lpath = f"network.links[{i}]"
-                spec = self.table(spec, lpath, ["a", "b", "media", "group"], ["a", "b", "media"])
+                spec = self.section(spec, lpath, "network.links[]")
                 a = self.string(spec, "a", lpath, choices=nodes)
                 b = self.string(spec, "b", lpath, choices=nodes)
                 if a == b:
@@ -430,7 +427,7 @@ class ScenarioParser:
         out = {}
         for name, spec in obj.items():
             path = f"components.{name}"
-            spec = self.table(spec, path, ["latency_s", "implementation", "source", "variants"], ["latency_s"])
+            spec = self.section(spec, path, "components.<component>")
             lat = self.table(spec["latency_s"], f"{path}.latency_s", platforms)
             missing = [p for p in platforms if p not in lat]
             if missing:
@@ -469,9 +466,7 @@ class ScenarioParser:
         self.flow_specs: list[tuple[str, str, Any]] = []  # (stage path, stage name, raw inputs), for dag_flows
         for i, spec in enumerate(obj):
             path = f"chains[{i}]"
-            spec = self.table(spec, path, ["name", "source", "sink", "period_s", "component", "stages",
-                                           "message_bytes", "requires", "pin", "hosts", "min_quality", "inputs"],
-                              ["name", "period_s", "message_bytes"])
+            spec = self.section(spec, path, "chains[]")
             name = self.string(spec, "name", path)
             sourced = "source" in spec or not self.first_stage_has_inputs(spec)
             if not sourced:  # a DAG chain fed only by other stages (autopower.model.dag): lives at its sink
@@ -535,16 +530,16 @@ class ScenarioParser:
             line_path = f"{spath.split('.stages[')[0]}.stages" if ".stages[" in spath else ipath
 
             def bad(field: str, problem: str, expected: str) -> ScenarioError:
-                return self.fail(field, problem, expected, line_path)
+                return self.fail(field, problem, expected, line_path)  # noqa: B023 (called in this iteration)
 
             if not isinstance(raw, list) or not raw:
                 raise bad(ipath, f"found {raw!r}", 'a non-empty list of { from = "STAGE", bytes = N }')
             seen = set()
             for k, item in enumerate(raw):
                 fpath = f"{ipath}[{k}]"
-                if not isinstance(item, dict) or set(item) != {"from", "bytes"}:
+                if not isinstance(item, dict) or set(item) != set(INPUT_KEYS):
                     keys = sorted(item) if isinstance(item, dict) else None
-                    missing = sorted({"from", "bytes"} - set(keys or ()))
+                    missing = sorted(set(INPUT_KEYS) - set(keys or ()))
                     raise bad(fpath, f"missing required key {missing[0]!r}" if keys is not None and missing
                               else f"found {item!r}", '{ from = "STAGE", bytes = N } and nothing else')
                 producer = item["from"]
@@ -573,7 +568,7 @@ class ScenarioParser:
         out = tuple(dataclasses.replace(c, inputs=tuple(flows[c.name])) if flows[c.name] else c for c in chains)
         cycle = find_cycle(out)
         if cycle is not None:
-            first = next(((a, b) for a, b in zip(cycle, cycle[1:]) if (a, b) in where), None)
+            first = next(((a, b) for a, b in zip(cycle, cycle[1:], strict=False) if (a, b) in where), None)
             field, line_path = where[first] if first else ("chains", None)
             raise self.fail(field, f"cycle {' > '.join(cycle)}", "an acyclic graph of stages (remove one of these inputs)",
                             line_path)
@@ -596,7 +591,7 @@ class ScenarioParser:
         out = []
         for j, st in enumerate(raw):
             spath = f"{path}.stages[{j}]" if "stages" in spec else path
-            st = self.table(st, spath, ["name", "component", "pin", "hosts", "inputs"], ["name", "component"])
+            st = self.section(st, spath, "chains[].stages[]")
             if "inputs" in st:
                 self.flow_specs.append((spath, self.string(st, "name", spath), st["inputs"]))
             pin = st.get("pin")
@@ -617,8 +612,7 @@ class ScenarioParser:
         out = []
         for i, spec in enumerate(obj):
             path = f"reference_rows[{i}]"
-            spec = self.table(spec, path, ["topology", "laptop_robot", "robot_robot", "media", "allocation",
-                                           "paper_lifetime_s"], ["topology", "allocation"])
+            spec = self.section(spec, path, "reference_rows[]")
             alloc = self.table(spec["allocation"], f"{path}.allocation", stages, stages)
             for stage, host in alloc.items():
                 if host not in nodes:
@@ -658,7 +652,7 @@ class ScenarioParser:
 
     def migration(self, obj: Any, components: Mapping[str, ComponentSpec]) -> dict[str, Any]:
         """What moving a component costs: downtime, CPU, and state bytes per component type."""
-        obj = self.table(obj, "migration", ["downtime_s", "cpu_s", "state_bytes_default", "state_bytes"])
+        obj = self.section(obj, "migration", "migration")
         out: dict[str, Any] = {k: self.number(obj, k, "migration", minimum=0.0) for k in obj if k != "state_bytes"}
         if "state_bytes" in obj:
             sizes = self.table(obj["state_bytes"], "migration.state_bytes", components)

@@ -1,4 +1,4 @@
-"""Quality as a variable: components with variants (the paper's future work, issue 16 item 2).
+"""Quality as a variable: components with variants (the paper's future work).
 
 A component may declare variants, e.g. the blob-finder at 4, 2 or 1 frames per second, or MCL
 with 1000, 300 or 100 particles. Each variant has a quality score in (0, 1] and may override the
@@ -142,8 +142,7 @@ def parse_variants(parser, obj: Any, path: str, platforms: Mapping[str, Any]) ->
     out = []
     for name, spec in obj.items():
         vpath = f"{path}.{name}"
-        spec = parser.table(spec, vpath, ["quality", "period_s", "latency_s", "message_bytes", "parameters"],
-                            ["quality"])
+        spec = parser.section(spec, vpath, "components.<component>.variants.<variant>")
         quality = parser.number(spec, "quality", vpath, positive=True)
         if quality > 1:
             raise parser.fail(f"{vpath}.quality", f"found {quality}", "a score in (0, 1]")
