@@ -1,6 +1,6 @@
 """AutoPower: energy-aware placement of robot software across a multi-robot team.
 
-The public API for your own components (see README "Your own components"): a component is a class
+The public API for your own components (docs/tutorials/own-component.md): a component is a class
 constructed as ``Cls(robot: str, seed: int)`` with ``run(self, payload: bytes) -> bytes`` (`Component`),
 and, when it keeps state, ``export_state() -> bytes`` / ``import_state(bytes)``
 (`StatefulComponent`); its chain's input comes from a source, ``Cls(robot, seed)`` with
@@ -27,16 +27,25 @@ from autopower.errors import (
 )
 
 if TYPE_CHECKING:
+    # For type checkers only (`X as X` marks a re-export); at run time __getattr__ imports on first use.
     from autopower.chains.base import (
-        Component,
-        ComponentStateError,
-        MalformedInputError,
-        ScoredSource,
-        Source,
-        StatefulComponent,
+        Component as Component,
+        ComponentStateError as ComponentStateError,
+        MalformedInputError as MalformedInputError,
+        ScoredSource as ScoredSource,
+        Source as Source,
+        StatefulComponent as StatefulComponent,
     )
-    from autopower.chains.plugins import ENTRY_POINT_GROUP, register_scenario_components
-    from autopower.chains.registry import ComponentType, make_component, make_source, register_component_type
+    from autopower.chains.plugins import (
+        ENTRY_POINT_GROUP as ENTRY_POINT_GROUP,
+        register_scenario_components as register_scenario_components,
+    )
+    from autopower.chains.registry import (
+        ComponentType as ComponentType,
+        make_component as make_component,
+        make_source as make_source,
+        register_component_type as register_component_type,
+    )
 
 _COMPONENT_API = {
     "Component": "autopower.chains.base",

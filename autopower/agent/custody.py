@@ -91,9 +91,8 @@ def is_consumed(report: Consumed, run: int, seq: int) -> bool:
         return False
     if in_ranges(report.missing, seq):
         return False
-    # Beyond a truncated missing list nothing is known. Such a frame was once counted as received
-    # and dropped from custody unsent (random faults, seed 10: 512 outputs, when the list named
-    # seqs, not ranges). It stays held, and is not resent either (`beyond_known`) until a later
+    # Beyond a truncated missing list nothing is known: counting such a frame as received would drop
+    # it from custody unsent. It stays held, and is not resent either (`beyond_known`) until a later
     # report lists it or moves past it.
     return not beyond_known(report, seq)
 
@@ -189,9 +188,8 @@ class Custody:
 
         ``keep_target``: the hop of its results (to its sink), kept: its sink still takes them. A
         chain is stopped when the base station loses its source robot for a moment, and adopted
-        again in the same run when the robot is back; its results in custody had been dropped
-        as acknowledged, and those lost in flight never came (random faults, seed 4: 14 Blob-2
-        results at a time).
+        again in the same run when the robot is back; dropping its results from custody as well
+        would count them as acknowledged, and those lost in flight would never come.
         """
         for (name, target), hop in list(self.hops.items()):
             if name == chain and target != keep_target:

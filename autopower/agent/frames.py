@@ -66,7 +66,7 @@ class Frames:
                     return False
             self.count("unroutable", f"no route from {self.node} to {dest}")
             return False
-        media = tuple(self.network.medium_between(u, v) for u, v in zip(path, path[1:]))
+        media = tuple(self.network.medium_between(u, v) for u, v in zip(path, path[1:], strict=False))
         packet = Packet(path=tuple(path), media=media, hop=1, charge_bytes=charge_bytes, weight=weight,
                         purpose=purpose, chain=chain, body=body)
         self.meter.charge_radio("send", media[0], charge_bytes, weight, self.now(), purpose)

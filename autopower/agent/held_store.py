@@ -1,9 +1,8 @@
 """Results a robot holds for a sink out of its reach, kept on disk so a crash does not lose them.
 
 A robot cut off from a chain's sink holds the chain's results (`NodeRuntime.hold_output`, at
-most `agent.stages.HELD_OUTPUT_LIMIT`) until the sink is back. They lived only in memory: a
-robot killed while cut off lost all of them (random faults, seed 3: 532 Blob-2 results lost when
-r2 was SIGKILLed during a base-station outage). So each held result is appended here as it is
+most `agent.stages.HELD_OUTPUT_LIMIT`) until the sink is back. Held only in memory, they would
+all be lost with a robot killed while cut off. So each held result is appended here as it is
 held, and a restarted process of the same mission takes them back (`load`), holds them again
 and sends them once the sink is in reach; custody then keeps them until the sink acknowledges.
 

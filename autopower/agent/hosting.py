@@ -11,9 +11,9 @@ import logging
 import time
 
 from autopower.agent.guard import hang_limit_s
-from autopower.agent.workers import StageWorker, WorkerComponent, WorkerCrashed, Zygote, recipe_for, worker_of
 from autopower.agent.sequencing import SequenceGate
 from autopower.agent.stages import HostedStage, Lifecycle, chain_seed
+from autopower.agent.workers import StageWorker, WorkerComponent, WorkerCrashed, Zygote, recipe_for, worker_of
 from autopower.model.scenario import Chain, Stage
 from autopower.model.variants import runtime_component
 from autopower.protocol import (
@@ -128,11 +128,10 @@ class Hosting:
         """Start afresh, in the plan's run, a stage here whose chain the plan runs in a newer run.
 
         A chain restarted without state gets a new run (the base station's). An instance the base
-        station then adopted as running (a subgroup had restarted it while the base station was
-        away) kept the old run and got no order: its source followed the plan's new run, and the
-        stage dropped every frame as stale-run, for good (random faults, seed 4: Blob-3 delivered
-        nothing more, and its source's custody filled and evicted until the end). A new run means
-        the chain starts over, so the instance does: a fresh component and gate, same generation.
+        station then adopts as running (a subgroup had restarted it while the base station was
+        away) keeps the old run and gets no order: its source follows the plan's new run, and the
+        stage would drop every frame as stale-run, for good. A new run means the chain starts over,
+        so the instance does: a fresh component and gate, same generation.
         """
         for name, hosted in list(self.hosted.items()):
             run = plan.running.get(hosted.chain.name)
@@ -359,14 +358,12 @@ class Hosting:
         """Stop hosting a stage. The inputs waiting in its gate run here first, or are kept.
 
         A gate's report counts the inputs waiting behind a gap as consumed (their producers drop
-        them from custody), so a stage released with inputs waiting lost them: the base station
-        stopped Loc-2 on the laptop when r2 left its reach while 97 scans waited behind one that had
-        not come, and all 98 were lost (random faults, seed 4). An in-process stage now gives the
-        gap up and runs them, in order, before it stops: their outputs go on as any output does (a
-        sink out of reach holds them). Kept for the stage's next instance instead, they reached it
-        after its gate had started above them, and it dropped them (seeds 4, 14, 15: 4, 19 and 26
-        lost). A stage in a worker keeps them as orphans (sent to the stage's host once a plan
-        places it). A chain the operator stopped, or whose component failed, drops them.
+        them from custody), so a stage released with inputs waiting would lose them. An in-process
+        stage gives the gap up and runs them, in order, before it stops: their outputs go on as any
+        output does (a sink out of reach holds them). Kept for the stage's next instance instead,
+        they would reach it after its gate had started above them, and it would drop them. A stage
+        in a worker keeps them as orphans (sent to the stage's host once a plan places it). A chain
+        the operator stopped, or whose component failed, drops them.
         """
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:

@@ -1,4 +1,4 @@
-"""Joining: DAG flows at run time (README "Applications as DAGs").
+"""Joining: DAG flows at run time (docs/concepts/chains.md).
 
 A flow (`autopower.model.dag.Flow`) carries a producer stage's output to a stage of another chain.
 On the wire it is a hop of its own: frames of pseudo-chain ``flow.name`` ("Loc-1>TeamMap"), target

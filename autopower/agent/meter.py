@@ -29,8 +29,7 @@ from collections import deque
 from typing import Iterable, Mapping
 
 from autopower.model.energy import airtime_s
-from autopower.model.parts import CPU_BUSY, CPU_IDLE, CPU_RECOVERY, OVERHEAD_KINDS, overhead_kind
-from autopower.model.parts import radio_part as part
+from autopower.model.parts import CPU_BUSY, CPU_IDLE, CPU_RECOVERY, OVERHEAD_KINDS, overhead_kind, radio_part as part
 from autopower.model.scenario import Platform, Radio
 
 __all__ = ["BatteryMeter", "CPU_BUSY", "CPU_IDLE", "CPU_RECOVERY", "part"]

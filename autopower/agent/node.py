@@ -233,9 +233,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.weights.update(self.flow_weights(plan.mission.accounting))
             self._resume(plan.mission)
             if not self.resumed and self.held_store is not None:
-                # a process without a resume state keeps its held results on disk all the same (the
-                # base station's host): random faults, seed 6, the laptop held Loc-1 seq 10 for r1,
-                # cut off, and was killed; r1 had had the acknowledgement, so nobody had it any more
+                # a process without a resume state (the base station's host) keeps its held results
+                # on disk all the same: their producers have had the acknowledgement, so a held result
+                # lost with this process is held nowhere else
                 self._take_back_held(plan.mission)
         self._set_plan(plan)
         self.follow_plan_runs(plan)
@@ -330,8 +330,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         sink notes what it delivered with each status (`SinkStore.commit`). A frame between the two
         at the kill (in a stage's queue here, or its output delivered since the last status) existed
         only in the process's memory: the restarted source goes on after it, and the sink never gets
-        it (random faults: one or two Loc outputs per crash). They are logged apart (as a full
-        hold's drops are), so the replay tells what a crash costs from what the team lost. Only the
+        it. They are logged apart (as a full hold's drops are), so the replay tells what a crash
+        costs from what the team lost. Only the
         tail after the last output the sink had committed counts, and only if it is short (a crash
         explains a few periods, not an older gap: longer tails are left to count as lost).
         """
@@ -446,8 +446,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         """The nodes this one does not reach now, while the base station is out of its reach (empty
         once it is back: its plans account for the links it knows). The model's power is priced again
         without them: a robot cut off from the source of a chain a round had put on it does not run
-        that chain, and the model counted it all the same (random faults, seed 3: r1 9.5 % under its
-        model for 300 s of the mission, Loc-2's scans going to r2's own instance)."""
+        that chain, and the model must not count it."""
         if nodes == self.out_of_reach:
             return
         self.out_of_reach = nodes
@@ -460,9 +459,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
         A chain with a stage out of reach of the node before it is left out: it cannot run as
         placed here (another partition's placement, seen from this one, after a subgroup round
-        moved only what this one reaches). Left in, it made the whole prediction fail, and the
-        recording kept the old plan's power for this robot while it ran its chains itself
-        (random faults: +11 % and +15 % metered over the model for two robots).
+        moved only what this one reaches). Left in, it would make the whole prediction fail, and the
+        recording would keep the old plan's power for this robot while it runs its chains itself.
         {} if the model cannot price it (telemetry: never worth stopping for)."""
         from autopower.model.dvfs import apply_levels
         from autopower.model.energy import evaluate
@@ -498,10 +496,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                 self.on_held_dropped(dropped.chain, dropped.run, dropped.seq)
         # Sent late, as a retransmission: the sink may have had this output meanwhile from another
         # instance (a released stage runs the inputs waiting in its gate, while their producer, its
-        # acknowledgement cut off, resends them to the stage's next instance). Random faults, seed 3:
-        # the laptop held Loc-1 seq 11 through a cut, r1's own restarted Loc-1 delivered it, and 50 s
-        # later the held copy reached r1's sink, restarted since (what came as a resend is not kept
-        # on disk), as new: delivered twice. Marked, a sink that has it drops it as redundant.
+        # acknowledgement cut off, resends them to the stage's next instance). A restarted sink does
+        # not keep on disk what came as a resend, so an unmarked held copy arriving later would be
+        # taken as new and delivered twice. Marked, a sink that has it drops it as redundant.
         frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
         self.held_outputs.append(frame)
         self.custody.mark(frame, None)  # not on the wire: no resend is due until it is
@@ -546,15 +543,15 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         journal = [f for f in self.held_store.load(mission_key(mission)) if f.chain in self.chains]
         let_go, frames = journal[:-HELD_OUTPUT_LIMIT], journal[-HELD_OUTPUT_LIMIT:]
         if self.on_held_dropped is not None:
-            # Logged again: the crashed process logged its last drops into a recording batch the kill
-            # lost, and the replay counted them as lost outputs (random faults, seed 3: 9 and 12
-            # Blob results between logged drops). One its sink had acknowledged is no gap there.
+            # Logged again: the crashed process may have logged its last drops into a recording batch
+            # the kill lost, and the replay would count them as lost outputs. One its sink had
+            # acknowledged is no gap there.
             for frame in let_go:
                 self.on_held_dropped(frame.chain, frame.run, frame.seq)
         # Each goes again as the retransmission `hold_output` journaled it as: the crashed process
         # may have delivered it, and its sink acknowledged it, before the journal was next rewritten
-        # (at a status tick); a sink that has it drops the copy as redundant (the testbed demo: r2
-        # killed right after delivering its held results, sent as new, 50 Blob-2 twice).
+        # (at a status tick); a sink that has it drops the copy as redundant, where a copy sent as new
+        # would be delivered twice.
         for frame in frames:
             self.custody.keep(frame, self.wall(), sent=False)
             self.held_outputs.append(frame)
@@ -814,6 +811,6 @@ def _unroutable(scenario, network, placement: dict[str, str]) -> set[str]:
         if None in hosts:
             continue
         path = [chain.source, *hosts, chain.sink]
-        if any(a != b and not network.reachable(a, b) for a, b in zip(path, path[1:])):
+        if any(a != b and not network.reachable(a, b) for a, b in zip(path, path[1:], strict=False)):
             out.add(chain.name)
     return out

@@ -23,13 +23,27 @@ from autopower.agent.sink_store import SinkStore
 from autopower.agent.stages import Lifecycle
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
-from autopower.protocol import (Assign, Keys, MigrateOut, NodeStatus, Release, SubgroupMove, SubgroupPropose, decode,
-                                encode)
+from autopower.protocol import (
+    Assign,
+    Keys,
+    MigrateOut,
+    NodeStatus,
+    Release,
+    SubgroupMove,
+    SubgroupPropose,
+    decode,
+    encode,
+)
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
-from autopower.runtime.cadence import (REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence, next_silence_s,
-                                       silence_limit_s)
+from autopower.runtime.cadence import (
+    REPEAT_AFTER_PERIODS,
+    REPEAT_EVERY_PERIODS,
+    StatusCadence,
+    next_silence_s,
+    silence_limit_s,
+)
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -290,14 +304,13 @@ class Agent:
     def _yield_to_newer(self, status: NodeStatus) -> None:
         """Stop an instance here that a newer one running on the peer supersedes.
 
-        A round this robot was not part of (frozen or cut off at the time) restarted one of its
-        stages elsewhere. Back in reach, it went on running its own instance: no inputs came any
-        more (the source sends to the newer one), and its model counted the work all the same
-        (random faults, seed 9: r1 7.8 % under its model). Generations order instances (the base
-        station's orders, rounds' wall-clock milliseconds), so the older one stops. Only against
-        a RUNNING peer: a STARTING one may be a migration's new host, whose state this instance
-        has yet to ship. Inputs waiting in its gate (already acknowledged to their producers) go to
-        the newer instance, which drops those it has.
+        A round this robot was not part of (frozen or cut off at the time) may have restarted one of
+        its stages elsewhere. Back in reach, its own instance gets no inputs any more (the source sends
+        to the newer one), while its model would count the work all the same. Generations order
+        instances (the base station's orders, rounds' wall-clock milliseconds), so the older one stops.
+        Only against a RUNNING peer: a STARTING one may be a migration's new host, whose state this
+        instance has yet to ship. Inputs waiting in its gate (already acknowledged to their producers)
+        go to the newer instance, which drops those it has.
         """
         rt = self.runtime
         for stage, state in (status.hosted or {}).items():
@@ -342,8 +355,8 @@ class Agent:
         running = self._running_placement(members)
         # The same members and plan are not the same situation: another leader's round (rounds keep
         # the epoch) may have moved a stage out of this subgroup since ours, to a robot cut off
-        # since. Keyed on members and plan alone, that stage was never restarted (random faults,
-        # seed 3: 159 scans lost). Where the stages run is part of what a round handled.
+        # since. Keyed on members and plan alone, that stage would never be restarted. Where the
+        # stages run is part of what a round handled.
         key = (members, rt.plan_order, tuple(sorted(running.items())))
         if self._subgroup_done == key:
             return
@@ -396,12 +409,12 @@ class Agent:
     def _resume_alone(self) -> None:
         """Restarted while the base station is out of reach: go on with the plan this robot ran.
 
-        Without it the robot idled (no plan: no mission clock, no sources, no subgroup) until the
-        base station came back, however long that took; its peers went on without its chains
-        (random faults: a robot restarted during a base-station outage). Its battery and sources go
-        on from the resume state as they would on the base station's plan, it hosts again what the
-        plan puts on it, and the subgroup rounds that follow count it in. The base station's next
-        plan (a higher epoch, or a higher incarnation after a takeover) replaces it.
+        Without it the robot would idle (no plan: no mission clock, no sources, no subgroup) until the
+        base station came back, however long that took, and its peers would go on without its chains.
+        Its battery and sources go on from the resume state as they would on the base station's plan,
+        it hosts again what the plan puts on it, and the subgroup rounds that follow count it in. The
+        base station's next plan (a higher epoch, or a higher incarnation after a takeover) replaces
+        it.
         """
         rt = self.runtime
         if (self._resumed_alone or self.relayer.reachable(self.config.scenario.basestation)
@@ -456,15 +469,15 @@ class Agent:
         """Our plan puts ``stage`` of a running chain on ``member``, whose process was restarted since
         we learnt that, and which does not host it now: it runs nowhere.
 
-        A member killed between a round's commit and saving it came back with the plan before the
-        round, so it did not restart what the round had put on it; the others' plans still named it
-        as the host, and no round restarted the stage until the base station came back (CI
-        2026-11-25: Blob-2 and Loc-2 left unrun). A restarted process says so in its statuses (`down`:
-        the mission time its predecessor's metering stopped, at most a status period before it died),
-        and what it hosts is all it has. Only a restart tells: a stage on its way to a member in a
-        migration is hosted nowhere for a while (the old host reports it migrated, the new one has yet
-        to take the state in). A member that died after voting for the round but before its commit
-        counts too: the margin is a round's time and a status period.
+        A member killed between a round's commit and saving it comes back with the plan before the
+        round, so it does not restart what the round had put on it; the others' plans still name it as
+        the host, and no round would restart the stage until the base station came back. A restarted
+        process says so in its statuses (`down`: the mission time its predecessor's metering stopped,
+        at most a status period before it died), and what it hosts is all it has. Only a restart tells:
+        a stage on its way to a member in a migration is hosted nowhere for a while (the old host
+        reports it migrated, the new one has yet to take the state in). A member that died after voting
+        for the round but before its commit counts too: the margin is a round's time and a status
+        period.
         """
         rt, me = self.runtime, self.config.robot
         chain, _ = rt.stage_index.get(stage, (None, 0))
@@ -497,9 +510,9 @@ class Agent:
         """Why we vote no: the round would start elsewhere a stage that runs here (it would run twice)."""
         me = self.config.robot
         if self.runtime.plan is None:
-            # restarted, not yet going on with its saved plan (`_resume_alone`): it could apply
-            # nothing (random faults, seed 3: the commit raised here and the round's leader took
-            # this robot for one running what the round put on it); the leader tries again later
+            # restarted, not yet going on with its saved plan (`_resume_alone`): it can apply
+            # nothing, and a commit here would fail while the round's leader took this robot for
+            # one running what the round put on it; the leader tries again later
             return f"{me} has no plan yet (restarted {time.time() - self._started_unix:.1f} s ago)"
         for move in proposal.moves:
             if move.to_node != me and move.from_node != me and self._runs_here(move.stage):

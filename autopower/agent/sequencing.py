@@ -29,10 +29,9 @@ MAX_MISSING = MAX_MISSING_RANGES  # missing ranges listed in one report (the low
 GATE_MAX_GAP_S = 10.0  # wall seconds a gap may stay open (several resend rounds) before it is given up
 GATE_MAX_PENDING = 512  # inputs waiting behind a gap, at most (memory: camera frames are 230 kB)
 # Outputs a sink keeps above a gap before it gives the gap up. A gap its producer gave up on (a
-# stage's gate skipped those inputs) never fills, and everything after it then stayed in the
-# ledger: its report and journal grew with the mission (100,000 outputs: 4.4 ms a report, 97 ms a
-# journal snapshot; the whole mission at x55 fell behind after 9 minutes). 4,096 outputs are 18 s
-# of both camera chains at x55, far beyond custody's resends.
+# stage's gate skipped those inputs) never fills; without this bound everything after it would stay
+# in the ledger, and its report and journal would grow with the mission until the sink fell behind.
+# 4,096 outputs are 18 s of both camera chains at x55, far beyond custody's resends.
 SINK_MAX_AHEAD = 4096
 
 
@@ -102,10 +101,9 @@ class SequenceGate(Generic[T]):
         elif floor is not None and floor > self.next_seq:
             # everything below the floor was acknowledged by some instance of this stage: what is
             # not waiting here will not come (a previous instance ran it). What waits here runs,
-            # in order, past those gaps: it is acknowledged by this gate, and it waited for a seq
-            # another instance had consumed (random faults, seed 6: a stage restarted by a round
-            # waited for two scans the laptop had acknowledged before it was cut off, until a
-            # crash took the 50 behind them)
+            # in order, past those gaps: it is acknowledged by this gate, and a seq another
+            # instance consumed never comes here, so waiting for it would hold everything behind
+            # it until a crash lost it
             early = self._release_below(floor)
         if seq < self.next_seq or seq in self.pending:
             if resent or seq in self.resent:

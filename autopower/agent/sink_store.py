@@ -9,8 +9,9 @@ acknowledges them (the recording of those outputs is flushed at the same moment,
 `Recorder.before_publish`); the restarted sink rebuilds its ledgers from the notes, counts the
 resent copies as redundant and reports the same prefix to the producers. An output taken in after
 the last status is neither noted nor acknowledged nor recorded when the process dies: custody
-resends it and the new sink delivers and records it once (noting it at once instead lost it from
-the recording, whose buffer died with the process, while the new sink took the resend for a copy).
+resends it and the new sink delivers and records it once (noting it at once instead would lose it
+from the recording, whose buffer dies with the process, while the new sink takes the resend for a
+copy).
 
 The file is a journal: a header naming the mission (its clock's ``epoch_unix``: another mission
 starts empty), a snapshot of the ledgers (`SinkLedger.state`), then one line per new output
@@ -19,17 +20,16 @@ one ``write`` (microseconds; rewriting a file per output cost milliseconds here,
 flushes on truncate and rename); a kill at any instant leaves whole lines and at most one torn
 last line, which is skipped. When the journal grows past ``COMPACT_BYTES`` it is rewritten as a
 snapshot (to a temporary file renamed over it). A file that cannot be read is reported and
-ignored: the sink then starts empty, as it did before this existed.
+ignored: the sink then starts empty.
 
 Each commit's notes end with a marker line (``{"commit": n}``). The notes are written before the
 recording is flushed, so a kill between the two leaves outputs delivered and noted whose recording
-died with the process; the resent copies are redundant to the new sink and are not recorded again
-(a testbed demo, 2026-11-25: 10 Blob-2 and 10 Blob-3 outputs missing from the recording though the
-operator had them). Only the last commit can be in that window (each flush comes before the next
-commit), and the markers say where it starts: `load` gives its outputs as `last_batch`, and the
-restarted sink logs them to the recording (`NodeRuntime.on_sink_journal`), so replay does not count
-them as lost. Noting after the flush instead would turn the same window into duplicates delivered to
-the operator.
+died with the process; the resent copies are redundant to the new sink and are not recorded again,
+so the recording would miss outputs the operator has. Only the last commit can be in that window
+(each flush comes before the next commit), and the markers say where it starts: `load` gives its
+outputs as `last_batch`, and the restarted sink logs them to the recording
+(`NodeRuntime.on_sink_journal`), so replay does not count them as lost. Noting after the flush
+instead would turn the same window into duplicates delivered to the operator.
 """
 
 from __future__ import annotations

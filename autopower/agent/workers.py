@@ -2,7 +2,7 @@
 
 Why: a node's loop is one Python thread. The base station hosts all five stages of the paper's
 optimum; run on its loop they need one interpreter's worth of CPU and more from about x55 on
-(README "Performance"). With stage workers (``--stage-workers``) the loop hands a stage its next
+(docs/performance.md). With stage workers (``--stage-workers``) the loop hands a stage its next
 input and goes on; the result comes back as an event and the loop emits it as it always did
 (same sequence numbers, custody, acknowledgements, metering). A worker runs one input at a time
 in the order it was given them (up to `WINDOW` ahead: it never waits for the loop between runs),

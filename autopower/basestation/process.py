@@ -169,7 +169,7 @@ class BaseStation:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
             os.close(fd)
             raise AutoPowerError(f"another base station of team {self.config.team!r} runs on this host (pid "
-                                 f"{holder}, lock {lock}); stop it first, or give this one its own state directory")
+                                 f"{holder}, lock {lock}); stop it first, or give this one its own state directory") from None
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._lock_fd = fd

@@ -67,8 +67,8 @@ class TakingOver:
         """Enough is known to decide: every robot in sight has spoken, or had the time to since it
         came into sight. Counted per robot: a robot that comes into sight late may be the one that
         still runs the mission (the others restarted while this base station was down, and know
-        none). Timed from the first robot seen, such a robot was never waited for, and a second
-        mission started beside the running one (random faults, seed 6)."""
+        none). Timed from the first robot seen, such a robot would never be waited for, and a second
+        mission would start beside the running one."""
         now = self.wall()
         return all(r in self.heard or now - self.seen_unix.get(r, now) >= self.config.learn_team_s
                    for r in self.present - self.departed)

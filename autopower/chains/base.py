@@ -67,7 +67,7 @@ class Component(Protocol):
     chain's source robot, not the host). ``run`` is called once per input, in sequence order, never
     concurrently; its result must be ``bytes`` no longer than the chain's declared ``message_bytes``
     for that hop. A component that raises, returns anything else, or takes longer than a few of
-    its chain's periods is stopped (see README "Your own components": failures are contained).
+    its chain's periods is stopped (docs/tutorials/own-component.md: failures are contained).
     """
 
     def run(self, payload: bytes) -> bytes:

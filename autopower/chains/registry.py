@@ -130,5 +130,5 @@ register_component_type(ComponentType(
     make_source=JoinSource,  # profiling only: the runtime feeds a fan-in stage from its inputs
     make_component=TeamMap,
     score=score_map,
-    description="fan-in: merges every robot's localisation into the team's explored map (README, Applications as DAGs)",
+    description="fan-in: merges every robot's localisation into the team's explored map (docs/concepts/chains.md)",
 ))

@@ -2,8 +2,8 @@
 
 Its input is a *join message* (`encode_join`): for one step, the outputs of the stages that feed
 it (each a "Loc" estimate, `autopower.chains.mcl`), keyed by producer stage, and the producers
-whose output for that step is missing (late beyond the join bound or lost; README "Applications
-as DAGs"). It keeps, per robot, the latest pose and the explored area: the cells of a 0.5 m grid
+whose output for that step is missing (late beyond the join bound or lost; docs/concepts/chains.md).
+It keeps, per robot, the latest pose and the explored area: the cells of a 0.5 m grid
 within the laser's reach of each estimated pose, weighted by how sure the estimate is (a pose
 whose position sigma exceeds 1 m marks nothing). Its output, <= 2,000 B: each robot's pose,
 sigma, age and explored area, and the team's explored-cells bitmap (40 x 40 cells, 200 B).
@@ -25,8 +25,7 @@ from autopower.chains.base import (
     require_fields,
     unpack_map,
 )
-from autopower.chains.mcl import N_REPORTED_PARTICLES, decode_estimate
-from autopower.chains.mcl import OUTPUT_VERSION as MCL_OUTPUT_VERSION
+from autopower.chains.mcl import N_REPORTED_PARTICLES, OUTPUT_VERSION as MCL_OUTPUT_VERSION, decode_estimate
 from autopower.chains.world import SIZE_M, LocSource
 
 JOIN_VERSION = 1
@@ -98,7 +97,7 @@ class TeamMap:
     def run(self, payload: bytes) -> bytes:
         join = decode_join(payload)
         step = join["step"]
-        for stage, data in sorted(join["inputs"].items()):
+        for _stage, data in sorted(join["inputs"].items()):
             est = decode_estimate(data)
             if est.robot not in self._grids and len(self._grids) >= MAX_ROBOTS:
                 raise MalformedInputError(f"TeamMap: more than {MAX_ROBOTS} robots")

@@ -1,4 +1,4 @@
-"""Quality variants of the real components (issue 16 item 2), and their measured quality.
+"""Quality variants of the real components, and their measured quality.
 
 A scenario's variant hands its `parameters` here (see `autopower.model.variants`):
 - ``every_nth_frame = n`` (any scored source, the blob finder's camera): frame skipping. The

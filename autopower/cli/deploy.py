@@ -12,7 +12,7 @@ from autopower.cli.options import SCENARIO_ARG
 
 @click.group("deploy")
 def deploy() -> None:
-    """Put a team on real hosts: one directory per node to copy to it (see README, "Deploying on robots")."""
+    """Put a team on real hosts: one directory per node to copy to it (see docs/deploying/robots.md)."""
 
 
 @deploy.command("init")
@@ -49,7 +49,7 @@ def deploy_init(scenario, fleet_file, out, topology, install_dir, exec_path, as_
     for node, directory in written.items():
         click.echo(f"  {node:<10} {directory}  -> copy to {install_dir} on "
                    f"{fleet.nodes[node].address if node in fleet.nodes else 'the operator machine'}")
-    click.echo("next: see README, \"Deploying on robots\"")
+    click.echo("next: see docs/deploying/robots.md")
 
 
 COMMANDS = (deploy,)

@@ -1,6 +1,6 @@
 """How every `autopower` entry point reports errors: one line, exit 2, never a traceback.
 
-The JSON contract (README "JSON output"): a command run with `--json` prints exactly one JSON
+The JSON contract (docs/reference/json-output.md): a command run with `--json` prints exactly one JSON
 object on stdout, also when it fails. On failure that object is `{"error": "<the one line>",
 "exit_code": N}`; the same line goes to stderr as `error: ...` and the exit status is the
 usual one (2 for bad input, 130 when interrupted, 1 for a bug, whose traceback stays on stderr).

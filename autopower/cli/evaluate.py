@@ -1,6 +1,6 @@
 """`autopower evaluate`: the full breakdown of one allocation the user chooses, on any topology.
 
-The JSON object is documented in the README ("JSON output", `evaluate`); `breakdown` builds it
+The JSON object is documented in docs/reference/json-output.md (`evaluate`); `breakdown` builds it
 and the text view prints the same figures.
 """
 
@@ -11,7 +11,15 @@ import json
 import click
 from rich.table import Table
 
-from autopower.cli.options import ACCOUNTING_OPT, ENERGY_OPT, JSON_OPT, SCENARIO_ARG, build_scenario, console, parse_pairs
+from autopower.cli.options import (
+    ACCOUNTING_OPT,
+    ENERGY_OPT,
+    JSON_OPT,
+    SCENARIO_ARG,
+    build_scenario,
+    console,
+    parse_pairs,
+)
 from autopower.errors import ScenarioError
 from autopower.model.dag import active_flows, chain_of_stage
 from autopower.model.energy import Evaluation, active_chains, evaluate, flow_rate_hz

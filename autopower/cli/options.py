@@ -277,7 +277,7 @@ def stage_workers_option(f):
     return click.option(
         # auto by default: a worker's inputs are acknowledged only once their outputs are out and a
         # full worker refuses inputs before the gate, so workers lose nothing a crash would not
-        # (README "Failures are contained"); auto keeps them where they were measured to pay
+        # (docs/tutorials/own-component.md); auto keeps them where they were measured to pay
         "--stage-workers", type=click.Choice(STAGE_WORKER_CHOICES), default="auto", show_default=True,
         help="Run each hosted stage's component in a worker process of its own, called asynchronously, so "
              f"stages run in parallel on several cores; auto: on for the base station of a mission at x{AUTO_WORKERS_SPEED:g} "
@@ -285,7 +285,7 @@ def stage_workers_option(f):
 
 
 # When `auto` puts the base station's stages in worker processes. Measured on a 2-core machine
-# running the whole team (README "Live speed"): at x10 the loop keeps up alone and workers only
+# running the whole team (docs/performance.md): at x10 the loop keeps up alone and workers only
 # cost CPU (+10 points of a core); from x50 on the workers' extra CPU (+30-60 points) came out of
 # the robots' agents on the same 2 cores and more periods were missed than without. They pay where
 # cores are spare: not measured here (no such machine), hence at least 4.

@@ -18,9 +18,9 @@ from autopower.cli.options import (
     NON_NEGATIVE,
     POSITIVE,
     build_scenario,
+    fleet_dir,
     mission_options,
     network_options,
-    fleet_dir,
     parse_pairs,
     secure,
     setup_logging,
@@ -44,7 +44,7 @@ def run_until_signalled(process, duration: float | None) -> str:
     folder = os.environ.get("AUTOPOWER_PROFILE_DIR")
     if not folder:
         return process.run(duration)
-    # where the loop's CPU goes (bench/README: "Live speed"): cProfile timed by this thread's CPU
+    # where the loop's CPU goes (docs/performance.md): cProfile timed by this thread's CPU
     # time, so waiting and other processes' load do not count; written when the loop ends
     import cProfile
     import time
@@ -146,8 +146,8 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
                 record_dir, node, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
                 replan_interval, start_grace, stage_workers):
     """Run the base station: plan, place and migrate components; the operator's sink."""
-    from autopower.agent.node import NodeRuntime
     from autopower.agent.held_store import HeldStore
+    from autopower.agent.node import NodeRuntime
     from autopower.agent.sink_store import SinkStore
     from autopower.basestation.coordinator import CoordinatorConfig
     from autopower.basestation.operator import team_dir

@@ -69,7 +69,7 @@ def profile(runs: int, out: str | None, component_path: str | None, source_path:
 
 
 def _print_limit(result) -> None:
-    """How fast the default mission (paper-fig7) could run live here at best (README: Live speed)."""
+    """How fast the default mission (paper-fig7) could run live here at best (docs/performance.md)."""
     import os
 
     from autopower.chains.profile import live_limit

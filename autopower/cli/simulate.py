@@ -53,8 +53,7 @@ def simulate(scenario, events_name, policy, seed, topology, accounting, energy, 
     time-sharing upper bound.
     """
     from autopower.model.mission_events import NO_EVENTS, load_events
-    from autopower.simulation.simulator import simulate as run
-    from autopower.simulation.simulator import time_sharing_reference
+    from autopower.simulation.simulator import simulate as run, time_sharing_reference
 
     s = build_scenario(scenario, energy, accounting=accounting)
     script = load_events(events_name, s, topology=topology) if events_name else NO_EVENTS

@@ -25,10 +25,9 @@ from autopower.cli.options import (
     warn_insecure,
 )
 from autopower.errors import AutoPowerError
-from autopower.launch.supervisor import RestartPolicy
 from autopower.launch.summary import every_robot_depleted, run_summary, status_line, supervisor_line
+from autopower.launch.supervisor import RestartPolicy
 from autopower.model.network import build_network
-
 
 SNAPSHOT_EVERY_S = 1.0  # how often `up` without a live table asks the base station how things are
 SNAPSHOT_AT_REST_S = 5.0  # the same while no chain runs (a snapshot costs the base station too)

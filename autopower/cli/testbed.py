@@ -10,8 +10,8 @@ import time
 import click
 
 from autopower.cli.live_table import render
-from autopower.cli.team import end_session
 from autopower.cli.options import DEFAULT_SPEED, build_scenario, parse_pairs
+from autopower.cli.team import end_session
 from autopower.errors import AutoPowerError
 from autopower.launch.summary import run_summary
 

@@ -293,7 +293,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
                      and not s["links_down"], 20, "the team back under the base station")
         # the base station may call the team back (links up, robots present) a moment before the
         # robots' first statuses since the heal say what the subgroup runs: give them a few status
-        # periods (a snapshot taken at once said 0 adopted in one CI run, 5 a few ms later)
+        # periods, since a snapshot taken at once may still say 0 adopted
         try:
             snap = _wait(team, lambda s: s.get("adopted", 0) > 0, 3.0, "the subgroup's stages adopted")
         except AutoPowerError:

@@ -153,7 +153,7 @@ class LocalTeam:
             self.identities = LocalIdentities.create(self.team, self.nodes, spec.tls_dir)
         self.scheme = "tls" if spec.secure else "tcp"
         ports = free_ports(len(self.nodes))
-        self.ports = dict(zip(self.nodes, ports))
+        self.ports = dict(zip(self.nodes, ports, strict=True))
         self.proxies: dict[frozenset[str], "LinkProxy"] = {}
         if spec.proxied_links:
             from autopower.launch.linkproxy import LinkProxy

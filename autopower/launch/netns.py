@@ -45,9 +45,9 @@ PREFIX = "aptb-"  # AutoPower testbed: the only namespaces this module ever dele
 # modelled from the 200 ms minimum RTO) instead of the kernel's ~15 min (15). Why: Zenoh removes
 # a peer's liveliness tokens only once it has closed the link after its lease, and the close waits
 # for the link's writer; on a silently cut link carrying camera frames that writer is stuck in a
-# write to a full socket buffer that never drains, so the peer stayed "alive" until the link came
-# back and TCP's backed-off retransmission got through (8-13 s measured). Every node of a real
-# team needs the same setting (deploy/README.md).
+# write to a full socket buffer that never drains, so the peer stays "alive" until the link comes
+# back and TCP's backed-off retransmission gets through. Every node of a real team needs the same
+# setting (docs/deploying/robots.md).
 TCP_RETRIES2 = 2
 SUBNET = "10.99"  # point-to-point links
 SHARED_SUBNET = "10.98"  # shared media (bridges)

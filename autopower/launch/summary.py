@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 KEEP_UP_THRESHOLD_PCT = 1.0  # source periods missed beyond startup jitter: the speed-up is too fast
 
 

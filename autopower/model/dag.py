@@ -70,7 +70,7 @@ def stage_graph(chains: Iterable) -> nx.DiGraph:
     for chain in chains:
         names = [s.name for s in chain.stages]
         graph.add_nodes_from(names)
-        graph.add_edges_from(zip(names, names[1:]))
+        graph.add_edges_from(zip(names, names[1:], strict=False))
     for flow in flows_of(chains):
         graph.add_edge(flow.producer, flow.consumer)
     return graph

@@ -1,6 +1,6 @@
 """The AutoPower energy model: power, utilisation and lifetime of an allocation.
 
-Rules (../shared/paper/model-notes.md, which reproduce the paper's Fig. 7 exactly):
+Rules (docs/concepts/energy-model.md; they reproduce the paper's Fig. 7 exactly):
 - CPU power = idle_w + (busy_w - idle_w) * u, u = sum(latency / period) of hosted stages.
 - A message of n bytes occupies its medium for n*8 / (kbps*1024) s; on every hop the sender pays
   send_w for that airtime and the receiver receive_w (a relay pays both); the base station pays
@@ -132,12 +132,12 @@ class LoadSpace:
         if cached is not None:
             return cached
         load = np.zeros(self.size)
-        for stage, host in zip(chain.stages, hosts):
+        for stage, host in zip(chain.stages, hosts, strict=False):
             latency = self.scenario.components[stage.component].latency_s[self.scenario.platform_of(host).name]
             load[self.cpu_slot(host)] += latency / chain.period_s
         rate = flow_rate_hz(chain, self.accounting)
         hops = (chain.source, *hosts, chain.sink)
-        for (src, dst), n_bytes in zip(zip(hops, hops[1:]), chain.message_bytes):
+        for (src, dst), n_bytes in zip(zip(hops, hops[1:], strict=False), chain.message_bytes, strict=False):
             if src != dst:
                 self.flow_load(src, dst, n_bytes, rate, load)
         self._chain_cache[key] = load

@@ -133,7 +133,7 @@ class Network:
     def _shortest_paths(self, src: str) -> dict[str, list[str]]:
         """Breadth-first search from src, each node's neighbours visited in node order.
 
-        Routing tie-break (README "The model"): among routes with the fewest hops, the one whose
+        Routing tie-break (docs/concepts/radios.md): among routes with the fewest hops, the one whose
         nodes come first compared hop by hop in node order (the robots as the scenario lists
         them, then the base station), never by name. Visiting level by level, each node's
         neighbours in node order, makes the first route found the first in that order. A clique
@@ -181,7 +181,7 @@ class Network:
             path = self.path(src, dst)
             if path is None:
                 raise ScenarioError(f"no route from {src} to {dst} on this network (links: {self.describe()})")
-            hops = self._routes[src, dst] = tuple((u, v, self.medium_between(u, v)) for u, v in zip(path, path[1:]))
+            hops = self._routes[src, dst] = tuple((u, v, self.medium_between(u, v)) for u, v in zip(path, path[1:], strict=False))
         return hops
 
     @cached_property
@@ -308,7 +308,7 @@ def media_choices(scenario: Scenario, topology: str | None = None) -> list[dict[
     for spec in (*specs, *cliques):
         groups.setdefault(spec.group, spec.media)
     names = list(groups)
-    return [dict(zip(names, combo)) for combo in product(*(groups[g] for g in names))]
+    return [dict(zip(names, combo, strict=True)) for combo in product(*(groups[g] for g in names))]
 
 
 def build_network(scenario: Scenario, topology: str | None = None, media: Mapping[str, str] | None = None) -> Network:

@@ -49,7 +49,7 @@ class Robot:
 class ComponentSpec:
     name: str
     latency_s: Mapping[str, float]  # platform name -> seconds per run
-    # a plug-in (see README "Your own components"): "pkg.mod:Class" of the component and of its
+    # a plug-in (see docs/tutorials/own-component.md): "pkg.mod:Class" of the component and of its
     # chain's source; None: a built-in type or one an installed package registers (entry point)
     implementation: str | None = None
     source: str | None = None

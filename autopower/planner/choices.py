@@ -25,8 +25,7 @@ from autopower.model.dvfs import apply_levels, best_levels, cpu_at_best_levels, 
 from autopower.model.energy import LoadSpace, evaluate
 from autopower.model.network import Network
 from autopower.model.scenario import Chain, Scenario
-from autopower.model.variants import (admissible, apply_variants, has_variants, variant_chain,
-                                      with_variant_components)
+from autopower.model.variants import admissible, apply_variants, has_variants, variant_chain, with_variant_components
 from autopower.planner.exhaustive import MAX_COMBINATIONS, TIE_REL, combine
 from autopower.planner.lp import INF
 from autopower.planner.problem import Problem
@@ -54,7 +53,7 @@ def alternatives(problem: Problem, chain: Chain) -> list[Alternative]:
     for v in variants:
         mc = variant_chain(problem.scenario, chain, v, rename=True)
         mc = dataclasses.replace(mc, stages=tuple(dataclasses.replace(s, name=f"{orig.name}@{v.name}")
-                                                  for s, orig in zip(mc.stages, chain.stages)))
+                                                  for s, orig in zip(mc.stages, chain.stages, strict=False)))
         out.append(Alternative(chain, v.name, v.quality, mc))
     return out
 
@@ -99,9 +98,9 @@ class Enumerated:
     def decode(self, k: int) -> Choice:
         idx = np.unravel_index(int(k), [len(o) for o in self.picks])
         allocation, variants = {}, {}
-        for opts, i in zip(self.picks, idx):
+        for opts, i in zip(self.picks, idx, strict=True):
             alt, hosts = opts[int(i)]
-            for stage, host in zip(alt.chain.stages, hosts):
+            for stage, host in zip(alt.chain.stages, hosts, strict=False):
                 allocation[stage.name] = host
             if alt.variant is not None:
                 variants[alt.chain.name] = alt.variant
@@ -186,7 +185,7 @@ def expand(problem: Problem, floor: float) -> ChoiceProblem:
             out.chains.append(alt.model_chain)
             out.group_of[alt.model_chain.name] = chain.name
             out.alternative[alt.model_chain.name] = alt
-            for stage, orig in zip(alt.model_chain.stages, chain.stages):
+            for stage, orig in zip(alt.model_chain.stages, chain.stages, strict=False):
                 out.hosts[stage.name] = problem.hosts[orig.name]
     # the MILP evaluates its answer on this scenario: every alternative is a chain, the unchosen idle
     out.scenario = dataclasses.replace(scenario, chains=tuple(out.chains))
@@ -232,10 +231,10 @@ def dvfs_cpu_power(model, robot: str, expr: dict[int, float], const: float) -> t
     u = [lp.var(0.0, INF) for _ in levels]
     lp.row({c: 1.0 for c in z}, 1.0, 1.0)
     lp.row({**{c: 1.0 for c in u}, **{col: -coef for col, coef in model.cpu[robot].items()}}, 0.0, 0.0)
-    for zc, uc, lv in zip(z, u, levels):
+    for zc, uc, lv in zip(z, u, levels, strict=True):
         lp.row({uc: 1.0, zc: -1.0 / lv.latency_factor}, -INF, 0.0)
     out = {col: coef for col, coef in expr.items() if col not in model.cpu[robot]}
-    for zc, uc, lv in zip(z, u, levels):
+    for zc, uc, lv in zip(z, u, levels, strict=True):
         out[zc] = lv.idle_w
         out[uc] = (lv.busy_w - lv.idle_w) * lv.latency_factor
     return out, const - model.scenario.platform_of(robot).idle_w

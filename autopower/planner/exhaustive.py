@@ -40,8 +40,8 @@ def decode_allocation(chains, options: list[list[tuple[str, ...]]], flat_index: 
     sizes = [len(o) for o in options]
     picks = np.unravel_index(flat_index, sizes) if sizes else ()
     allocation = {}
-    for chain, opts, pick in zip(chains, options, picks):
-        for stage, host in zip(chain.stages, opts[int(pick)]):
+    for chain, opts, pick in zip(chains, options, picks, strict=False):
+        for stage, host in zip(chain.stages, opts[int(pick)], strict=False):
             allocation[stage.name] = host
     return allocation
 

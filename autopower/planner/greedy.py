@@ -32,6 +32,6 @@ def greedy(problem: Problem) -> tuple[Network, dict[str, str], float] | None:
         total = sum((space.chain_load(c, chosen[c.name]) for c in problem.chains), np.zeros(space.size))
         life = float(space.lifetimes(total[None, :])[0])
         if np.isfinite(life) and (best is None or life > best[2]):
-            allocation = {s.name: h for c in problem.chains for s, h in zip(c.stages, chosen[c.name])}
+            allocation = {s.name: h for c in problem.chains for s, h in zip(c.stages, chosen[c.name], strict=False)}
             best = (network, allocation, life)
     return best

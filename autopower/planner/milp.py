@@ -83,7 +83,7 @@ class PlacementModel:
         for group, media in self.group_media.items():
             if len(media) > 1:
                 cols = [self.lp.binary() for _ in media]
-                self.y.update({(group, m): c for m, c in zip(media, cols)})
+                self.y.update({(group, m): c for m, c in zip(media, cols, strict=True)})
                 self.lp.row({c: 1.0 for c in cols}, 1.0, 1.0)
         self.x: dict[tuple[str, str], int] = {}
         for chain in problem.chains:

@@ -62,7 +62,7 @@ class MoveSearch:
         self.n_rows = len(lp.row_lower)
         self.stage_cols: dict[str, np.ndarray] = {}
         self.stage_hosts: dict[str, list[str]] = {}
-        for (stage, host), col in model.x.items():
+        for (stage, host), _col in model.x.items():
             self.stage_hosts.setdefault(stage, []).append(host)
         for stage, hosts in self.stage_hosts.items():
             self.stage_cols[stage] = np.array([model.x[(stage, h)] for h in hosts], dtype=np.int64)

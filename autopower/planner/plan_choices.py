@@ -12,8 +12,17 @@ import dataclasses
 from autopower.errors import AutoPowerError, InfeasibleError
 from autopower.model.dvfs import level_named
 from autopower.model.variants import has_variants
-from autopower.planner.choices import (Choice, alternatives, applied_scenario, combinations, enumerate_choices,
-                                       evaluate_choice, expand, exhaustive_choices, finish_choice)
+from autopower.planner.choices import (
+    Choice,
+    alternatives,
+    applied_scenario,
+    combinations,
+    enumerate_choices,
+    evaluate_choice,
+    exhaustive_choices,
+    expand,
+    finish_choice,
+)
 from autopower.planner.exhaustive import TIE_REL
 from autopower.planner.milp import solve_milp
 from autopower.planner.problem import PlanRequest, Problem
@@ -107,7 +116,7 @@ def milp_choices(problem: Problem, floor: float, request) -> tuple[Choice | None
     for stage, host in result.allocation.items():
         name, _, variant = stage.partition("@")
         allocation[name] = host
-    for chain_name, alt in expanded.alternative.items():
+    for _chain_name, alt in expanded.alternative.items():
         if alt.variant is not None and all(s.name in result.allocation for s in alt.model_chain.stages):
             variants[alt.chain.name] = alt.variant
     choice = finish_choice(problem, result.network, allocation, variants)
@@ -178,9 +187,8 @@ def choice_time_sharing_bound(problem: Problem, floor: float = 0.0):
     Exact by enumeration with column generation on the LP; None when there are too many."""
     import numpy as np
 
-    from autopower.planner.timesharing import Phase, TimeSharingBound, price_enumerated
-
     from autopower.planner.exhaustive import MAX_COMBINATIONS
+    from autopower.planner.timesharing import Phase, TimeSharingBound, price_enumerated
 
     if combinations(problem) > MAX_COMBINATIONS:
         return None
@@ -195,13 +203,13 @@ def choice_time_sharing_bound(problem: Problem, floor: float = 0.0):
     chosen = [int(np.argmin((powers / energies).max(axis=1)))]
     sol, bound, achieved, converged = price_enumerated(powers, energies, chosen)
     phases = []
-    for k, t in zip(chosen, sol.values):
+    for k, t in zip(chosen, sol.values, strict=False):
         if t > 1e-6:
             block, i = where[k]
             c = block.decode(i)
             phases.append(Phase(float(t), c.network, {**c.allocation, **{f"variant:{n}": v for n, v in c.variants.items()},
                                                       **{f"level:{r}": lv for r, lv in c.levels.items()}},
-                                dict(zip(robots, map(float, powers[k])))))
+                                dict(zip(robots, map(float, powers[k]), strict=False))))
     phases.sort(key=lambda p: -p.duration_s)
     return TimeSharingBound(bound, achieved, converged, phases, "enumeration (variants and levels)")
 

@@ -40,10 +40,10 @@ def explain(problem: Problem, network: Network, allocation: dict[str, str], eval
             flows = [f for f in problem.flows if stage.name in (f.producer, f.consumer)]  # DAG edges it moves
 
             def trial(alt: str) -> np.ndarray:
-                new_hosts = hosts[:k] + (alt,) + hosts[k + 1:]
-                moved = dag_load(space, problem.chains, {**allocation, stage.name: alt}, flows) if flows else 0.0
-                kept = dag_load(space, problem.chains, allocation, flows) if flows else 0.0
-                return base - old + space.chain_load(chain, new_hosts) + moved - kept
+                new_hosts = hosts[:k] + (alt,) + hosts[k + 1:]  # noqa: B023 (called in this iteration)
+                moved = dag_load(space, problem.chains, {**allocation, stage.name: alt}, flows) if flows else 0.0  # noqa: B023 (called in this iteration)
+                kept = dag_load(space, problem.chains, allocation, flows) if flows else 0.0  # noqa: B023 (called in this iteration)
+                return base - old + space.chain_load(chain, new_hosts) + moved - kept  # noqa: B023 (called in this iteration)
 
             if host != chain.source and chain.source in alternatives:
                 alt = chain.source

@@ -72,7 +72,7 @@ def own_bound(problem: Problem, cheapest: dict[str, str] | None = None) -> tuple
         best = min(range(len(options)), key=costs.__getitem__)
         power[chain.source] += costs[best]
         if cheapest is not None:
-            cheapest.update(zip((s.name for s in chain.stages), options[best]))
+            cheapest.update(zip((s.name for s in chain.stages), options[best], strict=False))
     per_robot = {r: power[r] * e_ref / problem.energies_j[r] for r in robots}
     return max(per_robot.values()), per_robot
 
@@ -91,7 +91,7 @@ def _own_cost(problem: Problem, chain, direct_medium: dict):
                  for n in chain.message_bytes]
 
     def cost(hosts: tuple[str, ...]) -> float:
-        total = sum(w for w, host in zip(cpu_w, hosts) if host == me)
+        total = sum(w for w, host in zip(cpu_w, hosts, strict=False) if host == me)
         ends = (me, *hosts, chain.sink)
         for k, watts in enumerate(message_w):
             u, v = ends[k], ends[k + 1]

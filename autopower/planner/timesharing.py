@@ -57,7 +57,7 @@ def _schedule(values, configs, robots) -> list[Phase]:
     for k, t in enumerate(values):
         if t > 1e-6:
             network, allocation, power = configs[k]
-            phases.append(Phase(float(t), network, allocation, dict(zip(robots, map(float, power)))))
+            phases.append(Phase(float(t), network, allocation, dict(zip(robots, map(float, power), strict=False))))
     phases.sort(key=lambda p: -p.duration_s)
     return phases
 
@@ -152,7 +152,7 @@ def _by_column_generation(problem: Problem, seeds, max_rounds: int) -> TimeShari
         pi = np.maximum(-sol.duals, 0.0)
         model = PlacementModel(problem)
         const = 0.0
-        for robot, weight in zip(robots, pi):
+        for robot, weight in zip(robots, pi, strict=False):
             expr, c = model.power(robot)
             const += weight * c
             for col, coef in expr.items():

@@ -19,7 +19,7 @@ Policies (`make_policy(name)`):
   LP says to switch (``revisit_at_s``). A switch happens only when the schedule's predicted
   lifetime, migrations paid, beats staying by ``min_gain`` (hysteresis: no flapping); phases
   shorter than ``min_phase_s`` are dropped. This is how a policy gets within a hair of the bound.
-- ``subgroup``: the peer-to-peer rule of issue 5. The robots that can still reach each other
+- ``subgroup``: the peer-to-peer rule. The robots that can still reach each other
   (a connected part of the network, the base station included only if it is part of it)
   reallocate among themselves with `subgroup_reallocation`, without changing media; periodically
   re-run so that uneven drain is rebalanced locally.

@@ -127,7 +127,7 @@ def _restricted_lp(view: DecisionView, phases: list[tuple[Network, dict[str, str
     lp = LinearProgram()
     cols = [lp.var(0.0, INF, cost=-1.0) for _ in phases]
     for i in range(len(view.robots)):
-        lp.row({c: float(p[i]) for c, p in zip(cols, powers)}, -INF, float(view.energy[i]))
+        lp.row({c: float(p[i]) for c, p in zip(cols, powers, strict=True)}, -INF, float(view.energy[i]))
     sol = lp.solve()
     if not sol.has_solution:  # pragma: no cover - the LP is always feasible (t = 0)
         return [0.0] * len(phases)
@@ -172,7 +172,7 @@ def _schedule_value(view: DecisionView, phases: list[tuple[Network, dict[str, st
     total = 0.0
     out: list[SchedulePhase] = []
     first_moves: list[Move] = []
-    for k, ((network, allocation), duration) in enumerate(zip(phases, durations)):
+    for k, ((network, allocation), duration) in enumerate(zip(phases, durations, strict=False)):
         moves = plan_moves(view.scenario, network, prev, allocation, view.state.migration)
         if k == 0:
             first_moves = moves

@@ -222,7 +222,7 @@ def enumerate_network(view: DecisionView, network: Network, chains: Sequence[Cha
         crow = np.zeros((len(opts), len(robots)))
         mrow = np.zeros(len(opts))
         for k, opt in enumerate(opts):
-            for stage, host in zip(chain.stages, opt):
+            for stage, host in zip(chain.stages, opt, strict=True):
                 old = current.get(stage.name)
                 if old is not None and old != host:
                     mv = _move(view.scenario, network, chain, stage.name, stage.component, old, host,
@@ -270,7 +270,7 @@ def make_decision(policy: str, view: DecisionView, option: Option, *, reasons: l
     for name, why in view.degraded.items():
         if any(c.name == name for c in view.problem.chains):
             reasons.append(why)
-    for name, why in view.problem.unroutable.items():
+    for _name, why in view.problem.unroutable.items():
         reasons.append(f"not running: {why}")
     return Decision(
         policy=policy, time_s=state.time_s, network=option.network, allocation=dict(new), moves=moves,

@@ -41,7 +41,7 @@ from autopower.policies.team import (
 
 @dataclass(frozen=True, kw_only=True)
 class SubgroupProposal:
-    """What a subgroup agrees to do (issue 5's propose step). Empty `moves`: nothing worth doing."""
+    """What a subgroup agrees to do (the propose step). Empty `moves`: nothing worth doing."""
 
     members: tuple[str, ...]
     allocation: Mapping[str, str]  # the full allocation after the moves (stages outside untouched)

@@ -213,7 +213,7 @@ def _converter(hint: Any) -> Callable[[Any, str], Any]:
                 raise _fail(where, f"expected a list, got {type(value).__name__}")
             if len(items) != len(value):
                 raise _fail(where, f"expected {len(items)} items, got {len(value)}")
-            return tuple(c(v, f"{where}[{i}]") for i, (v, c) in enumerate(zip(value, items)))
+            return tuple(c(v, f"{where}[{i}]") for i, (v, c) in enumerate(zip(value, items, strict=True)))
         return fixed
     if origin is dict:
         key_t, val_t = get_args(hint)
@@ -254,7 +254,7 @@ def _build(cls: type, fields: Any, where: str) -> Any:
             if missing:
                 detail.append(f"missing field(s) {', '.join(missing)}")
             raise _fail(where, "; ".join(detail))
-    kwargs = {n: c(fields[n], f"{where}.{n}") for n, c in zip(names, converters)}
+    kwargs = {n: c(fields[n], f"{where}.{n}") for n, c in zip(names, converters, strict=False)}
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
@@ -371,7 +371,7 @@ def _fast_builder(cls: type) -> Callable[[Any], Any]:
     # what the frozen dataclass's __init__ does (every field is on the wire: no defaults to fill),
     # without its object.__setattr__ per field; its __post_init__ still judges the values
     c.emit(1, "obj = _new(_cls)")
-    c.emit(1, "obj.__dict__.update(" + ", ".join(f"{n}={v}" for n, v in zip(names, values)) + ")")
+    c.emit(1, "obj.__dict__.update(" + ", ".join(f"{n}={v}" for n, v in zip(names, values, strict=True)) + ")")
     if hasattr(cls, "__post_init__"):
         c.emit(1, "try: obj.__post_init__()")
         c.emit(1, "except (TypeError, ValueError): raise _Slow from None")

@@ -103,8 +103,8 @@ class Consumed:
     max_seq: int  # highest seq received so far, -1 for none
     # Seqs in [next_seq, max_seq] not received, as inclusive (first, last) ranges, sorted and
     # disjoint, the lowest MAX_MISSING_RANGES of them. Ranges, not seqs: a robot's full hold drops
-    # hundreds of results in a row, which never come; as a list of seqs they filled the report and
-    # the frames lost past them were never named, so never resent (random faults, seed 10).
+    # hundreds of results in a row, which never come; as a list of seqs they would fill the report,
+    # and the frames lost past them would never be named, so never resent.
     missing: tuple[tuple[int, int], ...]
 
     def __post_init__(self) -> None:

@@ -63,7 +63,7 @@ def _tabs(rrb, views: list, **kwargs):
 
 
 def _row(rrb, parts: list, shares: list[float] | None = None):
-    kept = [(p, s) for p, s in zip(parts, shares or [1.0] * len(parts)) if p is not None]
+    kept = [(p, s) for p, s in zip(parts, shares or [1.0] * len(parts), strict=False) if p is not None]
     if not kept:
         return None
     if len(kept) == 1:

@@ -81,7 +81,7 @@ def draw_output(rr, chain: str, data: bytes, *, seq: int | None = None, scenario
 
 
 def _team_map(rr, data: bytes) -> list[tuple] | None:
-    """A TeamMap output (a DAG fan-in, README "Applications as DAGs"): the explored cells, each
+    """A TeamMap output (a DAG fan-in, docs/concepts/chains.md): the explored cells, each
     robot's merged pose, and which inputs the step joined or ran without."""
     from autopower.chains.teammap import CELL_M, CELLS, decode_map
 

@@ -543,7 +543,7 @@ class Recorder:
         t = self.now()
         self._outputs_unflushed = True
         self.telemetry.scalar(output_path(chain, run), t, seq)
-        if self.quality is not None:  # measured quality (issue 16): beside the declared score
+        if self.quality is not None:  # measured quality: beside the declared score
             for metric, value in self.quality(chain, seq, data, self._variants).items():
                 self.telemetry.scalar(component_path(chain, f"quality/{metric}"), t, float(value))
         last = self._last_visual.get(chain)

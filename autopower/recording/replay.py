@@ -142,7 +142,7 @@ def _integrate_hold(times: list[float], values: list[float], t0: float, t1: floa
     if not times or t1 <= t0:
         return None if not times else 0.0
     total = 0.0
-    for i, (t, v) in enumerate(zip(times, values)):
+    for i, (t, v) in enumerate(zip(times, values, strict=False)):
         nxt = times[i + 1] if i + 1 < len(times) else t1
         a, b = max(t, t0), min(nxt, t1)
         if b > a and math.isfinite(v):
@@ -155,7 +155,7 @@ def _integrate_hold(times: list[float], values: list[float], t0: float, t1: floa
 def _growth(rec: Recording, entity: str, t0: float, t1: float) -> float:
     """How much a cumulative series grew over [t0, t1] (0 if it was not recorded)."""
     ts, vs = rec.series(entity)
-    inside = [v for t, v in zip(ts, vs) if t0 - _EPS <= t <= t1 + _EPS and math.isfinite(v)]
+    inside = [v for t, v in zip(ts, vs, strict=False) if t0 - _EPS <= t <= t1 + _EPS and math.isfinite(v)]
     return max(0.0, inside[-1] - inside[0]) if len(inside) >= 2 else 0.0
 
 
@@ -193,7 +193,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         if not ts:
             continue
         t0, t1 = ts[0], ts[-1]
-        dry = next((t for t, b in zip(ts, bs) if b <= _EPS), None)
+        dry = next((t for t, b in zip(ts, bs, strict=False) if b <= _EPS), None)
         for i in range(1, len(bs)):
             if bs[i] > bs[i - 1] + max(1e-6, 1e-9 * abs(bs[i - 1])) and round(ts[i], 6) not in energy_bumps:
                 increases.append(f"{r} at {ts[i]:.1f} s: {bs[i - 1]:.3f} → {bs[i]:.3f} J")
@@ -399,7 +399,7 @@ def _all_run_epoch(rec: Recording, robots: list[str], epoch: int, t_from: float)
         ts, vs = rec.series(f"robots/{robot}/plan_epoch")
         if not ts:
             continue  # not a robot, or its statuses were not recorded
-        t = next((t for t, v in zip(ts, vs) if v >= epoch and t >= t_from - 1.0), None)
+        t = next((t for t, v in zip(ts, vs, strict=False) if v >= epoch and t >= t_from - 1.0), None)
         if t is None:
             return None
         latest = max(latest, t)
@@ -512,8 +512,7 @@ def _reconfiguration(rec, kind, t_ref, t_next, plans, commits, decision_times, s
     ``gone``: the robots the fault killed. A plan whose network still has one was made before the
     base station knew (the links to a killed robot can be reported down a moment before the
     robot): the first plan without them is the one the team runs without them. Waiting for the
-    killed robot to run the earlier one counted its restart (5.3 s in one demo run, 0.45 s by the
-    base station's own count).
+    killed robot to run the earlier one would count its restart as reconfiguration time.
     """
     for t, round_id, _moves in commits:
         if t_ref - _EPS <= t < t_next:
@@ -549,7 +548,7 @@ def _quality(rec: Recording) -> dict[str, dict[str, float]]:
         finite = [v for v in values if math.isfinite(v)] if m else []
         if finite:
             out.setdefault(m["chain"], {})[m["metric"]] = sum(finite) / len(finite)
-    for chain, q in out.items():
+    for _chain, q in out.items():
         if "victims_total" in q and q["victims_total"] > 0:
             q["recall"] = q.get("victims_found", 0.0) / q["victims_total"]
     return out
@@ -609,8 +608,8 @@ def _outputs(rec: Recording) -> dict[str, Any]:
 
         def in_gaps(what: str, *besides: set[int]) -> set[int]:
             """The seqs counted apart as ``what`` that are gaps (one past the last delivered is in none)."""
-            return {seq for seq in apart_of[what].get((chain, run), ())
-                    if seq not in distinct and seq < max(distinct) and not any(seq in b for b in besides)}
+            return {seq for seq in apart_of[what].get((chain, run), ())  # noqa: B023 (called in this iteration)
+                    if seq not in distinct and seq < max(distinct) and not any(seq in b for b in besides)}  # noqa: B023 (called in this iteration)
 
         unrecorded = in_gaps("sink_journal")  # delivered: before a drop or a crash's tail is thought of
         dropped = in_gaps("held_dropped", unrecorded)
@@ -651,7 +650,7 @@ def _counter_total(times, values) -> float:
     on the same entity, so each fall starts a new count (the last value alone was the restarted
     process's share only)."""
     total = last = 0.0
-    for _, value in sorted(zip(times, values)):
+    for _, value in sorted(zip(times, values, strict=False)):
         if not math.isfinite(value):
             continue
         if value < last:

@@ -47,8 +47,8 @@ def render_text(summary: dict[str, Any]) -> str:
     for f in s["faults"]:
         def after(key: str) -> str:
             if not wall:
-                return _s(f[f"{key}_mission_s"], "s", 3)
-            return f"{_s(f[f'{key}_wall_s'], 's wall', 3)} ({_s(f[f'{key}_mission_s'], 's mission', 2)})"
+                return _s(f[f"{key}_mission_s"], "s", 3)  # noqa: B023 (called in this iteration)
+            return f"{_s(f[f'{key}_wall_s'], 's wall', 3)} ({_s(f[f'{key}_mission_s'], 's mission', 2)})"  # noqa: B023 (called in this iteration)
         by = f" by {f['reconfigured_by']}" if f.get("reconfigured_by") else ""
         lines.append(f"  {f['at_mission_s']:>10,.1f} s  {f['kind']:<10} {f['target']:<14} detected {after('detected')}, "
                      f"reconfigured {after('reconfigured')}{by}  ({f['text']})")

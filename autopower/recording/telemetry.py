@@ -574,7 +574,7 @@ def read_recording(path: str | Path) -> Recording:
             lines = batch.column("TextLog:text").to_pylist()
             levels = batch.column("TextLog:level").to_pylist() if "TextLog:level" in names else [None] * len(lines)
             rows = texts.setdefault(entity, [])
-            for t, line, level in zip(times, lines, levels):
+            for t, line, level in zip(times, lines, levels, strict=False):
                 rows.append((t, _one(line), _one(level)))
         if "GraphEdges:edges" in names:
             nodes = batch.column("GraphNodes:node_ids").to_pylist() if "GraphNodes:node_ids" in names else []

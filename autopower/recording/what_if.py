@@ -19,7 +19,7 @@ from autopower.recording.telemetry import ALLOCATION, FAULTS, NETWORK, Recording
 
 def _at(times: list[float], values: list, t: float):
     best = None
-    for ti, v in zip(times, values):
+    for ti, v in zip(times, values, strict=False):
         if ti <= t + _EPS:
             best = v
         else:

@@ -5,7 +5,7 @@ query/reply), so their logic runs unchanged on the `InMemoryBus` in unit tests a
 `ZenohBus` between real processes. Callbacks run on other threads (Zenoh's, or the thread that
 drains a subscriber's bounded channel): they must only enqueue (the event loops do the work).
 
-Zenoh traps this adapter handles (see ../shared/notes/zenoh-rerun.md):
+Zenoh traps this adapter handles (see docs/deploying/zenoh.md):
 - the default congestion control drops under load: ``reliable=True`` publishes with BLOCK;
 - failure detection is the dying peer's lease: it is a setting here (`ZenohSettings.lease_ms`);
 - peers do not relay for other peers: every process connects explicitly to the endpoints it is
@@ -130,8 +130,8 @@ class ZenohSettings:
             ("transport/link/tx/keep_alive", int(self.keep_alive)),
             # A reliable put to a peer whose link went silent blocks until its queue drains; Zenoh
             # closes the link only after this wait (default 5 s), and the publishing thread (a
-            # process's event loop) is stuck all that time: seen in the testbed, where a cut radio
-            # stops 230 KB frames. A link that takes nothing for a lease is as dead as a silent one.
+            # process's event loop) is stuck all that time, as when a cut radio stops 230 KB camera
+            # frames. A link that takes nothing for a lease is as dead as a silent one.
             ("transport/link/tx/queue/congestion_control/block/wait_before_close", int(self.lease_ms) * 1000),
             ("connect/retry", retry),
             # Keep retrying a peer that is not up yet instead of failing the open.

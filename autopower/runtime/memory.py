@@ -6,8 +6,8 @@ page on first touch, every time. A live team allocates such buffers for every fr
 230 kB images (rendered, encoded, received, decoded), and numpy's temporaries in the components
 (MCL's 1,000 particles x 60 beams: ~0.5 MB each, a dozen per run). glibc raises the threshold by
 itself after freeing one such block, but not reliably (it depends on what was freed first):
-measured on this machine, the same MCL run took 4.9 ms of CPU in one process and 2.9 ms in
-another, and encoding a camera frame 232 us against 19 us (bench/README: "Per-message CPU").
+the same MCL run can take 4.9 ms of CPU in one process and 2.9 ms in another, and encoding a
+camera frame 232 us against 19 us (docs/performance.md).
 
 `keep_large_buffers` fixes both thresholds once at start: blocks up to 16 MB come from the heap
 and are reused, and up to 64 MB freed at the heap's top is kept before it is returned to the

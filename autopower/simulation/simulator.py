@@ -29,11 +29,11 @@ import numpy as np
 
 from autopower.errors import AutoPowerError, InfeasibleError
 from autopower.model.dvfs import cpu_at_best_levels, has_levels
-from autopower.model.variants import apply_variants
 from autopower.model.energy import LoadSpace, active_chains, load_of
 from autopower.model.mission_events import NO_EVENTS, EventScript, MissionEvent
 from autopower.model.network import Network, media_choices
 from autopower.model.scenario import Scenario
+from autopower.model.variants import apply_variants
 from autopower.planner.plan_choices import mission_variants
 from autopower.planner.problem import PlanRequest, make_problem
 from autopower.policies import (
@@ -205,7 +205,7 @@ class _Mission:
         if not space.feasible(load)[0]:
             raise AutoPowerError(f"internal error: the configuration at {self.t:.1f} s exceeds a CPU or radio "
                                  f"limit; the policy {self.result.policy} should not have chosen it")
-        watts = dict(zip(space.robots, map(float, space.total_power(load)[0])))
+        watts = dict(zip(space.robots, map(float, space.total_power(load)[0]), strict=False))
         parts = space.breakdown(load)
         if has_levels(scenario):  # DVFS: every robot at its cheapest level that fits (model.dvfs)
             cpu_w, _ = cpu_at_best_levels(space, parts)

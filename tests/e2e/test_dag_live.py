@@ -1,4 +1,4 @@
-"""The DAG scenario live (README "Applications as DAGs"): real processes on Zenoh, the paper's
+"""The DAG scenario live (docs/concepts/chains.md): real processes on Zenoh, the paper's
 mission plus a TeamMap stage merging Loc-1..3, recorded in Rerun.
 
 Loc-1 runs on r1 and the map on r2, so the three flows into the map cross real sessions (r1 -> r2,

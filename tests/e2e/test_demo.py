@@ -91,6 +91,6 @@ def test_demo_json(tmp_path):
     # the rest matches the model
     assert replay["energy"]["overhead_j"]["recovery"] > 0
     assert replay["outputs"]["resent"] > 0 and replay["outputs"]["given_up"] == 0
-    # measured on 2026-11-25, 25 demos in a row: −0.33 to −1.49 % (the metered energy below the
-    # model's: not explained yet, see the README's demo section); 1 % failed about one run in three
+    # the metered energy lies up to about 1.5 % below the model's over many demos (not explained
+    # yet, see docs/tutorials/demo.md); a 1 % bound fails about one run in three
     assert abs(out["energy_model_error_pct"]) <= 2.0

@@ -32,7 +32,7 @@ def write_fleet(path: Path, ports: dict[str, int], team: str = "lab") -> Path:
 
 @pytest.fixture
 def fleet_out(tmp_path):
-    ports = dict(zip(NODES, free_ports(len(NODES))))
+    ports = dict(zip(NODES, free_ports(len(NODES)), strict=True))
     fleet = write_fleet(tmp_path / "fleet.toml", ports, team=f"lab{os.getpid()}")
     out = tmp_path / "out"
     result = run_cli(["deploy", "init", "paper-fig7", "--fleet", str(fleet), "--out", str(out)], env_for(tmp_path))

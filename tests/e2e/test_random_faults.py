@@ -13,8 +13,8 @@ What a user relies on: every command is taken or refused with its reason, `up` s
 twice, no process raises, the metered energy agrees with the model, and what is missing at the
 sinks is what the design lets go (results a robot cut off from its sink drops from its full hold;
 outputs of a robot's own chain that died in its memory at a SIGKILL), counted apart by the replay.
-One race is still open (README, *Random faults*: a migration during a partition, seed 4 at 20
-faults lost 108 Loc-2 outputs of 7,691), so lost outputs are bounded (2 %), not required to be 0.
+One race is still open (docs/known-limits.md: a migration during a partition can lose outputs),
+so lost outputs are bounded (2 %), not required to be 0.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ def test_a_team_under_random_faults_repeats_nothing_and_its_energy_agrees_with_t
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)  # the bench, `up` and every process of the team
         proc.communicate()
-        raise AssertionError(f"the random-fault run took over {TIMEOUT_S:g} s (files in {tmp_path})")
+        raise AssertionError(f"the random-fault run took over {TIMEOUT_S:g} s (files in {tmp_path})") from None
     assert proc.returncode == 0, err[-3000:]
     result = json.loads(out)  # --json: one object on stdout, nothing else
     where = f"(logs and recording in {result['workdir']})"
@@ -60,7 +60,7 @@ def test_a_team_under_random_faults_repeats_nothing_and_its_energy_agrees_with_t
     assert outputs > 500, where  # the chains ran (and the sinks recorded) across the faults
     # cut off from the base station three times: results a full hold let go, counted apart
     assert result["held_dropped"] > 0, where
-    # 2 %: the open races (README, *Random faults*) lost 1.4 % of a 20-fault run at worst
+    # 2 %: the open races (docs/known-limits.md) lose well under that in a 20-fault run
     assert result["lost"] <= 0.02 * outputs, (result["lost"], outputs, where)
     failed = [i["name"] for i in result["failed_invariants"] if i["name"] != "every output exactly once at its sink"]
     assert not failed, (result["failed_invariants"], where)

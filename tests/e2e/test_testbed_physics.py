@@ -19,8 +19,8 @@ from autopower.cli.options import build_scenario
 from autopower.launch.localhost import TeamSpec
 from autopower.launch.netns import list_namespaces
 from autopower.launch.testbed import TestbedTeam
-from autopower.model.loading import load_scenario
 from autopower.model.energy import evaluate
+from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
 from tests.integration.runtime_helpers import sinks_of, sources_of
 

@@ -1,4 +1,4 @@
-"""A fan-in stage migrating live (README "Applications as DAGs"): TeamMap moves between real
+"""A fan-in stage migrating live (docs/concepts/chains.md): TeamMap moves between real
 agent processes on Zenoh while Loc-1..3 keep feeding it; every map comes once, in order, and no
 input is missed, late or run twice across the moves (the join's state moves with the stage)."""
 

@@ -84,7 +84,7 @@ def test_silent_cut_detected_within_a_second_and_heals():
                 events.clear()
                 proxy.heal()
                 assert wait_for(lambda: any(k == zenoh.SampleKind.PUT for _, k in events), 5), "no reconnection"
-                assert wait_for(lambda: len(data) > quiet_from, 5), "data did not resume after heal"
+                assert wait_for(lambda: len(data) > quiet_from, 5), "data did not resume after heal"  # noqa: B023 (called in this iteration)
         finally:
             far.kill()
             far.wait(timeout=5)

@@ -70,7 +70,7 @@ def test_a_base_station_held_up_by_a_slow_stage_stays_in_the_team(plugin_path, t
     # each status came before the robots' silence detectors stopped waiting for it (what the one
     # before it announced: 2 periods, at rest 2 rest periods, never less than the lease)
     assert len(arrivals) > 10
-    for (t0, announced), (t1, _) in zip(arrivals, arrivals[1:]):
+    for (t0, announced), (t1, _) in zip(arrivals, arrivals[1:], strict=False):
         limit = silence_limit_s(2.0, spec.status_period_s, announced, spec.lease_ms / 1000)
         assert t1 - t0 < limit, f"no status from the base station for {t1 - t0:.2f} s (its peers wait {limit:.2f} s)"
     for name, text in logs.items():
@@ -103,7 +103,7 @@ def test_a_status_is_put_again_only_while_the_next_is_late_and_not_for_ever(monk
             time.sleep(0.05)
         # on time: a new one every 0.1 s, each due within 0.3 s: no copy
         got.clear()
-        for i in range(10):
+        for _ in range(10):
             sender.publish("st/x", b"on-time", reliable=False)
             sender.repeat_until_next("st/x", b"on-time", 0.3, 0.1)
             time.sleep(0.1)

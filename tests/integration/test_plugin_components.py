@@ -113,7 +113,7 @@ def test_metered_energy_matches_the_model_within_1_percent(team):
     for allocation in ({"Motion-1": "laptop", "Motion-2": "laptop"}, {"Motion-1": "r1", "Motion-2": "r2"}):
         for stage, node in allocation.items():
             assert client.request(MigrateCommand(stage=stage, to_node=node)).ok
-        s1 = wait_for(team, lambda s: settled(s) and s["placement"] == allocation, 30, "the allocation to settle")
+        s1 = wait_for(team, lambda s: settled(s) and s["placement"] == allocation, 30, "the allocation to settle")  # noqa: B023 (called in this iteration)
         time.sleep(10.0)  # the measurement window (100 s virtual)
         s2 = team.snapshot()
         assert s2["epoch"] == s1["epoch"], "the placement changed during the measurement"

@@ -80,7 +80,7 @@ def test_metered_energy_matches_the_model_within_1_percent(team):
             client = team.client
             for stage, node in allocation.items():
                 assert client.request(MigrateCommand(stage=stage, to_node=node)).ok
-        s1 = wait_for(team, lambda s: settled(s) and (allocation is None or s["placement"] == allocation), 30,
+        s1 = wait_for(team, lambda s: settled(s) and (allocation is None or s["placement"] == allocation), 30,  # noqa: B023 (called in this iteration)
                       "the allocation to settle")
         time.sleep(window_s)  # the measurement window itself (virtual time runs x10)
         s2 = team.snapshot()

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import random
+from dataclasses import replace
 
 import msgpack
 import pytest
@@ -97,7 +96,7 @@ def check_exactly_once(team: SimTeam, outputs: dict) -> None:
         got = outputs.get(chain.name, [])
         seqs = [seq for run, seq, _ in got if run == source.run]
         assert sorted(seqs) == list(range(source.seq)), f"{chain.name}: outputs {len(seqs)} of {source.seq}"
-        for run, seq, data in got:  # the fake component's count carried across every move
+        for _run, seq, data in got:  # the fake component's count carried across every move
             assert msgpack.unpackb(data) == [seq, seq + 1]
         ledger = team.nodes[chain.sink].sinks[chain.name]
         assert ledger.duplicates_total == 0 and ledger.contiguous == source.seq

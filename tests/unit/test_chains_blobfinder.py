@@ -7,8 +7,7 @@ from collections import deque
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from autopower.chains.base import ComponentStateError, MalformedInputError
 from autopower.chains.blobfinder import (
@@ -43,7 +42,7 @@ def test_finds_every_victim_of_the_ground_truth(seed, n_victims, frame):
         # Only specks of its colour touching the victim can add pixels: at most 9 each, and two
         # may touch it (seed 2_069_776_675, 3 victims, frame 198: +12 px, found by hypothesis).
         assert victim.area_px <= blob.area_px <= victim.area_px + 2 * 9
-        assert all(abs(a - b) <= 3 for a, b in zip(blob.bbox_px, victim.bbox_px))
+        assert all(abs(a - b) <= 3 for a, b in zip(blob.bbox_px, victim.bbox_px, strict=True))
     assert [b.area_px for b in report.blobs] == sorted((b.area_px for b in report.blobs), reverse=True)
 
 

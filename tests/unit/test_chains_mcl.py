@@ -303,8 +303,7 @@ def test_missed_repeated_and_reordered_messages_do_not_lose_the_robot():
 def _reference_weights(mcl, ranges_mm):
     """The sensor update written out beam by beam end point (cos and sin of every particle-beam
     angle, an explicit off-map mask): what `_correct`'s angle addition and border must equal."""
-    from autopower.chains.mcl import (_BEAM_STRIDE, _IN_WALL_LOGLIK, _RANDOM_FLOOR, _TEMPERATURE,
-                                      likelihood_field)
+    from autopower.chains.mcl import _BEAM_STRIDE, _IN_WALL_LOGLIK, _RANDOM_FLOOR, _TEMPERATURE, likelihood_field
     from autopower.chains.world import MAX_RANGE_MM
 
     field = likelihood_field(mcl.seed)

@@ -6,8 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from autopower.errors import InfeasibleError
 from autopower.model.dvfs import FrequencyLevel, apply_levels
@@ -79,7 +78,7 @@ def test_milp_equals_exhaustive_with_variants_and_levels(seed, robots, chains, t
     applied = apply_levels(apply_variants(s, milp.variants), milp.levels)
     ev = evaluate(applied, milp.network, milp.allocation, accounting=accounting)
     assert ev.feasible and ev.lifetime_s == pytest.approx(milp.lifetime_s, rel=1e-9)
-    for robot, u in ev.utilisation.items():
+    for _robot, u in ev.utilisation.items():
         assert u <= 1 + 1e-9  # latencies scaled by the chosen level: utilisation within 100 %
     for chain in s.chains:
         if chain.name in milp.variants:

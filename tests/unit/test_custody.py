@@ -11,8 +11,7 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from autopower.agent.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
 from autopower.agent.sequencing import MAX_MISSING, SequenceGate, SinkLedger, in_ranges, missing_between, ranges_of

@@ -1,4 +1,4 @@
-"""Applications as DAGs (README "Applications as DAGs"): format, validation, evaluator, planners."""
+"""Applications as DAGs (docs/concepts/chains.md): format, validation, evaluator, planners."""
 
 import re
 import shutil
@@ -7,8 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from autopower.errors import ScenarioError
 from autopower.model.energy import evaluate

@@ -1,4 +1,4 @@
-"""DAG flows at run time (README "Applications as DAGs"): fan-out, the fan-in join rule, exactly
+"""DAG flows at run time (docs/concepts/chains.md): fan-out, the fan-in join rule, exactly
 once per edge, late and lost inputs, and a fan-in stage migrating with its state.
 
 A whole team in one thread (SimTeam: coordinator + a NodeRuntime per node, manual clock) with

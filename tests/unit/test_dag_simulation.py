@@ -2,8 +2,7 @@
 time-sharing bound (which includes the flows), none falls below the static plan."""
 
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from autopower.errors import InfeasibleError
 from autopower.model.loading import load_scenario

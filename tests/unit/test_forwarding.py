@@ -7,8 +7,7 @@ import dataclasses
 
 import msgpack
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from autopower.errors import ProtocolError
 from autopower.protocol import PROTOCOL_VERSION, ChainFrame, Packet, decode, encode

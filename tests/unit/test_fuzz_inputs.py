@@ -16,8 +16,7 @@ from importlib import resources
 
 import msgpack
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from autopower.errors import ProtocolError, ScenarioError
 from autopower.model.loading import parse_scenario

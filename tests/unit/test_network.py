@@ -2,8 +2,7 @@
 same links listed one by one: routes with their tie-break, reachability, radios, media, changes."""
 
 import networkx as nx
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from autopower.model.network import Clique, Link, Network, build_network
 from autopower.simulation.synthetic import loaded_fleet_scenario

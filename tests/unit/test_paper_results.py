@@ -1,4 +1,4 @@
-"""The paper's published figures, reproduced by the model (../shared/paper/model-notes.md)."""
+"""The paper's published figures, reproduced by the model (docs/concepts/energy-model.md)."""
 
 import pytest
 

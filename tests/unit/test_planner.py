@@ -1,8 +1,7 @@
 """The MILP equals exhaustive search; plans carry reasons; the time-sharing bound is an upper bound."""
 
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from autopower.errors import InfeasibleError
 from autopower.model.energy import evaluate

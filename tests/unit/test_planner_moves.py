@@ -5,8 +5,7 @@ never raises the team's drain."""
 import dataclasses
 
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from autopower.model.energy import evaluate
 from autopower.model.network import build_network, media_choices

@@ -7,18 +7,16 @@ import math
 
 import msgpack
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from autopower.errors import ProtocolError
-from autopower.protocol.codec import looks_like_message
 from autopower.protocol import (
     PROTOCOL_VERSION,
     Assign,
     AutoCommand,
-    Consumed,
     ChainCommand,
     ChainFrame,
+    Consumed,
     Keys,
     LinkCommand,
     LinkInfo,
@@ -47,6 +45,7 @@ from autopower.protocol import (
     encode,
     message_kinds,
 )
+from autopower.protocol.codec import looks_like_message
 
 FRAME = ChainFrame(chain="Blob-2", run=1, seq=7, target=0, t_virtual=1.75, t_unix=1.7e9, payload_len=3,
                    payload=b"abc\0\0")

@@ -120,7 +120,7 @@ def test_states_are_steps_with_a_meaningful_range(simulated):
     style = _components(path, up)
     assert style["SeriesLines:interpolation_mode"] == [[2]]  # StepAfter, static
     _, values = read_recording(path).series(up)
-    assert set(values) <= {0.0, 1.0} and all(a != b for a, b in zip(values, values[1:]))  # changes only
+    assert set(values) <= {0.0, 1.0} and all(a != b for a, b in zip(values, values[1:], strict=False))  # changes only
     views = _views(path)
     # plots start at 0 (no 1e-7 noise stretched to full height); states have room around 0 and 1
     assert views["r1: power by part (W)"]["y_range"][0] == 0.0

@@ -1,4 +1,4 @@
-"""`run_summary`'s power comparison (README "Running a team"): the metered power since the team was
+"""`run_summary`'s power comparison (docs/tutorials/demo.md): the metered power since the team was
 ready against the model's for the plan, the start-up left out of the comparison but not hidden."""
 
 from __future__ import annotations

@@ -66,8 +66,8 @@ def test_battery_and_power_follow_the_simulation(run):
     for seg in result.segments:
         if "r1" in seg.power_w and seg.end_s > seg.start_s:
             # at an instant the battery is sampled before and after any migration's charge
-            start = [j for t, j in zip(times, joules) if t == pytest.approx(seg.start_s, abs=1e-6)][-1]
-            end = [j for t, j in zip(times, joules) if t == pytest.approx(seg.end_s, abs=1e-6)][0]
+            start = [j for t, j in zip(times, joules, strict=False) if t == pytest.approx(seg.start_s, abs=1e-6)][-1]
+            end = [j for t, j in zip(times, joules, strict=False) if t == pytest.approx(seg.end_s, abs=1e-6)][0]
             assert start - end == pytest.approx(seg.power_w["r1"] * (seg.end_s - seg.start_s), rel=1e-6, abs=1e-3)
     t_power, watts = rec.series(power_path("r2"))
     assert watts[0] == pytest.approx(result.segments[0].power_w["r2"])
@@ -86,7 +86,7 @@ def test_faults_migrations_decisions_and_links_are_logged(run):
     assert any("cold start (state lost)" in line for _, line, _ in rec.log(MIGRATIONS))
     assert rec.log(DECISIONS)[-1][1].startswith("mission over at")
     up = rec.series(link_path("r1", "laptop") + "/up")
-    assert list(zip(*up)) == [(0.0, 1.0), (3600.0, 0.0), (9000.0, 1.0)]
+    assert list(zip(*up, strict=True)) == [(0.0, 1.0), (3600.0, 0.0), (9000.0, 1.0)]
     assert rec.log(link_path("laptop", "r1") + "/medium")[0][1] == "802.11a"
     graph = rec.graphs[ALLOCATION]
     assert len(graph) == len(result.decisions)

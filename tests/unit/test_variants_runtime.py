@@ -7,8 +7,8 @@ import zlib
 import pytest
 
 from autopower.basestation.coordinator import CoordinatorConfig
-from autopower.chains.registry import make_component, make_source, score_output
 from autopower.chains.quality import measure_variants
+from autopower.chains.registry import make_component, make_source, score_output
 from autopower.chains.variants import SkippingSource, measured_quality
 from autopower.model.dvfs import apply_levels
 from autopower.model.energy import evaluate
