@@ -1,6 +1,6 @@
 """The JSON contract, as a script meets it: every `--json` command of the installed `autopower`
-prints exactly one JSON object on stdout — on success and on failure — with the keys the README's
-"JSON output" table documents (the table is read from the README, so the two cannot drift).
+prints exactly one JSON object on stdout — on success and on failure — with the keys the table of
+docs/reference/json-output.md documents (the table is read from that page, so the two cannot drift).
 
 Commands that need a running team (`status`, `fault …`) are run here against no team (the
 failure object); their success objects are parsed by tests/e2e (test_fault_cli, test_up,
@@ -23,12 +23,13 @@ AUTOPOWER = str(Path(sys.executable).with_name("autopower"))
 
 
 def documented_keys() -> dict[str, tuple[set[str], set[str], bool]]:
-    """README "JSON output" table: command -> (keys always present, keys present sometimes, open).
+    """The table of docs/reference/json-output.md: command -> (keys always present, keys present
+    sometimes, open).
 
     "Open" (a "…" in the cell) means the documented keys are a subset (the status snapshot)."""
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = text[text.index("### JSON output"):]
-    section = section[:section.index("\n- ")]
+    text = (ROOT / "docs/reference/json-output.md").read_text(encoding="utf-8")
+    section = text[text.index("\n| command |"):]
+    section = section[:section.index("\n\n")]  # the table ends at the first blank line
     out = {}
     for line in section.splitlines():
         # split on cell bars, not on the escaped "\|" inside a cell
@@ -45,7 +46,7 @@ def check_keys(command: str, obj: dict) -> None:
     assert isinstance(obj, dict), obj
     assert required <= set(obj), f"{command}: missing {sorted(required - set(obj))}"
     extra = set() if open_ended else set(obj) - required - optional
-    assert not extra, f"{command}: undocumented keys {sorted(extra)}; add them to the README's JSON table"
+    assert not extra, f"{command}: undocumented keys {sorted(extra)}; add them to docs/reference/json-output.md"
 
 
 def run(args: list[str], env: dict, timeout: float = 120.0) -> tuple[subprocess.CompletedProcess, dict]:
