@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_custody.py [--frames 20000]
 
-Custody (`autopower.agent.custody`) keeps every frame a node produces until its consumer's
+Custody (`autopower.node.custody`) keeps every frame a node produces until its consumer's
 status acknowledges it. Per frame that is: stamp its floor, keep it, and drop it again when a
 report covers it (reports come every 0.5 s, so each covers a batch). The baseline is what every
 frame costs anyway: `encode` (msgpack) of the same frame. Not a test: prints figures.
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import results
 
-from autopower.agent.custody import Custody, Report
+from autopower.node.custody import Custody, Report
 from autopower.protocol import ChainFrame, Consumed, encode
 
 

@@ -30,11 +30,11 @@ STATUS_EVERY_WALL_S = 0.5
 
 
 def measure(virtual_s: float) -> dict:
-    from autopower.agent.node import NodeRuntime
-    from autopower.agent.stages import chain_seed
     from autopower.chains import make_component, make_source
     from autopower.model.loading import load_scenario
     from autopower.model.network import build_network
+    from autopower.node.runtime import NodeRuntime
+    from autopower.node.stages import chain_seed
     from autopower.protocol import Assign, Keys, LinkInfo, MissionInfo, PlanUpdate
     from autopower.runtime.bus import InMemoryHub
     from autopower.runtime.clock import ManualClock

@@ -17,14 +17,14 @@ from pathlib import Path
 
 import results
 
-from autopower.agent.node import NodeRuntime
-from autopower.agent.stages import chain_seed
 from autopower.chains import make_component, make_source
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec
 from autopower.model.energy import flow_weight
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
+from autopower.node.runtime import NodeRuntime
+from autopower.node.stages import chain_seed
 from autopower.protocol import (
     Assign,
     ChainFrame,

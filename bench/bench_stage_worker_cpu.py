@@ -3,7 +3,7 @@
     .venv/bin/python bench/bench_stage_worker_cpu.py [--runs 400] [--json]
 
 The same component (paper-fig7's blob finder, on the same 50 camera frames) runs ``--runs`` times
-in this process and then in a stage worker (`autopower.agent.workers`, forked from a zygote as a
+in this process and then in a stage worker (`autopower.node.workers`, forked from a zygote as a
 node forks them; each frame handed over and its result collected, one at a time). Inside the
 component's ``run`` it measures CPU (user + system), page faults; outside, the worker's whole CPU
 per run (its scheduler count: the run plus receiving the frame and sending the result). The
@@ -62,7 +62,7 @@ def in_process(frames: list[bytes], runs: int) -> dict:
 
 
 def in_worker(frames: list[bytes], runs: int, malloc_defaults: bool) -> dict:
-    from autopower.agent import workers
+    from autopower.node import workers
 
     saved = dict(workers._MALLOC)
     if malloc_defaults:

@@ -1,18 +1,14 @@
-"""The robot agent: hosts components, meters the battery, forwards, publishes status.
+"""The robot agent: the process around a robot's node runtime (`autopower.node`).
 
-`NodeRuntime` (what every node does with chain data, also used by the base station for the
-laptop) is the logic; `Agent` is the process around it.
+`Agent` turns Zenoh, timers and files into the runtime's calls, publishes the robot's status,
+keeps its resume file, detects silent peers and leads or joins subgroup rounds when the base
+station is out of reach.
 
 May import: `autopower.errors`, `autopower.model`, `autopower.protocol`, `autopower.chains`,
-`autopower.runtime`, `autopower.planner` and `autopower.policies` (subgroup reallocation). Not the
-base station: the two talk only through messages.
+`autopower.runtime`, `autopower.planner`, `autopower.policies` (subgroup reallocation) and
+`autopower.node`. Not the base station: the two talk only through messages.
 """
 
-from autopower.agent.meter import BatteryMeter
-from autopower.agent.node import NodeRuntime
 from autopower.agent.process import Agent, AgentConfig
-from autopower.agent.sequencing import SequenceGate, SinkLedger, fold_digest
-from autopower.agent.stages import Lifecycle
 
-__all__ = ["Agent", "AgentConfig", "BatteryMeter", "Lifecycle", "NodeRuntime", "SequenceGate", "SinkLedger",
-           "fold_digest"]
+__all__ = ["Agent", "AgentConfig"]

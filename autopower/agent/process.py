@@ -16,13 +16,13 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from autopower.agent.held_store import HeldStore
-from autopower.agent.node import NodeRuntime
 from autopower.agent.resume import ResumeFile
-from autopower.agent.sink_store import SinkStore
-from autopower.agent.stages import Lifecycle
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
+from autopower.node.held_store import HeldStore
+from autopower.node.runtime import NodeRuntime
+from autopower.node.sink_store import SinkStore
+from autopower.node.stages import Lifecycle
 from autopower.protocol import (
     Assign,
     Keys,

@@ -107,8 +107,3 @@ class ResumeFile:
         if self._journal is not None:
             os.close(self._journal)
             self._journal = None
-
-
-def mission_key(mission) -> dict:
-    """What identifies one mission (a `MissionInfo`): a restarted agent resumes only the same one."""
-    return {"scenario": mission.scenario, "epoch_unix": mission.epoch_unix, "speed": mission.speed}

@@ -1,14 +1,14 @@
 """The base station process: the coordinator plus the laptop's own host, on one event loop.
 
 The laptop is a node of the team like the robots (components are off-loaded to it and it is
-the operator's sink for results), so the process runs a host for it (the agents'
-`NodeRuntime`, injected by the deploy layer as ``host_factory`` so that this package does not
-import its sibling) beside the `Coordinator`. Both are driven by the same loop; Zenoh
-callbacks only enqueue.
+the operator's sink for results), so the process runs a node runtime for it
+(`autopower.node.NodeRuntime`, the same as the robots', built by ``host_factory`` with the stores
+the CLI gives it) beside the `Coordinator`. Both are driven by the same loop; Zenoh callbacks only
+enqueue.
 
 What must survive a restart of the process lives in ``BaseStationConfig.state_dir`` (the team's
 state directory; systemd's ``StateDirectory``): the last incarnation this host used and the
-operator sink's ledgers (`autopower.agent.sink_store`), and a lock that refuses a second base
+operator sink's ledgers (`autopower.node.sink_store`), and a lock that refuses a second base
 station of the same team on the same host. The rest is learnt from the robots (`takeover.py`).
 """
 
@@ -22,11 +22,12 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.scenario import Scenario
+from autopower.node import NodeRuntime
 from autopower.policies import Policy
 from autopower.protocol import (
     INBOX_MESSAGES,
@@ -58,32 +59,6 @@ log = logging.getLogger(__name__)
 BATCH_S = 0.005
 
 
-class Host(Protocol):
-    """What the base station needs from the laptop's host (`autopower.agent.node.NodeRuntime`)."""
-
-    started: bool
-    clock: Any
-    errors: dict[str, int]  # counted troubles by kind (a status carries them)
-
-    def on_message(self, key: str, payload: bytes) -> bool: ...
-
-    def on_plan(self, plan: PlanUpdate) -> None: ...
-
-    def on_liveliness(self, node: str, alive: bool) -> None: ...
-
-    def on_timer(self) -> None: ...
-
-    def next_deadline(self) -> float | None: ...
-
-    def idle(self) -> bool: ...
-
-    def status(self, window_s: float, queue_depth: int = 0, queue_wait_s: float = 0.0) -> NodeStatus: ...
-
-    def count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None: ...
-
-    def settle_held_store(self) -> None: ...  # held results acknowledged since: off the disk
-
-
 @dataclass(frozen=True, kw_only=True)
 class BaseStationConfig:
     scenario: Scenario
@@ -104,7 +79,7 @@ class BaseStationConfig:
 class BaseStation:
     """The base station (a context manager)."""
 
-    def __init__(self, config: BaseStationConfig, *, host_factory: Callable[..., Host], bus: Bus | None = None,
+    def __init__(self, config: BaseStationConfig, *, host_factory: Callable[..., NodeRuntime], bus: Bus | None = None,
                  policy: Policy | None = None):
         """``policy`` overrides the one ``config.coordinator.policy`` names (for tests)."""
         self.config = config
@@ -117,7 +92,7 @@ class BaseStation:
         self._handles: list = []
         self._policy = policy
         self._host_factory = host_factory
-        self.runtime: Host | None = None
+        self.runtime: NodeRuntime | None = None
         self.coordinator: Coordinator | None = None
         self.stop_reason: str | None = None
         self.garbled = 0

@@ -146,12 +146,12 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
                 record_dir, node, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
                 replan_interval, start_grace, stage_workers):
     """Run the base station: plan, place and migrate components; the operator's sink."""
-    from autopower.agent.held_store import HeldStore
-    from autopower.agent.node import NodeRuntime
-    from autopower.agent.sink_store import SinkStore
     from autopower.basestation.coordinator import CoordinatorConfig
     from autopower.basestation.operator import team_dir
     from autopower.basestation.process import BaseStation, BaseStationConfig
+    from autopower.node.held_store import HeldStore
+    from autopower.node.runtime import NodeRuntime
+    from autopower.node.sink_store import SinkStore
 
     setup_logging(log_level)
     if not speed > 0:

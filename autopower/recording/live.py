@@ -105,7 +105,7 @@ def _team_map(rr, data: bytes) -> list[tuple] | None:
 
 
 def _chain_seed(scenario, chain) -> int:
-    # the agents' seed (autopower.agent.stages.chain_seed; an upward import from here): a test checks they agree
+    # the agents' seed (autopower.node.stages.chain_seed; an upward import from here): a test checks they agree
     return zlib.crc32(f"{scenario.name}/{chain.name}".encode())
 
 

@@ -19,7 +19,7 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
 - own `NodeStatus` published -> ``robots/<r>/battery_j``, ``robots/<r>/power_w/<part>`` (and
   ``total``), ``custody/<node>/resent|held|evicted`` (frames resent after a silent loss, kept
   until acknowledged, given up), ``robots/<r>/overhead_j/migration|recovery`` (cumulative energy outside the model's
-  steady state, see `autopower.agent.meter`), ``team/links/<a>-<b>/up`` when a neighbour's visibility changes, sink and source
+  steady state, see `autopower.node.meter`), ``team/links/<a>-<b>/up`` when a neighbour's visibility changes, sink and source
   counters under ``components/<chain>/sink|source/...``, and the model's power for what the
   robot runs ``robots/<r>/model_w`` (`NodeStatus.model_w`, logged when it changes);
 - `PlanUpdate` published -> ``team/allocation`` and ``team/network`` graphs and a decision text
@@ -458,7 +458,7 @@ class Recorder:
         counters = s.get("counters") or {}
         for name, what in (("custody-resent", "resent"), ("custody-frames", "held"), ("custody-evicted", "evicted"),
                            ("held-outputs-dropped", "held_dropped")):
-            # frames lost in flight and resent (see autopower.agent.custody); results a robot cut off
+            # frames lost in flight and resent (see autopower.node.custody); results a robot cut off
             # from their sink dropped from its full hold (`agent.stages.HELD_OUTPUT_LIMIT`)
             if name in counters:
                 tel.scalar(f"custody/{node}/{what}", t, counters[name])

@@ -186,7 +186,7 @@ def test_an_agent_restarted_while_the_base_station_is_out_of_reach_goes_on_with_
         assert "orphan-overflow" not in (logs / "r2.log").read_text()  # its frames found their stages
         # r2 is the sink of its own Loc-2: the ledger is on disk (0600) so a restart does not take a
         # result resent by Loc-2's host for a new one
-        from autopower.agent.sink_store import SinkStore
+        from autopower.node.sink_store import SinkStore
 
         sinks = Path(env["AUTOPOWER_STATE_DIR"]) / "teams" / "sup3" / "agents" / "r2.sinks.json"
         assert stat.S_IMODE(sinks.stat().st_mode) == 0o600

@@ -14,11 +14,11 @@ os.environ.setdefault("RERUN_ANALYTICS", "0")
 
 
 def main(role: str, run_dir: str, port: int, seconds: float) -> None:
-    from autopower.agent.node import NodeRuntime
     from autopower.agent.process import Agent, AgentConfig
     from autopower.basestation.coordinator import CoordinatorConfig
     from autopower.basestation.process import BaseStation, BaseStationConfig
     from autopower.model.loading import load_scenario
+    from autopower.node.runtime import NodeRuntime
     from autopower.recording.live import open_recorder
     from autopower.runtime.bus import ZenohBus, ZenohSettings
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import time
 
-from autopower.agent.sequencing import fold_digest
-from autopower.agent.stages import chain_seed
 from autopower.chains import make_component, make_source
 from autopower.errors import AutoPowerError
 from autopower.model.scenario import Scenario
+from autopower.node.sequencing import fold_digest
+from autopower.node.stages import chain_seed
 
 
 def sinks_of(snap: dict) -> dict[str, dict]:

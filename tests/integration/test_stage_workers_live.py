@@ -20,10 +20,10 @@ from pathlib import Path
 
 import pytest
 
-from autopower.agent.sink_store import SinkStore
 from autopower.basestation.operator import TEAMS_DIR, state_dir
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec
+from autopower.node.sink_store import SinkStore
 from autopower.protocol import MigrateCommand
 from tests.integration.runtime_helpers import reference_digest, sinks_of, wait_for
 from tests.integration.test_plugin_components import assert_exactly_once_and_like_offline, plugin_path, with_component  # noqa: F401

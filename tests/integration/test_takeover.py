@@ -22,10 +22,10 @@ import time
 
 import pytest
 
-from autopower.agent.sink_store import SinkStore
 from autopower.basestation.operator import TEAMS_DIR, OperatorClient, state_dir
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import Child, LocalTeam, TeamSpec, _die_with_parent, endpoint
+from autopower.node.sink_store import SinkStore
 from tests.integration.runtime_helpers import reference_digest, sinks_of, wait_for
 
 pytestmark = pytest.mark.slow

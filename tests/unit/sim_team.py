@@ -11,8 +11,8 @@ import random
 
 import msgpack
 
-from autopower.agent.node import NodeRuntime
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
+from autopower.node.runtime import NodeRuntime
 from autopower.protocol import INBOX_MESSAGES, Keys, Packet, Prepared, StageFailed, StageReady, decode
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.clock import ManualClock

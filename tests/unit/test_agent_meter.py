@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import pytest
 
-from autopower.agent.meter import BatteryMeter, part
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.energy import airtime_s, evaluate
 from autopower.model.loading import load_scenario
+from autopower.node.meter import BatteryMeter, part
 from tests.unit.sim_team import SimTeam
 
 LAPTOP = {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "laptop", "Blob-2": "laptop", "Blob-3": "laptop"}

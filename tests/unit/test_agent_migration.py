@@ -8,11 +8,11 @@ from dataclasses import replace
 import msgpack
 import pytest
 
-from autopower.agent.sequencing import SequenceGate, SinkLedger
-from autopower.agent.stages import Lifecycle, pad
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.errors import ProtocolError
 from autopower.model.loading import load_scenario
+from autopower.node.sequencing import SequenceGate, SinkLedger
+from autopower.node.stages import Lifecycle, pad
 from autopower.protocol import ChainCommand, MigrateCommand
 from tests.unit.sim_team import SimTeam
 
@@ -55,7 +55,7 @@ def test_a_sink_gives_up_a_gap_that_does_not_fill_and_stays_small():
     mission); the seq counts as lost, and as received if it comes late after all."""
     import json
 
-    from autopower.agent.sequencing import SINK_MAX_AHEAD
+    from autopower.node.sequencing import SINK_MAX_AHEAD
 
     ledger = SinkLedger()
     for seq in range(3 * SINK_MAX_AHEAD):

@@ -6,9 +6,9 @@ import stat
 
 import pytest
 
-from autopower.agent.node import NodeRuntime
 from autopower.agent.resume import ResumeFile
 from autopower.model.loading import load_scenario
+from autopower.node.runtime import NodeRuntime
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
 
@@ -192,8 +192,8 @@ def test_a_restarted_robot_sink_does_not_take_a_resent_result_for_a_new_one(tmp_
     stage had sent it result 94 had not had the acknowledgement (a cut), resent it to the restarted
     r3, and r3's empty ledger handed it on as new: recorded twice. Robots keep their sinks' ledgers
     on disk as the base station does (`agent.sink_store`), committed before each status."""
-    from autopower.agent.sink_store import SinkStore
     from autopower.basestation.coordinator import CoordinatorConfig
+    from autopower.node.sink_store import SinkStore
     from autopower.protocol import ChainFrame
 
     team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, pins={"Loc-3": "r1"},

@@ -7,11 +7,11 @@ import random
 
 import pytest
 
-from autopower.agent.node import NodeRuntime
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.basestation.process import BaseStation, BaseStationConfig
 from autopower.model.energy import evaluate
 from autopower.model.loading import load_scenario
+from autopower.node.runtime import NodeRuntime
 from autopower.protocol import (
     AutoCommand,
     ChainCommand,

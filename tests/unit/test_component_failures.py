@@ -16,10 +16,10 @@ import time
 import msgpack
 import pytest
 
-from autopower.agent import guard
-from autopower.agent.stages import Lifecycle
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
+from autopower.node import guard
+from autopower.node.stages import Lifecycle
 from autopower.protocol import MigrateCommand
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 

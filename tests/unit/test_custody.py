@@ -13,10 +13,10 @@ import dataclasses
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from autopower.agent.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
-from autopower.agent.sequencing import MAX_MISSING, SequenceGate, SinkLedger, in_ranges, missing_between, ranges_of
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
+from autopower.node.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
+from autopower.node.sequencing import MAX_MISSING, SequenceGate, SinkLedger, in_ranges, missing_between, ranges_of
 from autopower.protocol import ChainFrame, Consumed, NodeStatus, decode, encode
 from tests.unit.sim_team import SimTeam
 from tests.unit.test_agent_migration import FC, check_exactly_once, collect
@@ -472,7 +472,7 @@ def test_a_migrated_stage_still_knows_which_inputs_came_as_resends():
 
     import msgpack
 
-    from autopower.agent.stages import pad
+    from autopower.node.stages import pad
     from autopower.protocol import MigrateCommand
 
     sc = load_scenario("paper-fig7")
@@ -584,7 +584,7 @@ def test_a_result_a_full_hold_lets_go_leaves_custody_too():
     """A robot cut off from a sink holds HELD_OUTPUT_LIMIT results and drops the oldest (counted
     as held-outputs-dropped). The dropped one stayed in custody, never resendable (it was held
     back, not sent) and keeping the hop's floor at its seq until custody's max age."""
-    from autopower.agent.stages import HELD_OUTPUT_LIMIT
+    from autopower.node.stages import HELD_OUTPUT_LIMIT
 
     sc = load_scenario("paper-fig7")
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False))

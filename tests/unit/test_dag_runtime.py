@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import msgpack
 
-from autopower.agent.joining import EdgeGate, JoinState, join_wait_s
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.chains.teammap import decode_join, decode_map
 from autopower.model.loading import load_scenario
+from autopower.node.joining import EdgeGate, JoinState, join_wait_s
 from autopower.protocol import ChainFrame, MigrateCommand
 from tests.unit.sim_team import SimTeam
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import copy
 
-from autopower.agent.node import NodeRuntime
 from autopower.model.loading import load_scenario
+from autopower.node.runtime import NodeRuntime
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
 

@@ -5,11 +5,11 @@ import dataclasses
 
 import pytest
 
-from autopower.agent.meter import CPU_BUSY, CPU_IDLE, BatteryMeter
 from autopower.model.dvfs import apply_levels, level_named
 from autopower.model.energy import evaluate
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
+from autopower.node.meter import CPU_BUSY, CPU_IDLE, BatteryMeter
 from autopower.planner import PlanRequest, plan
 from autopower.simulation.simulator import simulate
 

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import stat
 
-from autopower.agent.held_store import HeldStore
-from autopower.agent.node import NodeRuntime
-from autopower.agent.resume import mission_key
-from autopower.agent.stages import HELD_OUTPUT_LIMIT
 from autopower.model.loading import load_scenario
+from autopower.node.held_store import HeldStore
+from autopower.node.runtime import NodeRuntime, mission_key
+from autopower.node.stages import HELD_OUTPUT_LIMIT
 from autopower.protocol import ChainFrame, encode
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
@@ -132,7 +131,7 @@ def test_a_held_result_that_reaches_its_sink_late_is_redundant_where_another_ins
     kept on disk), and 50 s later the held copy came, sent as new: delivered and recorded twice."""
     import dataclasses
 
-    from autopower.agent.sequencing import SinkLedger
+    from autopower.node.sequencing import SinkLedger
 
     team = SimTeam(load_scenario("paper-fig7"))
     team.join()

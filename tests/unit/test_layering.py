@@ -1,6 +1,6 @@
 """The package layout is the architecture: imports go down the layers, never up, never in a circle.
 
-    errors  <-  model | protocol | chains  <-  planner | runtime  <-  policies  <-  simulation
+    errors  <-  model | protocol | chains  <-  planner | runtime  <-  policies  <-  simulation | node
             <-  agent | basestation | recording | deploy  <-  launch  <-  cli
 
 Packages on one level are peers and do not import each other. Every import counts, including the
@@ -18,7 +18,7 @@ LEVELS = {
     "model": 1, "protocol": 1, "chains": 1, "scenarios": 1,
     "planner": 2, "runtime": 2,
     "policies": 3,
-    "simulation": 4,
+    "simulation": 4, "node": 4,
     "agent": 5, "basestation": 5, "recording": 5, "deploy": 5,
     "launch": 6,
     "cli": 7,

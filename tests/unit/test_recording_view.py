@@ -226,7 +226,7 @@ def test_protocol_chatter_stays_off_the_events_timeline(live_run):
 
 
 def test_the_drawer_uses_the_agents_chain_seed():
-    from autopower.agent.stages import chain_seed
+    from autopower.node.stages import chain_seed
     from autopower.recording.live import _chain_seed
 
     assert all(_chain_seed(FIG7, c) == chain_seed(FIG7, c) for c in FIG7.chains)

@@ -9,11 +9,11 @@ import threading
 import msgpack
 import pytest
 
-import autopower.agent.relaying as relaying
-from autopower.agent.node import NodeRuntime
+import autopower.node.relaying as relaying
 from autopower.agent.process import Agent, AgentConfig
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
+from autopower.node.runtime import NodeRuntime
 from autopower.protocol import ChainFrame, Keys, LinkInfo, MissionInfo, Packet, PlanUpdate, decode, encode
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.clock import ManualClock

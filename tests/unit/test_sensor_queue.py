@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from autopower.agent.stages import SENSOR_QUEUE
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
+from autopower.node.stages import SENSOR_QUEUE
 from tests.unit.sim_team import SimTeam
 
 LAPTOP = {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "laptop", "Blob-2": "laptop", "Blob-3": "laptop"}
@@ -45,7 +45,7 @@ def test_periods_found_missed_after_the_node_was_stopped_are_counted_apart():
     """A node whose loop comes back a second or more after its last turn was stopped (SIGSTOP by
     `fault freeze`, a suspended host): what it finds missed is `missed_stopped` too, which `up`
     does not blame on the speed-up. A loop late by a fraction of a second is merely slow."""
-    from autopower.agent.stages import STOPPED_AFTER_S
+    from autopower.node.stages import STOPPED_AFTER_S
 
     team = _team()
     r2 = team.nodes["r2"]

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import zlib
 
-from autopower.agent.node import NodeRuntime
-from autopower.agent.sequencing import SinkLedger
-from autopower.agent.sink_store import SinkStore
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
+from autopower.node.runtime import NodeRuntime
+from autopower.node.sequencing import SinkLedger
+from autopower.node.sink_store import SinkStore
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
 

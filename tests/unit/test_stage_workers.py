@@ -1,4 +1,4 @@
-"""Stage worker processes (`autopower.agent.workers`): a stage's component in a process of its own.
+"""Stage worker processes (`autopower.node.workers`): a stage's component in a process of its own.
 
 The protocol: runs handed over asynchronously come back in order, one at a time; what a component
 raises, returns or does to its process comes back as the stage's failure; a hung call's worker
@@ -18,9 +18,11 @@ import time
 import msgpack
 import pytest
 
-from autopower.agent import guard
-from autopower.agent.sequencing import in_ranges
-from autopower.agent.workers import (
+from autopower.basestation.coordinator import CoordinatorConfig
+from autopower.model.loading import load_scenario
+from autopower.node import guard
+from autopower.node.sequencing import in_ranges
+from autopower.node.workers import (
     STAGE_QUEUE,
     WINDOW,
     ComponentHung,
@@ -30,8 +32,6 @@ from autopower.agent.workers import (
     Zygote,
     recipe_for,
 )
-from autopower.basestation.coordinator import CoordinatorConfig
-from autopower.model.loading import load_scenario
 from autopower.protocol import MigrateCommand
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
@@ -293,7 +293,7 @@ def settle(team: SimTeam, until, timeout_s: float = 30.0) -> None:
 
 
 def idle(team: SimTeam) -> bool:
-    from autopower.agent.workers import worker_of
+    from autopower.node.workers import worker_of
 
     return all(getattr(worker_of(h.component), "inflight", None) is None
                for rt in team.nodes.values() for h in rt.hosted.values())
@@ -426,7 +426,7 @@ def test_inputs_in_a_worker_stay_in_their_producers_custody_and_a_crash_of_their
 
 def test_an_input_a_full_worker_cannot_take_is_refused_before_its_gate_and_resent(monkeypatch):
     """Its producer keeps it and resends it: delayed, not lost (the fake component raises on a gap)."""
-    from autopower.agent import workers
+    from autopower.node import workers
 
     monkeypatch.setattr(workers, "WINDOW", 1)
     monkeypatch.setattr(workers, "STAGE_QUEUE", 2)
@@ -492,7 +492,7 @@ def test_a_prestarted_zygote_imports_while_the_node_goes_on():
     seen in a live test, the first stage a robot took in a subgroup commit waited on its loop
     for the factory's start, and the loop stopped for 4.9 s (load ~8) while the base station
     took the team over without that robot."""
-    from autopower.agent.workers import Zygote
+    from autopower.node.workers import Zygote
 
     zygote = Zygote()
     started = time.monotonic()

@@ -125,7 +125,7 @@ def test_a_signal_that_lands_on_another_thread_wakes_the_loop_at_once():
 def test_a_repeated_plan_is_not_decoded_again_and_an_older_one_is_still_ignored(team, monkeypatch):  # noqa: F811
     """The base station repeats its plan every second for late joiners: at rest, that is most of what
     an agent receives."""
-    import autopower.agent.node as node_module
+    import autopower.node.runtime as node_module
     from autopower.protocol import encode
 
     _, agents, _ = team

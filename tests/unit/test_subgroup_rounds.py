@@ -15,8 +15,8 @@ import msgpack
 import pytest
 
 from autopower.agent.process import Agent, AgentConfig
-from autopower.agent.stages import Lifecycle
 from autopower.model.loading import load_scenario
+from autopower.node.stages import Lifecycle
 from autopower.protocol import LinkInfo, MissionInfo, PlanUpdate, Release, SubgroupMove, encode
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.clock import ManualClock
@@ -337,7 +337,7 @@ def test_a_released_stage_runs_the_inputs_waiting_in_its_gate_before_it_stops(te
 def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team, monkeypatch):
     """A stage in a worker process cannot run them before it stops (the worker goes with it): they
     are kept, and go to the stage's next host once a plan places it."""
-    from autopower.agent import hosting
+    from autopower.node import hosting
     from autopower.protocol import Release
 
     hub, agents, _ = team

@@ -8,13 +8,13 @@ import zlib
 
 import pytest
 
-from autopower.agent.node import NodeRuntime
-from autopower.agent.sequencing import SinkLedger
-from autopower.agent.sink_store import SinkStore
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.basestation.process import BaseStation, BaseStationConfig
 from autopower.errors import AutoPowerError
 from autopower.model.loading import load_scenario
+from autopower.node.runtime import NodeRuntime
+from autopower.node.sequencing import SinkLedger
+from autopower.node.sink_store import SinkStore
 from autopower.protocol import ChainCommand, LinkCommand
 from autopower.runtime.bus import InMemoryHub
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam

@@ -32,17 +32,17 @@ from dataclasses import dataclass, field
 
 import msgpack
 
-from autopower.agent.custody import hop_key
-from autopower.agent.sequencing import missing_between
-from autopower.agent.stages import HostedStage, Lifecycle, pad
 from autopower.chains.teammap import encode_join
 from autopower.errors import ProtocolError
 from autopower.model.dag import Flow
 from autopower.model.energy import flow_weight
 from autopower.model.scenario import Chain, Scenario
+from autopower.node.custody import hop_key
+from autopower.node.sequencing import missing_between
+from autopower.node.stages import HostedStage, Lifecycle, pad
 from autopower.protocol import ChainFrame, Consumed
 
-log = logging.getLogger("autopower.agent.node")
+log = logging.getLogger("autopower.node.runtime")
 
 JOIN_WAIT_MIN_S = 3.0  # wall seconds: above custody's resend (RESEND_AFTER_S = 1 s) and a status round
 JOIN_WAIT_PERIODS = 1.5  # ... and at least this many of the chain's periods (in wall time)

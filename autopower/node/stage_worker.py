@@ -1,6 +1,6 @@
-"""The child side of stage worker processes (`autopower.agent.workers`): a zygote and its workers.
+"""The child side of stage worker processes (`autopower.node.workers`): a zygote and its workers.
 
-``python -c "from autopower.agent.stage_worker import main; main()" FD`` is the *zygote*: started once per node with an
+``python -c "from autopower.node.stage_worker import main; main()" FD`` is the *zygote*: started once per node with an
 explicit environment, it imports the built-in components (numpy, the blob finder, the localiser)
 and then waits on its end of a socketpair (fd ``FD``). For each ``fork`` request it forks a
 *worker* (a single-threaded process forks safely) and hands the node the worker's end of a new

@@ -7,9 +7,9 @@ import zlib
 from dataclasses import dataclass, field
 from typing import Any
 
-from autopower.agent.sequencing import SequenceGate
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Chain, Scenario, Stage
+from autopower.node.sequencing import SequenceGate
 from autopower.protocol import (
     ChainFrame,
 )

@@ -13,7 +13,7 @@ Stage lifecycle (per node): STARTING (prepared for an incoming migration: inputs
 go to the new host). Sequence numbers make each stage run each input once and in order.
 
 Every frame a node produces (a source's input, a stage's output) stays in its custody
-(`autopower.agent.custody`) until the consumer's status reports it consumed; a report that
+(`autopower.node.custody`) until the consumer's status reports it consumed; a report that
 still lacks it a while after it was sent gets it resent. That is what makes each output reach
 its sink exactly once even when a link is cut silently with frames in flight.
 
@@ -35,18 +35,23 @@ import time
 from collections import deque
 from typing import Callable
 
-from autopower.agent.acknowledging import Acknowledging
-from autopower.agent.custody import Custody
-from autopower.agent.frames import Frames
-from autopower.agent.guard import ComponentHung, GuardedCalls
-from autopower.agent.held_store import HeldStore
-from autopower.agent.hosting import Hosting
-from autopower.agent.joining import Joining
-from autopower.agent.meter import BatteryMeter
-from autopower.agent.relaying import Relaying
-from autopower.agent.sequencing import SinkLedger
-from autopower.agent.sink_store import SinkStore
-from autopower.agent.stages import (
+from autopower.errors import AutoPowerError, ProtocolError
+from autopower.model.energy import flow_weight
+from autopower.model.network import Link, Network
+from autopower.model.scenario import Scenario
+from autopower.model.variants import apply_variants, runtime_component
+from autopower.node.acknowledging import Acknowledging
+from autopower.node.custody import Custody
+from autopower.node.frames import Frames
+from autopower.node.guard import ComponentHung, GuardedCalls
+from autopower.node.held_store import HeldStore
+from autopower.node.hosting import Hosting
+from autopower.node.joining import Joining
+from autopower.node.meter import BatteryMeter
+from autopower.node.relaying import Relaying
+from autopower.node.sequencing import SinkLedger
+from autopower.node.sink_store import SinkStore
+from autopower.node.stages import (
     HELD_OUTPUT_LIMIT,
     SENSOR_QUEUE,
     STOPPED_AFTER_S,
@@ -55,12 +60,7 @@ from autopower.agent.stages import (
     chain_seed,
     pad,
 )
-from autopower.agent.workers import Zygote
-from autopower.errors import AutoPowerError, ProtocolError
-from autopower.model.energy import flow_weight
-from autopower.model.network import Link, Network
-from autopower.model.scenario import Scenario
-from autopower.model.variants import apply_variants, runtime_component
+from autopower.node.workers import Zygote
 from autopower.protocol import (
     ChainFrame,
     Keys,
@@ -77,6 +77,11 @@ from autopower.runtime.bus import Bus
 from autopower.runtime.clock import Clock, VirtualClock
 
 log = logging.getLogger(__name__)
+
+
+def mission_key(mission) -> dict:
+    """What identifies one mission (a `MissionInfo`): a restarted process resumes only the same one."""
+    return {"scenario": mission.scenario, "epoch_unix": mission.epoch_unix, "speed": mission.speed}
 # the wall time a crash can take frames with it: a status period (the sink's commit) and its delay
 DIED_WITH_PROCESS_S = 2.0
 
@@ -110,7 +115,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self._clock_factory = clock_factory or (lambda m: VirtualClock(m.epoch_unix, m.speed))
         self.chains = {c.name: c for c in scenario.chains}
         self.stage_index = {s.name: (c, i) for c in scenario.chains for i, s in enumerate(c.stages)}
-        self.init_flows()  # DAG flows: pseudo-chains in self.chains (autopower.agent.joining)
+        self.init_flows()  # DAG flows: pseudo-chains in self.chains (autopower.node.joining)
 
         self.mission: MissionInfo | None = None
         self.clock: Clock | None = None
@@ -295,7 +300,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def _resume(self, mission: MissionInfo) -> None:
         """Carry on from a crashed process's saved state if it belongs to this very mission."""
-        from autopower.agent.resume import mission_key
 
         saved, self.resume_from = self.resume_from, None
         if not saved or saved.get("mission") != mission_key(mission) or saved.get("node") != self.node:
@@ -360,7 +364,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         if self.mission is None or self.meter is None:
             return None
         self.settle_relayed()
-        from autopower.agent.resume import mission_key
 
         meter = self.meter
         sources = {n: {"run": s.run, "seq": s.produced, "missed": s.missed, "produced_total": s.produced_total,
@@ -381,7 +384,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         than ``max_age_s`` ago and is whole (None otherwise: a stale file must not restart an old
         mission). A robot restarted while the base station is out of reach goes on with it
         (`AgentProcess._resume_alone`) instead of idling until the base station returns."""
-        from autopower.agent.resume import mission_key
 
         saved = self.resume_from
         if not saved or saved.get("node") != self.node or not isinstance(saved.get("plan"), str):
@@ -511,7 +513,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         key = (frame.chain, frame.target, frame.run, frame.seq)
         if self.held_store is None or self.mission is None or key in self._held_journaled:
             return
-        from autopower.agent.resume import mission_key
 
         self.held_store.append(mission_key(self.mission), frame)
         self._held_journaled[key] = frame
@@ -522,7 +523,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         emptied once all of it is (`agent.held_store`). At each status tick."""
         if self.held_store is None or self.mission is None or not self._held_journaled:
             return
-        from autopower.agent.resume import mission_key
 
         at_risk = {key: frame for key, frame in self._held_journaled.items()
                    if (frame.run, frame.seq) in self.custody.hops.get((frame.chain, frame.target), {})}
@@ -536,7 +536,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         """A restarted process takes back the results the crashed one held (same mission only)."""
         if self.held_store is None:
             return
-        from autopower.agent.resume import mission_key
 
         # the newest HELD_OUTPUT_LIMIT: older ones in the file were let go by a full hold since the
         # last settle (counted then), and the hold is a memory bound

@@ -1,7 +1,7 @@
 """A sink's ledgers kept on disk, so a restarted sink neither repeats nor loses an output.
 
 The base station is the operator's sink. When it is killed and started again, the producers'
-custody (`autopower.agent.custody`) resends every output the old sink had not acknowledged yet
+custody (`autopower.node.custody`) resends every output the old sink had not acknowledged yet
 (acknowledgements travel in the status, every half second), including some it had received:
 without its ledgers the new sink would hand those to the operator a second time. So the sink
 notes every new output it takes in and writes the notes out (`commit`) just before the status that
@@ -39,7 +39,7 @@ import logging
 import os
 from pathlib import Path
 
-from autopower.agent.sequencing import SinkLedger
+from autopower.node.sequencing import SinkLedger
 
 log = logging.getLogger(__name__)
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 import logging
 import time
 
-from autopower.agent.guard import hang_limit_s
-from autopower.agent.sequencing import SequenceGate
-from autopower.agent.stages import HostedStage, Lifecycle, chain_seed
-from autopower.agent.workers import StageWorker, WorkerComponent, WorkerCrashed, Zygote, recipe_for, worker_of
 from autopower.model.scenario import Chain, Stage
 from autopower.model.variants import runtime_component
+from autopower.node.guard import hang_limit_s
+from autopower.node.sequencing import SequenceGate
+from autopower.node.stages import HostedStage, Lifecycle, chain_seed
+from autopower.node.workers import StageWorker, WorkerComponent, WorkerCrashed, Zygote, recipe_for, worker_of
 from autopower.protocol import (
     Assign,
     MigrateOut,
@@ -30,7 +30,7 @@ from autopower.protocol import (
 )
 from autopower.protocol.messages import CONTROL_MESSAGES
 
-log = logging.getLogger("autopower.agent.node")
+log = logging.getLogger("autopower.node.runtime")
 
 
 class Hosting:

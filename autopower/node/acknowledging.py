@@ -8,15 +8,15 @@ from __future__ import annotations
 
 import logging
 
-from autopower.agent.custody import Report, hop_key, parse_hop_key
-from autopower.agent.stages import Lifecycle
+from autopower.node.custody import Report, hop_key, parse_hop_key
+from autopower.node.stages import Lifecycle
 from autopower.protocol import (
     ChainFrame,
     Consumed,
     NodeStatus,
 )
 
-log = logging.getLogger("autopower.agent.node")  # one logger for the node's parts
+log = logging.getLogger("autopower.node.runtime")  # one logger for the node's parts
 
 
 class Acknowledging:

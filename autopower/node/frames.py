@@ -12,12 +12,12 @@ import logging
 import time
 import zlib
 
-from autopower.agent.guard import ComponentHung
-from autopower.agent.sequencing import MAX_MISSING, SinkLedger, ranges_of
-from autopower.agent.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
-from autopower.agent.workers import NotBytes, type_name, worker_of
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Chain
+from autopower.node.guard import ComponentHung
+from autopower.node.sequencing import MAX_MISSING, SinkLedger, ranges_of
+from autopower.node.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
+from autopower.node.workers import NotBytes, type_name, worker_of
 from autopower.protocol import (
     ChainFrame,
     Consumed,
@@ -27,7 +27,7 @@ from autopower.protocol import (
     encode,
 )
 
-log = logging.getLogger("autopower.agent.node")  # one logger for the node's parts
+log = logging.getLogger("autopower.node.runtime")  # one logger for the node's parts
 
 
 class Frames:

@@ -39,12 +39,12 @@ from typing import Any, Callable
 
 import msgpack
 
-import autopower.agent.guard as guard
-from autopower.agent.guard import ComponentHung
-from autopower.agent.stage_worker import receive, send
+import autopower.node.guard as guard
+from autopower.node.guard import ComponentHung
+from autopower.node.stage_worker import receive, send
 from autopower.runtime.memory import MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES
 
-log = logging.getLogger("autopower.agent.node")
+log = logging.getLogger("autopower.node.runtime")
 
 WINDOW = 4  # inputs handed to a stage's worker ahead of its results (4 camera frames fit its socket buffer)
 STAGE_QUEUE = 64  # inputs waiting behind the window; more are refused before the gate ("stage-queue-full")
@@ -144,7 +144,7 @@ class Zygote:
         mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             self._proc = subprocess.Popen(
-                [sys.executable, "-c", "from autopower.agent.stage_worker import main; main()", str(theirs.fileno())],
+                [sys.executable, "-c", "from autopower.node.stage_worker import main; main()", str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),), env=worker_environment(), stdin=subprocess.DEVNULL,
                 stdout=2,  # a component's prints go to the node's log, never to a command's stdout
                 start_new_session=False)

@@ -6,7 +6,7 @@ A stage instance keeps the next sequence number it must run: earlier ones are du
 the new host resumes exactly where the old one stopped, whatever order the inputs reach it in.
 
 Both report what they have consumed (`Consumed`): the acknowledgement the producers' custody
-buffers (`autopower.agent.custody`) act on, so a frame lost on a silently cut link is resent.
+buffers (`autopower.node.custody`) act on, so a frame lost on a silently cut link is resent.
 """
 
 from __future__ import annotations

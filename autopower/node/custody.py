@@ -37,7 +37,7 @@ import heapq
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 
-from autopower.agent.sequencing import MAX_MISSING, in_ranges
+from autopower.node.sequencing import MAX_MISSING, in_ranges
 from autopower.protocol import ChainFrame, Consumed
 
 RESEND_AFTER_S = 1.0  # wall seconds between a send and a report that may call the frame lost
