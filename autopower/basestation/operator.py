@@ -19,6 +19,7 @@ from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 
 SESSION_FILE = "session.json"
 TEAMS_DIR = "teams"  # one directory per running team: its session file and control socket
+TLS_DIR = "tls"  # one directory per team started on this machine: the keys `up` made for it
 
 
 def state_dir() -> Path:
@@ -134,6 +135,9 @@ def remove_team_files(team: str) -> None:
             pass
     # the agents' resume files (autopower.agent.resume.AGENTS_DIR): their mission ended with the team
     shutil.rmtree(folder / "agents", ignore_errors=True)
+    # the keys `up` made for the team (autopower.launch.identities): of no use once it is gone, and
+    # a dead `up` (SIGKILL) could not remove them itself
+    shutil.rmtree(state_dir() / TLS_DIR / check_name(team, "team"), ignore_errors=True)
     try:
         folder.rmdir()
     except OSError:  # not empty (something we did not put there) or already gone

@@ -14,7 +14,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from autopower.basestation.operator import state_dir
+from autopower.basestation.operator import TLS_DIR, state_dir
 from autopower.deploy.pki import TeamCA, identity_in
 from autopower.protocol.access import OPERATOR
 from autopower.runtime.bus import TlsFiles, ZenohSettings
@@ -32,7 +32,7 @@ class LocalIdentities:
     def create(cls, team: str, nodes, directory: Path | None = None,
                addresses: dict[str, list[str]] | None = None) -> "LocalIdentities":
         """A new CA and identities for ``nodes`` and the operator (SAN: loopback + ``addresses``)."""
-        directory = Path(directory) if directory else state_dir() / "tls" / team
+        directory = Path(directory) if directory else state_dir() / TLS_DIR / team
         directory.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
         directory.mkdir(parents=True, exist_ok=True, mode=0o700)
         os.chmod(directory, 0o700)

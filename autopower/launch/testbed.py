@@ -17,7 +17,7 @@ import socket
 import subprocess
 import sys
 
-from autopower.basestation.operator import state_dir
+from autopower.basestation.operator import TLS_DIR, state_dir
 from autopower.deploy.bundle import write_bundle
 from autopower.deploy.fleet import Fleet, FleetNode
 from autopower.deploy.pki import identity_in
@@ -72,7 +72,7 @@ class TestbedTeam(LocalTeam):
         self.net = NamespaceNetwork(network, scenario.radios, speed=spec.speed, state_dir=state_dir(),
                                     shaping=shaping)
         self.proxies = {frozenset((l.a, l.b)): _LinkSwitch(self.net, l.a, l.b) for l in self.net.links}
-        self.fleet_dir = state_dir() / "tls" / self.team
+        self.fleet_dir = state_dir() / TLS_DIR / self.team
         self.scheme = "tls"
         self._bridge_sock: socket.socket | None = None
         self._bridge: subprocess.Popen | None = None

@@ -76,10 +76,14 @@ def test_a_team_that_exits_removes_only_its_own_files(state, other_process):
 def test_files_of_a_dead_team_are_recognised_and_removed(state):
     write_session({"team": "ghost", "pid": _dead_pid()})
     (team_dir("ghost") / SOCKET_NAME).write_text("")
+    keys = state / "tls" / "ghost"  # what `up` made for it (autopower.launch.identities)
+    keys.mkdir(parents=True)
+    (keys / "r1.key").write_text("")
     (state / "teams" / "broken").mkdir()
     (state / "teams" / "broken" / "session.json").write_text("{not json")
     assert running_sessions() == {}
     assert not (state / "teams" / "ghost").exists() and not (state / "teams" / "broken").exists()
+    assert not keys.exists()
     with pytest.raises(AutoPowerError, match="no running team found"):
         read_session()
 
