@@ -169,5 +169,6 @@ def _by_column_generation(problem: Problem, seeds, max_rounds: int) -> TimeShari
         add(network, allocation)
     achieved = -sol.objective
     upper = max(upper, achieved)
-    return TimeSharingBound(upper, achieved, upper <= achieved * (1 + 1e-6),
+    # plain floats and bool: the prices are numpy's, and `plan --json` cannot encode a numpy bool
+    return TimeSharingBound(float(upper), float(achieved), bool(upper <= achieved * (1 + 1e-6)),
                             _schedule(sol.values, configs, robots), "column generation")
