@@ -3,9 +3,9 @@
     .venv/bin/python bench/bench_loading.py [ROBOTS ...]   (default: 250 2000)
 
 Not a timed test. Each fleet (N robots, one localisation chain per robot, fully connected with
-relay analysis, as in paper-fig7) is written as a TOML file and checked by the installed
-command in a subprocess, so the figures are what a user waits for: wall time and the
-process's peak RSS. The smallest fleet is the baseline: the ratio of time per robot against
+relay analysis, as in paper-fig7: what `autopower scenarios fleet N --cameras 0` writes) is written
+as a TOML file and checked by the installed command in a subprocess, so the figures are what a
+user waits for: wall time and the process's peak RSS. The smallest fleet is the baseline: the ratio of time per robot against
 it says whether loading grows linearly (about 1x) or worse (the N^2/2 implied robot-robot
 links once made 2,000 robots take 78 s and 1.8 GB).
 """
@@ -21,68 +21,15 @@ from pathlib import Path
 
 import results as bench_results
 
+from autopower.simulation.synthetic import paper_fleet
+
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
-
-HEAD = """\
-[scenario]
-name = "fleet-{n}"
-
-[platforms.sitsang]
-idle_w = 1.34
-busy_w = 2.27
-
-[platforms.laptop]
-mains = true
-
-[radios."802.11a"]
-kbps = 54000
-sleep_w = 0.010
-send_w = 1.498
-receive_w = 1.2
-
-[radios.bluetooth]
-kbps = 1500
-sleep_w = 0.000036
-send_w = 0.095
-receive_w = 0.095
-
-[basestation]
-name = "laptop"
-platform = "laptop"
-
-[network]
-topology = "fully-connected"
-relay = "r1"
-laptop_robot_media = ["802.11a"]
-robot_robot_media = ["802.11a", "bluetooth"]
-analyze_topologies = ["fully-connected", "relay"]
-
-[components.Loc]
-latency_s = {{ sitsang = 0.85, laptop = 0.0035 }}
-"""
-
-ROBOT = """
-[[robots]]
-name = "r{i}"
-platform = "sitsang"
-energy_j = 64000
-sensors = ["laser", "odometry"]
-"""
-
-CHAIN = """
-[[chains]]
-name = "Loc-{i}"
-source = "r{i}"
-sink = "source"
-component = "Loc"
-period_s = 2.0
-message_bytes = [1059, 805]
-"""
 
 
 def fleet_toml(n: int) -> str:
-    return HEAD.format(n=n) + "".join(ROBOT.format(i=i) for i in range(1, n + 1)) + "".join(
-        CHAIN.format(i=i) for i in range(1, n + 1))
+    """The fleet `autopower scenarios fleet N --cameras 0` writes: paper-fig7's platforms, radios and
+    network on N robots, one Loc chain each (autopower.simulation.synthetic.paper_fleet)."""
+    return paper_fleet(n, cameras=0)[0]
 
 
 def check(path: Path) -> tuple[float, float]:

@@ -17,7 +17,7 @@ from autopower.cli.options import (
     console,
     profile_opts,
 )
-from autopower.model.loading import builtin_scenarios, load_scenario
+from autopower.cli.scenarios import scenarios
 from autopower.model.scenario import Scenario
 
 
@@ -28,13 +28,6 @@ def check(scenario: str) -> None:
     s = build_scenario(scenario)
     console.print(f"[green]ok[/green] {s.source_path}: {s.name} — {len(s.robots)} robots, "
                   f"{len(s.chains)} chains, {len(s.stage_names())} stages, accounting {s.accounting}")
-
-
-@click.command("scenarios")
-def list_scenarios() -> None:
-    """List the built-in scenarios."""
-    for name in builtin_scenarios():
-        console.print(f"{name}: {load_scenario(name).description}")
 
 
 @click.command()
@@ -175,4 +168,4 @@ def plan_cmd(scenario, energy, accounting, as_json, topology, method, disable, w
         console.print(f"{len(p.ties)} other configuration(s) tie with this one.")
 
 
-COMMANDS = (check, list_scenarios, analyze, plan_cmd)
+COMMANDS = (check, scenarios, analyze, plan_cmd)

@@ -1,14 +1,24 @@
-"""Random but honest scenarios: the paper's platforms and radios, teams of any size.
+"""Scenarios of any size on the paper's platforms and radios: random ones and the paper's fleet.
 
-Used by the property tests (MILP == exhaustive), the planner benchmark and the simulator's
-random-scenario sweeps. Everything is a function of the seed.
+`random_scenario`, `fleet_scenario`, `loaded_fleet_scenario` and `random_dag_scenario` draw
+latencies, periods and sizes around the paper's: they serve the property tests (MILP ==
+exhaustive), the planner benchmark and the simulator's random-scenario sweeps. `paper_fleet` is
+the paper's own mission on N robots, written as a scenario file: what `autopower scenarios fleet`
+writes and bench/bench_loading.py checks. Everything is a function of the seed.
 """
 
 from __future__ import annotations
 
+import json
+import math
+import re
+from importlib import resources
+from typing import Any, Sequence
+
 import numpy as np
 
-from autopower.model.loading import load_scenario
+from autopower.errors import ScenarioError
+from autopower.model.loading import load_scenario, load_toml, parse_scenario
 from autopower.model.scenario import (
     LAPTOP_ROBOT,
     ROBOT_ROBOT,
@@ -177,4 +187,121 @@ def random_dag_scenario(seed: int, robots: int = 3, chains: int = 3, **kwargs) -
     return dataclasses.replace(base, name=base.name + "-dag", components=components, chains=tuple(chain_list))
 
 
-__all__ = ["random_scenario", "loaded_fleet_scenario", "random_dag_scenario", "fleet_scenario", "LAPTOP_ROBOT", "ROBOT_ROBOT", "LinkSpec", "Platform", "Radio"]
+PAPER_FLEET_TOPOLOGIES = ("fully-connected", "relay")
+
+
+def paper_fleet(robots: int, cameras: int | None = None, *, topology: str = "fully-connected",
+                media: Sequence[str] = (), seed: int = 0) -> tuple[str, Scenario]:
+    """The paper's mission (paper-fig7) on `robots` robots: (the scenario file's text, its Scenario).
+
+    Everything physical is read from paper-fig7.toml: each robot is the paper's camera robot (its
+    platform, battery and sensors), `cameras` of them (default: all) keep the camera and the others
+    carry laser and odometry only; robot rI runs the paper's Loc chain as Loc-I and, with a camera,
+    its 4 Hz Blob chain as Blob-I; the base station, components, migration costs, accounting and
+    network are the paper's, with `topology` planned (relay: r1, as in the paper) and `media`, when
+    given, the candidate media of every link (default: the paper's per link group). `seed` picks
+    which robots carry the cameras when there are fewer cameras than robots.
+
+    The text is checked by the project's loader before it is returned (the Scenario is what it
+    loads to); bad input raises ScenarioError with one line saying what to give instead.
+    """
+    if isinstance(robots, bool) or not isinstance(robots, int) or robots < 1:
+        raise ScenarioError(f"a fleet needs at least one robot: N must be >= 1, not {robots!r}")
+    cameras = robots if cameras is None else cameras
+    if isinstance(cameras, bool) or not isinstance(cameras, int) or not 0 <= cameras <= robots:
+        raise ScenarioError(f"--cameras must be between 0 and the number of robots ({robots}), not {cameras!r}")
+    if topology not in PAPER_FLEET_TOPOLOGIES:
+        raise ScenarioError(f"unknown topology {topology!r}: one of {', '.join(PAPER_FLEET_TOPOLOGIES)}")
+    paper = load_toml((resources.files("autopower.scenarios") / "paper-fig7.toml").read_text(encoding="utf-8"),
+                      "<built-in paper-fig7>")
+    unknown = [m for m in media if m not in paper["radios"]]
+    if unknown:
+        raise ScenarioError(f"unknown medium {unknown[0]!r}: one of {', '.join(paper['radios'])} (the paper's radios)")
+    camera_robot = next(r for r in paper["robots"] if "camera" in r.get("sensors", []))
+    loc = next(c for c in paper["chains"] if c.get("component") == "Loc")
+    blob = next(c for c in paper["chains"] if "camera" in c.get("requires", []))
+    rng = np.random.default_rng([seed, robots, 0xCA3])
+    with_camera = set(range(1, robots + 1)) if cameras == robots else {
+        int(i) + 1 for i in rng.choice(robots, size=cameras, replace=False)}
+    team, chains = [], []
+    for i in range(1, robots + 1):
+        sensors = [s for s in camera_robot["sensors"] if i in with_camera or s != "camera"]
+        team.append({**camera_robot, "name": f"r{i}", "sensors": sensors})
+        chains.append({**loc, "name": f"Loc-{i}", "source": f"r{i}"})
+    chains += [{**blob, "name": f"Blob-{i}", "source": f"r{i}"} for i in sorted(with_camera)]
+    network = dict(paper["network"], topology=topology, relay="r1")
+    if media:
+        network["laptop_robot_media"] = network["robot_robot_media"] = list(dict.fromkeys(media))
+    used = {m for key in ("laptop_robot_media", "robot_robot_media") for m in network[key]}
+    components = {c["component"] for c in chains}
+    data: dict[str, Any] = {
+        "scenario": {**paper["scenario"], "name": f"fleet-{robots}",
+                     "description": f"{robots} robots on the paper's platforms, {cameras} with a camera: "
+                                    f"a Loc chain each and a {1 / blob['period_s']:g} Hz Blob chain per camera ({topology})"},
+        "platforms": paper["platforms"],
+        "radios": {m: spec for m, spec in paper["radios"].items() if m in used},
+        "basestation": paper["basestation"],
+        "network": network,
+    }
+    if "migration" in paper:
+        migration = dict(paper["migration"])
+        if "state_bytes" in migration:
+            migration["state_bytes"] = {k: v for k, v in migration["state_bytes"].items() if k in components}
+        data["migration"] = migration
+    data["components"] = {name: spec for name, spec in paper["components"].items() if name in components}
+    data["robots"], data["chains"] = team, chains
+    how = f"{robots} --cameras {cameras} --topology {topology}" + "".join(f" --medium {m}" for m in media)
+    text = (f"# Generated by `autopower scenarios fleet {how} --seed {seed}` from paper-fig7:\n"
+            f"# its platforms, radios, base station, components and chains, on {robots} robots.\n" + dumps_toml(data))
+    return text, parse_scenario(text, f"<fleet of {robots}>")
+
+
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def dumps_toml(data: dict[str, Any]) -> str:
+    """A scenario's TOML tree as text: each top-level table a [section], a table of tables one
+    [section.NAME] per entry, an array of tables [[section]]s, deeper tables inline."""
+    out: list[str] = []
+    for name, value in data.items():
+        if isinstance(value, list) and all(isinstance(v, dict) for v in value):
+            for item in value:
+                out += ["", f"[[{_key(name)}]]", *_pairs(item)]
+        elif isinstance(value, dict) and value and all(isinstance(v, dict) for v in value.values()):
+            for entry, table in value.items():
+                out += ["", f"[{_key(name)}.{_key(entry)}]", *_pairs(table)]
+        elif isinstance(value, dict):
+            out += ["", f"[{_key(name)}]", *_pairs(value)]
+        else:
+            raise ValueError(f"top-level {name!r} is not a table: {value!r}")
+    return "\n".join(out).lstrip("\n") + "\n"
+
+
+def _pairs(table: dict[str, Any]) -> list[str]:
+    return [f"{_key(k)} = {_value(v)}" for k, v in table.items()]
+
+
+def _key(key: str) -> str:
+    return key if _BARE_KEY.fullmatch(key) else json.dumps(key, ensure_ascii=False)
+
+
+def _value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"not a finite number: {value}")
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)  # JSON's escapes are all TOML escapes
+    if isinstance(value, list):
+        return "[" + ", ".join(_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{_key(k)} = {_value(v)}" for k, v in value.items()) + " }" if value else "{}"
+    raise ValueError(f"no TOML for {type(value).__name__} {value!r}")
+
+
+__all__ = ["random_scenario", "loaded_fleet_scenario", "random_dag_scenario", "fleet_scenario", "paper_fleet",
+           "dumps_toml", "PAPER_FLEET_TOPOLOGIES", "LAPTOP_ROBOT", "ROBOT_ROBOT", "LinkSpec", "Platform", "Radio"]

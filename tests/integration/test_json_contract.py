@@ -140,6 +140,8 @@ FAILURES = [
     ["simulate", "paper-fig7", "--events", "no-such-events", "--json"],
     ["replay", "/nonexistent/run.rrd", "--json"],
     ["profile", "--runs", "0", "--json"],
+    ["scenarios", "fleet", "0", "--out", "unused.toml", "--json"],
+    ["scenarios", "fleet", "3", "--medium", "wifi", "--out", "unused.toml", "--json"],
     ["demo", "--mission", "5", "--json"],
     ["up", "no-such-scenario", "--json"],
     ["status", "--json", "--timeout", "1"],
