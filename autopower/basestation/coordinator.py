@@ -110,8 +110,11 @@ class CoordinatorConfig:
 
 class Coordinator(Deciding, Placing, Operating, TakingOver):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
-                 policy: Policy | None = None, wall_fn: Callable[[], float] = time.time):
-        """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it)."""
+                 policy: Policy | None = None, wall_fn: Callable[[], float] = time.time,
+                 leader: str | None = None, incarnation: int = 0):
+        """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it).
+        ``leader`` names this base station in its plans (default: `instance_id`, random per process);
+        ``incarnation`` is the lowest it starts at (what its host remembers, plus one)."""
         # quality variants are fixed for the mission: the policies place the chains as they run them
         self.variants = mission_variants(scenario, config.variants)
         scenario = apply_variants(scenario, self.variants)
@@ -176,8 +179,8 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.generation = 0
         # which start of a base station this is (plans are ordered by (incarnation, epoch)): one above
         # any the robots report when taking over; the process raises it to what its host remembers
-        self.incarnation = 0
-        self.leader = instance_id()
+        self.incarnation = incarnation
+        self.leader = leader or instance_id()
         self.up_unix = self.wall()
         self.heard: dict[str, NodeStatus] = {}  # robot -> its status before we run the mission
         self.takeover: dict | None = None  # how the running team was adopted (None: we started the mission)

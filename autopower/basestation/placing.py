@@ -216,7 +216,7 @@ class Placing:
         self.note(f"{stage}: {m.phase} to {m.to_node} abandoned ({why}); restarting it without state")
         gen = self._next_generation()
         keep = m.to_node if restart_at_target and self.target.get(stage) == m.to_node else None
-        for node in {m.to_node, m.from_node} - {None, keep}:
+        for node in sorted({m.to_node, m.from_node} - {None, keep}):
             if node in self.alive_nodes():
                 self._send(node, Release(stage=stage, generation=gen))
         self.placement.pop(stage, None)

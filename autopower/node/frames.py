@@ -175,7 +175,7 @@ class Frames:
         if worker is not None:  # in its own process: handed over; `collect_stage_results` finishes it
             worker.submit((hosted, frame), frame.data())
             return
-        started = time.perf_counter()
+        started = self.perf()
         # The component is code we do not control: whatever it does wrong stops this stage only.
         try:
             output = self.guard.call(hosted.component.run, frame.data(), timeout_s=self.hang_limit_s(chain))
@@ -185,7 +185,7 @@ class Frames:
         except Exception as exc:
             self.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {type(exc).__name__}: {exc}")
             return
-        self._ran(hosted, frame, output, time.perf_counter() - started)
+        self._ran(hosted, frame, output, self.perf() - started)
 
     def _ran(self, hosted: HostedStage, frame: ChainFrame, output, compute_s: float) -> None:
         """A run's output (in-process or from its worker): checked, metered, emitted."""
@@ -327,7 +327,7 @@ class Frames:
             self.count("wrong-sink", f"{chain.name} output reached {self.node}")
             return
         ledger = self.sinks.setdefault(chain.name, SinkLedger())
-        latency_ms = (time.time() - frame.t_unix) * 1000.0
+        latency_ms = (self.wall() - frame.t_unix) * 1000.0
         redundant = ledger.redundant_total
         new = ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt)
         if new and self.sink_store is not None and self.mission is not None:

@@ -8,7 +8,6 @@ instance RUNNING; Release retires one.
 from __future__ import annotations
 
 import logging
-import time
 
 from autopower.model.scenario import Chain, Stage
 from autopower.model.variants import runtime_component
@@ -214,7 +213,7 @@ class Hosting:
                        logging.ERROR)
             return
         hosted.lifecycle = Lifecycle.DRAINING
-        stopped_unix = time.time()  # downtime counts from here: checking the state is part of it
+        stopped_unix = self.wall()  # downtime counts from here: checking the state is part of it
         # In-process runs are synchronous in this loop: the current one has finished. A stage in a
         # worker finishes its queued inputs first (their outputs go out as usual).
         if not self.drain_stage(hosted):
@@ -299,7 +298,7 @@ class Hosting:
         self.hosted[msg.stage] = hosted
         hosted.answer = self._reply(StageReady(
             stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
-            resume_seq=msg.next_seq, downtime_ms=max(0.0, (time.time() - msg.t_export_unix) * 1e3), buffered=len(held)))
+            resume_seq=msg.next_seq, downtime_ms=max(0.0, (self.wall() - msg.t_export_unix) * 1e3), buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
             self._admit(hosted, frame, refusable=False)
 
@@ -390,7 +389,7 @@ class Hosting:
         A run that raises or hangs ends this (logged and counted: the stage is going anyway, and a
         failure reported now would stop its chain); what is left is lost, as before."""
         for done, frame in enumerate(frames):
-            started = time.perf_counter()
+            started = self.perf()
             try:
                 output = self.guard.call(hosted.component.run, frame.data(),
                                          timeout_s=self.hang_limit_s(hosted.chain))
@@ -398,7 +397,7 @@ class Hosting:
                 self.count("released-inputs-lost", f"{hosted.stage.name}: run(seq {frame.seq}) at release: "
                            f"{type(exc).__name__}: {exc}; {len(frames) - done} input(s) not run")
                 return
-            self._ran(hosted, frame, output, time.perf_counter() - started)
+            self._ran(hosted, frame, output, self.perf() - started)
             self.tally("released-inputs-run")
 
     def _disabled(self, chain: str) -> bool:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import msgpack
 
@@ -208,22 +209,24 @@ class JoinState:
         return out
 
     # ---- migration -------------------------------------------------------------------------------
-    def export(self) -> dict:
+    def export(self, now: float | None = None) -> dict:
+        """The join's state; waiting inputs' ages are taken at ``now`` (the node's wall time)."""
+        now = time.time() if now is None else now
         return {"gates": {n: [g.run, g.contiguous, sorted(g.above)] for n, g in self.gates.items()},
                 "waiting": [[k, n, d, t] for k, inputs in self.waiting.items() for n, (d, t) in inputs.items()],
-                "first_seen_age": {str(k): time.time() - t for k, t in self.first_seen.items()},
+                "first_seen_age": {str(k): now - t for k, t in self.first_seen.items()},
                 "next_step": self.next_step,
                 "first_step": self.first_step, "began": {n: list(b) for n, b in self.began.items()},
                 "counts": [self.joined, self.late, self.missing, self.empty_steps, self.not_started]}
 
-    def restore(self, obj: dict) -> None:
+    def restore(self, obj: dict, now: float | None = None) -> None:
         gates = obj["gates"]
         if set(gates) != set(self.flows):
             raise ValueError(f"join state for flows {sorted(gates)}, this stage has {sorted(self.flows)}")
         for name, (run, contiguous, above) in gates.items():
             self.gates[name] = EdgeGate(run=int(run), contiguous=int(contiguous), above={int(s) for s in above})
         self.waiting, self.first_seen = {}, {}
-        now = time.time()
+        now = time.time() if now is None else now
         for k, name, data, t in obj["waiting"]:
             if name not in self.flows or not isinstance(data, bytes):
                 raise ValueError(f"join state: bad waiting input {name!r}")
@@ -243,9 +246,10 @@ class JoinedComponent:
     """A fan-in stage's component with its join: `run` is the inner component's; the exported
     state carries both, so the stage migrates with its waiting inputs and edge gates."""
 
-    def __init__(self, inner, flows: tuple[Flow, ...]):
+    def __init__(self, inner, flows: tuple[Flow, ...], wall: Callable[[], float] = time.time):
         self.inner = inner
         self.join = JoinState(flows)
+        self.wall = wall  # the node's wall clock: the join's ages travel relative to it
 
     def run(self, payload: bytes) -> bytes:
         return self.inner.run(payload)
@@ -254,7 +258,7 @@ class JoinedComponent:
         inner = self.inner.export_state() if callable(getattr(self.inner, "export_state", None)) else b""
         if not isinstance(inner, bytes):
             raise TypeError(f"export_state returned {type(inner).__name__}, not bytes")
-        return msgpack.packb({"v": STATE_VERSION, "inner": inner, "join": self.join.export()}, use_bin_type=True)
+        return msgpack.packb({"v": STATE_VERSION, "inner": inner, "join": self.join.export(self.wall())}, use_bin_type=True)
 
     def import_state(self, state: bytes) -> None:
         obj = msgpack.unpackb(state, raw=False, strict_map_key=False)
@@ -262,7 +266,7 @@ class JoinedComponent:
             raise ValueError("not a fan-in stage's state")
         if obj["inner"] or callable(getattr(self.inner, "import_state", None)):
             self.inner.import_state(obj["inner"])
-        self.join.restore(obj["join"])
+        self.join.restore(obj["join"], self.wall())
 
 
 class Joining:
@@ -290,7 +294,7 @@ class Joining:
 
     def wrap_joined(self, component, stage_name: str):
         flows = self.flows_in.get(stage_name)
-        return JoinedComponent(component, flows) if flows else component
+        return JoinedComponent(component, flows, self.wall) if flows else component
 
     # ---- producer side: fan-out ------------------------------------------------------------------
     def emit_flows(self, hosted: HostedStage, frame: ChainFrame, output: bytes) -> None:

@@ -72,7 +72,7 @@ class BatteryMeter:
         if self.mains:
             return
         self._add(CPU_IDLE, self.platform.idle_w * dt)
-        for medium in self.media:
+        for medium in sorted(self.media):  # parts in one order: the total's float sum is then the same
             self._add(part(medium, "sleep"), self.radios[medium].sleep_w * dt)
 
     def set_media(self, media: Iterable[str], t: float) -> None:

@@ -96,7 +96,11 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
                  make_component: Callable | None = None, make_source: Callable | None = None,
-                 clock_factory: Callable[[MissionInfo], Clock] | None = None, stage_workers: bool = False):
+                 clock_factory: Callable[[MissionInfo], Clock] | None = None, stage_workers: bool = False,
+                 wall: Callable[[], float] | None = None, perf: Callable[[], float] | None = None):
+        """``wall`` is the node's wall clock (custody, gates, joins, the status's ``t_unix``, a
+        frame's capture time) and ``perf`` the clock a component run is timed with (the status's
+        ``compute_ms``); a simulator passes its own time for both."""
         if node not in scenario.node_names():
             raise AutoPowerError(f"node {node!r} is not in scenario {scenario.name} "
                                  f"(nodes: {', '.join(scenario.node_names())})")
@@ -183,7 +187,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
         self.hung_sources: dict[str, int] = {}  # chain -> the run whose source hung here (not restarted)
         self._next_custody_check = 0.0
-        self.wall: Callable[[], float] = time.time  # custody's clock (a test team sets its manual one)
+        self.wall: Callable[[], float] = wall or time.time
+        self.perf: Callable[[], float] = perf or time.perf_counter
         # How a message for one node leaves: the process replaces it with its `Relayer.send`
         # so that a node out of direct sight is still reached through other agents.
         self.send_to: Callable[[str, str, bytes], object] = lambda dest, key, payload: self.bus.publish(key, payload)
@@ -686,7 +691,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # latency counts from the capture (a frame taken from the sensor's queue waited there)
         waited_s = max(0.0, self.clock.wall() - self.clock.wall_at(t_tick))
         frame = ChainFrame(chain=chain.name, run=runner.run, seq=runner.seq, target=0, t_virtual=t_tick,
-                           t_unix=time.time() - waited_s, payload_len=len(data), payload=payload)
+                           t_unix=self.wall() - waited_s, payload_len=len(data), payload=payload)
         runner.seq += 1
         runner.produced_total += 1
         if self.on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq

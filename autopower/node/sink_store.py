@@ -151,8 +151,10 @@ class SinkStore:
         self._mission = mission_epoch_unix
         self._size = len(header) + len(snapshot) + 2
 
-    def close(self) -> None:
-        self.commit()
+    def close(self, *, commit: bool = True) -> None:
+        """``commit=False``: closed as a killed process leaves it (the notes since the last commit are lost)."""
+        if commit:
+            self.commit()
         if self._fd is not None:
             os.close(self._fd)
             self._fd = None
