@@ -20,6 +20,7 @@ from autopower.cli import (
     quality,
     recording,
     replay,
+    sim,
     simulate,
     team,
     testbed,
@@ -59,7 +60,7 @@ def cli() -> None:
     """
 
 
-for _module in (analysis, evaluate, profile, simulate, replay, recording, processes, team, operator, fault, demo,
+for _module in (analysis, evaluate, profile, simulate, sim, replay, recording, processes, team, operator, fault, demo,
                 deploy, testbed, quality):
     for _command in _module.COMMANDS:
         cli.add_command(_command)

@@ -37,7 +37,7 @@ def documented_keys() -> dict[str, tuple[set[str], set[str], bool]]:
         if len(cells) < 3 or cells[0] == "command":
             continue
         command = cells[0].replace("`", "").replace("\\", "")
-        out[command] = (*(set(re.findall(r"`([a-z_]+)`", cell)) for cell in (cells[1], cells[2])), "…" in cells[1])
+        out[command] = (*(set(re.findall(r"`([a-z_0-9]+)`", cell)) for cell in (cells[1], cells[2])), "…" in cells[1])
     return out
 
 
@@ -85,6 +85,7 @@ SUCCESS = [
     ("simulate", ["simulate", "paper-fig7", "--json"]),
     ("simulate --policy all", ["simulate", "paper-fig7", "--policy", "all", "--json"]),
     ("profile", ["profile", "--runs", "1", "--json"]),
+    ("sim", ["sim", "paper-fig7", "--seed", "2", "--mission", "20", "--quiet", "10", "--faults", "2", "--json"]),
 ]
 
 
@@ -142,6 +143,8 @@ FAILURES = [
     ["profile", "--runs", "0", "--json"],
     ["scenarios", "fleet", "0", "--out", "unused.toml", "--json"],
     ["scenarios", "fleet", "3", "--medium", "wifi", "--out", "unused.toml", "--json"],
+    ["sim", "no-such-scenario", "--json"],
+    ["sim", "--kinds", "no-such-kind", "--json"],
     ["demo", "--mission", "5", "--json"],
     ["up", "no-such-scenario", "--json"],
     ["status", "--json", "--timeout", "1"],

@@ -1,7 +1,7 @@
 """The package layout is the architecture: imports go down the layers, never up, never in a circle.
 
     errors  <-  model | protocol | chains  <-  planner | runtime  <-  policies  <-  simulation | node
-            <-  agent | basestation | recording | deploy  <-  launch  <-  cli
+            <-  agent | basestation | recording | deploy  <-  launch | teamsim  <-  cli
 
 Packages on one level are peers and do not import each other. Every import counts, including the
 ones inside functions: a lazy import hides a cycle from Python, not from a reader.
@@ -20,7 +20,7 @@ LEVELS = {
     "policies": 3,
     "simulation": 4, "node": 4,
     "agent": 5, "basestation": 5, "recording": 5, "deploy": 5,
-    "launch": 6,
+    "launch": 6, "teamsim": 6,
     "cli": 7,
 }
 PUBLIC_API = "autopower"  # the package's __init__: re-exports, may import any layer

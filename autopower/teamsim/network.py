@@ -1,0 +1,200 @@
+"""The simulated radio network of a team: its links, what each direction of a link does to a
+message, and the sessions (Zenoh's) whose leases say who sees whom.
+
+Rules:
+
+- The links are the scenario's (its topology, each link on its first medium choice). A message
+  crosses one link, in one direction; a direction sends one message at a time, each taking the
+  airtime of its size at the medium's rate, then the link's latency (plus a jitter drawn from
+  ``[0, jitter_s]``, which reorders messages), unless the direction loses it (``loss``, drawn) or
+  is cut. A duplicated message (``dup``, drawn) arrives twice.
+- A message is sent only on a session (the pair is connected); it arrives only if the session
+  still holds, the direction is not cut and the receiving process is the one it was sent to.
+- A pair is healthy when both processes are up and not frozen and neither direction is cut. A
+  pair unhealthy for a whole lease disconnects: both ends lose each other's tokens. A pair healthy
+  for a reconnect delay connects again: both see each other's tokens. A process that ends
+  disconnects its pairs at once (its peers see the connection close).
+- Every draw comes from the one ``random.Random`` given, in the order of the events.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass
+from typing import Protocol
+
+from autopower.model.network import build_network
+from autopower.model.scenario import Scenario
+from autopower.teamsim.scheduler import Scheduler
+
+LATENCY_S = 0.002  # one way, per link
+LEASE_S = 1.0  # Zenoh's lease (`ZenohSettings.lease_ms`)
+RECONNECT_S = 0.5  # a healed link's session is back after this (Zenoh's retry period, at most 0.5 s)
+DUPLICATE_GAP_S = 0.0005  # a duplicate arrives this long after the original
+
+
+class Endpoint(Protocol):
+    """What the network hands messages and sight changes to (a node's `SimBus`)."""
+
+    frozen: bool
+
+    def subscribes(self, key: str) -> bool: ...
+
+    def arrive(self, sender: str, key: str, payload: bytes) -> None: ...
+
+    def sight(self, peer: str, alive: bool) -> None: ...
+
+
+@dataclass
+class Direction:
+    """One direction of a link: its rate and what faults do to it now."""
+
+    kbps: float
+    latency_s: float = LATENCY_S
+    busy_until: float = 0.0
+    cut: bool = False
+    loss: float = 0.0
+    dup: float = 0.0
+    jitter_s: float = 0.0
+
+
+@dataclass
+class Pair:
+    """The session between two nodes (both directions of their link)."""
+
+    connected: bool = False
+    healthy: bool = False
+    version: int = 0  # bumped at every change of health: a scheduled check of an older one does nothing
+
+
+@dataclass
+class NetStats:
+    sent: int = 0
+    delivered: int = 0
+    unsent: int = 0  # no session: nothing left the sender
+    cut: int = 0
+    lost: int = 0
+    duplicated: int = 0
+
+
+class SimNetwork:
+    def __init__(self, scenario: Scenario, scheduler: Scheduler, rng: random.Random, *,
+                 lease_s: float = LEASE_S, reconnect_s: float = RECONNECT_S):
+        self.scheduler = scheduler
+        self.rng = rng
+        self.lease_s = lease_s
+        self.reconnect_s = reconnect_s
+        self.nodes = tuple(scenario.node_names())
+        self.directions: dict[tuple[str, str], Direction] = {}
+        self.neighbours: dict[str, tuple[str, ...]] = {n: () for n in self.nodes}
+        for link in build_network(scenario).links:
+            kbps = scenario.radios[link.medium].kbps
+            for a, b in ((link.a, link.b), (link.b, link.a)):
+                self.directions[(a, b)] = Direction(kbps=kbps)
+                self.neighbours[a] = (*self.neighbours[a], b)
+        self.neighbours = {n: tuple(sorted(peers)) for n, peers in self.neighbours.items()}
+        self.pairs: dict[frozenset[str], Pair] = {frozenset(d): Pair() for d in self.directions}
+        self.endpoints: dict[str, Endpoint] = {}
+        self.stats = NetStats()
+
+    # ---- processes ---------------------------------------------------------------------------
+    def attach(self, node: str, endpoint: Endpoint) -> None:
+        """``node``'s process is up (its sessions connect after the reconnect delay)."""
+        self.endpoints[node] = endpoint
+        self._reevaluate(node)
+
+    def detach(self, node: str) -> None:
+        """``node``'s process ended: its peers see its sessions close now."""
+        self.endpoints.pop(node, None)
+        for peer in self.neighbours[node]:
+            pair = self.pairs[frozenset((node, peer))]
+            pair.healthy, pair.version = False, pair.version + 1
+            if pair.connected:
+                self._disconnect(node, peer)
+
+    def frozen_changed(self, node: str) -> None:
+        self._reevaluate(node)
+
+    def connected(self, a: str, b: str) -> bool:
+        pair = self.pairs.get(frozenset((a, b)))
+        return pair is not None and pair.connected
+
+    # ---- faults ----------------------------------------------------------------------------------
+    def direction(self, a: str, b: str) -> Direction | None:
+        return self.directions.get((a, b))
+
+    def set_cut(self, a: str, b: str, cut: bool) -> None:
+        d = self.directions.get((a, b))
+        if d is not None and d.cut != cut:
+            d.cut = cut
+            self._check(a, b)
+
+    # ---- sessions -----------------------------------------------------------------------------------
+    def _healthy(self, a: str, b: str) -> bool:
+        ea, eb = self.endpoints.get(a), self.endpoints.get(b)
+        return (ea is not None and eb is not None and not ea.frozen and not eb.frozen
+                and not self.directions[(a, b)].cut and not self.directions[(b, a)].cut)
+
+    def _reevaluate(self, node: str) -> None:
+        for peer in self.neighbours[node]:
+            self._check(node, peer)
+
+    def _check(self, a: str, b: str) -> None:
+        pair = self.pairs[frozenset((a, b))]
+        healthy = self._healthy(a, b)
+        if healthy == pair.healthy:
+            return
+        pair.healthy, pair.version = healthy, pair.version + 1
+        wait = self.reconnect_s if healthy else self.lease_s
+        self.scheduler.after(wait, self._settle, a, b, pair.version)
+
+    def _settle(self, a: str, b: str, version: int) -> None:
+        pair = self.pairs[frozenset((a, b))]
+        if version != pair.version or pair.healthy == pair.connected:
+            return
+        if pair.healthy:
+            pair.connected = True
+            for me, peer in sorted(((a, b), (b, a))):
+                self.endpoints[me].sight(peer, True)
+        else:
+            self._disconnect(a, b)
+
+    def _disconnect(self, a: str, b: str) -> None:
+        self.pairs[frozenset((a, b))].connected = False
+        for me, peer in sorted(((a, b), (b, a))):
+            endpoint = self.endpoints.get(me)
+            if endpoint is not None:
+                endpoint.sight(peer, False)
+
+    # ---- messages ------------------------------------------------------------------------------------
+    def transmit(self, sender: str, receiver: str, key: str, payload: bytes) -> None:
+        """Send one message over the link ``sender`` -> ``receiver`` (see the module's rules)."""
+        if not self.connected(sender, receiver):
+            self.stats.unsent += 1
+            return
+        d = self.directions[(sender, receiver)]
+        self.stats.sent += 1
+        if d.cut:
+            self.stats.cut += 1
+            return
+        if d.loss and self.rng.random() < d.loss:
+            self.stats.lost += 1
+            return
+        now = self.scheduler.now
+        d.busy_until = max(now, d.busy_until) + len(payload) * 8 / (d.kbps * 1000.0)
+        arrival = d.busy_until + d.latency_s + (self.rng.uniform(0.0, d.jitter_s) if d.jitter_s else 0.0)
+        target = self.endpoints[receiver]
+        self.scheduler.at(arrival, self._arrive, sender, receiver, key, payload, target)
+        if d.dup and self.rng.random() < d.dup:
+            self.stats.duplicated += 1
+            self.scheduler.at(arrival + DUPLICATE_GAP_S, self._arrive, sender, receiver, key, payload, target)
+
+    def _arrive(self, sender: str, receiver: str, key: str, payload: bytes, target: Endpoint) -> None:
+        if self.endpoints.get(receiver) is not target or not self.connected(sender, receiver):
+            self.stats.cut += 1
+            return
+        if self.directions[(sender, receiver)].cut:
+            self.stats.cut += 1
+            return
+        self.stats.delivered += 1
+        target.arrive(sender, key, payload)

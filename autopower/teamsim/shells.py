@@ -1,0 +1,452 @@
+"""The processes around the real cores, as the simulator runs them: a robot's agent, the base station.
+
+Each shell does what its process does with events (`autopower.agent.process.Agent`,
+`autopower.basestation.process.BaseStation`), in simulated time: it hands messages and sight
+changes to its `NodeRuntime` (and the base station's `Coordinator`), relays through the real
+`Relayer`, publishes its status every status period (what the status acknowledges is kept first:
+the sink's notes, the resume state, the held results), and wakes for its next deadline. After each
+event and each wake it takes one turn of its loop. The stores are the real ones, in the run's
+folder: a restarted process reads what the killed one wrote.
+
+Not here (the processes' own logic, outside the cores until the node-core refactor moves it in):
+subgroup rounds, the silence detector, a restarted robot going on alone, the status cadence at rest.
+"""
+
+from __future__ import annotations
+
+import math
+
+from autopower.agent.resume import ResumeFile
+from autopower.basestation.coordinator import Coordinator
+from autopower.errors import ProtocolError
+from autopower.node.held_store import HeldStore
+from autopower.node.runtime import NodeRuntime
+from autopower.node.sink_store import SinkStore
+from autopower.node.stages import Lifecycle
+from autopower.protocol import (
+    INBOX_MESSAGES,
+    NodeStatus,
+    PlanUpdate,
+    Prepared,
+    Release,
+    StageFailed,
+    StageReady,
+    decode,
+    encode,
+)
+from autopower.protocol.access import status_problem
+from autopower.runtime.relay import Relayer
+from autopower.teamsim.bus import SimBus
+from autopower.teamsim.scheduler import EPOCH_UNIX
+
+SUSPECT_SETTLE_S = 0.2  # `BaseStationConfig.suspect_settle_s`
+MIN_WAKE_S = 0.001  # a deadline already past wakes the loop this much later (never at the same instant)
+
+
+class Shell:
+    """What both processes share: the bus, the relayer, the loop's turns, freezes, the outputs kept.
+    ``world`` is the run's `autopower.teamsim.team.World`."""
+
+    def __init__(self, world, node: str):
+        self.world = world
+        self.node = node
+        self.keys = world.keys
+        self.up = False
+        self._wake_token = 0
+        self._wake_t = math.inf
+        self.pending: list[tuple[str, int, int, bytes, float, int]] = []  # outputs not yet committed
+        self.bus: SimBus | None = None
+        self.rt: NodeRuntime | None = None
+        self.relayer: Relayer | None = None
+        self.next_status = 0.0
+
+    # ---- life ---------------------------------------------------------------------------------
+    def start(self) -> None:
+        w = self.world
+        self.up = True
+        self.bus = SimBus(self.node, w.network, w.trace, self._after_event)
+        self.rt = NodeRuntime(node=self.node, scenario=w.scenario, bus=self.bus, keys=self.keys,
+                              make_component=w.make_component, make_source=w.make_source,
+                              clock_factory=w.clock_for, wall=w.scheduler.wall, perf=w.scheduler.wall)
+        self.relayer = Relayer(node=self.node, bus=self.bus, keys=self.keys, count=self.rt.count, access=w.access)
+        self.rt.send_to = self.relayer.send
+        self.rt.on_output = self._output
+        self.rt.on_held_dropped = lambda c, r, s: w.ledger.let_go((c, r, s), "held-full")
+        self.rt.on_died_with_process = lambda c, r, s: w.ledger.let_go((c, r, s), "died-with-process")
+        self.build()
+        self.next_status = w.scheduler.wall()
+        self.turn()
+
+    def build(self) -> None:
+        """The process's own parts, subscriptions and token (after the runtime exists)."""
+
+    def crash(self) -> None:
+        """Killed: nothing more is handled; what was not committed dies with it."""
+        if not self.up:
+            return
+        self.up = False
+        self.pending.clear()
+        self.bus.close()
+        if self.rt.held_store is not None:
+            self.rt.held_store.close()
+        if self.rt.sink_store is not None:
+            self.rt.sink_store.close(commit=False)  # a kill writes nothing more
+
+    def freeze(self) -> None:
+        self.bus.freeze()
+
+    def thaw(self) -> None:
+        self.bus.thaw()
+        self.turn()
+
+    @property
+    def frozen(self) -> bool:
+        return self.bus is not None and self.bus.frozen
+
+    # ---- the loop ------------------------------------------------------------------------------
+    def _after_event(self) -> None:
+        if self.up and not self.frozen:
+            self.turn()
+
+    def turn(self) -> None:
+        if not self.up or self.frozen:
+            return
+        try:
+            wake = self._turn()
+        except Exception as exc:  # the process logs it and goes on; the simulator calls it a bug
+            self.world.internal_error(self.node, exc)
+            wake = self.world.scheduler.wall() + self.world.status_period_s
+        if self.up:
+            self._schedule(max(wake, self.world.scheduler.wall() + MIN_WAKE_S))
+
+    def _turn(self) -> float:
+        """One turn of the process's loop; returns when (wall) it must wake next."""
+        raise NotImplementedError
+
+    def _schedule(self, wall: float) -> None:
+        if wall == self._wake_t:
+            return
+        self._wake_token += 1
+        self._wake_t = wall
+        self.world.scheduler.at(wall - EPOCH_UNIX, self._wake, self._wake_token)
+
+    def _wake(self, token: int) -> None:
+        if token != self._wake_token:
+            return
+        self._wake_t = math.inf
+        self.turn()
+
+    def guarded(self, handler, *args) -> None:
+        """Handle one event as the process does: an exception is logged, counted and survived."""
+        if not self.up:
+            return
+        try:
+            handler(*args)
+        except Exception as exc:
+            self.world.internal_error(self.node, exc)
+
+    # ---- outputs --------------------------------------------------------------------------------------
+    def _output(self, chain: str, run: int, seq: int, data: bytes) -> None:
+        w = self.world
+        self.pending.append((chain, run, seq, data, w.scheduler.now, w.trace.events))
+
+    def commit_outputs(self) -> None:
+        """The sink's notes are written: what it handed on is delivered (a recording keeps it now)."""
+        pending, self.pending = self.pending, []
+        for chain, run, seq, data, t, event in pending:
+            self.world.ledger.on_delivered((chain, run, seq), t, event, data, self.world.expected(chain, seq))
+
+    def _status_sent(self, status: NodeStatus) -> None:
+        self.world.status_sent(self, status)
+
+
+class RobotShell(Shell):
+    """A robot's agent: its stores, its statuses to every peer, superseded instances stopped."""
+
+    def build(self) -> None:
+        w, rt, robot, keys = self.world, self.rt, self.node, self.keys
+        folder = w.store_dir
+        self.resume = ResumeFile(folder / f"{robot}.json")
+        rt.held_store = HeldStore(folder / f"{robot}.held")
+        rt.sink_store = SinkStore(folder / f"{robot}.sinks.json")
+        rt.resume_from = self.resume.load()
+        rt.on_produced = self._produced
+        self.statuses: dict[str, NodeStatus] = {}
+        self.bus.subscribe(keys.node_data(robot), lambda k, p: self.guarded(self._received, k, p))
+        for key in (keys.node_control(robot), keys.plan, keys.node_relay(robot), keys.status_all):
+            self.bus.subscribe(key, lambda k, p: self.guarded(self._received, k, p))
+        self.bus.watch_liveliness(keys.alive_all, lambda k, alive: self.guarded(self._liveliness, k, alive))
+        self.bus.declare_token(keys.alive(robot))
+
+    def crash(self) -> None:
+        if self.up:
+            super().crash()
+            self.resume.close()
+
+    def _produced(self, runner) -> None:
+        w = self.world
+        self.resume.note_source(runner.chain.name, runner.run, runner.seq, runner.missed, runner.produced_total,
+                                runner.missed_stopped)
+        w.ledger.on_produced((runner.chain.name, runner.run, runner.seq - 1), w.scheduler.now, w.trace.events)
+
+    def _liveliness(self, key: str, alive: bool) -> None:
+        node = self.keys.node_of_alive(key)
+        if node is not None and node != self.node:
+            self.rt.on_liveliness(node, alive)
+            self.relayer.on_liveliness(node, alive)
+            self.publish_status()  # the base station tells a dead robot from a cut link by what the others see
+
+    def _received(self, key: str, payload: bytes) -> None:
+        rt, keys = self.rt, self.keys
+        relayed = key == keys.node_relay(self.node)
+        if relayed:
+            try:
+                inner = self.relayer.on_relay(payload)
+            except ProtocolError as exc:
+                rt.count("garbled", f"on {key}: {exc}")
+                return
+            if inner is None:
+                return
+            key, payload = inner
+        if keys.node_of_status(key) is not None:
+            try:
+                status = decode(payload, NodeStatus)
+            except ProtocolError as exc:
+                rt.count("garbled", f"on {key}: {exc}")
+                return
+            if status_problem(keys, key, status.node, status.t_unix, self.world.scheduler.wall()) is not None:
+                rt.count("forged", key)
+                return
+            last = self.statuses.get(status.node)
+            if status.node == self.node or (last is not None and status.t_unix <= last.t_unix):
+                return
+            self.relayer.on_status(status)
+            if not relayed:
+                self.relayer.on_direct(status.node)
+            self.statuses[status.node] = status
+            rt.on_peer_status(status)
+            self._yield_to_newer(status)
+            return
+        order, model_w = rt.plan_order, rt.model_w
+        if not rt.on_message(key, payload):
+            rt.count("unexpected-key", key)
+        elif rt.plan_order != order or rt.model_w != model_w:
+            self.publish_status()  # a new plan acknowledged at once; a stage that left, said at once
+
+    def _yield_to_newer(self, status: NodeStatus) -> None:
+        """Stop an instance here that a newer one running on the peer supersedes (`Agent._yield_to_newer`)."""
+        rt = self.rt
+        for stage, state in (status.hosted or {}).items():
+            mine = rt.hosted.get(stage)
+            theirs = (status.generations or {}).get(stage)
+            if (mine is None or theirs is None or state != Lifecycle.RUNNING.value
+                    or mine.lifecycle is not Lifecycle.RUNNING or theirs <= mine.generation):
+                continue
+            waiting = mine.gate.take_pending()
+            rt.tally("superseded-instances")
+            rt.on_release(Release(stage=stage, generation=mine.generation))
+            rt.override_placement({stage: status.node}, set())
+            for frame in waiting:
+                rt.send_frame(frame, status.node)
+            self.publish_status()
+
+    def publish_status(self, save_resume: bool = False) -> None:
+        rt, keys, w = self.rt, self.keys, self.world
+        window = w.status_window_s * rt.clock.speed if rt.started else 0.0
+        status = rt.status(window)
+        if save_resume:
+            rt.settle_held_store()
+            state = rt.resume_state()
+            if state is not None:
+                self.resume.save(state)
+        rt.sink_store.commit()
+        self.commit_outputs()
+        key, payload = keys.status(self.node), encode(status)
+        self.bus.publish(key, payload, reliable=False)
+        dests = {w.scenario.basestation} | rt.producers()
+        self.relayer.send_beyond_sight(sorted(dests), key, payload, reliable=False)
+        self._status_sent(status)
+
+    def _turn(self) -> float:
+        rt, s = self.rt, self.world.scheduler
+        if rt.started:
+            rt.on_timer()
+            rt.meter.advance(rt.now())
+        now = s.wall()
+        if now >= self.next_status:
+            self.publish_status(save_resume=True)
+            self.next_status = max(self.next_status + self.world.status_period_s, now)
+        wake = self.next_status
+        if rt.started and (t := rt.next_deadline()) is not None:
+            wake = min(wake, rt.clock.wall_at(t))
+        return wake
+
+
+class BaseShell(Shell):
+    """The base station: the coordinator and its own host; who is gone, or only cut off."""
+
+    def __init__(self, world, node: str, number: int):
+        super().__init__(world, node)
+        self.number = number  # which start of a base station this is (0: the first)
+        self.co: Coordinator | None = None
+        self.plan_since: dict[tuple[int, int], float] = {}  # (incarnation, epoch) -> when first published
+
+    def build(self) -> None:
+        w, rt, keys, base = self.world, self.rt, self.keys, self.node
+        rt.sink_store = SinkStore(w.store_dir / "sinks.json")
+        rt.held_store = HeldStore(w.store_dir / "basestation.held")
+        kept = w.base_state.get("incarnation")
+        self.co = co = Coordinator(scenario=w.scenario, bus=self.bus, keys=keys, config=w.coordinator_config,
+                                   wall_fn=w.scheduler.wall, leader=f"{base}:sim:{self.number}",
+                                   incarnation=0 if kept is None else kept + 1)
+        co.send_to = self.relayer.send
+        co.also_relay = self.relayer.send_beyond_sight
+        co.on_own_plan = self._own_plan
+        self.suspects: dict[str, float] = {}
+        self.status_t: dict[str, float] = {}
+        for key in (keys.node_data(base), keys.node_control(base), keys.plan, keys.inbox, keys.status_all,
+                    keys.node_relay(base)):
+            self.bus.subscribe(key, lambda k, p: self.guarded(self._received, k, p))
+        self.bus.watch_liveliness(keys.alive_all, lambda k, alive: self.guarded(self._liveliness, k, alive))
+        self.bus.declare_token(keys.alive(base))
+
+    def _own_plan(self, plan: PlanUpdate) -> None:
+        self.plan_since.setdefault((plan.incarnation, plan.epoch), self.world.scheduler.now)
+        try:
+            self.rt.on_plan(plan)
+        except Exception as exc:
+            self.world.internal_error(self.node, exc)
+
+    def operator(self, cmd):
+        """An operator's command (None: this base station is down or frozen, the query fails)."""
+        if not self.up or self.frozen or self.co is None:
+            return None
+        try:
+            reply = self.co.on_operator(cmd)
+        except Exception as exc:
+            self.world.internal_error(self.node, exc)
+            return None
+        self.turn()
+        return reply
+
+    def _liveliness(self, key: str, alive: bool) -> None:
+        rt, co = self.rt, self.co
+        node = self.keys.node_of_alive(key)
+        if node is None or node == self.node:
+            return
+        rt.on_liveliness(node, alive)
+        self.relayer.on_liveliness(node, alive)
+        if alive:
+            self.suspects.pop(node, None)
+            co.on_liveliness(node, True)
+            co.link_seen(self.node, node)
+        elif node in co.robots:
+            self.suspects[node] = self.world.scheduler.wall()
+        else:
+            co.on_liveliness(node, False)
+
+    def _settle_suspects(self) -> None:
+        """Robots out of sight: a cut link (relayed to) or gone (`BaseStation._settle_suspects`)."""
+        co, now = self.co, self.world.scheduler.wall()
+        for node, since in sorted(self.suspects.items()):
+            if now - since < SUSPECT_SETTLE_S:
+                continue
+            del self.suspects[node]
+            if self.relayer.reachable(node):
+                co.link_lost(self.node, node, detected_unix=since)
+            else:
+                co.on_liveliness(node, False, detected_unix=since)
+        for node in sorted(co.present):
+            if node not in self.relayer.direct and node not in self.suspects and not self.relayer.reachable(node):
+                co.on_liveliness(node, False)
+
+    def _received(self, key: str, payload: bytes) -> None:
+        rt, co, keys = self.rt, self.co, self.keys
+        relayed = key == keys.node_relay(self.node)
+        if relayed:
+            try:
+                inner = self.relayer.on_relay(payload)
+            except ProtocolError as exc:
+                rt.count("garbled", f"on {key}: {exc}")
+                return
+            if inner is None:
+                return
+            key, payload = inner
+        if key == keys.plan:
+            try:
+                plan = decode(payload, PlanUpdate)
+            except ProtocolError:
+                plan = None
+            if plan is not None and plan.leader != co.leader:
+                co.on_rival_plan(plan)
+        if rt.on_message(key, payload):
+            return
+        try:
+            if key == keys.inbox:
+                msg = decode(payload, INBOX_MESSAGES)
+                if isinstance(msg, Prepared):
+                    co.on_prepared(msg)
+                elif isinstance(msg, StageReady):
+                    co.on_stage_ready(msg)
+                elif isinstance(msg, StageFailed):
+                    co.on_stage_failed(msg)
+            elif keys.node_of_status(key) is not None:
+                self._status(key, decode(payload, NodeStatus), relayed)
+            else:
+                rt.count("unexpected-key", key)
+        except ProtocolError as exc:
+            rt.count("garbled", f"on {key}: {exc}")
+
+    def _status(self, key: str, status: NodeStatus, relayed: bool) -> None:
+        rt, co = self.rt, self.co
+        if status_problem(self.keys, key, status.node, status.t_unix, self.world.scheduler.wall()) is not None:
+            rt.count("forged", key)
+            return
+        if status.t_unix <= self.status_t.get(status.node, 0.0) or status.node == self.node:
+            return
+        self.status_t[status.node] = status.t_unix
+        self.relayer.on_status(status)
+        if not relayed:
+            self.relayer.on_direct(status.node)
+        rt.on_peer_status(status)
+        if status.node in co.robots and status.node not in co.present and self.relayer.reachable(status.node):
+            co.on_liveliness(status.node, True)
+        co.on_rival_status(status)
+        if co.mission is None:
+            co.learn(status)
+        elif status.plan_epoch >= 0 and (status.node in co.present or status.node in self.relayer.direct):
+            co.on_status(status)
+
+    def _turn(self) -> float:
+        rt, co, w = self.rt, self.co, self.world
+        self._settle_suspects()
+        co.on_timer()
+        if co.stepped_down is not None:
+            w.stepped_down(self)
+            return math.inf
+        if co.mission is not None and w.base_state.get("incarnation") != co.incarnation:
+            w.base_state["incarnation"] = co.incarnation  # the host remembers it (basestation.json)
+        if rt.started:
+            rt.on_timer()
+        now = w.scheduler.wall()
+        if now >= self.next_status:
+            self.next_status = max(self.next_status + w.status_period_s, now)
+            if rt.started:
+                self.publish_status()
+        wake = [self.next_status, co.next_deadline_unix()]
+        wake += [t + SUSPECT_SETTLE_S for t in self.suspects.values()]
+        if rt.started and (t := rt.next_deadline()) is not None:
+            wake.append(rt.clock.wall_at(t))
+        return min(wake)
+
+    def publish_status(self) -> None:
+        rt, co, w = self.rt, self.co, self.world
+        status = rt.status(w.status_window_s * rt.clock.speed)
+        rt.sink_store.commit()
+        self.commit_outputs()
+        rt.settle_held_store()
+        key, payload = self.keys.status(self.node), encode(status)
+        self.bus.publish(key, payload, reliable=False)
+        alive = co.alive_nodes()
+        self.relayer.send_beyond_sight([r for r in co.robots if r in alive], key, payload, reliable=False)
+        self._status_sent(status)

@@ -1,0 +1,30 @@
+"""CI's sweep of the simulated team (`autopower sim`): a fixed set of seeds, each drawing its own
+faults, each judged by the oracle. Every seed must pass: one that fails is a finding (shrink it with
+``autopower sim --seed N ... --shrink``, find the cause, pin a runtime bug in
+tests/unit/test_teamsim_findings.py).
+
+The kinds whose runtime bugs are still open are left out here, and so are the seeds that found one
+(they are pinned there); put them back once the finding is fixed.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from autopower.teamsim import KINDS
+from autopower.teamsim.sweep import Sweep, sweep
+
+OPEN_FINDINGS = ("loss", "duplicate")  # test_teamsim_findings.py: the gate's gap timer, a sink's duplicates
+PLAN = Sweep(mission_s=30.0, n_faults=4, quiet_s=20.0, kinds=tuple(k for k in KINDS if k not in OPEN_FINDINGS))
+# seeds that found a runtime bug still open: each one is kept in test_teamsim_findings.py instead
+FOUND = (90, 118)
+SEEDS = [seed for seed in range(202) if seed not in FOUND]
+
+
+@pytest.mark.slow
+def test_every_seed_of_the_sweep_passes():
+    verdicts = sweep(PLAN, SEEDS, jobs=min(2, os.cpu_count() or 1))
+    failed = [f"seed {v.seed}: {v.first} ({PLAN.command(v.seed)})" for v in verdicts if not v.ok]
+    assert not failed, f"{len(failed)} of {len(SEEDS)} seeds failed:\n" + "\n".join(failed)

@@ -1,0 +1,199 @@
+"""The simulated team (`autopower.teamsim`): the network's rules, determinism, an oracle that can
+fail, shrinking, the stand-in components."""
+
+from __future__ import annotations
+
+import logging
+import re
+
+import msgpack
+import pytest
+
+from autopower.model.loading import load_scenario
+from autopower.node.acknowledging import Acknowledging
+from autopower.node.meter import BatteryMeter
+from autopower.teamsim import Fault, SimConfig, draw, run, shells
+from autopower.teamsim.components import StandInComponent, StandInSource, expected_output
+from autopower.teamsim.network import LATENCY_S, LEASE_S, RECONNECT_S, SimNetwork
+from autopower.teamsim.scheduler import Scheduler
+from autopower.teamsim.shrink import shrink
+
+SC = load_scenario("paper-fig7")
+CUT_INTO_LAPTOP = Fault(kind="cut", t=20.0, duration=0.5, a="laptop", b="r2")
+
+
+@pytest.fixture(autouse=True)
+def no_logs():
+    logging.disable(logging.CRITICAL)
+    yield
+    logging.disable(logging.NOTSET)
+
+
+def config(seed: int = 1, faults=(), mission_s: float = 30.0, quiet_s: float = 15.0) -> SimConfig:
+    return SimConfig(scenario=SC, seed=seed, faults=tuple(faults), mission_s=mission_s, quiet_s=quiet_s)
+
+
+# ---- the network ---------------------------------------------------------------------------------
+class Ear:
+    """An endpoint that writes down what reaches it."""
+
+    frozen = False
+
+    def __init__(self, scheduler: Scheduler):
+        self.scheduler = scheduler
+        self.got: list[tuple[float, str, bytes]] = []
+        self.sights: list[tuple[float, str, bool]] = []
+
+    def subscribes(self, key: str) -> bool:
+        return True
+
+    def arrive(self, sender: str, key: str, payload: bytes) -> None:
+        self.got.append((self.scheduler.now, sender, payload))
+
+    def sight(self, peer: str, alive: bool) -> None:
+        self.sights.append((self.scheduler.now, peer, alive))
+
+
+def two_nodes():
+    scheduler = Scheduler()
+    net = SimNetwork(SC, scheduler, rng=None)
+    laptop, r2 = Ear(scheduler), Ear(scheduler)
+    net.attach("laptop", laptop)
+    net.attach("r2", r2)
+    scheduler.run_until(RECONNECT_S)
+    return scheduler, net, laptop, r2
+
+
+def test_sessions_open_after_the_reconnect_delay():
+    _, net, laptop, r2 = two_nodes()
+    assert net.connected("laptop", "r2")
+    assert laptop.sights == [(RECONNECT_S, "r2", True)] and r2.sights == [(RECONNECT_S, "laptop", True)]
+
+
+def test_a_message_takes_its_airtime_at_the_medium_rate_then_the_latency():
+    scheduler, net, laptop, r2 = two_nodes()
+    frame = bytes(230_415)
+    net.transmit("r2", "laptop", "k", frame)
+    net.transmit("r2", "laptop", "k", b"small")  # queued behind the frame on the same direction
+    scheduler.run_until(2.0)
+    airtime = len(frame) * 8 / 54_000_000  # 802.11a: the scenario's first laptop-robot medium
+    (t1, _, _), (t2, _, small) = laptop.got
+    assert t1 == pytest.approx(RECONNECT_S + airtime + LATENCY_S)
+    assert t2 == pytest.approx(t1 + len(b"small") * 8 / 54_000_000) and small == b"small"
+
+
+def test_a_cut_loses_what_is_in_flight_and_a_lease_later_both_ends_lose_each_other():
+    scheduler, net, laptop, r2 = two_nodes()
+    net.transmit("r2", "laptop", "k", bytes(230_415))  # 34 ms of airtime
+    net.set_cut("r2", "laptop", True)  # one way only
+    scheduler.run_until(RECONNECT_S + LEASE_S - 0.01)
+    assert laptop.got == [] and net.connected("laptop", "r2")  # lost, silently: nobody told yet
+    scheduler.run_until(RECONNECT_S + LEASE_S + 0.01)
+    assert not net.connected("laptop", "r2")
+    assert laptop.sights[-1][1:] == ("r2", False) and r2.sights[-1][1:] == ("laptop", False)
+    net.set_cut("r2", "laptop", False)
+    scheduler.run_until(RECONNECT_S + LEASE_S + 0.01 + RECONNECT_S)
+    assert net.connected("laptop", "r2") and laptop.sights[-1][1:] == ("r2", True)
+
+
+def test_a_cut_shorter_than_the_lease_keeps_the_session():
+    scheduler, net, laptop, r2 = two_nodes()
+    net.set_cut("laptop", "r2", True)
+    scheduler.run_until(RECONNECT_S + LEASE_S / 2)
+    net.set_cut("laptop", "r2", False)
+    scheduler.run_until(RECONNECT_S + 3 * LEASE_S)
+    assert net.connected("laptop", "r2") and len(laptop.sights) == 1
+
+
+def test_nothing_is_sent_without_a_session_and_a_process_that_ends_closes_its_sessions_at_once():
+    scheduler, net, laptop, r2 = two_nodes()
+    net.detach("r2")
+    assert laptop.sights[-1] == (RECONNECT_S, "r2", False)
+    net.transmit("laptop", "r2", "k", b"x")
+    assert net.stats.unsent == 1
+
+
+# ---- whole runs ----------------------------------------------------------------------------------
+def test_a_fault_free_run_delivers_every_output_once_and_passes():
+    result = run(config())
+    assert result.ok, result.violations
+    assert all(c.produced > 0 and c.delivered == c.produced and c.lost == 0 for c in result.chains.values())
+
+
+def test_the_same_seed_gives_the_same_trace_and_another_seed_another():
+    _, faults = draw(SC, 3, 4, 30.0)
+    first, again = run(config(3, faults)), run(config(3, faults))
+    assert first.trace_sha256 == again.trace_sha256 and first.events == again.events
+    assert run(config(4, faults)).trace_sha256 != first.trace_sha256  # the network's draws differ
+
+
+def test_the_oracle_finds_outputs_lost_when_custody_resends_nothing(monkeypatch):
+    assert run(config(faults=[CUT_INTO_LAPTOP])).ok  # custody resends what the cut lost
+    monkeypatch.setattr(Acknowledging, "resend_lost", lambda self, now: None)
+    result = run(config(faults=[CUT_INTO_LAPTOP]))
+    lost = [v for v in result.violations if v.invariant == "exactly-once"]
+    assert lost and "lost" in lost[0].detail and sum(c.lost for c in result.chains.values()) > 0
+    assert lost[0].t == pytest.approx(20.0, abs=1.0)  # where it shows: an output produced around the cut
+
+
+def test_the_oracle_finds_an_output_delivered_twice(monkeypatch):
+    output = shells.Shell._output
+
+    def twice(self, chain, run_, seq, data):
+        output(self, chain, run_, seq, data)
+        if (chain, seq) == ("Blob-2", 40):
+            output(self, chain, run_, seq, data)
+
+    monkeypatch.setattr(shells.Shell, "_output", twice)
+    result = run(config())
+    assert [v.invariant for v in result.violations] == ["exactly-once"]
+    assert "Blob-2 run 0 seq 40 delivered again" in result.violations[0].detail
+    assert result.chains["Blob-2"].duplicated == 1
+
+
+def test_shrinking_keeps_only_the_fault_that_fails(monkeypatch):
+    monkeypatch.setattr(Acknowledging, "resend_lost", lambda self, now: None)
+    harmless = [Fault(kind="reorder", t=12.0, duration=3.0, a="r1", b="r3", p=0.01),
+                Fault(kind="freeze", t=14.0, duration=0.3, a="r3"),
+                Fault(kind="migrate", t=25.0, a="Loc-1", b="r1")]
+    faults, result = shrink(config(faults=[*harmless[:2], CUT_INTO_LAPTOP, harmless[2]]), "exactly-once")
+    assert [f.kind for f in faults] == ["cut"] and faults[0].duration <= CUT_INTO_LAPTOP.duration
+    assert result is not None and not result.ok
+
+
+# ---- stand-in components --------------------------------------------------------------------------
+def test_stand_ins_compute_what_the_oracle_expects_and_refuse_a_skipped_input():
+    chain = SC.chain("Blob-2")
+    source, stage = StandInSource("Blob", "r2", 0), StandInComponent("Blob", "r2", 0)
+    assert stage.run(source.produce(0)) == expected_output(chain, 0)
+    moved = StandInComponent("Blob", "r2", 0)
+    moved.import_state(stage.export_state())
+    assert moved.run(source.produce(1)) == expected_output(chain, 1)
+    with pytest.raises(ValueError, match="expected seq 2, got 3"):
+        moved.run(source.produce(3))
+    with pytest.raises(ValueError, match="r3"):
+        StandInComponent("Blob", "r2", 0).run(msgpack.packb(["r3", 0]))
+
+
+def test_the_oracle_finds_energy_a_restarted_robot_did_not_charge(monkeypatch):
+    """A crashed robot draws idle current while it is down: a restart that forgot it breaks the books."""
+    crash = Fault(kind="crash", t=15.0, duration=3.0, a="r2")
+    assert run(config(faults=[crash])).ok
+    restore = BatteryMeter.restore
+
+    def without_downtime(self, saved):
+        now = self.t
+        restore(self, saved)
+        self.t = now  # the time it was down is never charged
+
+    monkeypatch.setattr(BatteryMeter, "restore", without_downtime)
+    result = run(config(faults=[crash]))
+    assert [v.invariant for v in result.violations] == ["energy"] and "r2: idle CPU" in result.violations[0].detail
+
+
+def test_the_cli_names_every_fault_kind():
+    from autopower.cli.sim import sim
+    from autopower.teamsim import KINDS
+
+    said = set(re.findall(r"[a-z-]+", next(p.help for p in sim.params if p.name == "kinds")))
+    assert set(KINDS) <= said
