@@ -80,7 +80,7 @@ class SequenceGate(Generic[T]):
     consumed_elsewhere: int = 0  # seqs skipped because their producer says another instance had them
     max_pending: int = GATE_MAX_PENDING
     max_gap_s: float = GATE_MAX_GAP_S
-    _gap_since: float | None = None  # when the oldest open gap was first seen (wall seconds)
+    _gap_since: float | None = None  # since when the oldest open gap has been the oldest (wall seconds)
     catch_up_below: int | None = None  # started without state below its first input: these are recomputed
     resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first offered as a resend
 
@@ -118,7 +118,9 @@ class SequenceGate(Generic[T]):
         if not self.pending:
             self._gap_since = None
             return ready
-        if self._gap_since is None:
+        if self._gap_since is None or ready:
+            # a gap is timed from when it became the oldest: inputs released here filled the one
+            # that was, so what still waits is behind a younger gap, whose resend may be on its way
             self._gap_since = now
         open_s = now - self._gap_since if now is not None and self._gap_since is not None else 0.0
         if len(self.pending) > self.max_pending or open_s > self.max_gap_s:

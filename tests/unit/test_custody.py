@@ -122,6 +122,19 @@ def test_gate_reports_its_gaps_and_gives_up_a_gap_that_stays_open():
     assert SequenceGate().report(0, 1) is None  # starts wherever its first input is
 
 
+def test_gate_times_a_gap_from_when_it_became_the_oldest_not_from_the_first_gap_it_had():
+    """Under steady loss a gate always has some gap open; each is given its own time for its resend."""
+    gate = SequenceGate(next_seq=0, max_gap_s=10.0)
+    gate.offer(0, 0, now=0.0)
+    gate.offer(2, 2, now=1.0)  # seq 1 missing from t=1
+    gate.offer(4, 4, now=2.0)  # seq 3 missing too
+    assert gate.offer(1, 1, now=8.0) == [1, 2]  # seq 1's resend came after 7 s; seq 3 is now the oldest gap
+    assert gate.offer(5, 5, now=12.0) == [] and gate.skipped == 0  # 11 s after the first gap: seq 3 waits on
+    assert gate.offer(3, 3, now=15.0) == [3, 4, 5]
+    gate.offer(7, 7, now=16.0)  # seq 6 never comes
+    assert gate.offer(8, 8, now=26.5) == [7, 8] and gate.skipped == 1  # given up 10.5 s after it was the oldest
+
+
 def test_sink_ledger_tells_redundant_resends_from_real_duplicates():
     ledger = SinkLedger()
     assert ledger.report() is None
