@@ -10,6 +10,7 @@ import logging
 from dataclasses import dataclass
 
 from autopower.protocol import (
+    INBOX_MESSAGES,
     Assign,
     LinkInfo,
     MigrateOut,
@@ -19,6 +20,7 @@ from autopower.protocol import (
     Release,
     StageFailed,
     StageReady,
+    decode,
     encode,
 )
 
@@ -99,6 +101,17 @@ class Placing:
                 running[chain.name] = self.runs[chain.name]
                 self.run_live[chain.name] = True
         self.running = running
+
+    def on_inbox(self, payload: bytes) -> None:
+        """An answer to an order, as it arrives on the base station's inbox (raises ProtocolError
+        for anything else: the caller counts it)."""
+        msg = decode(payload, INBOX_MESSAGES)
+        if isinstance(msg, Prepared):
+            self.on_prepared(msg)
+        elif isinstance(msg, StageReady):
+            self.on_stage_ready(msg)
+        else:
+            self.on_stage_failed(msg)
 
     def on_prepared(self, msg: Prepared) -> None:
         m = self.migrations.get(msg.stage)

@@ -30,15 +30,11 @@ from autopower.model.scenario import Scenario
 from autopower.node import NodeRuntime
 from autopower.policies import Policy
 from autopower.protocol import (
-    INBOX_MESSAGES,
     OPERATOR_COMMANDS,
     Keys,
     NodeStatus,
     OperatorReply,
     PlanUpdate,
-    Prepared,
-    StageFailed,
-    StageReady,
     decode,
     encode,
 )
@@ -291,13 +287,7 @@ class BaseStation:
             event_key = key
             try:
                 if event_key == keys.inbox:
-                    msg = decode(payload, INBOX_MESSAGES)
-                    if isinstance(msg, Prepared):
-                        co.on_prepared(msg)
-                    elif isinstance(msg, StageReady):
-                        co.on_stage_ready(msg)
-                    elif isinstance(msg, StageFailed):
-                        co.on_stage_failed(msg)
+                    co.on_inbox(payload)
                 elif keys.node_of_status(event_key) is not None:
                     status = decode(payload, NodeStatus)
                     problem = status_problem(keys, event_key, status.node, status.t_unix, time.time())

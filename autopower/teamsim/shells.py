@@ -24,13 +24,9 @@ from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
 from autopower.node.stages import Lifecycle
 from autopower.protocol import (
-    INBOX_MESSAGES,
     NodeStatus,
     PlanUpdate,
-    Prepared,
     Release,
-    StageFailed,
-    StageReady,
     decode,
     encode,
 )
@@ -383,13 +379,7 @@ class BaseShell(Shell):
             return
         try:
             if key == keys.inbox:
-                msg = decode(payload, INBOX_MESSAGES)
-                if isinstance(msg, Prepared):
-                    co.on_prepared(msg)
-                elif isinstance(msg, StageReady):
-                    co.on_stage_ready(msg)
-                elif isinstance(msg, StageFailed):
-                    co.on_stage_failed(msg)
+                co.on_inbox(payload)
             elif keys.node_of_status(key) is not None:
                 self._status(key, decode(payload, NodeStatus), relayed)
             else:

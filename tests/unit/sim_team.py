@@ -13,7 +13,7 @@ import msgpack
 
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.node.runtime import NodeRuntime
-from autopower.protocol import INBOX_MESSAGES, Keys, Packet, Prepared, StageFailed, StageReady, decode
+from autopower.protocol import Keys, Packet, decode
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.clock import ManualClock
 
@@ -120,13 +120,7 @@ class SimTeam:
         self.pump()
 
     def _inbox(self, key, payload):
-        msg = decode(payload, INBOX_MESSAGES)
-        if isinstance(msg, Prepared):
-            self.coordinator.on_prepared(msg)
-        elif isinstance(msg, StageReady):
-            self.coordinator.on_stage_ready(msg)
-        elif isinstance(msg, StageFailed):
-            self.coordinator.on_stage_failed(msg)
+        self.coordinator.on_inbox(payload)
 
     def pump(self) -> None:
         while self.hub.pending:
