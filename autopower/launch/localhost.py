@@ -468,13 +468,19 @@ class LocalTeam:
         return {n: c for n, c in self.exit_codes.items() if n not in self.expected_exits}
 
     def _remove_resume_files(self) -> None:
-        """The agents' resume states (`autopower.agent.resume`) end with the team's mission."""
+        """The agents' resume states (`autopower.agent.resume`) end with the team's mission, and so
+        does the team's folder the processes made (an `up`'s session file keeps it until `up` ends)."""
         import shutil
 
         from autopower.agent.resume import AGENTS_DIR
         from autopower.basestation.operator import TEAMS_DIR, state_dir
 
-        shutil.rmtree(state_dir() / TEAMS_DIR / self.team / AGENTS_DIR, ignore_errors=True)
+        folder = state_dir() / TEAMS_DIR / self.team
+        shutil.rmtree(folder / AGENTS_DIR, ignore_errors=True)
+        try:
+            folder.rmdir()
+        except OSError:  # not empty (`up`'s session file, removed when it ends) or already gone
+            pass
 
     def __enter__(self) -> "LocalTeam":
         try:

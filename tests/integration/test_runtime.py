@@ -149,6 +149,19 @@ def test_a_garbled_message_on_every_key_is_survived(team):
     assert all("internal-error" not in e for e in errors_of(later).values())
 
 
+def test_a_stopped_team_leaves_no_folder_behind(tmp_path):
+    from autopower.basestation.operator import TEAMS_DIR, state_dir
+
+    team = start_team(tmp_path)
+    folder = state_dir() / TEAMS_DIR / team.team
+    try:
+        team.wait_ready(60)
+        assert folder.is_dir()  # the processes keep their state there while the team runs
+    finally:
+        assert all(c == 0 for c in team.stop().values())
+    assert not folder.exists()
+
+
 def test_relay_forwarding_through_r1(tmp_path):
     team = start_team(tmp_path, topology="relay", media=("laptop-robot=802.11a", "robot-robot=802.11a"))
     try:
