@@ -138,6 +138,8 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.departed: set[str] = set()  # left or depleted: excluded until they come back
         self.statuses: dict[str, NodeStatus] = {}
         self.placement: dict[str, str] = {}
+        # the generation of the instance `placement` names (what a returning robot's is compared with)
+        self.placed_generation: dict[str, int] = {}
         self.target: dict[str, str] = {}
         self.migrations: dict[str, Migration] = {}
         self.pins: dict[str, str] = dict(config.pins)
@@ -454,17 +456,34 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             self.publish_plan()
 
     def _adopt_actual(self, status: NodeStatus) -> None:
-        """Take the stages a returning robot runs as placed there (and stop our stale copies)."""
+        """Take the stages a returning robot runs as placed there, when its instance is the newest.
+
+        Instances are ordered by generation everywhere: a robot stops its instance when it sees a
+        newer one running on a peer (`Agent._yield_to_newer`), and producers' custody follows the
+        newest instance's reports (`Custody.on_report`). So a returning robot's instance is adopted
+        (and our stale copy released) only when its generation is above the one running where the
+        placement says; an older one is released instead. Adopting the older one left the stage
+        running nowhere (its robot yielded to ours, which we had released) or, when the robot kept
+        it, with producers ignoring its acknowledgements for good.
+        """
         alive = self.alive_nodes()
-        for stage, state in status.hosted.items():
+        for stage, state in sorted(status.hosted.items()):
             if state != "running" or stage not in self.chain_of or stage in self.migrations:
                 continue
             previous = self.placement.get(stage)
             if previous == status.node:
                 continue
+            theirs = status.generations.get(stage, 0)
+            ours = self.placed_generation.get(stage) if previous in alive else None
+            if ours is not None and ours > theirs:
+                self.note(f"{stage} still runs on {status.node} as an older instance (generation {theirs}, "
+                          f"{previous}'s is {ours}); released there")
+                self._send(status.node, Release(stage=stage, generation=theirs))
+                continue
             # generations handed out without us are time-based: jump past them
             self.generation = max(self.generation, int(self.wall() * 1000) + 1)
             self.placement[stage] = status.node
+            self.placed_generation[stage] = theirs
             self.adopted += 1
             self.note(f"{stage} runs on {status.node} (agreed without the base station); adopted")
             if previous is not None and previous in alive:

@@ -158,6 +158,7 @@ class Placing:
             return
         del self.migrations[msg.stage]
         self.placement[msg.stage] = msg.node
+        self.placed_generation[msg.stage] = m.generation
         if m.from_node is None:
             self.assignments_done += 1
         else:

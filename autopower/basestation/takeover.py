@@ -105,6 +105,7 @@ class TakingOver:
         kept = self.adopt_operator_settings(newest.plan_operator) if newest.plan_operator else []
         placement, stale = _placement_of(reports, set(self.chain_of))
         self.placement = placement
+        self.placed_generation = {stage: reports[node].generations.get(stage, 0) for stage, node in placement.items()}
         self.target = dict(placement)
         for chain in self.scenario.chains:
             runs = [s.sources[chain.name].run for s in reports.values() if chain.name in s.sources]

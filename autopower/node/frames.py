@@ -338,11 +338,15 @@ class Frames:
             if ledger.redundant_total != redundant:
                 self.tally("redundant-output")  # a resent copy of what arrived late: dropped, as designed
                 return
+            if frame.run >= ledger.run:
+                # The operator gets each output once: any other second copy means it was produced
+                # (or carried) twice. Counted (the ledger's `duplicates_total` goes with the status
+                # into the recording and the replay's invariants), never handed on.
+                self.count("duplicate-output", f"{chain.name} run {frame.run} seq {frame.seq}", logging.ERROR)
+                return
             # an older run's output, late or resent after its chain started over, is no error (its
-            # run is over at this sink); either is still handed on, so the recording shows it
-            stale = frame.run < ledger.run
-            self.count("stale-output" if stale else "duplicate-output", f"{chain.name} run {frame.run} seq {frame.seq}",
-                       logging.INFO if stale else logging.ERROR)
+            # run is over at this sink, whose ledger no longer knows it): handed on, the recording shows it
+            self.count("stale-output", f"{chain.name} run {frame.run} seq {frame.seq}", logging.INFO)
         elif frame.attempt:
             self.tally("recovered-outputs")  # lost in flight, delivered by a resend
         self.last_output[chain.name] = frame.data()

@@ -96,6 +96,9 @@ class SimNetwork:
         self.pairs: dict[frozenset[str], Pair] = {frozenset(d): Pair() for d in self.directions}
         self.endpoints: dict[str, Endpoint] = {}
         self.stats = NetStats()
+        # second copies that reached their receiver, per (receiver, key): the evidence a sink's count
+        # of duplicated outputs is checked against (`World.final_checks`)
+        self.copies_arrived: dict[tuple[str, str], int] = {}
 
     # ---- processes ---------------------------------------------------------------------------
     def attach(self, node: str, endpoint: Endpoint) -> None:
@@ -187,9 +190,10 @@ class SimNetwork:
         self.scheduler.at(arrival, self._arrive, sender, receiver, key, payload, target)
         if d.dup and self.rng.random() < d.dup:
             self.stats.duplicated += 1
-            self.scheduler.at(arrival + DUPLICATE_GAP_S, self._arrive, sender, receiver, key, payload, target)
+            self.scheduler.at(arrival + DUPLICATE_GAP_S, self._arrive, sender, receiver, key, payload, target, True)
 
-    def _arrive(self, sender: str, receiver: str, key: str, payload: bytes, target: Endpoint) -> None:
+    def _arrive(self, sender: str, receiver: str, key: str, payload: bytes, target: Endpoint,
+                copy: bool = False) -> None:
         if self.endpoints.get(receiver) is not target or not self.connected(sender, receiver):
             self.stats.cut += 1
             return
@@ -197,4 +201,6 @@ class SimNetwork:
             self.stats.cut += 1
             return
         self.stats.delivered += 1
+        if copy:
+            self.copies_arrived[(receiver, key)] = self.copies_arrived.get((receiver, key), 0) + 1
         target.arrive(sender, key, payload)

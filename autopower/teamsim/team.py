@@ -211,6 +211,7 @@ class World:
         for shell in self.shells.values():
             if shell.up:
                 shell.commit_outputs()  # alive at the end: its next status commits them
+        self._duplicates_carried(now, event)
         base = self.shells.get(self.scenario.basestation)
         if not (isinstance(base, BaseShell) and base.up and base.co.mission is not None):
             self.ledger.violate("newest-plan", "no base station runs the mission at the end", now, event)
@@ -240,6 +241,21 @@ class World:
         for node, shell in sorted(self.shells.items()):
             if node != self.scenario.basestation and shell.up and shell.rt.meter is not None:
                 self._energy(node, shell)
+
+    def _duplicates_carried(self, now: float, event: int) -> None:
+        """A sink hands each output on once (`Frames._sink`), so the oracle's deliveries cannot show an
+        output produced twice; the sink's count of second copies can. Each must be a copy the network
+        made (a duplicating link), not one the team produced."""
+        for node, shell in sorted(self.shells.items()):
+            if not shell.up:
+                continue
+            counted = sum(ledger.duplicates_total for _, ledger in sorted(shell.rt.sinks.items()))
+            carried = sum(self.network.copies_arrived.get((node, key), 0)
+                          for key in (self.keys.node_data(node), self.keys.node_relay(node)))
+            if counted > carried:
+                self.ledger.violate("exactly-once", f"{node}'s sinks counted {counted} second copies of outputs, "
+                                    f"the network duplicated {carried} message(s) to it: an output was produced "
+                                    "twice", now, event)
 
     def _energy(self, robot: str, shell: Shell) -> None:
         rt = shell.rt

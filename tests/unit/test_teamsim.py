@@ -151,6 +151,29 @@ def test_the_oracle_finds_an_output_delivered_twice(monkeypatch):
     assert result.chains["Blob-2"].duplicated == 1
 
 
+def test_a_sink_hands_a_second_copy_on_never_and_the_oracle_checks_its_count_against_the_network(monkeypatch):
+    """A duplicating link's copies are counted at the sink and not delivered again (a pass); a copy
+    the network did not make (here: a link that repeats messages without saying so, standing in for
+    an output produced twice) shows as the sink's count exceeding the network's copies."""
+    twice = Fault(kind="duplicate", t=12.0, duration=10.0, a="laptop", b="r2", p=0.5)
+    carried = run(config(faults=[twice]))
+    assert carried.ok, carried.violations
+    assert carried.network["duplicated"] > 0 and all(c.duplicated == 0 for c in carried.chains.values())
+
+    arrive = SimNetwork._arrive
+
+    def unannounced(self, sender, receiver, key, payload, target, copy=False):
+        arrive(self, sender, receiver, key, payload, target, copy)
+        if copy:
+            arrive(self, sender, receiver, key, payload, target, False)  # one more, not counted as a copy
+
+    monkeypatch.setattr(SimNetwork, "_arrive", unannounced)
+    result = run(config(faults=[twice]))
+    produced_twice = [v for v in result.violations if v.invariant == "exactly-once"]
+    assert produced_twice and "r2's sinks counted" in produced_twice[0].detail, result.violations
+    assert all(c.duplicated == 0 for c in result.chains.values())  # the operator still got each output once
+
+
 def test_shrinking_keeps_only_the_fault_that_fails(monkeypatch):
     monkeypatch.setattr(Acknowledging, "resend_lost", lambda self, now: None)
     harmless = [Fault(kind="reorder", t=12.0, duration=3.0, a="r1", b="r3", p=0.01),
