@@ -23,14 +23,12 @@ from autopower.node.held_store import HeldStore
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
 from autopower.node.stages import Lifecycle
+from autopower.node.subgroup_rounds import RoundSettings, SubgroupRounds
 from autopower.protocol import (
     Assign,
     Keys,
-    MigrateOut,
     NodeStatus,
     Release,
-    SubgroupMove,
-    SubgroupPropose,
     decode,
     encode,
 )
@@ -47,7 +45,6 @@ from autopower.runtime.cadence import (
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
-from autopower.runtime.subgroup import SubgroupAgreement
 
 log = logging.getLogger(__name__)
 
@@ -97,22 +94,16 @@ class Agent:
         self.runtime: NodeRuntime | None = None
         self.resume: ResumeFile | None = None
         self.relayer: Relayer | None = None
-        self.agreement: SubgroupAgreement | None = None
+        self.rounds: SubgroupRounds | None = None
         self.statuses: dict = {}  # robot -> its last NodeStatus (battery for subgroup decisions)
-        self._base_lost_at: float | None = None
         self._started_unix = time.time()  # a restarted agent waits for a plan from then (`_resume_alone`)
         self._resumed_alone = False
-        self._subgroup_done: tuple | None = None  # (members, plan order, where stages run) handled
-        self._subgroup_retry_at = 0.0  # after an aborted round: not before fresh statuses are in
         self._heard_direct: dict[str, float] = {}  # node -> wall time of its last status received directly
-        # stage -> (member our plan puts it on, mission time since we know it): see `_lost_on`
-        self._placed_since: dict[str, tuple[str, float]] = {}
         self._tokens: set[str] = set()  # nodes whose liveliness token we see
         self._silent: set[str] = set()  # nodes with a token but no direct status for too long
         self._announced: dict[str, float] = {}  # node -> when its next status is due at the latest (it said)
         self.cadence = StatusCadence(config.status_period_s, config.status_rest_period_s)
         self._asleep_at_rest = False  # the loop sleeps past the status period (`run`)
-        self.subgroup_log: list[dict] = []
         self.stop_reason: str | None = None
 
     def __enter__(self) -> "Agent":
@@ -138,10 +129,14 @@ class Agent:
             self.runtime.resume_from = self.resume.load()
             self.runtime.on_produced = lambda r: self.resume.note_source(r.chain.name, r.run, r.seq, r.missed,
                                                                          r.produced_total, r.missed_stopped)
-        self.agreement = SubgroupAgreement(node=robot, bus=bus, keys=keys, now=time.time,
-                                           on_commit=self._subgroup_commit, on_abort=self._subgroup_aborted,
-                                           objection=self._subgroup_objection,
-                                           timeout_s=self.config.subgroup_timeout_s, signing=self.signing)
+        cfg = self.config
+        self.rounds = SubgroupRounds(
+            runtime=self.runtime, scenario=scenario, bus=bus, keys=keys, wall=time.time,
+            reachable=self.relayer.reachable, statuses=self.statuses,
+            settings=RoundSettings(enabled=cfg.subgroup, settle_s=cfg.subgroup_settle_s,
+                                   timeout_s=cfg.subgroup_timeout_s, status_period_s=cfg.status_period_s),
+            publish_status=self.publish_status, save_resume=self.save_resume, started_unix=self._started_unix,
+            signing=self.signing)
         self._handles.append(bus.subscribe(keys.node_data(robot), self._on_data))
         for key in (keys.node_control(robot), keys.plan, keys.node_relay(robot), keys.status_all, keys.subgroup):
             self._handles.append(bus.subscribe(key, self.events.on_message))
@@ -217,7 +212,7 @@ class Agent:
         self.runtime.on_liveliness(node, visible)
         self.relayer.on_liveliness(node, visible)
         if not visible:
-            self.agreement.on_member_lost(node)
+            self.rounds.on_member_lost(node)
         # tell the others now, not at the next tick: the base station tells a dead
         # robot from a cut link by what the other robots still see
         self.publish_status()
@@ -269,7 +264,7 @@ class Agent:
                 return
             key, payload = inner
         if key == self.keys.subgroup:
-            self.agreement.on_message(payload)
+            self.rounds.on_message(payload)
             return
         if self.keys.node_of_status(key) is not None:
             try:
@@ -330,81 +325,9 @@ class Agent:
                 rt.send_frame(frame, status.node)
             self.publish_status()
 
-    # ---- subgroup (no base station) ---------------------------------------------------------------
+    # ---- subgroup (no base station): `node.subgroup_rounds` ------------------------------------------
     def _subgroup_tick(self) -> None:
-        """Base station out of reach for a while: the robots in reach reallocate among themselves."""
-        rt, cfg = self.runtime, self.config
-        self.agreement.on_timer()
-        if not cfg.subgroup or not rt.started or rt.plan is None:
-            return
-        base = cfg.scenario.basestation
-        if self.relayer.reachable(base):
-            self._base_lost_at = None
-            self._model_out_of_reach(frozenset())
-            return
-        robots = [r.name for r in cfg.scenario.robots]
-        members = tuple(sorted({cfg.robot} | {r for r in robots if self.relayer.reachable(r)}))
-        self._model_out_of_reach(frozenset({base, *robots}) - set(members))
-        now = time.time()
-        if self._base_lost_at is None:
-            self._base_lost_at = now
-            return
-        if (now - self._base_lost_at < cfg.subgroup_settle_s or members[0] != cfg.robot
-                or self.agreement.busy or now < self._subgroup_retry_at):
-            return
-        running = self._running_placement(members)
-        # The same members and plan are not the same situation: another leader's round (rounds keep
-        # the epoch) may have moved a stage out of this subgroup since ours, to a robot cut off
-        # since. Keyed on members and plan alone, that stage would never be restarted. Where the
-        # stages run is part of what a round handled.
-        key = (members, rt.plan_order, tuple(sorted(running.items())))
-        if self._subgroup_done == key:
-            return
-        self._subgroup_done = key
-        from autopower.policies import subgroup_reallocation
-
-        network = rt.network
-        for r in robots:
-            network = network.without_link(r, base) if network.medium_between(r, base) else network
-        # a robot out of reach is cut off from every member (it would be a member through one that
-        # reached it): a stage it runs for a member's chain is stranded there, as on the laptop
-        for r in robots:
-            for m in members if r not in members else ():
-                network = network.without_link(r, m) if network.medium_between(r, m) else network
-        energies = {}
-        for r in members:
-            battery = rt.meter.battery_j if r == cfg.robot else getattr(self.statuses.get(r), "battery_j", None)
-            energies[r] = max(1e-6, battery) if battery is not None else cfg.scenario.robot(r).energy_j
-        try:
-            proposal = subgroup_reallocation(cfg.scenario, network, members, running, energies,
-                                             accounting=rt.mission.accounting)
-        except Exception as exc:  # a decision that cannot be made must not stop the robot
-            log.warning("agent %s: subgroup %s: no reallocation: %s", cfg.robot, ",".join(members), exc)
-            return
-        for reason in proposal.reasons:
-            log.info("agent %s: subgroup: %s", cfg.robot, reason)
-        if not proposal.changes_anything:
-            return
-        member_set = set(members)
-        moves = tuple(SubgroupMove(stage=m.stage, from_node=m.from_node if m.from_node in member_set else None,
-                                   to_node=m.to_node) for m in proposal.moves)
-        moves += tuple(SubgroupMove(stage=s, from_node=None, to_node=proposal.allocation[s])
-                       for s in proposal.started)
-        # every stage the members run after the round, not only the moved ones: a member that missed
-        # an earlier round learns where that round put things, and routes to them
-        placement = {s: h for s, h in proposal.allocation.items() if h in member_set}
-        placement.update({m.stage: m.to_node for m in moves})
-        # above any generation the base station handed out; it jumps past these when it returns
-        generation = int(time.time() * 1000)
-        self.agreement.propose(members, placement, moves, generation, "; ".join(proposal.reasons[:1]))
-
-    def _model_out_of_reach(self, nodes: frozenset[str]) -> None:
-        """Price the model without the nodes out of reach; a changed figure goes out at once."""
-        rt = self.runtime
-        model_w = rt.model_w
-        rt.set_out_of_reach(nodes)
-        if rt.model_w != model_w:
-            self.publish_status()
+        self.rounds.tick()
 
     def _resume_alone(self) -> None:
         """Restarted while the base station is out of reach: go on with the plan this robot ran.
@@ -430,7 +353,7 @@ class Agent:
         # reports running it now (a round while we were down moved it there: two instances would
         # each deliver its outputs). Left unstarted, the peers, whose plan says it runs here, never
         # restarted it either: our sources' frames piled up here for a stage nobody ran.
-        elsewhere = {stage: peer for peer in self.statuses if peer != me for stage in self._running_on(peer)}
+        elsewhere = {stage: peer for peer in self.statuses if peer != me for stage in self.rounds.running_on(peer)}
         if elsewhere:
             rt.override_placement(elsewhere, set())
         generation = int(time.time() * 1000)  # above the crashed instances' (a base station's or a round's)
@@ -445,131 +368,6 @@ class Agent:
                     "(epoch %d) until the base station returns; %s", me, plan.epoch,
                     f"restarted {', '.join(restarted)} here" if restarted else "no stage to restart here")
         self.publish_status()
-
-    def _running_placement(self, members: tuple[str, ...]) -> dict[str, str]:
-        """Where the stages run now, as the members see it: a round starts from this, not the plan alone.
-
-        A robot that was not in an earlier round (out of reach then, or not yet seen) never applied
-        it: its plan still names the hosts before it (the base station, say). Starting from that
-        would restart, elsewhere, a stage that round already placed on a member, and it would run
-        twice. So a stage whose planned host is outside the subgroup, but that a member runs (our
-        own stages, the others' last statuses), starts from that member.
-        """
-        placement = dict(self.runtime.plan.placement)
-        for member in members:
-            for stage in sorted(self._running_on(member)):
-                if placement.get(stage) not in members:
-                    placement[stage] = member
-        for stage, host in list(placement.items()):
-            if host in members and self._lost_on(stage, host):
-                del placement[stage]  # runs nowhere: the round restarts it (`subgroup_reallocation`)
-        return placement
-
-    def _lost_on(self, stage: str, member: str) -> bool:
-        """Our plan puts ``stage`` of a running chain on ``member``, whose process was restarted since
-        we learnt that, and which does not host it now: it runs nowhere.
-
-        A member killed between a round's commit and saving it comes back with the plan before the
-        round, so it does not restart what the round had put on it; the others' plans still name it as
-        the host, and no round would restart the stage until the base station came back. A restarted
-        process says so in its statuses (`down`: the mission time its predecessor's metering stopped,
-        at most a status period before it died), and what it hosts is all it has. Only a restart tells:
-        a stage on its way to a member in a migration is hosted nowhere for a while (the old host
-        reports it migrated, the new one has yet to take the state in). A member that died after voting
-        for the round but before its commit counts too: the margin is a round's time and a status
-        period.
-        """
-        rt, me = self.runtime, self.config.robot
-        chain, _ = rt.stage_index.get(stage, (None, 0))
-        if chain is None or chain.name not in rt.plan.running:
-            return False  # a stage of a chain the operator stopped runs nowhere on purpose
-        known = self._placed_since.get(stage)
-        if known is None or known[0] != member:
-            self._placed_since[stage] = known = (member, rt.now())
-        status = self.statuses.get(member)
-        if member == me or status is None or status.down is None or stage in (status.hosted or {}):
-            return False  # (our own restart goes on with the plan we saved: `_resume_alone`)
-        margin = (self.config.subgroup_timeout_s + self.config.status_period_s) * rt.clock.speed
-        return status.down[0] >= known[1] - margin
-
-    def _running_on(self, node: str) -> set[str]:
-        """The stages ``node`` runs or is starting: ours as hosted here, a peer's from its last status."""
-        rt = self.runtime
-        if node == self.config.robot:
-            hosted = {s: h.lifecycle.value for s, h in rt.hosted.items()}
-        else:
-            hosted = getattr(self.statuses.get(node), "hosted", None) or {}
-        return {stage for stage, state in hosted.items()
-                if state in (Lifecycle.RUNNING.value, Lifecycle.STARTING.value) and stage in rt.stage_index}
-
-    def _runs_here(self, stage: str) -> bool:
-        hosted = self.runtime.hosted.get(stage)
-        return hosted is not None and hosted.lifecycle in (Lifecycle.RUNNING, Lifecycle.STARTING)
-
-    def _subgroup_objection(self, proposal: SubgroupPropose) -> str | None:
-        """Why we vote no: the round would start elsewhere a stage that runs here (it would run twice)."""
-        me = self.config.robot
-        if self.runtime.plan is None:
-            # restarted, not yet going on with its saved plan (`_resume_alone`): it can apply
-            # nothing, and a commit here would fail while the round's leader took this robot for
-            # one running what the round put on it; the leader tries again later
-            return f"{me} has no plan yet (restarted {time.time() - self._started_unix:.1f} s ago)"
-        for move in proposal.moves:
-            if move.to_node != me and move.from_node != me and self._runs_here(move.stage):
-                return f"{move.stage} runs on {me}, the round starts it on {move.to_node}"
-        return None
-
-    def _subgroup_aborted(self, round_id: str, why: str) -> None:
-        """The leader tries again once fresh statuses are in (the same members and plan included)."""
-        self._subgroup_done = None
-        self._subgroup_retry_at = time.time() + self.config.status_period_s
-
-    def _subgroup_commit(self, proposal: SubgroupPropose) -> None:
-        rt, me = self.runtime, self.config.robot
-        base = self.config.scenario.basestation
-        for move in proposal.moves:
-            chain, _ = rt.stage_index[move.stage]
-            if move.from_node == me and move.to_node != me:
-                rt.on_migrate_out(MigrateOut(stage=move.stage, generation=proposal.generation, to_node=move.to_node))
-            elif move.from_node is None and move.to_node == me and self._runs_here(move.stage):
-                rt.tally("subgroup-restart-kept")  # it runs here already: a restart would redo its inputs
-            elif move.from_node is None and move.to_node == me:
-                run = rt.plan.running.get(chain.name, 0)
-                rt.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
-                                    resume_seq=None))
-        rt.override_placement(dict(proposal.placement), {base})
-        # the moved stages are placed now: a member restarted before this round started what the
-        # round put on it (`_lost_on`)
-        now = rt.now()
-        self._placed_since.update({m.stage: (m.to_node, now) for m in proposal.moves})
-        # kept at once, not with the next periodic status: killed in between, this robot came back
-        # with the plan before the round and did not restart what the round had put on it
-        self.save_resume()
-        if proposal.leader == me:
-            self._publish_subgroup_prediction(proposal)
-        self.publish_status()  # what runs here now, and the model's power for it, at once
-        rt.tally("subgroup-commits")
-        if proposal.leader == me and self.agreement.agreement_s:
-            rt.counters["subgroup-agreement-us"] = int(self.agreement.agreement_s[-1] * 1e6)
-        self.subgroup_log.append({"round": proposal.round_id, "members": list(proposal.members),
-                                  "moves": len(proposal.moves), "t_unix": time.time()})
-        log.info("agent %s: subgroup round %s committed: %s", me, proposal.round_id,
-                 ", ".join(f"{m.stage} {m.from_node or '(restart)'}->{m.to_node}" for m in proposal.moves))
-
-    def _publish_subgroup_prediction(self, proposal: SubgroupPropose) -> None:
-        """Say what the model predicts for the agreed placement (for the recording and replay).
-
-        Published as a `PlanUpdate` with the current epoch: agents ignore it (not newer than
-        what they run), recorders log it as a decision. Each member's own status carries its
-        share (`NodeRuntime.predict_power`, at the commit).
-        """
-        import dataclasses
-
-        rt = self.runtime
-        if not rt.plan.predicted_w:
-            return
-        update = dataclasses.replace(rt.plan, predicted_lifetime_s=None, plan_t_virtual=rt.now())
-        self._bus.publish(self.keys.plan, encode(update))
 
     def save_resume(self) -> None:
         self.runtime.settle_held_store()
@@ -612,7 +410,7 @@ class Agent:
     def _quiet(self) -> bool:
         """Nothing here is timed but the status (`StatusCadence.next_build`): no source, stage or frame
         in custody (`NodeRuntime.idle`), no subgroup round or settle under way."""
-        return self.runtime.idle() and self._base_lost_at is None and self.agreement.round is None
+        return self.runtime.idle() and self.rounds.idle()
 
     def _own_status(self, event) -> bool:
         """Our own status, back from the bus (Zenoh delivers a put to the session's own subscribers too):
@@ -631,16 +429,11 @@ class Agent:
             wake.append(deadline)
         if rt.started and (t := rt.next_deadline()) is not None:
             wake.append(rt.clock.wall_at(t))
-        if self._base_lost_at is not None:  # the subgroup forms when the settle ends, not at the next event
-            settled = max(self._base_lost_at + self.config.subgroup_settle_s, self._subgroup_retry_at)
-            if settled > now:  # once past, waking for it again would spin the loop (a core at 100 %)
-                wake.append(settled)
+        wake += self.rounds.wake_times(now)
         if not rt.started and not self._resumed_alone and rt.resume_from and self.config.subgroup:
             alone_at = self._started_unix + RESUME_ALONE_AFTER_S  # `_resume_alone` looks then
             if alone_at > now:
                 wake.append(alone_at)
-        if rt.started and self.agreement.round is not None:  # a subgroup round times out on its own deadline
-            wake.append(self.agreement.round.deadline)
         return min(wake)
 
     def run(self, max_wall_s: float | None = None) -> str:

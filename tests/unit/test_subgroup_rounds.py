@@ -87,7 +87,7 @@ def loc2_on_r1(hub: InMemoryHub, agents: dict[str, Agent]) -> None:
     """Everyone in reach of everyone; a round r1 leads starts Loc-2 on r1 (generation 100)."""
     see_all(agents)
     on_r1 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r1"),)
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
+    assert agents["r1"].rounds.agreement.propose(ROBOTS, {"Loc-2": "r1"}, on_r1, 100, "on r1")
     drain(hub, agents)
     assert running(agents) == {"Loc-2": ["r1"]}
 
@@ -100,9 +100,9 @@ def test_a_later_round_starts_from_what_the_first_one_placed_and_restarts_nothin
     see(agents, "r3", ["r2"])
     first = {"Loc-2": "r2", "Blob-2": "r2", "Loc-3": "r3", "Blob-3": "r3"}
     moves = tuple(SubgroupMove(stage=s, from_node=None, to_node=h) for s, h in first.items())
-    assert agents["r2"].agreement.propose(("r2", "r3"), dict(first), moves, 100, "round 1")
+    assert agents["r2"].rounds.agreement.propose(("r2", "r3"), dict(first), moves, 100, "round 1")
     drain(hub, agents)
-    assert agents["r3"].agreement.committed == 1 and agents["r2"].agreement.committed == 1
+    assert agents["r3"].rounds.agreement.committed == 1 and agents["r2"].rounds.agreement.committed == 1
     assert running(agents) == {s: [h] for s, h in first.items()}
     components = {s: agents[h].runtime.hosted[s].component for s, h in first.items()}
     assert agents["r1"].runtime.plan.placement["Loc-2"] == "laptop"  # r1 missed round 1
@@ -115,14 +115,14 @@ def test_a_later_round_starts_from_what_the_first_one_placed_and_restarts_nothin
     leader = agents["r1"]
     leader._subgroup_tick()  # the base station out of reach: noted
     leader._subgroup_tick()  # settled: propose
-    assert leader.agreement.counter == 1, "r1 proposed no round"
-    proposal = leader.agreement.round.proposal
+    assert leader.rounds.agreement.counter == 1, "r1 proposed no round"
+    proposal = leader.rounds.agreement.round.proposal
     # what round 1 started is where it runs: nothing of it is restarted anywhere
     for move in proposal.moves:
         if move.stage in first:
             assert move.from_node == first[move.stage], move
     drain(hub, agents)
-    assert [a.agreement.committed for a in agents.values()] == [1, 2, 2]
+    assert [a.rounds.agreement.committed for a in agents.values()] == [1, 2, 2]
     now = running(agents)
     assert all(len(hosts) == 1 for hosts in now.values()), now  # nothing runs twice
     assert set(now) == set(stages)  # and everything runs
@@ -138,17 +138,17 @@ def test_a_member_refuses_a_round_that_would_start_elsewhere_what_it_runs(team):
     hub, agents, _ = team
     see_all(agents)
     restart = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r2"}, restart, 100, "round 1")
+    assert agents["r1"].rounds.agreement.propose(ROBOTS, {"Loc-2": "r2"}, restart, 100, "round 1")
     drain(hub, agents)
     kept = agents["r2"].runtime.hosted["Loc-2"].component
     # a leader with a stale view proposes to restart Loc-2 on r3: r2 runs it and says no
     stale = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r3"),)
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r3"}, stale, 200, "stale")
+    assert agents["r1"].rounds.agreement.propose(ROBOTS, {"Loc-2": "r3"}, stale, 200, "stale")
     drain(hub, agents)
-    assert agents["r1"].agreement.aborted == 1 and agents["r3"].agreement.committed == 1
+    assert agents["r1"].rounds.agreement.aborted == 1 and agents["r3"].rounds.agreement.committed == 1
     assert running(agents) == {"Loc-2": ["r2"]}
     # a round that restarts it where it runs changes nothing there
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r2"}, restart, 300, "again")
+    assert agents["r1"].rounds.agreement.propose(ROBOTS, {"Loc-2": "r2"}, restart, 300, "again")
     drain(hub, agents)
     assert agents["r2"].runtime.hosted["Loc-2"].component is kept
     assert agents["r2"].runtime.counters.get("subgroup-restart-kept") == 1
@@ -230,7 +230,7 @@ def test_a_leader_runs_a_new_round_when_a_stage_moved_out_of_its_subgroup_since_
     assert not r2.relayer.reachable("r1")
     r2._subgroup_tick()
     r2._subgroup_tick()
-    assert r2.agreement.counter == 1, "r2 proposed no round"
+    assert r2.rounds.agreement.counter == 1, "r2 proposed no round"
     drain(hub, agents)
     assert running(agents).get("Loc-2") == ["r2"]
 
@@ -240,7 +240,7 @@ def test_a_leader_runs_a_new_round_when_a_stage_moved_out_of_its_subgroup_since_
         agent.publish_status()
     drain(hub, agents)
     move = (SubgroupMove(stage="Loc-2", from_node="r2", to_node="r1"),)
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-2": "r1"}, move, int(time.time() * 1000), "to r1")
+    assert agents["r1"].rounds.agreement.propose(ROBOTS, {"Loc-2": "r1"}, move, int(time.time() * 1000), "to r1")
     drain(hub, agents)
     assert running(agents).get("Loc-2") == ["r1"]
 
@@ -261,7 +261,7 @@ def test_a_leader_runs_a_new_round_when_a_stage_moved_out_of_its_subgroup_since_
     assert r1.runtime.predict_power()["r1"] > without + 0.1
     assert not r2.relayer.reachable("r1")
     r2._subgroup_tick()
-    assert r2.agreement.counter == 2, "r2 took the situation for the one its first round handled"
+    assert r2.rounds.agreement.counter == 2, "r2 took the situation for the one its first round handled"
     drain(hub, agents)
     # the members run Loc-2 again, once (r1, cut off, still runs its own instance in its partition)
     members_run = [h for h in running(agents)["Loc-2"] if h != "r1"]
@@ -286,7 +286,7 @@ def test_an_instance_a_newer_one_supersedes_stops_when_its_peer_says_it_runs_tha
     for robot in ("r2", "r3"):
         cut(agents, robot, ["r1"])
     on_r2 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
-    assert agents["r2"].agreement.propose(("r2", "r3"), {"Loc-2": "r2"}, on_r2, 200, "on r2")
+    assert agents["r2"].rounds.agreement.propose(("r2", "r3"), {"Loc-2": "r2"}, on_r2, 200, "on r2")
     # r1 thawed: the status r2 sends with the commit reaches it (the in-memory hub cuts nothing)
     drain(hub, agents)
     assert running(agents) == {"Loc-2": ["r2"]}  # before: r1's instance ran on, with no inputs
@@ -352,7 +352,7 @@ def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team
     assert killed == [1]
     assert [f.seq for f in rt.orphans["Loc-2"]] == [7, 8]
     on_r2 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
-    assert agents["r2"].agreement.propose(ROBOTS, {"Loc-2": "r2"}, on_r2, 200, "on r2")
+    assert agents["r2"].rounds.agreement.propose(ROBOTS, {"Loc-2": "r2"}, on_r2, 200, "on r2")
     drain(hub, agents)
     assert "Loc-2" not in rt.orphans
     assert {7, 8} <= set(agents["r2"].runtime.hosted["Loc-2"].gate.pending)
@@ -382,7 +382,7 @@ def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarte
     r1, r2 = agents["r1"], agents["r2"]
     see_all(agents)
     on_r2 = (SubgroupMove(stage="Blob-2", from_node=None, to_node="r2"),)
-    assert r1.agreement.propose(ROBOTS, {"Blob-2": "r2"}, on_r2, 100, "on r2")
+    assert r1.rounds.agreement.propose(ROBOTS, {"Blob-2": "r2"}, on_r2, 100, "on r2")
     drain(hub, agents)
     assert running(agents) == {"Blob-2": ["r2"]}
     # r2 killed and back with the plan before the round: nothing of Blob-2 runs on it
@@ -396,13 +396,13 @@ def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarte
     drain(hub, agents)
     # hosted nowhere, but no restart said: it may be a migration's stage on its way to r2
     assert "Blob-2" not in running(agents)
-    rounds = r1.agreement.counter
+    rounds = r1.rounds.agreement.counter
     r2.runtime.down = (r2.runtime.now(), 0.0)  # what the restarted process's statuses say
     r2.publish_status()
     drain(hub, agents)
     r1._subgroup_tick()
     drain(hub, agents)
-    assert r1.agreement.counter == rounds + 1, "r1 proposed no round for Blob-2"
+    assert r1.rounds.agreement.counter == rounds + 1, "r1 proposed no round for Blob-2"
     assert len(running(agents).get("Blob-2", [])) == 1, running(agents)
     host = running(agents)["Blob-2"][0]
     assert all(a.runtime.plan.placement["Blob-2"] == host for a in agents.values())
@@ -412,7 +412,7 @@ def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarte
     drain(hub, agents)
     r1._subgroup_tick()
     drain(hub, agents)
-    assert running(agents)["Blob-2"] == [host] and r1.agreement.counter == rounds + 1
+    assert running(agents)["Blob-2"] == [host] and r1.rounds.agreement.counter == rounds + 1
 
 
 def test_a_restarted_member_without_a_plan_refuses_a_round(team):
@@ -427,8 +427,8 @@ def test_a_restarted_member_without_a_plan_refuses_a_round(team):
     drain(hub, agents)  # the old r3's token went, the new one's came
     see_all(agents)
     on_r3 = (SubgroupMove(stage="Loc-3", from_node=None, to_node="r3"),)
-    assert agents["r1"].agreement.propose(ROBOTS, {"Loc-3": "r3"}, on_r3, 100, "on r3")
+    assert agents["r1"].rounds.agreement.propose(ROBOTS, {"Loc-3": "r3"}, on_r3, 100, "on r3")
     drain(hub, agents)
-    assert agents["r1"].agreement.aborted == 1 and agents["r1"].agreement.committed == 0
-    assert agents["r3"].agreement.committed == 0 and not agents["r3"].runtime.errors.get("internal-error")
+    assert agents["r1"].rounds.agreement.aborted == 1 and agents["r1"].rounds.agreement.committed == 0
+    assert agents["r3"].rounds.agreement.committed == 0 and not agents["r3"].runtime.errors.get("internal-error")
     assert "Loc-3" not in running(agents)
