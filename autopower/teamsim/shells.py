@@ -23,6 +23,7 @@ from autopower.node.held_store import HeldStore
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
 from autopower.node.stages import Lifecycle
+from autopower.node.subgroup_rounds import RoundSettings, SubgroupRounds
 from autopower.protocol import (
     NodeStatus,
     PlanUpdate,
@@ -168,8 +169,13 @@ class RobotShell(Shell):
         rt.resume_from = self.resume.load()
         rt.on_produced = self._produced
         self.statuses: dict[str, NodeStatus] = {}
+        self.rounds = SubgroupRounds(
+            runtime=rt, scenario=w.scenario, bus=self.bus, keys=keys, wall=w.scheduler.wall,
+            reachable=self.relayer.reachable, statuses=self.statuses,
+            settings=RoundSettings(enabled=w.subgroup, status_period_s=w.status_period_s),
+            publish_status=self.publish_status, save_resume=self.save_resume, started_unix=w.scheduler.wall())
         self.bus.subscribe(keys.node_data(robot), lambda k, p: self.guarded(self._received, k, p))
-        for key in (keys.node_control(robot), keys.plan, keys.node_relay(robot), keys.status_all):
+        for key in (keys.node_control(robot), keys.plan, keys.node_relay(robot), keys.status_all, keys.subgroup):
             self.bus.subscribe(key, lambda k, p: self.guarded(self._received, k, p))
         self.bus.watch_liveliness(keys.alive_all, lambda k, alive: self.guarded(self._liveliness, k, alive))
         self.bus.declare_token(keys.alive(robot))
@@ -190,6 +196,8 @@ class RobotShell(Shell):
         if node is not None and node != self.node:
             self.rt.on_liveliness(node, alive)
             self.relayer.on_liveliness(node, alive)
+            if not alive:
+                self.rounds.on_member_lost(node)
             self.publish_status()  # the base station tells a dead robot from a cut link by what the others see
 
     def _received(self, key: str, payload: bytes) -> None:
@@ -204,6 +212,9 @@ class RobotShell(Shell):
             if inner is None:
                 return
             key, payload = inner
+        if key == keys.subgroup:
+            self.rounds.on_message(payload)
+            return
         if keys.node_of_status(key) is not None:
             try:
                 status = decode(payload, NodeStatus)
@@ -251,10 +262,7 @@ class RobotShell(Shell):
         window = w.status_window_s * rt.clock.speed if rt.started else 0.0
         status = rt.status(window)
         if save_resume:
-            rt.settle_held_store()
-            state = rt.resume_state()
-            if state is not None:
-                self.resume.save(state)
+            self.save_resume()
         rt.sink_store.commit()
         self.commit_outputs()
         key, payload = keys.status(self.node), encode(status)
@@ -263,16 +271,24 @@ class RobotShell(Shell):
         self.relayer.send_beyond_sight(sorted(dests), key, payload, reliable=False)
         self._status_sent(status)
 
+    def save_resume(self) -> None:
+        rt = self.rt
+        rt.settle_held_store()
+        state = rt.resume_state()
+        if state is not None:
+            self.resume.save(state)
+
     def _turn(self) -> float:
         rt, s = self.rt, self.world.scheduler
         if rt.started:
+            self.rounds.tick()
             rt.on_timer()
             rt.meter.advance(rt.now())
         now = s.wall()
         if now >= self.next_status:
             self.publish_status(save_resume=True)
             self.next_status = max(self.next_status + self.world.status_period_s, now)
-        wake = self.next_status
+        wake = min([self.next_status, *self.rounds.wake_times(now)])
         if rt.started and (t := rt.next_deadline()) is not None:
             wake = min(wake, rt.clock.wall_at(t))
         return wake

@@ -63,6 +63,7 @@ class SimConfig:
     components: str = "stand-in"  # or "real"
     speed: float = 1.0  # mission seconds per simulated second: 1 keeps each radio's real rate
     policy: str = "rebalance"
+    subgroup: bool = True  # robots cut off from the base station reallocate among themselves (`SubgroupRounds`)
     keep_trace: bool = False
 
     @property
@@ -111,6 +112,7 @@ class World:
         self.ledger = Ledger([c.name for c in self.scenario.chains])
         self.store_dir = store_dir
         self.status_period_s = STATUS_PERIOD_S
+        self.subgroup = config.subgroup
         self.status_window_s = STATUS_WINDOW_S
         self.coordinator_config = CoordinatorConfig(speed=config.speed, policy=config.policy,
                                                     learn_team_s=2 * STATUS_PERIOD_S + LEASE_S)

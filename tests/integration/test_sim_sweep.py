@@ -4,7 +4,7 @@ faults, each judged by the oracle. Every seed must pass: one that fails is a fin
 tests/unit/test_teamsim_findings.py).
 
 The kinds whose runtime bugs are still open are left out here, and so are the seeds that found one
-(they are pinned there); put them back once the finding is fixed.
+still open (they are pinned there); put them back once the finding is fixed.
 """
 
 from __future__ import annotations
@@ -23,7 +23,10 @@ PLAN = Sweep(mission_s=30.0, n_faults=4, quiet_s=20.0, kinds=tuple(k for k in KI
 FOUND_PLAN = Sweep(mission_s=30.0, n_faults=4, quiet_s=20.0,
                    kinds=tuple(k for k in KINDS if k not in ("loss", "duplicate")))
 FOUND = (90, 118)
-SEEDS = list(range(200))
+# seeds of this sweep that fail since the simulated robots run subgroup rounds (pinned, strict xfail,
+# in test_teamsim_findings.py until fixed); the sweep runs 200 others
+FOUND_WITH_ROUNDS = (13, 44, 46, 187)
+SEEDS = [seed for seed in range(204) if seed not in FOUND_WITH_ROUNDS]
 
 
 @pytest.mark.slow

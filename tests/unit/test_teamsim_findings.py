@@ -13,7 +13,7 @@ import pytest
 from autopower.model.loading import load_scenario
 from autopower.teamsim import Fault, SimConfig, run
 from autopower.teamsim.sweep import run_seed
-from tests.integration.test_sim_sweep import FOUND, FOUND_PLAN
+from tests.integration.test_sim_sweep import FOUND, FOUND_PLAN, FOUND_WITH_ROUNDS, PLAN
 
 SC = load_scenario("paper-fig7")
 
@@ -66,4 +66,15 @@ def test_an_adopted_instance_gets_its_lost_inputs_resent():
 @pytest.mark.parametrize("seed", FOUND)  # seeds of CI's sweep that found the adoption race, under their plan
 def test_sweep_seeds_that_found_the_adoption_race(seed):
     verdict = run_seed(FOUND_PLAN, seed)
+    assert verdict.ok, verdict.first
+
+
+@pytest.mark.parametrize("seed", FOUND_WITH_ROUNDS)
+@pytest.mark.xfail(strict=True, reason=(
+    "open since the simulated robots run subgroup rounds (`node.subgroup_rounds`): a base station frozen "
+    "for longer than the lease (robots form a subgroup, then it thaws) around a cut and a frozen robot "
+    "loses outputs of a Loc chain (seeds 13, 46) or skips a Blob stage's input (seeds 44, 187); seed 46 "
+    "shrinks to three faults: r2 frozen 3.6 s, r1-r2 cut 7.8 s, the laptop frozen 1.9 s"))
+def test_sweep_seeds_that_fail_with_subgroup_rounds(seed):
+    verdict = run_seed(PLAN, seed)
     assert verdict.ok, verdict.first
