@@ -287,6 +287,7 @@ class ScenarioParser:
             migration=migration,
             basestation_radio_limit=limit_radios,
             quality_weight=self.quality_weight(top.get("mission", {})),
+            hold_budget_bytes=self.hold_budget(top.get("delivery", {})),
         )
         self.check_routable(scenario)
         return scenario
@@ -311,6 +312,10 @@ class ScenarioParser:
         if weight > 1:
             raise self.fail("mission.quality_weight", f"found {weight}", "a weight in [0, 1] (0: lifetime only)")
         return weight
+
+    def hold_budget(self, obj: Any) -> int:
+        delivery = self.section(obj, "delivery", "delivery")
+        return int(self.number(delivery, "hold_budget_mb", "delivery", positive=True, default=64.0) * 2**20)
 
     def platforms(self, obj: Any) -> dict[str, Platform]:
         obj = self.table(obj, "platforms", obj.keys() if isinstance(obj, dict) else [])

@@ -152,6 +152,8 @@ class Scenario:
     basestation_radio_limit: bool = False
     # [mission] quality_weight: 0 = lifetime only, 1 = quality only (see model.variants)
     quality_weight: float = 0.0
+    # [delivery] hold_budget_mb, in bytes: results a node keeps for a sink out of reach (`node.custody`)
+    hold_budget_bytes: int = 64 * 2**20
 
     # ---- lookups -------------------------------------------------------------------------
     def node_names(self) -> list[str]:

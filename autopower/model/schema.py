@@ -74,6 +74,7 @@ TABLES: tuple[Table, ...] = (
              of="reference_rows[]"),
         _opt("migration", _TABLE, "what moving a running component costs", of="migration"),
         _opt("mission", _TABLE, "how lifetime and quality are traded", of="mission"),
+        _opt("delivery", _TABLE, "what a node keeps for a sink out of its reach", of="delivery"),
     )),
     Table("scenario", "[scenario]", "The scenario's name and accounting.", (
         _req("name", _STRING, "the scenario's name"),
@@ -222,6 +223,11 @@ TABLES: tuple[Table, ...] = (
     Table("mission", "[mission]", "How the planner trades lifetime against quality.", (
         _opt("quality_weight", "number in [0, 1]", "0: lifetime only (ties: higher quality); 1: quality only; "
              "between: the Pareto point maximising (1 - w)·L/L_best + w·Q", "0"),
+    )),
+    Table("delivery", "[delivery]", "What a node keeps for a sink out of its reach (store and forward).", (
+        _opt("hold_budget_mb", "number > 0", "results a node keeps (in memory and in its journal on disk) until "
+             "their sink acknowledges them; beyond it the oldest are dropped, counted apart from lost ones",
+             "64"),
     )),
 )
 

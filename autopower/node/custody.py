@@ -29,6 +29,12 @@ stage's output, never recomputed (which would run MCL twice on one input).
 
 Custody is bounded (frames per hop, bytes per node, age); what is evicted can no longer be
 resent and is counted, so a loss is visible instead of silent.
+
+A chain's results (the frames for its sink) are the exception: they are what the operator wants,
+so they are kept, and resent, for as long as their sink needs to come back (store and forward),
+bounded only by the node's hold budget (scenario ``[delivery] hold_budget_mb``). Beyond it the
+oldest results are dropped, and returned to the caller to be counted as dropped by the budget,
+apart from losses.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ MAX_FRAMES_PER_HOP = 1024
 MAX_BYTES = 64 * 1024 * 1024  # camera frames are 230 kB: ~280 of them
 MAX_AGE_S = 300.0  # a frame nobody acknowledged for this long is given up
 MAX_ATTEMPTS = 20
+HOLD_BUDGET_BYTES = 64 * 2**20  # the scenario's default `[delivery] hold_budget_mb`
 
 
 @dataclass
@@ -52,6 +59,7 @@ class Held:
     frame: ChainFrame
     kept_unix: float
     sent_unix: float | None  # None: not on the wire yet (no route to its consumer)
+    result: bool = False  # a chain's result for its sink: bounded by the hold budget alone
 
 
 @dataclass(frozen=True)
@@ -104,8 +112,10 @@ def beyond_known(report: Consumed, seq: int) -> bool:
 
 class Custody:
     def __init__(self, *, resend_after_s: float = RESEND_AFTER_S, max_frames_per_hop: int = MAX_FRAMES_PER_HOP,
-                 max_bytes: int = MAX_BYTES, max_age_s: float = MAX_AGE_S, max_attempts: int = MAX_ATTEMPTS):
+                 max_bytes: int = MAX_BYTES, max_age_s: float = MAX_AGE_S, max_attempts: int = MAX_ATTEMPTS,
+                 hold_budget_bytes: int = HOLD_BUDGET_BYTES):
         self.resend_after_s = resend_after_s
+        self.hold_budget_bytes = hold_budget_bytes
         self.max_frames_per_hop = max_frames_per_hop
         self.max_bytes = max_bytes
         self.max_age_s = max_age_s
@@ -117,6 +127,9 @@ class Custody:
         self.acknowledged = 0
         self.resent = 0
         self.evicted = 0  # dropped unacknowledged (bounds, age, attempts): possibly lost
+        self.result_bytes = 0  # of ``bytes``: the results kept (what the hold budget bounds)
+        self.dropped_by_budget = 0  # results dropped, the budget full (returned by `keep`, counted here)
+        self.dropped_by_budget_bytes = 0
         # (hop, run) -> a min-heap of the seqs kept, those dropped since left in until they come
         # to the top: the floor is asked for every frame sent. (A scan of the hop each time its
         # lowest frame was acknowledged cost a camera robot 2 % of a core at x55, where a late
@@ -127,23 +140,45 @@ class Custody:
         return sum(len(h) for h in self.hops.values())
 
     # ---- producing --------------------------------------------------------------------------------
-    def keep(self, frame: ChainFrame, now: float, sent: bool = True) -> None:
+    def keep(self, frame: ChainFrame, now: float, sent: bool = True, result: bool = False) -> list[ChainFrame]:
+        """Hold ``frame`` until its consumer acknowledges it; the results this drops, the hold budget
+        full (oldest first: the caller counts them as dropped by the budget, never as lost).
+
+        ``result``: the frame is a chain's result for its sink (see the module's rules)."""
         hop = self.hops.setdefault((frame.chain, frame.target), OrderedDict())
         key = (frame.run, frame.seq)
         if key in hop:
-            return
-        hop[key] = Held(frame=frame, kept_unix=now, sent_unix=now if sent else None)
+            return []
+        hop[key] = Held(frame=frame, kept_unix=now, sent_unix=now if sent else None, result=result)
         seqs = self._seqs.setdefault(((frame.chain, frame.target), frame.run), [])
         heapq.heappush(seqs, frame.seq)
         if len(seqs) > 2 * len(hop) + 64:  # mostly seqs dropped below a lasting floor: start afresh
             seqs[:] = sorted(seq for (run, seq) in hop if run == frame.run)  # a sorted list is a heap
         self.bytes += len(frame.payload)
         self.kept += 1
+        if result:
+            self.result_bytes += len(frame.payload)
+            return self._over_budget()
         while len(hop) > self.max_frames_per_hop:
             self._drop(hop, next(iter(hop)), evicted=True)
-        while self.bytes > self.max_bytes:
-            oldest = min((h for h in self.hops.values() if h), key=lambda h: next(iter(h.values())).kept_unix)
+        while self.bytes - self.result_bytes > self.max_bytes:
+            oldest = min((h for h in self.hops.values() if h and not next(iter(h.values())).result),
+                         key=lambda h: next(iter(h.values())).kept_unix)
             self._drop(oldest, next(iter(oldest)), evicted=True)
+        return []
+
+    def _over_budget(self) -> list[ChainFrame]:
+        """Drop the oldest results while they take more than the hold budget."""
+        dropped = []
+        while self.result_bytes > self.hold_budget_bytes:
+            oldest = min((h for h in self.hops.values() if h and next(iter(h.values())).result),
+                         key=lambda h: next(iter(h.values())).kept_unix)
+            held = oldest[next(iter(oldest))]
+            self._drop(oldest, next(iter(oldest)), evicted=None)
+            self.dropped_by_budget += 1
+            self.dropped_by_budget_bytes += len(held.frame.payload)
+            dropped.append(held.frame)
+        return dropped
 
     def floor(self, chain: str, target: int, run: int, default: int) -> int:
         """The lowest seq of a hop and run still held unacknowledged (``default`` if none is)."""
@@ -178,6 +213,8 @@ class Custody:
             for run in [r for (h, r) in self._seqs if h == (held.frame.chain, held.frame.target)]:
                 del self._seqs[((held.frame.chain, held.frame.target), run)]
         self.bytes -= len(held.frame.payload)
+        if held.result:
+            self.result_bytes -= len(held.frame.payload)
         if evicted:
             self.evicted += 1
         elif evicted is not None:
@@ -226,7 +263,8 @@ class Custody:
             report = self.reports.get(hop)
             for key in list(frames):
                 held = frames[key]
-                if now - held.kept_unix > self.max_age_s or held.frame.attempt >= self.max_attempts:
+                if not held.result and (now - held.kept_unix > self.max_age_s
+                                        or held.frame.attempt >= self.max_attempts):
                     self._drop(frames, key, evicted=True)
                     continue
                 if (report is None or held.sent_unix is None
@@ -247,4 +285,5 @@ class Custody:
 
     def stats(self) -> dict[str, int]:
         return {"custody-frames": len(self), "custody-bytes": self.bytes, "custody-resent": self.resent,
-                "custody-evicted": self.evicted}
+                "custody-evicted": self.evicted, "results-kept-bytes": self.result_bytes,
+                "dropped-by-budget": self.dropped_by_budget, "dropped-by-budget-bytes": self.dropped_by_budget_bytes}

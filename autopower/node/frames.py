@@ -36,7 +36,10 @@ class Frames:
     def emit(self, frame: ChainFrame, dest: str) -> None:
         """Send a frame this node produced, keeping it until its consumer acknowledges it."""
         frame = dataclasses.replace(frame, floor=self.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
-        self.custody.keep(frame, self.wall())
+        if frame.target == len(self.chains[frame.chain].stages):
+            self.keep_result(frame)  # kept until its sink has it, within the hold budget
+        else:
+            self.custody.keep(frame, self.wall())
         self.send_frame(frame, dest)
 
     def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0, purpose: str = "chain") -> None:

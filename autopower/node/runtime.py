@@ -32,7 +32,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections import deque
+from collections import OrderedDict
 from typing import Callable
 
 from autopower.errors import AutoPowerError, ProtocolError
@@ -52,7 +52,6 @@ from autopower.node.relaying import Relaying
 from autopower.node.sequencing import SinkLedger
 from autopower.node.sink_store import SinkStore
 from autopower.node.stages import (
-    HELD_OUTPUT_LIMIT,
     SENSOR_QUEUE,
     STOPPED_AFTER_S,
     HostedStage,
@@ -77,6 +76,10 @@ from autopower.runtime.bus import Bus
 from autopower.runtime.clock import Clock, VirtualClock
 
 log = logging.getLogger(__name__)
+
+
+def _held_key(frame: ChainFrame) -> tuple[str, int, int, int]:
+    return frame.chain, frame.target, frame.run, frame.seq
 
 
 def mission_key(mission) -> dict:
@@ -142,16 +145,16 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
         self.weights: dict[str, float] = {}
         self._early_control: list[bytes] = []
-        # results whose sink is out of reach (the base station is cut off): kept, bounded,
-        # and delivered when a route to it exists again
-        self.held_outputs: deque[ChainFrame] = deque()
-        self.held_dropped = 0
+        # results whose sink has no route from here (the plan's links): kept in order, within the
+        # hold budget with the results in custody (`Custody.keep`), sent when a plan routes them again
+        self.held_outputs: OrderedDict[tuple[str, int, int, int], ChainFrame] = OrderedDict()
+        self.held_dropped = 0  # results dropped, the hold budget full (counted apart from lost ones)
         # migration state with no route yet (an order overtook the plan that brings the route
         # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
         self.parked_transfers: list[tuple[str, bytes, str]] = []
         self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
-        # every result this node's full hold let go (chain, run, seq): the recording tells these
-        # outputs, lost by design, from lost ones (`autopower.recording.replay`)
+        # every result this node dropped, its hold budget full (chain, run, seq): the recording tells
+        # these outputs from lost ones (`autopower.recording.replay`)
         self.on_held_dropped: Callable[[str, int, int], None] | None = None
         # a seq of a chain sourced and sunk here that died with the crashed process (`_died_with_process`)
         self.on_died_with_process: Callable[[str, int, int], None] | None = None
@@ -167,7 +170,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # landed (`Hosting.on_migrate_out`): we no longer run it; None: the plan's prediction holds
         self.model_override: dict[str, float] | None = None
         self.on_produced: Callable[[SourceRunner], None] | None = None
-        self.custody = Custody()
+        self.custody = Custody(hold_budget_bytes=scenario.hold_budget_bytes)
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
         # state directory): an output delivered before a crash is not delivered again after it
         self.sink_store: SinkStore | None = None
@@ -494,28 +497,33 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         return {r: p.total_w for r, p in ev.robots.items()}
 
     def hold_output(self, frame: ChainFrame) -> None:
-        if len(self.held_outputs) >= HELD_OUTPUT_LIMIT:
-            dropped = self.held_outputs.popleft()
-            self.custody.forget(dropped)
-            self.held_dropped += 1
-            self.tally("held-outputs-dropped")
-            if self.on_held_dropped is not None:
-                self.on_held_dropped(dropped.chain, dropped.run, dropped.seq)
         # Sent late, as a retransmission: the sink may have had this output meanwhile from another
         # instance (a released stage runs the inputs waiting in its gate, while their producer, its
         # acknowledgement cut off, resends them to the stage's next instance). A restarted sink does
         # not keep on disk what came as a resend, so an unmarked held copy arriving later would be
         # taken as new and delivered twice. Marked, a sink that has it drops it as redundant.
         frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
-        self.held_outputs.append(frame)
+        self.held_outputs[_held_key(frame)] = frame
+        self.keep_result(frame, sent=False)  # in custody already when produced here (`emit`)
         self.custody.mark(frame, None)  # not on the wire: no resend is due until it is
         self._journal_held(frame)
         if len(self.held_outputs) == 1:
-            log.info("%s: the sink of %s is out of reach; holding its results here (at most %d, oldest "
-                     "dropped) until it returns", self.node, frame.chain, HELD_OUTPUT_LIMIT)
+            log.info("%s: the sink of %s is out of reach; holding its results here (within %.0f MB, oldest "
+                     "dropped beyond) until a plan routes them", self.node, frame.chain,
+                     self.custody.hold_budget_bytes / 2**20)
+
+    def keep_result(self, frame: ChainFrame, sent: bool = True) -> None:
+        """Keep a chain's result in custody until its sink acknowledges it; results beyond the hold
+        budget (oldest first) are dropped and counted as such."""
+        for dropped in self.custody.keep(frame, self.wall(), sent=sent, result=True):
+            self.held_outputs.pop(_held_key(dropped), None)
+            self.held_dropped += 1
+            self.tally("held-outputs-dropped")
+            if self.on_held_dropped is not None:
+                self.on_held_dropped(dropped.chain, dropped.run, dropped.seq)
 
     def _journal_held(self, frame: ChainFrame) -> None:
-        key = (frame.chain, frame.target, frame.run, frame.seq)
+        key = _held_key(frame)
         if self.held_store is None or self.mission is None or key in self._held_journaled:
             return
 
@@ -542,24 +550,16 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         if self.held_store is None:
             return
 
-        # the newest HELD_OUTPUT_LIMIT: older ones in the file were let go by a full hold since the
-        # last settle (counted then), and the hold is a memory bound
         journal = [f for f in self.held_store.load(mission_key(mission)) if f.chain in self.chains]
-        let_go, frames = journal[:-HELD_OUTPUT_LIMIT], journal[-HELD_OUTPUT_LIMIT:]
-        if self.on_held_dropped is not None:
-            # Logged again: the crashed process may have logged its last drops into a recording batch
-            # the kill lost, and the replay would count them as lost outputs. One its sink had
-            # acknowledged is no gap there.
-            for frame in let_go:
-                self.on_held_dropped(frame.chain, frame.run, frame.seq)
         # Each goes again as the retransmission `hold_output` journaled it as: the crashed process
         # may have delivered it, and its sink acknowledged it, before the journal was next rewritten
         # (at a status tick); a sink that has it drops the copy as redundant, where a copy sent as new
         # would be delivered twice.
-        for frame in frames:
-            self.custody.keep(frame, self.wall(), sent=False)
-            self.held_outputs.append(frame)
-            self._held_journaled[(frame.chain, frame.target, frame.run, frame.seq)] = frame
+        for frame in journal:
+            self.held_outputs[_held_key(frame)] = frame
+            self.keep_result(frame, sent=False)  # within this process's budget (oldest dropped, counted)
+        frames = list(self.held_outputs.values())
+        self._held_journaled.update((_held_key(frame), frame) for frame in frames)
         self.held_store.rewrite(mission_key(mission), frames)  # this process's journal from now on
         if frames:
             spans = {}
@@ -573,12 +573,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
     def flush_held_outputs(self) -> None:
         if not self.held_outputs or self.network is None:
             return
-        held, self.held_outputs = self.held_outputs, deque()
+        held, self.held_outputs = self.held_outputs, OrderedDict()
         sent = 0
-        for frame in held:
+        for key, frame in held.items():
             sink = self.chains[frame.chain].sink
             if self.network.path(self.node, sink) is None:
-                self.held_outputs.append(frame)
+                self.held_outputs[key] = frame
             else:
                 self.send_frame(frame, sink)
                 self.custody.mark(frame, self.wall())

@@ -16,7 +16,6 @@ from autopower.protocol import (
 
 MAX_FORWARDS = 16  # a frame bounced more often than this between pointers is parked instead
 ORPHAN_LIMIT = 256  # frames held for a stage this node is about to host (a transient window)
-HELD_OUTPUT_LIMIT = 512  # results held for a sink out of reach (oldest dropped, counted)
 # A sensor keeps capturing while the node is busy: its driver queues this many captures (as a V4L2
 # camera's buffer ring does), which the node takes late, each with its own capture time. Only a
 # capture older than that is lost: a missed period. Without it a node with two sources on one loop

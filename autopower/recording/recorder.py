@@ -459,7 +459,7 @@ class Recorder:
         for name, what in (("custody-resent", "resent"), ("custody-frames", "held"), ("custody-evicted", "evicted"),
                            ("held-outputs-dropped", "held_dropped")):
             # frames lost in flight and resent (see autopower.node.custody); results a robot cut off
-            # from their sink dropped from its full hold (`agent.stages.HELD_OUTPUT_LIMIT`)
+            # from their sink dropped beyond the hold budget (`[delivery] hold_budget_mb`)
             if name in counters:
                 tel.scalar(f"custody/{node}/{what}", t, counters[name])
 

@@ -63,11 +63,9 @@ def render_text(summary: dict[str, Any]) -> str:
         lines.append(f"outputs: {sum(c['outputs'] for c in o['chains'].values())} recorded, "
                      f"{o['lost']} lost, {o['duplicated']} duplicated; {o.get('resent', 0)} frame(s) resent from "
                      f"custody after silent losses" + (f", {o['given_up']} given up" if o.get("given_up") else "")
-                     # (`agent.stages.HELD_OUTPUT_LIMIT` results kept per robot; the recording layer
-                     # does not import the agent's)
                      + (f"; {o['held_dropped']} {'more ' if o.get('held_dropped_known') else ''}dropped by "
-                        "robots cut off from their sink too long (each holds a bounded number of results, the "
-                        "oldest go)" if o.get("held_dropped") else "")
+                        "robots cut off from their sink too long (beyond their hold budget, `[delivery] "
+                        "hold_budget_mb`, the oldest results go)" if o.get("held_dropped") else "")
                      + (f"; {o['died_with_process']} of a robot's own chain died with its crashed process"
                         if o.get("died_with_process") else "")
                      + (f"; {o['unrecorded']} delivered by a sink killed before it flushed their recording "

@@ -68,7 +68,7 @@ class Shell:
         self.relayer = Relayer(node=self.node, bus=self.bus, keys=self.keys, count=self.rt.count, access=w.access)
         self.rt.send_to = self.relayer.send
         self.rt.on_output = self._output
-        self.rt.on_held_dropped = lambda c, r, s: w.ledger.let_go((c, r, s), "held-full")
+        self.rt.on_held_dropped = self._dropped_by_budget
         self.rt.on_died_with_process = lambda c, r, s: w.ledger.let_go((c, r, s), "died-with-process")
         self.build()
         self.next_status = w.scheduler.wall()
@@ -76,6 +76,18 @@ class Shell:
 
     def build(self) -> None:
         """The process's own parts, subscriptions and token (after the runtime exists)."""
+
+    def _dropped_by_budget(self, chain: str, run: int, seq: int) -> None:
+        """A result the node dropped beyond its hold budget: in the oracle's budget only if the
+        node's kept results and this one (its payload is its chain's declared size) exceed it."""
+        w, custody = self.world, self.rt.custody
+        size = w.scenario.chain(chain).message_bytes[-1]
+        if custody.result_bytes + size <= custody.hold_budget_bytes:
+            w.ledger.violate("exactly-once", f"{self.node} dropped {chain} run {run} seq {seq} for its hold budget "
+                             f"with {custody.result_bytes} of {custody.hold_budget_bytes} bytes kept",
+                             w.scheduler.now, w.trace.events)
+            return
+        w.ledger.let_go((chain, run, seq), "hold-budget")
 
     def crash(self) -> None:
         """Killed: nothing more is handled; what was not committed dies with it."""

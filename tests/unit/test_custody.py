@@ -593,30 +593,51 @@ def test_missing_ranges_are_what_is_absent_lowest_first_and_bounded():
     assert not in_ranges((), 5)
 
 
-def test_a_result_a_full_hold_lets_go_leaves_custody_too():
-    """A robot cut off from a sink holds HELD_OUTPUT_LIMIT results and drops the oldest (counted
-    as held-outputs-dropped). The dropped one stayed in custody, never resendable (it was held
-    back, not sent) and keeping the hop's floor at its seq until custody's max age."""
-    from autopower.node.stages import HELD_OUTPUT_LIMIT
+def test_results_beyond_the_hold_budget_are_dropped_oldest_first_and_leave_custody():
+    """A robot cut off from a sink keeps its results within the scenario's hold budget and drops the
+    oldest beyond it, counted (held-outputs-dropped, dropped-by-budget) and told to the recorder; a
+    dropped one leaves custody (it kept the hop's floor at its seq), and custody evicts nothing."""
+    import dataclasses
 
     sc = load_scenario("paper-fig7")
-    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False))
+    team = SimTeam(dataclasses.replace(sc, hold_budget_bytes=5 * 100),
+                   config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False))
     team.join()
     team.run_until(2.0)
     r2 = team.nodes["r2"]
+    team.pump()
+    assert r2.custody.result_bytes == 0  # every result so far acknowledged: the budget is all ours
     frames = [ChainFrame(chain="Blob-2", run=0, seq=10_000 + i, target=1, t_virtual=0.0, t_unix=0.0,
-                         payload_len=0, payload=b"") for i in range(HELD_OUTPUT_LIMIT + 3)]
+                         payload_len=100, payload=bytes(100)) for i in range(8)]
     before = len(r2.custody)
     told = []
     r2.on_held_dropped = lambda chain, run, seq: told.append((chain, run, seq))  # the recorder's hook
     for frame in frames:
-        r2.custody.keep(frame, r2.wall(), sent=False)
-        r2.hold_output(frame)
-    assert len(r2.held_outputs) == HELD_OUTPUT_LIMIT and r2.held_dropped == 3
+        r2.keep_result(frame, sent=False)  # as `Frames.emit` does for a result
+        r2.hold_output(frame)  # as `send_routed` does with no route to the sink
+    assert len(r2.held_outputs) == 5 and r2.held_dropped == 3
     assert told == [("Blob-2", 0, 10_000), ("Blob-2", 0, 10_001), ("Blob-2", 0, 10_002)]
-    assert len(r2.custody) == before + HELD_OUTPUT_LIMIT  # the three dropped ones are not held any more
+    assert len(r2.custody) == before + 5  # the three dropped ones are not held any more
     assert r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
-    assert r2.custody.evicted == 0  # counted once, as held-outputs-dropped
+    stats = r2.custody.stats()
+    assert stats["dropped-by-budget"] == 3 and stats["dropped-by-budget-bytes"] == 300
+    assert stats["results-kept-bytes"] == 500 and r2.custody.evicted == 0
+
+
+def test_results_outlive_custodys_age_and_count_limits_within_the_budget():
+    """A result waits for its sink as long as the budget allows: neither custody's age limit nor its
+    per-hop count gives it up (a cut of an hour loses nothing); other frames still obey both."""
+    from autopower.node.custody import Custody
+
+    custody = Custody(max_frames_per_hop=4, max_age_s=10.0, hold_budget_bytes=10**6)
+    for seq in range(8):
+        custody.keep(ChainFrame(chain="Blob-2", run=0, seq=seq, target=1, t_virtual=0.0, t_unix=0.0,
+                                payload_len=10, payload=bytes(10)), now=0.0, result=True)
+        custody.keep(ChainFrame(chain="Blob-2", run=0, seq=seq, target=0, t_virtual=0.0, t_unix=0.0,
+                                payload_len=10, payload=bytes(10)), now=0.0)
+    assert len(custody.hops[("Blob-2", 1)]) == 8 and len(custody.hops[("Blob-2", 0)]) == 4
+    custody.due(3600.0)
+    assert len(custody.hops[("Blob-2", 1)]) == 8 and not custody.hops[("Blob-2", 0)]
 
 
 def test_a_stopped_chains_results_stay_in_custody_until_its_sink_has_them():

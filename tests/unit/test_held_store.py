@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
+import dataclasses
 import stat
 
 from autopower.model.loading import load_scenario
 from autopower.node.held_store import HeldStore
 from autopower.node.runtime import NodeRuntime, mission_key
-from autopower.node.stages import HELD_OUTPUT_LIMIT
 from autopower.protocol import ChainFrame, encode
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
 MISSION = {"scenario": "paper-fig7", "epoch_unix": 1000.0, "speed": 10.0}
+HOLD = 512  # results of 3 bytes (`_result`) a node keeps under the budget `_budgeted` gives it
+
+
+def _budgeted():
+    """The paper's scenario with a hold budget of HOLD `_result`s."""
+    return dataclasses.replace(load_scenario("paper-fig7"), hold_budget_bytes=HOLD * 3)
 
 
 def _result(seq: int, run: int = 0) -> ChainFrame:
@@ -50,15 +56,15 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     """Random faults, seed 3: r2, cut off from the base station, held 532 Blob-2 results in memory
     and was SIGKILLed: all were lost. Held results are journaled; the restarted process holds
     them again and sends them when the sink is in reach; the journal empties once it acknowledges."""
-    team = SimTeam(load_scenario("paper-fig7"))
+    team = SimTeam(_budgeted())
     team.join()
     team.run_until(20.0)
     old = team.nodes["r2"]
     old.held_store = HeldStore(tmp_path / "r2.held")
     old.on_held_dropped = lambda chain, run, seq: None  # logged into a recording batch the kill loses
-    results = [_result(100_000 + i) for i in range(HELD_OUTPUT_LIMIT + 4)]
+    results = [_result(100_000 + i) for i in range(HOLD + 4)]
     for frame in results:  # as `Frames.emit` and `send_routed` do with the sink out of reach
-        old.custody.keep(frame, old.wall(), sent=False)
+        old.keep_result(frame, sent=False)
         old.hold_output(frame)
     saved = old.resume_state()
     assert len(HeldStore(tmp_path / "r2.held").load(mission_key(old.mission))) == len(results)
@@ -72,13 +78,13 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     logged = []
     rt.on_held_dropped = lambda chain, run, seq: logged.append((chain, run, seq))
     rt.on_plan(old.plan)
-    # the four the crashed process let go are in its journal: the new one logs them as let go
+    # the four beyond the budget are in the crashed process's journal: the new one drops them again, logged
     assert logged == [("Blob-2", 0, f.seq) for f in results[:4]]
     team.pump()
     sink = team.nodes["laptop"].sinks["Blob-2"]
     assert sink.duplicates_total == 0
     delivered = {f.seq for f in results if f.seq < sink.contiguous or f.seq in sink.above}
-    # the four the full hold let go are gone by design; every other one reached the sink
+    # the four beyond the budget are dropped, counted; every other one reached the sink
     assert delivered == {f.seq for f in results[4:]}
     assert not rt.held_outputs
     # acknowledged: the journal is emptied at the next status tick
@@ -100,7 +106,7 @@ def test_held_results_the_sink_already_had_are_dropped_there_as_redundant_not_co
     sink_node = team.nodes["laptop"]
     results = [_result(200_000 + i) for i in range(6)]
     for frame in results:
-        old.custody.keep(frame, old.wall(), sent=False)
+        old.keep_result(frame, sent=False)
         old.hold_output(frame)
     old.flush_held_outputs()  # the sink is in reach: delivered
     team.pump()
@@ -138,7 +144,7 @@ def test_a_held_result_that_reaches_its_sink_late_is_redundant_where_another_ins
     team.run_until(20.0)
     r2, laptop = team.nodes["r2"], team.nodes["laptop"]
     frame = _result(300_000)
-    r2.custody.keep(frame, r2.wall(), sent=False)
+    r2.keep_result(frame, sent=False)
     r2.hold_output(frame)  # its sink out of reach
     # the stage's next instance ran the resent input: its copy reaches the sink first
     laptop.deliver_frame(dataclasses.replace(frame, attempt=1), 0)
@@ -165,7 +171,7 @@ def test_the_base_stations_host_takes_back_what_it_held_after_a_restart(tmp_path
     results = [ChainFrame(chain="Loc-1", run=0, seq=400_000 + i, target=1, t_virtual=0.0, t_unix=0.0,
                           payload_len=3, payload=b"abc") for i in range(3)]
     for frame in results:
-        old.custody.keep(frame, old.wall(), sent=False)
+        old.keep_result(frame, sent=False)
         old.hold_output(frame)
     old.held_store.close()
     # killed; the restarted base station's host gets the plan of the same mission (no resume state)

@@ -256,7 +256,7 @@ def test_results_dropped_by_a_robot_cut_off_from_their_sink_are_named_with_the_l
     assert s["outputs"]["lost"] == 600 and s["outputs"]["held_dropped"] == 600
     detail = next(i["detail"] for i in s["invariants"] if i["name"] == "every output exactly once at its sink")
     assert "600 dropped by robots cut off from their sink" in detail
-    assert "600 dropped by robots cut off from their sink too long (each holds a bounded number" in render_text(s)
+    assert "600 dropped by robots cut off from their sink too long (beyond their hold budget" in render_text(s)
 
 
 def test_the_replay_tells_results_a_full_hold_dropped_from_lost_ones(tmp_path):

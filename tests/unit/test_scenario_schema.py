@@ -44,6 +44,8 @@ name = "r1"
 platform = "board"
 energy_j = 1000
 sensors = ["camera"]
+[delivery]
+hold_budget_mb = 8
 [network]
 topology = "explicit"
 [[network.links]]

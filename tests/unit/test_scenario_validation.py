@@ -149,3 +149,12 @@ def test_a_directory_or_unreadable_path_is_one_clear_error(tmp_path):
         load_scenario(tmp_path)
     with pytest.raises(ScenarioError, match="neither a scenario file nor a built-in"):
         load_scenario("x" * 5000)
+
+
+def test_the_hold_budget_is_read_in_megabytes_and_must_be_positive():
+    assert load_scenario("paper-fig7").hold_budget_bytes == 64 * 2**20  # the default
+    text = PAPER + "\n[delivery]\nhold_budget_mb = 0.5\n"
+    assert parse_scenario(text, "budget.toml").hold_budget_bytes == 2**19
+    for bad in ("0", "-3", '"lots"'):
+        message = error_of(PAPER + f"\n[delivery]\nhold_budget_mb = {bad}\n")
+        assert "delivery.hold_budget_mb" in message, message

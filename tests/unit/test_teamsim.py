@@ -174,6 +174,44 @@ def test_a_sink_hands_a_second_copy_on_never_and_the_oracle_checks_its_count_aga
     assert all(c.duplicated == 0 for c in result.chains.values())  # the operator still got each output once
 
 
+def test_a_long_partition_from_the_base_station_loses_nothing_within_the_hold_budget():
+    """Store and forward: every robot cut from the base station for almost seven minutes. The robots
+    run their own chains among themselves (subgroup rounds) and keep the Blob results for the laptop
+    (custody, within the default hold budget) until it is back: every output arrives, none dropped."""
+    split = Fault(kind="partition", t=20.0, duration=400.0, nodes=("laptop",))
+    result = run(SimConfig(scenario=SC, seed=1, faults=(split,), mission_s=440.0, quiet_s=30.0))
+    assert result.ok, result.violations
+    for name, chain in result.chains.items():
+        assert chain.produced > 0 and chain.delivered == chain.produced and chain.dropped_by_budget == 0, name
+
+
+def test_beyond_a_small_hold_budget_the_oldest_results_are_dropped_and_the_oracle_checks_the_budget(monkeypatch):
+    import dataclasses
+
+    from autopower.node.custody import Custody
+
+    small = dataclasses.replace(SC, hold_budget_bytes=50_000)  # 250 Blob results of 200 B
+    split = Fault(kind="partition", t=20.0, duration=200.0, nodes=("laptop",))
+    result = run(SimConfig(scenario=small, seed=1, faults=(split,), mission_s=240.0, quiet_s=30.0))
+    assert result.ok, result.violations
+    blob = result.chains["Blob-2"]
+    assert blob.lost == 0 and blob.dropped_by_budget > 0 and blob.budget == {"hold-budget": blob.dropped_by_budget}
+    assert blob.delivered + blob.dropped_by_budget == blob.produced
+    # a node that drops results with room left in its budget is caught, not believed
+    over = Custody._over_budget
+
+    def early(self):
+        self.hold_budget_bytes, kept = self.hold_budget_bytes // 2, self.hold_budget_bytes
+        try:
+            return over(self)
+        finally:
+            self.hold_budget_bytes = kept
+
+    monkeypatch.setattr(Custody, "_over_budget", early)
+    result = run(SimConfig(scenario=small, seed=1, faults=(split,), mission_s=240.0, quiet_s=30.0))
+    assert any("for its hold budget with" in v.detail for v in result.violations), result.violations
+
+
 def test_shrinking_keeps_only_the_fault_that_fails(monkeypatch):
     monkeypatch.setattr(Acknowledging, "resend_lost", lambda self, now: None)
     harmless = [Fault(kind="reorder", t=12.0, duration=3.0, a="r1", b="r3", p=0.01),
