@@ -1,4 +1,4 @@
-"""`autopower fault cut|heal|kill|crash|freeze|thaw|radio|list`: inject faults into the running team."""
+"""`autopower fault cut|loss|heal|kill|crash|freeze|thaw|radio|list`: inject faults into the running team."""
 
 from __future__ import annotations
 
@@ -41,14 +41,34 @@ def fault() -> None:
     """Inject faults into a team started by `autopower up` (real, silent link cuts; signals)."""
 
 
+_one_way = click.option("--one-way", is_flag=True,
+                        help="Only the packets A sends to B (B to A pass); needs the testbed.")
+
+
 @fault.command("cut")
 @click.argument("a")
 @click.argument("b")
+@_one_way
 @_json
 @_team
-def fault_cut(a, b, as_json):
+def fault_cut(a, b, one_way, as_json):
     """Cut the radio link A-B silently (no FIN, no RST: only the Zenoh lease notices)."""
-    _run({"op": "cut", "a": a, "b": b}, as_json)
+    _run({"op": "cut", "a": a, "b": b, **({"one_way": True} if one_way else {})}, as_json)
+
+
+@fault.command("loss")
+@click.argument("a")
+@click.argument("b")
+@click.argument("pct", type=click.FloatRange(0, 100, min_open=True))
+@_one_way
+@_json
+@_team
+def fault_loss(a, b, pct, one_way, as_json):
+    """Drop PCT % (0 < PCT <= 100) of the packets on link A-B at random, both ways (testbed only).
+
+    Replaces the loss set on that direction before; `fault heal A B` removes it.
+    """
+    _run({"op": "loss", "a": a, "b": b, "pct": pct, "one_way": one_way}, as_json)
 
 
 @fault.command("heal")
@@ -57,7 +77,7 @@ def fault_cut(a, b, as_json):
 @_json
 @_team
 def fault_heal(a, b, as_json):
-    """Bring the link A-B back."""
+    """Bring the link A-B back (a cut, one-way cuts and packet loss in either direction)."""
     _run({"op": "heal", "a": a, "b": b}, as_json)
 
 

@@ -6,6 +6,7 @@ import json
 import os
 import signal
 import time
+from pathlib import Path
 
 import click
 
@@ -34,12 +35,15 @@ def testbed() -> None:
 @click.option("--no-shaping", is_flag=True, help="Links at full veth speed (for comparison).")
 @click.option("--ready-timeout", type=float, default=90.0, show_default=True)
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None)
+@click.option("--record-dir", type=click.Path(file_okay=False), default=None,
+              help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
 def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, media, pin, no_shaping, ready_timeout,
-               log_dir):
+               log_dir, record_dir):
     """Start the team in the testbed and watch it; Ctrl-C (or --duration) removes every namespace and link.
 
     `autopower status`, `chain`, `migrate`, `fault cut|heal|kill|freeze|thaw` and `replay` work on
-    it as on `autopower up`; a cut drops the link's packets silently.
+    it as on `autopower up`; a cut drops the link's packets silently. Only here: `fault loss A B PCT
+    [--one-way]` (random packet loss) and `fault cut A B --one-way`.
     """
     from autopower.basestation.operator import team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer
@@ -52,7 +56,12 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     parse_pairs(pin, "--pin", "Loc-2=r1")
     parse_pairs(media, "--media", "laptop-robot=gsm")
     spec = TeamSpec(scenario=scenario_name, speed=speed, topology=topology, media=tuple(media), pins=tuple(pin),
-                    lease_ms=lease_ms, log_dir=log_dir)
+                    lease_ms=lease_ms, log_dir=log_dir, record_dir=Path(record_dir) if record_dir else None)
+    if record_dir:
+        from autopower.recording.health import check_record_dir
+
+        check_record_dir(record_dir)  # refused here, in one line, before any namespace is made
+    recording = _RecordingWatch(record_dir, [scenario.basestation] + [r.name for r in scenario.robots])
 
     def on_term(signum, _frame):
         raise KeyboardInterrupt
@@ -70,11 +79,18 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
             click.echo(f"testbed {team.net.run_id}: {len(team.nodes)} namespaces, {len(team.net.links)} links "
                        f"({'shaped to rate x ' + format(speed, 'g') if not no_shaping else 'unshaped'}), "
                        f"mutual TLS + access control; team {team.team}, logs in {team.log_dir}")
+            if record_dir:
+                click.echo(f"recording into {record_dir}; if this run is cut short, "
+                           f"`autopower recording merge {record_dir}` builds {Path(record_dir) / 'run.rrd'}")
         snap = at_ready = team.wait_ready(ready_timeout)
         ready_after = time.monotonic() - started
         run_started = time.monotonic()
+
+        def running() -> bool:
+            return (duration is None or time.monotonic() - run_started < duration) and not recording.failed()
+
         if as_json:
-            while duration is None or time.monotonic() - run_started < duration:
+            while running():
                 time.sleep(0.25)
                 team.check_children()
         else:
@@ -82,7 +98,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
             from rich.live import Live
 
             with Live(render(snap, speed), console=Console(), refresh_per_second=4) as live:
-                while duration is None or time.monotonic() - run_started < duration:
+                while running():
                     time.sleep(0.5)
                     team.check_children()
                     snap = team.snapshot()
@@ -96,11 +112,17 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
                           wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary.update(interrupted=interrupted, testbed=team.net.run_id, shaped=not no_shaping,
                    supervision=team.supervision(),  # crashed children restarted in their namespace
-                   **team.net.describe())
+                   **team.net.describe(), **recording.merge())
     if as_json:
         click.echo(json.dumps(summary, indent=2, default=str))
     else:
         click.echo(f"stopped; namespaces and links removed; logs in {team.log_dir}")
+        if summary.get("recording"):
+            click.echo(f"recording: {summary['recording']} (autopower replay {summary['recording']})")
+        if summary.get("recording_error"):
+            click.echo(f"recording: NOT complete: {summary['recording_error']}", err=True)
+    if recording.problem:
+        raise AutoPowerError(f"the recording failed ({recording.problem}); the testbed was stopped cleanly")
     given_up = summary["supervision"].get("given_up") or {}
     if given_up:
         raise AutoPowerError(f"gave up restarting {', '.join(f'{n} ({why})' for n, why in given_up.items())}; "
@@ -108,6 +130,41 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     bad = {n: c for n, c in codes.items() if c not in (0, None)}
     if bad:
         raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")
+
+
+class _RecordingWatch:
+    """With --record-dir: whether the recording still gets written (checked now and then), and
+    the merge at the end. A run whose recording fails is stopped cleanly rather than run on
+    unrecorded, as `autopower up` does."""
+
+    CHECK_EVERY_S = 2.0
+
+    def __init__(self, record_dir: str | None, nodes: list[str]):
+        self.record_dir, self.nodes = record_dir, nodes
+        self.problem: str | None = None
+        self._checked = time.monotonic()
+
+    def failed(self) -> bool:
+        if self.record_dir and self.problem is None and time.monotonic() - self._checked >= self.CHECK_EVERY_S:
+            from autopower.recording.health import recording_problem
+
+            self._checked = time.monotonic()
+            self.problem = recording_problem(self.record_dir, self.nodes)
+        return self.problem is not None
+
+    def merge(self) -> dict:
+        """``recording`` (the merged file) and ``recording_error`` for the summary; nothing without --record-dir."""
+        if not self.record_dir:
+            return {}
+        from autopower.recording.live import merge_run
+
+        out = {"recording": None, "recording_error": f"recording failed during the run: {self.problem}"
+               if self.problem else None}
+        try:
+            out["recording"] = str(merge_run(Path(self.record_dir)))
+        except (AutoPowerError, OSError) as exc:  # the run itself is fine; say why there is no merged file
+            out["recording_error"] = "; ".join(filter(None, [out["recording_error"], str(exc)]))
+        return out
 
 
 @testbed.command("down")

@@ -1,4 +1,8 @@
-"""Fault injection into a running team: `autopower fault cut|heal|kill|crash|freeze|thaw|radio`.
+"""Fault injection into a running team: `autopower fault cut|loss|heal|kill|crash|freeze|thaw|radio`.
+
+`loss` (random packet loss) and `cut --one-way` act on one direction of a link: only the testbed
+can do that (its links are real interfaces; see `autopower.launch.netns`), so a team on loopback
+proxies refuses them rather than pretend.
 
 `kill` takes a robot out for good (the supervisor lets it go); `crash` is a SIGKILL the
 supervisor answers like any crash: it starts the process again (a robot's agent or the base
@@ -63,9 +67,15 @@ class FaultController:
         op = request.get("op")
         with self._lock:
             t = time.time()
-            if op in ("cut", "heal"):
+            details: dict = {}
+            healed: list[str] = []
+            if op == "loss" or (op == "cut" and request.get("one_way")):
+                target, details = self._drop(op, request)
+            elif op in ("cut", "heal"):
                 a, b = request.get("a"), request.get("b")
                 proxy = self.team.proxy(a, b)
+                if op == "heal":  # each kind in place is recorded as healed (nothing in place: a cut, as ever)
+                    healed = _impairments(proxy) or ["cut"]
                 proxy.cut() if op == "cut" else proxy.heal()
                 target = f"{a}-{b}"
             elif op in ("kill", "crash", "freeze", "thaw"):
@@ -98,31 +108,66 @@ class FaultController:
                 target = name
             elif op == "list":
                 return {"ok": True, "faults": list(self.log), "supervision": self.team.supervision(),
-                        "links": {"-".join(sorted(p)): ("cut" if x.is_cut else "up") for p, x in self.team.proxies.items()}}
+                        "links": {"-".join(sorted(p)): _link_state(x) for p, x in self.team.proxies.items()}}
             else:
                 raise AutoPowerError(f"unknown fault operation {op!r}")
-            entry = {"kind": op, "target": target, "t_unix": t}
+            entry = {"kind": op, "target": target, "t_unix": t, **details}
             self.log.append(entry)
-            self._record(op, target, t)
-            log.info("fault: %s %s", op, target)
-            return {"ok": True, "fault": entry, "message": f"{op} {target} at {time.strftime('%H:%M:%S', time.localtime(t))}"}
+            reason = details.get("what", "")
+            if op == "heal":
+                for kind in healed:
+                    self._record(kind, "healed", target, t)
+            else:
+                kind, phase = ("freeze", "healed") if op == "thaw" else (op, "injected")
+                self._record(kind, phase, target, t, reason=reason)
+            log.info("fault: %s %s %s", op, target, reason)
+            said = f"{op} {target}" + (f" ({reason})" if reason else "")
+            return {"ok": True, "fault": entry, "message": f"{said} at {time.strftime('%H:%M:%S', time.localtime(t))}"}
 
+    def _drop(self, op: str, request: dict) -> tuple[str, dict]:
+        """Random loss (`loss`) or a one-way cut on a testbed link; (target, what the log keeps)."""
+        a, b, one_way = request.get("a"), request.get("b"), bool(request.get("one_way"))
+        proxy = self.team.proxy(a, b)
+        if not hasattr(proxy, "drop"):
+            what = "packet loss" if op == "loss" else "a one-way cut"
+            raise AutoPowerError(f"{what} needs the testbed (`sudo autopower testbed up`): this team's links are "
+                                 "loopback TCP proxies, which can only cut a link both ways "
+                                 f"(`autopower fault cut {a} {b}`)")
+        pct = 100.0 if op == "cut" else request.get("pct")
+        directions = [(a, b)] if one_way else [(a, b), (b, a)]
+        for src, dst in directions:
+            proxy.drop(src, dst, pct, kind=op)
+        towards = f"{a}->{b}" if one_way else "both ways"
+        what = f"{a}->{b} only" if op == "cut" else f"{float(pct):g}% of packets {towards}"
+        return f"{a}-{b}", {"direction": towards, "pct": float(pct), "what": what}
 
-    def _record(self, op: str, target: str, t: float) -> None:
+    def _record(self, kind: str, phase: str, target: str, t: float, reason: str = "") -> None:
         """Put the fault into the run's recording (when the team records), for replay."""
         run_dir = getattr(self.team.spec, "record_dir", None)
         if run_dir is None:
             return
-        kind, phase = {"heal": ("cut", "healed"), "thaw": ("freeze", "healed")}.get(op, (op, "injected"))
         try:
             from autopower.recording.recorder import record_fault_event
 
             if self._mission is None:
                 self._mission = self.team.snapshot(timeout_s=2.0).get("mission")
-            record_fault_event(run_dir, kind=kind, target=target, phase=phase, mission=self._mission,
-                               wall_unix=t)
+            record_fault_event(run_dir, kind=kind, target=target, phase=phase, reason=reason,
+                               mission=self._mission, wall_unix=t)
         except Exception as exc:  # noqa: BLE001 - a recording problem must not stop the fault
-            log.warning("fault %s %s not recorded: %s", op, target, exc)
+            log.warning("fault %s %s %s not recorded: %s", kind, phase, target, exc)
+
+
+def _link_state(proxy) -> str:
+    """What `fault list` shows for a link: the testbed says what each direction drops."""
+    state = getattr(proxy, "state", None)
+    return state if isinstance(state, str) else ("cut" if proxy.is_cut else "up")
+
+
+def _impairments(proxy) -> list[str]:
+    """The kinds of fault in place on a link (``cut``, ``loss``), in a stable order."""
+    kinds = {"cut"} if proxy.is_cut else set()
+    kinds |= {d.kind for d in getattr(proxy, "drops", {}).values()}
+    return sorted(kinds)
 
 
 def _own_group(pid: int) -> bool:

@@ -4,9 +4,9 @@ Each node gets its own network stack (``ip netns``). A medium that only two node
 pair created directly inside the two nodes' namespaces (nothing is ever added to the host's own
 namespace), addressed 10.99.<link>.1/.2, and shaped on both ends with a token bucket (tbf) to the
 medium's rate × the speed-up, so a virtual second carries what the radio carries in a real one
-(this kernel has no netem: no added delay or random loss). A cut swaps the link's qdisc for a
-zero-length pfifo on both ends: every packet is dropped silently, no FIN, no RST, the interfaces
-stay up, exactly a radio out of range; heal restores the shaping.
+(this kernel has no netem: no added delay; random loss comes from nftables, below). A cut swaps
+the link's qdisc for a zero-length pfifo on both ends: every packet is dropped silently, no FIN,
+no RST, the interfaces stay up, exactly a radio out of range; heal restores the shaping.
 
 A broadcast medium — three or more nodes whose radios of that medium all reach each other (the
 fully-connected topology over one radio) — is one radio per node on a shared channel, as the
@@ -20,6 +20,12 @@ FIN, no RST, nothing on the wire); a new connection attempt fails at once (EINVA
 timing out. A cut of one link leaves the node's other links on that medium working. A star (GSM
 to the base station only) stays one shaped veth pair per link: its hub's radio is not shared.
 
+A direction of a link can lose packets too (`drop`): random loss (a share of them) or a one-way
+cut (all of them). The receiving node's namespace gets an nftables table of the testbed's own
+(`NFT_TABLE`) whose input rules match the link's interface and the sender's address and drop a
+random share with ``numgen random`` (no netem, no tc filters needed). The packets cross the link
+and use its rate as a lost radio frame does, and the sender is not told. Heal removes them.
+
 Every name starts with `PREFIX` and this run's id, and the run writes what it creates into
 ``<state dir>/testbed/<run>.json`` *before* creating it: `cleanup_stale` (`autopower testbed
 down`) removes exactly what a killed run left and never a namespace it did not make.
@@ -31,6 +37,7 @@ import json
 import logging
 import os
 import secrets
+import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +58,9 @@ PREFIX = "aptb-"  # AutoPower testbed: the only namespaces this module ever dele
 TCP_RETRIES2 = 2
 SUBNET = "10.99"  # point-to-point links
 SHARED_SUBNET = "10.98"  # shared media (bridges)
+NFT_TABLE = "autopower"  # the nftables table (family ip) the testbed owns in each node's namespace
+# a drop rule compares a random number below LOSS_SCALE with pct × LOSS_SCALE / 100: 0.01 % steps
+LOSS_SCALE = 10000
 
 
 def require_root() -> None:
@@ -59,8 +69,8 @@ def require_root() -> None:
                              "run it with sudo, or use `autopower up` for the localhost mode")
 
 
-def _run(*cmd: str, check: bool = True) -> subprocess.CompletedProcess:
-    result = subprocess.run(cmd, capture_output=True, text=True)
+def _run(*cmd: str, check: bool = True, stdin: str | None = None) -> subprocess.CompletedProcess:
+    result = subprocess.run(cmd, capture_output=True, text=True, input=stdin)
     if check and result.returncode != 0:
         raise AutoPowerError(f"`{' '.join(cmd)}` failed: {result.stderr.strip() or result.returncode}")
     return result
@@ -103,6 +113,36 @@ class NetLink:
         return f"{SUBNET}.{self.index}.{1 if node == self.a else 2}"
 
 
+@dataclass(frozen=True)
+class Drop:
+    """What one direction of a link drops: ``kind`` ``loss`` (a random share) or ``cut`` (all)."""
+
+    kind: str
+    pct: float
+
+    def label(self) -> str:
+        return "cut" if self.kind == "cut" else f"loss {self.pct:g}%"
+
+
+def loss_steps(pct) -> int:
+    """``pct`` (0 < pct <= 100) in the drop rule's 0.01 % steps; a clear error for anything else."""
+    try:
+        value = float(pct)
+    except (TypeError, ValueError):
+        value = float("nan")
+    steps = round(value * LOSS_SCALE / 100) if value == value else 0
+    if not (0 < value <= 100) or steps < 1:
+        raise AutoPowerError(f"packet loss {pct!r} is not a percentage in (0, 100]; give e.g. 30 for 30 %, "
+                             f"at least {100 / LOSS_SCALE:g}")
+    return steps
+
+
+def require_nft() -> None:
+    if shutil.which("nft") is None:
+        raise AutoPowerError("packet loss and one-way cuts on the testbed need nftables' `nft` tool, which is not "
+                             "installed; install it (Debian/Ubuntu: apt-get install nftables)")
+
+
 def _dev(index: int, peer: str) -> str:
     return f"l{index}-{peer}"[:15]  # unique inside one namespace; IFNAMSIZ is 16 with the NUL
 
@@ -140,6 +180,8 @@ class NamespaceNetwork:
             raise AutoPowerError(f"{len(self.links)} links, {len(self.nodes)} nodes: the testbed addresses at most 250")
         self.state_file = state_root(state_dir) / f"{self.run_id}.json"
         self.cut_links: set[frozenset[str]] = set()
+        # (sender, receiver) -> what is dropped on that direction of their link (see `drop`)
+        self.drops: dict[tuple[str, str], Drop] = {}
         self.created = False
 
     def ns(self, node: str) -> str:
@@ -265,12 +307,69 @@ class NamespaceNetwork:
         self.cut_links.add(frozenset((a, b)))
 
     def heal(self, a: str, b: str) -> None:
+        """Bring link a-b back: both-way cut and every drop in either direction removed."""
         link = self.link(a, b)
         if link.segment is not None:
             self._blackhole(a, b, add=False)
         else:
             self._shape(link)
         self.cut_links.discard(frozenset((a, b)))
+        self.clear_drops(a, b)
+
+    # ---- per-direction drops (nftables in the receiver's namespace) -------------------------------
+    def drop(self, src: str, dst: str, pct: float, *, kind: str = "loss") -> None:
+        """Drop ``pct`` % of the packets ``src`` sends to ``dst`` over their link, at random (100: all).
+
+        Replaces what was dropped on that direction before; the other direction is untouched.
+        """
+        self.link(src, dst)
+        steps = loss_steps(pct)
+        require_nft()
+        before = self.drops.get((src, dst))
+        self.drops[(src, dst)] = Drop(kind=kind, pct=steps * 100 / LOSS_SCALE)
+        try:
+            self._apply_drops(dst)
+        except AutoPowerError:  # not applied: the state must keep saying what the namespace holds
+            if before is None:
+                del self.drops[(src, dst)]
+            else:
+                self.drops[(src, dst)] = before
+            raise
+
+    def clear_drops(self, a: str, b: str) -> None:
+        """Remove the drops on both directions of link a-b (nothing to do when there are none)."""
+        for src, dst in ((a, b), (b, a)):
+            if self.drops.pop((src, dst), None) is not None:
+                self._apply_drops(dst)
+
+    def link_state(self, a: str, b: str) -> str:
+        """``up``, ``cut``, or what each direction drops, e.g. ``cut r1->laptop, loss 30% laptop->r1``."""
+        if frozenset((a, b)) in self.cut_links:
+            return "cut"
+        parts = [f"{d.label()} {src}->{dst}" for (src, dst), d in sorted(self.drops.items())
+                 if {src, dst} == {a, b}]
+        return ", ".join(parts) or "up"
+
+    def _drop_rule(self, src: str, dst: str, drop: Drop) -> str:
+        """The nftables rule, in ``dst``'s namespace, that drops what ``src`` sends it over their link."""
+        link = self.link(src, dst)
+        dev = link.dev_b if dst == link.b else link.dev_a
+        chance = "" if drop.pct >= 100 else f"numgen random mod {LOSS_SCALE} < {loss_steps(drop.pct)} "
+        return f'iifname "{dev}" ip saddr {link.address(src)} {chance}drop comment "{drop.kind} {src}->{dst}"'
+
+    def _apply_drops(self, node: str) -> None:
+        """Make ``node``'s table hold exactly the drops towards it, atomically (one nft transaction).
+
+        Declaring then deleting the table removes it whether or not it existed; the table is then
+        written again only when something is to be dropped, so a healed node holds no rules at all.
+        """
+        rules = [self._drop_rule(src, dst, d) for (src, dst), d in sorted(self.drops.items()) if dst == node]
+        script = [f"table ip {NFT_TABLE}", f"delete table ip {NFT_TABLE}"]
+        if rules:
+            script += [f"table ip {NFT_TABLE} {{", "  chain links {",
+                       "    type filter hook input priority filter; policy accept;",
+                       *(f"    {rule}" for rule in rules), "  }", "}"]
+        _run("ip", "netns", "exec", self.ns(node), "nft", "-f", "-", stdin="\n".join(script) + "\n")
 
     def destroy(self) -> None:
         if not self.created:

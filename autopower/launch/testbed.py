@@ -4,8 +4,9 @@
 generated the way `autopower deploy init` writes one for real hosts (a CA for this run, mutual
 TLS on every link, default-deny access control, each node connecting to its neighbours' link
 addresses), each child starts inside its namespace from its node directory (``--fleet``), and a
-fault cut silences the real link. Everything it created is removed when it stops, however it
-stops; `autopower testbed down` removes what a killed run left.
+fault cut silences the real link (random loss and a one-way cut drop one direction's packets).
+Everything it created is removed when it stops, however it stops; `autopower testbed down`
+removes what a killed run left.
 """
 
 from __future__ import annotations
@@ -43,6 +44,18 @@ class _LinkSwitch:
     @property
     def is_cut(self) -> bool:
         return frozenset((self.a, self.b)) in self.net.cut_links
+
+    @property
+    def state(self) -> str:  # for `fault list`: up, cut, or what each direction drops
+        return self.net.link_state(self.a, self.b)
+
+    @property
+    def drops(self) -> dict:
+        """(sender, receiver) -> `Drop` on this link's directions."""
+        return {pair: d for pair, d in self.net.drops.items() if set(pair) == {self.a, self.b}}
+
+    def drop(self, src: str, dst: str, pct: float, *, kind: str) -> None:
+        self.net.drop(src, dst, pct, kind=kind)
 
     def cut(self) -> None:
         self.net.cut(self.a, self.b)
