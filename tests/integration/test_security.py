@@ -4,7 +4,9 @@ Real processes, real Zenoh sessions on 127.0.0.1. Every attack here worked on th
 access control (see issue 11): a stranger joined and commanded the team, a forged high-epoch
 plan stopped every source, a forged "depleted" status killed a healthy robot for good. Each test
 first checks that its attacker's session really is connected where it matters, so "nothing
-happened" cannot come from an attacker that never arrived.
+happened" cannot come from an attacker that never arrived. Where Zenoh's access control is what
+must stop a forgery, a `Witness` on every node shows that no node's Zenoh delivered it, so a check
+in the processes cannot stand in for the access control unnoticed.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 import time
+from contextlib import ExitStack
 
 import pytest
 
@@ -19,8 +22,9 @@ from autopower.cli.options import build_scenario
 from autopower.deploy.pki import TeamCA
 from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint
 from autopower.protocol import Keys, MigrateOut, NodeStatus, PlanUpdate, SnapshotRequest, decode, encode
+from autopower.protocol.access import status_problem
 from autopower.runtime.bus import TlsFiles, ZenohBus, ZenohSettings
-from tests.integration.runtime_helpers import sources_of, wait_for
+from tests.integration.runtime_helpers import sinks_of, sources_of, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -152,61 +156,207 @@ class Insider:
         self.bus.close()
 
 
+class Witness:
+    """What each node's Zenoh lets through, with no application code in between.
+
+    One client session per node, attached to that node alone and holding the base station's
+    certificate (a member, so it may subscribe). A node hands its clients what it accepted from its
+    peers: after its ingress access control, before any process reads it. A forged put that no
+    witness receives was stopped by Zenoh itself, whatever the processes would have made of it; a
+    put some witness receives got past Zenoh, so whatever then ignores it is the application's check.
+    """
+
+    def __init__(self, team, *key_exprs: str):
+        self.keys = Keys(team.team)
+        self.nodes = tuple(team.nodes)
+        self.seen: list[tuple[str, str, bytes]] = []  # (the node attached to, key, payload)
+        self._statuses: list[tuple[str, NodeStatus]] = []  # (the node attached to, status)
+        self._lock = threading.Lock()
+        self._sessions = []
+        self._subscribers = []
+        try:
+            for node in self.nodes:
+                session = open_client(ZenohSettings(connect=(endpoint(team.ports[node], scheme="tls"),),
+                                                    tls=team.identities.files(team.scenario.basestation)))
+                self._sessions.append(session)
+                for expr in (self.keys.status_all, *key_exprs):
+                    self._subscribers.append(session.declare_subscriber(
+                        expr, lambda sample, node=node: self._keep(node, str(sample.key_expr),
+                                                                   sample.payload.to_bytes())))
+        except BaseException:
+            self.close()
+            raise
+
+    def _keep(self, node: str, key: str, payload: bytes) -> None:
+        status = decode(payload, NodeStatus) if self.keys.node_of_status(key) is not None else None
+        with self._lock:
+            self.seen.append((node, key, payload))
+            if status is not None:
+                self._statuses.append((node, status))
+
+    def statuses(self, node: str) -> list[NodeStatus]:
+        with self._lock:
+            return [st for n, st in self._statuses if n == node]
+
+    def wait_forwarding(self, timeout_s: float = 15.0) -> None:
+        """The positive control: every node hands its witness the statuses of other nodes, which
+        reach it from its peers over the very path a forged put from a peer would take."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if all(any(st.node != node for st in self.statuses(node)) for node in self.nodes):
+                return
+            time.sleep(0.1)
+        raise AssertionError(f"no statuses of other nodes reached the witnesses on "
+                             f"{[n for n in self.nodes if not any(st.node != n for st in self.statuses(n))]}")
+
+    def wait_status_after(self, of: str, t_unix: float, timeout_s: float = 15.0) -> None:
+        """Until every witness has a status of ``of`` stamped after ``t_unix``: a put sent before that
+        status has had its chance to arrive everywhere."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if all(any(st.node == of and st.t_unix > t_unix for st in self.statuses(n)) for n in self.nodes):
+                return
+            time.sleep(0.1)
+        raise AssertionError(f"{of}'s statuses stopped reaching the witnesses")
+
+    def carried(self, payloads: set[bytes]) -> list[tuple[str, str]]:
+        """(node, key) of every delivery of one of ``payloads``."""
+        with self._lock:
+            return sorted({(n, k) for n, k, p in self.seen if p in payloads})
+
+    def close(self) -> None:
+        for session in self._sessions:
+            session.close()
+        self._sessions.clear()
+
+
 def _counts(team) -> dict[str, int]:
     return {c: s["produced_total"] for c, s in sources_of(team.snapshot()).items()}
 
 
+def _hosting(snap: dict) -> dict[str, tuple[dict, dict]]:
+    """Every node's hosted stages: (stage -> generation of its instance, stage -> lifecycle)."""
+    statuses = {name: info["status"] for name, info in snap["robots"].items() if info.get("status")}
+    if snap.get("basestation"):
+        statuses[snap["basestation"]["node"]] = snap["basestation"]
+    return {node: (dict(st["generations"]), dict(st["hosted"])) for node, st in statuses.items()}
+
+
+def _gap_free(sink: dict) -> bool:
+    return sink["received"] == sink["contiguous"] == sink["max_seq"] + 1 and sink["duplicates"] == 0
+
+
+def _steady(snap: dict) -> bool:
+    """Every placed stage runs on its host, and every running chain's sink reports."""
+    hosting = _hosting(snap)
+    return all(hosting.get(host, ({}, {}))[1].get(stage) == "running" for stage, host in snap["placement"].items()) \
+        and set(snap["running"]) <= set(sinks_of(snap))
+
+
 def test_a_robot_identity_cannot_publish_a_plan_or_a_migration_order(team):
-    snap = team.snapshot()
+    snap = wait_for(team, _steady, 30, "every stage running and every sink reporting")
     epoch, placement = snap["epoch"], dict(snap["placement"])
-    insider = Insider(team)
-    try:
+    hosting, sinks = _hosting(snap), sinks_of(snap)
+    keys = Keys(team.team)
+    with ExitStack() as stack:  # every session closed, whatever fails
+        witness = Witness(team, keys.plan, f"{keys.prefix}/node/*/control")
+        stack.callback(witness.close)
+        insider = Insider(team)
+        stack.callback(insider.close)
+        witness.wait_forwarding()
         insider.wait_connected()
         real = decode(insider.wait_for(insider.keys.plan), PlanUpdate)
         # what stopped every source before: a higher epoch with nothing running (and, since plans are
         # ordered by incarnation first, a higher incarnation: a base station taking over)
         forged = dataclasses.replace(real, epoch=real.epoch + 1000, incarnation=real.incarnation + 1000,
                                      leader="forged", running={}, placement={})
-        stage, host = next(iter(placement.items()))
+        # a running stage moved to another robot: its host would drain it and ship its state there
+        stage, host = next((s, h) for s, h in sorted(placement.items()) if h != "r2")
         order = MigrateOut(stage=stage, generation=10**9, to_node="r2")
         for _ in range(5):
             insider.bus.publish(insider.keys.plan, encode(forged))
             for node in team.nodes:
                 insider.bus.publish(insider.keys.node_control(node), encode(order))
             time.sleep(0.1)
+        sent = time.time()
         produced = _counts(team)
-        later = wait_for(team, lambda s: all(v["produced_total"] > produced[c] + 5 for c, v in sources_of(s).items()),
-                         20, "every source to keep producing after the forged plan")
-    finally:
-        insider.close()
+        # bounded: every sink takes in more outputs, each without a gap, and every robot reports what it
+        # hosts after the orders had arrived; the placement, every node's stages and their generations
+        # must be as they were
+        later = wait_for(team, lambda s: all(v["produced_total"] > produced[c] + 5 for c, v in sources_of(s).items())
+                         and all(sinks_of(s)[c]["contiguous"] >= v["contiguous"] + 5 and _gap_free(sinks_of(s)[c])
+                                 for c, v in sinks.items())
+                         and all(i["status"]["t_unix"] > sent + 0.5 for i in s["robots"].values()),
+                         30, "every source to keep producing and every sink to take in its outputs without a gap")
+        witness.wait_status_after(host, sent)
     assert later["epoch"] == epoch, "the forged plan was adopted"
     assert dict(later["placement"]) == placement, "a forged migration order moved a stage"
     for name, info in later["robots"].items():
         assert info["status"]["plan_epoch"] == epoch, f"{name} runs a plan the base station did not make"
+    assert _hosting(later) == hosting, f"a forged order changed what runs where ({stage} on {host})"
+    for chain, before in sinks.items():
+        sink = sinks_of(later)[chain]
+        assert sink["run"] == before["run"] and sink["duplicates_total"] == before["duplicates_total"] \
+            and sink["given_up_total"] == before["given_up_total"], (chain, before, sink)
+    assert witness.carried({encode(forged), encode(order)}) == [], "Zenoh delivered a forged plan or order"
 
 
-def test_forged_statuses_do_not_mark_a_healthy_robot_depleted(team):
-    insider = Insider(team)
-    try:
+def test_a_robot_identity_cannot_put_a_status_on_another_robots_key(team):
+    """Zenoh's access control alone stops it. The forged status names r1 on r1's key and is stamped
+    now, so every check the processes make (`status_problem`) would take it: the witnesses show
+    that no node's Zenoh let it through, before any process could judge it. The base station's
+    latest view of r1 cannot show this alone: r1's next real status replaces a forged one."""
+    keys = Keys(team.team)
+    forged: set[bytes] = set()
+    with ExitStack() as stack:  # every session closed, whatever fails
+        witness = Witness(team)
+        stack.callback(witness.close)
+        insider = Insider(team)
+        stack.callback(insider.close)
+        witness.wait_forwarding()
         insider.wait_connected()
-        real = decode(insider.wait_for(insider.keys.status("r1")), NodeStatus)
-        dead = dataclasses.replace(real, depleted=True, battery_j=0.0, t_unix=time.time() + 3600)
+        real = decode(insider.wait_for(keys.status("r1")), NodeStatus)
         for _ in range(5):
-            insider.bus.publish(insider.keys.status("r1"), encode(dead))  # r1's key: the ACL drops it
-            insider.bus.publish(insider.keys.status("r2"), encode(dead))  # r2's own key, naming r1: dropped as forged
+            dead = dataclasses.replace(real, depleted=True, battery_j=0.0, t_unix=time.time())
+            assert status_problem(keys, keys.status("r1"), dead.node, dead.t_unix, time.time()) is None
+            forged.add(encode(dead))
+            insider.bus.publish(keys.status("r1"), encode(dead))
             time.sleep(0.1)
-        time.sleep(1.5)
-    finally:
-        insider.close()
-    snap = team.snapshot()
-    r1 = snap["robots"]["r1"]
+        witness.wait_status_after("r1", time.time() + 0.5)
+    assert witness.carried(forged) == [], "Zenoh delivered a status put by r2 on r1's key"
+    r1 = team.snapshot()["robots"]["r1"]
     assert r1["present"] and not r1["status"]["depleted"] and r1["status"]["battery_j"] > 0
-    # and its real statuses still count: a newer one arrives after the forgery
-    t_before = r1["status"]["t_unix"]
-    later = wait_for(team, lambda s: s["robots"]["r1"]["status"]["t_unix"] > t_before + 0.5, 10,
-                     "r1's real statuses to keep being taken")
-    assert not later["robots"]["r1"]["status"]["depleted"]
-    assert (later.get("basestation") or {}).get("errors", {}).get("forged", 0) >= 1, \
+
+
+def test_a_status_naming_another_robot_on_its_own_key_is_dropped_as_forged(team):
+    """What Zenoh cannot judge: r2 may put on its own status key, and the witnesses show Zenoh
+    delivering it; the status naming r1 there is dropped by the processes, so r1 stays healthy."""
+    keys = Keys(team.team)
+    forged_before = ((team.snapshot().get("basestation") or {}).get("errors") or {}).get("forged", 0)
+    forged: set[bytes] = set()
+    with ExitStack() as stack:  # every session closed, whatever fails
+        witness = Witness(team)
+        stack.callback(witness.close)
+        insider = Insider(team)
+        stack.callback(insider.close)
+        witness.wait_forwarding()
+        insider.wait_connected()
+        real = decode(insider.wait_for(keys.status("r1")), NodeStatus)
+        for _ in range(5):
+            dead = dataclasses.replace(real, depleted=True, battery_j=0.0, t_unix=time.time())  # within the clock check
+            forged.add(encode(dead))
+            insider.bus.publish(keys.status("r2"), encode(dead))
+            time.sleep(0.1)
+        t_sent = time.time()
+        witness.wait_status_after("r1", t_sent + 0.5)
+        # r1's real statuses still count: newer ones are taken after the forgery
+        later = wait_for(team, lambda s: s["robots"]["r1"]["status"]["t_unix"] > t_sent + 0.5, 10,
+                         "r1's real statuses to keep being taken")
+    assert (team.scenario.basestation, keys.status("r2")) in witness.carried(forged), \
+        "Zenoh did not deliver r2's put on its own key: the processes' check was never tried"
+    r1 = later["robots"]["r1"]
+    assert r1["present"] and not r1["status"]["depleted"] and r1["status"]["battery_j"] > 0
+    assert (later.get("basestation") or {}).get("errors", {}).get("forged", 0) >= forged_before + 1, \
         "the base station did not notice the status naming r1 on r2's key"
 
 
