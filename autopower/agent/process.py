@@ -20,6 +20,7 @@ from autopower.agent.resume import ResumeFile
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.node.held_store import HeldStore
+from autopower.node.peer_watch import PeerWatch, WatchSettings
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
 from autopower.node.stages import Lifecycle
@@ -39,8 +40,6 @@ from autopower.runtime.cadence import (
     REPEAT_AFTER_PERIODS,
     REPEAT_EVERY_PERIODS,
     StatusCadence,
-    next_silence_s,
-    silence_limit_s,
 )
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
 from autopower.runtime.relay import Relayer
@@ -98,10 +97,9 @@ class Agent:
         self.statuses: dict = {}  # robot -> its last NodeStatus (battery for subgroup decisions)
         self._started_unix = time.time()  # a restarted agent waits for a plan from then (`_resume_alone`)
         self._resumed_alone = False
-        self._heard_direct: dict[str, float] = {}  # node -> wall time of its last status received directly
-        self._tokens: set[str] = set()  # nodes whose liveliness token we see
-        self._silent: set[str] = set()  # nodes with a token but no direct status for too long
-        self._announced: dict[str, float] = {}  # node -> when its next status is due at the latest (it said)
+        # who is in direct sight: tokens, checked by the statuses that arrive (`node.peer_watch`)
+        self.watch = PeerWatch(WatchSettings(periods=config.silence_periods, own_period_s=config.status_period_s,
+                                             lease_s=config.zenoh.lease_ms / 1000.0))
         self.cadence = StatusCadence(config.status_period_s, config.status_rest_period_s)
         self._asleep_at_rest = False  # the loop sleeps past the status period (`run`)
         self.stop_reason: str | None = None
@@ -188,16 +186,9 @@ class Agent:
             if node is not None and node != self.config.robot:
                 log.info("agent %s: %s %s (liveliness)", self.config.robot, self._who(node),
                          "in sight" if event.alive else "out of sight")
-                if event.alive:
-                    self._tokens.add(node)
-                    self._silent.discard(node)
-                    self._heard_direct.pop(node, None)  # back: silence counts from its next status
-                else:
-                    self._tokens.discard(node)
-                    if node in self._silent:  # already out of sight (silent): nothing changes
-                        self._silent.discard(node)
-                        return
-                self._sight(node, event.alive)
+                change = self.watch.on_token(node, event.alive)
+                if change is not None:
+                    self._sight(node, change)
         elif isinstance(event, WorkDone):
             self.runtime.collect_stage_results()
         elif isinstance(event, OperatorRequest):
@@ -219,36 +210,21 @@ class Agent:
 
     def _check_silence(self, now: float) -> None:
         """Nodes in sight by their token whose statuses stopped arriving directly go out of sight."""
-        # never sooner than the lease: a team configured with a long lease (radios that stay
-        # saturated for seconds) must not have its peers declared gone by this detector first
         # only once the statuses that arrived are taken: after the loop itself was held up (a put
         # blocked on a saturated radio for seconds) they wait in the queue, and judging before
-        # taking them declared every peer silent (the testbed physics test's flake)
+        # taking them declared every peer silent
         if self.events.urgent_waiting():
             return
-        for node, limit in sorted(self._silence_limits().items()):
-            heard = self._heard_direct.get(node)
-            if heard is not None and now - heard > limit:
-                log.info("agent %s: %s out of sight (no status for %.1f s; its token is still here)",
-                         self.config.robot, self._who(node), now - heard)
-                self._silent.add(node)
-                self.runtime.tally("silent-peers")
-                self._sight(node, False)
+        for node, silent_s in self.watch.check(now):
+            log.info("agent %s: %s out of sight (no status for %.1f s; its token is still here)",
+                     self.config.robot, self._who(node), silent_s)
+            self.runtime.tally("silent-peers")
+            self._sight(node, False)
 
-    def _silence_limits(self) -> dict[str, float]:
-        """Node in sight by its token (not already silent) -> how long its statuses may stay away."""
-        cfg = self.config
-        # a node at rest sends its status less often and says so: silent is silent for its cadence
-        return {node: silence_limit_s(cfg.silence_periods, cfg.status_period_s, self._announced.get(node, 0.0),
-                                      cfg.zenoh.lease_ms / 1000.0)
-                for node in self._tokens - self._silent}
-
-    def _heard(self, node: str) -> None:
+    def _heard(self, node: str, next_status_s: float) -> None:
         """A status from ``node`` arrived directly (not relayed)."""
-        self._heard_direct[node] = time.time()
-        if node in self._silent and node in self._tokens:
+        if self.watch.on_status(node, next_status_s, time.time()):
             log.info("agent %s: %s in sight again (its statuses arrive)", self.config.robot, self._who(node))
-            self._silent.discard(node)
             self._sight(node, True)
 
     def _received(self, key: str, payload: bytes) -> None:
@@ -274,8 +250,7 @@ class Agent:
                     rt.count("forged", problem)
                     return
                 if not relayed:
-                    self._announced[status.node] = status.next_status_s
-                    self._heard(status.node)  # before the duplicate check: a relayed copy may come first
+                    self._heard(status.node, status.next_status_s)  # before the duplicate check: a relayed copy may come first
                 last = self.statuses.get(status.node)
                 if last is not None and status.t_unix <= last.t_unix:
                     return  # a duplicate (direct and relayed) or an older one overtaken
@@ -423,7 +398,7 @@ class Agent:
         rt = self.runtime
         wake = [self.cadence.next_build(next_status, quiet=quiet)]
         # (a loop that is not quiet wakes every status period and looks then, as it always did)
-        if quiet and (silent_at := next_silence_s(self._heard_direct, self._silence_limits())) is not None:
+        if quiet and (silent_at := self.watch.next_deadline()) is not None:
             wake.append(silent_at + SILENCE_SLACK_S)  # found when its limit passes (the check is strict)
         if deadline is not None:
             wake.append(deadline)

@@ -20,6 +20,7 @@ from autopower.agent.resume import ResumeFile
 from autopower.basestation.coordinator import Coordinator
 from autopower.errors import ProtocolError
 from autopower.node.held_store import HeldStore
+from autopower.node.peer_watch import PeerWatch, WatchSettings
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
 from autopower.node.stages import Lifecycle
@@ -181,6 +182,7 @@ class RobotShell(Shell):
         rt.resume_from = self.resume.load()
         rt.on_produced = self._produced
         self.statuses: dict[str, NodeStatus] = {}
+        self.watch = PeerWatch(WatchSettings(own_period_s=w.status_period_s, lease_s=w.network.lease_s))
         self.rounds = SubgroupRounds(
             runtime=rt, scenario=w.scenario, bus=self.bus, keys=keys, wall=w.scheduler.wall,
             reachable=self.relayer.reachable, statuses=self.statuses,
@@ -206,11 +208,17 @@ class RobotShell(Shell):
     def _liveliness(self, key: str, alive: bool) -> None:
         node = self.keys.node_of_alive(key)
         if node is not None and node != self.node:
-            self.rt.on_liveliness(node, alive)
-            self.relayer.on_liveliness(node, alive)
-            if not alive:
-                self.rounds.on_member_lost(node)
-            self.publish_status()  # the base station tells a dead robot from a cut link by what the others see
+            change = self.watch.on_token(node, alive)
+            if change is not None:
+                self._sight(node, change)
+
+    def _sight(self, node: str, visible: bool) -> None:
+        """``node`` came into direct sight or went out of it (its token, or its statuses' silence)."""
+        self.rt.on_liveliness(node, visible)
+        self.relayer.on_liveliness(node, visible)
+        if not visible:
+            self.rounds.on_member_lost(node)
+        self.publish_status()  # the base station tells a dead robot from a cut link by what the others see
 
     def _received(self, key: str, payload: bytes) -> None:
         rt, keys = self.rt, self.keys
@@ -236,8 +244,12 @@ class RobotShell(Shell):
             if status_problem(keys, key, status.node, status.t_unix, self.world.scheduler.wall()) is not None:
                 rt.count("forged", key)
                 return
+            if status.node == self.node:
+                return
+            if not relayed and self.watch.on_status(status.node, status.next_status_s, self.world.scheduler.wall()):
+                self._sight(status.node, True)  # before the duplicate check: a relayed copy may come first
             last = self.statuses.get(status.node)
-            if status.node == self.node or (last is not None and status.t_unix <= last.t_unix):
+            if last is not None and status.t_unix <= last.t_unix:
                 return
             self.relayer.on_status(status)
             if not relayed:
@@ -292,6 +304,9 @@ class RobotShell(Shell):
 
     def _turn(self) -> float:
         rt, s = self.rt, self.world.scheduler
+        for node, _ in self.watch.check(s.wall()):
+            rt.tally("silent-peers")
+            self._sight(node, False)
         if rt.started:
             self.rounds.tick()
             rt.on_timer()
@@ -300,7 +315,8 @@ class RobotShell(Shell):
         if now >= self.next_status:
             self.publish_status(save_resume=True)
             self.next_status = max(self.next_status + self.world.status_period_s, now)
-        wake = min([self.next_status, *self.rounds.wake_times(now)])
+        silent_at = self.watch.next_deadline()
+        wake = min([self.next_status, *self.rounds.wake_times(now), *([silent_at + MIN_WAKE_S] if silent_at else [])])
         if rt.started and (t := rt.next_deadline()) is not None:
             wake = min(wake, rt.clock.wall_at(t))
         return wake

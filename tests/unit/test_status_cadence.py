@@ -71,16 +71,16 @@ def test_a_resting_peer_is_not_declared_silent_between_its_statuses_and_is_when_
     assert not r2.publish_status(urgent=False)  # held back: nothing new, the rest period not over
     heard = time.time()
     r1._check_silence(heard + 1.2)  # a peer with the normal cadence would be out of sight by now
-    assert "r2" in r1.relayer.direct and "r2" not in r1._silent
+    assert "r2" in r1.relayer.direct and "r2" not in r1.watch.silent
     r1._check_silence(heard + 4.2)  # two of its periods without a word: out of sight
-    assert "r2" in r1._silent and "r2" not in r1.relayer.direct
+    assert "r2" in r1.watch.silent and "r2" not in r1.relayer.direct
     # it has something to say again: back in sight, and the normal cadence applies at once
     r2.runtime.tally("forwarded")
     assert r2.publish_status(urgent=False)
     drain(hub, agents)
     assert "r2" in r1.relayer.direct and r1.statuses["r2"].next_status_s == 0.5
     r1._check_silence(time.time() + 1.2)
-    assert "r2" in r1._silent
+    assert "r2" in r1.watch.silent
 
 
 def voluntary_switches() -> int:

@@ -161,17 +161,17 @@ def test_a_peer_whose_statuses_stop_is_out_of_sight_though_its_token_stays(team)
 
     hub, agents, _ = team
     r1, r2 = agents["r1"], agents["r2"]
-    assert {"r2", "r3"} <= r1._tokens  # every agent's token, through the hub
+    assert {"r2", "r3"} <= r1.watch.tokens  # every agent's token, through the hub
     r2.publish_status()
     agents["r3"].publish_status()
     drain(hub, agents)
     assert "r2" in r1.relayer.direct and r1.runtime.status(1.0).links["r2"]
     heard = time.time()
     r1._check_silence(heard + 0.9)  # within two periods (1 s): still in sight
-    assert {"r2", "r3"} <= r1.relayer.direct and not r1._silent
+    assert {"r2", "r3"} <= r1.relayer.direct and not r1.watch.silent
     r1._check_silence(heard + 1.2)
     assert "r2" not in r1.relayer.direct and not r1.runtime.status(1.0).links["r2"]
-    assert r1._silent == {"r2", "r3"} and r1.runtime.counters.get("silent-peers") == 2
+    assert r1.watch.silent == {"r2", "r3"} and r1.runtime.counters.get("silent-peers") == 2
     r2.publish_status()  # it speaks again (the token never went): back in sight
     drain(hub, agents)
     assert "r2" in r1.relayer.direct and r1.runtime.status(1.0).links["r2"]
@@ -198,13 +198,13 @@ def test_statuses_waiting_in_the_queue_are_taken_before_anyone_is_called_silent(
     hub.pump()  # ... with the statuses sent meanwhile in its queue, not yet taken
     assert r1.events.urgent_waiting()
     r1._check_silence(late)
-    assert not r1._silent and {"r2", "r3"} <= r1.relayer.direct
+    assert not r1.watch.silent and {"r2", "r3"} <= r1.relayer.direct
     while (event := r1.events.get(0)) is not None:
         r1._handle(event)
     r1._check_silence(time.time() + 0.5)
-    assert not r1._silent
+    assert not r1.watch.silent
     r1._check_silence(time.time() + 5.0)  # and a real silence is still seen once the queue is empty
-    assert r1._silent == {"r2", "r3"}
+    assert r1.watch.silent == {"r2", "r3"}
 
 
 def cut(agents: dict[str, Agent], who: str, others) -> None:

@@ -71,10 +71,10 @@ def test_sweep_seeds_that_found_the_adoption_race(seed):
 
 @pytest.mark.parametrize("seed", FOUND_WITH_ROUNDS)
 @pytest.mark.xfail(strict=True, reason=(
-    "open since the simulated robots run subgroup rounds (`node.subgroup_rounds`): a base station frozen "
-    "for longer than the lease (robots form a subgroup, then it thaws) around a cut and a frozen robot "
-    "loses outputs of a Loc chain (seeds 13, 46) or skips a Blob stage's input (seeds 44, 187); seed 46 "
-    "shrinks to three faults: r2 frozen 3.6 s, r1-r2 cut 7.8 s, the laptop frozen 1.9 s"))
+    "open since the simulated robots run subgroup rounds (`node.subgroup_rounds`) and detect silent peers "
+    "(`node.peer_watch`): around a base station frozen past the lease (robots form a subgroup, it thaws having "
+    "lost them), cuts and frozen robots, outputs are lost (seeds 0, 46) or a Blob stage sees a skipped input "
+    "(seed 187)"))
 def test_sweep_seeds_that_fail_with_subgroup_rounds(seed):
     verdict = run_seed(PLAN, seed)
     assert verdict.ok, verdict.first
