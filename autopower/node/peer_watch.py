@@ -35,9 +35,19 @@ class PeerWatch:
         self._heard: dict[str, float] = {}  # node -> wall time of its last status received directly
         self._announced: dict[str, float] = {}  # node -> the status period it said it keeps
         self.suspicions = 0  # peers declared silent (each later heard again was a false suspicion)
+        # `limits` and `next_deadline`, kept until something they depend on changes: a loop asks for
+        # both at every turn, and a fleet's robot watches dozens of peers
+        self._limits: dict[str, float] | None = None
+        self._deadline: tuple[float | None] | None = None
+
+    def _changed(self, limits: bool = False) -> None:
+        self._deadline = None
+        if limits:
+            self._limits = None
 
     def on_token(self, node: str, alive: bool) -> bool | None:
         """``node``'s token came or went; the change of sight to act on (None: none)."""
+        self._changed(limits=True)
         if alive:
             self.tokens.add(node)
             self.silent.discard(node)
@@ -51,22 +61,29 @@ class PeerWatch:
 
     def on_status(self, node: str, next_status_s: float, now: float) -> bool:
         """A status of ``node`` arrived directly (not relayed); True: it is back in sight (was silent)."""
+        self._changed(limits=self._announced.get(node) != next_status_s)
         self._announced[node] = next_status_s
         self._heard[node] = now
         if node in self.silent and node in self.tokens:
             self.silent.discard(node)
+            self._changed(limits=True)
             return True
         return False
 
     def limits(self) -> dict[str, float]:
         """Node in sight by its token (not already silent) -> how long its statuses may stay away."""
-        s = self.settings
-        # a node at rest sends its status less often and says so: silent is silent for its cadence
-        return {node: silence_limit_s(s.periods, s.own_period_s, self._announced.get(node, 0.0), s.lease_s)
-                for node in self.tokens - self.silent}
+        if self._limits is None:
+            s = self.settings
+            # a node at rest sends its status less often and says so: silent is silent for its cadence
+            self._limits = {node: silence_limit_s(s.periods, s.own_period_s, self._announced.get(node, 0.0),
+                                                  s.lease_s) for node in self.tokens - self.silent}
+        return dict(self._limits)
 
     def check(self, now: float) -> list[tuple[str, float]]:
         """The peers that went silent by ``now``, each with how long it has been silent (sorted)."""
+        deadline = self.next_deadline()
+        if deadline is None or now <= deadline:
+            return []
         gone = []
         for node, limit in sorted(self.limits().items()):
             heard = self._heard.get(node)
@@ -74,6 +91,7 @@ class PeerWatch:
                 self.silent.add(node)
                 self.suspicions += 1
                 gone.append((node, now - heard))
+        self._changed(limits=True)
         return gone
 
     def next_deadline(self) -> float | None:
@@ -82,4 +100,6 @@ class PeerWatch:
         A loop that wakes only for its deadlines wakes for this one: a silent peer is found when its
         limit passes, not at whatever tick comes next.
         """
-        return next_silence_s(self._heard, self.limits())
+        if self._deadline is None:
+            self._deadline = (next_silence_s(self._heard, self.limits()),)
+        return self._deadline[0]

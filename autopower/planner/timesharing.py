@@ -62,9 +62,15 @@ def _schedule(values, configs, robots) -> list[Phase]:
     return phases
 
 
+def enumerable(problem: Problem) -> bool:
+    """The bound comes by enumeration (exact, a fraction of a second), not column generation (a
+    pricing MILP per round: tens of seconds from about 25 robots with cameras)."""
+    return problem.combinations() <= min(MAX_COMBINATIONS, 500_000)
+
+
 def time_sharing_bound(problem: Problem, seed_configs: list[tuple[Network, dict[str, str]]],
                        max_rounds: int = 60) -> TimeSharingBound:
-    if problem.combinations() <= min(MAX_COMBINATIONS, 500_000):
+    if enumerable(problem):
         return _by_enumeration(problem, seed_configs)
     return _by_column_generation(problem, seed_configs, max_rounds)
 

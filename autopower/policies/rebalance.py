@@ -64,9 +64,12 @@ class RebalancePolicy:
 
     # ---- the time-sharing schedule from the remaining energies ----------------------------------
     def _schedule_option(self, view: DecisionView, best: Option | None, stay: Option | None) -> Option | None:
-        from autopower.planner.timesharing import time_sharing_bound
+        from autopower.planner.timesharing import enumerable, time_sharing_bound
 
-        if not view.problem.chains:
+        # A decision must not hold the coordinator up: a team too large to enumerate would take a
+        # pricing MILP per round (66 s for 30 robots with cameras), so it plans the best fixed
+        # configuration at each decision, and the periodic replans follow the batteries instead.
+        if not view.problem.chains or not enumerable(view.problem):
             return None
         seeds = [(o.network, o.allocation) for o in (best, stay) if o is not None]
         try:

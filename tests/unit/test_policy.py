@@ -67,6 +67,28 @@ def test_rebalance_starts_a_time_sharing_schedule_worth_the_bound():
     assert "time sharing over 2 configurations" in " ".join(d.reasons)
 
 
+def test_rebalance_decides_a_fleet_too_large_to_enumerate_without_column_generation(monkeypatch):
+    """A decision holds the coordinator up: a team whose configurations cannot be enumerated would
+    price a MILP per column-generation round (66 s for 30 robots with cameras), so rebalance takes
+    the best fixed configuration there, and its periodic replans follow the batteries."""
+    from autopower.planner import timesharing
+    from autopower.simulation.synthetic import paper_fleet
+
+    _, fleet = paper_fleet(30)
+    state = start_state(scenario=fleet)
+    assert not timesharing.enumerable(make_problem(PlanRequest(scenario=fleet)))
+
+    def refused(*args, **kwargs):
+        raise AssertionError("column generation run inside a decision")
+
+    monkeypatch.setattr(timesharing, "_by_column_generation", refused)
+    d = make_policy("rebalance").decide(state)
+    assert d.forced and not d.schedule and set(d.started) == set(fleet.stage_names())
+    assert d.predicted_lifetime_s == pytest.approx(make_policy("static").decide(state).predicted_lifetime_s)
+    # the paper's trio still gets its schedule (by enumeration)
+    assert timesharing.enumerable(make_problem(PlanRequest(scenario=FIG7, topology="relay")))
+
+
 @pytest.mark.parametrize("name", ["reactive", "rebalance", "subgroup"])
 def test_vc_fault_gives_the_papers_reallocation(name):
     d = make_policy(name).decide(vc_state())
