@@ -412,6 +412,11 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             self._adopt_actual(status)
             if not self._awaiting_actual:  # every robot that came back has said what it runs
                 self.replan(f"{status.node} joined (from what the robots report hosting)", after_rejoin=True)
+        elif self.mission is not None and status.node in self.present and self._adopt_actual(status, returning=False):
+            # A robot that never left our sight may have run a round alone (it took us for gone on
+            # a lossy link): its newer instance is adopted, ours released, and the plan says so at
+            # once, or its producers would go on feeding ours the inputs it has not seen.
+            self.replan(f"{status.node} runs stages it agreed on without the base station")
         self._check_links(status)
         self._check_drift(status)
 
@@ -455,7 +460,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             self.reconcile()
             self.publish_plan()
 
-    def _adopt_actual(self, status: NodeStatus) -> None:
+    def _adopt_actual(self, status: NodeStatus, returning: bool = True) -> bool:
         """Take the stages a returning robot runs as placed there, when its instance is the newest.
 
         Instances are ordered by generation everywhere: a robot stops its instance when it sees a
@@ -465,20 +470,34 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         placement says; an older one is released instead. Adopting the older one left the stage
         running nowhere (its robot yielded to ours, which we had released) or, when the robot kept
         it, with producers ignoring its acknowledgements for good.
+
+        A robot that never left (not ``returning``) has a stage adopted only where it runs on two
+        nodes at once: one we placed elsewhere, not one we stopped (a release still on its way).
+        True when a stage was adopted.
         """
         alive = self.alive_nodes()
+        adopted = False
         for stage, state in sorted(status.hosted.items()):
-            if state != "running" or stage not in self.chain_of or stage in self.migrations:
-                continue
-            previous = self.placement.get(stage)
-            if previous == status.node:
+            if state != "running" or stage not in self.chain_of:
                 continue
             theirs = status.generations.get(stage, 0)
+            m = self.migrations.get(stage)
+            if m is not None:
+                if m.to_node != status.node or theirs <= m.generation:
+                    continue
+                # the robot we were moving it to runs a newer instance already (a round it made while
+                # it took us for gone): our order is moot, and it would be refused as stale for good
+                del self.migrations[stage]
+                self.note(f"{stage}: {m.phase} to {m.to_node} overtaken by the instance it started itself")
+            previous = self.placement.get(stage)
+            if previous == status.node or (not returning and (previous is None or previous not in alive)):
+                continue
             ours = self.placed_generation.get(stage) if previous in alive else None
-            if ours is not None and ours > theirs:
-                self.note(f"{stage} still runs on {status.node} as an older instance (generation {theirs}, "
-                          f"{previous}'s is {ours}); released there")
-                self._send(status.node, Release(stage=stage, generation=theirs))
+            if ours is not None and ours >= theirs:
+                if ours > theirs:
+                    self.note(f"{stage} still runs on {status.node} as an older instance (generation {theirs}, "
+                              f"{previous}'s is {ours}); released there")
+                    self._send(status.node, Release(stage=stage, generation=theirs))
                 continue
             # generations handed out without us are time-based: jump past them
             self.generation = max(self.generation, int(self.wall() * 1000) + 1)
@@ -486,8 +505,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             self.placed_generation[stage] = theirs
             self.adopted += 1
             self.note(f"{stage} runs on {status.node} (agreed without the base station); adopted")
+            adopted = True
             if previous is not None and previous in alive:
                 self._send(previous, Release(stage=stage, generation=self._next_generation()))
+        return adopted
 
     def _check_links(self, status: NodeStatus) -> None:
         """A robot's view of its links: what it reports down may be a cut (`LinkStates` debounces)."""
