@@ -10,7 +10,7 @@ station, a freeze of 0.2-1.5 s (SIGSTOP, then SIGCONT), a radio change. Everythi
 at the end, the team runs 15 s more, `up` is stopped and the recording replayed.
 
 Printed: each fault with its exit status (and the refusal, if any), the replay's lost and
-duplicated outputs (and how many of the lost a robot cut off from its sink dropped, by design),
+duplicated outputs (and, apart from them, how many results a node dropped beyond its hold budget),
 the energy model's error, every invariant that failed, and every ERROR line or traceback in the
 processes' logs. Bounded: one team, ``--faults`` faults, every wait has a deadline, and `up` is
 stopped whatever happens.
@@ -136,7 +136,7 @@ def write(args, result: dict) -> None:
             results.figure("outputs lost", result["lost"], "outputs", "outputs recorded", outputs, group=g, note=note),
             results.figure("outputs duplicated", result["duplicated"], "outputs", "outputs recorded", outputs,
                            group=g, note=note),
-            results.figure("outputs a robot cut off from its sink let go (by design)", result["held_dropped"],
+            results.figure("outputs dropped beyond a hold budget", result["dropped_by_budget"],
                            "outputs", "outputs recorded", outputs, group=g, note=note),
             results.figure("outputs that died with a crashed process", result["died_with_process"], "outputs",
                            "outputs recorded", outputs, group=g, note=note),
@@ -187,7 +187,7 @@ def main() -> None:
                                 capture_output=True, text=True, timeout=120)
         s = json.loads(replay.stdout)
         result.update(recording=str(recordings[-1]), lost=s["lost_outputs"], duplicated=s["duplicated_outputs"],
-                      held_dropped=s["outputs"].get("held_dropped", 0),
+                      dropped_by_budget=s["outputs"].get("held_dropped", 0),
                       died_with_process=s["outputs"].get("died_with_process", 0),
                       unrecorded=s["outputs"].get("unrecorded", 0),
                       outputs_recorded=sum(c["outputs"] for c in s["outputs"]["chains"].values()),
@@ -206,8 +206,8 @@ def main() -> None:
               + (f" ({entry['refusal']})" if entry["refusal"] else ""))
     print(f"up exited with {up_exit}; logs and recording in {workdir}")
     if recordings:
-        print(f"replay: {result['lost']} lost (besides {result['held_dropped']} a robot cut off from their sink "
-              f"let go from its full hold, by design, and {result['died_with_process']} of a robot's own chain "
+        print(f"replay: {result['lost']} lost (besides {result['dropped_by_budget']} dropped beyond a node's hold "
+              f"budget, and {result['died_with_process']} of a robot's own chain "
               f"that died with its crashed process, and {result['unrecorded']} a killed sink delivered "
               "before it flushed their recording), "
               f"{result['duplicated']} duplicated; energy vs model {result['energy_model_error_pct']:+.2f} % "

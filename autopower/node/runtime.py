@@ -444,6 +444,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                 del self.orphans[stage]
                 for frame in frames:
                     self.send_frame(frame, host)
+        self.flush_held_outputs()  # a round's placement may route a held result's sink again
 
     @property
     def model_w(self) -> float | None:
