@@ -230,15 +230,10 @@ class Agent:
     def _received(self, key: str, payload: bytes) -> None:
         rt = self.runtime
         relayed = key == self.keys.node_relay(self.config.robot)
-        if relayed:
-            try:
-                inner = self.relayer.on_relay(payload)
-            except ProtocolError as exc:
-                rt.count("garbled", f"on {key}: {exc}")
-                return
-            if inner is None:
-                return
-            key, payload = inner
+        inner = self.relayer.unwrap(key, payload)
+        if inner is None:
+            return
+        key, payload = inner
         if key == self.keys.subgroup:
             self.rounds.on_message(payload)
             return

@@ -224,17 +224,10 @@ class BaseStation:
     def _handle(self, event) -> None:
         rt, co, keys = self.runtime, self.coordinator, self.keys
         if isinstance(event, Received):
-            key, payload = event.key, event.payload
-            if key == keys.node_relay(self.node):
-                try:
-                    inner = self.relayer.on_relay(payload)
-                except ProtocolError as exc:
-                    self._garbage(key, exc)
-                    return
-                if inner is None:
-                    return
-                key, payload = inner
-            self._received(key, payload, relayed=event.key == keys.node_relay(self.node))
+            inner = self.relayer.unwrap(event.key, event.payload)
+            if inner is None:
+                return
+            self._received(*inner, relayed=event.key == keys.node_relay(self.node))
         elif isinstance(event, LivelinessChanged):
             node = keys.node_of_alive(event.key)
             if node is not None and node != self.node:

@@ -126,6 +126,18 @@ class Relayer:
             if dest != self.node and dest not in self.direct and self.reachable(dest):
                 self.send(dest, key, payload, reliable=reliable)  # best effort: no path, no error
 
+    def unwrap(self, key: str, payload: bytes) -> tuple[str, bytes] | None:
+        """What arrived on ``key``, as its receiver handles it: the message itself, or, on our relay
+        key, the relayed message when we are its end (None: passed on, refused as forged, or
+        garbled, each counted)."""
+        if key != self.keys.node_relay(self.node):
+            return key, payload
+        try:
+            return self.on_relay(payload)
+        except ProtocolError as exc:
+            self._count("garbled", f"on {key}: {exc}")
+            return None
+
     def on_relay(self, payload: bytes) -> tuple[str, bytes] | None:
         """A `Relayed` addressed to us: pass it on, or return (key, payload) if we are its end."""
         msg = decode(payload, Relayed)

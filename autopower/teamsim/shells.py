@@ -223,15 +223,10 @@ class RobotShell(Shell):
     def _received(self, key: str, payload: bytes) -> None:
         rt, keys = self.rt, self.keys
         relayed = key == keys.node_relay(self.node)
-        if relayed:
-            try:
-                inner = self.relayer.on_relay(payload)
-            except ProtocolError as exc:
-                rt.count("garbled", f"on {key}: {exc}")
-                return
-            if inner is None:
-                return
-            key, payload = inner
+        inner = self.relayer.unwrap(key, payload)
+        if inner is None:
+            return
+        key, payload = inner
         if key == keys.subgroup:
             self.rounds.on_message(payload)
             return
@@ -403,15 +398,10 @@ class BaseShell(Shell):
     def _received(self, key: str, payload: bytes) -> None:
         rt, co, keys = self.rt, self.co, self.keys
         relayed = key == keys.node_relay(self.node)
-        if relayed:
-            try:
-                inner = self.relayer.on_relay(payload)
-            except ProtocolError as exc:
-                rt.count("garbled", f"on {key}: {exc}")
-                return
-            if inner is None:
-                return
-            key, payload = inner
+        inner = self.relayer.unwrap(key, payload)
+        if inner is None:
+            return
+        key, payload = inner
         if key == keys.plan:
             try:
                 plan = decode(payload, PlanUpdate)

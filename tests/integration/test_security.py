@@ -301,6 +301,18 @@ def test_a_robot_identity_cannot_publish_a_plan_or_a_migration_order(team):
     assert witness.carried({encode(forged), encode(order)}) == [], "Zenoh delivered a forged plan or order"
 
 
+def _watched_insider(team, stack: ExitStack, key: str):
+    """(witness, insider, the real status on ``key``), both sessions closed by ``stack``, once the
+    witnesses see peers' statuses and the insider is connected."""
+    witness = Witness(team)
+    stack.callback(witness.close)
+    insider = Insider(team)
+    stack.callback(insider.close)
+    witness.wait_forwarding()
+    insider.wait_connected()
+    return witness, insider, decode(insider.wait_for(key), NodeStatus)
+
+
 def test_a_robot_identity_cannot_put_a_status_on_another_robots_key(team):
     """Zenoh's access control alone stops it. The forged status names r1 on r1's key and is stamped
     now, so every check the processes make (`status_problem`) would take it: the witnesses show
@@ -309,13 +321,7 @@ def test_a_robot_identity_cannot_put_a_status_on_another_robots_key(team):
     keys = Keys(team.team)
     forged: set[bytes] = set()
     with ExitStack() as stack:  # every session closed, whatever fails
-        witness = Witness(team)
-        stack.callback(witness.close)
-        insider = Insider(team)
-        stack.callback(insider.close)
-        witness.wait_forwarding()
-        insider.wait_connected()
-        real = decode(insider.wait_for(keys.status("r1")), NodeStatus)
+        witness, insider, real = _watched_insider(team, stack, keys.status("r1"))
         for _ in range(5):
             dead = dataclasses.replace(real, depleted=True, battery_j=0.0, t_unix=time.time())
             assert status_problem(keys, keys.status("r1"), dead.node, dead.t_unix, time.time()) is None
@@ -335,13 +341,7 @@ def test_a_status_naming_another_robot_on_its_own_key_is_dropped_as_forged(team)
     forged_before = ((team.snapshot().get("basestation") or {}).get("errors") or {}).get("forged", 0)
     forged: set[bytes] = set()
     with ExitStack() as stack:  # every session closed, whatever fails
-        witness = Witness(team)
-        stack.callback(witness.close)
-        insider = Insider(team)
-        stack.callback(insider.close)
-        witness.wait_forwarding()
-        insider.wait_connected()
-        real = decode(insider.wait_for(keys.status("r1")), NodeStatus)
+        witness, insider, real = _watched_insider(team, stack, keys.status("r1"))
         for _ in range(5):
             dead = dataclasses.replace(real, depleted=True, battery_j=0.0, t_unix=time.time())  # within the clock check
             forged.add(encode(dead))
