@@ -1,4 +1,4 @@
-"""`autopower fault cut|loss|heal|kill|crash|freeze|thaw|radio|list`: inject faults into the running team."""
+"""`autopower fault cut|loss|rate|flap|roam|heal|kill|crash|freeze|thaw|radio|list`: inject faults into a team."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import click
 
 from autopower.cli.options import TEAM_NAME
-from autopower.launch.faults import MEDIA_CHOICES, request_fault
+from autopower.launch.faults import MEDIA_CHOICES, PHASE_S, ROAM_MS, request_fault
 
 
 def _run(request: dict, as_json: bool) -> None:
@@ -71,13 +71,61 @@ def fault_loss(a, b, pct, one_way, as_json):
     _run({"op": "loss", "a": a, "b": b, "pct": pct, "one_way": one_way}, as_json)
 
 
+@fault.command("rate")
+@click.argument("a")
+@click.argument("b")
+@click.argument("kbps", type=click.FloatRange(0, min_open=True))
+@_json
+@_team
+def fault_rate(a, b, kbps, as_json):
+    """Shape link A-B, both ways, to KBPS kbit/s (> 0) × the team's speed-up, e.g. a robot moving away.
+
+    Testbed only, on a point-to-point link; `fault heal A B` restores the medium's rate.
+    """
+    _run({"op": "rate", "a": a, "b": b, "kbps": kbps}, as_json)
+
+
+_phase = click.FloatRange(*PHASE_S)
+
+
+@fault.command("flap")
+@click.argument("a")
+@click.argument("b")
+@click.option("--up", "up_s", type=_phase, required=True, help="Seconds up in each cycle (0.05 to 3600).")
+@click.option("--down", "down_s", type=_phase, required=True, help="Seconds down in each cycle (0.05 to 3600).")
+@click.option("--for", "for_s", type=click.FloatRange(PHASE_S[0]), default=None,
+              help="Stop flapping after this many seconds (default: until `fault heal A B` or the team stops).")
+@_json
+@_team
+def fault_flap(a, b, up_s, down_s, for_s, as_json):
+    """Cut link A-B (both ways) for --down seconds, then up for --up seconds, again and again (testbed only).
+
+    It starts down. `fault heal A B`, the end of --for and the team stopping end it with the link up.
+    """
+    _run({"op": "flap", "a": a, "b": b, "up_s": up_s, "down_s": down_s, "for_s": for_s}, as_json)
+
+
+@fault.command("roam")
+@click.argument("a")
+@click.argument("b")
+@click.argument("ms", type=click.FloatRange(*ROAM_MS))
+@_json
+@_team
+def fault_roam(a, b, ms, as_json):
+    """One outage of MS milliseconds (1 to 60000) on link A-B, which then comes back by itself (testbed only).
+
+    A fast 802.11r roam takes 50-150 ms, a full re-association seconds.
+    """
+    _run({"op": "roam", "a": a, "b": b, "ms": ms}, as_json)
+
+
 @fault.command("heal")
 @click.argument("a")
 @click.argument("b")
 @_json
 @_team
 def fault_heal(a, b, as_json):
-    """Bring the link A-B back (a cut, one-way cuts and packet loss in either direction)."""
+    """Bring the link A-B back (a cut, one-way cuts, packet loss, a changed rate, a flap or roam)."""
     _run({"op": "heal", "a": a, "b": b}, as_json)
 
 

@@ -43,7 +43,8 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
 
     `autopower status`, `chain`, `migrate`, `fault cut|heal|kill|freeze|thaw` and `replay` work on
     it as on `autopower up`; a cut drops the link's packets silently. Only here: `fault loss A B PCT
-    [--one-way]` (random packet loss) and `fault cut A B --one-way`.
+    [--one-way]` (random packet loss), `fault cut A B --one-way`, `fault rate A B KBPS`, `fault flap
+    A B --up S --down S [--for S]` and `fault roam A B MS`.
     """
     from autopower.basestation.operator import team_dir, write_session
     from autopower.launch.faults import SOCKET_NAME, FaultController, FaultServer

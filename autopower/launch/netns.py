@@ -26,6 +26,12 @@ cut (all of them). The receiving node's namespace gets an nftables table of the 
 random share with ``numgen random`` (no netem, no tc filters needed). The packets cross the link
 and use its rate as a lost radio frame does, and the sender is not told. Heal removes them.
 
+A point-to-point link's rate can change while it runs (`set_rate`: a robot moving away): both
+ends are shaped again with tbf to the new rate × the speed-up; a cut link keeps its cut and gets
+the new rate when it comes back (`uncut`). Heal restores the medium's rate. A shared medium has
+no qdisc per link (each node's radio is shaped, and this kernel has no tc filters to tell its
+links apart), so it refuses a rate change.
+
 Every name starts with `PREFIX` and this run's id, and the run writes what it creates into
 ``<state dir>/testbed/<run>.json`` *before* creating it: `cleanup_stale` (`autopower testbed
 down`) removes exactly what a killed run left and never a namespace it did not make.
@@ -137,6 +143,18 @@ def loss_steps(pct) -> int:
     return steps
 
 
+def rate_kbps(kbps) -> float:
+    """``kbps`` (a radio's rate in kbit/s, > 0) as a number; a clear error for anything else."""
+    try:
+        value = float(kbps)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (0 < value < float("inf")):
+        raise AutoPowerError(f"link rate {kbps!r} is not a rate in kbit/s above 0; give e.g. 500 for 500 kbit/s "
+                             "(the radio's rate; the testbed multiplies it by its --speed)")
+    return value
+
+
 def require_nft() -> None:
     if shutil.which("nft") is None:
         raise AutoPowerError("packet loss and one-way cuts on the testbed need nftables' `nft` tool, which is not "
@@ -182,6 +200,8 @@ class NamespaceNetwork:
         self.cut_links: set[frozenset[str]] = set()
         # (sender, receiver) -> what is dropped on that direction of their link (see `drop`)
         self.drops: dict[tuple[str, str], Drop] = {}
+        # link -> the rate (the radio's real kbit/s, before the speed-up) `set_rate` put in place of its medium's
+        self.rates: dict[frozenset[str], float] = {}
         self.created = False
 
     def ns(self, node: str) -> str:
@@ -293,8 +313,9 @@ class NamespaceNetwork:
             _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "pfifo", "limit", "1000")
 
     def _shape(self, link: NetLink) -> None:
+        kbps = self.rates.get(frozenset((link.a, link.b)), link.kbps)
         for ns, dev in self._ends(link):
-            self._qdisc(ns, dev, link.kbps)
+            self._qdisc(ns, dev, kbps)
 
     def cut(self, a: str, b: str) -> None:
         """Drop every packet on link a-b from now on, silently (both directions)."""
@@ -306,15 +327,49 @@ class NamespaceNetwork:
                 _run("tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", "pfifo", "limit", "0")
         self.cut_links.add(frozenset((a, b)))
 
-    def heal(self, a: str, b: str) -> None:
-        """Bring link a-b back: both-way cut and every drop in either direction removed."""
+    def uncut(self, a: str, b: str) -> None:
+        """Remove the both-way cut of link a-b only: its drops and its changed rate stay."""
         link = self.link(a, b)
         if link.segment is not None:
             self._blackhole(a, b, add=False)
         else:
             self._shape(link)
         self.cut_links.discard(frozenset((a, b)))
+
+    def heal(self, a: str, b: str) -> None:
+        """Bring link a-b back: both-way cut and every drop in either direction removed, the medium's rate."""
+        self.rates.pop(frozenset((a, b)), None)  # first: uncut shapes the link to the medium's rate
+        self.uncut(a, b)
         self.clear_drops(a, b)
+
+    # ---- a changed rate (tbf on both ends of a veth pair) -----------------------------------------
+    def set_rate(self, a: str, b: str, kbps) -> None:
+        """Shape link a-b, both ways, to ``kbps`` (the radio's real rate) × the speed-up from now on.
+
+        A cut link stays cut (a zero-length queue, not a tbf) and gets the rate when it comes back.
+        """
+        link = self.link(a, b)
+        value = rate_kbps(kbps)
+        if link.segment is not None:
+            raise AutoPowerError(f"link {a}-{b} crosses the shared {link.medium} medium, whose rate is each node's "
+                                 "radio, not the link's: a rate change needs a point-to-point link (start the "
+                                 "testbed with e.g. `--media laptop-robot=gsm`)")
+        if not self.shaping:
+            raise AutoPowerError("this testbed runs with --no-shaping: its links have no rate to change; "
+                                 "start it without --no-shaping")
+        key = frozenset((a, b))
+        before = self.rates.get(key)
+        self.rates[key] = value
+        if key in self.cut_links:
+            return
+        try:
+            self._shape(link)
+        except AutoPowerError:  # not applied: the state must keep saying what the namespaces hold
+            if before is None:
+                del self.rates[key]
+            else:
+                self.rates[key] = before
+            raise
 
     # ---- per-direction drops (nftables in the receiver's namespace) -------------------------------
     def drop(self, src: str, dst: str, pct: float, *, kind: str = "loss") -> None:
@@ -343,11 +398,14 @@ class NamespaceNetwork:
                 self._apply_drops(dst)
 
     def link_state(self, a: str, b: str) -> str:
-        """``up``, ``cut``, or what each direction drops, e.g. ``cut r1->laptop, loss 30% laptop->r1``."""
+        """``up``, ``cut``, a changed rate and what each direction drops, e.g.
+        ``rate 500 kbps, cut r1->laptop, loss 30% laptop->r1``."""
+        rate = self.rates.get(frozenset((a, b)))
+        parts = [] if rate is None else [f"rate {rate:g} kbps"]
         if frozenset((a, b)) in self.cut_links:
-            return "cut"
-        parts = [f"{d.label()} {src}->{dst}" for (src, dst), d in sorted(self.drops.items())
-                 if {src, dst} == {a, b}]
+            return ", ".join(["cut", *parts])
+        parts += [f"{d.label()} {src}->{dst}" for (src, dst), d in sorted(self.drops.items())
+                  if {src, dst} == {a, b}]
         return ", ".join(parts) or "up"
 
     def _drop_rule(self, src: str, dst: str, drop: Drop) -> str:

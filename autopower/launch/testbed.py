@@ -4,7 +4,8 @@
 generated the way `autopower deploy init` writes one for real hosts (a CA for this run, mutual
 TLS on every link, default-deny access control, each node connecting to its neighbours' link
 addresses), each child starts inside its namespace from its node directory (``--fleet``), and a
-fault cut silences the real link (random loss and a one-way cut drop one direction's packets).
+fault cut silences the real link (random loss and a one-way cut drop one direction's packets; a
+rate change re-shapes it; a flap or a roam cuts it on a schedule the fault controller keeps).
 Everything it created is removed when it stops, however it stops; `autopower testbed down`
 removes what a killed run left.
 """
@@ -57,8 +58,19 @@ class _LinkSwitch:
     def drop(self, src: str, dst: str, pct: float, *, kind: str) -> None:
         self.net.drop(src, dst, pct, kind=kind)
 
+    @property
+    def rate(self) -> float | None:
+        """The rate (kbit/s, before the speed-up) `fault rate` gave this link; None: its medium's."""
+        return self.net.rates.get(frozenset((self.a, self.b)))
+
+    def set_rate(self, kbps: float) -> None:
+        self.net.set_rate(self.a, self.b, kbps)
+
     def cut(self) -> None:
         self.net.cut(self.a, self.b)
+
+    def uncut(self) -> None:  # the both-way cut only (a flap's up phase): drops and rate stay
+        self.net.uncut(self.a, self.b)
 
     def heal(self) -> None:
         self.net.heal(self.a, self.b)
