@@ -70,6 +70,8 @@ BENCHES = (
     Bench("runtime", "bench/bench_runtime.py", ("overhead", "migration"), "Runtime", "performance", 0.5),
     Bench("security", "bench/bench_security.py", (), "Security", "performance", 0.3),
     Bench("sim", "bench/bench_sim.py", ("--seeds", "4", "--jobs", "2"), "The simulated team", "performance", 1.0),
+    Bench("detector", "bench/bench_detector.py", ("--minutes", "10"), "Failure detection on lossy links",
+          "performance", 0.5),
     Bench("faults", "bench/bench_faults.py", ("--cuts", "20"), "Faults", "performance", 2.5),
     Bench("idle", "bench/bench_idle.py", ("--seconds", "20"), "At rest", "performance", 1.4),
     Bench("zenoh_floor", "bench/bench_zenoh_floor.py", ("--seconds", "10", "--team"), "Zenoh's floor",
