@@ -80,7 +80,7 @@ def _write(path: str, doc: dict, what: str) -> None:
               help="Simulated seconds after the mission with no fault: everything heals, then the run is judged.")
 @click.option("--kinds", default=None, metavar="KIND,...",
               help="The fault kinds a seed may enable (default: all of cut, cut-one-way, partition, loss, "
-                   "duplicate, reorder, crash, freeze, basestation-crash, migrate, toggle).")
+                   "duplicate, reorder, crash, freeze, basestation-crash, migrate, toggle, flap, roam, rate).")
 @click.option("--components", type=click.Choice(["stand-in", "real"]), default="stand-in", show_default=True,
               help="Cheap deterministic stand-ins, or the scenario's real components.")
 @click.option("--save", "save", default=None, metavar="FILE", help="Write the run (seed, schedule, verdict) to FILE.")

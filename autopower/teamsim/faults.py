@@ -28,7 +28,13 @@ KINDS: dict[str, tuple[float, float]] = {
     "basestation-crash": (0.5, 5.0),  # the base station is killed; a new one takes the team over
     "migrate": (0.0, 0.0),  # the operator moves stage a to node b
     "toggle": (1.0, 15.0),  # the operator disables chain a, and enables it after the duration
+    # radio links as they are (issue 31): appended, so that a plan drawing from the kinds above
+    # draws the same faults as before
+    "flap": (4.0, 20.0),  # a link goes down and up again every p seconds (edge of range)
+    "roam": (0.05, 2.0),  # a link's short outage: 50-150 ms with 802.11r, seconds without
+    "rate": (2.0, 20.0),  # a link carries only the share p of its medium's rate (a robot moving away)
 }
+LINK_FAULTS = ("cut", "cut-one-way", "loss", "duplicate", "reorder", "flap", "roam", "rate")
 WARMUP_S = 10.0  # no fault before the team has started its mission
 
 
@@ -40,7 +46,7 @@ class Fault:
     a: str = ""  # a node, stage or chain
     b: str = ""  # a peer node, or where a stage goes
     nodes: tuple[str, ...] = ()  # a partition's side
-    p: float = 0.0  # a probability (loss, duplicate) or seconds (reorder)
+    p: float = 0.0  # a probability (loss, duplicate), seconds (reorder, flap) or a share of the rate (rate)
 
     @property
     def end(self) -> float:
@@ -79,8 +85,8 @@ def check_targets(scenario: Scenario, faults: list[Fault]) -> None:
     stages = {s.name for c in scenario.chains for s in c.stages}
     chains = {c.name for c in scenario.chains}
     for f in faults:
-        if f.kind in ("cut", "cut-one-way", "loss", "duplicate", "reorder"):
-            ok = frozenset((f.a, f.b)) in links
+        if f.kind in LINK_FAULTS:
+            ok = frozenset((f.a, f.b)) in links and (f.kind not in ("flap", "rate") or f.p > 0)
         elif f.kind == "partition":
             ok = bool(f.nodes) and set(f.nodes) < nodes
         elif f.kind == "crash":
@@ -117,7 +123,7 @@ def draw(scenario: Scenario, seed: int, n_faults: int, mission_s: float,
         t = round(rng.uniform(WARMUP_S, mission_s), 3)
         low, high = KINDS[kind]
         duration = round(min(rng.uniform(low, high), mission_s - t), 3)
-        a, b = rng.choice(links) if kind in ("cut", "cut-one-way", "loss", "duplicate", "reorder") else ("", "")
+        a, b = rng.choice(links) if kind in LINK_FAULTS else ("", "")
         if kind == "cut-one-way" and rng.random() < 0.5:
             a, b = b, a
         fault = Fault(kind=kind, t=t, duration=duration, a=a, b=b)
@@ -128,6 +134,10 @@ def draw(scenario: Scenario, seed: int, n_faults: int, mission_s: float,
             fault = dataclasses.replace(fault, p=round(rng.uniform(0.05, 0.5), 3))
         elif kind == "reorder":
             fault = dataclasses.replace(fault, p=round(rng.uniform(0.005, 0.2), 4))
+        elif kind == "flap":
+            fault = dataclasses.replace(fault, p=round(rng.uniform(0.3, 3.0), 3))
+        elif kind == "rate":
+            fault = dataclasses.replace(fault, p=round(rng.uniform(0.05, 0.5), 3))
         elif kind == "crash":
             fault = dataclasses.replace(fault, a=rng.choice(robots))
         elif kind == "freeze":

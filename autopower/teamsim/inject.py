@@ -13,7 +13,7 @@ from autopower.protocol import ChainCommand, MigrateCommand
 from autopower.teamsim.faults import Fault
 
 LINK_KINDS = {"cut": "cut", "cut-one-way": "cut", "partition": "cut", "loss": "loss", "duplicate": "dup",
-              "reorder": "jitter_s"}
+              "reorder": "jitter_s", "roam": "cut", "rate": "rate", "flap": "cut"}
 RETRY_S = 1.0
 
 
@@ -24,6 +24,7 @@ class Injector:
         self.world = world
         self.faults = list(faults)
         self.mods: dict[tuple[str, str], dict[int, tuple[str, float]]] = {}  # direction -> fault -> (what, value)
+        self.kbps: dict[tuple[str, str], float] = {}  # a direction's medium rate, before any `rate` fault
         self.crashed_by: dict[str, int] = {}
         self.frozen_by: dict[str, set[int]] = {}
         s = world.scheduler
@@ -49,6 +50,8 @@ class Injector:
         d.loss = max((v for what, v in active if what == "loss"), default=0.0)
         d.dup = max((v for what, v in active if what == "dup"), default=0.0)
         d.jitter_s = max((v for what, v in active if what == "jitter_s"), default=0.0)
+        medium = self.kbps.setdefault(direction, d.kbps)
+        d.kbps = medium * min((v for what, v in active if what == "rate"), default=1.0)
         net.set_cut(*direction, any(what == "cut" for what, _ in active))
 
     # ---- start and end ------------------------------------------------------------------------------
@@ -60,6 +63,8 @@ class Injector:
             for direction in self._directions(f):
                 self.mods.setdefault(direction, {})[i] = (what, 1.0 if what == "cut" else f.p)
                 self._apply(direction)
+            if f.kind == "flap" and f.t + f.p < f.end:
+                w.scheduler.at(f.t + f.p, self._flap, i, False)
         elif f.kind in ("crash", "basestation-crash"):
             node = f.a or w.scenario.basestation
             if w.is_up(node) and node not in self.crashed_by:
@@ -99,6 +104,19 @@ class Injector:
                     w.thaw(f.a)
         elif f.kind == "toggle":
             self._enable(f.a)
+
+    def _flap(self, i: int, down: bool) -> None:
+        """A flapping link's next phase (down, or up), every ``p`` seconds until the fault ends."""
+        w, f = self.world, self.faults[i]
+        w.trace.note(w.scheduler.now, f"fault {i} flaps {'down' if down else 'up'}")
+        for direction in self._directions(f):
+            if down:
+                self.mods.setdefault(direction, {})[i] = ("cut", 1.0)
+            else:
+                self.mods.get(direction, {}).pop(i, None)
+            self._apply(direction)
+        if w.scheduler.now + f.p < f.end:
+            w.scheduler.at(w.scheduler.now + f.p, self._flap, i, not down)
 
     def _enable(self, chain: str) -> None:
         w = self.world

@@ -114,6 +114,53 @@ def test_nothing_is_sent_without_a_session_and_a_process_that_ends_closes_its_se
 
 
 # ---- whole runs ----------------------------------------------------------------------------------
+def injected(faults):
+    """Two nodes' network with ``faults`` scheduled on it by the simulator's own injector."""
+    from types import SimpleNamespace
+
+    from autopower.teamsim.inject import Injector
+    from autopower.teamsim.trace import Trace
+
+    scheduler, net, laptop, r2 = two_nodes()
+    world = SimpleNamespace(network=net, scheduler=scheduler, trace=Trace())
+    Injector(world, faults)
+    return scheduler, net, laptop, r2
+
+
+def test_a_flapping_link_is_down_and_up_every_p_seconds_and_up_after_it():
+    flap = Fault(kind="flap", t=1.0, duration=4.0, a="laptop", b="r2", p=1.0)
+    scheduler, net, _, _ = injected([flap])
+    seen = []
+    for t in (1.5, 2.5, 3.5, 4.5, 5.5):
+        scheduler.run_until(t)
+        seen.append(net.direction("laptop", "r2").cut and net.direction("r2", "laptop").cut)
+    assert seen == [True, False, True, False, False]  # down first, then up, down, up: up once it ends
+
+
+def test_a_rate_fault_slows_a_links_airtime_and_its_end_restores_the_medium():
+    slow = Fault(kind="rate", t=1.0, duration=2.0, a="laptop", b="r2", p=0.1)
+    scheduler, net, laptop, _ = injected([slow])
+    scheduler.run_until(1.5)
+    frame = bytes(230_415)
+    net.transmit("r2", "laptop", "k", frame)
+    scheduler.run_until(2.9)
+    airtime = len(frame) * 8 / (54_000_000 * 0.1)  # a tenth of 802.11a's rate
+    assert laptop.got[-1][0] == pytest.approx(1.5 + airtime + LATENCY_S)
+    scheduler.run_until(3.5)
+    assert net.direction("r2", "laptop").kbps == net.direction("laptop", "r2").kbps == 54_000
+
+
+def test_a_roam_is_a_short_outage_that_keeps_the_session():
+    roam = Fault(kind="roam", t=1.0, duration=0.12, a="laptop", b="r2")
+    scheduler, net, laptop, _ = injected([roam])
+    scheduler.run_until(1.05)
+    net.transmit("r2", "laptop", "k", b"lost in the roam")
+    scheduler.run_until(1.2)
+    net.transmit("r2", "laptop", "k", b"after it")
+    scheduler.run_until(2.0)
+    assert [p for _, _, p in laptop.got] == [b"after it"] and net.connected("laptop", "r2")
+
+
 def test_a_fault_free_run_delivers_every_output_once_and_passes():
     result = run(config())
     assert result.ok, result.violations
@@ -121,7 +168,8 @@ def test_a_fault_free_run_delivers_every_output_once_and_passes():
 
 
 def test_the_same_seed_gives_the_same_trace_and_another_seed_another():
-    _, faults = draw(SC, 3, 4, 30.0)
+    _, faults = draw(SC, 3, 4, 30.0, ("loss", "reorder", "crash"))  # the network draws for loss and delay
+    assert any(f.kind in ("loss", "reorder") for f in faults)
     first, again = run(config(3, faults)), run(config(3, faults))
     assert first.trace_sha256 == again.trace_sha256 and first.events == again.events
     assert run(config(4, faults)).trace_sha256 != first.trace_sha256  # the network's draws differ

@@ -13,7 +13,7 @@ import pytest
 from autopower.model.loading import load_scenario
 from autopower.teamsim import Fault, SimConfig, run
 from autopower.teamsim.sweep import run_seed
-from tests.integration.test_sim_sweep import FOUND, FOUND_PLAN, FOUND_WITH_ROUNDS, PLAN
+from tests.integration.test_sim_sweep import FOUND, FOUND_PLAN, FOUND_WITH_RADIO, FOUND_WITH_ROUNDS, PLAN, ROUNDS_PLAN
 
 SC = load_scenario("paper-fig7")
 
@@ -91,5 +91,16 @@ def test_sweep_seeds_that_found_the_adoption_race(seed):
     "(seed 187: loss laptop-r2 p=0.4 for 2.5 s and a base-station crash, then a subgroup round, the takeover "
     "and Blob-2 moved back to the laptop with a gate state behind its inputs)"))
 def test_sweep_seeds_that_fail_with_subgroup_rounds(seed):
+    verdict = run_seed(ROUNDS_PLAN, seed)
+    assert verdict.ok, verdict.first
+
+
+@pytest.mark.parametrize("seed", FOUND_WITH_RADIO)
+@pytest.mark.xfail(strict=True, reason=(
+    "open: found once the sweep drew the radio impairments too (every seed's schedule changed). A Blob "
+    "stage restarted without its state sees inputs another instance consumed (seeds 25, 31, 62, 63), or "
+    "outputs are lost (the others), mostly around freezes, partitions and base-station crashes with subgroup "
+    "rounds (seeds 37 and 71 flap a link, 110 slows one)"))
+def test_sweep_seeds_that_fail_since_the_sweep_draws_radio_impairments(seed):
     verdict = run_seed(PLAN, seed)
     assert verdict.ok, verdict.first
