@@ -23,13 +23,11 @@ from autopower.node.held_store import HeldStore
 from autopower.node.peer_watch import PeerWatch, WatchSettings
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
-from autopower.node.stages import Lifecycle
 from autopower.node.subgroup_rounds import RoundSettings, SubgroupRounds
 from autopower.protocol import (
     Assign,
     Keys,
     NodeStatus,
-    Release,
     decode,
     encode,
 )
@@ -254,7 +252,8 @@ class Agent:
                     self.relayer.on_direct(status.node)
                 self.statuses[status.node] = status
                 rt.on_peer_status(status)  # what it consumed: acks for our custody buffer
-                self._yield_to_newer(status)
+                if rt.yield_to_newer(status):
+                    self.publish_status()
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
             return
@@ -265,35 +264,6 @@ class Agent:
             self.publish_status()  # acknowledges the new plan at once (reconfiguration is timed on it)
         elif rt.model_w != model_w:
             self.publish_status()  # a stage left: the recording's model steps down when it did
-
-    def _yield_to_newer(self, status: NodeStatus) -> None:
-        """Stop an instance here that a newer one running on the peer supersedes.
-
-        A round this robot was not part of (frozen or cut off at the time) may have restarted one of
-        its stages elsewhere. Back in reach, its own instance gets no inputs any more (the source sends
-        to the newer one), while its model would count the work all the same. Generations order
-        instances (the base station's orders, rounds' wall-clock milliseconds), so the older one stops.
-        Only against a RUNNING peer: a STARTING one may be a migration's new host, whose state this
-        instance has yet to ship. Inputs waiting in its gate (already acknowledged to their producers)
-        go to the newer instance, which drops those it has.
-        """
-        rt = self.runtime
-        for stage, state in (status.hosted or {}).items():
-            mine = rt.hosted.get(stage)
-            theirs = (status.generations or {}).get(stage)
-            if (mine is None or theirs is None or state != Lifecycle.RUNNING.value
-                    or mine.lifecycle is not Lifecycle.RUNNING or theirs <= mine.generation):
-                continue
-            waiting = mine.gate.take_pending()
-            log.warning("agent %s: %s runs on %s as a newer instance (generation %d, this one %d): stopped here%s",
-                        self.config.robot, stage, status.node, theirs, mine.generation,
-                        f"; its {len(waiting)} waiting input(s) go there" if waiting else "")
-            rt.tally("superseded-instances")
-            rt.on_release(Release(stage=stage, generation=mine.generation))
-            rt.override_placement({stage: status.node}, set())
-            for frame in waiting:
-                rt.send_frame(frame, status.node)
-            self.publish_status()
 
     # ---- subgroup (no base station): `node.subgroup_rounds` ------------------------------------------
     def _subgroup_tick(self) -> None:

@@ -464,7 +464,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         """Take the stages a returning robot runs as placed there, when its instance is the newest.
 
         Instances are ordered by generation everywhere: a robot stops its instance when it sees a
-        newer one running on a peer (`Agent._yield_to_newer`), and producers' custody follows the
+        newer one running on a peer (`Hosting.yield_to_newer`), and producers' custody follows the
         newest instance's reports (`Custody.on_report`). So a returning robot's instance is adopted
         (and our stale copy released) only when its generation is above the one running where the
         placement says; an older one is released instead. Adopting the older one left the stage

@@ -18,6 +18,7 @@ from autopower.node.workers import StageWorker, WorkerComponent, WorkerCrashed, 
 from autopower.protocol import (
     Assign,
     MigrateOut,
+    NodeStatus,
     Prepare,
     Prepared,
     Release,
@@ -382,6 +383,37 @@ class Hosting:
         chain = self.stage_index.get(msg.stage, (None, 0))[0]
         if chain is None or self._disabled(chain.name):
             self.orphans.pop(msg.stage, None)
+
+    def yield_to_newer(self, status: NodeStatus) -> bool:
+        """Stop an instance here that a newer one running on the peer ``status`` comes from supersedes;
+        True when one stopped (the process says so in its status at once).
+
+        A round this robot was not part of (frozen or cut off at the time) may have restarted one of
+        its stages elsewhere. Back in reach, its own instance gets no inputs any more (the source sends
+        to the newer one), while its model would count the work all the same. Generations order
+        instances (the base station's orders, rounds' wall-clock milliseconds), so the older one stops.
+        Only against a RUNNING peer: a STARTING one may be a migration's new host, whose state this
+        instance has yet to ship. Inputs waiting in its gate (already acknowledged to their producers)
+        go to the newer instance, which drops those it has.
+        """
+        stopped = False
+        for stage, state in (status.hosted or {}).items():
+            mine = self.hosted.get(stage)
+            theirs = (status.generations or {}).get(stage)
+            if (mine is None or theirs is None or state != Lifecycle.RUNNING.value
+                    or mine.lifecycle is not Lifecycle.RUNNING or theirs <= mine.generation):
+                continue
+            waiting = mine.gate.take_pending()
+            log.warning("%s: %s runs on %s as a newer instance (generation %d, this one %d): stopped here%s",
+                        self.node, stage, status.node, theirs, mine.generation,
+                        f"; its {len(waiting)} waiting input(s) go there" if waiting else "")
+            self.tally("superseded-instances")
+            self.on_release(Release(stage=stage, generation=mine.generation))
+            self.override_placement({stage: status.node}, set())
+            for frame in waiting:
+                self.send_frame(frame, status.node)
+            stopped = True
+        return stopped
 
     def _run_before_release(self, hosted: HostedStage, frames: list) -> None:
         """Run a released stage's waiting inputs, in order; their outputs go out as any does.

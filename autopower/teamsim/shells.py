@@ -23,12 +23,10 @@ from autopower.node.held_store import HeldStore
 from autopower.node.peer_watch import PeerWatch, WatchSettings
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
-from autopower.node.stages import Lifecycle
 from autopower.node.subgroup_rounds import RoundSettings, SubgroupRounds
 from autopower.protocol import (
     NodeStatus,
     PlanUpdate,
-    Release,
     decode,
     encode,
 )
@@ -251,30 +249,14 @@ class RobotShell(Shell):
                 self.relayer.on_direct(status.node)
             self.statuses[status.node] = status
             rt.on_peer_status(status)
-            self._yield_to_newer(status)
+            if rt.yield_to_newer(status):
+                self.publish_status()
             return
         order, model_w = rt.plan_order, rt.model_w
         if not rt.on_message(key, payload):
             rt.count("unexpected-key", key)
         elif rt.plan_order != order or rt.model_w != model_w:
             self.publish_status()  # a new plan acknowledged at once; a stage that left, said at once
-
-    def _yield_to_newer(self, status: NodeStatus) -> None:
-        """Stop an instance here that a newer one running on the peer supersedes (`Agent._yield_to_newer`)."""
-        rt = self.rt
-        for stage, state in (status.hosted or {}).items():
-            mine = rt.hosted.get(stage)
-            theirs = (status.generations or {}).get(stage)
-            if (mine is None or theirs is None or state != Lifecycle.RUNNING.value
-                    or mine.lifecycle is not Lifecycle.RUNNING or theirs <= mine.generation):
-                continue
-            waiting = mine.gate.take_pending()
-            rt.tally("superseded-instances")
-            rt.on_release(Release(stage=stage, generation=mine.generation))
-            rt.override_placement({stage: status.node}, set())
-            for frame in waiting:
-                rt.send_frame(frame, status.node)
-            self.publish_status()
 
     def publish_status(self, save_resume: bool = False) -> None:
         rt, keys, w = self.rt, self.keys, self.world
