@@ -6,12 +6,15 @@ so rows are collected as plain lists and handed to HiGHS as one CSR matrix.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import highspy
 import numpy as np
 
 INF = highspy.kHighsInf
+# relative: the same objective summed in another order (HiGHS's own sum and numpy's)
+OBJECTIVE_AGREEMENT = 1e-9
 
 
 class _SilentHighs(highspy.Highs):
@@ -70,7 +73,35 @@ class LinearProgram:
               threads: int | None = None, objective_cutoff: float | None = None,
               start: dict[int, float] | None = None) -> "Solution":
         """`start`: values of some columns (a known plan's binaries) HiGHS completes into a first
-        incumbent, so it prunes from the start instead of searching for a feasible point."""
+        incumbent, so it prunes from the start instead of searching for a feasible point.
+
+        A start is a hint, never a constraint. With presolve on, HiGHS (seen with 1.16) can
+        return the start's values while reporting the objective and status of a better point
+        found in the presolved space, so every answer is checked: the objective of the values
+        returned must be the one reported. When it is not, the same problem is solved again
+        without the start; if that one has no answer in the time left, the start's values come
+        back with their own objective, not claimed optimal."""
+        sol = self._solve(time_limit_s, mip_rel_gap, threads, objective_cutoff, start)
+        if not sol.has_solution or self._consistent(sol):
+            return sol
+        if start:
+            left = None if time_limit_s is None else max(0.1, time_limit_s - sol.runtime_s)
+            cold = self._solve(left, mip_rel_gap, threads, objective_cutoff, None)
+            cold.runtime_s += sol.runtime_s
+            if cold.has_solution and self._consistent(cold):
+                return cold
+        own = float(np.dot(self.cost, sol.values))
+        bound = sol.dual_bound if sol.dual_bound is not None else -INF
+        gap = max(0.0, (own - bound) / abs(own)) if own != 0 else 0.0
+        return dataclasses.replace(sol, objective=own, optimal=sol.optimal and gap <= mip_rel_gap, mip_gap=gap,
+                                   status=f"{sol.status} (values of another point: objective recomputed)")
+
+    def _consistent(self, sol: "Solution") -> bool:
+        """The reported objective is that of the values returned (up to summation order)."""
+        own = float(np.dot(self.cost, sol.values))
+        return abs(own - sol.objective) <= OBJECTIVE_AGREEMENT * max(abs(own), abs(sol.objective)) + 1e-15
+
+    def _solve(self, time_limit_s, mip_rel_gap, threads, objective_cutoff, start) -> "Solution":
         h = new_highs()
         h.setOptionValue("mip_rel_gap", mip_rel_gap)
         # The objective is a power in watts (~1): absolute gaps of 1e-6 W would stop too early.
