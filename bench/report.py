@@ -72,6 +72,8 @@ BENCHES = (
     Bench("sim", "bench/bench_sim.py", ("--seeds", "4", "--jobs", "2"), "The simulated team", "performance", 1.0),
     Bench("detector", "bench/bench_detector.py", ("--minutes", "10"), "Failure detection on lossy links",
           "performance", 0.5),
+    Bench("lossy_links", "bench/bench_lossy_links.py", ("--frames", "40"), "Throughput under loss", "performance",
+          2.5),
     Bench("faults", "bench/bench_faults.py", ("--cuts", "20"), "Faults", "performance", 2.5),
     Bench("idle", "bench/bench_idle.py", ("--seconds", "20"), "At rest", "performance", 1.4),
     Bench("zenoh_floor", "bench/bench_zenoh_floor.py", ("--seconds", "10", "--team"), "Zenoh's floor",

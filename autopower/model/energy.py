@@ -2,9 +2,10 @@
 
 Rules (docs/concepts/energy-model.md; they reproduce the paper's Fig. 7 exactly):
 - CPU power = idle_w + (busy_w - idle_w) * u, u = sum(latency / period) of hosted stages.
-- A message of n bytes occupies its medium for n*8 / (kbps*1024) s; on every hop the sender pays
-  send_w for that airtime and the receiver receive_w (a relay pays both); the base station pays
-  nothing (mains).
+- A message of n bytes occupies its medium for n*8 / (kbps*1024) s, times 1 / (1 - loss) on a
+  link the scenario says loses that share of its packets (`airtime_s`; no loss: the paper); on
+  every hop the sender pays send_w for that airtime and the receiver receive_w (a relay pays
+  both); the base station pays nothing (mains).
 - A node has one radio per medium among its links; each draws sleep_w * (1 - busy) plus its
   send/receive energy. u > 1 or busy > 1 makes an allocation infeasible.
 - Lifetime = min over robots of energy / power, rounded to the nearest multiple of the
@@ -33,9 +34,32 @@ from autopower.model.scenario import Chain, Radio, Scenario
 UTILISATION_LIMIT = 1.0 + 1e-9  # float noise must not flip a 100 %-utilised plan to infeasible
 
 
-def airtime_s(n_bytes: int, radio: Radio) -> float:
-    """Seconds one message of n_bytes occupies the radio (the paper's kbit = 1024 bit)."""
-    return n_bytes * 8.0 / (radio.kbps * 1024.0)
+def airtime_s(n_bytes: int, radio: Radio, loss: float = 0.0) -> float:
+    """Seconds one message of n_bytes occupies the radio (the paper's kbit = 1024 bit), over a link
+    that loses the share ``loss`` of its packets (`Scenario.link_loss`; 0: the paper's model).
+
+    A retransmitting transport (TCP, QUIC: Zenoh's reliable links) sends each packet until it
+    arrives: 1 / (1 - loss) times on average, and each lost copy kept the sender's radio and the
+    receiver's busy all the same. So the message's airtime, and with it the send and the receive
+    energy of the hop, is multiplied by `transmissions(loss)`. bench/bench_lossy_links.py measures
+    it on the testbed: the bytes a link really carries per byte delivered, at 5-20 % loss, over
+    TCP and QUIC, against the same link without loss (docs/concepts/energy-model.md).
+
+    Every price of a message on a hop goes through here: the evaluator's `LoadSpace.flow_load`
+    (so the exhaustive planner), the MILP's hop terms (`planner/milp.py`), the live meter
+    (`node.meter`), migrations (`policies.team`); a caller that knows the hop gives its loss.
+    `planner/repair.py`'s own bound without it stays a valid, looser, lower bound (a loss only
+    adds power).
+    """
+    air = n_bytes * 8.0 / (radio.kbps * 1024.0)
+    return air * transmissions(loss) if loss else air
+
+
+def transmissions(loss: float) -> float:
+    """Expected transmissions per delivered packet on a link losing the share ``loss`` (0 <= loss < 1)."""
+    if not 0.0 <= loss < 1.0:
+        raise ScenarioError(f"link loss {loss!r} is not a share of packets in [0, 1); give e.g. 0.1 for 10 %")
+    return 1.0 / (1.0 - loss)
 
 
 def flow_rate_hz(chain: Chain, accounting: str) -> float:
@@ -121,7 +145,7 @@ class LoadSpace:
 
     def flow_load(self, src: str, dst: str, n_bytes: int, rate_hz: float, out: np.ndarray) -> None:
         for u, v, medium in self.network.route(src, dst):
-            air = airtime_s(n_bytes, self.scenario.radios[medium]) * rate_hz
+            air = airtime_s(n_bytes, self.scenario.radios[medium], self.scenario.link_loss(u, v)) * rate_hz
             out[self.send_slot(u, medium)] += air
             out[self.recv_slot(v, medium)] += air
 

@@ -81,6 +81,29 @@ def resolve_scenario_path(name_or_path: str | Path) -> tuple[str, str]:
 _NAME = re.compile(r"[A-Za-z0-9_.-]{1,100}")
 
 
+def _linked_pairs(topology: str, analyze: Iterable[str], robots: list[str], base: str, relay: str | None,
+                  links: list[LinkSpec]):
+    """Whether two nodes have a link in any topology the scenario plans (as `Scenario.link_layout`)."""
+    topologies = {topology, *analyze}
+    explicit = {frozenset((l.a, l.b)) for l in links}
+    robot_set = set(robots)
+    hub = relay or (robots[0] if robots else None)
+
+    def linked(a: str, b: str) -> bool:
+        for topo in topologies:
+            if topo == "explicit" and frozenset((a, b)) in explicit:
+                return True
+            if topo in ("fully-connected", "relay") and {a, b} <= robot_set:
+                return True
+            if topo == "fully-connected" and base in (a, b):
+                return True
+            if topo == "relay" and {a, b} == {base, hub}:
+                return True
+        return False
+
+    return linked
+
+
 def _read_text(path: Path, shown: str) -> str:
     """The file's text; a clear error for one that is unreadable, huge or not UTF-8."""
     try:
@@ -424,8 +447,51 @@ class ScenarioParser:
         analyze = self.strings(obj, "analyze_topologies", path, choices=TOPOLOGIES, default=(topology,))
         if "explicit" in analyze and topology != "explicit":
             raise self.fail("network.analyze_topologies", "explicit listed without links", "named topologies only")
+        linked = _linked_pairs(topology, analyze, names, base, relay, links)
+        loss = self.link_losses(obj.get("loss", {}), names + [base], linked)
         return NetworkSpec(topology=topology, relay=relay, laptop_robot_media=lr, robot_robot_media=rr,
-                           links=tuple(links), analyze_topologies=analyze)
+                           links=tuple(links), analyze_topologies=analyze, loss=loss)
+
+    def link_losses(self, raw: Any, nodes: list[str], linked) -> dict[frozenset[str], float]:
+        """``[network] loss = { "A-B" = 0.1, ... }``: each listed link's share of packets lost."""
+        path = "network.loss"
+        example = f'loss = {{ "{nodes[-1]}-{nodes[0]}" = 0.1 }}'
+        if not isinstance(raw, dict):
+            raise self.fail(path, f"found {raw!r}", f"a table of links and their loss, e.g. {example}")
+        out: dict[frozenset[str], float] = {}
+        seen: set[frozenset[str]] = set()
+        for key, value in raw.items():
+            kpath = f'{path}."{key}"'
+            pairs = [(key[:i], key[i + 1:]) for i, char in enumerate(key)
+                     if char == "-" and key[:i] in nodes and key[i + 1:] in nodes]
+            if len(pairs) != 1:
+                unknown = [p for p in key.split("-") if p not in nodes] if key.count("-") == 1 else []
+                problem = (f"unknown node{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}" if unknown
+                           else f"{key!r} does not name two nodes" if not pairs
+                           else f"{key!r} can be read as {' or '.join('-'.join(p) for p in pairs)}")
+                raise self.fail(kpath, problem, f'"A-B" with A and B two of the nodes {", ".join(nodes)}, e.g. '
+                                               f"{example}", line_of=path)
+            a, b = pairs[0]
+            if a == b:
+                raise self.fail(kpath, f"a link from {a} to itself", "two different nodes", line_of=path)
+            pair = frozenset((a, b))
+            if pair in seen:
+                raise self.fail(kpath, f"the link {a}-{b} is listed twice", "one entry per link (A-B and B-A are "
+                                                                            "the same link)", line_of=path)
+            if not linked(a, b):
+                raise self.fail(kpath, f"{a} and {b} have no link in the topologies planned", "a pair of nodes "
+                                "the topology links (`analyze_topologies` included)", line_of=path)
+            seen.add(pair)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise self.fail(kpath, f"found {value!r}", "a number, the share of packets lost: "
+                                                           "0 <= loss < 1 (0.1 for 10 %)", line_of=path)
+            if not 0 <= value < 1:
+                raise self.fail(kpath, f"found {value}", "0 <= loss < 1, a share of packets (0.1 for 10 %; a "
+                                                         "link that loses everything is cut, not lossy)",
+                                line_of=path)
+            if value > 0:
+                out[pair] = float(value)
+        return out
 
     def components(self, obj: Any, platforms: dict[str, Platform]) -> dict[str, ComponentSpec]:
         obj = self.table(obj, "components", obj.keys() if isinstance(obj, dict) else [])

@@ -112,6 +112,9 @@ class NetworkSpec:
     robot_robot_media: tuple[str, ...] = ()
     links: tuple[LinkSpec, ...] = ()  # only for topology = "explicit"
     analyze_topologies: tuple[str, ...] = ()
+    # [network] loss: the share of packets a link (a pair of nodes, either direction, whatever its
+    # medium) loses, 0 <= loss < 1; a pair not listed loses nothing (see model.energy.airtime_s)
+    loss: Mapping[frozenset[str], float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -167,6 +170,11 @@ class Scenario:
             f"{self.source_path}: unknown robot {name!r}; the scenario has "
             f"{', '.join(r.name for r in self.robots)}"
         )
+
+    def link_loss(self, a: str, b: str) -> float:
+        """The share of packets the link between nodes a and b loses ([network] loss; 0 when not given)."""
+        loss = self.network_spec.loss
+        return loss.get(frozenset((a, b)), 0.0) if loss else 0.0
 
     def platform_of(self, node: str) -> Platform:
         if node == self.basestation:

@@ -134,7 +134,15 @@ TABLES: tuple[Table, ...] = (
              "required for a named topology"),
         _opt("links", _TABLES, "the links of an explicit topology (required for it)", of="network.links[]"),
         _opt("analyze_topologies", "list of topologies", "the named topologies `analyze` explores", "[topology]"),
+        _opt("loss", _TABLE, "the share of packets each listed link loses; its airtime, so its send and receive "
+             "energy, is priced 1 / (1 - loss) times (the retransmissions)", "{} (no link loses)",
+             of="network.loss"),
     )),
+    Table("network.loss", 'loss = { "A-B" = SHARE, ... }',
+          "Packet loss per link, measured or expected where the robots work: one entry per lossy link, either "
+          "direction, whatever medium it uses; a link not listed loses nothing.",
+          names='link `"A-B"`: two linked nodes, in either order (quoted: it has a dash)',
+          value="number, 0 <= loss < 1 (0.1 for 10 %)"),
     Table("network.links[]", "[[network.links]]", "One link of an explicit topology.", (
         _req("a", _STRING, "one end (a node)"),
         _req("b", _STRING, "the other end (another node)"),

@@ -72,7 +72,7 @@ class Frames:
         media = tuple(self.network.medium_between(u, v) for u, v in zip(path, path[1:], strict=False))
         packet = Packet(path=tuple(path), media=media, hop=1, charge_bytes=charge_bytes, weight=weight,
                         purpose=purpose, chain=chain, body=body)
-        self.meter.charge_radio("send", media[0], charge_bytes, weight, self.now(), purpose)
+        self.meter.charge_radio("send", media[0], charge_bytes, weight, self.now(), purpose, peer=path[1])
         self.send_to(path[1], self.keys.node_data(path[1]), encode(packet))
         return True
 
@@ -89,13 +89,13 @@ class Frames:
                 raise ProtocolError(f"packet names unknown medium {medium!r}")
         now = self.now()
         self.meter.charge_radio("receive", packet.media[packet.hop - 1], packet.charge_bytes, packet.weight, now,
-                                packet.purpose)
+                                packet.purpose, peer=packet.path[packet.hop - 1])
         if packet.hop < len(packet.path) - 1:  # a relay: pass it on, untouched
             nxt = Packet(path=packet.path, media=packet.media, hop=packet.hop + 1,
                          charge_bytes=packet.charge_bytes, weight=packet.weight, purpose=packet.purpose,
                          chain=packet.chain, body=packet.body)
             self.meter.charge_radio("send", packet.media[packet.hop], packet.charge_bytes, packet.weight, now,
-                                    packet.purpose)
+                                    packet.purpose, peer=packet.path[packet.hop + 1])
             self.send_to(packet.path[packet.hop + 1], self.keys.node_data(packet.path[packet.hop + 1]), encode(nxt))
             self.tally("forwarded")
             return

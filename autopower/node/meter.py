@@ -6,7 +6,9 @@ What is charged, and why it reproduces `autopower.model.energy.evaluate` for the
   node's platform (the paper's Sitsang/laptop profile, not this machine's). Runs at 1/period
   give the model's ``idle + (busy - idle) * sum(latency / period)``.
 - Radios: every message actually sent / received / forwarded charges ``airtime * send_w``
-  (or ``receive_w``) of the medium of the hop it crossed, times the chain's flow weight
+  (or ``receive_w``) of the medium of the hop it crossed — the model's `airtime_s`, with the
+  loss of the link to the peer it went to or came from (``[network] loss``: 1 / (1 - loss)
+  times, the retransmissions) — times the chain's flow weight
   (`model.flow_weight`: under paper accounting one real message stands for ``period`` modelled
   ones). A node has one radio per medium among its links; each draws ``sleep_w`` for every
   virtual second it is not busy: sleep is charged for elapsed time and credited back for the
@@ -46,8 +48,9 @@ class BatteryMeter:
     """Energy consumed by one node, by part, as a function of virtual time."""
 
     def __init__(self, *, platform: Platform, radios: Mapping[str, Radio], initial_j: float | None,
-                 t0: float, media: Iterable[str] = ()):
+                 t0: float, media: Iterable[str] = (), loss: Mapping[str, float] | None = None):
         self.platform = platform
+        self.loss = dict(loss or {})  # peer -> the share of packets the link to it loses (`Scenario.link_loss`)
         self.nominal = platform  # the platform's own figures; `set_level` swaps in a level's
         self.level: str | None = None
         self.latency_factor = 1.0
@@ -105,13 +108,14 @@ class BatteryMeter:
         return joules
 
     def charge_radio(self, direction: str, medium: str, n_bytes: int, weight: float, t: float,
-                     purpose: str = "chain") -> float:
-        """Charge one message sent (``direction="send"``) or received over ``medium``."""
+                     purpose: str = "chain", peer: str | None = None) -> float:
+        """Charge one message sent (``direction="send"``) to ``peer`` or received from it over ``medium``
+        (the link's loss priced as the model prices it; no peer: a lossless link)."""
         self.advance(t)
         if self.mains:
             return 0.0
         radio = self.radios[medium]
-        busy = airtime_s(n_bytes, radio) * weight
+        busy = airtime_s(n_bytes, radio, self.loss.get(peer, 0.0)) * weight
         watts = radio.send_w if direction == "send" else radio.receive_w
         joules = watts * busy
         bucket = direction if purpose == "chain" else purpose  # "migration" | "recovery": overheads

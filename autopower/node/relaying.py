@@ -97,20 +97,21 @@ class Relaying:
         """On the loop: charge the meter and count what was forwarded on arrival since last time."""
         if self.meter is None or not self._relayed:
             return  # (forwarded before the mission's meter exists: charged at the next call)
-        charges: dict[tuple[str, str, int, float, str], tuple[int, float]] = {}
+        charges: dict[tuple[str, str, int, float, str, str], tuple[int, float]] = {}
         n = slow = 0
         while self._relayed:
             header, t, congested = self._relayed.popleft()
             n += 1
             slow += congested
             hop = header.hop
-            for direction, medium in (("receive", header.media[hop - 1]), ("send", header.media[hop])):
-                key = (direction, medium, header.charge_bytes, header.weight, header.purpose)
+            for direction, medium, peer in (("receive", header.media[hop - 1], header.path[hop - 1]),
+                                            ("send", header.media[hop], header.path[hop + 1])):
+                key = (direction, medium, header.charge_bytes, header.weight, header.purpose, peer)
                 charges[key] = (charges.get(key, (0, t))[0] + 1, t)
         # one charge per kind for its n packets (the meter's charge is linear in the weight), at
         # the virtual time of the latest: what `on_data` charges packet by packet
-        for (direction, medium, charge_bytes, weight, purpose), (count, t) in charges.items():
-            self.meter.charge_radio(direction, medium, charge_bytes, weight * count, t, purpose)
+        for (direction, medium, charge_bytes, weight, purpose, peer), (count, t) in charges.items():
+            self.meter.charge_radio(direction, medium, charge_bytes, weight * count, t, purpose, peer=peer)
         self.tally("forwarded", n)
         self.tally("forwarded-on-arrival", n)
         if slow:

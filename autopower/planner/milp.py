@@ -166,8 +166,10 @@ class PlacementModel:
                         hops = hop_media[u_node, v_node] = [(a, b, self.media_terms(a, b))
                                                             for a, b, _ in self.structure.route(u_node, v_node)]
                     for a, b, hop_terms in hops:
+                        loss = self.scenario.link_loss(a, b)  # a lossy hop's retransmissions (model.energy)
                         for medium, m_term in hop_terms:
-                            air = air_of[medium]
+                            air = air_of[medium] if not loss else airtime_s(n_bytes, self.scenario.radios[medium],
+                                                                           loss) * rate
                             term = u_term + v_term + m_term
                             add(send[(a, medium)], self.const_send, (a, medium), term, air)
                             add(recv[(b, medium)], self.const_recv, (b, medium), term, air)
@@ -220,7 +222,7 @@ class PlacementModel:
                     continue  # partitioned: the flow waits in custody, uncharged (LoadSpace.dag_flow_load)
                 for a, b, _ in self.structure.route(u_node, v_node):
                     for medium, m_term in self.media_terms(a, b):
-                        air = airtime_s(flow.n_bytes, self.scenario.radios[medium]) * rate
+                        air = airtime_s(flow.n_bytes, self.scenario.radios[medium], self.scenario.link_loss(a, b)) * rate
                         add(send[(a, medium)], self.const_send, (a, medium), hosts_term + m_term, air)
                         add(recv[(b, medium)], self.const_recv, (b, medium), hosts_term + m_term, air)
 

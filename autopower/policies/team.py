@@ -234,7 +234,7 @@ def _move(scenario: Scenario, network: Network, chain: Chain, stage: str, compon
     if not lost:
         for u, v, medium in network.route(old, new):
             radio = scenario.radios[medium]
-            air = airtime_s(size, radio)
+            air = airtime_s(size, radio, scenario.link_loss(u, v))
             transfer += air
             charge(u, radio.send_w * air)
             charge(v, radio.receive_w * air)

@@ -336,3 +336,24 @@ def test_values_whose_objective_is_not_the_reported_one_are_never_claimed_optima
     warm = model.lp.solve(start={c: float(c % 2) for c in model.x.values()})
     assert not warm.optimal and warm.mip_gap > 0.05 and "objective recomputed" in warm.status
     assert warm.objective == pytest.approx(warm.values[t_col], rel=1e-12)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), robots=st.integers(2, 3), chains=st.integers(1, 3),
+       topology=st.sampled_from(["fully-connected", "relay"]), multi_stage=st.booleans(),
+       losses=st.lists(st.sampled_from([0.0, 0.05, 0.2, 0.5]), min_size=6, max_size=6))
+def test_milp_equals_exhaustive_on_lossy_links(seed, robots, chains, topology, multi_stage, losses):
+    """Each hop's retransmissions (`[network] loss`) priced alike by the MILP and the evaluator."""
+    from dataclasses import replace
+
+    s = random_scenario(seed, robots, chains, topology=topology, multi_stage=multi_stage)
+    links = sorted(build_network(s, topology).links, key=lambda l: (l.a, l.b))
+    loss = {frozenset((l.a, l.b)): p for l, p in zip(links, losses, strict=False) if p > 0}  # 3 or 6 links
+    s = replace(s, network_spec=replace(s.network_spec, loss=loss))
+    problem = make_problem(PlanRequest(scenario=s))
+    best = exhaustive(problem)
+    milp = solve_milp(problem)
+    if not best:
+        assert milp.allocation is None
+        return
+    assert milp.lifetime_s == pytest.approx(best[0].lifetime_s, rel=1e-7)

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 PAGE = ROOT / "docs" / "reference" / "scenario.md"
 
 # The tables no shipped scenario has: an explicit topology with a link group, a multi-stage chain,
-# an explicit reference row, [mission]; with variants and levels too.
+# an explicit reference row, [mission], a lossy link; with variants and levels too.
 COVER = """
 [scenario]
 name = "schema-cover"
@@ -48,6 +48,7 @@ sensors = ["camera"]
 hold_budget_mb = 8
 [network]
 topology = "explicit"
+loss = { "r1-base" = 0.1 }
 [[network.links]]
 a = "r1"
 b = "base"
