@@ -135,6 +135,21 @@ def test_gate_times_a_gap_from_when_it_became_the_oldest_not_from_the_first_gap_
     assert gate.offer(8, 8, now=26.5) == [7, 8] and gate.skipped == 1  # given up 10.5 s after it was the oldest
 
 
+def test_gate_waits_on_a_gap_while_its_producer_says_it_still_holds_it():
+    """A frame's floor is its producer's lowest unacknowledged seq: equal to the gap, the producer is
+    resending it (custody), however many resends a lossy link ate; the gap is given up only without
+    that word for the gate's limit (a producer that died with the frame, or one that gave it up)."""
+    gate = SequenceGate(next_seq=0, max_gap_s=10.0)
+    gate.offer(0, 0, now=0.0)
+    for t in range(1, 30):  # seq 1 lost, again and again; the producer's later frames say it holds it
+        assert gate.offer(t + 1, t + 1, floor=1, now=float(t)) == []
+    assert gate.skipped == 0 and gate.offer(1, 1, resent=True, now=30.0) == list(range(1, 31))
+    gate.offer(32, 32, floor=31, now=31.0)  # seq 31 missing, its producer holds it ...
+    assert gate.offer(33, 33, floor=None, now=40.0) == []
+    assert gate.offer(34, 34, floor=None, now=41.5) == [32, 33, 34]  # ... then no word for 10.5 s
+    assert gate.skipped == 1
+
+
 def test_sink_ledger_tells_redundant_resends_from_real_duplicates():
     ledger = SinkLedger()
     assert ledger.report() is None
