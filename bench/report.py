@@ -70,8 +70,7 @@ BENCHES = (
     Bench("runtime", "bench/bench_runtime.py", ("overhead", "migration"), "Runtime", "performance", 0.5),
     Bench("security", "bench/bench_security.py", (), "Security", "performance", 0.3),
     Bench("sim", "bench/bench_sim.py", ("--seeds", "4", "--jobs", "2"), "The simulated team", "performance", 1.0),
-    Bench("detector", "bench/bench_detector.py", ("--minutes", "10"), "Failure detection on lossy links",
-          "performance", 0.5),
+    Bench("detector", "bench/bench_detector.py", (), "Failure detection on lossy links", "performance", 7.0),
     Bench("lossy_links", "bench/bench_lossy_links.py", ("--frames", "40"), "Throughput under loss", "performance",
           2.5),
     Bench("faults", "bench/bench_faults.py", ("--cuts", "20"), "Faults", "performance", 2.5),
@@ -83,6 +82,8 @@ BENCHES = (
     # --long
     Bench("live_policies", "bench/bench_live_policies.py", ("--topology", "relay", "--energy-scale", "0.01"),
           "Policies, live", "results", 2.0, long=True),
+    Bench("detector_testbed", "bench/bench_detector_testbed.py", ("--minutes", "10"),
+          "Failure detection on lossy links, in the testbed", "performance", 36.0, long=True),
     Bench("random_faults", "bench/bench_random_faults.py", ("--seed", "1", "--faults", "20"), "Random faults",
           "performance", 2.5, long=True),
     Bench("flood", "bench/bench_flood.py", ("--messages", "4000", "16000"), "A flood of garbage", "performance",

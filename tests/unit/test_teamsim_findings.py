@@ -13,7 +13,15 @@ import pytest
 from autopower.model.loading import load_scenario
 from autopower.teamsim import Fault, SimConfig, run
 from autopower.teamsim.sweep import run_seed
-from tests.integration.test_sim_sweep import FOUND, FOUND_PLAN, FOUND_WITH_RADIO, FOUND_WITH_ROUNDS, PLAN, ROUNDS_PLAN
+from tests.integration.test_sim_sweep import (
+    FOUND,
+    FOUND_PLAN,
+    FOUND_WITH_ACCRUAL,
+    FOUND_WITH_RADIO,
+    FOUND_WITH_ROUNDS,
+    PLAN,
+    ROUNDS_PLAN,
+)
 
 SC = load_scenario("paper-fig7")
 
@@ -100,7 +108,18 @@ def test_sweep_seeds_that_fail_with_subgroup_rounds(seed):
     "open: found once the sweep drew the radio impairments too (every seed's schedule changed). A Blob "
     "stage restarted without its state sees inputs another instance consumed (seeds 25, 31, 62, 63), or "
     "outputs are lost (the others), mostly around freezes, partitions and base-station crashes with subgroup "
-    "rounds (seeds 37 and 71 flap a link, 110 slows one)"))
+    "rounds (seed 110 slows a link)"))
 def test_sweep_seeds_that_fail_since_the_sweep_draws_radio_impairments(seed):
+    verdict = run_seed(PLAN, seed)
+    assert verdict.ok, verdict.first
+
+
+@pytest.mark.parametrize("seed", FOUND_WITH_ACCRUAL)
+@pytest.mark.xfail(strict=True, reason=(
+    "open: shrinks to laptop-r2 flapping every 0.43 s (shorter than the lease: the session holds, half "
+    "the messages are lost) and a 51 ms base-station crash. The laptop's Blob-2 and Loc-2 had consumed "
+    "inputs whose outputs died with the process; restarted without state, each starts at its "
+    "producer's floor and sees a skipped input (the stateful-restart class of the seeds above)"))
+def test_sweep_seeds_that_fail_since_the_detector_learns_the_loss(seed):
     verdict = run_seed(PLAN, seed)
     assert verdict.ok, verdict.first
