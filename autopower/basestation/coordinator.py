@@ -274,7 +274,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
 
     def link_lost(self, a: str, b: str, detected_unix: float | None = None) -> None:
         """A link an end of which is this base station (seen by its own liveliness) went down."""
-        if self.links.lost(a, b):
+        if self.links.lost(a, b, detected_unix or self.wall()):
             self._link_down(frozenset((a, b)), detected_unix or self.wall())
             self.replan("link change")
 
@@ -285,13 +285,17 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
     def _link_down(self, pair: frozenset[str], since: float) -> None:
         a, b = sorted(pair)
         self.record_fault("link-down", pair_name(pair), since)
-        self.note(f"link {a}-{b} is down")
+        now = self.wall()
+        downs = self.links.flap_penalty(pair, now)
+        dampened = (f" (it flaps: penalty {downs:.1f}, halving every {self.links.flap_half_life_s:g} s; back in "
+                    f"plans after {self.links.hold_s(pair, now):g} s up without a break)") if downs > 1.5 else ""
+        self.note(f"link {a}-{b} is down{dampened}")
         self._event("link-cut", a=a, b=b)
 
     def _heal_links(self) -> None:
         healed = self.links.healed(self.wall())
         for pair in healed:
-            self.note(f"link {pair_name(pair)} is back (up for {self.config.heal_hold_s:g} s)")
+            self.note(f"link {pair_name(pair)} is back (up for {self.links.hold_s(pair, self.wall()):g} s)")
             a, b = sorted(pair)
             self._event("link-heal", a=a, b=b)
         if healed:  # whether moving back is worth it is the policy's hysteresis

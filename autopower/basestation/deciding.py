@@ -134,6 +134,7 @@ class Deciding:
         self.note(f"decision ({reason}): policy {self.policy.name} keeps the configuration")
         self._predict()
         if changed:  # e.g. a link is gone from (or back in) the routes, nothing moves
+            self.replans += 1  # a new plan all the same: every node takes it up
             self.reconcile()
             self.publish_plan()
 

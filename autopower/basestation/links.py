@@ -7,7 +7,14 @@ what to do about it is the policy's job), and it is where flapping is stopped:
 - a link is *down* at once when an end that saw it up reports it down (its lease expired: that
   is the detection), but only after ``down_after_s`` of reports if it was never seen up (start-up)
   or if one of its ends has just come back (a thawed robot's sessions are still reconnecting);
-- a link that was down is *back* once it has been seen up for ``heal_hold_s`` without a break.
+- a link that was down is *back* once it has been seen up for its hold without a break:
+  ``heal_hold_s``, doubled for each time it went down lately beyond the first (route-flap
+  dampening, as BGP's: each down adds 1 to the link's penalty, which halves every
+  ``flap_half_life_s``; the hold is ``heal_hold_s`` x 2^(penalty - 1), at most ``max_hold_s``).
+  Every plan that uses a link and every plan that routes around it costs the team a
+  reconfiguration, and a migration's state crosses the radio: a link flapping every 2 s would
+  make one each way per cycle. Dampened, its second down holds it out for 4 s, its third 8 s,
+  and so on, while a link that failed once in a while is back after ``heal_hold_s``.
 """
 
 from __future__ import annotations
@@ -16,16 +23,23 @@ from typing import Iterable, Mapping
 
 Pair = frozenset[str]
 
+FLAP_HALF_LIFE_S = 60.0  # a link's flap penalty halves in this long (wall seconds)
+MAX_HOLD_S = 120.0  # however much it flapped, a link up this long without a break is back
+
 
 def pair_name(pair: Pair) -> str:
     return "-".join(sorted(pair))
 
 
 class LinkStates:
-    def __init__(self, pairs: Iterable[Pair], *, down_after_s: float, heal_hold_s: float):
+    def __init__(self, pairs: Iterable[Pair], *, down_after_s: float, heal_hold_s: float,
+                 flap_half_life_s: float = FLAP_HALF_LIFE_S, max_hold_s: float = MAX_HOLD_S):
         self.pairs = set(pairs)  # the topology's links: reports about other pairs are ignored
         self.down_after_s = down_after_s
         self.heal_hold_s = heal_hold_s
+        self.flap_half_life_s = flap_half_life_s
+        self.max_hold_s = max(max_hold_s, heal_hold_s)
+        self._penalty: dict[Pair, tuple[float, float]] = {}  # pair -> (flap penalty, when it was that)
         self.down: set[Pair] = set()
         self._reported_down: dict[Pair, float] = {}  # pair -> first report of it down (this spell)
         self._seen_up: set[Pair] = set()
@@ -40,14 +54,33 @@ class LinkStates:
         if pair in self.down:
             self._up_since.setdefault(pair, now)
 
-    def lost(self, a: str, b: str) -> bool:
+    def lost(self, a: str, b: str, now: float) -> bool:
         """An end saw the link go (its own liveliness); True if it was not known down yet."""
         pair = frozenset((a, b))
-        self._up_since.pop(pair, None)
+        self._interrupted(pair, now)
         if pair in self.down:
             return False
-        self.down.add(pair)
+        self._went_down(pair, now)
         return True
+
+    def _went_down(self, pair: Pair, now: float) -> None:
+        self.down.add(pair)
+        self._penalty[pair] = (self.flap_penalty(pair, now) + 1.0, now)
+
+    def _interrupted(self, pair: Pair, now: float) -> None:
+        """Evidence that ``pair`` is down: a down link whose up spell this ends flapped again."""
+        if self._up_since.pop(pair, None) is not None and pair in self.down:
+            self._penalty[pair] = (self.flap_penalty(pair, now) + 1.0, now)
+
+    def flap_penalty(self, pair: Pair, now: float) -> float:
+        """How often ``pair`` went down lately: +1 a time, halving every ``flap_half_life_s``."""
+        value, at = self._penalty.get(pair, (0.0, now))
+        return value * 0.5 ** (max(0.0, now - at) / self.flap_half_life_s)
+
+    def hold_s(self, pair: Pair, now: float) -> float:
+        """How long ``pair`` must be seen up without a break to be back (see the module's rule)."""
+        penalty = self.flap_penalty(pair, now)
+        return min(self.max_hold_s, self.heal_hold_s * 2.0 ** max(0.0, penalty - 1.0))
 
     def rejoined(self, node: str, now: float) -> None:
         self._rejoined[node] = now
@@ -65,19 +98,19 @@ class LinkStates:
             if peer not in alive or node not in alive:  # a node gone is not a link down
                 self._reported_down.pop(pair, None)
                 continue
-            self._up_since.pop(pair, None)
+            self._interrupted(pair, now)
             since = self._reported_down.setdefault(pair, now)
             back = max(self._rejoined.get(node, -1.0), self._rejoined.get(peer, -1.0))
             settled = pair in self._seen_up and now - back >= self.down_after_s
             wait = 0.0 if settled else self.down_after_s
             if now - since >= wait and pair not in self.down:
-                self.down.add(pair)
+                self._went_down(pair, now)
                 out.append((pair, since))
         return out
 
     def healed(self, now: float) -> list[Pair]:
-        """Pairs back up for ``heal_hold_s``: no longer down."""
-        back = [p for p, since in self._up_since.items() if p in self.down and now - since >= self.heal_hold_s]
+        """Pairs back up for their hold (`hold_s`): no longer down."""
+        back = [p for p, since in self._up_since.items() if p in self.down and now - since >= self.hold_s(p, now)]
         for pair in back:
             self.down.discard(pair)
             self._up_since.pop(pair, None)

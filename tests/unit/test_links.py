@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from autopower.basestation.links import LinkStates, pair_name
 
 PAIRS = {frozenset(p) for p in (("laptop", "r1"), ("laptop", "r2"), ("r1", "r2"))}
@@ -19,10 +21,10 @@ def test_a_link_seen_up_then_reported_down_is_down_at_once_and_back_after_the_ho
     assert links.reported("r2", {"r1": False}, ALIVE, now=10.1) == []  # already down: counted once
     links.seen("r1", "r2", now=11.0)
     assert links.healed(now=12.5) == [] and links.down  # not up long enough yet
-    links.reported("r1", {"r2": False}, ALIVE, now=12.6)  # a flap: the hold starts over
+    links.reported("r1", {"r2": False}, ALIVE, now=12.6)  # a flap: the hold starts over, and doubles
     links.seen("r1", "r2", now=13.0)
-    assert links.healed(now=14.9) == []
-    assert links.healed(now=15.0) == [frozenset({"r1", "r2"})] and not links.down
+    assert links.healed(now=16.5) == []
+    assert links.healed(now=17.0) == [frozenset({"r1", "r2"})] and not links.down
 
 
 def test_never_seen_up_or_just_rejoined_gets_the_grace():
@@ -42,5 +44,45 @@ def test_reports_about_gone_nodes_or_links_outside_the_topology_are_not_failures
     links.seen("r1", "r2", now=0.0)
     assert links.reported("r1", {"r2": False}, ALIVE - {"r2"}, now=1.0) == []  # r2 is gone, not the link
     assert links.reported("r1", {"r9": False, "r3": False}, ALIVE, now=1.0) == []
-    assert links.lost("laptop", "r1") and not links.lost("r1", "laptop")  # the base station's own evidence
+    assert links.lost("laptop", "r1", now=1.0) and not links.lost("r1", "laptop", now=1.0)  # its own evidence
     assert pair_name(frozenset({"r1", "laptop"})) == "laptop-r1"
+
+
+def flap(links: LinkStates, pair: frozenset, down_s: float, up_s: float, until: float, t: float = 0.0) -> list:
+    """The pair seen down for ``down_s`` then up for ``up_s``, again and again; each (time, event)."""
+    a, b = sorted(pair)
+    events = []
+    while t < until:
+        if links.lost(a, b, now=t):
+            events.append((t, "down"))
+        t += down_s
+        links.seen(a, b, now=t)
+        step = 0.1
+        while step <= up_s + 1e-9:
+            if links.healed(now=t + step):
+                events.append((round(t + step, 1), "back"))
+            step += 0.1
+        t += up_s
+    return events
+
+
+def test_a_flapping_link_is_held_out_longer_each_time_it_goes_down():
+    links = states()  # heal hold 2 s
+    pair = frozenset({"laptop", "r1"})
+    # down 2 s, up 3 s, for a minute: without dampening, back and down again every cycle (12 each way)
+    events = flap(links, pair, down_s=2.0, up_s=3.0, until=60.0)
+    assert [e for _, e in events].count("down") == 2 and [e for _, e in events].count("back") == 1, events
+    assert links.hold_s(pair, now=60.0) > 3.0  # its second down doubled the hold past the up spells
+    # a minute of quiet halves the penalty: a link that failed once in a while is back after 2 s again
+    assert links.hold_s(pair, now=600.0) == 2.0
+    assert links.flap_penalty(pair, now=60.0 + 60.0) == pytest.approx(links.flap_penalty(pair, now=60.0) / 2)
+
+
+def test_the_hold_is_bounded_however_much_a_link_flapped():
+    links = LinkStates(PAIRS, down_after_s=3.0, heal_hold_s=2.0, max_hold_s=30.0)
+    pair = frozenset({"laptop", "r1"})
+    flap(links, pair, down_s=0.5, up_s=0.5, until=60.0)  # 60 downs
+    assert links.hold_s(pair, now=60.0) == 30.0
+    links.lost("laptop", "r1", now=60.5)
+    links.seen("laptop", "r1", now=61.0)
+    assert links.healed(now=90.9) == [] and links.healed(now=91.0) == [pair]

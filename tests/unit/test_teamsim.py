@@ -306,3 +306,45 @@ def test_the_cli_names_every_fault_kind():
 
     said = set(re.findall(r"[a-z-]+", next(p.help for p in sim.params if p.name == "kinds")))
     assert set(KINDS) <= said
+
+
+def run_watched(monkeypatch, cfg: SimConfig) -> tuple:
+    """Run ``cfg``; also what the base station and the robots counted, read before the run is judged."""
+    from autopower.teamsim import team as sim_team
+
+    seen: dict = {}
+    checks = sim_team.World.final_checks
+
+    def counting(world) -> None:
+        seen["replans"] = world.shells[SC.basestation].co.replans
+        seen["suspicions"] = {n: s.rt.counters.get("silent-peers", 0) for n, s in world.shells.items()
+                              if n != SC.basestation}
+        checks(world)
+
+    monkeypatch.setattr(sim_team.World, "final_checks", counting)
+    return run(cfg), seen
+
+
+def test_a_link_flapping_every_2_s_for_a_minute_is_held_out_after_its_second_down(monkeypatch):
+    """Without dampening each cycle re-planned twice (around the link, then with it): 31 plans in a
+    minute. Dampened: around it, back after its first up spell (a link that failed once), around it
+    again, and back only once it stays up (links.LinkStates)."""
+    flapping = Fault(kind="flap", t=10.0, duration=60.0, a="laptop", b="r2", p=2.0)
+    result, seen = run_watched(monkeypatch, SimConfig(scenario=SC, seed=1, faults=(flapping,), mission_s=71.0,
+                                                      quiet_s=20.0))
+    assert result.ok, result.violations
+    assert seen["replans"] <= 1 + 4, seen  # the mission's first plan, then two each way at most
+
+
+def test_on_lossy_links_a_robot_suspects_a_peer_at_most_once_as_it_learns_the_loss(monkeypatch):
+    """Every link losing 20 % of its messages for five minutes, nothing failing: the silence detector
+    (node.peer_watch) learns each link's loss and waits for as many missing statuses in a row as keep
+    false suspicions under one a robot-day; before, it suspected a peer at every two statuses lost in a
+    row (about 3.5 a minute a robot here)."""
+    lossy = tuple(Fault(kind="loss", t=10.0, duration=300.0, a=a, b=b, p=0.2)
+                  for a, b in (("laptop", "r1"), ("laptop", "r2"), ("laptop", "r3"), ("r1", "r2"), ("r1", "r3"),
+                               ("r2", "r3")))
+    result, seen = run_watched(monkeypatch, SimConfig(scenario=SC, seed=1, faults=lossy, mission_s=311.0,
+                                                      quiet_s=20.0))
+    assert result.ok, result.violations
+    assert all(n <= 3 for n in seen["suspicions"].values()), seen  # at most the onset, once a peer
