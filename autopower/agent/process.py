@@ -185,6 +185,8 @@ class Agent:
                 log.info("agent %s: %s %s (liveliness)", self.config.robot, self._who(node),
                          "in sight" if event.alive else "out of sight")
                 change = self.watch.on_token(node, event.alive)
+                if change is False:  # the lease (or a closed session) took it out of sight
+                    self.runtime.tally("tokens-lost")
                 if change is not None:
                     self._sight(node, change)
         elif isinstance(event, WorkDone):

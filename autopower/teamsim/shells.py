@@ -207,6 +207,8 @@ class RobotShell(Shell):
         node = self.keys.node_of_alive(key)
         if node is not None and node != self.node:
             change = self.watch.on_token(node, alive)
+            if change is False:  # the lease (or a closed session) took it out of sight, as the agent counts
+                self.rt.tally("tokens-lost")
             if change is not None:
                 self._sight(node, change)
 

@@ -319,6 +319,8 @@ def run_watched(monkeypatch, cfg: SimConfig) -> tuple:
         seen["replans"] = world.shells[SC.basestation].co.replans
         seen["suspicions"] = {n: s.rt.counters.get("silent-peers", 0) for n, s in world.shells.items()
                               if n != SC.basestation}
+        seen["tokens_lost"] = {n: s.rt.counters.get("tokens-lost", 0) for n, s in world.shells.items()
+                               if n != SC.basestation}
         checks(world)
 
     monkeypatch.setattr(sim_team.World, "final_checks", counting)
@@ -334,6 +336,10 @@ def test_a_link_flapping_every_2_s_for_a_minute_is_held_out_after_its_second_dow
                                                       quiet_s=20.0))
     assert result.ok, result.violations
     assert seen["replans"] <= 1 + 4, seen  # the mission's first plan, then two each way at most
+    # and each 2 s outage is still seen, by r2 alone: the laptop's statuses stop (two periods, before
+    # the 1 s lease), however often it comes back; outages are not counted as the link's loss
+    outages = {r: seen["suspicions"][r] + seen["tokens_lost"][r] for r in ("r1", "r2", "r3")}
+    assert outages["r2"] >= 14 and outages["r1"] == outages["r3"] == 0, seen
 
 
 def test_on_lossy_links_a_robot_suspects_a_peer_at_most_once_as_it_learns_the_loss(monkeypatch):
