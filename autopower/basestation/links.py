@@ -15,6 +15,13 @@ what to do about it is the policy's job), and it is where flapping is stopped:
   reconfiguration, and a migration's state crosses the radio: a link flapping every 2 s would
   make one each way per cycle. Dampened, its second down holds it out for 4 s, its third 8 s,
   and so on, while a link that failed once in a while is back after ``heal_hold_s``.
+
+An end's report that a down link is up counts only once that end has reported it down: the two
+ends of a cut notice it at different times (each by its own lease; in a one-way cut the deaf end
+first), and the statuses the later one sends meanwhile still say "up". Taken as the link back,
+they made its own "down" that follows count as a flap, and a link cut once was held out for
+3.3 s instead of ``heal_hold_s`` (issue 31 item 3). The base station's own evidence (`seen`)
+always counts.
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ class LinkStates:
         self._seen_up: set[Pair] = set()
         self._up_since: dict[Pair, float] = {}  # down pairs seen up again -> since when
         self._rejoined: dict[str, float] = {}  # node -> when it came back
+        self._caught_up: dict[Pair, set[str]] = {}  # down pair -> its ends that reported it down since
 
     def seen(self, a: str, b: str, now: float) -> None:
         """Evidence that a link works (its ends see each other)."""
@@ -65,6 +73,7 @@ class LinkStates:
 
     def _went_down(self, pair: Pair, now: float) -> None:
         self.down.add(pair)
+        self._caught_up[pair] = set()
         self._penalty[pair] = (self.flap_penalty(pair, now) + 1.0, now)
 
     def _interrupted(self, pair: Pair, now: float) -> None:
@@ -93,8 +102,11 @@ class LinkStates:
             if pair not in self.pairs:
                 continue
             if up:
-                self.seen(node, peer, now)
+                if pair not in self.down or node in self._caught_up.get(pair, ()):  # see the module's docstring
+                    self.seen(node, peer, now)
                 continue
+            if pair in self.down:
+                self._caught_up.setdefault(pair, set()).add(node)
             if peer not in alive or node not in alive:  # a node gone is not a link down
                 self._reported_down.pop(pair, None)
                 continue
@@ -105,6 +117,7 @@ class LinkStates:
             wait = 0.0 if settled else self.down_after_s
             if now - since >= wait and pair not in self.down:
                 self._went_down(pair, now)
+                self._caught_up[pair].add(node)
                 out.append((pair, since))
         return out
 

@@ -27,6 +27,22 @@ def test_a_link_seen_up_then_reported_down_is_down_at_once_and_back_after_the_ho
     assert links.healed(now=17.0) == [frozenset({"r1", "r2"})] and not links.down
 
 
+def test_a_cut_its_ends_notice_at_different_times_is_no_flap():
+    # issue 31 item 3: laptop-r1 cut one way (r1 -> laptop); the base station's lease expires first,
+    # and r1's statuses say the link is up until its own lease does, a moment later
+    links = states()
+    pair = frozenset({"laptop", "r1"})
+    links.seen("laptop", "r1", now=0.0)
+    assert links.lost("laptop", "r1", now=10.0)
+    links.reported("r1", {"laptop": True}, ALIVE, now=10.1)  # built before r1 noticed: no evidence
+    links.reported("r1", {"laptop": False}, ALIVE, now=10.3)  # r1 noticed
+    assert links.flap_penalty(pair, now=10.3) == pytest.approx(1.0, abs=0.01)  # down once, not twice
+    links.seen("laptop", "r1", now=20.0)  # healed: the base station sees r1 again
+    links.reported("r1", {"laptop": True}, ALIVE, now=20.1)  # r1 too: now that counts
+    assert links.healed(now=21.9) == []
+    assert links.healed(now=22.0) == [pair]  # after heal_hold_s, as a link that failed once
+
+
 def test_never_seen_up_or_just_rejoined_gets_the_grace():
     links = states()
     assert links.reported("r1", {"laptop": False}, ALIVE, now=0.0) == []  # start-up: maybe not connected yet
