@@ -20,8 +20,10 @@ An end's report that a down link is up counts only once that end has reported it
 ends of a cut notice it at different times (each by its own lease; in a one-way cut the deaf end
 first), and the statuses the later one sends meanwhile still say "up". Taken as the link back,
 they made its own "down" that follows count as a flap, and a link cut once was held out for
-3.3 s instead of ``heal_hold_s`` (issue 31 item 3). The base station's own evidence (`seen`)
-always counts.
+3.3 s instead of ``heal_hold_s`` (issue 31 item 3). The same at the heal: once a down link is
+seen up again, an end's report that it is down counts (as the link going down again) only once
+that end has reported it up in this spell; before, the later end's last "down" ended the spell
+and doubled the hold. The base station's own evidence (`seen`, `lost`) always counts.
 """
 
 from __future__ import annotations
@@ -53,14 +55,16 @@ class LinkStates:
         self._up_since: dict[Pair, float] = {}  # down pairs seen up again -> since when
         self._rejoined: dict[str, float] = {}  # node -> when it came back
         self._caught_up: dict[Pair, set[str]] = {}  # down pair -> its ends that reported it down since
+        self._back_from: dict[Pair, set[str]] = {}  # down pair seen up again -> its ends that reported it up
 
     def seen(self, a: str, b: str, now: float) -> None:
         """Evidence that a link works (its ends see each other)."""
         pair = frozenset((a, b))
         self._seen_up.add(pair)
         self._reported_down.pop(pair, None)
-        if pair in self.down:
-            self._up_since.setdefault(pair, now)
+        if pair in self.down and pair not in self._up_since:
+            self._up_since[pair] = now
+            self._back_from[pair] = set()
 
     def lost(self, a: str, b: str, now: float) -> bool:
         """An end saw the link go (its own liveliness); True if it was not known down yet."""
@@ -78,6 +82,7 @@ class LinkStates:
 
     def _interrupted(self, pair: Pair, now: float) -> None:
         """Evidence that ``pair`` is down: a down link whose up spell this ends flapped again."""
+        self._back_from.pop(pair, None)
         if self._up_since.pop(pair, None) is not None and pair in self.down:
             self._penalty[pair] = (self.flap_penalty(pair, now) + 1.0, now)
 
@@ -104,7 +109,11 @@ class LinkStates:
             if up:
                 if pair not in self.down or node in self._caught_up.get(pair, ()):  # see the module's docstring
                     self.seen(node, peer, now)
+                    if pair in self._back_from:
+                        self._back_from[pair].add(node)
                 continue
+            if pair in self._up_since and node not in self._back_from.get(pair, ()):
+                continue  # made before this end saw the link back: no evidence (the module's docstring)
             if pair in self.down:
                 self._caught_up.setdefault(pair, set()).add(node)
             if peer not in alive or node not in alive:  # a node gone is not a link down
@@ -127,4 +136,5 @@ class LinkStates:
         for pair in back:
             self.down.discard(pair)
             self._up_since.pop(pair, None)
+            self._back_from.pop(pair, None)
         return back

@@ -62,6 +62,13 @@ PREFIX = "aptb-"  # AutoPower testbed: the only namespaces this module ever dele
 # back and TCP's backed-off retransmission gets through. Every node of a real team needs the same
 # setting (docs/deploying/robots.md).
 TCP_RETRIES2 = 2
+# A SYN every second for ten tries (the kernel's default: four at 1 s, then backed off to 2, 4 ...
+# s). A cut closes a session and its connecting end retries at once; while the link stays down the
+# attempt's SYNs are lost, and after the heal it waited for the next backed-off one: up to 3 s before
+# the two ends saw each other again. Every node of a real team needs the same (docs/deploying/robots.md).
+# A kernel without the setting (older ones) is left as it is.
+TCP_SYN_LINEAR_TIMEOUTS = 10
+SYN_LINEAR_SYSCTL = Path("/proc/sys/net/ipv4/tcp_syn_linear_timeouts")
 SUBNET = "10.99"  # point-to-point links
 SHARED_SUBNET = "10.98"  # shared media (bridges)
 NFT_TABLE = "autopower"  # the nftables table (family ip) the testbed owns in each node's namespace
@@ -258,6 +265,9 @@ class NamespaceNetwork:
                 _run("ip", "netns", "add", self.ns(node))
                 _run("ip", "-n", self.ns(node), "link", "set", "dev", "lo", "up")
                 _run("ip", "netns", "exec", self.ns(node), "sysctl", "-qw", f"net.ipv4.tcp_retries2={TCP_RETRIES2}")
+                if SYN_LINEAR_SYSCTL.exists():
+                    _run("ip", "netns", "exec", self.ns(node), "sysctl", "-qw",
+                         f"net.ipv4.tcp_syn_linear_timeouts={TCP_SYN_LINEAR_TIMEOUTS}")
             for seg in self.segments:
                 self._create_segment(seg)
             for link in self.links:

@@ -19,10 +19,10 @@ def test_a_link_seen_up_then_reported_down_is_down_at_once_and_back_after_the_ho
     links.seen("r1", "r2", now=0.0)
     assert links.reported("r1", {"r2": False}, ALIVE, now=10.0) == [(frozenset({"r1", "r2"}), 10.0)]
     assert links.reported("r2", {"r1": False}, ALIVE, now=10.1) == []  # already down: counted once
-    links.seen("r1", "r2", now=11.0)
+    links.reported("r1", {"r2": True}, ALIVE, now=11.0)
     assert links.healed(now=12.5) == [] and links.down  # not up long enough yet
     links.reported("r1", {"r2": False}, ALIVE, now=12.6)  # a flap: the hold starts over, and doubles
-    links.seen("r1", "r2", now=13.0)
+    links.reported("r1", {"r2": True}, ALIVE, now=13.0)
     assert links.healed(now=16.5) == []
     assert links.healed(now=17.0) == [frozenset({"r1", "r2"})] and not links.down
 
@@ -41,6 +41,25 @@ def test_a_cut_its_ends_notice_at_different_times_is_no_flap():
     links.reported("r1", {"laptop": True}, ALIVE, now=20.1)  # r1 too: now that counts
     assert links.healed(now=21.9) == []
     assert links.healed(now=22.0) == [pair]  # after heal_hold_s, as a link that failed once
+
+
+def test_at_the_heal_the_later_ends_last_down_report_is_no_flap():
+    links = states()
+    pair = frozenset({"laptop", "r1"})
+    links.seen("laptop", "r1", now=0.0)
+    links.lost("laptop", "r1", now=10.0)
+    links.reported("r1", {"laptop": False}, ALIVE, now=10.3)
+    links.seen("laptop", "r1", now=20.0)  # healed: the base station sees r1 again ...
+    links.reported("r1", {"laptop": False}, ALIVE, now=20.1)  # ... r1's status made before it did
+    links.reported("r1", {"laptop": True}, ALIVE, now=20.4)
+    assert links.healed(now=21.9) == [] and links.healed(now=22.0) == [pair]  # the hold of one down
+    # once r1 has seen it back in a spell, its "down" is the link going down again
+    links.lost("laptop", "r1", now=30.0)
+    links.reported("r1", {"laptop": False}, ALIVE, now=30.3)
+    links.seen("laptop", "r1", now=31.0)
+    links.reported("r1", {"laptop": True}, ALIVE, now=31.1)
+    links.reported("r1", {"laptop": False}, ALIVE, now=31.5)
+    assert links.flap_penalty(pair, now=31.5) > 2.5  # three downs
 
 
 def test_never_seen_up_or_just_rejoined_gets_the_grace():
