@@ -9,6 +9,7 @@ usual one (2 for bad input, 130 when interrupted, 1 for a bug, whose traceback s
 from __future__ import annotations
 
 import json
+import signal
 import sys
 
 import click
@@ -24,6 +25,11 @@ def _json_error(wanted: bool, message: str, exit_code: int) -> None:
 def run_command(command: click.Command, args: list[str] | None = None, prog_name: str | None = None) -> None:
     """Run a click command the way users meet it: AutoPowerError -> "error: ..." and exit 2."""
     argv = list(sys.argv[1:] if args is None else args)
+    # Ctrl-C (SIGINT) is how `up`, `testbed up` and `demo` are stopped, also by scripts (`kill -INT`).
+    # A command started in the background by a shell without job control inherits SIGINT ignored,
+    # and Python keeps it so: such a team could not be stopped but by SIGTERM or SIGKILL.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     # Options after "--" are arguments, not flags.
     as_json = "--json" in (argv[:argv.index("--")] if "--" in argv else argv)
     try:

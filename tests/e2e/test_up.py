@@ -189,3 +189,26 @@ def test_two_teams_on_one_machine_keep_their_own_state(tmp_path):
             if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
                 proc.wait(timeout=30)
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_up_also_when_started_with_sigint_ignored(tmp_path):
+    """A shell without job control starts a background command with SIGINT ignored (`autopower up &`
+    in a script, or CI's own runner): `kill -INT` must still stop the team."""
+    env = env_for(tmp_path)
+    proc = subprocess.Popen([AUTOPOWER, "up", "paper-fig7", "--team", "t1", "--json"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        session_file = Path(env["AUTOPOWER_STATE_DIR"]) / "teams" / "t1" / "session.json"
+        session = wait_until(lambda: session_file.exists() and json.loads(session_file.read_text()), 30,
+                             "up to write its session file")
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0, err[-2000:]
+        assert json.loads(out)["scenario"] == "paper-fig7"
+        assert not any(alive(pid) for pid in session["children"].values())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
