@@ -26,7 +26,7 @@ from autopower.protocol.messages import MAX_MISSING_RANGES
 T = TypeVar("T")
 
 MAX_MISSING = MAX_MISSING_RANGES  # missing ranges listed in one report (the lowest ones)
-GATE_MAX_GAP_S = 10.0  # wall seconds a gap may stay open without word from its producer before it is given up
+GATE_MAX_GAP_S = 10.0  # wall seconds a gap may stay open (several resend rounds) before it is given up
 GATE_MAX_PENDING = 512  # inputs waiting behind a gap, at most (memory: camera frames are 230 kB)
 # Outputs a sink keeps above a gap before it gives the gap up. A gap its producer gave up on (a
 # stage's gate skipped those inputs) never fills; without this bound everything after it would stay
@@ -118,12 +118,9 @@ class SequenceGate(Generic[T]):
         if not self.pending:
             self._gap_since = None
             return ready
-        if self._gap_since is None or ready or floor == self.next_seq:
+        if self._gap_since is None or ready:
             # a gap is timed from when it became the oldest: inputs released here filled the one
-            # that was, so what still waits is behind a younger gap, whose resend may be on its way.
-            # And from the producer's last word that it still holds it (its floor is the gap): it
-            # resends until custody gives the frame up, and giving the gap up before that, on a
-            # link that lost five resends in a row, made a stateful stage skip an input
+            # that was, so what still waits is behind a younger gap, whose resend may be on its way
             self._gap_since = now
         open_s = now - self._gap_since if now is not None and self._gap_since is not None else 0.0
         if len(self.pending) > self.max_pending or open_s > self.max_gap_s:

@@ -203,6 +203,9 @@ def test_ctrl_c_stops_up_also_when_started_with_sigint_ignored(tmp_path):
         session_file = Path(env["AUTOPOWER_STATE_DIR"]) / "teams" / "t1" / "session.json"
         session = wait_until(lambda: session_file.exists() and json.loads(session_file.read_text()), 30,
                              "up to write its session file")
+        wait_until(lambda: proc.poll() is not None or json.loads(
+            run_cli(["status", "--team", "t1", "--json", "--timeout", "2"], env).stdout or "{}").get("ready"),
+            60, "the team to be ready")
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
         assert proc.returncode == 0, err[-2000:]
