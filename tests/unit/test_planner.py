@@ -22,16 +22,21 @@ FIG7 = load_scenario("paper-fig7")
        multi_stage=st.booleans())
 def test_milp_equals_exhaustive(seed, robots, chains, topology, accounting, multi_stage):
     s = random_scenario(seed, robots, chains, topology=topology, accounting=accounting, multi_stage=multi_stage)
+    milp = assert_milp_is_exhaustive(s)
+    if milp.allocation is not None:  # and the MILP's plan really is feasible under the evaluator
+        assert evaluate(s, milp.network, milp.allocation, accounting=accounting).feasible
+
+
+def assert_milp_is_exhaustive(s):
+    """The MILP's lifetime on ``s`` is exhaustive search's (both none when nothing is feasible)."""
     problem = make_problem(PlanRequest(scenario=s))
     best = exhaustive(problem)
     milp = solve_milp(problem)
     if not best:
         assert milp.allocation is None
-        return
-    assert milp.lifetime_s == pytest.approx(best[0].lifetime_s, rel=1e-7)
-    # and the MILP's plan really is feasible under the evaluator
-    ev = evaluate(s, milp.network, milp.allocation, accounting=accounting)
-    assert ev.feasible
+    else:
+        assert milp.lifetime_s == pytest.approx(best[0].lifetime_s, rel=1e-7)
+    return milp
 
 
 def test_paper_both_methods_agree_on_every_media_pair():
@@ -349,11 +354,4 @@ def test_milp_equals_exhaustive_on_lossy_links(seed, robots, chains, topology, m
     s = random_scenario(seed, robots, chains, topology=topology, multi_stage=multi_stage)
     links = sorted(build_network(s, topology).links, key=lambda l: (l.a, l.b))
     loss = {frozenset((l.a, l.b)): p for l, p in zip(links, losses, strict=False) if p > 0}  # 3 or 6 links
-    s = replace(s, network_spec=replace(s.network_spec, loss=loss))
-    problem = make_problem(PlanRequest(scenario=s))
-    best = exhaustive(problem)
-    milp = solve_milp(problem)
-    if not best:
-        assert milp.allocation is None
-        return
-    assert milp.lifetime_s == pytest.approx(best[0].lifetime_s, rel=1e-7)
+    assert_milp_is_exhaustive(replace(s, network_spec=replace(s.network_spec, loss=loss)))
