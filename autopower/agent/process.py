@@ -185,8 +185,6 @@ class Agent:
                 log.info("agent %s: %s %s (liveliness)", self.config.robot, self._who(node),
                          "in sight" if event.alive else "out of sight")
                 change = self.watch.on_token(node, event.alive)
-                if change is False:  # the lease (or a closed session) took it out of sight
-                    self.runtime.tally("tokens-lost")
                 if change is not None:
                     self._sight(node, change)
         elif isinstance(event, WorkDone):
@@ -332,6 +330,8 @@ class Agent:
         rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
         if self._bus.repeated:  # statuses put again while the loop was held up
             rt.counters["status-repeats"] = self._bus.repeated
+        if self.watch.tokens_lost:  # peers a token that went took out of sight (`PeerWatch` counts them)
+            rt.counters["tokens-lost"] = self.watch.tokens_lost
         status = self.cadence.due(rt.status(window, self.events.depth(), self.events.bulk_wait_s()), time.time(), urgent=urgent)
         if status is None:
             return False

@@ -14,7 +14,7 @@ import re
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 import networkx as nx
 
@@ -81,27 +81,19 @@ def resolve_scenario_path(name_or_path: str | Path) -> tuple[str, str]:
 _NAME = re.compile(r"[A-Za-z0-9_.-]{1,100}")
 
 
-def _linked_pairs(topology: str, analyze: Iterable[str], robots: list[str], base: str, relay: str | None,
-                  links: list[LinkSpec]):
-    """Whether two nodes have a link in any topology the scenario plans (as `Scenario.link_layout`)."""
-    topologies = {topology, *analyze}
-    explicit = {frozenset((l.a, l.b)) for l in links}
-    robot_set = set(robots)
-    hub = relay or (robots[0] if robots else None)
+def _linked(scenario: Scenario, topologies: Iterable[str]) -> Callable[[str, str], bool]:
+    """Whether two nodes have a link in any of `topologies`, by the rules of `Scenario.link_layout`.
 
-    def linked(a: str, b: str) -> bool:
-        for topo in topologies:
-            if topo == "explicit" and frozenset((a, b)) in explicit:
-                return True
-            if topo in ("fully-connected", "relay") and {a, b} <= robot_set:
-                return True
-            if topo == "fully-connected" and base in (a, b):
-                return True
-            if topo == "relay" and {a, b} == {base, hub}:
-                return True
-        return False
-
-    return linked
+    A clique links every pair of its nodes, so a pair is looked up by membership: a fleet's
+    N^2/2 robot-robot pairs are never built.
+    """
+    singles: set[frozenset[str]] = set()
+    cliques: list[frozenset[str]] = []
+    for topology in topologies:
+        links, groups = scenario.link_layout(topology)
+        singles.update(frozenset((link.a, link.b)) for link in links)
+        cliques.extend(frozenset(clique.nodes) for clique in groups)
+    return lambda a, b: frozenset((a, b)) in singles or any({a, b} <= nodes for nodes in cliques)
 
 
 def _read_text(path: Path, shown: str) -> str:
@@ -168,6 +160,9 @@ class ScenarioParser:
         self.data = data
         self.lines = text.splitlines()
         self.where = where
+        # [network] loss entries as (a, b, dotted key path), in file order: whether each names a link
+        # is checked once the scenario is built (`check_lossy_links`)
+        self.loss_entries: list[tuple[str, str, str]] = []
 
     # ---- error reporting -------------------------------------------------------------------
     def fail(self, path: str, problem: str, expected: str, line_of: str | None = None) -> ScenarioError:
@@ -312,6 +307,7 @@ class ScenarioParser:
             quality_weight=self.quality_weight(top.get("mission", {})),
             hold_budget_bytes=self.hold_budget(top.get("delivery", {})),
         )
+        self.check_lossy_links(scenario)
         self.check_routable(scenario)
         return scenario
 
@@ -447,13 +443,15 @@ class ScenarioParser:
         analyze = self.strings(obj, "analyze_topologies", path, choices=TOPOLOGIES, default=(topology,))
         if "explicit" in analyze and topology != "explicit":
             raise self.fail("network.analyze_topologies", "explicit listed without links", "named topologies only")
-        linked = _linked_pairs(topology, analyze, names, base, relay, links)
-        loss = self.link_losses(obj.get("loss", {}), names + [base], linked)
+        loss = self.link_losses(obj.get("loss", {}), names + [base])
         return NetworkSpec(topology=topology, relay=relay, laptop_robot_media=lr, robot_robot_media=rr,
                            links=tuple(links), analyze_topologies=analyze, loss=loss)
 
-    def link_losses(self, raw: Any, nodes: list[str], linked) -> dict[frozenset[str], float]:
-        """``[network] loss = { "A-B" = 0.1, ... }``: each listed link's share of packets lost."""
+    def link_losses(self, raw: Any, nodes: list[str]) -> dict[frozenset[str], float]:
+        """``[network] loss = { "A-B" = 0.1, ... }``: each listed link's share of packets lost.
+
+        Every entry is kept in `loss_entries`; `check_lossy_links` checks it names a link.
+        """
         path = "network.loss"
         example = f'loss = {{ "{nodes[-1]}-{nodes[0]}" = 0.1 }}'
         if not isinstance(raw, dict):
@@ -478,10 +476,8 @@ class ScenarioParser:
             if pair in seen:
                 raise self.fail(kpath, f"the link {a}-{b} is listed twice", "one entry per link (A-B and B-A are "
                                                                             "the same link)", line_of=path)
-            if not linked(a, b):
-                raise self.fail(kpath, f"{a} and {b} have no link in the topologies planned", "a pair of nodes "
-                                "the topology links (`analyze_topologies` included)", line_of=path)
             seen.add(pair)
+            self.loss_entries.append((a, b, kpath))
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise self.fail(kpath, f"found {value!r}", "a number, the share of packets lost: "
                                                            "0 <= loss < 1 (0.1 for 10 %)", line_of=path)
@@ -729,6 +725,18 @@ class ScenarioParser:
             sizes = self.table(obj["state_bytes"], "migration.state_bytes", components)
             out["state_bytes"] = {k: self.number(sizes, k, "migration.state_bytes", minimum=0.0) for k in sizes}
         return out
+
+    def check_lossy_links(self, scenario: Scenario) -> None:
+        """Every `[network] loss` entry must name a link of a topology the scenario plans (its own
+        or one `analyze_topologies` lists); which nodes a topology links is `Scenario.link_layout`'s."""
+        if not self.loss_entries:
+            return
+        spec = scenario.network_spec
+        linked = _linked(scenario, dict.fromkeys((spec.topology, *spec.analyze_topologies)))
+        for a, b, kpath in self.loss_entries:
+            if not linked(a, b):
+                raise self.fail(kpath, f"{a} and {b} have no link in the topologies planned", "a pair of nodes "
+                                "the topology links (`analyze_topologies` included)", line_of="network.loss")
 
     def check_routable(self, scenario: Scenario) -> None:
         """Every chain must be able to reach its sink on every topology `analyze` explores.

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from autopower.runtime.cadence import next_silence_s, silence_limit_s
+from autopower.runtime.cadence import next_silence_s, silence_limit_s, status_period_s
 
 DAY_S = 86_400.0
 
@@ -53,6 +53,7 @@ class PeerWatch:
         self._heard: dict[str, float] = {}  # node -> wall time of its last status received directly
         self._announced: dict[str, float] = {}  # node -> the status period it said it keeps
         self.suspicions = 0  # peers declared silent (each later heard again was a false suspicion)
+        self.tokens_lost = 0  # peers whose token going took them out of sight (the lease, or a closed session)
         self._missed: dict[str, float] = {}  # node -> statuses seen missing (decaying count)
         self._expected: dict[str, float] = {}  # node -> statuses it sent (arrived + missing, decaying)
         # `limits` and `next_deadline`, kept until something they depend on changes: a loop asks for
@@ -77,6 +78,7 @@ class PeerWatch:
         if node in self.silent:  # already out of sight (silent): nothing changes
             self.silent.discard(node)
             return None
+        self.tokens_lost += 1
         return False
 
     def on_status(self, node: str, next_status_s: float, now: float) -> bool:
@@ -95,7 +97,7 @@ class PeerWatch:
 
     def _period_s(self, node: str) -> float:
         """The status period ``node`` announced (ours if it announced none)."""
-        return max(self.settings.own_period_s, self._announced.get(node, 0.0))
+        return status_period_s(self.settings.own_period_s, self._announced.get(node, 0.0))
 
     def _count_missing(self, node: str, now: float) -> None:
         """Before a direct status of ``node`` is taken: how many went missing since the last one.

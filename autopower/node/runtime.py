@@ -242,9 +242,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.meter = BatteryMeter(platform=self.platform, radios=self.scenario.radios,
                                       initial_j=plan.mission.energies_j.get(self.node),
                                       t0=max(0.0, self.clock.now()),
-                                      loss={peer: self.scenario.link_loss(self.node, peer)
-                                            for peer in self.scenario.node_names()
-                                            if self.scenario.link_loss(self.node, peer)})
+                                      loss={peer: loss for peer in self.scenario.node_names()
+                                            if (loss := self.scenario.link_loss(self.node, peer))})
             self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
             self.weights.update(self.flow_weights(plan.mission.accounting))
             self._resume(plan.mission)

@@ -77,12 +77,18 @@ class StatusCadence:
         return dataclasses.replace(status, next_status_s=announced)
 
 
+def status_period_s(own_period_s: float, announced_s: float) -> float:
+    """The status period a node is judged by: the one it announced (``announced_s``, 0 for none),
+    never shorter than ours, so a node that announced none is judged by our period."""
+    return max(own_period_s, announced_s)
+
+
 def silence_limit_s(periods: float, own_period_s: float, announced_s: float, lease_s: float) -> float:
     """How long a node's statuses may stay away before it counts as silent (out of sight).
 
-    ``periods`` of its announced period (ours if it announced none), never sooner than the lease.
+    ``periods`` of its status period (`status_period_s`), never sooner than the lease.
     """
-    return max(periods * max(own_period_s, announced_s), lease_s)
+    return max(periods * status_period_s(own_period_s, announced_s), lease_s)
 
 
 def next_silence_s(heard: Mapping[str, float], limits: Mapping[str, float]) -> float | None:

@@ -207,8 +207,6 @@ class RobotShell(Shell):
         node = self.keys.node_of_alive(key)
         if node is not None and node != self.node:
             change = self.watch.on_token(node, alive)
-            if change is False:  # the lease (or a closed session) took it out of sight, as the agent counts
-                self.rt.tally("tokens-lost")
             if change is not None:
                 self._sight(node, change)
 
@@ -263,6 +261,8 @@ class RobotShell(Shell):
     def publish_status(self, save_resume: bool = False) -> None:
         rt, keys, w = self.rt, self.keys, self.world
         window = w.status_window_s * rt.clock.speed if rt.started else 0.0
+        if self.watch.tokens_lost:  # peers a token that went took out of sight, as the agent counts them
+            rt.counters["tokens-lost"] = self.watch.tokens_lost
         status = rt.status(window)
         if save_resume:
             self.save_resume()

@@ -45,6 +45,18 @@ def test_a_token_that_goes_while_silent_changes_nothing_and_one_that_comes_back_
     assert w.on_token("r3", False) is False  # a token that goes takes its node out of sight
 
 
+def test_tokens_lost_counts_the_peers_a_token_that_went_took_out_of_sight():
+    w = watch()
+    w.on_token("r2", True)
+    w.on_status("r2", 0.5, 0.0)
+    w.check(2.0)  # silent: its token going later takes nothing out of sight
+    w.on_token("r2", False)
+    assert w.tokens_lost == 0 and w.suspicions == 1
+    w.on_token("r3", True)
+    w.on_token("r3", False)
+    assert w.tokens_lost == 1
+
+
 def lossy_stream(w: PeerWatch, peers: tuple[str, ...], loss: float, seconds: float, seed: int = 1,
                  t0: float = 0.0) -> list[tuple[float, str]]:
     """Each peer sends a status every 0.5 s, each lost with probability ``loss``; the suspicions."""
