@@ -1,16 +1,20 @@
 """Live fleets beyond the paper's trio: `autopower up` on generated teams of N robots. Not a timed test.
 
-    .venv/bin/python bench/bench_fleet.py [--robots 3,10,20,30] [--seconds 30] [--speed 1]
+    .venv/bin/python bench/bench_fleet.py [--robots 3,10,20,30,50] [--seconds 30] [--speed 1]
+                                          [--topology neighbours] [--neighbours 2]
 
-Each team is `autopower scenarios fleet N` (every robot the paper's camera robot: a Loc chain and a
-4 Hz Blob chain each; fully connected 802.11a or GSM, the planner's choice), run by the installed
+Each team is `autopower scenarios fleet N --topology T` (every robot the paper's camera robot: a Loc
+chain and a 4 Hz Blob chain each; by default each robot links to the base station and its two ring
+neighbours on either side, the links a fleet's Zenoh sessions follow; 802.11a or GSM to the base
+station, 802.11a or Bluetooth between robots, the planner's choice), run by the installed
 CLI as a user runs it, every process real and every link through its proxy, for ``--seconds`` of
 wall time at ``--speed``. The first size is the baseline measured in the same run (3 robots: the
 paper's team size). Printed per size: the time until the team is ready, the periods missed, the
 CPU the whole team used (every process, per wall second and per robot), the outputs its sinks
 took in with any gap or second copy, the largest gap between a robot's metered power and the
-model's, and whether every process stopped by itself. A team that is not ready within the time
-`up` allows is reported as such (its other figures are then missing).
+model's, whether every process stopped by itself, the largest process's memory (peak RSS) and the
+messages the base station's event queue dropped. A team that is not ready within the time `up`
+allows is reported as such, with the base station's last log lines that say why.
 """
 
 from __future__ import annotations
@@ -18,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -30,28 +33,59 @@ import results as bench_results
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 
 
-def children_cpu_s() -> float:
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
+def run_up(args: list[str], env: dict, timeout_s: float, out_path: Path) -> tuple[int, float, int]:
+    """Run `autopower up`, stdout to ``out_path``: (exit code, CPU s, peak RSS in KB) of it and every
+    process it started (`wait4` sums what its children used; the RSS is the largest one's)."""
+    with open(out_path, "wb") as out:
+        proc = subprocess.Popen([AUTOPOWER, "up", *args], env=env, stdout=out, stderr=subprocess.DEVNULL,
+                                stdin=subprocess.DEVNULL)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            break
+        if time.monotonic() > deadline:
+            proc.kill()
+        time.sleep(0.2)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, usage.ru_utime + usage.ru_stime, usage.ru_maxrss
 
 
-def run_fleet(n: int, seconds: float, speed: float, folder: Path) -> dict:
+def queue_drops(summary: dict) -> int:
+    errors = (summary.get("basestation") or {}).get("errors") or {}
+    return int(errors.get("queue-full", 0))
+
+
+def why_not_ready(log_dir: Path) -> str:
+    """The base station's warnings (a full event queue, …) and its last line: why a team never got ready."""
+    try:
+        lines = (log_dir / "laptop.log").read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    warnings = [l.split(": ", 1)[-1] for l in lines if " WARNING " in l]
+    return "; ".join(dict.fromkeys(w[:100] for w in warnings[-2:])) or (lines[-1][-120:] if lines else "")
+
+
+def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str, neighbours: int) -> dict:
     env = {**os.environ, "AUTOPOWER_STATE_DIR": str(folder / f"state-{n}"), "RERUN_ANALYTICS": "0"}
     scenario = folder / f"fleet-{n}.toml"
-    subprocess.run([AUTOPOWER, "scenarios", "fleet", str(n), "--out", str(scenario)], env=env, check=True,
-                   capture_output=True, timeout=120)
-    cpu0, started = children_cpu_s(), time.monotonic()
-    proc = subprocess.run([AUTOPOWER, "up", str(scenario), "--speed", f"{speed:g}", "--duration", f"{seconds:g}",
-                           "--json", "--log-dir", str(folder / f"logs-{n}")], env=env, capture_output=True, text=True,
-                          timeout=seconds + 600)
-    wall, cpu = time.monotonic() - started, children_cpu_s() - cpu0
+    subprocess.run([AUTOPOWER, "scenarios", "fleet", str(n), "--topology", topology, "--neighbours", str(neighbours),
+                    "--out", str(scenario)], env=env, check=True, capture_output=True, timeout=120)
+    started = time.monotonic()
+    log_dir = folder / f"logs-{n}"
+    code, cpu, rss_kb = run_up([str(scenario), "--speed", f"{speed:g}", "--duration", f"{seconds:g}", "--json",
+                                "--log-dir", str(log_dir)], env, seconds + 600, folder / f"up-{n}.json")
+    wall = time.monotonic() - started
+    text = (folder / f"up-{n}.json").read_text(errors="replace")
     try:
-        summary = json.loads(proc.stdout)
+        summary = json.loads(text)
     except json.JSONDecodeError:
-        summary = {"error": (proc.stderr or proc.stdout)[-300:]}
-    out = {"robots": n, "exit": proc.returncode, "wall_s": wall, "cpu_s": cpu, "ready": bool(summary.get("ready"))}
+        summary = {"error": text[-300:]}
+    out = {"robots": n, "exit": code, "wall_s": wall, "cpu_s": cpu, "ready": bool(summary.get("ready")),
+           "peak_rss_mb": rss_kb / 1024, "queue_drops": queue_drops(summary)}
     if not out["ready"]:
-        out["error"] = str(summary.get("error", ""))[:200]
+        out["error"] = str(summary.get("error", ""))[:120].replace("\n", " ")
+        out["why"] = why_not_ready(log_dir)
         return out
     sinks = {**summary["basestation"]["sinks"],
              **{c: s for r in summary["robots"].values() for c, s in r["sinks"].items()}}
@@ -68,24 +102,26 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--robots", default="3,10,20,30")
+    parser.add_argument("--robots", default="3,10,20,30,50")
+    parser.add_argument("--topology", default="neighbours", choices=["neighbours", "fully-connected", "relay"])
+    parser.add_argument("--neighbours", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--speed", type=float, default=1.0)
     bench_results.add_json_out(parser)
     args = parser.parse_args()
     sizes = [int(x) for x in args.robots.split(",")]
     with tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp:
-        runs = [run_fleet(n, args.seconds, args.speed, Path(tmp)) for n in sizes]
+        runs = [run_fleet(n, args.seconds, args.speed, Path(tmp), args.topology, args.neighbours) for n in sizes]
     base = runs[0]
     print(f"{'robots':>6} {'ready s':>8} {'missed %':>9} {'cores':>6} {'CPU s/robot':>12} {'outputs':>8} "
-          f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6}")
+          f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6} {'peak MB':>8} {'drops':>6}")
     for r in runs:
         if not r["ready"]:
-            print(f"{r['robots']:>6} not ready ({r['error'][:90]})")
+            print(f"{r['robots']:>6} not ready ({r['error'][:90]}) {r['why']}")
             continue
         print(f"{r['robots']:>6} {r['ready_after_s']:>8.1f} {r['missed_pct']:>9.2f} {r['cores']:>6.2f} "
               f"{r['cpu_s'] / r['robots']:>12.2f} {r['outputs']:>8} {r['gaps']:>5} {r['duplicates']:>5} "
-              f"{r['power_error_pct']:>14.2f} {str(r['clean']):>6}")
+              f"{r['power_error_pct']:>14.2f} {str(r['clean']):>6} {r['peak_rss_mb']:>8.0f} {r['queue_drops']:>6}")
     note = f"the {base['robots']}-robot fleet, run the same way in the same run"
     figures = []
     for r in runs[1:]:
@@ -93,7 +129,7 @@ def main() -> None:
         if not r["ready"]:
             figures.append(bench_results.figure("ready (1: yes, 0: no)", 0, "", f"{base['robots']} robots",
                                                 1 if base["ready"] else 0, group=g, note=note,
-                                                detail=f"not ready within the time `up` allows: {r['error'][:120]}"))
+                                                detail=f"not ready within the time `up` allows: {r['why'] or r['error']}"))
             continue
         if not base["ready"]:
             raise SystemExit(f"the baseline ({base['robots']} robots) did not become ready: {base.get('error')}")
@@ -112,8 +148,13 @@ def main() -> None:
                                  f"{base['robots']} robots", base["power_error_pct"], group=g, note=note),
             bench_results.figure("processes that did not stop by themselves", 0 if r["clean"] else 1, "teams",
                                  f"{base['robots']} robots", 0 if base["clean"] else 1, group=g, note=note),
+            bench_results.figure("largest process's peak memory", r["peak_rss_mb"], "MB", f"{base['robots']} robots",
+                                 base["peak_rss_mb"], group=g, note=note),
+            bench_results.figure("messages the base station's queue dropped", r["queue_drops"], "messages",
+                                 f"{base['robots']} robots", base["queue_drops"], group=g, note=note),
         ]
-    bench_results.write_result("fleet", {"robots": sizes, "seconds": args.seconds, "speed": args.speed}, figures,
+    bench_results.write_result("fleet", {"robots": sizes, "seconds": args.seconds, "speed": args.speed,
+                                         "topology": args.topology, "neighbours": args.neighbours}, figures,
                                args.json_out, what=__doc__.splitlines()[0], extra={"runs": runs})
 
 

@@ -90,7 +90,7 @@ BENCHES = (
           2.0, long=True),
     Bench("whole_mission", "bench/bench_whole_mission.py", ("--speed", "55"), "The whole mission live",
           "performance", 15.0, long=True),
-    Bench("fleet", "bench/bench_fleet.py", ("--robots", "3,10,20,30", "--seconds", "30"), "Live fleets",
+    Bench("fleet", "bench/bench_fleet.py", ("--robots", "3,10,20,30,50", "--seconds", "30"), "Live fleets",
           "performance", 5.0, long=True),
 )
 BY_NAME = {b.name: b for b in BENCHES}

@@ -195,6 +195,9 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.seen_unix: dict[str, float] = {}  # robot -> when it last came into sight (it must speak before we decide)
         self.next_republish = 0.0
         self.last_republish = 0.0  # when the plan last went out (new or repeated)
+        # a stage became ready: the plan goes out once, at the next timer, for every stage that
+        # became ready meanwhile (a fleet's start makes a plan per stage otherwise: O(stages^2))
+        self.plan_due = False
         self.next_periodic_replan: float | None = None
         self.events: deque[str] = deque(maxlen=50)
         self.downtimes_ms: list[float] = []
@@ -526,6 +529,8 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
     def on_timer(self) -> None:
         now_wall = self.wall()
         self.maybe_start()
+        if self.plan_due:
+            self.publish_plan()
         if self.mission is not None:
             late = [n for n, deadline in self._awaiting_actual.items() if now_wall >= deadline]
             for node in late:
@@ -564,6 +569,8 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
         deadlines = [m.started_unix + self.config.migration_timeout_s for m in self.migrations.values()]
         deadlines += [self.order_resend_unix(m) for m in self.migrations.values() if m.order]
+        if self.plan_due:
+            deadlines.append(self.wall())
         if self.mission is not None:
             deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
         elif self.first_seen_unix is not None:

@@ -170,7 +170,7 @@ class Placing:
             log.info("coordinator: %s moved %s -> %s in %.1f ms (%d inputs held)", msg.stage, m.from_node,
                      msg.node, msg.downtime_ms, msg.buffered)
         self.reconcile()
-        self.publish_plan()
+        self.plan_due = True  # `Coordinator.on_timer` publishes it, once for every stage ready meanwhile
 
     def on_stage_failed(self, msg: StageFailed) -> None:
         """A node stopped a stage's component, or refused to migrate it (see `StageFailed`).
@@ -249,6 +249,7 @@ class Placing:
                             variants=dict(self.variants), incarnation=self.incarnation, leader=self.leader,
                             operator=self.operator_settings())
         payload = encode(update)
+        self.plan_due = False
         self.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
         self.bus.publish(self.keys.plan, payload)
         self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)

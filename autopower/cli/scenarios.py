@@ -25,8 +25,11 @@ def scenarios(ctx: click.Context) -> None:
 @click.argument("robots", type=int, metavar="N")
 @click.option("--cameras", type=int, default=None, metavar="K",
               help="How many robots carry a camera (and run a Blob chain)  [default: all N]")
-@click.option("--topology", type=click.Choice(["fully-connected", "relay"]), default="fully-connected",
-              show_default=True, help="The topology planned (relay: r1 links to the base station).")
+@click.option("--topology", type=click.Choice(["fully-connected", "relay", "neighbours"]), default="fully-connected",
+              show_default=True, help="The topology planned (relay: r1 links to the base station; neighbours: "
+                                      "every robot to the base station and to its ring neighbours).")
+@click.option("--neighbours", type=click.IntRange(min=1), default=1, show_default=True, metavar="K",
+              help="With --topology neighbours: the robots in range on either side of each robot in the ring.")
 @click.option("--medium", "media", multiple=True, metavar="MEDIUM",
               help="A candidate medium of every link, of the paper's radios: 802.11a, bluetooth, gsm "
                    "(repeatable; the first is the default)  [default: the paper's per link group]")
@@ -36,8 +39,8 @@ def scenarios(ctx: click.Context) -> None:
               help="Write the scenario to FILE (default: print it on stdout).")
 @click.option("--json", "as_json", is_flag=True,
               help="Print one JSON object (path, robots, chains, stages, topology, ...) instead of a line (needs --out).")
-def fleet(robots: int, cameras: int | None, topology: str, media: tuple[str, ...], seed: int, out: Path | None,
-          as_json: bool) -> None:
+def fleet(robots: int, cameras: int | None, topology: str, neighbours: int, media: tuple[str, ...], seed: int,
+          out: Path | None, as_json: bool) -> None:
     """Write a scenario of N robots running the paper's mission (paper-fig7), checked by the loader.
 
     Every robot is the paper's: its platform, battery, radios, a laser and odometry, and K of them
@@ -48,7 +51,8 @@ def fleet(robots: int, cameras: int | None, topology: str, media: tuple[str, ...
 
     if as_json and out is None:
         raise ScenarioError("--json prints a summary, not the scenario: give --out FILE for the scenario")
-    text, scenario = paper_fleet(robots, cameras, topology=topology, media=media, seed=seed)
+    text, scenario = paper_fleet(robots, cameras, topology=topology, media=media, seed=seed,
+                                 neighbours=neighbours)
     if out is None:
         click.echo(text, nl=False)
         return
@@ -59,14 +63,22 @@ def fleet(robots: int, cameras: int | None, topology: str, media: tuple[str, ...
     summary = {"path": str(out), "scenario": scenario.name, "robots": len(scenario.robots),
                "cameras": sum("camera" in r.sensors for r in scenario.robots), "chains": len(scenario.chains),
                "stages": len(scenario.stage_names()), "topology": scenario.network_spec.topology,
-               "media": {"laptop-robot": list(scenario.network_spec.laptop_robot_media),
-                         "robot-robot": list(scenario.network_spec.robot_robot_media)}}
+               "links": len(scenario.link_specs()),
+               "media": media_by_group(scenario)}
     if as_json:
         click.echo(json.dumps(summary, indent=2))
         return
     console.print(f"[green]wrote[/green] {out}: {scenario.name} — {summary['robots']} robots "
                   f"({summary['cameras']} with a camera), {summary['chains']} chains, {summary['stages']} stages, "
                   f"{summary['topology']}")
+
+
+def media_by_group(scenario) -> dict[str, list[str]]:
+    """Each link group's candidate media (an explicit topology names them on its links)."""
+    spec = scenario.network_spec
+    if spec.links:
+        return {link.group: list(link.media) for link in spec.links}
+    return {"laptop-robot": list(spec.laptop_robot_media), "robot-robot": list(spec.robot_robot_media)}
 
 
 COMMANDS = (scenarios,)

@@ -415,3 +415,19 @@ def test_a_command_while_no_robot_is_in_reach_is_noted_and_carried_out_when_they
     team.run_until(co.now() + 6.0)
     assert "Blob-2" not in co.target
     assert co.placement["Loc-3"] == "r1" and co.plan_network.medium_between("r3", "laptop") == "gsm"
+
+
+def test_a_fleets_start_publishes_a_plan_per_wave_of_ready_stages_not_one_per_stage():
+    # 20 stages become ready within one batch of events: one plan carries them all (a plan per
+    # stage sent 20 whole plans to every node, O(stages^2) work on each at a fleet's start)
+    from autopower.simulation.synthetic import paper_fleet
+
+    _, fleet = paper_fleet(10, topology="neighbours")
+    team = SimTeam(fleet)
+    published = []
+    team.coordinator.bus.subscribe(team.keys.plan, lambda key, payload: published.append(decode(payload).epoch))
+    team.join()
+    co = team.coordinator
+    assert co.mission is not None and co.ready and len(co.placement) == 20
+    assert co.epoch <= 3 and published == list(range(1, co.epoch + 1)), published
+    assert all(rt.plan is not None and rt.plan.epoch == co.epoch for rt in team.nodes.values())

@@ -1,6 +1,7 @@
 """`paper_fleet` (autopower.simulation.synthetic): the paper's mission on N robots, as a scenario file
 the project's own loader accepts, and `autopower scenarios` (bare: the built-in list; `fleet`)."""
 
+import json
 from importlib import resources
 
 import pytest
@@ -10,7 +11,7 @@ from autopower.cli.main import cli
 from autopower.errors import ScenarioError
 from autopower.model.loading import builtin_scenarios, load_scenario, load_toml, parse_scenario
 from autopower.model.network import build_network
-from autopower.simulation.synthetic import dumps_toml, paper_fleet
+from autopower.simulation.synthetic import dumps_toml, paper_fleet, ring_links
 
 PAPER = load_scenario("paper-fig7")
 
@@ -95,6 +96,30 @@ def test_an_unknown_medium_or_topology_is_refused():
         paper_fleet(2, media=["802.11a", "wifi"])
     with pytest.raises(ScenarioError, match="unknown topology 'explicit'"):
         paper_fleet(2, topology="explicit")
+    with pytest.raises(ScenarioError, match="--neighbours must be at least 1"):
+        paper_fleet(4, topology="neighbours", neighbours=0)
+
+
+@pytest.mark.parametrize("n,k", [(30, 1), (30, 2), (50, 3)])
+def test_neighbours_link_each_robot_to_the_base_station_and_its_ring_neighbours_only(n, k):
+    text, scenario = paper_fleet(n, topology="neighbours", neighbours=k)
+    again = parse_scenario(text, "<again>")
+    assert again.network_spec == scenario.network_spec
+    network = build_network(scenario)
+    assert len(network.links) == n + n * k  # a robot's links do not grow with the team
+    for i in range(1, n + 1):
+        peers = {l.b if l.a == f"r{i}" else l.a for l in network.links if l.touches(f"r{i}")}
+        ring = {f"r{(i - 1 + d) % n + 1}" for d in range(-k, k + 1) if d}
+        assert peers == ring | {"laptop"}, (i, peers)
+    groups = {(l.a == "laptop" or l.b == "laptop"): l.medium for l in network.links}
+    assert groups == {True: "802.11a", False: "802.11a"}  # the paper's first candidates per group
+
+
+def test_a_small_ring_is_fully_connected_and_a_lone_robot_has_no_ring_link():
+    assert ring_links(4, 2) == [(1, 2), (1, 3), (1, 4), (2, 3), (2, 4), (3, 4)]
+    assert ring_links(2, 1) == [(1, 2)] and ring_links(1, 3) == []
+    _, one = paper_fleet(1, topology="neighbours")
+    assert [(l.a, l.b) for l in build_network(one).links] == [("r1", "laptop")]
 
 
 def test_dumps_toml_round_trips_what_a_scenario_holds():
@@ -126,3 +151,10 @@ def test_fleet_without_out_prints_the_toml_and_nothing_else(tmp_path):
     assert out.exit_code == 0, out.output
     assert path.read_text() == paper_fleet(3, topology="relay")[0]
     assert "fleet-3 — 3 robots (3 with a camera), 6 chains, 6 stages, relay" in out.output
+    out = CliRunner().invoke(cli, ["scenarios", "fleet", "12", "--topology", "neighbours", "--neighbours", "2",
+                                   "--out", str(path), "--json"])
+    assert out.exit_code == 0, out.output
+    summary = json.loads(out.stdout)
+    assert (summary["topology"], summary["links"]) == ("explicit", 12 + 24)
+    assert summary["media"] == {"laptop-robot": ["802.11a", "gsm"], "robot-robot": ["802.11a", "bluetooth"]}
+    assert path.read_text() == paper_fleet(12, topology="neighbours", neighbours=2)[0]
