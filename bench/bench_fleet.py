@@ -90,13 +90,18 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str,
     sinks = {**summary["basestation"]["sinks"],
              **{c: s for r in summary["robots"].values() for c, s in r["sinks"].items()}}
     run_wall = wall - summary["ready_after_s"]
+    robots = list(summary["robots"])
+    per_robot = [sum(b for pair, b in summary.get("link_bytes", {}).items() if r in pair.split("-")) for r in robots]
     out.update(ready_after_s=summary["ready_after_s"], missed_pct=summary["missed_periods_pct"],
                outputs=sum(s["received"] for s in sinks.values()),
                gaps=sum(s["max_seq"] + 1 - s["contiguous"] for s in sinks.values()),
                duplicates=sum(s["duplicates_total"] for s in sinks.values()),
                power_error_pct=100 * max(abs(r["power_error"]) for r in summary["robots"].values()),
                clean=all(code == 0 for code in summary["exit_codes"].values()),
-               cores=cpu / wall, run_wall_s=run_wall)
+               cores=cpu / wall, run_wall_s=run_wall,
+               robot_kbps=max(per_robot, default=0) / wall / 1e3 * 8,
+               robot_links=max((sum(r in p.split("-") for p in summary.get("link_bytes", {})) for r in robots),
+                               default=0))
     return out
 
 
@@ -114,14 +119,14 @@ def main() -> None:
         runs = [run_fleet(n, args.seconds, args.speed, Path(tmp), args.topology, args.neighbours) for n in sizes]
     base = runs[0]
     print(f"{'robots':>6} {'ready s':>8} {'missed %':>9} {'cores':>6} {'CPU s/robot':>12} {'outputs':>8} "
-          f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6} {'peak MB':>8} {'drops':>6}")
+          f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6} {'peak MB':>8} {'drops':>6} {'robot kbit/s':>13}")
     for r in runs:
         if not r["ready"]:
             print(f"{r['robots']:>6} not ready ({r['error'][:90]}) {r['why']}")
             continue
         print(f"{r['robots']:>6} {r['ready_after_s']:>8.1f} {r['missed_pct']:>9.2f} {r['cores']:>6.2f} "
               f"{r['cpu_s'] / r['robots']:>12.2f} {r['outputs']:>8} {r['gaps']:>5} {r['duplicates']:>5} "
-              f"{r['power_error_pct']:>14.2f} {str(r['clean']):>6} {r['peak_rss_mb']:>8.0f} {r['queue_drops']:>6}")
+              f"{r['power_error_pct']:>14.2f} {str(r['clean']):>6} {r['peak_rss_mb']:>8.0f} {r['queue_drops']:>6} {r['robot_kbps']:>13.0f}")
     note = f"the {base['robots']}-robot fleet, run the same way in the same run"
     figures = []
     for r in runs[1:]:
@@ -148,6 +153,10 @@ def main() -> None:
                                  f"{base['robots']} robots", base["power_error_pct"], group=g, note=note),
             bench_results.figure("processes that did not stop by themselves", 0 if r["clean"] else 1, "teams",
                                  f"{base['robots']} robots", 0 if base["clean"] else 1, group=g, note=note),
+            bench_results.figure("the busiest robot's radio traffic, all its links", r["robot_kbps"], "kbit/s",
+                                 f"{base['robots']} robots", base["robot_kbps"], group=g, note=note,
+                                 detail=f"over {r['robot_links']} links at most (wire bytes: data, statuses, "
+                                        f"keep-alives, TLS), the whole run"),
             bench_results.figure("largest process's peak memory", r["peak_rss_mb"], "MB", f"{base['robots']} robots",
                                  base["peak_rss_mb"], group=g, note=note),
             bench_results.figure("messages the base station's queue dropped", r["queue_drops"], "messages",

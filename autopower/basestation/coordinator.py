@@ -198,6 +198,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         # a stage became ready: the plan goes out once, at the next timer, for every stage that
         # became ready meanwhile (a fleet's start makes a plan per stage otherwise: O(stages^2))
         self.plan_due = False
+        # link changes since the last timer: one decision at the next timer for all of them (a
+        # fleet under load loses several links within one batch of events, and each decision is
+        # a MILP of the whole team that holds up the loop while statuses pile up)
+        self.replan_due: list[str] = []
         self.next_periodic_replan: float | None = None
         self.events: deque[str] = deque(maxlen=50)
         self.downtimes_ms: list[float] = []
@@ -279,7 +283,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         """A link an end of which is this base station (seen by its own liveliness) went down."""
         if self.links.lost(a, b, detected_unix or self.wall()):
             self._link_down(frozenset((a, b)), detected_unix or self.wall())
-            self.replan("link change")
+            self.replan_soon("link change")
 
     def link_seen(self, a: str, b: str) -> None:
         """Evidence that a link works (its ends see each other)."""
@@ -523,12 +527,15 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         for pair, since in gone:
             self._link_down(pair, since)
         if gone:
-            self.replan("link change")
+            self.replan_soon("link change")
 
 
     def on_timer(self) -> None:
         now_wall = self.wall()
         self.maybe_start()
+        if self.replan_due:
+            reasons, self.replan_due = self.replan_due, []
+            self.replan(", ".join(dict.fromkeys(reasons)))
         if self.plan_due:
             self.publish_plan()
         if self.mission is not None:
@@ -569,7 +576,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
         deadlines = [m.started_unix + self.config.migration_timeout_s for m in self.migrations.values()]
         deadlines += [self.order_resend_unix(m) for m in self.migrations.values() if m.order]
-        if self.plan_due:
+        if self.plan_due or self.replan_due:
             deadlines.append(self.wall())
         if self.mission is not None:
             deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started

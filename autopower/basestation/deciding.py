@@ -83,6 +83,10 @@ class Deciding:
         """Something the next decision should hear about (`TeamState.events`)."""
         self._pending_events.append(MissionEvent(at_s=self.now(), kind=kind, **fields))
 
+    def replan_soon(self, reason: str) -> None:
+        """Decide at the next timer (`Coordinator.on_timer`), once for every reason given until then."""
+        self.replan_due.append(reason)
+
     def replan(self, reason: str, *, after_rejoin: bool = False) -> bool:
         """Ask the policy what to run where now, and carry its answer out.
 

@@ -9,7 +9,6 @@ import re
 import sys
 
 import click
-from rich.console import Console
 
 from autopower.errors import AutoPowerError
 from autopower.model.loading import apply_latency_profile, load_scenario
@@ -18,8 +17,23 @@ from autopower.policies import POLICY_NAMES
 
 DEFAULT_SPEED = 10.0  # two 4 Hz blob chains at 10x = 80 frames of 230 KB a second: what 2 cores keep up with
 
-# Piped output (CI logs, `| less`) would otherwise be cut to 80 columns and truncate the tables.
-console = Console() if sys.stdout.isatty() else Console(width=200)
+class _FirstUseConsole:
+    """rich's Console, made (and rich imported) on first use: every process of a team imports
+    these options, and a robot's agent prints nothing with rich. Piped output (CI logs, `| less`)
+    would otherwise be cut to 80 columns and truncate the tables, hence the width."""
+
+    def __init__(self) -> None:
+        self._console = None
+
+    def __getattr__(self, name: str):
+        if self._console is None:
+            from rich.console import Console
+
+            self._console = Console() if sys.stdout.isatty() else Console(width=200)
+        return getattr(self._console, name)
+
+
+console = _FirstUseConsole()
 
 
 class FiniteFloat(click.ParamType):

@@ -200,6 +200,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                         wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
     summary["interrupted"] = interrupted
     summary["all_depleted"] = all_depleted
+    summary["link_bytes"] = team.link_bytes()
     summary["supervision"] = supervision = team.supervision()
     given_up = supervision.get("given_up") or {}
     summary["failure"] = failure

@@ -124,7 +124,8 @@ class LinkProxy:
                     self.bytes_dropped += len(data)  # swallowed: the radio is out of range
                     continue
                 dst.sendall(data)
-                self.bytes_forwarded += len(data)
+                with self._lock:  # two pumps per connection add to it
+                    self.bytes_forwarded += len(data)
         except OSError:
             pass
         finally:

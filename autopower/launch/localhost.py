@@ -412,6 +412,12 @@ class LocalTeam:
         self._spawn(name, self._commands[name])
         self._down.discard(name)
 
+    def link_bytes(self) -> dict[str, int]:
+        """Bytes each link's proxy carried so far, both directions ("A-B", names sorted): what the
+        Zenoh sessions put on that radio, TLS and Zenoh framing, keep-alives and statuses
+        included; {} with direct links (no proxy counts them)."""
+        return {"-".join(sorted(pair)): proxy.bytes_forwarded for pair, proxy in self.proxies.items()}
+
     def supervision(self) -> dict:
         """What the supervisor did (for the live table and the summaries); {} without one."""
         if self.supervisor is None:

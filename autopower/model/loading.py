@@ -16,12 +16,11 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
-import networkx as nx
-
 from autopower.errors import ScenarioError
 from autopower.model import schema
 from autopower.model.dag import Flow, find_cycle
 from autopower.model.dvfs import parse_levels
+from autopower.model.network import connected_parts
 from autopower.model.scenario import (
     ACCOUNTING_MODES,
     TOPOLOGIES,
@@ -748,10 +747,7 @@ class ScenarioParser:
         spec = scenario.network_spec
         if "explicit" not in (spec.topology, *spec.analyze_topologies):
             return
-        graph = nx.Graph()
-        graph.add_nodes_from(scenario.node_names())
-        graph.add_edges_from((link.a, link.b) for link in spec.links)
-        part = {node: i for i, nodes in enumerate(nx.connected_components(graph)) for node in nodes}
+        part = connected_parts(scenario.node_names(), ((link.a, link.b) for link in spec.links))
         for chain in scenario.chains:
             if part[chain.source] != part[chain.sink]:
                 raise ScenarioError(

@@ -72,3 +72,7 @@ def test_a_twenty_robot_fleet_on_its_neighbours_links_is_ready_within_ten_second
         assert sink["duplicates_total"] == 0, (chain, sink)
     for robot, info in summary["robots"].items():
         assert abs(info["power_error"]) < 0.01, (robot, info["mean_power_w"], info["predicted_w"])
+    # the sessions ran over exactly those links, each of them used
+    links = summary["link_bytes"]
+    assert len(links) == robots + 2 * robots and all(n > 0 for n in links.values()), links
+    assert all(sum(robot in pair.split("-") for pair in links) == 5 for robot in summary["robots"])

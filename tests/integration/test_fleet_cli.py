@@ -28,7 +28,7 @@ def test_a_30_robot_fleet_is_written_checked_and_planned(tmp_path):
     summary = json.loads(made.stdout)
     check_keys("scenarios fleet", summary)
     assert summary == {"path": str(path), "scenario": "fleet-30", "robots": 30, "cameras": 30, "chains": 60,
-                       "stages": 60, "topology": "fully-connected",
+                       "stages": 60, "topology": "fully-connected", "links": 30 + 30 * 29 // 2,
                        "media": {"laptop-robot": ["802.11a", "gsm"], "robot-robot": ["802.11a", "bluetooth"]}}
     checked = run("check", str(path))
     assert checked.returncode == 0, checked.stderr

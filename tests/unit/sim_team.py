@@ -123,9 +123,13 @@ class SimTeam:
         self.coordinator.on_inbox(payload)
 
     def pump(self) -> None:
-        while self.hub.pending:
+        """As the base station's loop: the messages waiting (and what they cause), then its timer,
+        until nothing is left (the timer carries out decisions and plans due by then)."""
+        while True:
             self.hub.pump(rng=self.rng)
             self.coordinator.on_timer()
+            if not self.hub.pending:
+                return
 
     def join(self, robots=None) -> None:
         robots = robots or [r.name for r in self.scenario.robots]

@@ -302,6 +302,7 @@ def test_cut_base_link_replans_at_once_and_heals_with_hysteresis(sc):
     co = team.coordinator
     placement = dict(co.placement)
     co.link_lost("laptop", "r1", detected_unix=team.clock.wall())
+    co.on_timer()  # the loop's next timer decides, once for every link change of the batch
     assert co.links_down == {frozenset({"laptop", "r1"})}
     assert co.plan_network.medium_between("r1", "laptop") is None
     assert co.faults[-1]["kind"] == "link-down" and co.faults[-1]["target"] == "laptop-r1"
@@ -431,3 +432,20 @@ def test_a_fleets_start_publishes_a_plan_per_wave_of_ready_stages_not_one_per_st
     assert co.mission is not None and co.ready and len(co.placement) == 20
     assert co.epoch <= 3 and published == list(range(1, co.epoch + 1)), published
     assert all(rt.plan is not None and rt.plan.epoch == co.epoch for rt in team.nodes.values())
+
+
+def test_link_changes_within_one_batch_of_events_make_one_decision(sc):
+    # a fleet under load loses several links at once; each decision is a MILP of the whole team
+    # that holds up the loop, so the changes of one batch are decided together at its timer
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0))
+    team.join()
+    co = team.coordinator
+    asked, decide = [], co.policy.decide
+    co.policy.decide = lambda state: asked.append(state) or decide(state)
+    for robot in ("r1", "r2", "r3"):
+        co.link_lost("laptop", robot, detected_unix=team.clock.wall())
+    assert asked == [] and co.next_deadline_unix() <= team.clock.wall()  # due, the loop wakes at once
+    co.on_timer()
+    cut = {frozenset({"laptop", r}) for r in ("r1", "r2", "r3")}
+    assert len(asked) == 1 and asked[0].cut_links == cut
+    assert co.links_down == cut and all(co.plan_network.medium_between(r, "laptop") is None for r in ("r1", "r2", "r3"))

@@ -106,6 +106,7 @@ def test_state_given_to_the_policy_describes_the_team():
     team = team_with(policy, media={"laptop-robot": "802.11a", "robot-robot": "802.11a"})
     co = team.coordinator
     co.link_lost("laptop", "r1")
+    co.on_timer()  # decided at the loop's next timer
     team.leave("r2")
     state, _ = policy.asked_about("robot-leave")
     assert state.unavailable_nodes == frozenset({"r2"}) and set(state.energies_j) == {"r1", "r3"}
