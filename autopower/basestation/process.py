@@ -82,7 +82,10 @@ class BaseStation:
         self.keys = Keys(config.team)
         self.node = config.scenario.basestation
         # everything it subscribes to is an encoded message: random bytes never take queue room
-        self.events = EventQueue(bulk_keys=[self.keys.node_data(self.node)], admit=looks_like_message)
+        # statuses from every robot converge here: a loop that falls behind takes each robot's newest
+        # (`_received` ignores an older one anyway), and they never crowd the orders out of the queue
+        self.events = EventQueue(bulk_keys=[self.keys.node_data(self.node)], admit=looks_like_message,
+                                 newest_only=self.keys.node_of_status)
         self._bus = bus
         self._owns_bus = bus is None
         self._handles: list = []
@@ -402,6 +405,8 @@ class BaseStation:
                 rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
                 if self._bus.repeated:  # statuses put again while the loop was held up
                     rt.counters["status-repeats"] = self._bus.repeated
+                if self.events.superseded:  # robots' statuses replaced by a newer one while queued
+                    rt.counters["statuses-superseded"] = self.events.superseded
                 if rt.started:  # held back at rest: nothing new in it but what drifts with time
                     status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
                                                         self.events.depth(), self.events.bulk_wait_s()), now)

@@ -77,10 +77,17 @@ class EventQueue:
 
     def __init__(self, bulk_keys: Iterable[str] = (), *, bulk_limit: tuple[int, int] = BULK_LIMIT,
                  urgent_limit: tuple[int, int] = URGENT_LIMIT,
-                 admit: Callable[[bytes], bool] | None = None) -> None:
+                 admit: Callable[[bytes], bool] | None = None,
+                 newest_only: Callable[[str], object] | None = None) -> None:
+        """``newest_only(key)`` true: a message on that key replaces the one still queued on it
+        (a status says all its older ones said), so a loop that falls behind finds one status per
+        sender, not a backlog that crowds out the orders (counted in `superseded`)."""
         # Re-entrant: a signal handler may post while the loop's thread holds the lock.
         self._cond = threading.Condition(threading.RLock())
         self._urgent: deque[Event] = deque()
+        self._newest: dict[str, Received] = {}  # key -> its newest message, in the order keys first came
+        self._newest_only = newest_only
+        self.superseded = 0
         self._bulk: deque[Event] = deque()
         self._bulk_since: deque[float] = deque()  # when each bulk event was queued (monotonic), in step
         self._bytes = {False: 0, True: 0}  # payload bytes queued, by bulk
@@ -97,14 +104,26 @@ class EventQueue:
 
     def post(self, event: Event, *, bulk: bool = False) -> None:
         size = len(event.payload) if isinstance(event, Received) else 0
+        newest = (not bulk and isinstance(event, Received) and self._newest_only is not None
+                  and bool(self._newest_only(event.key)))
         with self._cond:
+            if newest and event.key in self._newest:
+                self._bytes[False] += size - len(self._newest[event.key].payload)
+                self._newest[event.key] = event  # keeps its place in line
+                self.superseded += 1
+                self._cond.notify()
+                return
             queue = self._bulk if bulk else self._urgent
             max_events, max_bytes = self._limits[bulk]
+            queued = len(queue) + (0 if bulk else len(self._newest))
             if not isinstance(event, StopRequested) and (
-                    len(queue) >= max_events or self._bytes[bulk] + size > max_bytes):
+                    queued >= max_events or self._bytes[bulk] + size > max_bytes):
                 self._drop(event, bulk)
                 return
-            queue.append(event)
+            if newest:
+                self._newest[event.key] = event
+            else:
+                queue.append(event)
             if bulk:
                 self._bulk_since.append(time.monotonic())
             self._bytes[bulk] += size
@@ -135,7 +154,7 @@ class EventQueue:
         """The next event, urgent ones first; None after ``timeout_s`` without any."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         with self._cond:
-            while not (self._urgent or self._bulk):
+            while not (self._urgent or self._newest or self._bulk):
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
                     break
@@ -149,6 +168,10 @@ class EventQueue:
                     break  # back to the interpreter: the signal's handler runs (and posts its event)
             if self._urgent:
                 return self._take(self._urgent, False)
+            if self._newest:
+                event = self._newest.pop(next(iter(self._newest)))
+                self._bytes[False] -= len(event.payload)
+                return event
             if self._bulk:
                 return self._take(self._bulk, True)
             return None
@@ -175,11 +198,11 @@ class EventQueue:
         self._slice_s = None
 
     def depth(self) -> int:
-        return len(self._urgent) + len(self._bulk)
+        return len(self._urgent) + len(self._newest) + len(self._bulk)
 
     def urgent_waiting(self) -> bool:
         """Whether urgent events (statuses, liveliness, plans) wait to be taken."""
-        return bool(self._urgent)
+        return bool(self._urgent or self._newest)
 
     def bulk_depth(self) -> int:
         return len(self._bulk)

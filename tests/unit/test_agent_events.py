@@ -98,3 +98,25 @@ def test_what_admit_refuses_takes_no_room_and_is_counted_and_logged_once_per_int
     assert q.depth() == 10 and q.dropped == 10
     assert q.counts() == {"queue-full": 10, "not-a-message": 501}
     assert EventQueue().counts() == {}
+
+
+def test_a_status_replaces_the_one_still_queued_from_its_sender_and_never_crowds_out_orders():
+    # the base station's queue: statuses from every robot converge there; one that falls behind
+    # takes each robot's newest (an older one says nothing the newest does not), orders first
+    q = EventQueue(bulk_keys=["data"], urgent_limit=(3, 1_000_000),
+                   newest_only=lambda key: key.startswith("status/"))
+    for i in range(1000):  # a loop stalled for minutes: every robot's statuses keep coming
+        for robot in ("r1", "r2"):
+            q.on_message(f"status/{robot}", f"{robot}:{i}".encode())
+    q.on_message("data", b"frame")
+    q.on_message("control", b"assign")
+    assert q.depth() == 4 and q.dropped == 0 and q.superseded == 2 * 999
+    assert q.get(0) == Received("control", b"assign")  # the order first
+    assert [q.get(0) for _ in range(2)] == [Received("status/r1", b"r1:999"), Received("status/r2", b"r2:999")]
+    assert q.get(0) == Received("data", b"frame") and q.get(0) is None
+    # the bound still holds across orders and statuses of distinct senders (a flood of new keys)
+    for robot in ("r1", "r2", "r3", "r4"):
+        q.on_message(f"status/{robot}", b"s")
+    assert q.depth() == 3 and q.dropped == 1
+    q.on_message("status/r1", b"newer")  # replacing takes no new room
+    assert q.depth() == 3 and q.dropped == 1 and q.get(0) == Received("status/r1", b"newer")
