@@ -96,7 +96,10 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str,
                outputs=sum(s["received"] for s in sinks.values()),
                gaps=sum(s["max_seq"] + 1 - s["contiguous"] for s in sinks.values()),
                duplicates=sum(s["duplicates_total"] for s in sinks.values()),
-               power_error_pct=100 * max(abs(r["power_error"]) for r in summary["robots"].values()),
+               power_error_pct=100 * max((abs(r["power_error"]) for r in summary["robots"].values()
+                                         if r["power_error"] is not None), default=0.0),
+               # a robot with no comparison (not on the plan when the team got ready, or gone since)
+               unmetered=sorted(n for n, r in summary["robots"].items() if r["power_error"] is None),
                clean=all(code == 0 for code in summary["exit_codes"].values()),
                cores=cpu / wall, run_wall_s=run_wall,
                robot_kbps=max(per_robot, default=0) / wall / 1e3 * 8,
@@ -150,7 +153,9 @@ def main() -> None:
                                  "outputs the sinks took in", r["outputs"], group=g,
                                  note="every sink's ledger at the end (gaps below its highest seq, second copies)"),
             bench_results.figure("largest |metered - model| power of a robot", r["power_error_pct"], "%",
-                                 f"{base['robots']} robots", base["power_error_pct"], group=g, note=note),
+                                 f"{base['robots']} robots", base["power_error_pct"], group=g, note=note,
+                                 detail=(f"{len(r['unmetered'])} robot(s) without a comparison: "
+                                         f"{', '.join(r['unmetered'][:5])}") if r["unmetered"] else ""),
             bench_results.figure("processes that did not stop by themselves", 0 if r["clean"] else 1, "teams",
                                  f"{base['robots']} robots", 0 if base["clean"] else 1, group=g, note=note),
             bench_results.figure("the busiest robot's radio traffic, all its links", r["robot_kbps"], "kbit/s",
