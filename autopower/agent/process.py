@@ -75,6 +75,15 @@ class AgentConfig:
     silence_periods: float = 2.0
 
 
+def prepare_rounds() -> None:
+    """Import what a subgroup round runs: the policies, the planner, HiGHS and networkx. At start,
+    before the loop runs: the round that needs them comes when the base station has just gone out
+    of reach and must not wait for an import, and an import while the chains run (on the loop or
+    beside it) takes the CPU their periods need."""
+    import autopower.policies.subgroup  # noqa: F401
+    import autopower.policies.team  # noqa: F401
+
+
 class Agent:
     """A robot's agent (a context manager: the session, token and subscriptions close on exit)."""
 
@@ -88,6 +97,8 @@ class Agent:
         self._owns_bus = bus is None
         self._handles: list = []
         self._runtime_kwargs = runtime_kwargs
+        if config.subgroup:
+            prepare_rounds()
         self.runtime: NodeRuntime | None = None
         self.resume: ResumeFile | None = None
         self.relayer: Relayer | None = None

@@ -25,7 +25,13 @@ from autopower.cli.options import (
     warn_insecure,
 )
 from autopower.errors import AutoPowerError
-from autopower.launch.summary import every_robot_depleted, run_summary, status_line, supervisor_line
+from autopower.launch.summary import (
+    complete_at_ready,
+    every_robot_depleted,
+    run_summary,
+    status_line,
+    supervisor_line,
+)
 from autopower.launch.supervisor import RestartPolicy
 from autopower.model.network import build_network
 
@@ -164,6 +170,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                         snap = team.snapshot(timeout_s=2.0)
                     except AutoPowerError:  # a busy base station answers late (or is restarting): keep the last one
                         pass
+                    complete_at_ready(at_ready, snap)
                 snap["supervision"] = team.supervision()
                 if not as_json and now - last_line >= STATUS_LINE_EVERY_S:
                     click.echo(status_line(snap, speed))
@@ -179,11 +186,13 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                         snap = team.snapshot(timeout_s=2.0)
                     except AutoPowerError:  # the base station is busy, or crashed (restarting or given up,
                         pass                # which the supervisor's line says): show the last view
+                    complete_at_ready(at_ready, snap)
                     snap["supervision"] = team.supervision()
                     live.update(render(snap, speed))
                 live.update(render(snap, speed))
             console.print()
         snap = team.snapshot()
+        complete_at_ready(at_ready, snap)
     except AutoPowerError as exc:
         if not snap:
             raise

@@ -14,7 +14,7 @@ from autopower.cli.live_table import render
 from autopower.cli.options import DEFAULT_SPEED, build_scenario, parse_pairs
 from autopower.cli.team import end_session
 from autopower.errors import AutoPowerError
-from autopower.launch.summary import run_summary
+from autopower.launch.summary import complete_at_ready, run_summary
 
 
 @click.group("testbed")
@@ -103,8 +103,10 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
                     time.sleep(0.5)
                     team.check_children()
                     snap = team.snapshot()
+                    complete_at_ready(at_ready, snap)
                     live.update(render(snap, speed))
         snap = team.snapshot()
+        complete_at_ready(at_ready, snap)
     except KeyboardInterrupt:
         interrupted = True
     finally:

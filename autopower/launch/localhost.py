@@ -33,7 +33,7 @@ import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from autopower.basestation.operator import OperatorClient, private_dir, state_dir
+from autopower.basestation.operator import OperatorClient, private_dir
 from autopower.errors import AutoPowerError
 from autopower.launch.supervisor import RestartPolicy, Supervisor, SupervisorEvent
 from autopower.model.network import build_network
@@ -84,12 +84,14 @@ def child_environment(base: dict[str, str]) -> dict[str, str]:
     With PYTHONDONTWRITEBYTECODE set (nothing may be written beside the sources), every child
     would compile the same few hundred modules at each start: about 0.25 CPU s each, which a
     fleet of 30 processes on one 2-core machine pays 30 times over before anything runs. They
-    read and write them instead in a cache of their own under the state directory (0700), which
-    keeps the source tree as clean as the variable asks; `precompile` fills it once."""
+    read and write them instead in a cache of their own (0700), which
+    keeps the source tree as clean as the variable asks; `precompile` fills it once. It is a cache,
+    not the team's state: under the user's cache directory, shared by every team they start."""
     env = {**base, "PYTHONUNBUFFERED": "1"}
     if env.get("PYTHONDONTWRITEBYTECODE") and not env.get("PYTHONPYCACHEPREFIX"):
         del env["PYTHONDONTWRITEBYTECODE"]
-        env["PYTHONPYCACHEPREFIX"] = str(private_dir(state_dir() / "pycache"))
+        cache = Path(base.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "autopower" / "pycache"
+        env["PYTHONPYCACHEPREFIX"] = str(private_dir(cache))
     return env
 
 

@@ -92,6 +92,22 @@ def placed_power_w(status: dict, at_ready: dict | None) -> float | None:
     return (b0 - b1) / (t1 - t0)
 
 
+def _usable(robot: dict | None) -> bool:
+    status = (robot or {}).get("status") or {}
+    return status.get("battery_j") is not None and status.get("t_virtual") is not None
+
+
+def complete_at_ready(at_ready: dict, snap: dict) -> None:
+    """Give each robot whose status in the ready snapshot had no battery or mission clock yet
+    (the base station had not heard from it since it started the mission: it happens in a large
+    fleet, whose stages are all placed before every robot's next status) its first later status
+    that has them: its power is compared with the model's from then on, not left out."""
+    robots = at_ready.setdefault("robots", {})
+    for name, info in (snap.get("robots") or {}).items():
+        if not _usable(robots.get(name)) and _usable(info):
+            robots[name] = info
+
+
 def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wall_s: float,
                 exit_codes: dict | None = None, log_dir: str = "", at_ready: dict | None = None) -> dict:
     """The JSON summary of a run: placement, batteries vs the model, sources, sinks, errors.

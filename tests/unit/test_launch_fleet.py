@@ -20,6 +20,11 @@ def state(tmp_path, monkeypatch):
     return tmp_path / "state"
 
 
+@pytest.fixture
+def cache(tmp_path):
+    return tmp_path / "cache"
+
+
 @pytest.mark.parametrize("topology", ["neighbours", "fully-connected"])
 def test_each_node_connects_over_exactly_its_own_links(tmp_path, state, topology):
     text, scenario = paper_fleet(50, topology=topology, neighbours=2)
@@ -47,24 +52,24 @@ def test_each_node_connects_over_exactly_its_own_links(tmp_path, state, topology
             proxy.close()
 
 
-def test_children_share_a_private_bytecode_cache_when_the_user_forbids_writing_beside_the_sources(state):
-    env = child_environment({"PATH": "/bin", "PYTHONDONTWRITEBYTECODE": "1"})
+def test_children_share_a_private_bytecode_cache_when_the_user_forbids_writing_beside_the_sources(cache):
+    env = child_environment({"PATH": "/bin", "PYTHONDONTWRITEBYTECODE": "1", "XDG_CACHE_HOME": str(cache)})
     assert "PYTHONDONTWRITEBYTECODE" not in env and env["PYTHONUNBUFFERED"] == "1"
-    cache = state / "pycache"
-    assert env["PYTHONPYCACHEPREFIX"] == str(cache)
-    assert stat.S_IMODE(os.stat(cache).st_mode) == 0o700
+    assert env["PYTHONPYCACHEPREFIX"] == str(cache / "autopower" / "pycache")
+    assert stat.S_IMODE(os.stat(cache / "autopower" / "pycache").st_mode) == 0o700
     # left alone: a user who writes bytecode, or who chose a cache of their own
     assert child_environment({"PATH": "/bin"}) == {"PATH": "/bin", "PYTHONUNBUFFERED": "1"}
     own = {"PYTHONDONTWRITEBYTECODE": "1", "PYTHONPYCACHEPREFIX": "/elsewhere"}
     assert child_environment(own) == {**own, "PYTHONUNBUFFERED": "1"}
 
 
-def test_precompile_fills_the_private_cache_before_the_children_start(state):
+def test_precompile_fills_the_private_cache_before_the_children_start(cache):
     import sys
 
     import autopower.launch.localhost as localhost
 
-    env = child_environment({"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "PYTHONDONTWRITEBYTECODE": "1"})
+    env = child_environment({"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "PYTHONDONTWRITEBYTECODE": "1",
+                             "XDG_CACHE_HOME": str(cache)})
     localhost.precompile(env)
     source = os.path.abspath(localhost.__file__)
     folder = os.path.join(env["PYTHONPYCACHEPREFIX"], os.path.dirname(source).lstrip(os.sep))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from autopower.launch.summary import placed_power_w, run_summary
+from autopower.launch.summary import complete_at_ready, placed_power_w, run_summary
 
 
 def _snap(t: float, battery: float, predicted: float = 2.0) -> dict:
@@ -33,3 +33,16 @@ def test_power_error_compares_the_placed_configuration_not_the_start_up():
 @pytest.mark.parametrize("at_ready", [None, {}, {"status": {}}, {"status": {"battery_j": 990.0, "t_virtual": 100.0}}])
 def test_no_usable_status_at_ready_gives_no_placed_power(at_ready):
     assert placed_power_w({"battery_j": 900.0, "t_virtual": 100.0}, at_ready) is None
+
+
+def test_a_robot_not_yet_heard_at_ready_is_compared_from_its_first_status_after():
+    # a large fleet is ready (every stage placed) before the base station hears each robot again
+    at_ready = {"robots": {"r1": {"present": True, "status": {"initial_j": 1000.0, "battery_j": None,
+                                                              "t_virtual": None}}}}
+    later, end = _snap(10.0, 1000.0 - 10 * 0.4), _snap(100.0, 1000.0 - 10 * 0.4 - 90 * 2.0)
+    assert run_summary(end, team="t", speed=1, ready_after_s=1.0, wall_s=10.0,
+                       at_ready=at_ready)["robots"]["r1"]["power_error"] is None  # nothing to start from
+    complete_at_ready(at_ready, later)
+    complete_at_ready(at_ready, end)  # a usable one stays: the comparison starts at the first
+    r1 = run_summary(end, team="t", speed=1, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)["robots"]["r1"]
+    assert r1["placed_power_w"] == pytest.approx(2.0) and r1["power_error"] == pytest.approx(0.0, abs=1e-12)
