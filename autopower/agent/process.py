@@ -79,7 +79,8 @@ def prepare_rounds() -> None:
     """Import what a subgroup round runs: the policies, the planner, HiGHS and networkx. At start,
     before the loop runs: the round that needs them comes when the base station has just gone out
     of reach and must not wait for an import, and an import while the chains run (on the loop or
-    beside it) takes the CPU their periods need."""
+    beside it) takes the CPU their periods need. (The shared options import the policies today;
+    this keeps the rule if they stop.)"""
     import autopower.policies.subgroup  # noqa: F401
     import autopower.policies.team  # noqa: F401
 

@@ -63,7 +63,7 @@ def fleet(robots: int, cameras: int | None, topology: str, neighbours: int, medi
     summary = {"path": str(out), "scenario": scenario.name, "robots": len(scenario.robots),
                "cameras": sum("camera" in r.sensors for r in scenario.robots), "chains": len(scenario.chains),
                "stages": len(scenario.stage_names()), "topology": scenario.network_spec.topology,
-               "links": len(scenario.link_specs()),
+               "links": link_count(scenario),
                "media": media_by_group(scenario)}
     if as_json:
         click.echo(json.dumps(summary, indent=2))
@@ -74,11 +74,15 @@ def fleet(robots: int, cameras: int | None, topology: str, neighbours: int, medi
 
 
 def media_by_group(scenario) -> dict[str, list[str]]:
-    """Each link group's candidate media (an explicit topology names them on its links)."""
-    spec = scenario.network_spec
-    if spec.links:
-        return {link.group: list(link.media) for link in spec.links}
-    return {"laptop-robot": list(spec.laptop_robot_media), "robot-robot": list(spec.robot_robot_media)}
+    """Each link group's candidate media, as the scenario's topology lays its links out."""
+    links, cliques = scenario.link_layout()
+    return {spec.group: list(spec.media) for spec in (*links, *cliques)}
+
+
+def link_count(scenario) -> int:
+    """The topology's links, a clique's pairs counted without building them."""
+    links, cliques = scenario.link_layout()
+    return len(links) + sum(len(c.nodes) * (len(c.nodes) - 1) // 2 for c in cliques)
 
 
 COMMANDS = (scenarios,)

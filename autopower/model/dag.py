@@ -16,10 +16,9 @@ Pure: no imports from the rest of AutoPower (scenario.py imports `Flow` from her
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterable, Sequence
+from typing import Iterable, Sequence
 
-if TYPE_CHECKING:
-    import networkx as nx
+import networkx as nx
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -67,8 +66,6 @@ def runnable(chains: Sequence) -> list:
 
 def stage_graph(chains: Iterable) -> nx.DiGraph:
     """Stages as nodes; a chain's own hops and every flow as edges."""
-    import networkx as nx  # on use: see `find_cycle`
-
     graph = nx.DiGraph()
     for chain in chains:
         names = [s.name for s in chain.stages]
@@ -80,16 +77,7 @@ def stage_graph(chains: Iterable) -> nx.DiGraph:
 
 
 def find_cycle(chains: Iterable) -> list[str] | None:
-    """A cycle of stage names (first repeated at the end), or None for a DAG.
-
-    Chains without flows between them are a DAG by construction (each a path of distinct
-    stages), and every process checks its scenario at start: those are answered without
-    networkx, whose import alone costs each of a fleet's processes 0.1 s of CPU."""
-    chains = list(chains)
-    if not any(flows_of(chains)):
-        return None
-    import networkx as nx
-
+    """A cycle of stage names (first repeated at the end), or None for a DAG."""
     try:
         edges = nx.find_cycle(stage_graph(chains))
     except nx.NetworkXNoCycle:
@@ -98,17 +86,13 @@ def find_cycle(chains: Iterable) -> list[str] | None:
 
 
 def topological_chains(chains: Sequence) -> list:
-    """The chains ordered so that every flow's producer chain comes before its consumer's (in
-    their own order when no flow joins two of them)."""
+    """The chains ordered so that every flow's producer chain comes before its consumer's."""
     by_stage = chain_of_stage(chains)
-    flows = [f for f in active_flows(chains) if by_stage[f.producer].name != by_stage[f.consumer].name]
-    if not flows:
-        return list(chains)
-    import networkx as nx
-
     graph = nx.DiGraph()
     graph.add_nodes_from(c.name for c in chains)
-    for flow in flows:
-        graph.add_edge(by_stage[flow.producer].name, by_stage[flow.consumer].name)
+    for flow in active_flows(chains):
+        a, b = by_stage[flow.producer].name, by_stage[flow.consumer].name
+        if a != b:
+            graph.add_edge(a, b)
     order = {name: i for i, name in enumerate(nx.topological_sort(graph))}
     return sorted(chains, key=lambda c: order[c.name])

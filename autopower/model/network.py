@@ -6,19 +6,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 from itertools import product
-from typing import TYPE_CHECKING, Iterable, Mapping, Sequence
+from typing import Iterable, Mapping, Sequence
+
+import networkx as nx
 
 from autopower.errors import ScenarioError
 from autopower.model.scenario import Scenario
 
-if TYPE_CHECKING:
-    import networkx as nx
-
 
 def connected_parts(nodes: Iterable[str], pairs: Iterable[tuple[str, str]]) -> dict[str, int]:
     """Node -> the number of its connected part (union-find over the pairs; parts numbered in
-    the nodes' order). Plain Python: every process checks its scenario with it at start, and
-    networkx alone costs a fleet's processes 0.1 s of CPU each to import."""
+    the nodes' order)."""
     nodes = list(nodes)
     parent = {n: n for n in nodes}
 
@@ -136,8 +134,6 @@ class Network:
     def graph(self) -> nx.Graph:
         """The links as a graph whose every adjacency list is in node order (every clique's
         pairs materialised: for callers that need a graph, not for routing)."""
-        import networkx as nx  # here, not at start (see `connected_parts`)
-
         order = {n: i for i, n in enumerate(self.nodes)}
         graph = nx.Graph()
         graph.add_nodes_from(self.nodes)

@@ -41,13 +41,26 @@ May import: `autopower.errors`, `autopower.model`, `autopower.planner`.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING
-
 from autopower.errors import AutoPowerError
-
-if TYPE_CHECKING:
-    from autopower.policies.team import Policy
+from autopower.policies.reactive import ReactivePolicy
+from autopower.policies.rebalance import RebalancePolicy
+from autopower.policies.static import StaticPolicy
+from autopower.policies.subgroup import SubgroupPolicy, SubgroupProposal, subgroup_reallocation, subgroups
+from autopower.policies.team import (
+    Decision,
+    MigrationCosts,
+    Move,
+    Policy,
+    SchedulePhase,
+    TeamState,
+    base_media,
+    beats,
+    candidate_networks,
+    derive_network,
+    effective_scenario,
+    plan_moves,
+    total_energy,
+)
 
 __all__ = [
     "Decision", "MigrationCosts", "Move", "Policy", "POLICY_NAMES", "RebalancePolicy", "ReactivePolicy",
@@ -56,40 +69,18 @@ __all__ = [
     "subgroup_reallocation", "subgroups", "total_energy",
 ]
 
+
 POLICY_NAMES = ("static", "reactive", "rebalance", "subgroup")
-
-# Each exported name's submodule, imported on first use (PEP 562 `__getattr__`): a process that
-# needs only POLICY_NAMES (every robot's agent parses the team's shared options) does not load
-# the planner and HiGHS at start, which a fleet of processes on one machine pays in each of them.
-_SUBMODULE = {
-    "ReactivePolicy": "reactive", "RebalancePolicy": "rebalance", "StaticPolicy": "static",
-    **dict.fromkeys(("SubgroupPolicy", "SubgroupProposal", "subgroup_reallocation", "subgroups"), "subgroup"),
-    **dict.fromkeys(("Decision", "MigrationCosts", "Move", "Policy", "SchedulePhase", "TeamState", "base_media",
-                     "beats", "candidate_networks", "derive_network", "effective_scenario", "plan_moves",
-                     "total_energy"), "team"),
-}
-_CLASSES = {"static": "StaticPolicy", "reactive": "ReactivePolicy", "rebalance": "RebalancePolicy",
-            "subgroup": "SubgroupPolicy"}
-
-
-def __getattr__(name: str):
-    submodule = _SUBMODULE.get(name)
-    if submodule is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{submodule}"), name)
-    globals()[name] = value  # the next lookup finds it without this function
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_SUBMODULE))
+_POLICIES = {"static": StaticPolicy, "reactive": ReactivePolicy, "rebalance": RebalancePolicy,
+             "subgroup": SubgroupPolicy}
 
 
 def make_policy(name: str, **params) -> Policy:
     """A policy by name (``static``, ``reactive``, ``rebalance``, ``subgroup``) with its parameters."""
-    if name not in _CLASSES:
-        raise AutoPowerError(f"unknown policy {name!r}; choose one of {', '.join(POLICY_NAMES)}")
-    cls = __getattr__(_CLASSES[name])
+    try:
+        cls = _POLICIES[name]
+    except KeyError:
+        raise AutoPowerError(f"unknown policy {name!r}; choose one of {', '.join(POLICY_NAMES)}") from None
     try:
         return cls(**params)
     except TypeError as exc:
