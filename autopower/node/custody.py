@@ -105,6 +105,16 @@ def is_consumed(report: Consumed, run: int, seq: int) -> bool:
     return not beyond_known(report, seq)
 
 
+def is_run(report: Consumed, run: int, seq: int) -> bool:
+    """Has the consumer run this frame (or moved past its run)? Only this frees a stage's input.
+
+    A stage's gate also reports the inputs waiting behind a gap as received (`is_consumed`), but
+    waiting is not running: the instance may migrate and its state, with what waited, never land.
+    Its producer keeps them until the stage has run them, so the stage's next instance, which
+    reports them missing, gets them again instead of a gap no one can fill."""
+    return run < report.run or (run == report.run and seq < report.next_seq)
+
+
 def beyond_known(report: Consumed, seq: int) -> bool:
     """``seq`` is past the last range a truncated missing list names: neither confirmed nor reported lost."""
     return len(report.missing) >= MAX_MISSING and report.missing[-1][1] < seq <= report.max_seq
@@ -248,7 +258,10 @@ class Custody:
         self.reports[hop] = report
         frames = self.hops.get(hop)
         if frames:
-            for key in [k for k, held in frames.items() if is_consumed(c, held.frame.run, held.frame.seq)]:
+            # a sink's report speaks for what it delivered; a stage's only for what it ran (`is_run`)
+            done = [k for k, held in frames.items()
+                    if (is_consumed if held.result else is_run)(c, held.frame.run, held.frame.seq)]
+            for key in done:
                 self._drop(frames, key, evicted=False)
 
     def due(self, now: float) -> list[tuple[str, Held]]:

@@ -55,16 +55,38 @@ def test_acknowledged_frames_leave_custody_and_lost_ones_are_resent_once_a_late_
     for seq in range(5):
         custody.keep(frame(seq), now=0.0)
     custody.on_report("Blob-2", 0, report(next_seq=2, max_seq=4, missing=(2,), t=0.5))
-    assert len(custody) == 1  # 0, 1, 3, 4 acknowledged; 2 still held
+    assert len(custody) == 3  # 0, 1 run; 2 missing; 3, 4 wait behind it in the gate: kept until run
     assert custody.due(now=0.6) == []  # the report is too early to call seq 2 lost
     custody.on_report("Blob-2", 0, report(next_seq=2, max_seq=6, missing=(2,), t=1.2))
     due = custody.due(now=1.3)
-    assert [(node, held.frame.seq) for node, held in due] == [("laptop", 2)]
+    assert [(node, held.frame.seq) for node, held in due] == [("laptop", 2)]  # not 3, 4: it has them
     resent = custody.resend(due[0][1], now=1.3)
     assert resent.attempt == 1 and resent.seq == 2
     assert custody.due(now=1.4) == []  # sent again just now: wait for a report after that
     custody.on_report("Blob-2", 0, report(next_seq=7, max_seq=6, t=2.0))
     assert len(custody) == 0 and custody.bytes == 0 and custody.evicted == 0
+
+
+def test_inputs_waiting_in_a_gate_stay_in_custody_until_run_and_go_to_the_stages_next_instance():
+    """A 30-robot simulated fleet (seed 0, 40 % loss on laptop-r21): Blob-21's gate on the laptop
+    held 60, 62, 64, 65 behind the lost 59, and its report freed them from the camera's custody. The
+    stage moved to r21 with them, back towards the laptop, and the transfer was given up (lost on the
+    link): the stage restarted without state, 60 and the rest were in no one's hands, and the new
+    instance ran 59 then 61 (its component raised; 48 outputs lost). Waiting is not running: they
+    stay with their producer until a gate has run them, and the next instance gets them."""
+    custody = Custody(resend_after_s=1.0)
+    for seq in range(59, 68):
+        custody.keep(frame(seq), now=0.0)
+    waiting = report(next_seq=59, max_seq=67, missing=(59, 61, 63, 66), generation=51, t=0.5)
+    custody.on_report("Blob-2", 0, waiting)
+    assert len(custody) == 9 and custody.floor("Blob-2", 0, 0, 68) == 59
+    custody.on_report("Blob-2", 0, report(next_seq=59, max_seq=67, missing=(59, 61, 63, 66), generation=51, t=1.5))
+    assert sorted(held.frame.seq for _, held in custody.due(1.6)) == [59, 61, 63, 66]  # not what waits there
+    fresh = report(next_seq=59, max_seq=68, missing=range(59, 68), generation=99, t=2.0, node="laptop")
+    custody.on_report("Blob-2", 0, fresh)  # a new instance, started without state: has none of them
+    assert sorted(held.frame.seq for _, held in custody.due(2.1)) == list(range(59, 68))
+    custody.on_report("Blob-2", 0, report(next_seq=68, max_seq=67, generation=99, t=3.0))
+    assert len(custody) == 0 and custody.evicted == 0
 
 
 def test_a_report_speaks_only_for_what_had_left_its_consumers_queue():
@@ -559,9 +581,9 @@ def test_frames_past_a_truncated_missing_list_are_kept_and_not_resent_until_it_n
     named seqs). Now it is kept, and resent once a later report names it."""
     custody = Custody(resend_after_s=0.1)
     top = 4 * MAX_MISSING
-    for seq in range(top):
+    for seq in range(top):  # results (Blob-2's sink hop): what the sink reports received is delivered
         custody.keep(ChainFrame(chain="Blob-2", run=0, seq=seq, target=1, t_virtual=0.0, t_unix=0.0,
-                                payload_len=0, payload=b""), 0.0)
+                                payload_len=0, payload=b""), 0.0, result=True)
     evens = list(range(0, top - 2, 2))  # every other frame lost: one range each, about twice what a report holds
     lost_all = Consumed(run=0, generation=0, next_seq=0, max_seq=top + 5, missing=ranges_of(evens)[:MAX_MISSING])
     custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=1.0, consumed=lost_all))
@@ -592,7 +614,7 @@ def test_a_sink_names_the_frames_lost_past_a_run_of_results_that_will_never_come
     for seq in range(1000):
         if seq not in dropped:
             custody.keep(ChainFrame(chain="Blob-2", run=0, seq=seq, target=1, t_virtual=0.0, t_unix=0.0,
-                                    payload_len=0, payload=b""), 0.0)
+                                    payload_len=0, payload=b""), 0.0, result=True)
         if seq not in dropped and seq not in lost:
             ledger.record(0, seq)
     assert ledger.report().missing == ((100, 611), (621, 920))

@@ -14,6 +14,8 @@ from autopower.model.loading import load_scenario
 from autopower.teamsim import Fault, SimConfig, run
 from autopower.teamsim.sweep import run_seed
 from tests.integration.test_sim_sweep import (
+    FIXED_WAITING_INPUTS,
+    FIXED_WAITING_INPUTS_WITH_ROUNDS,
     FOUND,
     FOUND_PLAN,
     FOUND_WITH_ACCRUAL,
@@ -21,6 +23,7 @@ from tests.integration.test_sim_sweep import (
     FOUND_WITH_ROUNDS,
     PLAN,
     ROUNDS_PLAN,
+    SEEDS as SWEPT,
 )
 
 SC = load_scenario("paper-fig7")
@@ -95,26 +98,30 @@ def test_sweep_seeds_that_found_the_adoption_race(seed):
 @pytest.mark.xfail(strict=True, reason=(
     "open since the simulated robots run subgroup rounds (`node.subgroup_rounds`) and detect silent peers "
     "(`node.peer_watch`): around a base station frozen past the lease (robots form a subgroup, it thaws having "
-    "lost them), cuts and frozen robots, outputs are lost (seed 46) or a Blob stage sees a skipped input "
-    "(seed 187: loss laptop-r2 p=0.4 for 2.5 s and a base-station crash, then a subgroup round, the takeover "
-    "and Blob-2 moved back to the laptop with a gate state behind its inputs)"))
+    "lost them), cuts and frozen robots, outputs are lost (seed 46)"))
 def test_sweep_seeds_that_fail_with_subgroup_rounds(seed):
     verdict = run_seed(ROUNDS_PLAN, seed)
     assert verdict.ok, verdict.first
 
 
+@pytest.mark.parametrize("plan, seed", [(ROUNDS_PLAN, seed) for seed in FIXED_WAITING_INPUTS_WITH_ROUNDS]
+                         + [(PLAN, seed) for seed in FIXED_WAITING_INPUTS if seed not in SWEPT])
+def test_sweep_seeds_where_a_restarted_stage_found_inputs_no_one_had_run(plan, seed):
+    """Found by the simulator (fixed): a gate's report freed the inputs waiting behind a gap from their
+    producer's custody; the stage migrated with them, the migration was given up, and the instance
+    restarted without state saw a skipped input (seed 187: loss laptop-r2 p=0.4, a base-station crash
+    and a subgroup round; 479: laptop-r2 flapping faster than the lease). Producers keep an input until
+    a gate has run it (`custody.is_run`)."""
+    verdict = run_seed(plan, seed)
+    assert verdict.ok, verdict.first
+
+
 RADIO_REASON = (
-    "open: found once the sweep drew the radio impairments too (every seed's schedule changed). A Blob "
-    "stage restarted without its state sees inputs another instance consumed (seeds 25, 31, 62, 63), or "
-    "outputs are lost (the others), mostly around freezes, partitions and base-station crashes with subgroup "
-    "rounds (seed 110 slows a link)")
+    "open: found once the sweep drew the radio impairments too (every seed's schedule changed): outputs are "
+    "lost around freezes, partitions and base-station crashes with subgroup rounds (seed 110 slows a link)")
 ACCRUAL_REASON = (
     "open: 46, laptop-r2 losing 47.7 % of its messages for 11.7 s: five resends of Blob-2's seq 72 lost, the "
-    "laptop's gate gave the gap up after 10 s and the stage saw a skipped input (test_custody pins the gate); "
-    "479 shrinks to laptop-r2 flapping every 0.43 s (shorter than the lease: the session holds, half "
-    "the messages are lost) and a 51 ms base-station crash. The laptop's Blob-2 and Loc-2 had consumed "
-    "inputs whose outputs died with the process; restarted without state, each starts at its "
-    "producer's floor and sees a skipped input (the stateful-restart class of the seeds above)")
+    "laptop's gate gave the gap up after 10 s and the stage saw a skipped input (test_custody pins the gate)")
 
 
 @pytest.mark.parametrize("seed", [pytest.param(seed, marks=pytest.mark.xfail(strict=True, reason=reason))
