@@ -70,6 +70,8 @@ BENCHES = (
     Bench("runtime", "bench/bench_runtime.py", ("overhead", "migration"), "Runtime", "performance", 0.5),
     Bench("security", "bench/bench_security.py", (), "Security", "performance", 0.3),
     Bench("sim", "bench/bench_sim.py", ("--seeds", "4", "--jobs", "2"), "The simulated team", "performance", 1.0),
+    Bench("sim_fleet", "bench/bench_sim_fleet.py", ("--robots", "3,10,30,100"), "The simulated team at fleet size",
+          "performance", 6.0),
     Bench("detector", "bench/bench_detector.py", (), "Failure detection on lossy links", "performance", 7.0),
     Bench("lossy_links", "bench/bench_lossy_links.py", ("--frames", "40"), "Throughput under loss", "performance",
           2.5),

@@ -111,8 +111,10 @@ class CoordinatorConfig:
 class Coordinator(Deciding, Placing, Operating, TakingOver):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time,
-                 leader: str | None = None, incarnation: int = 0):
+                 leader: str | None = None, incarnation: int = 0,
+                 perf_fn: Callable[[], float] = time.perf_counter):
         """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it).
+        ``perf_fn`` times the policy's decisions (a figure reported, never an input to one).
         ``leader`` names this base station in its plans (default: `instance_id`, random per process);
         ``incarnation`` is the lowest it starts at (what its host remembers, plus one)."""
         # quality variants are fixed for the mission: the policies place the chains as they run them
@@ -124,6 +126,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.config = config
         self.policy: Policy = policy if policy is not None else _policy_from(config)
         self.wall = wall_fn
+        self.perf = perf_fn
         self.topology = config.topology or scenario.network_spec.topology
         self.migration_costs = MigrationCosts.from_scenario(scenario)
         self.base = scenario.basestation
@@ -211,6 +214,9 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.aborted = 0
         self.order_resends = 0  # migration orders sent again for want of an answer (`Placing.resend_orders`)
         self.replans = 0
+        self.decisions = 0  # the policy asked (a re-plan that decided, whatever it chose)
+        self.decide_s = 0.0  # CPU-bound seconds the policy took over them (`perf_fn`)
+        self.decide_max_s = 0.0
         self.first_depletion: dict[str, float] | None = None
         # faults as the base station saw them: detection and when the team ran its new plan
         self.faults: deque[dict] = deque(maxlen=100)

@@ -113,12 +113,18 @@ class Deciding:
             self.publish_plan()
             return False
         state = self.team_state()
+        started = self.perf()
         try:
             decision = self.policy.decide(state)
         except AutoPowerError as exc:  # InfeasibleError, or a state the policy rejects
             self.plan_error = str(exc)
             self.note(f"decision ({reason}) found nothing feasible: {exc}")
             return False
+        finally:
+            took = self.perf() - started
+            self.decisions += 1
+            self.decide_s += took
+            self.decide_max_s = max(self.decide_max_s, took)
         self.plan_error = None
         self._pending_events.clear()
         if decision is None:

@@ -174,6 +174,7 @@ class Operating:
             "assignments_done": self.assignments_done,
             "aborted": self.aborted,
             "replans": self.replans,
+            "decisions": {"count": self.decisions, "seconds": self.decide_s, "max_s": self.decide_max_s},
             "downtime_ms": _stats(self.downtimes_ms),
             "migration_log": list(self.migration_log),
             "first_depletion": self.first_depletion,

@@ -183,6 +183,12 @@ def _print(out: dict) -> None:
     verdict = "ok" if out["ok"] else f"{len(out['violations'])} violation(s)"
     click.echo(f"{out['scenario']} seed {out['seed']}: {verdict}; trace {out['trace_sha256'][:16]}; "
                f"{out['events']} events, {out['virtual_s']:.1f} mission s in {out['wall_s']:.2f} s")
+    decisions, per = out["decisions"], out["per_robot_per_s"]
+    mean_ms = 1e3 * decisions["seconds"] / decisions["count"] if decisions["count"] else 0.0
+    click.echo(f"{out['robots']} robots; {decisions['count']} decisions (policy: {mean_ms:.0f} ms mean, "
+               f"{1e3 * decisions['max_s']:.0f} ms max, wall); sent per robot per mission s: control "
+               f"{per['control']['messages']:g} messages ({per['control']['bytes']:,.0f} B), data "
+               f"{per['data']['messages']:g} ({per['data']['bytes']:,.0f} B)")
     click.echo(f"fault kinds: {', '.join(out['kinds']) or 'none'}")
     from autopower.teamsim import Fault
 

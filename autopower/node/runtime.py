@@ -409,12 +409,14 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         return plan
 
     def _set_plan(self, plan: PlanUpdate) -> None:
+        same_links = self.plan is not None and self.network is not None and plan.links == self.plan.links
         self.plan = plan
         self.model_override = None
-        nodes = self.scenario.node_names()
-        links = [Link(a=l.a, b=l.b, medium=l.medium, group="runtime") for l in plan.links
-                 if l.a in nodes and l.b in nodes and l.medium in self.scenario.radios]
-        self.network = Network(nodes, self.scenario.basestation, links, "runtime")
+        if not same_links:  # most new plans move stages, not links: the routes stay (O(links) to build)
+            nodes = self.scenario.node_names()
+            links = [Link(a=l.a, b=l.b, medium=l.medium, group="runtime") for l in plan.links
+                     if l.a in nodes and l.b in nodes and l.medium in self.scenario.radios]
+            self.network = Network(nodes, self.scenario.basestation, links, "runtime")
         self.meter.set_media(self.network.media_of(self.node), self.now())
         self.meter.set_level(self._level(plan.levels.get(self.node)), self.now())
 

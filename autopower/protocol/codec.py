@@ -398,6 +398,21 @@ def looks_like_message(data: bytes) -> bool:
     return data[:len(_PREFIX)] == _PREFIX
 
 
+def message_kind(data: bytes) -> str | None:
+    """The kind an encoded message says it is (``"frame"``, ``"status"``, ...), read from its header
+    alone (for counting traffic); None when it does not start like a message. Not a validation."""
+    if not looks_like_message(data):
+        return None
+    header = msgpack.Unpacker(raw=False)
+    header.feed(bytes(data[len(_PREFIX):len(_PREFIX) + 64]))  # the version and the kind: a few bytes
+    try:
+        header.unpack()
+        kind = header.unpack()
+    except Exception:  # msgpack raises many unrelated types on garbage
+        return None
+    return kind if isinstance(kind, str) else None
+
+
 def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...] | None = None) -> Any:
     """Decode one message, strictly. ``expect`` limits which message classes are acceptable here."""
     try:
@@ -425,4 +440,5 @@ def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...]
     return _decode_fields(cls, fields, kind)
 
 
-__all__ = ["MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "decode", "encode", "looks_like_message", "message", "message_kinds", "struct"]
+__all__ = ["MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "decode", "encode", "looks_like_message", "message", "message_kind",
+           "message_kinds", "struct"]

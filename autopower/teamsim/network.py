@@ -20,11 +20,12 @@ Rules:
 from __future__ import annotations
 
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
+from autopower.protocol.codec import message_kind
 from autopower.teamsim.scheduler import Scheduler
 
 LATENCY_S = 0.002  # one way, per link
@@ -75,6 +76,9 @@ class NetStats:
     cut: int = 0
     lost: int = 0
     duplicated: int = 0
+    # what was sent (a session carried it away), by message kind: [messages, bytes]. A relayed or
+    # routed message counts once per hop, as a radio carries it once per hop.
+    by_kind: dict[str, list[int]] = field(default_factory=dict)
 
 
 class SimNetwork:
@@ -177,6 +181,9 @@ class SimNetwork:
             return
         d = self.directions[(sender, receiver)]
         self.stats.sent += 1
+        counts = self.stats.by_kind.setdefault(message_kind(payload) or "other", [0, 0])
+        counts[0] += 1
+        counts[1] += len(payload)
         if d.cut:
             self.stats.cut += 1
             return

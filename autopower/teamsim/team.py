@@ -83,10 +83,24 @@ class SimResult:
     events: int
     network: dict = field(default_factory=dict)
     trace: list[str] | None = None
+    robots: int = 0
+    # the base station's policy over every incarnation: {"count", "seconds", "max_s"} (wall)
+    decisions: dict = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
         return not self.violations
+
+    def traffic(self) -> dict:
+        """Messages and bytes sent per robot per simulated second, the chains' data (frames, routed
+        packets, migrated state) apart from the control plane (statuses, plans, orders, votes, ...)."""
+        per = max(self.robots, 1) * max(self.virtual_s, 1e-9)
+        out = {"data": [0, 0], "control": [0, 0]}
+        for kind, (count, size) in self.network.get("by_kind", {}).items():
+            side = out["data" if kind in DATA_KINDS else "control"]
+            side[0] += count
+            side[1] += size
+        return {side: {"messages": round(n / per, 3), "bytes": round(b / per, 1)} for side, (n, b) in out.items()}
 
     def to_json(self) -> dict:
         return {"seed": self.seed, "trace_sha256": self.trace_sha256, "ok": self.ok,
@@ -94,7 +108,11 @@ class SimResult:
                 "faults": [f.to_json() for f in self.faults],
                 "chains": {name: c.to_json() for name, c in self.chains.items()},
                 "wall_s": round(self.wall_s, 3), "virtual_s": round(self.virtual_s, 3), "events": self.events,
-                "network": dict(self.network)}
+                "network": dict(self.network), "robots": self.robots, "decisions": dict(self.decisions),
+                "per_robot_per_s": self.traffic()}
+
+
+DATA_KINDS = frozenset({"frame", "packet", "state"})  # message kinds that carry the chains' data
 
 
 class World:
@@ -126,9 +144,16 @@ class World:
                           if config.components == "stand-in" and not c.inputs and c.sourced}
         self.base_state: dict = {}  # what the base station's state directory keeps (its incarnation)
         self.shells: dict[str, Shell] = {}
+        self.base_shells: list[BaseShell] = []  # every start of the base station, for its decisions
         self.base_starts = 0
         self.failed_seen: set[tuple[str, str]] = set()
         self.idle_from: dict[str, float] = {}  # robot -> virtual time its metering began
+
+    def decisions(self) -> dict:
+        """How often the base station's policy decided, over all its starts, and the wall time it took."""
+        cos = [shell.co for shell in self.base_shells if shell.co is not None]
+        return {"count": sum(co.decisions for co in cos), "seconds": round(sum(co.decide_s for co in cos), 4),
+                "max_s": round(max((co.decide_max_s for co in cos), default=0.0), 4)}
 
     def clock_for(self, mission) -> VirtualClock:
         return VirtualClock(mission.epoch_unix, mission.speed, wall_fn=self.scheduler.wall)
@@ -141,6 +166,7 @@ class World:
     def start(self, node: str) -> None:
         if node == self.scenario.basestation:
             shell: Shell = BaseShell(self, node, self.base_starts)
+            self.base_shells.append(shell)
             self.base_starts += 1
         else:
             shell = RobotShell(self, node)
@@ -312,4 +338,5 @@ def _run(config: SimConfig, store_dir: Path, started: float) -> SimResult:
     return SimResult(seed=config.seed, trace_sha256=world.trace.sha256, violations=violations,
                      faults=list(config.faults), chains=chains, wall_s=time.perf_counter() - started,
                      virtual_s=virtual_s, events=world.trace.events,
-                     network=dataclasses.asdict(world.network.stats), trace=world.trace.lines)
+                     network=dataclasses.asdict(world.network.stats), trace=world.trace.lines,
+                     robots=len(config.scenario.robots), decisions=world.decisions())

@@ -45,7 +45,7 @@ from autopower.protocol import (
     encode,
     message_kinds,
 )
-from autopower.protocol.codec import looks_like_message
+from autopower.protocol.codec import looks_like_message, message_kind
 
 FRAME = ChainFrame(chain="Blob-2", run=1, seq=7, target=0, t_virtual=1.75, t_unix=1.7e9, payload_len=3,
                    payload=b"abc\0\0")
@@ -102,6 +102,19 @@ def test_every_kind_has_a_sample():
 def test_round_trip(msg):
     assert decode(encode(msg)) == msg
     assert looks_like_message(encode(msg))  # the cheap check before queuing never refuses ours
+
+
+@pytest.mark.parametrize("msg", SAMPLES, ids=lambda m: type(m).KIND)
+def test_a_messages_kind_reads_from_its_header_alone(msg):
+    data = encode(msg)
+    assert message_kind(data) == type(msg).KIND
+    assert message_kind(data[:len(data) // 2 + 8]) in (type(msg).KIND, None)  # never a wrong kind
+
+
+def test_what_is_not_a_message_has_no_kind():
+    for data in (b"", b"\x94", b"\xc1" * 10, _raw("frame", {}, magic=b"XX"), msgpack.packb([1, 2, 3, 4]),
+                 _raw(7, {})):
+        assert message_kind(data) is None
 
 
 def test_what_does_not_look_like_a_message_never_decodes():

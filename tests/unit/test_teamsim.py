@@ -175,6 +175,20 @@ def test_the_same_seed_gives_the_same_trace_and_another_seed_another():
     assert run(config(4, faults)).trace_sha256 != first.trace_sha256  # the network's draws differ
 
 
+def test_a_run_counts_its_decisions_and_what_each_robot_sent_by_kind():
+    result = run(config(faults=[CUT_INTO_LAPTOP]))
+    kinds = result.network["by_kind"]
+    assert sum(n for n, _ in kinds.values()) == result.network["sent"]  # every message sent has a kind
+    assert kinds["status"][0] > 0 and kinds["packet"][0] > 0 and kinds["plan"][0] > 0
+    per = result.traffic()
+    sent_s = result.robots * result.virtual_s
+    assert per["data"]["messages"] == pytest.approx(
+        sum(kinds[k][0] for k in ("frame", "packet", "state") if k in kinds) / sent_s, abs=1e-3)
+    assert per["control"]["messages"] > 0 and result.robots == len(SC.robots)
+    assert result.decisions["count"] >= 1 and 0 < result.decisions["max_s"] <= result.decisions["seconds"]
+    assert result.to_json()["per_robot_per_s"] == per
+
+
 def test_the_oracle_finds_outputs_lost_when_custody_resends_nothing(monkeypatch):
     assert run(config(faults=[CUT_INTO_LAPTOP])).ok  # custody resends what the cut lost
     monkeypatch.setattr(Acknowledging, "resend_lost", lambda self, now: None)
