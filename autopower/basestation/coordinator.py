@@ -97,6 +97,12 @@ class CoordinatorConfig:
     # listener that sends no status, e.g. a recorder joining late): a team at rest does not
     # send, receive and compare the plan every second for nothing
     plan_republish_settled_s: float = 10.0
+    # wall seconds a plan that only announces ready stages waits after the last new plan while other
+    # orders still wait for their answers, so that a wave of answers (a fleet's start: one per
+    # stage) makes one plan, not one each. Every new plan
+    # costs each robot a decode and an acknowledging status to its peers: a 30-robot fleet's start
+    # in the simulator made 59 plans in 10 ms and 8,850 statuses.
+    plan_batch_s: float = 0.1
     link_down_after_s: float = 3.0  # wall seconds a never-seen-up link must be reported down before it counts
     heal_hold_s: float = 2.0  # wall seconds a link must be back before plans may use it again (no flapping)
     variants: dict[str, str] = field(default_factory=dict)  # chain -> quality variant, fixed by the operator
@@ -198,6 +204,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.seen_unix: dict[str, float] = {}  # robot -> when it last came into sight (it must speak before we decide)
         self.next_republish = 0.0
         self.last_republish = 0.0  # when the plan last went out (new or repeated)
+        self.last_plan_unix = 0.0  # when the last new plan went out (`CoordinatorConfig.plan_batch_s`)
         # a stage became ready: the plan goes out once, at the next timer, for every stage that
         # became ready meanwhile (a fleet's start makes a plan per stage otherwise: O(stages^2))
         self.plan_due = False
@@ -542,7 +549,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         if self.replan_due:
             reasons, self.replan_due = self.replan_due, []
             self.replan(", ".join(dict.fromkeys(reasons)))
-        if self.plan_due:
+        if self.plan_due and now_wall >= self._ready_plan_unix():
             self.publish_plan()
         if self.mission is not None:
             late = [n for n, deadline in self._awaiting_actual.items() if now_wall >= deadline]
@@ -568,6 +575,11 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             else:
                 self.next_republish = now_wall + self.config.plan_republish_s
 
+    def _ready_plan_unix(self) -> float:
+        """When a plan announcing ready stages may go: at once when no order waits for its answer
+        (the wave is complete), else `plan_batch_s` after the last new plan (more answers are coming)."""
+        return 0.0 if not self.migrations else self.last_plan_unix + self.config.plan_batch_s
+
     def _plan_unconfirmed(self) -> bool:
         """A robot in reach whose last status does not say it runs the current plan (late, restarted,
         back in reach, or its acknowledgement lost: statuses are best effort)."""
@@ -582,8 +594,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
         deadlines = [m.started_unix + self.config.migration_timeout_s for m in self.migrations.values()]
         deadlines += [self.order_resend_unix(m) for m in self.migrations.values() if m.order]
-        if self.plan_due or self.replan_due:
+        if self.replan_due:
             deadlines.append(self.wall())
+        if self.plan_due:
+            deadlines.append(max(self.wall(), self._ready_plan_unix()))
         if self.mission is not None:
             deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
         elif self.first_seen_unix is not None:

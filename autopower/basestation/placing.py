@@ -170,7 +170,7 @@ class Placing:
             log.info("coordinator: %s moved %s -> %s in %.1f ms (%d inputs held)", msg.stage, m.from_node,
                      msg.node, msg.downtime_ms, msg.buffered)
         self.reconcile()
-        self.plan_due = True  # `Coordinator.on_timer` publishes it, once for every stage ready meanwhile
+        self.plan_due = True  # `Coordinator.on_timer` publishes it, once for every stage ready meanwhile (plan_batch_s)
 
     def on_stage_failed(self, msg: StageFailed) -> None:
         """A node stopped a stage's component, or refused to migrate it (see `StageFailed`).
@@ -240,6 +240,7 @@ class Placing:
             return
         if not repeat:
             self.epoch += 1
+            self.last_plan_unix = self.wall()
         network = self.plan_network
         links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
         update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),

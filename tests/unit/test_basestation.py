@@ -434,6 +434,31 @@ def test_a_fleets_start_publishes_a_plan_per_wave_of_ready_stages_not_one_per_st
     assert all(rt.plan is not None and rt.plan.epoch == co.epoch for rt in team.nodes.values())
 
 
+def test_stages_ready_while_orders_wait_for_answers_wait_plan_batch_s_and_share_the_next_plan(sc):
+    # the simulator delivers every answer as its own event: a 30-robot fleet's start made 59 plans in
+    # 10 ms, each decoded by every robot and acknowledged with a status to its peers
+    team = SimTeam(sc)
+    team.join()
+    co = team.coordinator
+    epoch = co.epoch
+    co.plan_due = True  # what `Placing.on_stage_ready` sets: a stage became ready
+    co.on_timer()  # no other order waits for an answer: the wave is complete, the plan goes at once
+    assert co.epoch == epoch + 1 and not co.plan_due
+    host = co.placement["Loc-1"]
+    assert co.on_operator(MigrateCommand(stage="Loc-1", to_node="r2" if host != "r2" else "r3")).ok
+    assert co.migrations  # its orders wait for answers (the hub is not pumped: none comes)
+    epoch, sent_at = co.epoch, co.last_plan_unix
+    co.plan_due = True  # another stage became ready meanwhile
+    co.on_timer()
+    assert co.epoch == epoch and co.next_deadline_unix() == pytest.approx(sent_at + co.config.plan_batch_s)
+    team.clock.set(team.clock.t + co.config.plan_batch_s / 2)
+    co.on_timer()  # a second one: still the same wait
+    assert co.epoch == epoch
+    team.clock.set(team.clock.t + co.config.plan_batch_s)
+    co.on_timer()
+    assert co.epoch == epoch + 1 and not co.plan_due  # one plan for both
+
+
 def test_link_changes_within_one_batch_of_events_make_one_decision(sc):
     # a fleet under load loses several links at once; each decision is a MILP of the whole team
     # that holds up the loop, so the changes of one batch are decided together at its timer
