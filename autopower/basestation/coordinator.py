@@ -99,9 +99,8 @@ class CoordinatorConfig:
     plan_republish_settled_s: float = 10.0
     # wall seconds a plan that only announces ready stages waits after the last new plan while other
     # orders still wait for their answers, so that a wave of answers (a fleet's start: one per
-    # stage) makes one plan, not one each. Every new plan
-    # costs each robot a decode and an acknowledging status to its peers: a 30-robot fleet's start
-    # in the simulator made 59 plans in 10 ms and 8,850 statuses.
+    # stage) makes one plan, not one each: every new plan costs each robot a decode and a status
+    # acknowledging it to each of its peers
     plan_batch_s: float = 0.1
     link_down_after_s: float = 3.0  # wall seconds a never-seen-up link must be reported down before it counts
     heal_hold_s: float = 2.0  # wall seconds a link must be back before plans may use it again (no flapping)
@@ -222,7 +221,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.order_resends = 0  # migration orders sent again for want of an answer (`Placing.resend_orders`)
         self.replans = 0
         self.decisions = 0  # the policy asked (a re-plan that decided, whatever it chose)
-        self.decide_s = 0.0  # CPU-bound seconds the policy took over them (`perf_fn`)
+        self.decide_s = 0.0  # wall seconds the policy took over them (`perf_fn`)
         self.decide_max_s = 0.0
         self.first_depletion: dict[str, float] | None = None
         # faults as the base station saw them: detection and when the team ran its new plan

@@ -8,7 +8,10 @@ stage's host, or the chain's sink) acknowledges it.
 
 The acknowledgement is the `Consumed` report every node already publishes in its status
 (per hop: run, the in-order prefix it has consumed, the highest seq seen and the seqs missing
-below it). A frame is resent when a report made at least ``resend_after_s`` after the frame
+below it). A stage's input leaves custody once it is in that prefix, run; one that waits in the
+gate behind a gap stays (an instance may move on and what waited in it never land), and is not
+resent while the instance that has it reports it. A chain's result leaves once its sink reports
+it received: delivered. A frame is resent when a report made at least ``resend_after_s`` after the frame
 was last sent still lacks it: the report, not a timer, decides, so a frame that is only
 slow (queued behind a migration) is not resent while its consumer keeps receiving. Consumers
 drop second copies (the stage's sequence gate, the sink's ledger), so resending is safe.
