@@ -30,9 +30,9 @@ FOUND = (90, 118)
 # test_teamsim_findings.py until fixed), under the plan they were found with
 ROUNDS_PLAN = Sweep(mission_s=30.0, n_faults=4, quiet_s=20.0, kinds=KINDS_BEFORE_RADIO)
 FOUND_WITH_ROUNDS = (46,)
-# seeds of this sweep that fail since it draws the radio impairments (flap, roam, rate) too, which
-# changes every seed's schedule: most fail on mechanisms they do not name (freezes, partitions,
-# base-station crashes with subgroup rounds); strict xfails in test_teamsim_findings.py until fixed
+# seeds of this sweep that fail since it draws the radio impairments too: a link slowed below the
+# chain's data rate, and custody's resends queued behind their originals (strict xfails in
+# test_teamsim_findings.py until fixed)
 FOUND_WITH_RADIO = (16, 110)
 # seeds that fail since the silence detector learns each link's loss (it no longer takes a peer behind
 # a lossy or fast-flapping link for gone): 46, a gate that gives a gap up while its producer is still
@@ -42,6 +42,10 @@ FOUND_WITH_ACCRUAL = (46,)
 # producer's custody: a stage restarted without state after its migration was given up saw inputs
 # no one had run (`custody.is_run`). Fixed; 479 (beyond this range) and 187 (the rounds plan) are
 # regression tests in test_teamsim_findings.py, the others run in the sweep again.
+# seeds beyond this range that fail (a 500-seed run of this plan; they failed before the fixes above
+# too): 372 loses two of Blob-3's outputs, 382 delivers one of r2's results twice. Not diagnosed
+# yet; strict xfails in test_teamsim_findings.py
+FOUND_BEYOND_RANGE = (372, 382)
 FIXED_WAITING_INPUTS = (25, 31, 62, 63, 100, 119, 182, 479)
 FIXED_WAITING_INPUTS_WITH_ROUNDS = (187,)
 SEEDS = [seed for seed in range(211) if seed not in FOUND_WITH_RADIO + FOUND_WITH_ACCRUAL]

@@ -17,6 +17,7 @@ from tests.integration.test_sim_sweep import (
     FIXED_WAITING_INPUTS,
     FIXED_WAITING_INPUTS_WITH_ROUNDS,
     FOUND,
+    FOUND_BEYOND_RANGE,
     FOUND_PLAN,
     FOUND_WITH_ACCRUAL,
     FOUND_WITH_RADIO,
@@ -117,16 +118,26 @@ def test_sweep_seeds_where_a_restarted_stage_found_inputs_no_one_had_run(plan, s
 
 
 RADIO_REASON = (
-    "open: found once the sweep drew the radio impairments too (every seed's schedule changed): outputs are "
-    "lost around freezes, partitions and base-station crashes with subgroup rounds (seed 110 slows a link)")
+    "open: found once the sweep drew the radio impairments too. Both slow laptop-r2 to about 7 % of its rate "
+    "for 11-17 s, below the Blob chain's own data rate: every camera frame past the last the laptop had seen "
+    "was resent a second after it was sent, each copy queued behind its original on that link (500-770 "
+    "resent), and the backlog (a minute at the end) held r2's statuses up past a base station's takeover, "
+    "which never heard r2 and left Blob-2 unplaced. Neither holding such frames while the consumer takes "
+    "in more (it lost seed 91's tail) nor backing their resends off (not enough) fixed it alone")
 ACCRUAL_REASON = (
     "open: 46, laptop-r2 losing 47.7 % of its messages for 11.7 s: five resends of Blob-2's seq 72 lost, the "
     "laptop's gate gave the gap up after 10 s and the stage saw a skipped input (test_custody pins the gate)")
 
 
+BEYOND_REASON = ("open, not diagnosed: found in a 500-seed run of CI's plan (failing before this session's "
+                 "custody and plan fixes too): 372 loses two of Blob-3's outputs, 382 delivers one of r2's "
+                 "results twice")
+
+
 @pytest.mark.parametrize("seed", [pytest.param(seed, marks=pytest.mark.xfail(strict=True, reason=reason))
                                   for seeds, reason in ((FOUND_WITH_RADIO, RADIO_REASON),
-                                                        (FOUND_WITH_ACCRUAL, ACCRUAL_REASON))
+                                                        (FOUND_WITH_ACCRUAL, ACCRUAL_REASON),
+                                                        (FOUND_BEYOND_RANGE, BEYOND_REASON))
                                   for seed in seeds])
 def test_sweep_seeds_of_the_ci_plan_that_still_fail(seed):
     verdict = run_seed(PLAN, seed)
