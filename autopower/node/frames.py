@@ -117,18 +117,14 @@ class Frames:
         hosted = self.hosted.get(stage.name)
         if hosted is None:
             host = self.plan.placement.get(stage.name) if self.plan else None
-            if host is not None and host != self.node and forwards < MAX_FORWARDS:
+            if host is not None and host != self.node and forwards < MAX_FORWARDS and self._routable(host):
                 self.tally("rerouted")
                 self.send_frame(frame, host, forwards + 1)
             elif host is None and (self.plan is None or frame.chain not in self.plan.running):
                 self.count("inactive-chain", f"{frame.chain} seq {frame.seq} arrived after its chain stopped",
                            logging.INFO)
             else:
-                held = self.orphans.setdefault(stage.name, [])
-                if len(held) >= ORPHAN_LIMIT:
-                    self.count("orphan-overflow", f"{stage.name}: dropped seq {frame.seq}", logging.ERROR)
-                    return
-                held.append(frame)
+                self.hold_orphan(stage.name, frame)
             return
         if hosted.lifecycle is Lifecycle.FAILED:
             self.count("failed-stage-input", f"{stage.name} seq {frame.seq}: its component has failed here",
@@ -136,13 +132,26 @@ class Frames:
         elif hosted.lifecycle is Lifecycle.STARTING:
             hosted.buffer.append(frame)
         elif hosted.lifecycle is Lifecycle.MIGRATED:
-            if forwards >= MAX_FORWARDS:
-                self.orphans.setdefault(stage.name, []).append(frame)
+            if forwards >= MAX_FORWARDS or not self._routable(hosted.forward_to):
+                # no route to its new host (yet): held here as an orphan, which the plan that
+                # routes it there sends on (`on_plan`); its producer keeps it until a gate runs it
+                self.hold_orphan(stage.name, frame)
                 return
             self.tally("pointer-forwarded")
             self.send_frame(frame, hosted.forward_to, forwards + 1)
         else:
             self._admit(hosted, frame)
+
+    def hold_orphan(self, stage: str, frame: ChainFrame) -> None:
+        """Keep an input for ``stage`` that has nowhere to go from here yet (bounded)."""
+        held = self.orphans.setdefault(stage, [])
+        if len(held) >= ORPHAN_LIMIT:
+            self.count("orphan-overflow", f"{stage}: dropped seq {frame.seq}", logging.ERROR)
+            return
+        held.append(frame)
+
+    def _routable(self, dest: str) -> bool:
+        return dest == self.node or (self.network is not None and self.network.path(self.node, dest) is not None)
 
     def _admit(self, hosted: HostedStage, frame: ChainFrame, refusable: bool = True) -> None:
         """Offer an input to its stage's gate and run what it releases.

@@ -709,3 +709,29 @@ def test_a_stopped_chains_results_stay_in_custody_until_its_sink_has_them():
     r2.on_plan(operator)  # stopped by the operator: its stages' frames have no consumer any more
     assert (0, 50_000) in r2.custody.hops[("Blob-2", 1)]  # the result still waits for its sink
     assert (0, 50_000) not in r2.custody.hops.get(("Blob-2", 0), {})
+
+
+def test_a_late_input_for_a_stage_moved_out_of_reach_waits_as_an_orphan_until_a_plan_routes_it():
+    """A 20-robot fleet's start in CI: r16's links flapped while its process started, the plan moved
+    Loc-16 and Blob-16 to r16 (out of reach), and the laptop's moved-out instances forwarded their
+    late inputs into no route, counted as errors. They wait here as orphans instead (their producer
+    keeps them until a gate has run them), and the plan that routes their stage's host sends them on."""
+    from autopower.node.stages import Lifecycle
+
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    laptop = team.nodes["laptop"]
+    name, hosted = next((n, h) for n, h in sorted(laptop.hosted.items()) if h.lifecycle is Lifecycle.RUNNING)
+    hosted.lifecycle, hosted.forward_to = Lifecycle.MIGRATED, "r2"  # what MigrateOut to r2 leaves behind
+    plan = laptop.plan
+    cut = dataclasses.replace(plan, epoch=plan.epoch + 1, placement={**plan.placement, name: "r2"},
+                              links=tuple(l for l in plan.links if "r2" not in (l.a, l.b)))
+    laptop.on_plan(cut)
+    late = ChainFrame(chain=hosted.chain.name, run=hosted.run, seq=10_000, target=hosted.index, t_virtual=0.0,
+                      t_unix=0.0, payload_len=0, payload=b"")
+    laptop.deliver_frame(late)
+    assert [f.seq for f in laptop.orphans[name]] == [10_000] and "unroutable" not in laptop.errors
+    sent = []
+    laptop.send_frame = lambda frame, dest, *args, **kwargs: sent.append((frame.seq, dest))
+    laptop.on_plan(dataclasses.replace(cut, epoch=cut.epoch + 1, links=plan.links))  # r2 in reach again
+    assert sent == [(10_000, "r2")] and name not in laptop.orphans
