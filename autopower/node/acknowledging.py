@@ -89,7 +89,7 @@ class Acknowledging:
         for node, held in self.custody.due(now):
             if node != self._consumer_of(held.frame):
                 continue  # the stage is moving: wait for its new host's report (it stays due)
-            if node != self.node and self.network.path(self.node, node) is None:
+            if not self.routable(node):
                 continue  # no route yet: it stays due
             frame = self.custody.resend(held, now)
             self.tally("resent-frames")

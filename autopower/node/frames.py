@@ -117,7 +117,7 @@ class Frames:
         hosted = self.hosted.get(stage.name)
         if hosted is None:
             host = self.plan.placement.get(stage.name) if self.plan else None
-            if host is not None and host != self.node and forwards < MAX_FORWARDS and self._routable(host):
+            if host is not None and host != self.node and forwards < MAX_FORWARDS and self.routable(host):
                 self.tally("rerouted")
                 self.send_frame(frame, host, forwards + 1)
             elif host is None and (self.plan is None or frame.chain not in self.plan.running):
@@ -132,7 +132,7 @@ class Frames:
         elif hosted.lifecycle is Lifecycle.STARTING:
             hosted.buffer.append(frame)
         elif hosted.lifecycle is Lifecycle.MIGRATED:
-            if forwards >= MAX_FORWARDS or not self._routable(hosted.forward_to):
+            if forwards >= MAX_FORWARDS or not self.routable(hosted.forward_to):
                 # no route to its new host (yet): held here as an orphan, which the plan that
                 # routes it there sends on (`on_plan`); its producer keeps it until a gate runs it
                 self.hold_orphan(stage.name, frame)
@@ -150,7 +150,8 @@ class Frames:
             return
         held.append(frame)
 
-    def _routable(self, dest: str) -> bool:
+    def routable(self, dest: str) -> bool:
+        """Whether the plan's network has a route from here to ``dest`` (this node always)."""
         return dest == self.node or (self.network is not None and self.network.path(self.node, dest) is not None)
 
     def _admit(self, hosted: HostedStage, frame: ChainFrame, refusable: bool = True) -> None:

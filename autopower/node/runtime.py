@@ -266,7 +266,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             chain = self.stage_index.get(stage, (None, 0))[0]
             if chain is None or chain.name in plan.operator.disabled:
                 del self.orphans[stage]
-            elif host is not None and host != self.node and self._routable(host):
+            elif host is not None and host != self.node and self.routable(host):
                 del self.orphans[stage]
                 for frame in frames:
                     self.send_frame(frame, host)
