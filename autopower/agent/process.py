@@ -27,11 +27,11 @@ from autopower.node.subgroup_rounds import RoundSettings, SubgroupRounds
 from autopower.protocol import (
     Assign,
     Keys,
-    NodeStatus,
+    PeerStatus,
     decode,
     encode,
 )
-from autopower.protocol.access import TeamAccess, status_problem
+from autopower.protocol.access import TeamAccess, carries_peer_status, status_problem
 from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.cadence import (
@@ -104,7 +104,7 @@ class Agent:
         self.resume: ResumeFile | None = None
         self.relayer: Relayer | None = None
         self.rounds: SubgroupRounds | None = None
-        self.statuses: dict = {}  # robot -> its last NodeStatus (battery for subgroup decisions)
+        self.statuses: dict = {}  # node -> its last PeerStatus (battery for subgroup decisions)
         self._started_unix = time.time()  # a restarted agent waits for a plan from then (`_resume_alone`)
         self._resumed_alone = False
         # who is in direct sight: tokens, checked by the statuses that arrive (`node.peer_watch`)
@@ -146,7 +146,9 @@ class Agent:
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=self._started_unix,
             signing=self.signing)
         self._handles.append(bus.subscribe(keys.node_data(robot), self._on_data))
-        for key in (keys.node_control(robot), keys.plan, keys.node_relay(robot), keys.status_all, keys.subgroup):
+        # the peers' statuses as robots need them (`PeerStatus`); whole statuses go to base stations
+        for key in (keys.node_control(robot), keys.addressed_to(robot), keys.plan, keys.node_relay(robot), keys.peer_all,
+                    keys.subgroup):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))
         # Presence last: once the base station sees us, everything we need is declared.
@@ -247,9 +249,9 @@ class Agent:
         if key == self.keys.subgroup:
             self.rounds.on_message(payload)
             return
-        if self.keys.node_of_status(key) is not None:
+        if carries_peer_status(self.keys, key, payload, self.config.robot):
             try:
-                status = decode(payload, NodeStatus)
+                status = decode(payload, PeerStatus)
                 problem = status_problem(self.keys, key, status.node, status.t_unix, time.time())
                 if problem is not None:
                     rt.count("forged", problem)
@@ -351,14 +353,18 @@ class Agent:
             self.save_resume()
         if rt.sink_store is not None:  # the outputs this status acknowledges are kept first (as the base station's)
             rt.sink_store.commit()
-        key, payload = self.keys.status(self.config.robot), encode(status)
-        self._bus.publish(key, payload, reliable=False)
-        self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
-                                    REPEAT_EVERY_PERIODS * status.next_status_s)
-        # out of the base station's sight: through a robot that still sees it; and to the robots
-        # whose frames we consume, for whom the status is the acknowledgement
-        dests = {self.config.scenario.basestation} | rt.producers()
-        self.relayer.send_beyond_sight(sorted(dests), key, payload, reliable=False)
+        # the whole status to base stations, the part robots use to the robots (each a heartbeat)
+        base = self.config.scenario.basestation
+        for key, payload, dests in ((self.keys.status(self.config.robot), encode(status), [base]),
+                                    (self.keys.peer(self.config.robot), encode(PeerStatus.of(status)),
+                                     sorted(rt.producers() - {base}))):
+            self._bus.publish(key, payload, reliable=False)
+            self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
+                                        REPEAT_EVERY_PERIODS * status.next_status_s)
+            # out of sight: through a robot that still sees them, to the base station and to the
+            # robots whose frames we consume (they route by what we see)
+            self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
+        rt.send_acks(self.relayer.reachable, status.queue_wait_s)  # to the nodes that sent us frames
         return True
 
     def _quiet(self) -> bool:
@@ -369,7 +375,7 @@ class Agent:
     def _own_status(self, event) -> bool:
         """Our own status, back from the bus (Zenoh delivers a put to the session's own subscribers too):
         nothing happened that the next status could say."""
-        return isinstance(event, Received) and event.key == self.keys.status(self.config.robot)
+        return isinstance(event, Received) and event.key == self.keys.peer(self.config.robot)
 
     def _next_wake(self, now: float, next_status: float, deadline: float | None, quiet: bool) -> float:
         """When the loop must wake if no event comes first (wall time): the next status to build, a

@@ -117,11 +117,22 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time,
                  leader: str | None = None, incarnation: int = 0,
-                 perf_fn: Callable[[], float] = time.perf_counter):
+                 perf_fn: Callable[[], float] = time.perf_counter,
+                 send_to: Callable[[str, str, bytes], object] | None = None,
+                 also_relay: Callable[[list[str], str, bytes], object] | None = None,
+                 on_own_plan: Callable[[PlanUpdate], object] | None = None):
         """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it).
         ``perf_fn`` times the policy's decisions (a figure reported, never an input to one).
         ``leader`` names this base station in its plans (default: `instance_id`, random per process);
-        ``incarnation`` is the lowest it starts at (what its host remembers, plus one)."""
+        ``incarnation`` is the lowest it starts at (what its host remembers, plus one).
+
+        How messages leave, from the process: ``send_to(node, key, payload)`` sends to one node
+        (its `Relayer` reaches robots out of sight through other agents; default: publish),
+        ``also_relay(nodes, key, payload)`` relays what was published to those of ``nodes`` out
+        of sight (default: nobody), and ``on_own_plan(plan)`` hands each plan to the base
+        station's own host before it is published (not after a trip through Zenoh's loopback:
+        after a takeover the robots' held results follow the plan at once, and a host without
+        the mission would drop them)."""
         # quality variants are fixed for the mission: the policies place the chains as they run them
         self.variants = mission_variants(scenario, config.variants)
         scenario = apply_variants(scenario, self.variants)
@@ -204,6 +215,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.next_republish = 0.0
         self.last_republish = 0.0  # when the plan last went out (new or repeated)
         self.last_plan_unix = 0.0  # when the last new plan went out (`CoordinatorConfig.plan_batch_s`)
+        # the last new plan as the robots decode it, and its digest: the next new plan goes out as
+        # its change from this one (`protocol.plans`)
+        self.change_base: tuple[PlanUpdate, bytes] | None = None
+        self.plan_reached: set[str] = set()  # the robots in reach when the last new plan went out
         # a stage became ready: the plan goes out once, at the next timer, for every stage that
         # became ready meanwhile (a fleet's start makes a plan per stage otherwise: O(stages^2))
         self.plan_due = False
@@ -230,14 +245,9 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         # reallocated without us) is the starting point, not our stale placement
         self._awaiting_actual: dict[str, float] = {}
         self.adopted = 0
-        # how messages leave (the process puts its `Relayer` here: robots out of sight are
-        # reached through other agents); defaults publish directly
-        self.send_to: Callable[[str, str, bytes], object] = lambda node, key, payload: self.bus.publish(key, payload)
-        self.also_relay: Callable[[list[str], str, bytes], object] = lambda nodes, key, payload: None
-        # the base station's own host, handed each plan before it is published (not after a trip
-        # through Zenoh's loopback: after a takeover the robots' held results follow the plan at once,
-        # and a host without the mission would drop them)
-        self.on_own_plan: Callable[[PlanUpdate], object] = lambda plan: None
+        self.send_to = send_to or (lambda node, key, payload: self.bus.publish(key, payload))
+        self.also_relay = also_relay or (lambda nodes, key, payload: None)
+        self.on_own_plan = on_own_plan or (lambda plan: None)
 
     # ---- helpers ----------------------------------------------------------------------------------
     def now(self) -> float:
@@ -569,8 +579,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         if self.config.auto_replan:
             self._timed_decisions()
         if now_wall >= self.next_republish:
-            if self._plan_unconfirmed() or now_wall >= self.last_republish + self.config.plan_republish_settled_s:
-                self.publish_plan(repeat=True)
+            if now_wall >= self.last_republish + self.config.plan_republish_settled_s:
+                self.publish_plan(repeat=True)  # to everyone: standby base stations, late joiners unknown here
+            elif behind := self._behind_plan():
+                self.resend_plan(behind)  # to those behind only: a plan grows with the team
             else:
                 self.next_republish = now_wall + self.config.plan_republish_s
 
@@ -579,14 +591,15 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         (the wave is complete), else `plan_batch_s` after the last new plan (more answers are coming)."""
         return 0.0 if not self.migrations else self.last_plan_unix + self.config.plan_batch_s
 
-    def _plan_unconfirmed(self) -> bool:
-        """A robot in reach whose last status does not say it runs the current plan (late, restarted,
-        back in reach, or its acknowledgement lost: statuses are best effort)."""
-        for robot in self.alive_nodes() & set(self.robots):
+    def _behind_plan(self) -> list[str]:
+        """The robots in reach whose last status does not say they run the current plan (late,
+        restarted, back in reach, or their acknowledgement lost: statuses are best effort)."""
+        behind = []
+        for robot in sorted(self.alive_nodes() & set(self.robots)):
             status = self.statuses.get(robot)
             if status is None or not self.runs_plan(status, self.epoch) or status.plan_leader != self.leader:
-                return True
-        return False
+                behind.append(robot)
+        return behind
 
 
     def next_deadline_unix(self) -> float:

@@ -16,6 +16,7 @@ from autopower.errors import AutoPowerError, ProtocolError
 from autopower.protocol import Keys, OperatorReply, SnapshotRequest, decode, encode
 from autopower.protocol.keys import check_name
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
+from autopower.runtime.pids import pid_alive
 
 SESSION_FILE = "session.json"
 TEAMS_DIR = "teams"  # one directory per running team: its session file and control socket
@@ -58,21 +59,6 @@ def write_session(info: dict) -> Path:
     return path
 
 
-def _alive(pid) -> bool:
-    if not isinstance(pid, int) or pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    try:  # a zombie has exited
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return True
-
-
 def running_sessions(clean_stale: bool = True) -> dict[str, dict]:
     """Team name -> session of every team whose `up` is still alive; a dead team's files are removed."""
     root = state_dir() / TEAMS_DIR
@@ -88,7 +74,7 @@ def running_sessions(clean_stale: bool = True) -> dict[str, dict]:
             session = None
         except (json.JSONDecodeError, OSError, UnicodeDecodeError):
             session = {}
-        if isinstance(session, dict) and session.get("team") == folder.name and _alive(session.get("pid")):
+        if isinstance(session, dict) and session.get("team") == folder.name and pid_alive(session.get("pid")):
             out[folder.name] = session
         elif clean_stale and session is not None:  # its `up` died without cleaning up (SIGKILL, a crash)
             remove_team_files(folder.name)

@@ -23,6 +23,7 @@ from autopower.protocol import (
     decode,
     encode,
 )
+from autopower.protocol.plans import plan_change, published_digest, sorted_plan
 
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
 # what a node may report in `StageFailed.what` (anything else is ignored)
@@ -238,9 +239,62 @@ class Placing:
     def publish_plan(self, repeat: bool = False) -> None:
         if self.mission is None or self.stepped_down is not None:
             return
-        if not repeat:
+        changed_only = False
+        if repeat:
+            update, payload = self._published_plan()
+        else:
             self.epoch += 1
             self.last_plan_unix = self.wall()
+            update, payload, changed_only = self._new_plan()
+        self.plan_due = False
+        self.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
+        in_reach = [r for r in self.robots if r in self.alive_nodes()]
+        self.bus.publish(self.keys.plan, payload)
+        self.also_relay(in_reach, self.keys.plan, payload)
+        if not repeat:
+            # a robot out of reach when the plan before went out (back from a cut, restarted, late)
+            # cannot apply a change from it: it is sent this plan whole at once, not a second later
+            # as one behind (its status names the plan it runs only after this one went out)
+            back = [r for r in in_reach if r not in self.plan_reached]
+            if back and changed_only:
+                self.resend_plan(back)
+            self.plan_reached = set(in_reach)
+        self.last_republish = self.wall()
+        self.next_republish = self.last_republish + self.config.plan_republish_s
+
+    def _new_plan(self) -> tuple[PlanUpdate, bytes, bool]:
+        """(the new plan as the robots will hold it, what goes out, whether that is a change):
+        its change from the plan before when this base station published that one
+        (`protocol.plans`), else whole."""
+        whole = encode(self._plan_update())
+        update, digest = published_digest(whole)
+        base, self.change_base = self.change_base, (update, digest)
+        if base is None or (base[0].leader, base[0].incarnation, base[0].epoch + 1, base[0].mission) != \
+                (update.leader, update.incarnation, update.epoch, update.mission):
+            return update, whole, False
+        return update, encode(plan_change(base[0], base[1], update, digest)), True
+
+    def _published_plan(self) -> tuple[PlanUpdate, bytes]:
+        """(the current plan, whole): the one published for this epoch, so that a robot given it
+        applies the next change (a plan made again may differ in what changed since)."""
+        if self.change_base is not None and (self.change_base[0].incarnation, self.change_base[0].epoch) == \
+                (self.incarnation, self.epoch):
+            update = self.change_base[0]
+        else:
+            update = self._plan_update()
+        return update, encode(update)
+
+    def resend_plan(self, robots: list[str]) -> None:
+        """The current plan again, to ``robots`` only, on their control keys (relayed if out of sight)."""
+        if self.mission is None or self.stepped_down is not None:
+            return
+        update, payload = self._published_plan()
+        self.on_own_plan(update)  # as a repeat to everyone does (the laptop's host skips what it has)
+        for robot in robots:
+            self.send_to(robot, self.keys.node_control(robot), payload)
+        self.next_republish = self.wall() + self.config.plan_republish_s
+
+    def _plan_update(self) -> PlanUpdate:
         network = self.plan_network
         links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
         update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
@@ -249,11 +303,5 @@ class Placing:
                             policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels),
                             variants=dict(self.variants), incarnation=self.incarnation, leader=self.leader,
                             operator=self.operator_settings())
-        payload = encode(update)
-        self.plan_due = False
-        self.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
-        self.bus.publish(self.keys.plan, payload)
-        self.also_relay([r for r in self.robots if r in self.alive_nodes()], self.keys.plan, payload)
-        self.last_republish = self.wall()
-        self.next_republish = self.last_republish + self.config.plan_republish_s
+        return sorted_plan(update)  # one order on every node, whole plan or change (`protocol.plans`)
 

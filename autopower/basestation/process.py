@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
+from autopower.basestation.peer_view import PeerViews
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.node import NodeRuntime
@@ -34,6 +35,7 @@ from autopower.protocol import (
     Keys,
     NodeStatus,
     OperatorReply,
+    PlanChange,
     PlanUpdate,
     decode,
     encode,
@@ -85,7 +87,7 @@ class BaseStation:
         # statuses from every robot converge here: a loop that falls behind takes each robot's newest
         # (`_received` ignores an older one anyway), and they never crowd the orders out of the queue
         self.events = EventQueue(bulk_keys=[self.keys.node_data(self.node)], admit=looks_like_message,
-                                 newest_only=self.keys.node_of_status)
+                                 newest_only=self._newest_only)
         self._bus = bus
         self._owns_bus = bus is None
         self._handles: list = []
@@ -102,27 +104,46 @@ class BaseStation:
         self._lock_fd: int | None = None
         self._kept_incarnation: int | None = None  # what the state directory says we used last
 
+    def _send_view(self, robot: str, key: str, payload: bytes, period: float) -> None:
+        """Our status as ``robot`` acts on it: a heartbeat like the status itself.
+
+        Put on its key whether or not we take it for in sight (a robot we suspect hears it if its
+        session holds: sent through relays only, it took us for gone in turn and reported the link
+        down), relayed as well when it is out of sight, and repeated while this loop is held up (a
+        30-robot fleet's robots took the base station for gone 1 s into its 2.6 s mission-start MILP).
+        """
+        self._bus.publish(key, payload, reliable=False)
+        self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * period, REPEAT_EVERY_PERIODS * period)
+        if robot not in self.relayer.direct:
+            self.relayer.send(robot, key, payload, reliable=False)
+
+    def _newest_only(self, key: str) -> bool:
+        """A robot's status, or its acknowledgement to us: each says all its older ones said."""
+        return self.keys.node_of_status(key) is not None or self.keys.addressed_ends(key) is not None
+
     def __enter__(self) -> "BaseStation":
         if self._bus is None:
             self._bus = ZenohBus(self.config.zenoh)
         bus, keys = self._bus, self.keys
         self.runtime = self._host_factory(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys)
-        self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
-                                       config=self.config.coordinator, policy=self._policy)
-        if self.config.state_dir is not None:
-            self._keep_state(Path(self.config.state_dir))
         scenario = self.config.scenario
         access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
         self.signing = load_signing(self.node, self.config.zenoh.tls)  # None: --insecure, nothing signed
         self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count, access=access,
                                signing=self.signing)
+        if self.config.state_dir is not None:
+            self._keep_state(Path(self.config.state_dir))
+        kept = self._kept_incarnation
+        self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
+                                       config=self.config.coordinator, policy=self._policy,
+                                       incarnation=0 if kept is None else kept + 1,
+                                       send_to=self.relayer.send, also_relay=self.relayer.send_beyond_sight,
+                                       on_own_plan=self._own_plan)
+        self.peer_views = PeerViews(scenario, self.keys)
         self.runtime.send_to = self.relayer.send
         self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
-        self.coordinator.send_to = self.relayer.send
-        self.coordinator.also_relay = self.relayer.send_beyond_sight
-        self.coordinator.on_own_plan = self._own_plan
-        for key in (keys.node_data(self.node), keys.node_control(self.node), keys.plan, keys.inbox,
-                    keys.status_all, keys.node_relay(self.node)):
+        for key in (keys.node_data(self.node), keys.node_control(self.node), keys.addressed_to(self.node), keys.plan,
+                    keys.inbox, keys.status_all, keys.node_relay(self.node)):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.serve(keys.operator, self.events.on_request))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))
@@ -133,8 +154,9 @@ class BaseStation:
 
     # ---- what survives a restart ----------------------------------------------------------------
     def _keep_state(self, folder: Path) -> None:
-        """Lock the state directory (one base station per team and host) and resume its incarnation
-        (the sinks' ledgers there are the host's: ``host_factory`` gives it its `SinkStore`)."""
+        """Lock the state directory (one base station per team and host) and read the incarnation it
+        ran last (the coordinator starts one above; the sinks' ledgers there are the host's:
+        ``host_factory`` gives it its `SinkStore`)."""
         lock = folder / "basestation.lock"
         fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o600)
         try:
@@ -155,8 +177,6 @@ class BaseStation:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.warning("base station: %s/basestation.json is unreadable (%s); incarnations restart from the "
                         "robots' reports", folder, exc)
-        if self._kept_incarnation is not None:
-            self.coordinator.incarnation = self._kept_incarnation + 1
 
     def _remember_incarnation(self) -> None:
         """Once it runs the mission, this host remembers the incarnation (the next start goes above)."""
@@ -272,7 +292,7 @@ class BaseStation:
         if True:
             if key == keys.plan:
                 try:
-                    plan = decode(payload, PlanUpdate)
+                    plan = decode(payload, (PlanUpdate, PlanChange))  # whole or a change: both name their leader
                 except ProtocolError:
                     pass  # the runtime counts it
                 else:
@@ -405,11 +425,14 @@ class BaseStation:
                 rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
                 if self._bus.repeated:  # statuses put again while the loop was held up
                     rt.counters["status-repeats"] = self._bus.repeated
-                if self.events.superseded:  # robots' statuses replaced by a newer one while queued
+                if self.events.superseded:  # robots' statuses (and acks) replaced by a newer one while queued
                     rt.counters["statuses-superseded"] = self.events.superseded
                 if rt.started:  # held back at rest: nothing new in it but what drifts with time
                     status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
                                                         self.events.depth(), self.events.bulk_wait_s()), now)
+                else:  # no mission yet: each robot in reach hears that we run no plan
+                    for robot, key, payload in self.peer_views.addressed(co, None, now, period):
+                        self._send_view(robot, key, payload, period)
                 if status is not None:
                     key, payload = self.keys.status(self.node), encode(status)
                     # what this status acknowledges is kept first: the sink's notes here, the recording
@@ -418,12 +441,14 @@ class BaseStation:
                     if rt.sink_store is not None:
                         rt.sink_store.commit()
                     rt.settle_held_store()  # what the robots acknowledged leaves the held journal
+                    # the whole status for a standby base station and the recording, to each robot the
+                    # part it acts on (`peer_view`), relayed to those out of sight; each is a heartbeat
                     self._bus.publish(key, payload, reliable=False)
                     self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
                                                 REPEAT_EVERY_PERIODS * status.next_status_s)
-                    # robots out of direct sight learn what our sinks received (their acks) via a relay
-                    self.relayer.send_beyond_sight([r for r in co.robots if r in co.alive_nodes()], key, payload,
-                                                   reliable=False)
+                    for robot, key, payload in self.peer_views.addressed(co, status, now, status.next_status_s):
+                        self._send_view(robot, key, payload, status.next_status_s)
+                    rt.send_acks(self.relayer.reachable, status.queue_wait_s)  # to the nodes that sent us frames
                 if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                     self.stop_reason = "parent exited"
                     break

@@ -33,7 +33,7 @@ import os
 import secrets
 import socket
 
-from autopower.protocol import NodeStatus, PlanUpdate, Release
+from autopower.protocol import NodeStatus, PlanChange, PlanUpdate, Release
 from autopower.runtime.clock import VirtualClock
 
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
@@ -55,9 +55,11 @@ class TakingOver:
         self.maybe_start()
 
     def _running_reports(self) -> dict[str, NodeStatus]:
-        """The statuses of robots in the team that run a mission (a plan and its clock)."""
+        """The statuses of robots in the team that run a mission (a plan and its clock). A robot
+        names its mission only to a base station that does not run its plan (`NodeRuntime.status`):
+        until this one's status reaches it, it runs one without saying which, and none may start."""
         alive = self.alive_nodes()
-        return {n: s for n, s in self.heard.items() if n in alive and s.mission is not None and s.plan_epoch >= 0}
+        return {n: s for n, s in self.heard.items() if n in alive and s.plan_epoch >= 0}
 
     def _listened_enough(self) -> bool:
         """Every robot of the scenario has spoken, or we listened for ``learn_team_s``."""
@@ -74,11 +76,12 @@ class TakingOver:
                    for r in self.present - self.departed)
 
     def _takeover_due(self) -> bool:
-        return bool(self._running_reports()) and self._listened_enough()
+        reports = self._running_reports().values()
+        return any(s.mission is not None for s in reports) and self._listened_enough()
 
     def _adopt_team(self) -> None:
         """Go on with the mission the robots run: its clock, their placement, epochs and generations."""
-        reports = self._running_reports()
+        reports = {n: s for n, s in self._running_reports().items() if s.mission is not None}
         newest = max(reports.values(), key=lambda s: (s.plan_incarnation, s.plan_epoch))
         mission = newest.mission
         if mission.scenario != self.scenario.name:
@@ -133,7 +136,7 @@ class TakingOver:
         self.note(f"policy: {self.policy.name}")
         self.replan("took over a running team")
 
-    def on_rival_plan(self, plan: PlanUpdate) -> None:
+    def on_rival_plan(self, plan: PlanUpdate | PlanChange) -> None:
         """A plan on the plan key that another base station made (when the two are connected)."""
         if plan.leader != self.leader:
             self._rival(plan.incarnation, plan.leader, "publishes plans")

@@ -12,9 +12,9 @@ import click
 
 from autopower.cli.live_table import render
 from autopower.cli.options import DEFAULT_SPEED, build_scenario, parse_pairs
-from autopower.cli.team import end_session
+from autopower.cli.team import SNAPSHOT_EVERY_S, end_session
 from autopower.errors import AutoPowerError
-from autopower.launch.summary import complete_at_ready, run_summary
+from autopower.launch.summary import at_ready_complete, complete_at_ready, run_summary
 
 
 @click.group("testbed")
@@ -91,9 +91,18 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
             return (duration is None or time.monotonic() - run_started < duration) and not recording.failed()
 
         if as_json:
+            last_poll = time.monotonic()
             while running():
                 time.sleep(0.25)
                 team.check_children()
+                # a robot the ready snapshot had not heard from yet is compared from its first status
+                # after it, as under `up` (not from the last one: no time between the two, no figure)
+                if not at_ready_complete(at_ready) and time.monotonic() - last_poll >= SNAPSHOT_EVERY_S:
+                    last_poll = time.monotonic()
+                    try:
+                        complete_at_ready(at_ready, team.snapshot(timeout_s=2.0))
+                    except AutoPowerError:  # a busy base station answers late: ask again
+                        pass
         else:
             from rich.console import Console
             from rich.live import Live

@@ -35,6 +35,7 @@ from pathlib import Path
 
 from autopower.basestation.operator import OperatorClient, private_dir
 from autopower.errors import AutoPowerError
+from autopower.launch.forkserver import ForkedProcess, ForkServer
 from autopower.launch.supervisor import RestartPolicy, Supervisor, SupervisorEvent
 from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
@@ -117,10 +118,17 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec
         pass
 
 
+PARENT_PID = "{parent}"  # in a child's arguments: the pid of the process that starts it (`_with_parent`)
+
+
+def _with_parent(args: list[str], pid: int) -> list[str]:
+    return [str(pid) if a == PARENT_PID else a for a in args]
+
+
 @dataclass
 class Child:
     name: str
-    proc: subprocess.Popen
+    proc: subprocess.Popen | ForkedProcess
     log_path: Path
 
     def tail(self, lines: int = 15) -> str:
@@ -164,6 +172,9 @@ class TeamSpec:
     secure: bool = True
     tls_dir: Path | None = None  # where the team's CA and identities go (default: under the state dir)
     restart: RestartPolicy | None = field(default_factory=RestartPolicy)  # None: a crash stops the team
+    # the children forked from one process that imported their modules once (`launch.forkserver`);
+    # False: each starts as a new interpreter
+    fork_server: bool = True
 
 
 class LocalTeam:
@@ -210,6 +221,7 @@ class LocalTeam:
         else:
             self.connects = pair_endpoints(self.nodes, self.ports, spec.endpoint_overrides, self.scheme)
         self.child_env = child_environment(dict(os.environ))
+        self._forkserver: ForkServer | None = None  # started with the team (`start`)
         self.expected_exits: set[str] = set()  # children a fault killed on purpose
         self.children: dict[str, Child] = {}
         self._commands: dict[str, list[str]] = {}  # name -> the arguments it was started with
@@ -233,7 +245,7 @@ class LocalTeam:
                 "--listen", endpoint(self.ports[node], scheme=self.scheme), "--lease-ms", str(self.spec.lease_ms),
                 "--keep-alive", str(self.spec.keep_alive),
                 "--status-period", str(self.spec.status_period_s),
-                "--parent-pid", str(os.getpid()), "--log-level", self.spec.log_level,
+                "--parent-pid", PARENT_PID, "--log-level", self.spec.log_level,
                 "--stage-workers", self.spec.stage_workers]
         for ep in self.connects[node]:
             args += ["--connect", ep]
@@ -248,13 +260,23 @@ class LocalTeam:
         return [sys.executable, "-m", "autopower.cli.processes", *args]
 
     def _spawn(self, name: str, args: list[str]) -> None:
+        """Start a child: forked from the fork server (its imports done once for all), or, without
+        one, as a fresh interpreter. Its parent (whose end it follows: ``--parent-pid``) is the one
+        that started it. A restarted child's log goes on after its crash."""
         log_path = self.log_dir / f"{name}.log"
-        cmd = self._command(name, args)
         self._commands[name] = args
-        with open(log_path, "ab") as out:  # a restarted child's log goes on after its crash
-            proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                                    process_group=0, preexec_fn=_die_with_parent,
-                                    env=self.child_env)
+        proc = None
+        if self._forkserver is not None and self._forkserver.alive:
+            try:
+                proc = self._forkserver.spawn(_with_parent(args, self._forkserver.pid), str(log_path),
+                                              args=self._command(name, _with_parent(args, os.getpid())))
+            except OSError as exc:
+                log.warning("fork server: %s; starting %s as a new interpreter", exc, name)
+        if proc is None:
+            with open(log_path, "ab") as out:
+                proc = subprocess.Popen(self._command(name, _with_parent(args, os.getpid())), stdin=subprocess.DEVNULL,
+                                        stdout=out, stderr=subprocess.STDOUT, process_group=0,
+                                        preexec_fn=_die_with_parent, env=self.child_env)
         self.children[name] = Child(name, proc, log_path)
 
     def proxy(self, a: str, b: str):
@@ -271,6 +293,11 @@ class LocalTeam:
 
     def start(self) -> None:
         precompile(self.child_env)
+        if self.spec.fork_server:
+            try:
+                self._forkserver = ForkServer(self.child_env)
+            except OSError as exc:  # only slower: every child imports for itself
+                log.warning("no fork server (%s); each process starts as a new interpreter", exc)
         for proxy in self.proxies.values():
             proxy.start()
         spec, base = self.spec, self.scenario.basestation
@@ -498,6 +525,8 @@ class LocalTeam:
                     child.proc.kill()
                     child.proc.wait(timeout=5)
                 self.exit_codes[child.name] = child.proc.returncode
+        if self._forkserver is not None:
+            self._forkserver.close()  # it ends once its last child is reaped
         for proxy in self.proxies.values():
             proxy.close()
         self._remove_resume_files()

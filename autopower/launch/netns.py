@@ -50,6 +50,7 @@ from pathlib import Path
 
 from autopower.errors import AutoPowerError
 from autopower.model.network import Network
+from autopower.runtime.pids import pid_alive
 
 log = logging.getLogger(__name__)
 
@@ -466,14 +467,6 @@ def list_namespaces() -> list[str]:
     return [line.split()[0] for line in result.stdout.splitlines() if line.strip()]
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except (ProcessLookupError, OSError):
-        return False
-
-
 def cleanup_stale(state_dir: Path) -> list[str]:
     """Remove what testbed runs that are no longer alive left behind; return the namespaces removed."""
     require_root()
@@ -483,7 +476,7 @@ def cleanup_stale(state_dir: Path) -> list[str]:
             info = json.loads(record.read_text())
         except (OSError, json.JSONDecodeError):
             continue
-        if _alive(int(info.get("pid", 0))):
+        if pid_alive(int(info.get("pid", 0))):
             continue  # a running testbed cleans up after itself
         removed += remove_namespaces(info.get("namespaces", []))
         record.unlink(missing_ok=True)

@@ -97,6 +97,11 @@ def _usable(robot: dict | None) -> bool:
     return status.get("battery_j") is not None and status.get("t_virtual") is not None
 
 
+def at_ready_complete(at_ready: dict) -> bool:
+    """Whether every robot of the ready snapshot has a status to compare its power from."""
+    return all(_usable(robot) for robot in (at_ready.get("robots") or {}).values())
+
+
 def complete_at_ready(at_ready: dict, snap: dict) -> None:
     """Give each robot whose status in the ready snapshot had no battery or mission clock yet
     (the base station had not heard from it since it started the mission: it happens in a large

@@ -89,6 +89,8 @@ class TestbedTeam(LocalTeam):
 
     def __init__(self, spec: TeamSpec, scenario: Scenario, *, shaping: bool = True):
         require_root()
+        # each child starts in its namespace (`_command`), not forked from a server outside them
+        spec = dataclasses.replace(spec, fork_server=False)
         # the loopback parts of LocalTeam (ports, proxies, identities) are not used here
         super().__init__(dataclasses.replace(spec, secure=False, proxied_links=False), scenario)
         self.spec = spec

@@ -239,6 +239,14 @@ class Network:
     def cliques_of(self, node: str) -> list[int]:
         return list(self._clique_of.get(node, ()))
 
+    def neighbours(self, node: str) -> set[str]:
+        """The nodes ``node`` has a link with (without building `links`)."""
+        out = set(self._adjacent.get(node, {}))
+        for i in self._clique_of.get(node, ()):
+            out.update(self.cliques[i].nodes)
+        out.discard(node)
+        return out
+
     def media_by_group(self) -> dict[str, str]:
         out: dict[str, str] = {}
         for link in self.explicit:

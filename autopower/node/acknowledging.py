@@ -1,7 +1,8 @@
 """Acknowledging: custody of sent frames until their consumers report them consumed.
 
-A node's status carries what it consumed per hop; producers read their consumers' statuses,
-release what was acknowledged and resend what a later report still lacks.
+With every status a node sends one `Ack` to each node that feeds it (`acks`: what it took in
+per hop of the chains that node sends or holds, `ack_interest`); producers release what was
+acknowledged and resend what a later report still lacks.
 """
 
 from __future__ import annotations
@@ -11,28 +12,96 @@ import logging
 from autopower.node.custody import Report, hop_key, parse_hop_key
 from autopower.node.stages import Lifecycle
 from autopower.protocol import (
+    Ack,
     ChainFrame,
     Consumed,
     NodeStatus,
+    PeerStatus,
 )
 
 log = logging.getLogger("autopower.node.runtime")  # one logger for the node's parts
 
 
+class AckWants:
+    """Which peers want the acknowledgements of which chains, as their last statuses said."""
+
+    def __init__(self) -> None:
+        self._by_peer: dict[str, frozenset[str]] = {}
+        self._by_chain: dict[str, set[str]] = {}
+
+    def update(self, peer: str, chains) -> None:
+        new, old = frozenset(chains), self._by_peer.get(peer, frozenset())
+        if new == old:
+            return
+        for chain in old - new:
+            peers = self._by_chain[chain]
+            peers.discard(peer)
+            if not peers:
+                del self._by_chain[chain]
+        for chain in new - old:
+            self._by_chain.setdefault(chain, set()).add(peer)
+        self._by_peer[peer] = new
+
+    def of(self, chain: str) -> set[str]:
+        return self._by_chain.get(chain, set())
+
+
 class Acknowledging:
     """The node's custody acknowledgements. Mixed into `NodeRuntime`, whose state it uses."""
 
-    def on_peer_status(self, status: NodeStatus) -> None:
-        """Another node's status: what it consumed acknowledges what we sent it."""
-        if status.node == self.node:
+    def on_ack(self, ack: Ack) -> None:
+        """Another node's acknowledgement: what it consumed of a chain acknowledges what we sent it."""
+        if ack.node == self.node:
             return
         now = self.wall()
         # a peer's word, bounded: custody gives a frame up after max_age_s whatever the wait
-        wait = min(max(status.queue_wait_s, 0.0), self.custody.max_age_s)
+        wait = min(max(ack.queue_wait_s, 0.0), self.custody.max_age_s)
         # never newer than its arrival: a consumer whose clock runs ahead must not make
         # frames still in flight look lost
-        self._acknowledge(status.node, min(status.t_unix, now), status.consumed, wait)
+        self._acknowledge(ack.node, min(ack.t_unix, now), ack.consumed, wait)
         self.resend_lost(now)
+
+    def on_peer_status(self, status: NodeStatus | PeerStatus) -> None:
+        """Another node's status: the chains whose acknowledgements it needs from us."""
+        if status.node != self.node:
+            self.ack_wants.update(status.node, status.acks_wanted)
+
+    def acks(self, queue_wait_s: float = 0.0) -> dict[str, Ack]:
+        """What this node consumed, as one `Ack` per node that sent us (or holds) frames of it.
+
+        A chain's hops go to the producers the plan names for it (`producers_by_chain`) and to
+        every peer whose last status says it wants them (it holds frames of that chain: a stage
+        that moved away keeps its unacknowledged outputs; `ack_interest`). Nobody else hears them:
+        a robot's acknowledgements grow with the chains it feeds, not with the team.
+        """
+        by_chain: dict[str, dict[str, Consumed]] = {}
+        for key, report in self.consumed().items():
+            by_chain.setdefault(parse_hop_key(key)[0], {})[key] = report
+        if not by_chain:
+            return {}
+        to: dict[str, dict[str, Consumed]] = {}
+        planned = self.producers_by_chain()
+        for chain, hops in by_chain.items():
+            dests = set(planned.get(chain, ()))
+            dests.update(self.ack_wants.of(chain))
+            for dest in dests - {self.node}:
+                to.setdefault(dest, {}).update(hops)
+        t_unix = self.wall()
+        return {dest: Ack(node=self.node, t_unix=t_unix, consumed=consumed, queue_wait_s=queue_wait_s)
+                for dest, consumed in sorted(to.items())}
+
+    def ack_interest(self) -> set[str]:
+        """The chains whose acknowledgements this node needs: those whose frames it may send.
+
+        Its sources' chains, its stages' chains (their outputs), and every chain it holds frames
+        of in custody (a stage that moved away leaves its unacknowledged outputs here). Our status
+        says them (`NodeStatus.acks_wanted`); a consumer the plan does not name as our consumer
+        sends us its acknowledgements once it has heard it.
+        """
+        out = set(self.custody.chains())
+        out.update(self.sources)
+        out.update(hosted.chain.name for hosted in self.hosted.values())
+        return out
 
     def consumed(self) -> dict[str, Consumed]:
         """What this node's running stages and sinks have taken in, per hop."""
@@ -57,19 +126,25 @@ class Acknowledging:
         return self.plan.placement.get(chain.stages[frame.target].name) if self.plan else None
 
     def producers(self) -> set[str]:
-        """The nodes that send us frames now (a source or the previous stage's host): our status
-        acknowledges their frames, so it must reach them even when they are out of sight."""
+        """The nodes that send us frames now (a source or the previous stage's host)."""
+        return set().union(*self.producers_by_chain().values())
+
+    def producers_by_chain(self) -> dict[str, set[str]]:
+        """Per chain we consume, the nodes the plan has send us its frames: our acknowledgements
+        (and our status) must reach them even when they are out of sight (relayed)."""
         placement = self.plan.placement if self.plan else {}
-        out = set()
+        out: dict[str, set[str]] = {}
         for hosted in self.hosted.values():
             chain, index = hosted.chain, hosted.index
-            out.add(chain.source if index == 0 else placement.get(chain.stages[index - 1].name))
+            out.setdefault(chain.name, set()).add(
+                chain.source if index == 0 else placement.get(chain.stages[index - 1].name))
         for name in self.sinks:
             chain = self.chains.get(name)
             if chain is not None and chain.stages:
-                out.add(placement.get(chain.stages[-1].name))
-        out |= self.flow_producers()
-        return out - {None, self.node}
+                out.setdefault(name, set()).add(placement.get(chain.stages[-1].name))
+        for flow, producer in self.flow_producers().items():
+            out.setdefault(flow, set()).add(producer)
+        return {chain: nodes - {None, self.node} for chain, nodes in out.items() if nodes - {None, self.node}}
 
     def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed],
                      queue_wait_s: float = 0.0) -> None:

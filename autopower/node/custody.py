@@ -6,8 +6,8 @@ So every producer (a chain's source, and every stage for its outputs) keeps each
 emits in custody, keyed by (chain, target, run, seq), until the frame's consumer (the next
 stage's host, or the chain's sink) acknowledges it.
 
-The acknowledgement is the `Consumed` report every node already publishes in its status
-(per hop: run, the in-order prefix it has consumed, the highest seq seen and the seqs missing
+The acknowledgement is the `Consumed` report every node sends with its status, in one `Ack` to
+each node that feeds it (per hop: run, the in-order prefix it has consumed, the highest seq seen and the seqs missing
 below it). A stage's input leaves custody once it is in that prefix, run; one that waits in the
 gate behind a gap stays (an instance may move on and what waited in it never land), and is not
 resent while the instance that has it reports it. A chain's result leaves once its sink reports
@@ -151,6 +151,10 @@ class Custody:
 
     def __len__(self) -> int:
         return sum(len(h) for h in self.hops.values())
+
+    def chains(self) -> set[str]:
+        """The chains of the frames held (whose acknowledgements this node needs)."""
+        return {chain for (chain, _), frames in self.hops.items() if frames}
 
     # ---- producing --------------------------------------------------------------------------------
     def keep(self, frame: ChainFrame, now: float, sent: bool = True, result: bool = False) -> list[ChainFrame]:

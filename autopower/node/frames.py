@@ -256,7 +256,26 @@ class Frames:
         return True
 
     def acknowledged(self, hosted: HostedStage, report: Consumed) -> Consumed:
-        """What a stage acknowledges to its producers: its gate's report less the inputs still in its worker.
+        """What a stage acknowledges to its producers: its gate's report less the inputs whose
+        outputs are not safe yet (`_less_worker_held`, `_less_unsafe_outputs`)."""
+        return self._less_unsafe_outputs(hosted, self._less_worker_held(hosted, report))
+
+    def _less_unsafe_outputs(self, hosted: HostedStage, report: Consumed) -> Consumed:
+        """An input whose output waits in this node's memory for its consumer's acknowledgement is
+        reported had, not run (below ``max_seq``, not missing; ``next_seq`` lowered to it): its
+        producer keeps it, and does not resend it while this instance reports it (`custody.is_run`).
+        A crash of this node then takes the output but not the input: the stage's next instance,
+        which reports it missing, gets it again and computes the output again (marked a resend:
+        a sink that has it drops the copy). Outputs journaled to disk (results held for a sink out of
+        reach, `hold_output`) are safe. While this node lives a lost output is still resent from its
+        custody, never recomputed."""
+        low = self.unsafe_output_floor(hosted.chain.name, hosted.index + 1, report.run)
+        if low is None or low >= report.next_seq:
+            return report
+        return dataclasses.replace(report, next_seq=low)
+
+    def _less_worker_held(self, hosted: HostedStage, report: Consumed) -> Consumed:
+        """The gate's report less the inputs still in the stage's worker.
 
         In-process, a stage emits an input's output (into this node's custody) in the same step as
         its gate takes the input. In a worker the output comes later; until then the input stays

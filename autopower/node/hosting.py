@@ -19,6 +19,7 @@ from autopower.protocol import (
     Assign,
     MigrateOut,
     NodeStatus,
+    PeerStatus,
     Prepare,
     Prepared,
     Release,
@@ -384,7 +385,7 @@ class Hosting:
         if chain is None or self._disabled(chain.name):
             self.orphans.pop(msg.stage, None)
 
-    def yield_to_newer(self, status: NodeStatus) -> bool:
+    def yield_to_newer(self, status: NodeStatus | PeerStatus) -> bool:
         """Stop an instance here that a newer one running on the peer ``status`` comes from supersedes;
         True when one stopped (the process says so in its status at once).
 

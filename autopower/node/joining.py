@@ -373,9 +373,10 @@ class Joining:
                 out.update(hosted.component.join.consumed(hosted.generation))
         return out
 
-    def flow_producers(self) -> set[str]:
+    def flow_producers(self) -> dict[str, str | None]:
+        """Per flow into a stage hosted here: where the plan runs its producer."""
         placement = self.plan.placement if self.plan else {}
-        return {placement.get(f.producer) for h in self.hosted.values() for f in self.flows_in.get(h.stage.name, ())}
+        return {f.name: placement.get(f.producer) for h in self.hosted.values() for f in self.flows_in.get(h.stage.name, ())}
 
     def join_stats(self) -> dict[str, dict[str, int]]:
         """Per fan-in stage hosted here: steps joined, inputs late, missing, empty steps."""

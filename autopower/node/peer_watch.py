@@ -5,9 +5,10 @@ died is gone within it) *and* its statuses keep arriving directly. A token alone
 link that fails in one direction, or a peer whose loop is stuck, keeps its session (and token)
 while nothing it says arrives. So a peer whose direct statuses stay away for ``periods`` of the
 status period it announced (ours if it announced none) counts as silent, out of sight, never
-sooner than the lease (a team configured with a long lease, for radios that stay saturated for
-seconds, must not have its peers declared gone by this detector first). Its next direct status
-brings it back.
+sooner than the lease and one period (`runtime.cadence.silence_limit_s`: a peer's loop may wait a
+lease in a put to a link of its own that died, and a team configured with a long lease, for
+radios that stay saturated for seconds, must not have its peers declared gone by this detector
+first). Its next direct status brings it back.
 
 On a link that loses statuses the silence allowed grows with the loss it shows (an accrual
 detector, as phi-accrual adapts to the heartbeats it observes): each status that arrives tells how

@@ -13,7 +13,7 @@ Stage lifecycle (per node): STARTING (prepared for an incoming migration: inputs
 go to the new host). Sequence numbers make each stage run each input once and in order.
 
 Every frame a node produces (a source's input, a stage's output) stays in its custody
-(`autopower.node.custody`) until the consumer's status reports it consumed; a report that
+(`autopower.node.custody`) until the consumer's acknowledgement reports it consumed; a report that
 still lacks it a while after it was sent gets it resent. That is what makes each output reach
 its sink exactly once even when a link is cut silently with frames in flight.
 
@@ -37,10 +37,10 @@ from typing import Callable
 
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
-from autopower.model.network import Link, Network
+from autopower.model.network import Link, Network, build_network
 from autopower.model.scenario import Scenario
 from autopower.model.variants import apply_variants, runtime_component
-from autopower.node.acknowledging import Acknowledging
+from autopower.node.acknowledging import Acknowledging, AckWants
 from autopower.node.custody import Custody
 from autopower.node.frames import Frames
 from autopower.node.guard import ComponentHung, GuardedCalls
@@ -61,10 +61,12 @@ from autopower.node.stages import (
 )
 from autopower.node.workers import Zygote
 from autopower.protocol import (
+    Ack,
     ChainFrame,
     Keys,
     MissionInfo,
     NodeStatus,
+    PeerStatus,
     PlanUpdate,
     SinkStats,
     SourceStats,
@@ -72,6 +74,9 @@ from autopower.protocol import (
     decode,
     encode,
 )
+from autopower.protocol.access import addressed_problem
+from autopower.protocol.codec import message_kind
+from autopower.protocol.plans import PlanAssembler
 from autopower.runtime.bus import Bus
 from autopower.runtime.clock import Clock, VirtualClock
 
@@ -129,6 +134,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.meter: BatteryMeter | None = None
         self.plan: PlanUpdate | None = None
         self._plan_payload: bytes | None = None  # the last plan message handled (a repeat of it is skipped)
+        self._plans = PlanAssembler()  # plans sent as their change from the one before (`protocol.plans`)
         self.network: Network | None = None
         # nodes this one does not reach while it decides without the base station (`set_out_of_reach`):
         # the model's power leaves out what cannot reach them
@@ -141,6 +147,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.sinks: dict[str, SinkLedger] = {}
         self.last_output: dict[str, bytes] = {}
         self.alive: set[str] = set()
+        self._ever_alive: set[str] = set()  # every node whose token this one has seen (status `links`)
+        # wall: until when a base station's status said it runs our plan, and one said it does not
+        self._base_runs_our_plan_until = 0.0
+        self._mission_wanted_until = 0.0
+        self._link_ends = build_network(scenario).neighbours(node)  # the scenario's links of this node
+        self._team = frozenset(scenario.node_names())
         self.errors: dict[str, int] = {}  # things that should not happen (garbage, lost frames)
         self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
         self.weights: dict[str, float] = {}
@@ -171,6 +183,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.model_override: dict[str, float] | None = None
         self.on_produced: Callable[[SourceRunner], None] | None = None
         self.custody = Custody(hold_budget_bytes=scenario.hold_budget_bytes)
+        self.ack_wants = AckWants()  # which peers want the acknowledgements of which chains
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
         # state directory): an output delivered before a crash is not delivered again after it
         self.sink_store: SinkStore | None = None
@@ -194,7 +207,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.perf: Callable[[], float] = perf or time.perf_counter
         # How a message for one node leaves: the process replaces it with its `Relayer.send`
         # so that a node out of direct sight is still reached through other agents.
-        self.send_to: Callable[[str, str, bytes], object] = lambda dest, key, payload: self.bus.publish(key, payload)
+        self.send_to: Callable[..., object] = (  # (dest, key, payload, *, reliable=True)
+            lambda dest, key, payload, reliable=True: self.bus.publish(key, payload, reliable=reliable))
         self.init_relaying()  # packets only crossing this node: forwarded on arrival (`agent.relaying`)
 
     # ---- small helpers -----------------------------------------------------------------------
@@ -223,6 +237,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
     def on_plan(self, plan: PlanUpdate) -> None:
         # plans are ordered by (incarnation, epoch): a base station that took over the team
         # (a higher incarnation) is followed even if its epoch is lower than what runs
+        self._plans.remember(plan)  # the base of the next change (the base station's host, a saved plan)
         if (plan.incarnation, plan.epoch) <= self.plan_order:
             return  # old or repeated
         if plan.mission.scenario != self.scenario.name:
@@ -517,6 +532,18 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                      "dropped beyond) until a plan routes them", self.node, frame.chain,
                      self.custody.hold_budget_bytes / 2**20)
 
+    def unsafe_output_floor(self, chain: str, target: int, run: int) -> int | None:
+        """The lowest seq of a hop and run this node holds in custody in memory only (not journaled):
+        what a crash here would lose unless its input is still held upstream; None if none is."""
+        low = self.custody.floor(chain, target, run, -1)
+        if low < 0:
+            return None
+        if (chain, target, run, low) not in self._held_journaled:
+            return low
+        held = [seq for (r, seq) in self.custody.hops.get((chain, target), {})
+                if r == run and (chain, target, run, seq) not in self._held_journaled]
+        return min(held) if held else None
+
     def keep_result(self, frame: ChainFrame, sent: bool = True) -> None:
         """Keep a chain's result in custody until its sink acknowledges it; results beyond the hold
         budget (oldest first) are dropped and counted as such."""
@@ -738,10 +765,34 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
 
 
+    # ---- peers ----------------------------------------------------------------------------------------
+    def on_peer_status(self, status: NodeStatus | PeerStatus) -> None:
+        """Another node's status: the acknowledgements it wants (`Acknowledging`), and whether the
+        base station runs the plan this node runs (else this node's statuses carry the mission)."""
+        super().on_peer_status(status)
+        if status.node == self.scenario.basestation:
+            # for three periods it announced: one that stops talking may have restarted, and one that
+            # runs another plan (or none: `PeerViews.listening`) may be a second base station beside
+            # the first, which takes over only once a robot names the mission
+            until = self.wall() + 3 * max(status.next_status_s, 0.5)
+            if self.plan is not None and status.plan_epoch == self.plan.epoch:
+                self._base_runs_our_plan_until = until
+            else:
+                self._mission_wanted_until = until
+
+    def _mission_wanted(self) -> bool:
+        """Whether this node's status names its mission (`on_peer_status`)."""
+        now = self.wall()
+        return now < self._mission_wanted_until or now >= self._base_runs_our_plan_until
+
     # ---- liveliness ----------------------------------------------------------------------------------
     def on_liveliness(self, node: str, alive: bool) -> None:
+        if node == self.scenario.basestation:
+            self._base_runs_our_plan_until = 0.0  # gone, or a new process: the mission in our statuses
         if alive:
             self.alive.add(node)
+            if node in self._team:  # a name from the network only grows this set if it is a member
+                self._ever_alive.add(node)
         else:
             self.alive.discard(node)
 
@@ -750,8 +801,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.settle_relayed()
         now = self.now()
         power, utilisation = self.meter.window(now, window_s) if self.meter else ({}, 0.0)
-        # Every other node, not only today's neighbours: a link that went down must be seen coming back.
-        others = [n for n in self.scenario.node_names() if n != self.node]
+        # The nodes this one has a link with in the scenario, and every node it has seen: a link
+        # that went down must be seen coming back, one that never came up must be reported down.
+        # Not every node of the team: a robot's status grew with the team (1.4 of its 2.5 kB at 100).
+        others = sorted((self._link_ends | self._ever_alive) - {self.node})
         sources = {n: self.source_stats(r) for n, r in self.sources.items()}
         for name, stats in self.source_totals.items():
             sources.setdefault(name, stats)
@@ -775,11 +828,14 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             queue_depth=queue_depth, errors=dict(self.errors),
             counters={**self.counters, "held-outputs": len(self.held_outputs), **self.custody.stats()},
             depleted=bool(self.meter and self.meter.depleted),
-            consumed=self.consumed(),
+            acks_wanted=tuple(sorted(self.ack_interest())),
             failed=dict(self.failed),
             plan_incarnation=self.plan.incarnation if self.plan else 0,
             plan_leader=self.plan.leader if self.plan else "",
-            mission=self.mission,
+            # for a base station that does not run our plan (one that restarted takes over the mission
+            # with it, `basestation.takeover`); not in every status: it grows with the team (its
+            # starting energies: 1.4 of a robot's 2.1 kB at 100 robots)
+            mission=self.mission if self._mission_wanted() else None,
             generations={n: h.generation for n, h in self.hosted.items()},
             plan_operator=self.plan.operator if self.plan else None,
             model_w=self.model_w,
@@ -796,20 +852,48 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         try:
             if key == self.keys.node_data(self.node):
                 self.on_data(payload)
-            elif key == self.keys.node_control(self.node):
-                self.on_control(payload)
-            elif key == self.keys.plan:
-                # the base station repeats its plan (to robots not yet running it): the bytes handled
+            elif key == self.keys.node_control(self.node) and message_kind(payload) != PlanUpdate.KIND:
+                self.on_control(payload)  # a plan resent to this node alone comes whole
+            elif (ends := self.keys.addressed_ends(key)) is not None and ends[0] == self.node:
+                self._on_ack_message(key, payload)
+            elif key in (self.keys.plan, self.keys.node_control(self.node)):
+                # the base station repeats its plan (to robots not yet running it, on their control
+                # keys, `Coordinator.resend_plan`; to everyone now and then): the bytes handled
                 # last need no decoding again (plans only move forward: what was applied or ignored
                 # once would be ignored now)
                 if payload != self._plan_payload:
-                    self.on_plan(decode(payload, PlanUpdate))
                     self._plan_payload = payload
+                    plan = self._plans.whole(payload)
+                    if plan is None:  # a change from a plan we do not hold: the base station resends it whole
+                        self.tally("plan-changes-skipped")
+                    else:
+                        self.on_plan(plan)
             else:
                 return False
         except ProtocolError as exc:
             self.count("garbled", f"on {key}: {exc}")
         return True
+
+
+    def _on_ack_message(self, key: str, payload: bytes) -> None:
+        ack = decode(payload, Ack)
+        problem = addressed_problem(self.keys, key, ack.node, ack.t_unix, self.wall())
+        if problem is not None:
+            self.count("forged", problem)
+            return
+        self.on_ack(ack)
+
+    def send_acks(self, reachable: Callable[[str], bool], queue_wait_s: float = 0.0) -> int:
+        """Send what this node consumed to the nodes that sent it (`acks`) and that ``reachable``
+        (directly or relayed): the consumer's half of custody, sent with each status. Unreliable
+        like the status (a saturated radio drops it rather than hold the loop up): the next
+        status's acknowledgements say it again. Returns how many were sent."""
+        sent = 0
+        for dest, ack in self.acks(queue_wait_s).items():
+            if reachable(dest):
+                self.send_to(dest, self.keys.addressed(dest, self.node), encode(ack), reliable=False)
+                sent += 1
+        return sent
 
 
 def _unroutable(scenario, network, placement: dict[str, str]) -> set[str]:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from autopower.model.scenario import Scenario
 from autopower.node.runtime import NodeRuntime
 from autopower.node.stages import Lifecycle
-from autopower.protocol import Assign, Keys, MigrateOut, NodeStatus, SubgroupMove, SubgroupPropose, encode
+from autopower.protocol import Assign, Keys, MigrateOut, PeerStatus, SubgroupMove, SubgroupPropose, encode
 from autopower.runtime.bus import Bus
 from autopower.runtime.signatures import Signing
 from autopower.runtime.subgroup import SubgroupAgreement
@@ -40,7 +40,7 @@ class RoundSettings:
 class SubgroupRounds:
     def __init__(self, *, runtime: NodeRuntime, scenario: Scenario, bus: Bus, keys: Keys,
                  wall: Callable[[], float], reachable: Callable[[str], bool],
-                 statuses: Mapping[str, NodeStatus], settings: RoundSettings,
+                 statuses: Mapping[str, PeerStatus], settings: RoundSettings,
                  publish_status: Callable[[], object], save_resume: Callable[[], None],
                  started_unix: float, signing: Signing | None = None):
         self.rt = runtime

@@ -9,6 +9,7 @@ from autopower.protocol.messages import (
     CONTROL_MESSAGES,
     INBOX_MESSAGES,
     OPERATOR_COMMANDS,
+    Ack,
     Assign,
     AutoCommand,
     ChainCommand,
@@ -23,6 +24,8 @@ from autopower.protocol.messages import (
     OperatorReply,
     OperatorSettings,
     Packet,
+    PeerStatus,
+    PlanChange,
     PlanUpdate,
     Prepare,
     Prepared,
@@ -42,8 +45,8 @@ from autopower.protocol.messages import (
 
 __all__ = [
     "CONTROL_MESSAGES", "INBOX_MESSAGES", "OPERATOR_COMMANDS", "PROTOCOL_VERSION",
-    "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo", "OperatorSettings",
-    "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet",
-    "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "Consumed", "SnapshotRequest", "SourceStats",
+    "Ack", "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo", "OperatorSettings",
+    "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet", "PeerStatus",
+    "PlanChange", "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "Consumed", "SnapshotRequest", "SourceStats",
     "StageFailed", "StageReady", "StateTransfer", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",
 ]

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from autopower.protocol.codec import message_kind
 from autopower.protocol.keys import Keys, key_matches
+from autopower.protocol.messages import PeerStatus
 
 OPERATOR = "operator"  # the operator CLI's identity (certificate CN)
 
@@ -34,10 +36,11 @@ class TeamAccess:
         shared = (f"{k.prefix}/node/*/data", f"{k.prefix}/node/*/relay")
         if identity == self.basestation:
             # plans and migration orders come from the base station alone
-            return (k.plan, f"{k.prefix}/node/*/control", k.status(identity), k.inbox, *shared)
+            # (no `peer/<itself>`: each robot gets its view addressed to it, `basestation.peer_view`)
+            return (k.plan, f"{k.prefix}/node/*/control", k.status(identity), k.addressed_by(identity), k.inbox, *shared)
         if identity in self.robots:
-            # its own status and outputs/frames, relays, inbox reports, subgroup rounds
-            return (k.status(identity), k.inbox, k.subgroup, *shared)
+            # its own status and acknowledgements, outputs/frames, relays, inbox reports, subgroup rounds
+            return (k.status(identity), k.peer(identity), k.addressed_by(identity), k.inbox, k.subgroup, *shared)
         return ()
 
     def liveliness(self, identity: str) -> tuple[str, ...]:
@@ -60,9 +63,32 @@ def status_problem(keys: Keys, key: str, node: str, t_unix: float, now_unix: flo
     r (a robot cannot speak for another through its own key), and must not be stamped in the
     future: statuses are ordered by ``t_unix``, so one forged far ahead would mask every real one.
     """
-    owner = keys.node_of_status(key)
+    # a `NodeStatus`, a `PeerStatus`, or the base station's `PeerStatus` addressed to one robot
+    owner = keys.node_of_status(key) or keys.node_of_peer(key) or (keys.addressed_ends(key) or (None, None))[1]
+    return _report_problem("status", owner, node, t_unix, now_unix)
+
+
+def carries_peer_status(keys: Keys, key: str, payload: bytes, me: str) -> bool:
+    """Whether ``payload`` read from ``key`` is a status ``me`` acts on as a peer's: a robot's on
+    ``peer/<r>``, or the base station's view addressed to ``me`` (``node/<me>/from/<base>``, where
+    acks travel too: the kind tells them apart)."""
+    if keys.node_of_peer(key) is not None:
+        return True
+    ends = keys.addressed_ends(key)
+    return ends is not None and ends[0] == me and message_kind(payload) == PeerStatus.KIND
+
+
+def addressed_problem(keys: Keys, key: str, node: str, t_unix: float, now_unix: float) -> str | None:
+    """Why a message addressed to one node (an `Ack`, the base station's `PeerStatus` for it) read
+    from ``key`` must be dropped, or None: the rules of `status_problem` (robot r may only put on
+    ``node/*/from/r``, and the message must name r)."""
+    ends = keys.addressed_ends(key)
+    return _report_problem("addressed message", ends[1] if ends else None, node, t_unix, now_unix)
+
+
+def _report_problem(what: str, owner: str | None, node: str, t_unix: float, now_unix: float) -> str | None:
     if owner != node:
-        return f"a status naming {node!r} on {owner!r}'s key"
+        return f"a {what} naming {node!r} on {owner!r}'s key"
     if t_unix > now_unix + MAX_CLOCK_AHEAD_S:
-        return f"{node}'s status is stamped {t_unix - now_unix:.0f} s in the future"
+        return f"{node}'s {what} is stamped {t_unix - now_unix:.0f} s in the future"
     return None

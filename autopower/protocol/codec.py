@@ -18,7 +18,7 @@ import msgpack
 
 from autopower.errors import ProtocolError
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: acknowledgements left the status for `Ack` messages
 MAGIC = b"AP"
 # The first bytes of every encoded message (a 4-element array, then the magic): a check cheap
 # enough for a transport thread, so that a flood of random bytes is dropped before it is queued.

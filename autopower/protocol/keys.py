@@ -39,6 +39,21 @@ def key_matches(pattern: str, key: str) -> bool:
     return go(0, 0)
 
 
+def carries_chain_data(key: str, reliable: bool) -> bool:
+    """Whether a message on ``key`` is the data plane: chain frames (``node/<n>/data``) and the
+    reliable messages relays carry on (``node/<n>/relay``, mostly frames; packets a relay forwards
+    keep their order, which Zenoh keeps only within one priority).
+
+    The rest (statuses, acks, plans, migrations, subgroup rounds) is the control plane, which a
+    transport should put ahead of the data: a radio saturated by frames must still carry the
+    statuses that say who is there and the acks that free the producers' buffers.
+    """
+    if not key.startswith(f"{ROOT}/"):
+        return False
+    tail = key.rsplit("/", 2)
+    return len(tail) == 3 and tail[0].endswith("/node") and (tail[2] == "data" or (tail[2] == "relay" and reliable))
+
+
 @dataclass(frozen=True)
 class Keys:
     """Key expressions of one team."""
@@ -88,10 +103,7 @@ class Keys:
         return f"{self.prefix}/alive/*"
 
     def node_of_alive(self, key: str) -> str | None:
-        head = f"{self.prefix}/alive/"
-        if key.startswith(head) and "/" not in key[len(head):]:
-            return key[len(head):]
-        return None
+        return self._node_after("alive", key)
 
     # telemetry
     def status(self, node: str) -> str:
@@ -102,10 +114,48 @@ class Keys:
         return f"{self.prefix}/status/*"
 
     def node_of_status(self, key: str) -> str | None:
-        head = f"{self.prefix}/status/"
+        return self._node_after("status", key)
+
+    # what a robot needs of each peer's status (`PeerStatus`): the robots subscribe to these only
+    def peer(self, node: str) -> str:
+        return f"{self.prefix}/peer/{check_name(node, 'node')}"
+
+    @cached_property
+    def peer_all(self) -> str:
+        return f"{self.prefix}/peer/*"
+
+    def node_of_peer(self, key: str) -> str | None:
+        return self._node_after("peer", key)
+
+    def _node_after(self, what: str, key: str) -> str | None:
+        """The node a ``<prefix>/<what>/<node>`` key names (None for any other key)."""
+        head = f"{self.prefix}/{what}/"
         if key.startswith(head) and "/" not in key[len(head):]:
             return key[len(head):]
         return None
+
+    # messages one node addresses to another, in its own name: acknowledgements (what it consumed
+    # of the frames the other sent it) and the base station's `PeerStatus` as one robot needs it
+    def addressed(self, to: str, node: str) -> str:
+        return f"{self._node_key(to, 'from')}/{check_name(node, 'node')}"
+
+    def addressed_to(self, node: str) -> str:
+        """What is addressed to ``node``: what it subscribes to."""
+        return f"{self._node_key(node, 'from')}/*"
+
+    def addressed_by(self, node: str) -> str:
+        """What ``node`` may put: messages to anyone, in its own name."""
+        return f"{self.prefix}/node/*/from/{check_name(node, 'node')}"
+
+    def addressed_ends(self, key: str) -> tuple[str, str] | None:
+        """(to, from) of an addressed message's key; None for any other key."""
+        head = f"{self.prefix}/node/"
+        if not key.startswith(head):
+            return None
+        parts = key[len(head):].split("/")
+        if len(parts) != 3 or parts[1] != "from" or not _NAME.match(parts[0]) or not _NAME.match(parts[2]):
+            return None
+        return parts[0], parts[2]
 
     # coordinator
     @cached_property
@@ -122,7 +172,8 @@ class Keys:
 
     def all_keys_of(self, node: str, basestation: bool) -> list[str]:
         """The keys a node subscribes to (used by the garbage-survival tests)."""
-        keys = [self.node_data(node), self.node_control(node), self.plan, self.status_all]
+        keys = [self.node_data(node), self.node_control(node), self.addressed_to(node), self.plan,
+                self.status_all if basestation else self.peer_all]
         if basestation:
             keys += [self.inbox, self.operator]
         return keys

@@ -2,10 +2,15 @@
 
 Data plane (``node/<n>/data``, CongestionControl.BLOCK): `Packet`, carrying an encoded
 `ChainFrame` or `StateTransfer` hop by hop along a source route.
-Coordinator -> node (``node/<n>/control``, BLOCK): `Assign`, `Prepare`, `MigrateOut`, `Release`.
+Coordinator -> node (``node/<n>/control``, BLOCK): `Assign`, `Prepare`, `MigrateOut`, `Release`;
+and `PlanUpdate` again for a node whose status says it does not run it yet.
 Node -> coordinator (``base/inbox``, BLOCK): `Prepared`, `StageReady`, `StageFailed`.
-Coordinator -> everyone (``base/plan``, BLOCK): `PlanUpdate`.
-Telemetry (``agent/<r>/status``, ``base/status``, DROP): `NodeStatus`.
+Coordinator -> everyone (``base/plan``, BLOCK): `PlanUpdate`, or a new plan as its `PlanChange`
+from the one before (`autopower.protocol.plans`).
+Telemetry (``status/<n>``, DROP): `NodeStatus`, for base stations (and each process's recording).
+Between robots (``peer/<n>``, DROP): `PeerStatus`, the part of a status the robots use.
+Addressed in the sender's name (``node/<to>/from/<n>``, DROP): `Ack`, what n consumed of the
+chains ``to`` sent it; from the base station, its `PeerStatus` as robot ``to`` acts on it.
 Operator -> coordinator (query on ``base/operator``): `ChainCommand`, `MigrateCommand`,
 `AutoCommand`, `LinkCommand`, `SnapshotRequest`; reply `OperatorReply`.
 """
@@ -93,8 +98,8 @@ MAX_MISSING_RANGES = 256  # missing ranges in one `Consumed` (the lowest ones)
 class Consumed:
     """What the consumer of one hop of a chain has taken in: a stage's input gate or a sink.
 
-    Published in every status, it acknowledges frames to whoever sent them (their custody
-    buffers drop what was consumed and resend what a later report still lacks).
+    Published with every status in an `Ack`, it acknowledges frames to whoever sent them (their
+    custody buffers drop what was consumed and resend what a later report still lacks).
     """
 
     run: int
@@ -116,6 +121,25 @@ class Consumed:
                 raise ValueError(f"missing range ({first}, {last}) is not sorted, disjoint and within "
                                  f"[{self.next_seq}, {self.max_seq}]")
             low = last + 2  # disjoint and not adjacent: adjacent ranges are one range
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class Ack:
+    """What one node has consumed, for one of the nodes that sent it frames: their custody's acknowledgement.
+
+    Sent with every status on `Keys.ack` (to, from), one per producer, with the hops of the chains
+    that producer sends or holds (`NodeStatus.acks_wanted`): a robot hears the acknowledgements of
+    the chains it feeds, not the whole team's.
+    """
+
+    KIND = "ack"
+    node: str  # who consumed (the sender)
+    t_unix: float
+    consumed: dict[str, Consumed]  # "chain#target" -> what the node took in
+    # wall seconds the oldest chain data waiting in the node's event queue had waited (see
+    # `NodeStatus.queue_wait_s`): ``consumed`` speaks for frames sent before t_unix - queue_wait_s
+    queue_wait_s: float = 0.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -332,6 +356,45 @@ class PlanUpdate:
     operator: OperatorSettings = field(default_factory=OperatorSettings)  # kept by a base station that takes over
 
 
+@message
+@dataclass(frozen=True, kw_only=True)
+class PlanChange:
+    """A plan as its change from the plan before it (`autopower.protocol.plans`).
+
+    A new plan moves a few stages; the whole one grows with the team (14.5 kB at 100 robots, most
+    of it links that did not change). A node that holds the plan this one follows (same leader
+    and incarnation, ``base_epoch``, and the same bytes: ``base_digest``) applies it and checks
+    the result against ``digest``; any other node ignores it and is sent the whole plan
+    (`Coordinator.resend_plan`), as one that missed a plan always was.
+    """
+
+    KIND = "plan-change"
+    epoch: int
+    incarnation: int
+    leader: str
+    base_epoch: int
+    base_digest: bytes  # `plan_digest` of the plan it follows
+    digest: bytes  # `plan_digest` of the plan it makes
+    placement: dict[str, str]  # entries new or changed
+    unplaced: tuple[str, ...]  # stages the plan no longer places
+    running: dict[str, int]
+    not_running: tuple[str, ...]
+    links: tuple[LinkInfo, ...]  # links new or with another medium (plans list their links sorted)
+    links_gone: tuple[LinkInfo, ...]
+    predicted_w: dict[str, float]
+    not_predicted: tuple[str, ...]
+    levels: dict[str, str]
+    not_levelled: tuple[str, ...]
+    variants: dict[str, str]
+    not_varied: tuple[str, ...]
+    predicted_lifetime_s: float | None
+    plan_t_virtual: float
+    # None: as in the plan before (a plan made when a stage lands keeps its decision's reasons)
+    policy: str | None
+    reasons: tuple[str, ...] | None
+    operator: OperatorSettings | None
+
+
 # ---------------------------------------------------------------------------------------------
 # telemetry
 # ---------------------------------------------------------------------------------------------
@@ -360,7 +423,9 @@ class NodeStatus:
     errors: dict[str, int]  # dropped garbled messages, unroutable frames, ...
     counters: dict[str, int]  # normal events: forwarded packets, missed periods, ...
     depleted: bool
-    consumed: dict[str, Consumed] = field(default_factory=dict)  # "chain#target" -> what this node took in
+    # the chains whose acknowledgements this node needs (it sends their frames or holds some in
+    # custody): a consumer sends its `Ack` to these nodes as well as to the producers its plan names
+    acks_wanted: tuple[str, ...] = ()
     failed: dict[str, str] = field(default_factory=dict)  # stage -> why its component was stopped here
     # what a base station taking over a running team learns from it (see basestation/takeover.py)
     plan_incarnation: int = 0  # with plan_epoch: the plan this node runs
@@ -381,6 +446,37 @@ class NodeStatus:
     # was made: whatever reached it longer ago than that has been taken in, so `consumed` speaks for the
     # frames sent before (t_unix - queue_wait_s) only (its producers' custody waits that much longer)
     queue_wait_s: float = 0.0
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class PeerStatus:
+    """What a robot needs of every other node, with each status: that it is there (the heartbeat its
+    silence detector listens to), what it sees (relaying), what it runs and its battery (subgroup
+    rounds, a newer instance of a stage) and which acknowledgements it wants. The rest of a
+    `NodeStatus` (sink ledgers, meters, counters, errors) goes to base stations only: the robots
+    read none of it, and the base station's ledgers grew with the team (5.7 kB of its 13.9 kB
+    status at 30 robots, sent to every robot twice a second).
+    """
+
+    KIND = "peer-status"
+    node: str
+    t_unix: float
+    plan_epoch: int
+    battery_j: float | None
+    hosted: dict[str, str]  # stage -> lifecycle state
+    generations: dict[str, int]  # stage -> generation of the instance hosted here
+    links: dict[str, bool]  # the nodes whose liveliness token is visible from here (True only)
+    acks_wanted: tuple[str, ...] = ()  # see `NodeStatus.acks_wanted`
+    down: tuple[float, float] | None = None  # see `NodeStatus.down`
+    next_status_s: float = 0.0  # see `NodeStatus.next_status_s`
+
+    @classmethod
+    def of(cls, status: NodeStatus) -> "PeerStatus":
+        return cls(node=status.node, t_unix=status.t_unix, plan_epoch=status.plan_epoch,
+                   battery_j=status.battery_j, hosted=status.hosted, generations=status.generations,
+                   links={n: True for n, up in status.links.items() if up}, acks_wanted=status.acks_wanted,
+                   down=status.down, next_status_s=status.next_status_s)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -72,7 +72,8 @@ import msgpack
 
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
-from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION
+from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION, encode, message_kind
+from autopower.protocol.plans import PlanAssembler
 from autopower.recording.telemetry import (
     EVENT_TAG,
     MESSAGES,
@@ -222,6 +223,11 @@ class Recorder:
             self.keys = Keys(team)
         self._clock = clock
         self._mission = None  # MissionInfo from the first PlanUpdate
+        # new plans come as their change from the one before. What this process publishes and
+        # what it receives are two streams, each assembled on its own: a base station hears its
+        # own plans back, and one assembler taking the change first on the way in had nothing
+        # left to apply on the way out (the decision of that epoch went unrecorded)
+        self._plans = {"publish": PlanAssembler(), "receive": PlanAssembler()}
         self._runtime = None  # the NodeRuntime `attach` records the outputs of
         self._lock = threading.RLock()
         self.flush_every_s = flush_every_s
@@ -241,6 +247,7 @@ class Recorder:
         self._predicted_epoch = -1
         self._model_w: dict[str, float] = {}  # robot -> the model power last logged for it
         self._down: dict[str, tuple] = {}  # robot -> the downtime last logged for it (NodeStatus.down)
+        self._flow_consumed: dict[str, int] = {}  # entity path -> the next_seq last logged (`_ack`)
         self._owns = owns_telemetry
         self.visualise = visualise
         # (chain, seq, output, variants) -> metrics against the ground truth (`recording.live.QualityScorer`)
@@ -333,9 +340,15 @@ class Recorder:
             kind, fields = _peek(payload)
             if kind == "status":
                 self._status(fields)
-        elif key == keys.plan:
+        elif keys.node_of_peer(key) is not None:
+            return  # the part of the status just logged that robots read (`PeerStatus`)
+        elif keys.addressed_ends(key) is not None:
             kind, fields = _peek(payload)
-            if kind == "plan":
+            if kind == "ack":
+                self._ack(fields)
+        elif key == keys.plan:
+            fields = self._whole_plan(payload, "publish")
+            if fields is not None:
                 self._plan(fields)
         elif key == keys.inbox:
             kind, fields = _peek(payload)
@@ -348,14 +361,28 @@ class Recorder:
             self._other(key, kind, fields)
 
     def on_receive(self, key: str, payload: bytes) -> None:
-        """What this process receives: only plans matter (the mission clock, this node's predicted power)."""
-        if not key.endswith("/base/plan"):
+        """What this process receives: only plans matter (the mission clock, this node's predicted
+        power), on the plan key or resent whole to this node alone on its control key."""
+        if not (key.endswith("/base/plan") or key.endswith(f"/node/{self.node}/control")):
             return
         self._guard("receive", self._received_plan, key, payload)
 
+    def _whole_plan(self, payload: bytes, stream: str) -> dict | None:
+        """The fields of the whole plan ``payload`` carries or makes (a new plan goes out as its
+        change from the one before, `protocol.plans`); None for anything else."""
+        kind = message_kind(payload)  # the header only: a control key carries migrations' state too
+        if kind is None:
+            raise ProtocolError("not an AutoPower message")
+        if kind not in ("plan", "plan-change"):
+            return None
+        plan = self._plans[stream].whole(payload)
+        if plan is None:
+            return None
+        return _peek(payload if kind == "plan" else encode(plan))[1]
+
     def _received_plan(self, key: str, payload: bytes) -> None:
-        kind, fields = _peek(payload)
-        if kind != "plan":
+        fields = self._whole_plan(payload, "receive")
+        if fields is None:
             return
         if self._mission is None:
             self._set_mission(fields["mission"])
@@ -451,10 +478,6 @@ class Recorder:
                 tel.scalar(component_path(chain, "sink/latency_ms_max"), t, st["latency_ms_max"])
         for chain, st in (s.get("sources") or {}).items():
             tel.scalar(component_path(chain, "source/produced_total"), t, st["produced_total"])
-        for key, c in (s.get("consumed") or {}).items():  # DAG flows "P>C#0": each edge's consumer gate
-            producer, sep, consumer = key.rpartition("#")[0].partition(">")
-            if sep and isinstance(c, dict) and "next_seq" in c:
-                tel.scalar(component_path(consumer, f"inputs/{producer}/consumed"), t, c["next_seq"])
         counters = s.get("counters") or {}
         for name, what in (("custody-resent", "resent"), ("custody-frames", "held"), ("custody-evicted", "evicted"),
                            ("held-outputs-dropped", "held_dropped")):
@@ -462,6 +485,17 @@ class Recorder:
             # from their sink dropped beyond the hold budget (`[delivery] hold_budget_mb`)
             if name in counters:
                 tel.scalar(f"custody/{node}/{what}", t, counters[name])
+
+    def _ack(self, a: dict) -> None:
+        """What this node consumed, as sent to a producer: each DAG flow's edge gate ("P>C#0")."""
+        t = self.now()
+        for key, c in (a.get("consumed") or {}).items():
+            producer, sep, consumer = key.rpartition("#")[0].partition(">")
+            if sep and isinstance(c, dict) and "next_seq" in c:
+                path = component_path(consumer, f"inputs/{producer}/consumed")
+                if self._flow_consumed.get(path) != c["next_seq"]:  # sent to each producer: logged once
+                    self._flow_consumed[path] = c["next_seq"]
+                    self.telemetry.scalar(path, t, c["next_seq"])
 
     def _plan(self, p: dict) -> None:
         self._set_mission(p["mission"])
@@ -573,9 +607,10 @@ class Recorder:
             self._outputs_unflushed = False
 
     def before_publish(self, key: str) -> None:
-        """Flush recorded outputs before the status that acknowledges them is sent: a SIGKILL after
-        the acknowledgement then cannot lose from the recording what custody no longer resends."""
-        if self._outputs_unflushed and "/status/" in key:
+        """Flush recorded outputs before the status and the acknowledgements (`Ack`) that follow
+        it are sent: a SIGKILL after the acknowledgement then cannot lose from the recording what
+        custody no longer resends."""
+        if self._outputs_unflushed and ("/status/" in key or "/from/" in key):
             try:
                 self.flush()
             except Exception as exc:  # noqa: BLE001 - recording must never stop a robot

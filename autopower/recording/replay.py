@@ -55,6 +55,8 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                                      "held_dropped": int,  # of its missing seqs, dropped by a hold
                                      "died_with_process": int,  # of its missing seqs, died in a crash
                                      "unrecorded": int,  # of its missing seqs, delivered (sink journal)
+                                     "lost_seqs": [[int, int]],  # [run, seq] of the first lost ones
+                                                                  # (at most LOST_SEQS_SHOWN)
                                      "runs": [int]}}},
       "quality": {chain: {metric: float}},          # measured quality, mean over the chain's outputs
                                                     # (blob recall, localisation error; see chains.variants)
@@ -88,6 +90,7 @@ from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGE
 
 # one scalar (the seq) per output of a chain's run: delivered at its sink, or counted apart (`_outputs`)
 _APART = ("held_dropped", "died_with_process", "sink_journal")
+LOST_SEQS_SHOWN = 20  # a chain lists its first lost seqs, so a user (or a failing test) can look them up
 _PER_OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/(?P<what>seq|" + "|".join(_APART) + ")$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
 _SIM_MOVE = re.compile(r"^(?P<stage>\S+): (?P<src>\S+) → (?P<dst>\S+),")
@@ -602,7 +605,7 @@ def _outputs(rec: Recording) -> dict[str, Any]:
     lost_all = dup_all = died_all = unrecorded_all = 0
     for (chain, run), seqs in seqs_of.items():
         c = chains.setdefault(chain, {"outputs": 0, "distinct": 0, "lost": 0, "duplicated": 0, "held_dropped": 0,
-                                      "died_with_process": 0, "unrecorded": 0, "runs": []})
+                                      "died_with_process": 0, "unrecorded": 0, "lost_seqs": [], "runs": []})
         distinct = set(seqs)
         gaps = (max(distinct) + 1 - len(distinct)) if distinct else 0
 
@@ -615,6 +618,9 @@ def _outputs(rec: Recording) -> dict[str, Any]:
         dropped = in_gaps("held_dropped", unrecorded)
         died = in_gaps("died_with_process", unrecorded, dropped)
         lost = gaps - len(dropped) - len(died) - len(unrecorded)
+        if lost and len(c["lost_seqs"]) < LOST_SEQS_SHOWN:
+            missing = sorted(set(range(max(distinct))) - distinct - unrecorded - dropped - died)
+            c["lost_seqs"].extend([run, seq] for seq in missing[:LOST_SEQS_SHOWN - len(c["lost_seqs"])])
         dup = len(seqs) - len(distinct)
         c["outputs"] += len(seqs)
         c["distinct"] += len(distinct)

@@ -7,6 +7,8 @@ drains a subscriber's bounded channel): they must only enqueue (the event loops 
 
 Zenoh traps this adapter handles (see docs/deploying/zenoh.md):
 - the default congestion control drops under load: ``reliable=True`` publishes with BLOCK;
+- one priority for everything lets chain frames starve the control plane on a slow link: frames
+  go at Priority.DATA, the rest at DATA_HIGH (`protocol.keys.carries_chain_data`);
 - failure detection is the dying peer's lease: it is a setting here (`ZenohSettings.lease_ms`);
 - peers do not relay for other peers: every process connects explicitly to the endpoints it is
   given (one per peer pair, so a test can put a proxy on any single link), multicast and gossip
@@ -29,7 +31,10 @@ from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
 from autopower.protocol.codec import MAX_MESSAGE_BYTES
-from autopower.protocol.keys import key_matches  # noqa: F401  (the in-memory bus matches with it)
+from autopower.protocol.keys import (  # noqa: F401  (the in-memory bus matches with key_matches)
+    carries_chain_data,
+    key_matches,
+)
 
 log = logging.getLogger(__name__)
 
@@ -225,9 +230,13 @@ class ZenohBus:
             with self._lock:
                 pub = self._publishers.get((key, reliable))
                 if pub is None:
-                    cc = self._zenoh.CongestionControl
+                    cc, priority = self._zenoh.CongestionControl, self._zenoh.Priority
+                    # Zenoh keeps a queue per priority and drains the higher one first; one queue
+                    # for all let frames fill it on a slow radio, and a status (DROP) found it
+                    # full for seconds on end: its peers and base station stopped hearing it
                     pub = self.session.declare_publisher(
-                        key, congestion_control=cc.BLOCK if reliable else cc.DROP)
+                        key, congestion_control=cc.BLOCK if reliable else cc.DROP,
+                        priority=priority.DATA if carries_chain_data(key, reliable) else priority.DATA_HIGH)
                     self._publishers[(key, reliable)] = pub
         return pub
 

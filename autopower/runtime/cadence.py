@@ -86,9 +86,14 @@ def status_period_s(own_period_s: float, announced_s: float) -> float:
 def silence_limit_s(periods: float, own_period_s: float, announced_s: float, lease_s: float) -> float:
     """How long a node's statuses may stay away before it counts as silent (out of sight).
 
-    ``periods`` of its status period (`status_period_s`), never sooner than the lease.
+    ``periods`` of its status period (`status_period_s`), never sooner than the lease plus one of
+    those periods: a node's loop may be held in a reliable put for up to a lease by a link of its
+    own that died silently (Zenoh closes such a link only then, `runtime.bus`), and its next status
+    comes within a period after that. Silence shorter than that says nothing about the link we
+    hear it on.
     """
-    return max(periods * status_period_s(own_period_s, announced_s), lease_s)
+    period = status_period_s(own_period_s, announced_s)
+    return max(periods * period, lease_s + period)
 
 
 def next_silence_s(heard: Mapping[str, float], limits: Mapping[str, float]) -> float | None:

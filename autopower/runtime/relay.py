@@ -19,7 +19,7 @@ from collections import deque
 from typing import Callable
 
 from autopower.errors import ProtocolError
-from autopower.protocol import Keys, NodeStatus, Relayed, decode, encode
+from autopower.protocol import Keys, NodeStatus, PeerStatus, Relayed, decode, encode
 from autopower.protocol.access import TeamAccess
 from autopower.runtime.bus import Bus
 from autopower.runtime.signatures import Signing
@@ -71,7 +71,7 @@ class Relayer:
             self.shunned.discard(node)
             self.direct.add(node)
 
-    def on_status(self, status: NodeStatus) -> None:
+    def on_status(self, status: NodeStatus | PeerStatus) -> None:
         if status.node != self.node:
             self.views[status.node] = {n for n, up in status.links.items() if up}
 

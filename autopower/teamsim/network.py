@@ -23,8 +23,10 @@ import random
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from autopower.errors import ProtocolError
 from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
+from autopower.protocol import Packet, Relayed, decode
 from autopower.protocol.codec import message_kind
 from autopower.teamsim.scheduler import Scheduler
 
@@ -103,6 +105,11 @@ class SimNetwork:
         # second copies that reached their receiver, per (receiver, key): the evidence a sink's count
         # of duplicated outputs is checked against (`World.final_checks`)
         self.copies_arrived: dict[tuple[str, str], int] = {}
+        # A routed packet's copy made on one hop reaches its end through the nodes that forward it,
+        # each of which passes on both: the bodies of the packets a link duplicated, and how often
+        # each node passed one on (its second time is the network's copy, not the team's: `transmit`)
+        self._copied_bodies: set[bytes] = set()
+        self._passed_on: dict[tuple[str, bytes], int] = {}
 
     # ---- processes ---------------------------------------------------------------------------
     def attach(self, node: str, endpoint: Endpoint) -> None:
@@ -181,9 +188,11 @@ class SimNetwork:
             return
         d = self.directions[(sender, receiver)]
         self.stats.sent += 1
-        counts = self.stats.by_kind.setdefault(message_kind(payload) or "other", [0, 0])
+        kind = message_kind(payload)
+        counts = self.stats.by_kind.setdefault(_counted_kind(kind, payload), [0, 0])
         counts[0] += 1
         counts[1] += len(payload)
+        carries_copy = kind in _CARRIERS and bool(self._copied_bodies) and self._passes_on_a_copy(sender, payload)
         if d.cut:
             self.stats.cut += 1
             return
@@ -194,10 +203,22 @@ class SimNetwork:
         d.busy_until = max(now, d.busy_until) + len(payload) * 8 / (d.kbps * 1000.0)
         arrival = d.busy_until + d.latency_s + (self.rng.uniform(0.0, d.jitter_s) if d.jitter_s else 0.0)
         target = self.endpoints[receiver]
-        self.scheduler.at(arrival, self._arrive, sender, receiver, key, payload, target)
+        self.scheduler.at(arrival, self._arrive, sender, receiver, key, payload, target, carries_copy)
         if d.dup and self.rng.random() < d.dup:
             self.stats.duplicated += 1
+            if kind in _CARRIERS and (body := _body(payload)) is not None:
+                self._copied_bodies.add(body)
             self.scheduler.at(arrival + DUPLICATE_GAP_S, self._arrive, sender, receiver, key, payload, target, True)
+
+    def _passes_on_a_copy(self, sender: str, payload: bytes) -> bool:
+        """``sender`` passes on a packet (or a relayed message) whose body a link duplicated before, for
+        the second time (or later): what it forwards is that copy. (A body resent by its producer is a
+        new attempt, other bytes: only a forwarder passes the same body on twice.)"""
+        body = _body(payload)
+        if body is None or body not in self._copied_bodies:
+            return False
+        times = self._passed_on[(sender, body)] = self._passed_on.get((sender, body), 0) + 1
+        return times > 1
 
     def _arrive(self, sender: str, receiver: str, key: str, payload: bytes, target: Endpoint,
                 copy: bool = False) -> None:
@@ -211,3 +232,24 @@ class SimNetwork:
         if copy:
             self.copies_arrived[(receiver, key)] = self.copies_arrived.get((receiver, key), 0) + 1
         target.arrive(sender, key, payload)
+
+
+_CARRIERS = frozenset({"packet", "relayed"})  # what a forwarder passes on with its body unchanged
+
+
+def _body(payload: bytes) -> bytes | None:
+    """What a packet carries to its end, or a relayed message to its destination (None: garbled)."""
+    try:
+        msg = decode(payload, (Packet, Relayed))
+    except ProtocolError:
+        return None
+    return msg.body if isinstance(msg, Packet) else msg.payload
+
+
+def _counted_kind(kind: str | None, payload: bytes) -> str:
+    """The kind a message is counted under: a relayed one as ``relayed:<what it carries>`` (a relay
+    carries chain data as well as the control plane: `SimResult.traffic` splits them by it)."""
+    if kind != "relayed":
+        return kind or "other"
+    body = _body(payload)
+    return f"relayed:{(message_kind(body) if body is not None else None) or 'other'}"

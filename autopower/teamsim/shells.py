@@ -18,6 +18,7 @@ import math
 
 from autopower.agent.resume import ResumeFile
 from autopower.basestation.coordinator import Coordinator
+from autopower.basestation.peer_view import PeerViews
 from autopower.errors import ProtocolError
 from autopower.node.held_store import HeldStore
 from autopower.node.peer_watch import PeerWatch, WatchSettings
@@ -26,11 +27,13 @@ from autopower.node.sink_store import SinkStore
 from autopower.node.subgroup_rounds import RoundSettings, SubgroupRounds
 from autopower.protocol import (
     NodeStatus,
+    PeerStatus,
+    PlanChange,
     PlanUpdate,
     decode,
     encode,
 )
-from autopower.protocol.access import status_problem
+from autopower.protocol.access import carries_peer_status, status_problem
 from autopower.runtime.relay import Relayer
 from autopower.teamsim.bus import SimBus
 from autopower.teamsim.scheduler import EPOCH_UNIX
@@ -179,7 +182,7 @@ class RobotShell(Shell):
         rt.sink_store = SinkStore(folder / f"{robot}.sinks.json")
         rt.resume_from = self.resume.load()
         rt.on_produced = self._produced
-        self.statuses: dict[str, NodeStatus] = {}
+        self.statuses: dict[str, PeerStatus] = {}  # the peers' last (`PeerStatus`)
         self.watch = PeerWatch(WatchSettings(own_period_s=w.status_period_s, lease_s=w.network.lease_s))
         self.rounds = SubgroupRounds(
             runtime=rt, scenario=w.scenario, bus=self.bus, keys=keys, wall=w.scheduler.wall,
@@ -187,7 +190,8 @@ class RobotShell(Shell):
             settings=RoundSettings(enabled=w.subgroup, status_period_s=w.status_period_s),
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=w.scheduler.wall())
         self.bus.subscribe(keys.node_data(robot), lambda k, p: self.guarded(self._received, k, p))
-        for key in (keys.node_control(robot), keys.plan, keys.node_relay(robot), keys.status_all, keys.subgroup):
+        for key in (keys.node_control(robot), keys.addressed_to(robot), keys.plan, keys.node_relay(robot), keys.peer_all,
+                    keys.subgroup):
             self.bus.subscribe(key, lambda k, p: self.guarded(self._received, k, p))
         self.bus.watch_liveliness(keys.alive_all, lambda k, alive: self.guarded(self._liveliness, k, alive))
         self.bus.declare_token(keys.alive(robot))
@@ -228,9 +232,9 @@ class RobotShell(Shell):
         if key == keys.subgroup:
             self.rounds.on_message(payload)
             return
-        if keys.node_of_status(key) is not None:
+        if carries_peer_status(keys, key, payload, self.node):  # a robot's, or the base station's to us
             try:
-                status = decode(payload, NodeStatus)
+                status = decode(payload, PeerStatus)
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
                 return
@@ -268,10 +272,13 @@ class RobotShell(Shell):
             self.save_resume()
         rt.sink_store.commit()
         self.commit_outputs()
-        key, payload = keys.status(self.node), encode(status)
-        self.bus.publish(key, payload, reliable=False)
-        dests = {w.scenario.basestation} | rt.producers()
-        self.relayer.send_beyond_sight(sorted(dests), key, payload, reliable=False)
+        base = w.scenario.basestation
+        for key, payload, dests in ((keys.status(self.node), encode(status), [base]),
+                                    (keys.peer(self.node), encode(PeerStatus.of(status)),
+                                     sorted(rt.producers() - {base}))):
+            self.bus.publish(key, payload, reliable=False)
+            self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
+        rt.send_acks(self.relayer.reachable, status.queue_wait_s)
         self._status_sent(status)
 
     def save_resume(self) -> None:
@@ -315,16 +322,15 @@ class BaseShell(Shell):
         rt.sink_store = SinkStore(w.store_dir / "sinks.json")
         rt.held_store = HeldStore(w.store_dir / "basestation.held")
         kept = w.base_state.get("incarnation")
-        self.co = co = Coordinator(scenario=w.scenario, bus=self.bus, keys=keys, config=w.coordinator_config,
+        self.peer_views = PeerViews(w.scenario, self.keys)
+        self.co = Coordinator(scenario=w.scenario, bus=self.bus, keys=keys, config=w.coordinator_config,
                                    wall_fn=w.scheduler.wall, leader=f"{base}:sim:{self.number}",
-                                   incarnation=0 if kept is None else kept + 1)
-        co.send_to = self.relayer.send
-        co.also_relay = self.relayer.send_beyond_sight
-        co.on_own_plan = self._own_plan
+                                   incarnation=0 if kept is None else kept + 1, send_to=self.relayer.send,
+                                   also_relay=self.relayer.send_beyond_sight, on_own_plan=self._own_plan)
         self.suspects: dict[str, float] = {}
         self.status_t: dict[str, float] = {}
-        for key in (keys.node_data(base), keys.node_control(base), keys.plan, keys.inbox, keys.status_all,
-                    keys.node_relay(base)):
+        for key in (keys.node_data(base), keys.node_control(base), keys.addressed_to(base), keys.plan, keys.inbox,
+                    keys.status_all, keys.node_relay(base)):
             self.bus.subscribe(key, lambda k, p: self.guarded(self._received, k, p))
         self.bus.watch_liveliness(keys.alive_all, lambda k, alive: self.guarded(self._liveliness, k, alive))
         self.bus.declare_token(keys.alive(base))
@@ -388,7 +394,7 @@ class BaseShell(Shell):
         key, payload = inner
         if key == keys.plan:
             try:
-                plan = decode(payload, PlanUpdate)
+                plan = decode(payload, (PlanUpdate, PlanChange))  # whole or a change: both name their leader
             except ProtocolError:
                 plan = None
             if plan is not None and plan.leader != co.leader:
@@ -441,11 +447,21 @@ class BaseShell(Shell):
             self.next_status = max(self.next_status + w.status_period_s, now)
             if rt.started:
                 self.publish_status()
+            else:  # no mission yet: the robots hear that it runs no plan (`PeerViews.listening`)
+                for robot, key, payload in self.peer_views.addressed(co, None, now, w.status_period_s):
+                    self._send_view(robot, key, payload)
         wake = [self.next_status, co.next_deadline_unix()]
         wake += [t + SUSPECT_SETTLE_S for t in self.suspects.values()]
         if rt.started and (t := rt.next_deadline()) is not None:
             wake.append(rt.clock.wall_at(t))
         return min(wake)
+
+    def _send_view(self, robot: str, key: str, payload: bytes) -> None:
+        """As the live base station does (`BaseStation._send_view`): on its key whether or not we
+        take it for in sight, relayed as well when it is out of sight."""
+        self.bus.publish(key, payload, reliable=False)
+        if robot not in self.relayer.direct:
+            self.relayer.send(robot, key, payload, reliable=False)
 
     def publish_status(self) -> None:
         rt, co, w = self.rt, self.co, self.world
@@ -453,8 +469,9 @@ class BaseShell(Shell):
         rt.sink_store.commit()
         self.commit_outputs()
         rt.settle_held_store()
-        key, payload = self.keys.status(self.node), encode(status)
-        self.bus.publish(key, payload, reliable=False)
-        alive = co.alive_nodes()
-        self.relayer.send_beyond_sight([r for r in co.robots if r in alive], key, payload, reliable=False)
+        self.bus.publish(self.keys.status(self.node), encode(status), reliable=False)  # standby base stations
+        # each robot the part it acts on (`basestation.peer_view`)
+        for robot, key, payload in self.peer_views.addressed(co, status, w.scheduler.wall(), status.next_status_s):
+            self._send_view(robot, key, payload)
+        rt.send_acks(self.relayer.reachable, status.queue_wait_s)
         self._status_sent(status)

@@ -97,7 +97,7 @@ class SimResult:
         per = max(self.robots, 1) * max(self.virtual_s, 1e-9)
         out = {"data": [0, 0], "control": [0, 0]}
         for kind, (count, size) in self.network.get("by_kind", {}).items():
-            side = out["data" if kind in DATA_KINDS else "control"]
+            side = out["data" if kind.rpartition(":")[2] in DATA_KINDS else "control"]  # "relayed:packet": data
             side[0] += count
             side[1] += size
         return {side: {"messages": round(n / per, 3), "bytes": round(b / per, 1)} for side, (n, b) in out.items()}

@@ -12,6 +12,13 @@ from tests.e2e.test_up import env_for, run_cli
 from tests.integration.test_json_contract import check_keys
 
 
+def losses_in(recording: str, tmp_path) -> dict:
+    """The chains of ``recording`` with a lost or duplicated output, and which (`replay --json`)."""
+    shown = run_cli(["replay", "--json", recording], env_for(tmp_path), timeout=120)
+    chains = json.loads(shown.stdout)["outputs"]["chains"]
+    return {chain: c for chain, c in chains.items() if c["lost"] or c["duplicated"]}
+
+
 def test_demo_json(tmp_path):
     result = run_cli(["demo", "--json", "--log-dir", str(tmp_path / "demo")], env_for(tmp_path), timeout=150)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -40,7 +47,7 @@ def test_demo_json(tmp_path):
     assert base["taken_over_wall_s"] is not None and base["restarted_wall_s"] < base["taken_over_wall_s"] <= 10, base
     assert out["supervision"]["restarts"] == {crash["target"]: 1, "laptop": 1}, out["supervision"]
     assert out["supervision"]["given_up"] == {}
-    assert out["lost_outputs"] == 0 and out["duplicated_outputs"] == 0
+    assert out["lost_outputs"] == 0 and out["duplicated_outputs"] == 0, losses_in(out["recording"], tmp_path)
     assert out["adopted"] >= 1  # the base station started from what the subgroup ran
     assert out["migrations"] >= 1
     assert out["recording"] and Path(out["recording"]).is_file()

@@ -42,9 +42,14 @@ def blob_figures(pins, tmp_path) -> tuple[dict, list[str]]:
         deadline = time.monotonic() + 30.0
         while True:
             snap = team.snapshot()
-            times = [(v.get("status") or {}).get("t_virtual") or 0.0 for v in snap["robots"].values()]
-            if min(times) >= 0.5 * RUN_S * spec.speed or time.monotonic() > deadline:
+            times = {r: (v.get("status") or {}).get("t_virtual") or 0.0 for r, v in snap["robots"].items()}
+            if min(times.values()) >= 0.5 * RUN_S * spec.speed:
                 break
+            # the control plane rides ahead of the frames (`carries_chain_data`): a status waits
+            # for the batch on air and the socket's buffer, seconds on GSM, never the whole run
+            assert time.monotonic() < deadline, (
+                f"pins {pins}: after {RUN_S:g} s and 30 s more the base station's latest statuses are from "
+                f"virtual {times} (base at {snap.get('t_virtual')}): the robots' statuses do not cross the radio")
             time.sleep(0.5)
     sources, sinks = sources_of(snap), sinks_of(snap)
     out = {}

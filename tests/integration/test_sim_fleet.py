@@ -39,3 +39,18 @@ def test_a_30_robot_fleet_on_a_lossy_link_loses_and_repeats_nothing():
     blob = result.chains["Blob-21"]
     assert blob.lost == 0 and blob.duplicated == 0 and blob.delivered == blob.produced - blob.dropped_by_budget
     assert sum(c.produced for c in result.chains.values()) > 30 * 150  # the whole fleet ran, not a few chains
+
+
+@pytest.mark.slow
+def test_the_acknowledgements_a_robot_gets_do_not_grow_with_the_team():
+    """Each consumer sends its `Ack` to the nodes that feed the chain, not to everyone: a robot
+    hears the acknowledgements of its own chains. (They rode in the statuses every node heard: the
+    base station's carried one report per hop it hosted, 4.5 kB of its 13.9 kB at 30 robots.)"""
+    per_robot = {}
+    for n in (5, 20):
+        _, fleet = paper_fleet(n, topology="neighbours", neighbours=2)
+        result = run(SimConfig(scenario=fleet, seed=0, mission_s=10.0, quiet_s=5.0))
+        assert result.ok, [v.to_json() for v in result.violations]
+        _, size = result.network["by_kind"]["ack"]
+        per_robot[n] = size / n / result.virtual_s
+    assert per_robot[20] < 1.25 * per_robot[5], per_robot

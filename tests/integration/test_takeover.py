@@ -110,7 +110,8 @@ def test_a_new_base_station_takes_over_after_sigkill(tmp_path):
         # the robots run the new base station's plans, and nothing was lost or delivered twice
         settled = wait_for(team, lambda s: s["ready"] and no_gaps(s) and all(
             v["status"]["plan_incarnation"] == s["incarnation"] and v["status"]["plan_epoch"] == s["epoch"]
-            and v["status"]["mission"] == s["mission"] for v in s["robots"].values())
+            # a robot names its mission only to a base station that does not run its plan
+            and v["status"]["mission"] in (None, s["mission"]) for v in s["robots"].values())
             and all(v > delivered[c] + 40 for c, v in operator_received(s).items()), 30,
             "every robot on the new base station's plan, every sink without a gap")
         for chain, stats in sinks_of(settled).items():
@@ -170,7 +171,7 @@ def test_two_base_stations_at_once_the_older_steps_down(tmp_path):
         assert snap["mission"] == first["mission"]
         for name, info in snap["robots"].items():
             assert info["status"]["plan_incarnation"] == snap["incarnation"], name
-            assert info["status"]["mission"] == first["mission"], name
+            assert info["status"]["mission"] in (None, first["mission"]), name  # named only to one behind
         assert all(s["duplicates_total"] == 0 for s in sinks_of(snap).values())
         second_log = second.log_path.read_text()
         assert "took over a running team" in second_log

@@ -75,7 +75,7 @@ class SimTeam:
             rt = NodeRuntime(node=node, scenario=scenario, bus=bus, keys=self.keys,
                              clock_factory=lambda mission: self.clock, **kwargs)
             rt.wall = self.clock.wall  # custody ages frames on the test's clock
-            rt.send_to = lambda dest, key, payload, rt=rt, bus=bus: self._send(rt.node, dest, key, payload, bus)
+            rt.send_to = lambda dest, key, payload, rt=rt, bus=bus, reliable=True: self._send(rt.node, dest, key, payload, bus)
             # as an agent does: a packet only crossing this node is forwarded on arrival (not
             # across a silent cut: that one goes to `on_data`, whose send is lost in `_send`)
             rt.in_sight = lambda dest, rt=rt: relay_on_arrival and (rt.node, dest) not in self.cut_links
@@ -108,7 +108,8 @@ class SimTeam:
         self.cut_links = self.cut_links - {(a, b), (b, a)}
 
     def exchange_statuses(self, window_s: float = 10.0) -> None:
-        """Every node hears every other node's status (its custody acks), except across cuts."""
+        """Every node hears every other node's status, then the acknowledgements addressed to it
+        (what it sent was consumed), except across cuts."""
         statuses = {name: rt.status(window_s) for name, rt in self.nodes.items()
                     if rt.started and name in self.subscriptions}
         for name, rt in self.nodes.items():
@@ -117,6 +118,10 @@ class SimTeam:
             for other, status in statuses.items():
                 if other != name and (other, name) not in self.cut_links:
                     rt.on_peer_status(status)
+        for name in statuses:
+            for dest, ack in self.nodes[name].acks().items():
+                if dest in statuses and (name, dest) not in self.cut_links:
+                    self.nodes[dest].on_ack(ack)
         self.pump()
 
     def _inbox(self, key, payload):

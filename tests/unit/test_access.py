@@ -27,6 +27,10 @@ ACCESS = TeamAccess(KEYS, "laptop", ("r1", "r2"))
     ("laptop", KEYS.subgroup, False),
     (OPERATOR, KEYS.plan, False),  # the operator only queries
     ("stranger", KEYS.node_data("r1"), False),
+    ("laptop", KEYS.addressed("r1", "laptop"), True),  # its status as r1 acts on it, acks
+    ("r2", KEYS.addressed("r1", "r2"), True),  # acknowledgements in its own name
+    ("r2", KEYS.addressed("r1", "laptop"), False),  # never in the base station's
+    ("laptop", KEYS.peer("laptop"), False),  # the base station addresses each robot instead
 ])
 def test_who_may_put_what(identity, key, allowed):
     assert ACCESS.may_put(identity, key) is allowed
@@ -56,6 +60,9 @@ def test_a_status_must_name_its_key_and_not_come_from_the_future():
     assert status_problem(KEYS, KEYS.status("r1"), "r1", 100.0, 100.0) is None
     assert "naming 'r1' on 'r2'" in status_problem(KEYS, KEYS.status("r2"), "r1", 100.0, 100.0)
     assert "future" in status_problem(KEYS, KEYS.status("r1"), "r1", 100.0 + 3600, 100.0)
+    # the base station's status addressed to one robot names the base station's key
+    assert status_problem(KEYS, KEYS.addressed("r1", "laptop"), "laptop", 100.0, 100.0) is None
+    assert "naming 'laptop' on 'r2'" in status_problem(KEYS, KEYS.addressed("r1", "r2"), "laptop", 100.0, 100.0)
 
 
 def test_a_relayed_message_is_delivered_only_if_its_origin_may_put_on_its_key():

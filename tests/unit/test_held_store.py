@@ -88,7 +88,7 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     assert delivered == {f.seq for f in results[4:]}
     assert not rt.held_outputs
     # acknowledged: the journal is emptied at the next status tick
-    rt.on_peer_status(team.nodes["laptop"].status(1.0))
+    rt.on_ack(team.nodes["laptop"].acks()["r2"])
     rt.settle_held_store()
     assert HeldStore(tmp_path / "r2.held").load(mission_key(rt.mission)) == []
 

@@ -86,13 +86,14 @@ def test_a_peer_that_falls_silent_is_found_when_its_limit_passes_while_the_agent
     process.watch.on_token("r2", True)  # r2's token is here, its last status came now, with the normal period
     heard = time.time()
     process.watch.on_status("r2", 0.0, heard)
+    limit = process.watch.limits()["r2"]  # asked now: out of sight, it is not watched any more
     found = []
     real = process._sight
     process._sight = lambda node, visible: found.append((node, visible, time.time())) or real(node, visible)
     run_for(process, 2.0)
-    limit = process.watch.limits().get("r2") or 1.0  # (out of sight now: not watched any more)
     assert [(n, v) for n, v, _ in found] == [("r2", False)] and "r2" in process.watch.silent
-    # when its limit (two periods, never below the lease: 1 s) passed, not at a tick at rest up to 2 s later
+    # when its limit (two periods, never below the lease and a period) passed, not at a tick at rest
+    # up to 2 s later
     assert 0.0 < found[0][2] - heard - limit <= 0.2, found[0][2] - heard
 
 

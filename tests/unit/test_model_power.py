@@ -15,7 +15,8 @@ from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.energy import evaluate
 from autopower.model.loading import load_scenario
 from autopower.policies import effective_scenario
-from autopower.protocol import MigrateCommand, MigrateOut, PlanUpdate, decode
+from autopower.protocol import MigrateCommand, MigrateOut, PlanUpdate
+from autopower.protocol.plans import PlanAssembler
 from tests.unit.sim_team import SimTeam
 
 FC = {"laptop-robot": "802.11a", "robot-robot": "802.11a"}
@@ -37,7 +38,13 @@ def _model_for(team: SimTeam, rt, plan: PlanUpdate) -> dict[str, float]:
 def team():
     team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False))
     plans: list[PlanUpdate] = []
-    team.hub.bus("observer").subscribe(team.keys.plan, lambda key, payload: plans.append(decode(payload, PlanUpdate)))
+    assembler = PlanAssembler()  # new plans go out as their change from the one before
+
+    def observed(key: str, payload: bytes) -> None:
+        plan = assembler.whole(payload)
+        assert plan is not None, "an observer that heard every plan can apply every change"
+        plans.append(plan)
+    team.hub.bus("observer").subscribe(team.keys.plan, observed)
     team.plans = plans
     team.join()
     team.run_until(5.0)

@@ -29,9 +29,9 @@ def test_a_resting_peer_is_judged_by_the_period_it_announced_never_sooner_than_t
     w = PeerWatch(WatchSettings(periods=2.0, own_period_s=0.5, lease_s=3.0))
     w.on_token("r2", True)
     w.on_status("r2", 0.5, 0.0)
-    assert w.limits() == {"r2": 3.0}  # two periods (1 s) would be sooner than the lease
+    assert w.limits() == {"r2": 3.5}  # two periods (1 s) would be sooner than the lease and a period
     w.on_status("r2", 2.0, 0.0)
-    assert w.limits() == {"r2": 4.0}  # at rest: two of its 2 s periods
+    assert w.limits() == {"r2": 5.0}  # at rest: the lease and one of its 2 s periods
 
 
 def test_a_token_that_goes_while_silent_changes_nothing_and_one_that_comes_back_starts_afresh():

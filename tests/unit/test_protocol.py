@@ -12,6 +12,7 @@ from hypothesis import given, settings, strategies as st
 from autopower.errors import ProtocolError
 from autopower.protocol import (
     PROTOCOL_VERSION,
+    Ack,
     Assign,
     AutoCommand,
     ChainCommand,
@@ -26,6 +27,8 @@ from autopower.protocol import (
     NodeStatus,
     OperatorReply,
     Packet,
+    PeerStatus,
+    PlanChange,
     PlanUpdate,
     Prepare,
     Prepared,
@@ -68,6 +71,11 @@ SAMPLES = [
     PlanUpdate(epoch=3, mission=MISSION, placement={"Loc-1": "laptop"}, running={"Loc-1": 0},
                links=(LinkInfo(a="r1", b="laptop", medium="802.11a"),), predicted_w={"r1": 1.35},
                predicted_lifetime_s=None, plan_t_virtual=0.0),
+    PlanChange(epoch=4, incarnation=0, leader="laptop:1", base_epoch=3, base_digest=b"\x01" * 16,
+               digest=b"\x02" * 16, placement={"Loc-1": "r1"}, unplaced=("Loc-2",), running={}, not_running=(),
+               links=(), links_gone=(LinkInfo(a="r1", b="r2", medium="bluetooth"),), predicted_w={"r1": 1.5}, not_predicted=(), levels={}, not_levelled=(), variants={},
+               not_varied=(), predicted_lifetime_s=None, plan_t_virtual=1.0, policy=None, reasons=("a link cut",),
+               operator=None),
     STATUS := NodeStatus(node="r1", t_virtual=3.0, t_unix=1.0, plan_epoch=3, initial_j=64000.0, battery_j=63990.0,
                energy_j={"cpu_idle": 10.0}, power_w={"cpu_idle": 1.34}, cpu_utilisation=0.0,
                hosted={"Loc-1": "running"},
@@ -76,8 +84,10 @@ SAMPLES = [
                                          latency_ms_p50=1.0, latency_ms_max=2.0, received_total=2,
                                          duplicates_total=0, digest=12345)},
                links={"laptop": True}, runs={}, compute_ms={}, queue_depth=0, errors={}, counters={},
-               depleted=False,
-               consumed={"Blob-2#1": Consumed(run=0, generation=2, next_seq=4, max_seq=20, missing=((4, 6), (9, 9)))}),
+               depleted=False, acks_wanted=("Blob-1", "Loc-1")),
+    PeerStatus.of(STATUS),
+    ACK := Ack(node="laptop", t_unix=1.5, queue_wait_s=0.25,
+        consumed={"Blob-2#1": Consumed(run=0, generation=2, next_seq=4, max_seq=20, missing=((4, 6), (9, 9)))}),
     ChainCommand(chain="Blob-2", enabled=False),
     MigrateCommand(stage="Loc-2", to_node="r1"),
     AutoCommand(),
@@ -156,7 +166,7 @@ def _fields(msg) -> dict:
     (_raw("frame", {**_fields(FRAME), "payload_len": 99}), "exceeds"),
     (_raw("state", {**_fields(SAMPLES[2]), "pending": [{"chain": "x"}]}), "missing field"),
     (_raw("plan", {**_fields(SAMPLES[9]), "links": [{"a": "r1", "b": "laptop"}]}), "missing field"),
-    *[(_raw("status", {**_fields(STATUS), "consumed": {"Blob-2#1": {
+    *[(_raw("ack", {**_fields(ACK), "consumed": {"Blob-2#1": {
         "run": 0, "generation": 1, "next_seq": 4, "max_seq": 20, "missing": missing}}}), match)
       for missing, match in (([[6, 5]], "not sorted"), ([[2, 5]], "within"), ([[8, 9], [4, 5]], "not sorted"),
                              ([[4, 5], [6, 7]], "disjoint"), ([[4, 21]], "within"),
@@ -302,3 +312,16 @@ def test_fast_decoding_matches_the_field_by_field_checks(msg):
                                                                             max_size=6))
 def test_fast_decoding_matches_on_random_fields(kind, fields):
     assert _same(_slow(kind, fields), _fast(kind, fields))
+
+
+def test_only_chain_frames_ride_below_the_control_plane():
+    """Zenoh drains a higher priority first: statuses, acks and plans must not wait behind frames."""
+    from autopower.protocol.keys import Keys, carries_chain_data
+
+    keys = Keys("t1")
+    assert carries_chain_data(keys.node_data("r1"), True)
+    assert carries_chain_data(keys.node_relay("r1"), True)  # relayed frames keep their order with the rest
+    control = [(keys.node_relay("r1"), False), (keys.node_control("r1"), True), (keys.status("r1"), False),
+               (keys.peer("r1"), False), (keys.addressed("r1", "r2"), False), (keys.addressed("data", "data"), False),
+               (keys.plan, True), (keys.subgroup, True), (keys.inbox, True), ("other/t1/node/r1/data", True)]
+    assert not [k for k, reliable in control if carries_chain_data(k, reliable)]

@@ -137,7 +137,8 @@ def test_lost_and_duplicated_outputs_are_counted(tmp_path):
     rec.close()
     s = summarize(load(tmp_path / "x.rrd"))
     assert s["outputs"]["chains"]["Blob-2"] == {"outputs": 8, "distinct": 5, "lost": 1, "duplicated": 3, "held_dropped": 0,
-                                               "died_with_process": 0, "unrecorded": 0, "runs": [0, 1]}
+                                               "died_with_process": 0, "unrecorded": 0, "runs": [0, 1],
+                                               "lost_seqs": [[0, 2]]}  # which one: to look up in the recording
     assert s["lost_outputs"] == 1 and s["duplicated_outputs"] == 3
     inv = {i["name"]: i["ok"] for i in s["invariants"]}
     assert inv["every output exactly once at its sink"] is False and not s["ok"]
@@ -309,3 +310,31 @@ def test_outputs_of_a_runtime_that_started_without_a_plan_on_the_bus_get_its_mis
     robot.close()
     times, values = load(merge_run(run_dir)).scalars["components/Loc-1/run/0/seq"]
     assert sorted(zip(values, times, strict=False)) == [(0.0, 0.0), (1.0, 478.5)]
+
+
+def test_a_plan_change_heard_back_before_its_publication_is_recorded_as_its_decision(tmp_path):
+    """A base station hears its own plans back (it subscribes to the plan key); Zenoh's loopback may
+    hand the recorder a change before the publish tap does. Each stream is assembled on its own."""
+    from autopower.protocol import LinkInfo, MissionInfo, PlanUpdate
+    from autopower.protocol.plans import plan_change, published_digest, sorted_plan
+    from autopower.recording.replay import DECISIONS, _events
+
+    keys = Keys("t")
+    mission = MissionInfo(scenario="paper-fig7", accounting="paper", epoch_unix=1e9, speed=1.0,
+                          energies_j={"r1": 100.0})
+    links = (LinkInfo(a="laptop", b="r1", medium="802.11a"),)
+    plans = [sorted_plan(PlanUpdate(epoch=epoch, mission=mission, placement={"Loc-1": host}, running={"Loc-1": 0},
+                                    links=links, predicted_w={"r1": 1.0}, predicted_lifetime_s=None,
+                                    plan_t_virtual=0.0, leader="laptop:1")) for epoch, host in ((1, "laptop"), (2, "r1"))]
+    (first, d1), (second, d2) = (published_digest(encode(p)) for p in plans)
+    change = encode(plan_change(first, d1, second, d2))
+    rec = Recorder(Telemetry(tmp_path / "b.rrd", kind="live", properties={"scenario": "paper-fig7"}), "laptop",
+                   clock=lambda: 1.0)
+    rec.telemetry.battery(0.0, "r1", 100.0)  # a recording the reader takes: one battery sample
+    rec.on_publish(keys.plan, encode(first))
+    rec.on_receive(keys.plan, encode(first))
+    rec.on_receive(keys.plan, change)  # the loopback first
+    rec.on_publish(keys.plan, change)
+    rec.close()
+    decided = [p["epoch"] for _, _, p in _events(load(tmp_path / "b.rrd"), DECISIONS) if p and p.get("type") == "plan"]
+    assert decided == [1, 2] and rec.errors == 0

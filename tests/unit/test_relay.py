@@ -87,3 +87,23 @@ def test_a_late_relayed_message_does_not_cut_off_a_node_that_is_seen_directly():
     assert "laptop" in r1.direct and r1.path_to("laptop") == ["r1", "laptop"]
     r1.on_direct("r9")  # nothing to undo for a node we never shunned
     assert "r9" not in r1.direct
+
+
+def test_a_status_lists_the_nodes_a_robot_has_links_with_and_has_seen_not_the_whole_team():
+    """A robot's status grows with its own links: at 100 robots it listed all 100 (1.4 of 2.5 kB)."""
+    from autopower.node.runtime import NodeRuntime
+    from autopower.simulation.synthetic import paper_fleet
+
+    _, fleet = paper_fleet(12, topology="neighbours", neighbours=2)
+    rt = NodeRuntime(node="r1", scenario=fleet, bus=InMemoryHub().bus("r1"), keys=KEYS)
+    assert set(rt.status(1.0).links) == {"laptop", "r2", "r3", "r11", "r12"}  # none up yet: all reported down
+    rt.on_liveliness("r2", True)
+    rt.on_liveliness("r7", True)  # seen, though the scenario has no r1-r7 link: it is there
+    rt.on_liveliness("r7", False)
+    links = rt.status(1.0).links
+    assert links["r2"] and not links["laptop"] and links["r7"] is False  # gone: reported down until back
+    assert set(links) == {"laptop", "r2", "r3", "r11", "r12", "r7"}
+    for i in range(1000):  # names from the network that are not the team's: nothing grows
+        rt.on_liveliness(f"stranger{i}", True)
+        rt.on_liveliness(f"stranger{i}", False)
+    assert set(rt.status(1.0).links) == {"laptop", "r2", "r3", "r11", "r12", "r7"}

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from autopower.launch.summary import complete_at_ready, placed_power_w, run_summary
+from autopower.launch.summary import at_ready_complete, complete_at_ready, placed_power_w, run_summary
 
 
 def _snap(t: float, battery: float, predicted: float = 2.0) -> dict:
@@ -42,7 +42,9 @@ def test_a_robot_not_yet_heard_at_ready_is_compared_from_its_first_status_after(
     later, end = _snap(10.0, 1000.0 - 10 * 0.4), _snap(100.0, 1000.0 - 10 * 0.4 - 90 * 2.0)
     assert run_summary(end, team="t", speed=1, ready_after_s=1.0, wall_s=10.0,
                        at_ready=at_ready)["robots"]["r1"]["power_error"] is None  # nothing to start from
+    assert not at_ready_complete(at_ready)  # `testbed up --json` asks for snapshots until it is
     complete_at_ready(at_ready, later)
+    assert at_ready_complete(at_ready)
     complete_at_ready(at_ready, end)  # a usable one stays: the comparison starts at the first
     r1 = run_summary(end, team="t", speed=1, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)["robots"]["r1"]
     assert r1["placed_power_w"] == pytest.approx(2.0) and r1["power_error"] == pytest.approx(0.0, abs=1e-12)

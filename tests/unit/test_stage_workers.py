@@ -400,7 +400,10 @@ def test_inputs_in_a_worker_stay_in_their_producers_custody_and_a_crash_of_their
         assert r1.hosted["Blob-2"].gate.next_seq == done + len(held)  # the gate took them all ...
         report = r1.consumed()["Blob-2#0"]
         assert report.next_seq == done and all(in_ranges(report.missing, s) for s in held)  # ... it acknowledges only what ran
-        assert custody_of(r2, "Blob-2") == held  # so r2 still holds exactly those
+        # so r2 still holds every one of those; what else it holds ran, its output not yet acknowledged
+        # by the laptop's sink when r1 reported (in r1's memory only: a crash of r1 would take it)
+        kept = set(custody_of(r2, "Blob-2"))
+        assert set(held) <= kept and kept - set(held) <= set(range(done)), (sorted(kept), held, done)
         assert sorted(seq for seq, _ in outputs["Blob-2"]) == list(range(done))
 
         # r1 dies (SIGKILL: its worker with it, nothing more from it); Blob-2 starts on r3 without state

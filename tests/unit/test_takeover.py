@@ -15,7 +15,7 @@ from autopower.model.loading import load_scenario
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sequencing import SinkLedger
 from autopower.node.sink_store import SinkStore
-from autopower.protocol import ChainCommand, LinkCommand
+from autopower.protocol import ChainCommand, LinkCommand, PeerStatus
 from autopower.runtime.bus import InMemoryHub
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
@@ -360,3 +360,24 @@ def test_orders_go_above_a_generation_a_robot_started_without_the_base_station()
     assert co.placement["Loc-2"] == "laptop" and "Loc-2" in team.nodes["laptop"].hosted
     assert team.nodes["laptop"].hosted["Loc-2"].generation > restarted
     assert r2.counters.get("stale-order", 0) == 0
+
+
+def test_a_robot_names_its_mission_only_to_a_base_station_that_does_not_run_its_plan(sc):
+    """The mission (its starting energies grow with the team) is in a robot's status while the
+    base station's last status runs another plan, a restarted one says nothing (it sends no status
+    before it runs a mission) or its token changed; not while the base station runs the robot's plan."""
+    team = running_team(sc)
+    r1, base = team.nodes["r1"], team.nodes["laptop"]
+    assert r1.status(10.0).mission is not None  # nothing heard from the base station yet
+    view = PeerStatus.of(base.status(10.0))
+    assert view.plan_epoch == r1.plan.epoch
+    r1.on_peer_status(view)
+    assert r1.status(10.0).mission is None  # it runs our plan: no need to say which mission
+    r1.on_peer_status(dataclasses.replace(view, plan_epoch=-1))  # a base station without a mission
+    assert r1.status(10.0).mission == r1.mission
+    r1.on_peer_status(view)
+    r1.on_liveliness("laptop", False)  # its process is gone: the next one will need it
+    assert r1.status(10.0).mission == r1.mission
+    r1.on_peer_status(view)
+    team.clock.advance(3 * max(view.next_status_s, 0.5) + 0.1)  # silent for three announced periods
+    assert r1.status(10.0).mission == r1.mission

@@ -14,12 +14,14 @@ from autopower.model.loading import load_scenario
 from autopower.teamsim import Fault, SimConfig, run
 from autopower.teamsim.sweep import run_seed
 from tests.integration.test_sim_sweep import (
+    FIXED_FORWARDED_COPIES,
     FIXED_WAITING_INPUTS,
     FIXED_WAITING_INPUTS_WITH_ROUNDS,
     FOUND,
     FOUND_BEYOND_RANGE,
     FOUND_PLAN,
     FOUND_WITH_ACCRUAL,
+    FOUND_WITH_OLD_RUNS,
     FOUND_WITH_RADIO,
     FOUND_WITH_ROUNDS,
     PLAN,
@@ -89,6 +91,20 @@ def test_a_robot_that_took_the_base_station_for_gone_on_a_lossy_link_is_adopted_
     assert result.ok, [v.to_json() for v in result.violations]
 
 
+def test_a_result_lost_on_its_link_survives_its_hosts_crash():
+    """Found by the simulator (fixed; sweep seed 168, shrunk): Loc-1 ran on the laptop; its result for
+    seq 10 was lost on laptop-r1 (12 % loss), and so was its resend, and the laptop crashed 0.5 s later.
+    The laptop's gate had acknowledged the input once it ran, so r1 had let it go: the result lived in
+    the crashed process only. An input whose output is in its host's memory only is reported had, not
+    run (`Frames._less_unsafe_outputs`): r1 kept it and sent it to the restarted base station, which
+    computed the result again."""
+    crash = Fault(kind="basestation-crash", t=19.651, duration=1.302)
+    lossy = Fault(kind="loss", t=21.335, duration=4.332, a="laptop", b="r1", p=0.121)
+    again = Fault(kind="basestation-crash", t=24.772, duration=0.051)
+    result = run(SimConfig(scenario=SC, seed=168, faults=(crash, lossy, again), mission_s=30.0, quiet_s=20.0))
+    assert result.ok, [v.to_json() for v in result.violations]
+
+
 @pytest.mark.parametrize("seed", FOUND)  # seeds of CI's sweep that found the adoption race, under their plan
 def test_sweep_seeds_that_found_the_adoption_race(seed):
     verdict = run_seed(FOUND_PLAN, seed)
@@ -129,14 +145,32 @@ ACCRUAL_REASON = (
     "laptop's gate gave the gap up after 10 s and the stage saw a skipped input (test_custody pins the gate)")
 
 
-BEYOND_REASON = ("open, not diagnosed: found in a 500-seed run of CI's plan (failing before this session's "
-                 "custody and plan fixes too): 372 loses two of Blob-3's outputs, 382 delivers one of r2's "
-                 "results twice")
+OLD_RUNS_REASON = (
+    "open (test_custody pins it): 91, the laptop frozen 3 s; the base station then took every robot for "
+    "gone and back and started each chain's next run; two of Blob-2's run-0 results, held for the laptop's "
+    "sink, were dropped as obsolete once the sink reported run 1 (its ledger keeps one run). Met since "
+    "the silence floor is the lease and a period: the robots take the frozen laptop for gone 0.5 s later")
+
+
+BEYOND_REASON = ("open: found in a 500-seed run of CI's plan. 354: an operator's move of Loc-3 to r1 over a "
+                 "lossy laptop-r1 (24 %), the base station crashing before it completed: r1 hosts Loc-3 "
+                 "starting for good, the restarted base station's plan runs it there, 6 outputs lost")
+
+
+@pytest.mark.parametrize("seed", [seed for seed in FIXED_FORWARDED_COPIES if seed not in SWEPT])
+def test_sweep_seeds_where_a_relay_passed_on_a_copy_the_network_made(seed):
+    """Found by the simulator (an oracle fix): a duplicating link (laptop-r1) copied a routed packet with
+    a result for r3 (laptop -> r1 -> r3); r1 passed both on, and the oracle, which counted only the
+    copies made on links into r3, took r3's second copy for an output the team produced twice. A relay
+    passing on the same body a second time now carries the network's copy."""
+    verdict = run_seed(PLAN, seed)
+    assert verdict.ok, verdict.first
 
 
 @pytest.mark.parametrize("seed", [pytest.param(seed, marks=pytest.mark.xfail(strict=True, reason=reason))
                                   for seeds, reason in ((FOUND_WITH_RADIO, RADIO_REASON),
                                                         (FOUND_WITH_ACCRUAL, ACCRUAL_REASON),
+                                                        (FOUND_WITH_OLD_RUNS, OLD_RUNS_REASON),
                                                         (FOUND_BEYOND_RANGE, BEYOND_REASON))
                                   for seed in seeds])
 def test_sweep_seeds_of_the_ci_plan_that_still_fail(seed):

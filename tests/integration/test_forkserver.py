@@ -1,0 +1,69 @@
+"""`up`'s fork server: children forked after one import behave as the fresh interpreters they
+replace (exit statuses, logs, signals, process groups) and end with it."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from autopower.launch.forkserver import ForkServer
+from autopower.launch.localhost import child_environment
+
+
+@pytest.fixture
+def server():
+    srv = ForkServer(child_environment(dict(os.environ)))
+    yield srv
+    for child in list(srv._children.values()):
+        child.kill()
+    srv.close()
+    srv._proc.wait(timeout=10)
+
+
+def test_a_forked_child_exits_with_its_status_and_writes_its_log(server, tmp_path):
+    log = tmp_path / "r1.log"
+    ok = server.spawn(["agent", "--help"], str(log))
+    assert ok.wait(timeout=30) == 0
+    assert "--robot" in log.read_text()  # its stdout went to its log
+    bad = server.spawn(["agent", "--no-such-option"], str(log))
+    assert bad.wait(timeout=30) == 2  # a usage error, as the CLI exits with it
+    assert "No such option" in log.read_text()  # stderr too, appended
+
+
+def test_a_forked_child_has_its_own_group_hears_signals_and_its_end_is_reported(server, tmp_path):
+    child = server.spawn(["agent", "--robot", "r1", "--scenario", "paper-fig7", "--team", "forktest",
+                          "--parent-pid", str(server.pid)], str(tmp_path / "r1.log"))
+    assert os.getpgid(child.pid) == child.pid  # its own process group (faults signal the group)
+    time.sleep(1.0)
+    # its command line is the server's: `ps` and `top` tell it by the name it gave itself
+    assert Path(f"/proc/{child.pid}/comm").read_text().strip() == "ap-r1"
+    assert child.poll() is None  # its parent is the server it names: it runs
+    child.send_signal(signal.SIGTERM)
+    assert child.wait(timeout=30) == 0  # a clean stop on SIGTERM, as under `up`
+    killed = server.spawn(["agent", "--robot", "r2", "--scenario", "paper-fig7", "--team", "forktest",
+                           "--parent-pid", str(server.pid)], str(tmp_path / "r2.log"))
+    killed.kill()
+    assert killed.wait(timeout=30) == -signal.SIGKILL
+    running = server.spawn(["agent", "--robot", "r3", "--scenario", "paper-fig7", "--team", "forktest",
+                            "--parent-pid", str(server.pid)], str(tmp_path / "r3.log"))
+    with pytest.raises(subprocess.TimeoutExpired):
+        running.wait(timeout=0.5)
+    running.terminate()
+    assert running.wait(timeout=30) == 0
+
+
+def test_children_die_with_the_server(tmp_path):
+    srv = ForkServer(child_environment(dict(os.environ)))
+    child = srv.spawn(["agent", "--robot", "r1", "--scenario", "paper-fig7", "--team", "forktest2",
+                       "--parent-pid", str(srv.pid)], str(tmp_path / "r1.log"))
+    time.sleep(0.5)
+    srv._proc.kill()  # the server killed: its children get SIGTERM (PR_SET_PDEATHSIG) and stop
+    srv._proc.wait(timeout=10)
+    assert child.wait(timeout=30) is not None
+    with pytest.raises(ProcessLookupError):
+        os.kill(child.pid, 0)
