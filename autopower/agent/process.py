@@ -40,6 +40,7 @@ from autopower.runtime.cadence import (
     StatusCadence,
 )
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
+from autopower.runtime.loop_watch import LoopWatch
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
 
@@ -50,6 +51,9 @@ SILENCE_SLACK_S = 0.001
 # Wall seconds a restarted agent with no plan waits for the base station (its liveliness, then its
 # plan: a lease and a status period) before it goes on alone with the plan it ran (`_resume_alone`).
 RESUME_ALONE_AFTER_S = 3.0
+# The agent's last resume state waits this long for the one still being written (a stopping robot
+# may wait; a running one never does: `ResumeFile` writes in a thread of its own).
+FINAL_SAVE_WAIT_S = 5.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -128,7 +132,7 @@ class Agent:
         self.runtime.send_to = self.relayer.send
         self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
         self.runtime.in_sight = self.relayer.direct.__contains__  # what it may forward on arrival
-        self.resume = ResumeFile(self.config.resume_path) if self.config.resume_path else None
+        self.resume = ResumeFile(self.config.resume_path, background=True) if self.config.resume_path else None
         if self.resume is not None:
             self.runtime.held_store = HeldStore(self.resume.path.with_name(f"{robot}.held"))
             # a robot is the sink of its own chains (Loc-*): a restarted one must not take the
@@ -323,11 +327,11 @@ class Agent:
                     f"restarted {', '.join(restarted)} here" if restarted else "no stage to restart here")
         self.publish_status()
 
-    def save_resume(self) -> None:
+    def save_resume(self, *, wait_s: float = 0.0) -> None:
         self.runtime.settle_held_store()
         state = self.runtime.resume_state() if self.resume is not None else None
         if state is not None:
-            self.resume.save(state)
+            self.resume.save(state, wait_s=wait_s)
 
     def publish_status(self, *, urgent: bool = True, save_resume: bool = False) -> bool:
         """Our status, to everyone in sight and (relayed) to the base station if it is not.
@@ -402,15 +406,29 @@ class Agent:
         At rest (`_quiet`) the loop wakes only for an event or a deadline (`_next_wake`), not every
         status period: an event then gets the status built at once (sent if it says something new).
         """
-        rt = self.runtime
         deadline = None if max_wall_s is None else time.time() + max_wall_s
         next_status, period = time.time(), self.config.status_period_s
         news = False  # an event handled since the last status was built (not our own status back)
+        loop_watch = LoopWatch(f"agent {self.config.robot}")
+        try:
+            self._loop(loop_watch, deadline, next_status, period, news)
+        finally:
+            loop_watch.stop()
+        self.save_resume(wait_s=FINAL_SAVE_WAIT_S)  # the last state: after the one being written, if any
+        self.publish_status()
+        log.info("agent %s stopping: %s", self.config.robot, self.stop_reason)
+        return self.stop_reason
+
+    def _loop(self, loop_watch: LoopWatch, deadline: float | None, next_status: float, period: float,
+              news: bool) -> None:
+        rt = self.runtime
         while True:
             now = time.time()
             quiet = self._quiet()
             self._asleep_at_rest = quiet and self.cadence.resting
+            loop_watch.waiting()
             event = self.events.get(max(0.0, self._next_wake(now, next_status, deadline, quiet) - now))
+            loop_watch.working()
             self._asleep_at_rest = False
             if isinstance(event, StopRequested):
                 self.stop_reason = event.reason
@@ -452,7 +470,3 @@ class Agent:
             if deadline is not None and now >= deadline:
                 self.stop_reason = "time limit"
                 break
-        self.save_resume()
-        self.publish_status()
-        log.info("agent %s stopping: %s", self.config.robot, self.stop_reason)
-        return self.stop_reason

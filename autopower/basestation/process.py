@@ -45,6 +45,7 @@ from autopower.protocol.codec import looks_like_message
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.cadence import REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
+from autopower.runtime.loop_watch import LoopWatch
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
 
@@ -55,6 +56,9 @@ log = logging.getLogger(__name__)
 # the base station's own sources' business; it has none in the paper's mission, and a late tick
 # takes its captures from the sensor's queue)
 BATCH_S = 0.005
+# The base station's loop also decides (a MILP of a large team takes seconds): a stall is
+# reported only past this, and says where the time went.
+LOOP_STALL_S = 2.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -379,81 +383,87 @@ class BaseStation:
         next_status, period = time.time(), self.config.status_period_s
         own_status = self.keys.status(self.node)  # Zenoh gives our own puts to our subscribers too
         news = False  # an event handled since the last status was built (not our own status back)
-        while True:
-            now = time.time()
-            quiet = self._quiet()
-            wake = [self.cadence.next_build(next_status, quiet=quiet), co.next_deadline_unix()]
-            wake += [t + self.config.suspect_settle_s for t in self._suspects.values()]
-            if deadline is not None:
-                wake.append(deadline)
-            if rt.started and (t := rt.next_deadline()) is not None:
-                wake.append(rt.clock.wall_at(t))
-            event = self.events.get(max(0.0, min(wake) - now))
-            # the events already queued are handled one after the other before the timers' work
-            # (at most a batch's worth of wall time): at x50 the base station takes ~1,000 messages
-            # a second, and the timers' work after each one cost more than most of them did
-            batch_end = time.monotonic() + BATCH_S
-            while event is not None and not isinstance(event, StopRequested):
-                news = news or (quiet and not (isinstance(event, Received) and event.key == own_status))
-                try:
-                    self._handle(event)
-                except Exception:  # never let one bad event stop the coordinator
-                    log.exception("base station: error handling %s", type(event).__name__)
-                    rt.count("internal-error")
-                event = self.events.get(0.0) if time.monotonic() < batch_end else None
-            if isinstance(event, StopRequested):
-                self.stop_reason = event.reason
-                break
-            self._settle_suspects()
-            co.on_timer()
-            if co.stepped_down is not None:
-                self.stop_reason = f"stepped down: {co.stepped_down}"
-                break
-            self._remember_incarnation()
-            if rt.started:
-                rt.on_timer()
-            now = time.time()
-            resting = quiet and self.cadence.resting
-            due = now >= self.cadence.next_build(next_status, quiet=quiet) or (resting and news)
-            # at rest: the events that came meanwhile first, then one status (see the agent's loop)
-            if due and not (resting and self.events.depth()
-                            and now < self.cadence.next_build(next_status, quiet=True) + period):
-                news = False
-                # on the tick grid; one built at rest (its rest period over, or for an event) starts a new grid
-                next_status = now + period if resting else max(next_status + period, now)
-                status = None
-                rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
-                if self._bus.repeated:  # statuses put again while the loop was held up
-                    rt.counters["status-repeats"] = self._bus.repeated
-                if self.events.superseded:  # robots' statuses (and acks) replaced by a newer one while queued
-                    rt.counters["statuses-superseded"] = self.events.superseded
-                if rt.started:  # held back at rest: nothing new in it but what drifts with time
-                    status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
-                                                        self.events.depth(), self.events.bulk_wait_s()), now)
-                else:  # no mission yet: each robot in reach hears that we run no plan
-                    for robot, key, payload in self.peer_views.addressed(co, None, now, period):
-                        self._send_view(robot, key, payload, period)
-                if status is not None:
-                    key, payload = self.keys.status(self.node), encode(status)
-                    # what this status acknowledges is kept first: the sink's notes here, the recording
-                    # of those outputs by the recording bus (`Recorder.before_publish`); an operator's
-                    # snapshot builds a status too but acknowledges nothing, so it keeps nothing
-                    if rt.sink_store is not None:
-                        rt.sink_store.commit()
-                    rt.settle_held_store()  # what the robots acknowledged leaves the held journal
-                    # the whole status for a standby base station and the recording, to each robot the
-                    # part it acts on (`peer_view`), relayed to those out of sight; each is a heartbeat
-                    self._bus.publish(key, payload, reliable=False)
-                    self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
-                                                REPEAT_EVERY_PERIODS * status.next_status_s)
-                    for robot, key, payload in self.peer_views.addressed(co, status, now, status.next_status_s):
-                        self._send_view(robot, key, payload, status.next_status_s)
-                    rt.send_acks(self.relayer.reachable, status.queue_wait_s)  # to the nodes that sent us frames
-                if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
-                    self.stop_reason = "parent exited"
+        loop_watch = LoopWatch("base station", after_s=LOOP_STALL_S)
+        try:
+            while True:
+                now = time.time()
+                quiet = self._quiet()
+                wake = [self.cadence.next_build(next_status, quiet=quiet), co.next_deadline_unix()]
+                wake += [t + self.config.suspect_settle_s for t in self._suspects.values()]
+                if deadline is not None:
+                    wake.append(deadline)
+                if rt.started and (t := rt.next_deadline()) is not None:
+                    wake.append(rt.clock.wall_at(t))
+                loop_watch.waiting()
+                event = self.events.get(max(0.0, min(wake) - now))
+                loop_watch.working()
+                # the events already queued are handled one after the other before the timers' work
+                # (at most a batch's worth of wall time): at x50 the base station takes ~1,000 messages
+                # a second, and the timers' work after each one cost more than most of them did
+                batch_end = time.monotonic() + BATCH_S
+                while event is not None and not isinstance(event, StopRequested):
+                    news = news or (quiet and not (isinstance(event, Received) and event.key == own_status))
+                    try:
+                        self._handle(event)
+                    except Exception:  # never let one bad event stop the coordinator
+                        log.exception("base station: error handling %s", type(event).__name__)
+                        rt.count("internal-error")
+                    event = self.events.get(0.0) if time.monotonic() < batch_end else None
+                if isinstance(event, StopRequested):
+                    self.stop_reason = event.reason
                     break
-            if deadline is not None and now >= deadline:
-                self.stop_reason = "time limit"
-                break
+                self._settle_suspects()
+                co.on_timer()
+                if co.stepped_down is not None:
+                    self.stop_reason = f"stepped down: {co.stepped_down}"
+                    break
+                self._remember_incarnation()
+                if rt.started:
+                    rt.on_timer()
+                now = time.time()
+                resting = quiet and self.cadence.resting
+                due = now >= self.cadence.next_build(next_status, quiet=quiet) or (resting and news)
+                # at rest: the events that came meanwhile first, then one status (see the agent's loop)
+                if due and not (resting and self.events.depth()
+                                and now < self.cadence.next_build(next_status, quiet=True) + period):
+                    news = False
+                    # on the tick grid; one built at rest (its rest period over, or for an event) starts a new grid
+                    next_status = now + period if resting else max(next_status + period, now)
+                    status = None
+                    rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
+                    if self._bus.repeated:  # statuses put again while the loop was held up
+                        rt.counters["status-repeats"] = self._bus.repeated
+                    if self.events.superseded:  # robots' statuses (and acks) replaced by a newer one while queued
+                        rt.counters["statuses-superseded"] = self.events.superseded
+                    if rt.started:  # held back at rest: nothing new in it but what drifts with time
+                        status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
+                                                            self.events.depth(), self.events.bulk_wait_s()), now)
+                    else:  # no mission yet: each robot in reach hears that we run no plan
+                        for robot, key, payload in self.peer_views.addressed(co, None, now, period):
+                            self._send_view(robot, key, payload, period)
+                    if status is not None:
+                        key, payload = self.keys.status(self.node), encode(status)
+                        # what this status acknowledges is kept first: the sink's notes here, the recording
+                        # of those outputs by the recording bus (`Recorder.before_publish`); an operator's
+                        # snapshot builds a status too but acknowledges nothing, so it keeps nothing
+                        if rt.sink_store is not None:
+                            rt.sink_store.commit()
+                        rt.settle_held_store()  # what the robots acknowledged leaves the held journal
+                        # the whole status for a standby base station and the recording, to each robot the
+                        # part it acts on (`peer_view`), relayed to those out of sight; each is a heartbeat
+                        self._bus.publish(key, payload, reliable=False)
+                        self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
+                                                    REPEAT_EVERY_PERIODS * status.next_status_s)
+                        for robot, key, payload in self.peer_views.addressed(co, status, now, status.next_status_s):
+                            self._send_view(robot, key, payload, status.next_status_s)
+                        rt.send_acks(self.relayer.reachable, status.queue_wait_s)  # to the nodes that sent us frames
+                    if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
+                        self.stop_reason = "parent exited"
+                        break
+                if deadline is not None and now >= deadline:
+                    self.stop_reason = "time limit"
+                    break
+        finally:
+            loop_watch.stop()
         log.info("base station stopping: %s", self.stop_reason)
         return self.stop_reason

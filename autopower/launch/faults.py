@@ -95,7 +95,7 @@ class FaultController:
     def apply(self, request: dict) -> dict:
         op = request.get("op")
         with self._lock:
-            t = time.time()
+            t, t_mono = time.time(), time.monotonic()
             details: dict = {}
             healed: list[str] = []
             if op == "loss" or (op == "cut" and request.get("one_way")):
@@ -103,7 +103,7 @@ class FaultController:
             elif op == "rate":
                 target, details = self._rate(request)
             elif op in ("flap", "roam"):
-                target, details = self._schedule(op, request)
+                target, details = self._schedule(op, request, t_mono)
             elif op in ("cut", "heal"):
                 a, b = request.get("a"), request.get("b")
                 proxy = self.team.proxy(a, b)
@@ -194,8 +194,13 @@ class FaultController:
         proxy.set_rate(kbps)
         return f"{a}-{b}", {"kbps": kbps, "what": f"{kbps:g} kbit/s both ways"}
 
-    def _schedule(self, op: str, request: dict) -> tuple[str, dict]:
-        """`fault flap` / `fault roam`: cut the link now; a thread of its own brings it back on time."""
+    def _schedule(self, op: str, request: dict, started: float) -> tuple[str, dict]:
+        """`fault flap` / `fault roam`: cut the link now; a thread of its own brings it back on time.
+
+        Its phases are timed from `started` (monotonic), the instant the fault's `t_unix` was taken,
+        not from when the first cut's tc calls returned: on a loaded machine they took 0.3 s, and
+        every later switch came that much after the time the fault's record gives for it.
+        """
         a, b = request.get("a"), request.get("b")
         proxy = self._testbed_link(op, a, b)
         key, target = frozenset((a, b)), f"{a}-{b}"
@@ -223,16 +228,16 @@ class FaultController:
             label, details = f"roam {ms:g} ms", {"ms": ms, "what": f"a {ms:g} ms outage"}
         schedule = _Schedule(kind=op, label=label, proxy=proxy, target=target, entry={})
         proxy.cut()  # the first down phase starts now, at the fault's time
-        until = None if for_s is None else time.monotonic() + for_s
-        schedule.thread = threading.Thread(target=self._keep, args=(key, schedule, steps, until),
+        until = None if for_s is None else started + for_s
+        schedule.thread = threading.Thread(target=self._keep, args=(key, schedule, steps, started, until),
                                            name=f"{op}-{target}", daemon=True)
         self._schedules[key] = schedule
         schedule.thread.start()
         return target, {**details, "entry": schedule.entry}
 
-    def _keep(self, key: frozenset, schedule: _Schedule, steps, until: float | None) -> None:
+    def _keep(self, key: frozenset, schedule: _Schedule, steps, started: float, until: float | None) -> None:
         """The schedule's thread: after each step's seconds, bring the link up, cut it, or end (up)."""
-        at = time.monotonic()
+        at = started
         for seconds, then in steps:
             at += seconds  # from the start, not from each wake-up: no drift over a long flap
             if until is not None and until <= at:

@@ -91,14 +91,17 @@ def test_source_positions_after_the_snapshot_come_from_the_journal(tmp_path):
     store = ResumeFile(tmp_path / "r2.json")
     store.note_source("Blob-2", 1, 5, 0, 5)  # before any snapshot: nothing to resume from, not noted
     store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}}})
-    assert stat.S_IMODE(store.journal_path.stat().st_mode) == 0o600
+    assert stat.S_IMODE(store.current_journal.stat().st_mode) == 0o600
     for seq in (8, 9, 10):
         store.note_source("Blob-2", 1, seq, 0, seq)
-    with open(store.journal_path, "a") as f:
+    with open(store.current_journal, "a") as f:
         f.write('["Blob-2", 1, 11')  # the line a SIGKILL cut short
     assert store.load()["sources"]["Blob-2"]["seq"] == 10
+    first = store.current_journal
     store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 12, "missed": 0, "produced_total": 12}}})
-    assert store.journal_path.stat().st_size == 0 and store.load()["sources"]["Blob-2"]["seq"] == 12
+    # the notes before the new snapshot are gone with their generation; the new one starts empty
+    assert not first.exists() and store.current_journal.stat().st_size == 0
+    assert store.load()["sources"]["Blob-2"]["seq"] == 12
     store.close()
 
 
@@ -108,10 +111,80 @@ def test_the_journal_keeps_periods_missed_while_stopped_and_reads_an_older_one(t
     store.note_source("Blob-2", 1, 8, 150, 8, 142)
     assert store.load()["sources"]["Blob-2"] == {"run": 1, "seq": 8, "missed": 150, "produced_total": 8,
                                                  "missed_stopped": 142}
-    with open(store.journal_path, "a") as f:
+    with open(store.current_journal, "a") as f:
         f.write('["Loc-2", 1, 3, 2, 3]\n')  # a line of the build before: five fields
     assert store.load()["sources"]["Loc-2"] == {"run": 1, "seq": 3, "missed": 2, "produced_total": 3,
                                                 "missed_stopped": 0}
+    store.close()
+
+
+def test_a_resume_file_written_before_journal_generations_still_resumes(tmp_path):
+    (tmp_path / "r2.json").write_text('{"version": 1, "node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, '
+                                      '"missed": 0, "produced_total": 7}}}')
+    (tmp_path / "r2.json.journal").write_text('["Blob-2", 1, 9, 0, 9, 0]\n')
+    assert ResumeFile(tmp_path / "r2.json").load()["sources"]["Blob-2"]["seq"] == 9
+
+
+class _SlowDisk:
+    """Holds the writer thread inside its os.replace until released: a file system's journal under load."""
+
+    def __init__(self, monkeypatch):
+        import threading
+
+        import autopower.agent.resume as resume
+
+        self.entered, self.release = threading.Event(), threading.Event()
+        real = resume.os.replace
+
+        def replace(src, dst):
+            self.entered.set()
+            self.release.wait(10)
+            real(src, dst)
+
+        monkeypatch.setattr(resume.os, "replace", replace)
+
+
+def test_a_snapshot_written_slowly_never_holds_the_loop_and_loses_no_note(tmp_path, monkeypatch):
+    import time
+
+    slow = _SlowDisk(monkeypatch)
+    store = ResumeFile(tmp_path / "r2.json", background=True)
+    position = {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}
+    t0 = time.monotonic()
+    assert store.save({"node": "r2", "sources": {"Blob-2": position}})
+    assert slow.entered.wait(5)  # the writer is stuck in the file system...
+    for seq in (8, 9):  # ...while the loop goes on: notes append, the next snapshots are skipped
+        store.note_source("Blob-2", 1, seq, 0, seq)
+        assert not store.save({"node": "r2", "sources": {"Blob-2": {**position, "seq": seq}}})
+    assert time.monotonic() - t0 < 1.0 and store.skipped == 2
+    slow.release.set()
+    # the last save of a stopping agent waits for the one being written, then goes out itself
+    assert store.save({"node": "r2", "sources": {"Blob-2": {**position, "seq": 9}}}, wait_s=5)
+    store.note_source("Blob-2", 1, 10, 0, 10)
+    store.close()
+    assert ResumeFile(tmp_path / "r2.json").load()["sources"]["Blob-2"]["seq"] == 10
+
+
+def test_a_crash_while_the_snapshot_is_written_resumes_from_the_older_one_and_every_journal(tmp_path, monkeypatch):
+    slow = _SlowDisk(monkeypatch)
+    store = ResumeFile(tmp_path / "r2.json", background=True)
+    slow.release.set()
+    assert store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}}},
+                      wait_s=5)
+    store.note_source("Blob-2", 1, 8, 0, 8)
+    assert store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 8, "missed": 0, "produced_total": 8}}},
+                      wait_s=5)
+    assert store.written(5)
+    slow.release.clear()
+    slow.entered.clear()
+    store.note_source("Blob-2", 1, 9, 0, 9)
+    assert store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 9, "missed": 0, "produced_total": 9}}},
+                      wait_s=5)
+    assert slow.entered.wait(5)  # this snapshot is not in place yet: the process dies here
+    store.note_source("Blob-2", 1, 10, 0, 10)
+    # what a restarted process reads: the snapshot before (seq 8), then every generation from its own on
+    assert ResumeFile(tmp_path / "r2.json").load()["sources"]["Blob-2"]["seq"] == 10
+    slow.release.set()
     store.close()
 
 

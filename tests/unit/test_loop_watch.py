@@ -1,0 +1,38 @@
+"""A loop stuck in a call is named while it is stuck: where, not just that it was away."""
+
+from __future__ import annotations
+
+import threading
+
+from autopower.runtime.loop_watch import LoopWatch
+
+
+def _stuck_in_the_file_system(entered: threading.Event, release: threading.Event) -> None:
+    entered.set()
+    release.wait(10)
+
+
+def test_a_loop_working_past_the_limit_is_reported_once_with_the_call_it_is_in():
+    entered, release = threading.Event(), threading.Event()
+    loop = threading.Thread(target=_stuck_in_the_file_system, args=(entered, release))
+    loop.start()
+    now = [100.0]
+    watch = LoopWatch("agent r9", after_s=0.5, check_s=60.0, clock=lambda: now[0], loop_thread=loop)
+    try:
+        assert entered.wait(5)
+        assert watch.check(now[0]) is None  # waiting for an event: never a stall
+        watch.working()
+        now[0] += 0.4
+        assert watch.check(now[0]) is None  # working, not yet for long
+        now[0] += 0.2
+        where = watch.check(now[0])
+        assert where is not None and "_stuck_in_the_file_system" in where
+        assert watch.check(now[0] + 1.0) is None and watch.stalls == 1  # one report per stall
+        watch.waiting()
+        watch.working()  # the next event: a new stall would be reported again
+        now[0] += 0.6
+        assert watch.check(now[0]) is not None and watch.stalls == 2
+    finally:
+        release.set()
+        loop.join()
+        watch.stop()
