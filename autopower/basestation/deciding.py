@@ -125,6 +125,9 @@ class Deciding:
             self.decisions += 1
             self.decide_s += took
             self.decide_max_s = max(self.decide_max_s, took)
+            for fault in self.faults:
+                if fault["reconfigured_unix"] is None:
+                    fault["decide_s"] += took
         self.plan_error = None
         self._pending_events.clear()
         if decision is None:

@@ -310,6 +310,11 @@ def test_cut_base_link_replans_at_once_and_heals_with_hysteresis(sc):
     team.report_status()  # ...which run it
     co.on_timer()
     assert co.faults[-1]["reconfigured_unix"] is not None
+    # the policy's time for the decision that handled it, apart from the rest of the handling
+    assert co.faults[-1]["decide_s"] > 0 and co.faults[-1]["decide_s"] <= co.decide_s
+    decided = co.faults[-1]["decide_s"]
+    co.replan("periodic, remaining energies")  # after the fault was handled: not its time
+    assert co.faults[-1]["decide_s"] == decided
     co.link_seen("laptop", "r1")
     co.on_timer()
     assert co.links_down  # not yet: the link must stay up for heal_hold_s
