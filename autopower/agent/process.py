@@ -149,6 +149,7 @@ class Agent:
                                    timeout_s=cfg.subgroup_timeout_s, status_period_s=cfg.status_period_s),
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=self._started_unix,
             signing=self.signing)
+        self.runtime.prepare_sources()  # before anyone sees us: a camera's scene takes a while to render
         self._handles.append(bus.subscribe(keys.node_data(robot), self._on_data))
         # the peers' statuses as robots need them (`PeerStatus`); whole statuses go to base stations
         for key in (keys.node_control(robot), keys.addressed_to(robot), keys.plan, keys.node_relay(robot), keys.peer_all,

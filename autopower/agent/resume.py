@@ -53,7 +53,9 @@ class ResumeFile:
         self._warned = False
         self._cond = threading.Condition()
         self._spare: tuple[int, int] | None = None  # (generation, fd): created ahead by the writer
-        self._pending: tuple[dict, int | None] | None = None  # a snapshot, and the journal fd it retires
+        # a snapshot (its generation, its text: serialised by the caller, who owns the state) and the
+        # journal fd it retires
+        self._pending: tuple[int, str, int | None] | None = None
         self._closing = False
         self.skipped = 0  # snapshots not written because the one before was still being written
         self._thread: threading.Thread | None = None
@@ -137,7 +139,8 @@ class ResumeFile:
                 spare = opened
             retired = self._journal
             self._generation, self._journal = spare
-            self._pending = ({"version": VERSION, **state, "journal": self._generation}, retired)
+            text = json.dumps({"version": VERSION, **state, "journal": self._generation})
+            self._pending = (self._generation, text, retired)
             self._cond.notify()
         if self._thread is None:
             self._write_pending()
@@ -171,14 +174,13 @@ class ResumeFile:
 
     def _write_pending(self) -> None:
         with self._cond:
-            state, retired = self._pending  # type: ignore[misc]
-        generation = state["journal"]
+            generation, text, retired = self._pending  # type: ignore[misc]
         spare = None
         try:
             tmp = self.path.with_name(self.path.name + ".tmp")
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
             with os.fdopen(fd, "w") as f:
-                f.write(json.dumps(state))
+                f.write(text)
             os.replace(tmp, self.path)
             # the snapshot is in place: what the older generations said, it says
             for old in self._generations():

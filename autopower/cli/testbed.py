@@ -122,7 +122,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
         codes = end_session(team, control, previous)
     summary = run_summary(snap, team=team.team, speed=speed, ready_after_s=ready_after or -1.0, at_ready=at_ready,
                           wall_s=time.monotonic() - started, exit_codes=codes, log_dir=str(team.log_dir))
-    summary.update(interrupted=interrupted, testbed=team.net.run_id, shaped=not no_shaping,
+    summary.update(interrupted=interrupted, testbed=team.net.run_id, shaped=not no_shaping, network_s=team.network_s,
                    supervision=team.supervision(),  # crashed children restarted in their namespace
                    **team.net.describe(), **recording.merge())
     if as_json:

@@ -18,6 +18,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import time
 
 from autopower.basestation.operator import TLS_DIR, state_dir
 from autopower.deploy.bundle import write_bundle
@@ -103,6 +104,7 @@ class TestbedTeam(LocalTeam):
         self.scheme = "tls"
         self._bridge_sock: socket.socket | None = None
         self._bridge: subprocess.Popen | None = None
+        self.network_s: float | None = None  # how long `start` took to build the namespaces and links
 
     # ---- what differs from localhost ------------------------------------------------------------------
     def fleet(self) -> Fleet:
@@ -139,7 +141,10 @@ class TestbedTeam(LocalTeam):
 
     # ---- lifecycle ----------------------------------------------------------------------------------------
     def start(self) -> None:
+        started = time.monotonic()
         self.net.create()
+        # the emulator's own start (namespaces, veth pairs, shaping): what real robots do not run
+        self.network_s = time.monotonic() - started
         base = self.scenario.basestation
         write_bundle(self.fleet_dir, self.spec.scenario, self.fleet(), topology=self.spec.topology,
                      addresses={base: ["127.0.0.1"]})  # the operator's bridge arrives on the base's loopback

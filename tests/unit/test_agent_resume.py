@@ -290,3 +290,23 @@ def test_a_restarted_robot_sink_does_not_take_a_resent_result_for_a_new_one(tmp_
                         t_unix=0.0, payload_len=0, payload=b"", attempt=1)
     rt.deliver_frame(resent, 0)
     assert outputs == [] and rt.sinks["Loc-3"].redundant_total == 1
+
+
+def test_sources_built_before_the_mission_are_the_ones_its_first_plan_runs():
+    """A fleet's first plan must not make every robot render its camera's scene at the same instant."""
+    team = _team_at(10.0)
+    built = []
+
+    def make_source(kind, robot, seed, *parameters):
+        built.append(kind)
+        return FakeSource(kind, robot, seed, *parameters)
+
+    rt = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-prepared"), keys=team.keys,
+                     make_component=FakeComponent, make_source=make_source, clock_factory=lambda m: team.clock)
+    rt.prepare_sources()
+    own = [c.name for c in team.scenario.chains if c.source == "r2" and c.sourced]
+    assert own and len(built) == len(own)
+    prepared = set(map(id, rt._prepared_sources.values()))
+    rt.on_plan(team.nodes["r2"].plan)
+    assert len(built) == len(own)  # the plan built nothing more
+    assert {id(runner.source) for runner in rt.sources.values()} == prepared
