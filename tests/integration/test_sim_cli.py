@@ -13,6 +13,8 @@ import pytest
 
 from tests.integration.test_json_contract import AUTOPOWER, check_keys
 
+pytestmark = pytest.mark.parallel  # simulated runs of the installed command: no live team, no timed bound
+
 SHORT = ["--mission", "30", "--quiet", "15"]
 
 

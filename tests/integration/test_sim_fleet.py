@@ -14,6 +14,8 @@ import pytest
 from autopower.simulation.synthetic import paper_fleet
 from autopower.teamsim import Fault, SimConfig, run
 
+pytestmark = pytest.mark.parallel  # simulated: its verdict depends on the seed alone
+
 
 @pytest.fixture(autouse=True)
 def no_logs():

@@ -63,8 +63,16 @@ FOUND_WITH_OLD_RUNS = (91, 372)
 SEEDS = [seed for seed in range(211) if seed not in FOUND_WITH_RADIO + FOUND_WITH_ACCRUAL + FOUND_WITH_OLD_RUNS]
 
 
+CHUNKS = 4  # the sweep in parts, so that `./run tests` spreads it over its workers
+
+
 @pytest.mark.slow
-def test_every_seed_of_the_sweep_passes():
-    verdicts = sweep(PLAN, SEEDS, jobs=min(2, os.cpu_count() or 1))
+@pytest.mark.parallel
+@pytest.mark.parametrize("chunk", range(CHUNKS), ids=lambda c: f"part{c + 1}of{CHUNKS}")
+def test_every_seed_of_the_sweep_passes(chunk):
+    seeds = SEEDS[chunk::CHUNKS]
+    # one process per pytest worker under xdist (the workers fill the cores), both cores alone
+    jobs = 1 if os.environ.get("PYTEST_XDIST_WORKER") else min(2, os.cpu_count() or 1)
+    verdicts = sweep(PLAN, seeds, jobs=jobs)
     failed = [f"seed {v.seed}: {v.first} ({PLAN.command(v.seed)})" for v in verdicts if not v.ok]
-    assert not failed, f"{len(failed)} of {len(SEEDS)} seeds failed:\n" + "\n".join(failed)
+    assert not failed, f"{len(failed)} of {len(seeds)} seeds failed:\n" + "\n".join(failed)
