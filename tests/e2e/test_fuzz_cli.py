@@ -13,7 +13,11 @@ from __future__ import annotations
 import random
 from concurrent.futures import ThreadPoolExecutor
 
+import pytest
+
 from tests.e2e.test_up import run_cli
+
+pytestmark = pytest.mark.parallel  # commands that start no team: no live process to share the cores with (tests/conftest.py)
 
 BAD = ["nan", "inf", "-inf", "-1", "0", "1e999", "", "a/b", "*", "$x", "tcp/", "tcp/127.0.0.1:99999",
        "udp/[::1", "x" * 3000, "\u00e9\u4e2d\U0001f600", "--", "-5e-324"]

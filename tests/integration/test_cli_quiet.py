@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.parallel  # commands that start no team: no live process to share the cores with (tests/conftest.py)
+
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 
 

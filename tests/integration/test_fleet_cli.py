@@ -13,6 +13,8 @@ import pytest
 
 from tests.integration.test_json_contract import check_keys
 
+pytestmark = pytest.mark.parallel  # commands that start no team: no live process to share the cores with (tests/conftest.py)
+
 AUTOPOWER = str(Path(sys.executable).with_name("autopower"))
 ENV = {**os.environ, "RERUN_ANALYTICS": "0"}
 

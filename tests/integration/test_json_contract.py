@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.parallel  # commands that start no team: no live process to share the cores with (tests/conftest.py)
+
 ROOT = Path(__file__).resolve().parents[2]
 AUTOPOWER = str(Path(sys.executable).with_name("autopower"))
 
