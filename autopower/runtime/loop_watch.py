@@ -36,7 +36,6 @@ class LoopWatch:
         self._reported_since: float | None = None  # the stall already reported
         self._stop = threading.Event()
         self.stalls = 0  # stalls reported (a loop stuck working for after_s)
-        self.process_pauses = 0  # checks that ran after_s late themselves
         self._thread = threading.Thread(target=self._run, name=f"loop-watch {name}", daemon=True)
         self._thread.start()
 
@@ -61,7 +60,6 @@ class LoopWatch:
             # only the wait counts: a report's own logging may wait for the disk like the loop did
             late = now - before - self.check_s
             if late >= self.after_s:
-                self.process_pauses += 1
                 log.warning("%s: this process did not run for %.1f s (the machine, or a call holding the GIL)",
                             self.name, late)
             self.check(now)

@@ -36,3 +36,22 @@ def test_a_loop_working_past_the_limit_is_reported_once_with_the_call_it_is_in()
         release.set()
         loop.join()
         watch.stop()
+
+
+def test_a_watch_that_itself_ran_late_says_the_whole_process_was_stopped(caplog):
+    # the watch's own clock jumps 2 s across one 10 ms wait: the process, not a call, was stopped
+    ticks = iter([0.0, 2.01])
+    stopped = threading.Event()
+
+    def clock():
+        try:
+            return next(ticks)
+        except StopIteration:
+            stopped.set()
+            return 2.01
+
+    with caplog.at_level("WARNING", logger="autopower.runtime.loop_watch"):
+        watch = LoopWatch("agent r9", after_s=0.5, check_s=0.01, clock=clock)
+        assert stopped.wait(5)
+        watch.stop()
+    assert any("did not run for 2.0 s" in r.getMessage() for r in caplog.records)
