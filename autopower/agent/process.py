@@ -134,7 +134,7 @@ class Agent:
         self.runtime.in_sight = self.relayer.direct.__contains__  # what it may forward on arrival
         self.resume = ResumeFile(self.config.resume_path, background=True) if self.config.resume_path else None
         if self.resume is not None:
-            self.runtime.held_store = HeldStore(self.resume.path.with_name(f"{robot}.held"))
+            self.runtime.held_store = HeldStore(self.resume.path.with_name(f"{robot}.held"), background=True)
             # a robot is the sink of its own chains (Loc-*): a restarted one must not take the
             # results its producers resend (their acknowledgements were lost) for new ones
             self.runtime.sink_store = SinkStore(self.resume.path.with_name(f"{robot}.sinks.json"))

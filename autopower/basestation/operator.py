@@ -111,12 +111,18 @@ BASESTATION_STATE_FILES = ("sinks.json", "sinks.json.tmp", "basestation.held", "
                            "basestation.json", "basestation.json.tmp", "basestation.lock")
 
 
+def basestation_state_paths(folder: Path) -> list[Path]:
+    """The base station's files in its state folder, its held results' journal generations included."""
+    return [folder / name for name in BASESTATION_STATE_FILES] + sorted(folder.glob("basestation.held.journal.*"))
+
+
 def remove_team_files(team: str) -> None:
     """Remove one team's session file, control socket and directory; nothing of any other team."""
     folder = state_dir() / TEAMS_DIR / check_name(team, "team")
-    for name in (SESSION_FILE, SESSION_FILE.replace(".json", ".tmp"), "control.sock", *BASESTATION_STATE_FILES):
+    for path in [folder / SESSION_FILE, folder / SESSION_FILE.replace(".json", ".tmp"), folder / "control.sock",
+                 *basestation_state_paths(folder)]:
         try:
-            (folder / name).unlink()
+            path.unlink()
         except FileNotFoundError:
             pass
     # the agents' resume files (autopower.agent.resume.AGENTS_DIR): their mission ended with the team

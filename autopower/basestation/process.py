@@ -201,16 +201,16 @@ class BaseStation:
         """A base station whose launcher owns the team (``parent_pid``: `up`, the test launcher) that
         stops cleanly leaves nothing behind: the team ends with it. Under a service manager (no
         parent) the files stay for the next start; after a kill they stay for the restart."""
-        from autopower.basestation.operator import BASESTATION_STATE_FILES
+        from autopower.basestation.operator import basestation_state_paths
 
         folder = Path(self.config.state_dir)
-        for name in BASESTATION_STATE_FILES:
+        for path in basestation_state_paths(folder):
             try:
-                (folder / name).unlink()
+                path.unlink()
             except FileNotFoundError:
                 pass
             except OSError as exc:
-                log.warning("base station: cannot remove %s: %s", folder / name, exc)
+                log.warning("base station: cannot remove %s: %s", path, exc)
         try:
             folder.rmdir()  # only if empty: `up`'s session file is `up`'s to remove
         except OSError:
@@ -220,6 +220,9 @@ class BaseStation:
         close_workers = getattr(self.runtime, "close_workers", None)  # the host's stage worker processes
         if close_workers is not None:
             close_workers()
+        held = getattr(self.runtime, "held_store", None)
+        if held is not None:
+            held.close()  # its writer thread finishes first: nothing is written after the state is forgotten
         if (self._lock_fd is not None and self.stop_reason is not None and self.config.parent_pid is not None
                 and exc[0] is None):
             self._forget_state()

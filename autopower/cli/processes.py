@@ -179,7 +179,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
         runtime = NodeRuntime(**kwargs, stage_workers=workers)
         runtime.sink_store = SinkStore(state / "sinks.json")
         # results it holds for a robot's chain whose sink is out of reach: a restart takes them back
-        runtime.held_store = HeldStore(state / "basestation.held")
+        runtime.held_store = HeldStore(state / "basestation.held", background=True)
         return runtime
 
     recorder, bus = _recording_bus(record_dir, scenario.basestation, scenario, config.zenoh)

@@ -6,13 +6,17 @@ all be lost with a robot killed while cut off. So each held result is appended h
 held, and a restarted process of the same mission takes them back (`load`), holds them again
 and sends them once the sink is in reach; custody then keeps them until the sink acknowledges.
 
-The file is a journal: a header line naming the mission (its `resume.mission_key`), then one
-record per held result: its length (4 bytes, little-endian) and the encoded `ChainFrame`. An
-append is one ``write``; a kill leaves whole records and at most one torn last record, which is
-skipped. Results the sink acknowledged are dropped by rewriting the file with those still at risk
-(`rewrite`, to a temporary file renamed over it) when most of it is done with, and it is emptied
-when none is. Written 0600 beside the resume state. Results are small (a pose, a list of blobs),
-and only held results are written: the camera frames in custody are not.
+The file is a snapshot and journal generations (`runtime.snapshot_journal`: the loop only appends
+to an open file; creating, renaming and removing files is the writer's, a thread of its own in a
+live node). The snapshot is a header line naming the mission (its `resume.mission_key`) and the
+journal generation that follows it, then records; each generation holds records only. A record is
+the encoded `ChainFrame`'s length (4 bytes, little-endian) and the encoded frame. An append is one
+``write``; a kill leaves whole records and at most one torn last record per file, which is
+skipped. Results the sink acknowledged are dropped by a new snapshot of those still at risk
+(`rewrite`) when most of the file is done with, and by an empty one when none is; a rewrite the
+writer has not finished yet is skipped (the next status tick tries again) and the file then holds
+more than is at risk, never less. Written 0600 beside the resume state. Results are small (a pose,
+a list of blobs), and only held results are written: the camera frames in custody are not.
 
 A file that cannot be read is reported and ignored: the robot then starts with nothing held, as
 it did before this existed. Nothing here raises.
@@ -22,48 +26,59 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import struct
 from pathlib import Path
 
 from autopower.errors import ProtocolError
 from autopower.protocol import ChainFrame, decode, encode
+from autopower.runtime.snapshot_journal import SnapshotJournal
 
 log = logging.getLogger(__name__)
 
 _LENGTH = struct.Struct("<I")
 MAX_RECORD_BYTES = 64 * 2**20  # a length above this is garbage (a frame's payload is bounded the same way)
+VERSION = 2  # version 1: one file, no generations (still read)
+MISSION_SWITCH_WAIT_S = 2.0  # how long a new mission's first snapshot may hold the caller (once a mission)
 
 
 class HeldStore:
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, *, background: bool = False):
         self.path = Path(path)
-        self._tmp = self.path.with_name(self.path.name + ".tmp")
-        self._fd: int | None = None
-        self._mission: dict | None = None  # the mission the open journal belongs to
-        self.records = 0  # records in the file now (what `rewrite` weighs against)
+        self._files = SnapshotJournal(self.path, background=background, on_error=self._fail)
+        self._mission: dict | None = None  # the mission the snapshot on disk belongs to
+        self.records = 0  # records in the snapshot and its journals now (what `rewrite` weighs against)
         self.failed = False
 
     def load(self, mission: dict) -> list[ChainFrame]:
         """The results a crashed process of this mission held (oldest first); [] for another mission."""
         try:
-            data = self.path.read_bytes()
-        except FileNotFoundError:
-            return []
+            data = self._files.read_snapshot()
         except OSError as exc:
             log.warning("held results %s unreadable (%s); starting with none held", self.path, exc)
             return []
+        if data is None:
+            return []
         header, sep, body = data.partition(b"\n")
         try:
-            if not sep or json.loads(header) != {"version": 1, "mission": mission}:
+            fields = json.loads(header)
+            if not sep or not isinstance(fields, dict) or fields.get("mission") != mission:
                 return []  # another mission's (or not ours): nothing to carry on
+            if fields.get("version") == 1:
+                journals = []  # one file, no generations
+            elif fields.get("version") == VERSION and isinstance(fields.get("journal"), int):
+                journals = self._files.journals_since(fields["journal"])
+            else:
+                return []
         except (ValueError, UnicodeDecodeError):
             log.warning("held results %s have no valid header; starting with none held", self.path)
             return []
+        return [frame for part in (body, *journals) for frame in self._records(part)]
+
+    def _records(self, data: bytes) -> list[ChainFrame]:
         frames, offset = [], 0
-        while offset + _LENGTH.size <= len(body):
-            (size,) = _LENGTH.unpack_from(body, offset)
-            record = body[offset + _LENGTH.size:offset + _LENGTH.size + size]
+        while offset + _LENGTH.size <= len(data):
+            (size,) = _LENGTH.unpack_from(data, offset)
+            record = data[offset + _LENGTH.size:offset + _LENGTH.size + size]
             if size > MAX_RECORD_BYTES or len(record) < size:
                 break  # the torn last record of a kill (or garbage): what came before stands
             offset += _LENGTH.size + size
@@ -73,50 +88,46 @@ class HeldStore:
                 log.warning("held results %s: a damaged record skipped (%s)", self.path, exc)
         return frames
 
-    def append(self, mission: dict, frame: ChainFrame) -> None:
-        """One result held now (one ``write``)."""
+    def append(self, mission: dict, frame: ChainFrame) -> bool:
+        """One result held now (one ``write``); whether it is on disk."""
         if self.failed:
-            return
-        try:
-            if self._fd is None or mission != self._mission:
-                self._start(mission, [])
-            record = encode(frame)
-            os.write(self._fd, _LENGTH.pack(len(record)) + record)
-            self.records += 1
-        except OSError as exc:
-            self._fail(exc)
+            return False
+        if mission != self._mission and not self.rewrite(mission, []):
+            return False
+        if not self._files.append(_record(frame)):
+            return False
+        self.records += 1
+        return True
 
-    def rewrite(self, mission: dict, frames: list[ChainFrame]) -> None:
-        """Keep only ``frames`` (those still at risk): the file replaced atomically, or emptied."""
+    def rewrite(self, mission: dict, frames: list[ChainFrame]) -> bool:
+        """Keep only ``frames`` (those still at risk); False if skipped (the writer is behind) or failed.
+
+        The first snapshot of a mission waits for one still being written (at most
+        `MISSION_SWITCH_WAIT_S`): what is appended after it belongs to the new mission."""
         if self.failed:
-            return
-        try:
-            self._start(mission, frames)
-        except OSError as exc:
-            self._fail(exc)
+            return False
 
-    def _start(self, mission: dict, frames: list[ChainFrame]) -> None:
-        self.path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-        fd = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        try:
-            os.write(fd, json.dumps({"version": 1, "mission": mission}).encode() + b"\n")
-            for frame in frames:
-                record = encode(frame)
-                os.write(fd, _LENGTH.pack(len(record)) + record)
-            os.replace(self._tmp, self.path)
-        except OSError:
-            os.close(fd)  # a failed write or rename must not leak the descriptor
-            raise
-        if self._fd is not None:
-            os.close(self._fd)
-        os.lseek(fd, 0, os.SEEK_END)
-        self._fd, self._mission, self.records = fd, dict(mission), len(frames)
+        def content(generation: int) -> bytes:
+            header = json.dumps({"version": VERSION, "mission": mission, "journal": generation}).encode()
+            return b"".join([header, b"\n", *(_record(f) for f in frames)])
+
+        switching = mission != self._mission
+        if not self._files.snapshot(content, wait_s=MISSION_SWITCH_WAIT_S if switching else 0.0):
+            if switching and not self.failed:
+                log.warning("held results %s: the writer is still behind; results held now are not on disk",
+                            self.path)
+            return False
+        self._mission, self.records = dict(mission), len(frames)
+        return True
 
     def _fail(self, exc: OSError) -> None:
         self.failed = True
         log.warning("held results not written to %s (%s): a crash would lose what this robot holds", self.path, exc)
 
     def close(self) -> None:
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+        self._files.close()
+
+
+def _record(frame: ChainFrame) -> bytes:
+    encoded = encode(frame)
+    return _LENGTH.pack(len(encoded)) + encoded

@@ -561,8 +561,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         if self.held_store is None or self.mission is None or key in self._held_journaled:
             return
 
-        self.held_store.append(mission_key(self.mission), frame)
-        self._held_journaled[key] = frame
+        if self.held_store.append(mission_key(self.mission), frame):  # not on disk: a crash here loses it
+            self._held_journaled[key] = frame
 
     def settle_held_store(self) -> None:
         """Drop from the disk the held results that are done with (acknowledged by their sink, or
@@ -593,8 +593,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.held_outputs[_held_key(frame)] = frame
             self.keep_result(frame, sent=False)  # within this process's budget (oldest dropped, counted)
         frames = list(self.held_outputs.values())
-        self._held_journaled.update((_held_key(frame), frame) for frame in frames)
-        self.held_store.rewrite(mission_key(mission), frames)  # this process's journal from now on
+        if self.held_store.rewrite(mission_key(mission), frames):  # this process's journal from now on
+            self._held_journaled.update((_held_key(frame), frame) for frame in frames)
         if frames:
             spans = {}
             for frame in frames:

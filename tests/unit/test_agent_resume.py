@@ -122,7 +122,16 @@ def test_a_resume_file_written_before_journal_generations_still_resumes(tmp_path
     (tmp_path / "r2.json").write_text('{"version": 1, "node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, '
                                       '"missed": 0, "produced_total": 7}}}')
     (tmp_path / "r2.json.journal").write_text('["Blob-2", 1, 9, 0, 9, 0]\n')
-    assert ResumeFile(tmp_path / "r2.json").load()["sources"]["Blob-2"]["seq"] == 9
+    store = ResumeFile(tmp_path / "r2.json")
+    state = store.load()
+    assert state["sources"]["Blob-2"]["seq"] == 9
+    # the first snapshot says what the old journal said, which then goes; later notes follow it
+    assert store.save(state)
+    assert not (tmp_path / "r2.json.journal").exists()
+    store.note_source("Blob-2", 1, 10, 0, 10)
+    assert store.save({**state, "sources": {"Blob-2": {**state["sources"]["Blob-2"], "seq": 10}}})
+    store.close()
+    assert ResumeFile(tmp_path / "r2.json").load()["sources"]["Blob-2"]["seq"] == 10
 
 
 class _SlowDisk:
@@ -131,17 +140,17 @@ class _SlowDisk:
     def __init__(self, monkeypatch):
         import threading
 
-        import autopower.agent.resume as resume
+        import autopower.runtime.snapshot_journal as files
 
         self.entered, self.release = threading.Event(), threading.Event()
-        real = resume.os.replace
+        real = files.os.replace
 
         def replace(src, dst):
             self.entered.set()
             self.release.wait(10)
             real(src, dst)
 
-        monkeypatch.setattr(resume.os, "replace", replace)
+        monkeypatch.setattr(files.os, "replace", replace)
 
 
 def test_a_snapshot_written_slowly_never_holds_the_loop_and_loses_no_note(tmp_path, monkeypatch):

@@ -31,8 +31,9 @@ def test_the_journal_is_private_survives_a_torn_record_and_belongs_to_one_missio
         store.append(MISSION, _result(seq))
     assert stat.S_IMODE(store.path.stat().st_mode) == 0o600
     assert stat.S_IMODE(store.path.parent.stat().st_mode) == 0o700
+    assert stat.S_IMODE(store.path.with_name("r2.held.journal.2").stat().st_mode) == 0o600
     store.close()
-    with open(store.path, "ab") as f:  # a kill in the middle of the next append
+    with open(store.path.with_name("r2.held.journal.2"), "ab") as f:  # a kill in the middle of the next append
         f.write(len(encode(_result(5))).to_bytes(4, "little") + encode(_result(5))[:7])
     assert [f.seq for f in HeldStore(store.path).load(MISSION)] == [0, 1, 2, 3, 4]
     assert HeldStore(store.path).load({**MISSION, "epoch_unix": 2000.0}) == []  # another mission's
@@ -50,6 +51,61 @@ def test_a_rewrite_keeps_what_is_still_at_risk_and_appends_go_on_after_it(tmp_pa
     assert [f.seq for f in HeldStore(store.path).load(MISSION)] == [7, 9, 10] and store.records == 3
     store.rewrite(MISSION, [])
     assert HeldStore(store.path).load(MISSION) == [] and not (tmp_path / "r2.held.tmp").exists()
+
+
+def test_a_file_written_before_journal_generations_still_loads(tmp_path):
+    import json
+
+    record = encode(_result(4))
+    (tmp_path / "r2.held").write_bytes(json.dumps({"version": 1, "mission": MISSION}).encode() + b"\n"
+                                       + len(record).to_bytes(4, "little") + record)
+    assert [f.seq for f in HeldStore(tmp_path / "r2.held").load(MISSION)] == [4]
+
+
+class _SlowDisk:
+    """Holds the writer thread inside its os.replace until released: a file system's journal under load."""
+
+    def __init__(self, monkeypatch):
+        import threading
+
+        import autopower.runtime.snapshot_journal as files
+
+        self.entered, self.release = threading.Event(), threading.Event()
+        real = files.os.replace
+
+        def replace(src, dst):
+            self.entered.set()
+            self.release.wait(10)
+            real(src, dst)
+
+        monkeypatch.setattr(files.os, "replace", replace)
+
+
+def test_a_rewrite_written_slowly_never_holds_the_loop_and_a_crash_meanwhile_keeps_every_result(tmp_path, monkeypatch):
+    import time
+
+    slow = _SlowDisk(monkeypatch)
+    store = HeldStore(tmp_path / "r2.held", background=True)
+    slow.release.set()
+    for seq in range(6):
+        assert store.append(MISSION, _result(seq))
+    assert store._files.written(5)  # the mission's first snapshot, handed over by the first append
+    assert store.rewrite(MISSION, [_result(4), _result(5)])
+    assert store._files.written(5)
+    slow.release.clear()
+    slow.entered.clear()
+    assert store.rewrite(MISSION, [_result(5)])  # handed over; the writer is stuck in its rename
+    assert slow.entered.wait(5)
+    started = time.monotonic()
+    assert store.append(MISSION, _result(6)) and store.append(MISSION, _result(7))
+    assert not store.rewrite(MISSION, [_result(7)])  # skipped while the writer is behind: tried again later
+    assert time.monotonic() - started < 0.5  # the loop never waited for the stuck writer
+    # killed here: the older snapshot and every journal since it hold all that was at risk, and more
+    assert [f.seq for f in HeldStore(store.path).load(MISSION)] == [4, 5, 6, 7]
+    slow.release.set()
+    assert store._files.written(5)
+    assert [f.seq for f in HeldStore(store.path).load(MISSION)] == [5, 6, 7]
+    store.close()
 
 
 def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink_is_in_reach(tmp_path):
