@@ -10,6 +10,7 @@ from autopower.agent.resume import ResumeFile
 from autopower.model.loading import load_scenario
 from autopower.node.runtime import NodeRuntime
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+from tests.unit.slow_disk import SlowDisk
 
 
 def _team_at(t_end: float) -> SimTeam:
@@ -134,29 +135,10 @@ def test_a_resume_file_written_before_journal_generations_still_resumes(tmp_path
     assert ResumeFile(tmp_path / "r2.json").load()["sources"]["Blob-2"]["seq"] == 10
 
 
-class _SlowDisk:
-    """Holds the writer thread inside its os.replace until released: a file system's journal under load."""
-
-    def __init__(self, monkeypatch):
-        import threading
-
-        import autopower.runtime.snapshot_journal as files
-
-        self.entered, self.release = threading.Event(), threading.Event()
-        real = files.os.replace
-
-        def replace(src, dst):
-            self.entered.set()
-            self.release.wait(10)
-            real(src, dst)
-
-        monkeypatch.setattr(files.os, "replace", replace)
-
-
 def test_a_snapshot_written_slowly_never_holds_the_loop_and_loses_no_note(tmp_path, monkeypatch):
     import time
 
-    slow = _SlowDisk(monkeypatch)
+    slow = SlowDisk(monkeypatch)
     store = ResumeFile(tmp_path / "r2.json", background=True)
     position = {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}
     t0 = time.monotonic()
@@ -175,7 +157,7 @@ def test_a_snapshot_written_slowly_never_holds_the_loop_and_loses_no_note(tmp_pa
 
 
 def test_a_crash_while_the_snapshot_is_written_resumes_from_the_older_one_and_every_journal(tmp_path, monkeypatch):
-    slow = _SlowDisk(monkeypatch)
+    slow = SlowDisk(monkeypatch)
     store = ResumeFile(tmp_path / "r2.json", background=True)
     slow.release.set()
     assert store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}}},

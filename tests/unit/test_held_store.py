@@ -10,6 +10,7 @@ from autopower.node.held_store import HeldStore
 from autopower.node.runtime import NodeRuntime, mission_key
 from autopower.protocol import ChainFrame, encode
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+from tests.unit.slow_disk import SlowDisk
 
 MISSION = {"scenario": "paper-fig7", "epoch_unix": 1000.0, "speed": 10.0}
 HOLD = 512  # results of 3 bytes (`_result`) a node keeps under the budget `_budgeted` gives it
@@ -62,29 +63,10 @@ def test_a_file_written_before_journal_generations_still_loads(tmp_path):
     assert [f.seq for f in HeldStore(tmp_path / "r2.held").load(MISSION)] == [4]
 
 
-class _SlowDisk:
-    """Holds the writer thread inside its os.replace until released: a file system's journal under load."""
-
-    def __init__(self, monkeypatch):
-        import threading
-
-        import autopower.runtime.snapshot_journal as files
-
-        self.entered, self.release = threading.Event(), threading.Event()
-        real = files.os.replace
-
-        def replace(src, dst):
-            self.entered.set()
-            self.release.wait(10)
-            real(src, dst)
-
-        monkeypatch.setattr(files.os, "replace", replace)
-
-
 def test_a_rewrite_written_slowly_never_holds_the_loop_and_a_crash_meanwhile_keeps_every_result(tmp_path, monkeypatch):
     import time
 
-    slow = _SlowDisk(monkeypatch)
+    slow = SlowDisk(monkeypatch)
     store = HeldStore(tmp_path / "r2.held", background=True)
     slow.release.set()
     for seq in range(6):
