@@ -45,7 +45,8 @@ class HeldStore:
     def __init__(self, path: str | Path, *, background: bool = False):
         self.path = Path(path)
         self._files = SnapshotJournal(self.path, background=background, on_error=self._fail)
-        self._mission: dict | None = None  # the mission the snapshot on disk belongs to
+        self._mission: dict | None = None  # the mission of the last snapshot handed to the writer
+        self._waited_for: dict | None = None  # the mission whose first snapshot the caller already waited for
         self.records = 0  # records in the snapshot and its journals now (what `rewrite` weighs against)
         self.failed = False
 
@@ -103,7 +104,8 @@ class HeldStore:
         """Keep only ``frames`` (those still at risk); False if skipped (the writer is behind) or failed.
 
         The first snapshot of a mission waits for one still being written (at most
-        `MISSION_SWITCH_WAIT_S`): what is appended after it belongs to the new mission."""
+        `MISSION_SWITCH_WAIT_S`, once per mission: a writer stuck longer must not hold the loop
+        at every held result): what is appended after it belongs to the new mission."""
         if self.failed:
             return False
 
@@ -112,8 +114,11 @@ class HeldStore:
             return b"".join([header, b"\n", *(_record(f) for f in frames)])
 
         switching = mission != self._mission
-        if not self._files.snapshot(content, wait_s=MISSION_SWITCH_WAIT_S if switching else 0.0):
-            if switching and not self.failed:
+        first_try = switching and mission != self._waited_for
+        if first_try:
+            self._waited_for = dict(mission)
+        if not self._files.snapshot(content, wait_s=MISSION_SWITCH_WAIT_S if first_try else 0.0):
+            if first_try and not self.failed:
                 log.warning("held results %s: the writer is still behind; results held now are not on disk",
                             self.path)
             return False

@@ -222,3 +222,31 @@ def test_the_base_stations_host_takes_back_what_it_held_after_a_restart(tmp_path
     sink = team.nodes["r1"].sinks["Loc-1"]
     assert all(f.seq in sink.above for f in results), sorted(sink.above)  # r1 in reach: delivered
     assert sink.duplicates_total == 0 and not rt.held_outputs
+
+
+def test_a_writer_stuck_at_a_new_mission_is_waited_for_once_and_then_never_again(tmp_path, monkeypatch):
+    import time
+
+    import autopower.node.held_store as held_store
+
+    monkeypatch.setattr(held_store, "MISSION_SWITCH_WAIT_S", 0.3)
+    slow = SlowDisk(monkeypatch)
+    store = HeldStore(tmp_path / "r2.held", background=True)
+    slow.release.set()
+    assert store.append(MISSION, _result(0)) and store._files.written(5)
+    slow.release.clear()
+    assert store.rewrite(MISSION, [])  # the writer is stuck in this one's rename
+    assert slow.entered.wait(5)
+    other = {**MISSION, "epoch_unix": 2000.0}
+    started = time.monotonic()
+    assert not store.append(other, _result(0))  # not on disk, and said so (the runtime counts it at risk)
+    assert time.monotonic() - started >= 0.3  # the new mission's first snapshot waited for the writer
+    started = time.monotonic()
+    assert not store.append(other, _result(1)) and not store.append(other, _result(2))
+    assert time.monotonic() - started < 0.2  # ... once: the loop is not held at every held result
+    slow.release.set()
+    assert store._files.written(5)
+    assert store.append(other, _result(3))
+    assert store._files.written(5)
+    assert [f.seq for f in HeldStore(store.path).load(other)] == [3]
+    store.close()
