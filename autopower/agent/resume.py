@@ -50,9 +50,6 @@ class ResumeFile:
         """The journal generation the notes go to now."""
         return self._files.current_journal
 
-    def generation_path(self, generation: int) -> Path:
-        return self._files.generation_path(generation)
-
     @property
     def skipped(self) -> int:
         """Snapshots not written because the one before was still being written."""
