@@ -42,6 +42,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from autopower.basestation.decider import Decider
 from autopower.basestation.deciding import Baseline, Deciding
 from autopower.basestation.links import LinkStates, pair_name
 from autopower.basestation.operating import Operating
@@ -120,7 +121,8 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
                  perf_fn: Callable[[], float] = time.perf_counter,
                  send_to: Callable[[str, str, bytes], object] | None = None,
                  also_relay: Callable[[list[str], str, bytes], object] | None = None,
-                 on_own_plan: Callable[[PlanUpdate], object] | None = None):
+                 on_own_plan: Callable[[PlanUpdate], object] | None = None,
+                 on_decision_answer: Callable[[], object] | None = None):
         """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it).
         ``perf_fn`` times the policy's decisions (a figure reported, never an input to one).
         ``leader`` names this base station in its plans (default: `instance_id`, random per process);
@@ -132,7 +134,12 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         of sight (default: nobody), and ``on_own_plan(plan)`` hands each plan to the base
         station's own host before it is published (not after a trip through Zenoh's loopback:
         after a takeover the robots' held results follow the plan at once, and a host without
-        the mission would drop them)."""
+        the mission would drop them).
+
+        ``on_decision_answer``: None asks the policy inline (the simulator, tests: a decision is
+        carried out before `replan` returns); given, the policy decides on a thread and this is
+        called from it when an answer is in: the process then wakes its loop, whose `on_timer`
+        carries the answer out (`decider.Decider`)."""
         # quality variants are fixed for the mission: the policies place the chains as they run them
         self.variants = mission_variants(scenario, config.variants)
         scenario = apply_variants(scenario, self.variants)
@@ -141,6 +148,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.keys = keys
         self.config = config
         self.policy: Policy = policy if policy is not None else _policy_from(config)
+        self.decider = Decider(self.policy, perf_fn=perf_fn, on_answer=on_decision_answer)
         self.wall = wall_fn
         self.perf = perf_fn
         self.topology = config.topology or scenario.network_spec.topology
@@ -235,7 +243,9 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.aborted = 0
         self.order_resends = 0  # migration orders sent again for want of an answer (`Placing.resend_orders`)
         self.replans = 0
-        self.decisions = 0  # the policy asked (a re-plan that decided, whatever it chose)
+        self.asked = 0  # questions put to the policy
+        self._events_asked = 0  # how many of `_pending_events` the question out carries
+        self.decisions = 0  # the policy answered (a re-plan that decided, whatever it chose)
         self.decide_s = 0.0  # wall seconds the policy took over them (`perf_fn`)
         self.decide_max_s = 0.0
         self.first_depletion: dict[str, float] | None = None
@@ -556,8 +566,9 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
 
     def on_timer(self) -> None:
         now_wall = self.wall()
+        self.take_answer()  # before anything new is asked: one question at a time
         self.maybe_start()
-        if self.replan_due:
+        if self.replan_due and not self.decider.busy:
             reasons, self.replan_due = self.replan_due, []
             self.replan(", ".join(dict.fromkeys(reasons)))
         if self.plan_due and now_wall >= self._ready_plan_unix():
@@ -608,7 +619,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
         deadlines = [m.started_unix + self.config.migration_timeout_s for m in self.migrations.values()]
         deadlines += [self.order_resend_unix(m) for m in self.migrations.values() if m.order]
-        if self.replan_due:
+        if self.replan_due and not self.decider.busy:  # (a question out: its answer wakes the loop)
             deadlines.append(self.wall())
         if self.plan_due:
             deadlines.append(max(self.wall(), self._ready_plan_unix()))
@@ -637,7 +648,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         """The mission runs and nothing is under way that only time moves on: no migration, no
         rejoined robot whose report is awaited, no link down (its heal is timed), no fault
         waiting to be reconfigured. The loop may then sleep until an event or `next_deadline_unix`."""
-        return (self.mission is not None and not self.migrations and not self._awaiting_actual
+        return (self.mission is not None and not self.decider.busy and not self.migrations and not self._awaiting_actual
                 and not self.links.down and all(f["reconfigured_unix"] is not None for f in self.faults))
 
 

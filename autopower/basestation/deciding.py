@@ -88,15 +88,21 @@ class Deciding:
         self.replan_due.append(reason)
 
     def replan(self, reason: str, *, after_rejoin: bool = False) -> bool:
-        """Ask the policy what to run where now, and carry its answer out.
+        """Ask the policy what to run where now; its answer is carried out by `take_answer`.
 
         ``reason`` says why we ask (for the notes); what happened since the last decision travels
-        as events. True when the policy answered (a new configuration, or keep the current one);
+        as events. Asked inline (the simulator, unit tests), the answer is carried out before this
+        returns: True when the policy answered (a new configuration, or keep the current one),
         False when it could not be asked (no mission, robots still to report) or found nothing.
+        Asked on a thread (`decider.Decider`), True means asked, or queued behind the question
+        out: one question at a time, and the reasons that come meanwhile go with the next one.
         """
         self.replan_waiting = None
         if self.mission is None:
             return False
+        if self.decider.busy:
+            self.replan_due.append(reason)  # `on_timer` asks once the answer out is carried out
+            return True
         if self._awaiting_actual and not after_rejoin:
             # robots are back and have not said what they run yet: decide once they have
             waiting = ", ".join(sorted(self._awaiting_actual))
@@ -112,28 +118,42 @@ class Deciding:
             self.reconcile()
             self.publish_plan()
             return False
-        state = self.team_state()
-        started = self.perf()
-        try:
-            decision = self.policy.decide(state)
-        except AutoPowerError as exc:  # InfeasibleError, or a state the policy rejects
-            self.plan_error = str(exc)
-            self.note(f"decision ({reason}) found nothing feasible: {exc}")
+        self._events_asked = len(self._pending_events)  # the events this question carries
+        self.asked += 1
+        self.decider.ask(self.team_state(), reason)
+        return self.take_answer() if not self.decider.on_thread else True
+
+    def take_answer(self) -> bool:
+        """Carry out the policy's answer, if one is in. True when it answered (a new configuration,
+        or keep the current one); False when none is in, or it found nothing feasible.
+
+        An answer is for the team as it was when asked. What changed since (a robot left, a link
+        went down) was queued as the next question's reason; meanwhile this answer is carried
+        out, and `reconcile` places nothing on a node out of reach."""
+        answer = self.decider.take()
+        if answer is None:
             return False
-        finally:
-            took = self.perf() - started
-            self.decisions += 1
-            self.decide_s += took
-            self.decide_max_s = max(self.decide_max_s, took)
-            for fault in self.faults:
-                if fault["reconfigured_unix"] is None:
-                    fault["decide_s"] += took
+        self.decisions += 1
+        self.decide_s += answer.took_s
+        self.decide_max_s = max(self.decide_max_s, answer.took_s)
+        for fault in self.faults:
+            if fault["reconfigured_unix"] is None:
+                fault["decide_s"] += answer.took_s
+        if answer.failure is not None:
+            raise answer.failure  # the policy's bug, raised on the loop as an inline decision would
+        if answer.error is not None:
+            self.plan_error = str(answer.error)
+            self.note(f"decision ({answer.reason}) found nothing feasible: {answer.error}")
+            return False
+        if self.stepped_down is not None:
+            return False  # another base station leads: its plans, not ours
         self.plan_error = None
-        self._pending_events.clear()
-        if decision is None:
-            self._keep(state, reason)
+        del self._pending_events[:self._events_asked]  # those that came while it decided go with the next
+        self._events_asked = 0
+        if answer.decision is None:
+            self._keep(answer.state, answer.reason)
         else:
-            self._carry_out(decision, reason)
+            self._carry_out(answer.decision, answer.reason)
         return True
 
     def _keep(self, state: TeamState, reason: str) -> None:

@@ -7,6 +7,7 @@ import dataclasses
 import statistics
 from typing import Any
 
+from autopower.basestation.decider import AwaitDecision
 from autopower.errors import AutoPowerError
 from autopower.protocol import (
     AutoCommand,
@@ -23,7 +24,9 @@ from autopower.protocol import (
 class Operating:
     """The coordinator's operator part: commands and the snapshot `status` shows. Mixed into `Coordinator`, whose state it uses."""
 
-    def on_operator(self, cmd) -> OperatorReply:
+    def on_operator(self, cmd) -> OperatorReply | AwaitDecision:
+        """The reply to an operator's command; `AwaitDecision` when it waits for a decision on a
+        thread (the process asks `reply_when_decided` after each timer, then replies)."""
         try:
             if isinstance(cmd, SnapshotRequest):
                 return OperatorReply(ok=True, message="snapshot", snapshot=self.snapshot())
@@ -43,7 +46,7 @@ class Operating:
                         self.failed_stages.pop(stage.name, None)
                 self._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
                 what = "enabled" if cmd.enabled else "disabled"
-                return self._after_replan(self.replan(f"operator {what} {cmd.chain}"))
+                return self._replan_for_operator(f"operator {what} {cmd.chain}")
             if isinstance(cmd, MigrateCommand):
                 self._check_pin(cmd.stage, cmd.to_node)
                 if cmd.to_node not in self.alive_nodes():
@@ -58,10 +61,10 @@ class Operating:
                 return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
             if isinstance(cmd, AutoCommand):
                 self._clear_pins()
-                return self._after_replan(self.replan("operator cleared pins"))
+                return self._replan_for_operator("operator cleared pins")
             if isinstance(cmd, LinkCommand):
                 self._operator_link(cmd)
-                return self._after_replan(self.replan(f"operator changed links of {cmd.node}"))
+                return self._replan_for_operator(f"operator changed links of {cmd.node}")
         except AutoPowerError as exc:
             return OperatorReply(ok=False, message=str(exc))
         return OperatorReply(ok=False, message=f"unsupported command {type(cmd).__name__}")
@@ -114,6 +117,21 @@ class Operating:
         self.radio_faults[cmd.node] = (cmd.laptop_robot or before[0], cmd.robot_robot or before[1])
         self._event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
                     note="operator")
+
+    def _replan_for_operator(self, reason: str) -> OperatorReply | AwaitDecision:
+        queued = self.decider.busy  # then the command goes with the question after the one out
+        ok = self.replan(reason)
+        if self.decider.busy:
+            return AwaitDecision(ticket=self.asked + (1 if queued else 0))
+        return self._after_replan(ok)
+
+    def reply_when_decided(self, waiting: AwaitDecision) -> OperatorReply | None:
+        """The reply to a command once its decision is carried out, or once none is coming (the
+        re-plan waits for robots); None while it is still to come."""
+        answered = self.decisions >= waiting.ticket
+        if not answered and (self.decider.busy or self.replan_due):
+            return None
+        return self._after_replan(answered and self.plan_error is None)
 
     def _after_replan(self, ok: bool) -> OperatorReply:
         """The reply to a command the team's plan carries out. A re-plan that waits (robots to

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
+from autopower.basestation.decider import AwaitDecision
 from autopower.basestation.peer_view import PeerViews
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.scenario import Scenario
@@ -42,9 +43,17 @@ from autopower.protocol import (
 )
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
-from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
+from autopower.runtime.bus import Bus, Request, ZenohBus, ZenohSettings
 from autopower.runtime.cadence import REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence
-from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
+from autopower.runtime.events import (
+    DecisionAnswered,
+    EventQueue,
+    LivelinessChanged,
+    OperatorRequest,
+    Received,
+    StopRequested,
+    WorkDone,
+)
 from autopower.runtime.loop_watch import LoopWatch
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -56,9 +65,13 @@ log = logging.getLogger(__name__)
 # the base station's own sources' business; it has none in the paper's mission, and a late tick
 # takes its captures from the sensor's queue)
 BATCH_S = 0.005
-# The base station's loop also decides (a MILP of a large team takes seconds): a stall is
-# reported only past this, and says where the time went.
+# A stall of the base station's loop is reported past this, and says where the time went (the
+# policy decides on a thread of its own, `decider`: the loop only builds the question and
+# carries the answer out).
 LOOP_STALL_S = 2.0
+# How long a stopping base station waits for a decision still on its thread: a MILP that runs on
+# is abandoned (a daemon thread), so that the supervisor never has to kill us for it
+DECISION_CLOSE_WAIT_S = 2.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -107,6 +120,8 @@ class BaseStation:
         self.cadence = StatusCadence(config.status_period_s, config.status_rest_period_s)
         self._lock_fd: int | None = None
         self._kept_incarnation: int | None = None  # what the state directory says we used last
+        # operator requests whose reply waits for the decision that carries them out
+        self._awaiting_decision: list[tuple[Request, AwaitDecision]] = []
 
     def _send_view(self, robot: str, key: str, payload: bytes, period: float) -> None:
         """Our status as ``robot`` acts on it: a heartbeat like the status itself.
@@ -142,7 +157,8 @@ class BaseStation:
                                        config=self.config.coordinator, policy=self._policy,
                                        incarnation=0 if kept is None else kept + 1,
                                        send_to=self.relayer.send, also_relay=self.relayer.send_beyond_sight,
-                                       on_own_plan=self._own_plan)
+                                       on_own_plan=self._own_plan,
+                                       on_decision_answer=lambda: self.events.post(DecisionAnswered()))
         self.peer_views = PeerViews(scenario, self.keys)
         self.runtime.send_to = self.relayer.send
         self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
@@ -217,6 +233,9 @@ class BaseStation:
             pass
 
     def __exit__(self, *exc) -> None:
+        self._reply_to_waiting(stopping=True)
+        if self.coordinator is not None and not self.coordinator.decider.close(DECISION_CLOSE_WAIT_S):
+            log.warning("base station: stopping while the policy still decides (over %.0f s)", DECISION_CLOSE_WAIT_S)
         close_workers = getattr(self.runtime, "close_workers", None)  # the host's stage worker processes
         if close_workers is not None:
             close_workers()
@@ -275,6 +294,7 @@ class BaseStation:
             self._operator(event.request)
         elif isinstance(event, WorkDone):
             rt.collect_stage_results()
+        # DecisionAnswered only wakes the loop: `Coordinator.on_timer` carries the answer out
 
     def _settle_suspects(self) -> None:
         """Decide about robots we lost sight of: a cut link (relay) or a robot gone."""
@@ -342,22 +362,48 @@ class BaseStation:
             except ProtocolError as exc:
                 self._garbage(event_key, exc)
 
-    def _operator(self, request) -> None:
-        keys, co = self.keys, self.coordinator
-        if True:
+    def _operator(self, request: Request) -> None:
+        try:
+            cmd = decode(request.payload, OPERATOR_COMMANDS)
+        except ProtocolError as exc:
+            self._garbage(self.keys.operator, exc)
+            self._reply(request, OperatorReply(ok=False, message=f"bad request: {exc}"))
+            return
+        try:
+            reply = self.coordinator.on_operator(cmd)
+        except BaseException:
+            request.close()
+            raise
+        if isinstance(reply, AwaitDecision):  # replied to once the decision is carried out
+            self._awaiting_decision.append((request, reply))
+            return
+        if reply.snapshot:
+            reply = dataclasses.replace(reply, snapshot=self.snapshot(reply.snapshot))
+        self._reply(request, reply)
+
+    def _reply(self, request: Request, reply: OperatorReply) -> None:
+        try:
+            request.reply(encode(reply))
+        finally:
+            request.close()
+
+    def _reply_to_waiting(self, *, stopping: bool = False) -> None:
+        """Reply to the operator commands whose decision is carried out (all of them when stopping)."""
+        still = []
+        for request, waiting in self._awaiting_decision:
+            reply = self.coordinator.reply_when_decided(waiting)
+            if reply is None and stopping:
+                reply = OperatorReply(ok=False, message="the base station stopped before the decision that carries "
+                                                        "the command out; give it again to the base station that runs "
+                                                        "the team")
+            if reply is None:
+                still.append((request, waiting))
+                continue
             try:
-                try:
-                    cmd = decode(request.payload, OPERATOR_COMMANDS)
-                except ProtocolError as exc:
-                    self._garbage(keys.operator, exc)
-                    reply = OperatorReply(ok=False, message=f"bad request: {exc}")
-                else:
-                    reply = co.on_operator(cmd)
-                    if reply.snapshot:
-                        reply = dataclasses.replace(reply, snapshot=self.snapshot(reply.snapshot))
-                request.reply(encode(reply))
-            finally:
-                request.close()
+                self._reply(request, reply)
+            except Exception:  # the operator gave up waiting (its query timed out): the command stands
+                log.warning("base station: could not reply to an operator command", exc_info=True)
+        self._awaiting_decision = still
 
     def snapshot(self, base: dict[str, Any] | None = None) -> dict[str, Any]:
         snap = dict(base) if base is not None else self.coordinator.snapshot()
@@ -417,6 +463,8 @@ class BaseStation:
                     break
                 self._settle_suspects()
                 co.on_timer()
+                if self._awaiting_decision:
+                    self._reply_to_waiting()
                 if co.stepped_down is not None:
                     self.stop_reason = f"stepped down: {co.stepped_down}"
                     break

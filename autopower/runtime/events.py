@@ -52,7 +52,12 @@ class WorkDone:
     """Work handed to another process finished (a stage worker's result waits to be collected)."""
 
 
-Event = Received | LivelinessChanged | OperatorRequest | StopRequested | WorkDone
+@dataclass(frozen=True)
+class DecisionAnswered:
+    """The policy, deciding on a thread, answered: the loop's next timer carries the answer out."""
+
+
+Event = Received | LivelinessChanged | OperatorRequest | StopRequested | WorkDone | DecisionAnswered
 
 
 SIGNAL_SLICE_S = 0.1

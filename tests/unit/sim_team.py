@@ -58,7 +58,8 @@ class FakeComponent:
 
 class SimTeam:
     def __init__(self, scenario, *, config: CoordinatorConfig | None = None, policy=None, fake=True,
-                 rng: random.Random | None = None, speed: float = 1.0, relay_on_arrival: bool = True):
+                 rng: random.Random | None = None, speed: float = 1.0, relay_on_arrival: bool = True,
+                 on_decision_answer=None):
         self.scenario = scenario
         self.clock = ManualClock(speed=speed, epoch_unix=1_000_000.0)
         self.hub = InMemoryHub(synchronous=False)
@@ -66,7 +67,7 @@ class SimTeam:
         self.rng = rng
         self.coordinator = Coordinator(scenario=scenario, bus=self.hub.bus("coordinator"), keys=self.keys,
                                        config=config or CoordinatorConfig(speed=speed), policy=policy,
-                                       wall_fn=self.clock.wall)
+                                       wall_fn=self.clock.wall, on_decision_answer=on_decision_answer)
         kwargs = dict(make_component=FakeComponent, make_source=FakeSource) if fake else {}
         self.nodes: dict[str, NodeRuntime] = {}
         self.subscriptions: dict[str, list] = {}

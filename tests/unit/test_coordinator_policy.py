@@ -46,9 +46,8 @@ class Watched:
 
 def team_with(policy: str | Watched, **config) -> SimTeam:
     name = policy if isinstance(policy, str) else policy.name
-    team = SimTeam(FIG7, config=CoordinatorConfig(speed=1.0, policy=name, **config))
-    if isinstance(policy, Watched):  # the same coordinator, watched (SimTeam builds it from the config)
-        team.coordinator.policy = policy
+    team = SimTeam(FIG7, config=CoordinatorConfig(speed=1.0, policy=name, **config),
+                   policy=policy if isinstance(policy, Watched) else None)
     team.join()
     return team
 

@@ -1,0 +1,150 @@
+"""The policy decides on a thread: the coordinator goes on meanwhile, carries the answer out when
+it comes, and asks once more for what happened while it decided (`basestation/decider.py`)."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from autopower.basestation.coordinator import CoordinatorConfig
+from autopower.basestation.decider import AwaitDecision
+from autopower.model.loading import load_scenario
+from autopower.policies import make_policy
+from autopower.protocol import ChainCommand, LinkCommand
+from tests.unit.sim_team import SimTeam
+
+FIG7 = load_scenario("paper-fig7")
+WAIT_S = 30.0  # a bound on a thread that must answer, never a figure
+
+
+class Gated:
+    """The rebalance policy, deciding only once the test lets it (one question per `release`)."""
+
+    name = "rebalance"
+
+    def __init__(self, fail_with: Exception | None = None):
+        self.inner = make_policy("rebalance")
+        self.fail_with = fail_with
+        self.gate = threading.Semaphore(0)
+        self.states: list = []
+        self.threads: set[str] = set()
+
+    def decide(self, state):
+        assert self.gate.acquire(timeout=WAIT_S), "the test never let the policy decide"
+        self.states.append(state)
+        self.threads.add(threading.current_thread().name)
+        if self.fail_with is not None:
+            raise self.fail_with
+        return self.inner.decide(state)
+
+
+class Answers:
+    """What the coordinator's `on_decision_answer` sees (it is called from the policy's thread)."""
+
+    def __init__(self):
+        self.count = 0
+        self.cond = threading.Condition()
+
+    def __call__(self):
+        with self.cond:
+            self.count += 1
+            self.cond.notify_all()
+
+    def wait_for(self, count: int) -> None:
+        with self.cond:
+            assert self.cond.wait_for(lambda: self.count >= count, timeout=WAIT_S), f"answer {count} never came"
+
+
+def threaded_team(policy) -> tuple[SimTeam, Answers]:
+    answers = Answers()
+    team = SimTeam(FIG7, config=CoordinatorConfig(speed=1.0, policy="rebalance", replan_interval_s=1e12),
+                   policy=policy, on_decision_answer=answers)
+    return team, answers
+
+
+def test_the_coordinator_goes_on_while_the_policy_decides_and_carries_the_answer_out_after():
+    policy = Gated()
+    team, answers = threaded_team(policy)
+    co = team.coordinator
+    team.join()
+    # the mission started and the question is out: nothing is decided, nothing placed, and the loop goes on
+    assert co.mission is not None and co.decider.busy and co.asked == 1 and co.decisions == 0
+    assert co.target == {} and not co.ready
+    team.report_status()  # statuses are taken while the policy decides
+    assert all(robot in co.statuses for robot in co.robots)
+    assert not co.idle()  # a loop at rest would not wake for the answer's timers
+
+    policy.gate.release()
+    answers.wait_for(1)
+    team.pump()  # the loop's timer carries the answer out
+    assert co.decisions == 1 and not co.decider.busy and co.target and co.ready
+    assert policy.threads == {"autopower-decide"}  # decided off the caller's thread
+
+
+def test_what_happens_while_it_decides_goes_with_the_next_question():
+    policy = Gated()
+    team, answers = threaded_team(policy)
+    co = team.coordinator
+    team.join()
+    policy.gate.release()
+    answers.wait_for(1)
+    team.pump()
+    assert co.ready and co.asked == 1
+
+    # an operator's radio change: the reply waits for the decision that carries it out
+    waiting = co.on_operator(LinkCommand(node="r3", laptop_robot="gsm", robot_robot="bluetooth"))
+    assert isinstance(waiting, AwaitDecision) and waiting.ticket == 2
+    assert co.reply_when_decided(waiting) is None
+    # while that question is out, the operator disables a chain: it waits for the question after
+    later = co.on_operator(ChainCommand(chain="Blob-2", enabled=False))
+    assert isinstance(later, AwaitDecision) and later.ticket == 3
+    assert co.asked == 2 and co.replan_due  # queued, not asked: one question at a time
+
+    policy.gate.release()
+    answers.wait_for(2)
+    team.pump()  # answer 2 carried out; the queued reason asked at once as question 3
+    reply = co.reply_when_decided(waiting)
+    assert reply is not None and reply.ok, reply
+    assert co.asked == 3 and co.decider.busy and co.reply_when_decided(later) is None
+    asked_about = policy.states[1]
+    assert [e.kind for e in asked_about.events] == ["radio-fault"]
+    assert "Blob-2" not in asked_about.disabled_chains  # the state as it was when asked
+
+    policy.gate.release()
+    answers.wait_for(3)
+    team.pump()
+    reply = co.reply_when_decided(later)
+    assert reply is not None and reply.ok, reply
+    third = policy.states[2]
+    assert [e.kind for e in third.events] == ["chain-disable"]  # each event told once, to its own question
+    assert "Blob-2" in third.disabled_chains
+    assert not any(s.startswith("Blob-2") for s in co.target)
+    assert co.ready and not co.decider.busy and co.asked == co.decisions == 3
+
+
+def test_a_policy_that_fails_on_its_thread_fails_on_the_loop_and_the_next_question_is_asked():
+    policy = Gated(fail_with=ValueError("a bug in the policy"))
+    team, answers = threaded_team(policy)
+    co = team.coordinator
+    with pytest.raises(ValueError, match="a bug in the policy"):  # as an inline decision would raise
+        team.join()
+        policy.gate.release()
+        answers.wait_for(1)
+        team.pump()
+    assert co.decisions == 1 and not co.decider.busy and co.target == {}
+    policy.fail_with = None
+    co.replan("again")
+    policy.gate.release()
+    answers.wait_for(2)
+    team.pump()
+    assert co.ready
+
+
+def test_inline_decisions_are_carried_out_before_replan_returns():
+    team = SimTeam(FIG7, config=CoordinatorConfig(speed=1.0, policy="rebalance", replan_interval_s=1e12))
+    co = team.coordinator
+    team.join()
+    assert co.ready and co.asked == co.decisions == 1 and not co.decider.on_thread
+    reply = co.on_operator(ChainCommand(chain="Blob-2", enabled=False))
+    assert not isinstance(reply, AwaitDecision) and reply.ok and co.decisions == 2
