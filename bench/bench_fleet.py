@@ -1,7 +1,7 @@
 """Live fleets beyond the paper's trio: `autopower up` on generated teams of N robots. Not a timed test.
 
     .venv/bin/python bench/bench_fleet.py [--robots 3,10,20,30,50] [--seconds 30] [--speed 1]
-                                          [--topology neighbours] [--neighbours 2]
+                                          [--topology neighbours] [--neighbours 2] [--keep DIR]
 
 Each team is `autopower scenarios fleet N --topology T` (every robot the paper's camera robot: a Loc
 chain and a 4 Hz Blob chain each; by default each robot links to the base station and its two ring
@@ -115,11 +115,17 @@ def main() -> None:
     parser.add_argument("--neighbours", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--speed", type=float, default=1.0)
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="run in this folder and keep it (scenarios, every process's log, up's JSON)")
     bench_results.add_json_out(parser)
     args = parser.parse_args()
     sizes = [int(x) for x in args.robots.split(",")]
-    with tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp:
-        runs = [run_fleet(n, args.seconds, args.speed, Path(tmp), args.topology, args.neighbours) for n in sizes]
+    if args.keep is not None:
+        args.keep.mkdir(mode=0o700, parents=True, exist_ok=True)
+        runs = [run_fleet(n, args.seconds, args.speed, args.keep, args.topology, args.neighbours) for n in sizes]
+    else:
+        with tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp:
+            runs = [run_fleet(n, args.seconds, args.speed, Path(tmp), args.topology, args.neighbours) for n in sizes]
     base = runs[0]
     print(f"{'robots':>6} {'ready s':>8} {'missed %':>9} {'cores':>6} {'CPU s/robot':>12} {'outputs':>8} "
           f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6} {'peak MB':>8} {'drops':>6} {'robot kbit/s':>13}")

@@ -92,24 +92,36 @@ def placed_power_w(status: dict, at_ready: dict | None) -> float | None:
     return (b0 - b1) / (t1 - t0)
 
 
-def _usable(robot: dict | None) -> bool:
+def _usable(robot: dict | None, name: str, at_ready: dict) -> bool:
+    """Whether a robot's status can start its power comparison: it has a battery and a mission
+    clock, and the robot sent it running the plan the team was ready with (that plan's epoch or a
+    later one, and every stage the ready snapshot places on it running). A status from before
+    that (a robot in a large fleet reports every 0.5 s; the ready plan reached it after its last
+    one) would count its start-up as the placed configuration: at 30 robots the last robots to get
+    their stages read 2 % below the model for it."""
     status = (robot or {}).get("status") or {}
-    return status.get("battery_j") is not None and status.get("t_virtual") is not None
+    if status.get("battery_j") is None or status.get("t_virtual") is None:
+        return False
+    epoch = at_ready.get("epoch")
+    if epoch is not None and (status.get("plan_epoch") is None or status["plan_epoch"] < epoch):
+        return False
+    hosted = status.get("hosted") or {}
+    return all(hosted.get(stage) == "running" for stage, node in (at_ready.get("placement") or {}).items()
+               if node == name)
 
 
 def at_ready_complete(at_ready: dict) -> bool:
     """Whether every robot of the ready snapshot has a status to compare its power from."""
-    return all(_usable(robot) for robot in (at_ready.get("robots") or {}).values())
+    return all(_usable(robot, name, at_ready) for name, robot in (at_ready.get("robots") or {}).items())
 
 
 def complete_at_ready(at_ready: dict, snap: dict) -> None:
-    """Give each robot whose status in the ready snapshot had no battery or mission clock yet
-    (the base station had not heard from it since it started the mission: it happens in a large
-    fleet, whose stages are all placed before every robot's next status) its first later status
-    that has them: its power is compared with the model's from then on, not left out."""
+    """Give each robot whose status in the ready snapshot cannot start its comparison (`_usable`:
+    no battery or mission clock yet, or sent before it ran the ready plan) its first later status
+    that can: its power is compared with the model's from then on, not left out."""
     robots = at_ready.setdefault("robots", {})
     for name, info in (snap.get("robots") or {}).items():
-        if not _usable(robots.get(name)) and _usable(info):
+        if not _usable(robots.get(name), name, at_ready) and _usable(info, name, at_ready):
             robots[name] = info
 
 

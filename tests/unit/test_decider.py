@@ -4,15 +4,19 @@ it comes, and asks once more for what happened while it decided (`basestation/de
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.basestation.decider import AwaitDecision
+from autopower.basestation.process import BaseStation, BaseStationConfig
 from autopower.model.loading import load_scenario
+from autopower.node.runtime import NodeRuntime
 from autopower.policies import make_policy
-from autopower.protocol import ChainCommand, LinkCommand
-from tests.unit.sim_team import SimTeam
+from autopower.protocol import ChainCommand, Keys, LinkCommand, OperatorReply, decode, encode
+from autopower.runtime.bus import InMemoryHub
+from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
 FIG7 = load_scenario("paper-fig7")
 WAIT_S = 30.0  # a bound on a thread that must answer, never a figure
@@ -148,3 +152,84 @@ def test_inline_decisions_are_carried_out_before_replan_returns():
     assert co.ready and co.asked == co.decisions == 1 and not co.decider.on_thread
     reply = co.on_operator(ChainCommand(chain="Blob-2", enabled=False))
     assert not isinstance(reply, AwaitDecision) and reply.ok and co.decisions == 2
+
+
+# ---- the base station's process: its loop goes on while the policy decides ----------------------------
+
+
+class Request:
+    """An operator's query as the process gets it (`runtime.bus.Request`)."""
+
+    def __init__(self, payload: bytes):
+        self.key, self.payload, self.replies, self.closed = "operator", payload, [], False
+
+    def reply(self, payload: bytes) -> None:
+        self.replies.append(payload)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def wait_until(check, what: str) -> None:
+    deadline = time.monotonic() + WAIT_S
+    while not check():
+        assert time.monotonic() < deadline, f"never: {what}"
+        time.sleep(0.01)
+
+
+def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_policy_decides():
+    """The process, not only the coordinator: while a decision is out, the loop goes on sending
+    each robot its heartbeat (a robot takes a silent base station for gone after a lease) and takes
+    events; an operator's command gets one reply, after the decision that carries it out; one
+    still waiting when the base station stops gets one too."""
+    hub = InMemoryHub()  # delivered on the publisher's thread, as Zenoh's callbacks are
+    keys = Keys("d")
+    policy = Gated()
+    config = BaseStationConfig(scenario=FIG7, team="d", coordinator=CoordinatorConfig(speed=1.0))
+    robots = {r.name: NodeRuntime(node=r.name, scenario=FIG7, bus=hub.bus(r.name), keys=keys,
+                                  make_component=FakeComponent, make_source=FakeSource) for r in FIG7.robots}
+    heartbeats: list[float] = []  # when r1 heard the base station
+    hub.bus("r1").subscribe(keys.addressed("r1", "laptop"), lambda key, payload: heartbeats.append(time.monotonic()))
+
+    def host(**kw):
+        return NodeRuntime(make_component=FakeComponent, make_source=FakeSource, **kw)
+
+    with BaseStation(config, host_factory=host, bus=hub.bus("laptop"), policy=policy) as base:
+        loop = threading.Thread(target=base.run, kwargs={"max_wall_s": WAIT_S}, daemon=True)
+        loop.start()
+        try:
+            for name, rt in robots.items():
+                hub.bus(name).declare_token(keys.alive(name))
+                hub.bus(name).publish(keys.status(name), encode(rt.status(0.0)))
+            co = base.coordinator
+            wait_until(lambda: co.decider.busy, "the mission start asked the policy")
+
+            before = len(heartbeats)
+            time.sleep(3 * config.status_period_s)  # the policy is held: the loop is not
+            assert len(heartbeats) >= before + 2, "no heartbeat while the policy decided"
+            first = Request(encode(ChainCommand(chain="Blob-2", enabled=False)))
+            base.events.on_request(first)
+            time.sleep(2 * config.status_period_s)
+            assert first.replies == [] and not first.closed  # its decision is not even asked yet
+
+            policy.gate.release()  # the mission start's answer; the command's question follows
+            wait_until(lambda: co.decisions == 1 and co.asked == 2, "the command's question asked")
+            assert co.target and first.replies == []
+            policy.gate.release()
+            wait_until(lambda: first.closed, "the reply to the command")
+            assert len(first.replies) == 1
+            reply = decode(first.replies[0], OperatorReply)
+            assert reply.ok and reply.message.startswith("re-planned"), reply.message
+            assert not any(stage.startswith("Blob-2") for stage in co.target)
+
+            second = Request(encode(ChainCommand(chain="Blob-2", enabled=True)))
+            base.events.on_request(second)
+            wait_until(lambda: co.asked == 3, "the second command's question asked")
+        finally:
+            base.request_stop("test")
+            loop.join(WAIT_S)
+        assert not loop.is_alive()
+        policy.gate.release()  # lets the abandoned question end
+    assert second.closed and len(second.replies) == 1  # stopped before its decision: told so
+    reply = decode(second.replies[0], OperatorReply)
+    assert not reply.ok and "stopped before the decision" in reply.message

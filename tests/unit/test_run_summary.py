@@ -48,3 +48,31 @@ def test_a_robot_not_yet_heard_at_ready_is_compared_from_its_first_status_after(
     complete_at_ready(at_ready, end)  # a usable one stays: the comparison starts at the first
     r1 = run_summary(end, team="t", speed=1, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)["robots"]["r1"]
     assert r1["placed_power_w"] == pytest.approx(2.0) and r1["power_error"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_status_sent_before_the_robot_ran_the_ready_plan_does_not_start_its_comparison():
+    """A robot of a large fleet reports every 0.5 s: the snapshot at ready may hold its status from
+    before its stage ran (and before the ready plan's epoch). Compared from it, its start-up counted
+    as the placed configuration: the last robots of a 30-robot fleet read 2 % below the model."""
+    def snap(t, battery, epoch, hosted):
+        return {"epoch": 7, "placement": {"Blob-1": "r1", "Loc-1": "laptop"},
+                "robots": {"r1": {"present": True, "predicted_w": 2.0,
+                                  "status": {"initial_j": 1000.0, "battery_j": battery, "t_virtual": t,
+                                             "plan_epoch": epoch, "hosted": hosted}}}}
+
+    # at 10 s the robot still ran the plan before (epoch 6, its Blob finder not yet started): 0.4 W
+    at_ready = snap(10.0, 1000.0 - 10 * 0.4, 6, {})
+    # its Blob finder started at 10.5 s: 0.5 s more at 0.4 W, then 2.0 W, the model's figure
+    first_running = snap(11.0, 1000.0 - 10 * 0.4 - 0.5 * 0.4 - 0.5 * 2.0, 7, {"Blob-1": "running"})
+    end = snap(40.0, first_running["robots"]["r1"]["status"]["battery_j"] - 29 * 2.0, 9, {"Blob-1": "running"})
+    stale = run_summary(end, team="t", speed=1, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)
+    # what the old rule read: half a second of start-up in 30 s of comparison
+    assert stale["robots"]["r1"]["power_error"] == pytest.approx((0.5 * 0.4 + 29.5 * 2.0) / 30 / 2.0 - 1)
+    assert not at_ready_complete(at_ready)
+    starting = snap(10.4, 1000.0 - 10.4 * 0.4, 7, {"Blob-1": "starting"})  # the new plan, not yet running
+    complete_at_ready(at_ready, starting)
+    assert not at_ready_complete(at_ready)
+    complete_at_ready(at_ready, first_running)
+    assert at_ready_complete(at_ready)
+    r1 = run_summary(end, team="t", speed=1, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)["robots"]["r1"]
+    assert r1["placed_power_w"] == pytest.approx(2.0) and r1["power_error"] == pytest.approx(0.0, abs=1e-12)
