@@ -245,6 +245,11 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.replans = 0
         self.asked = 0  # questions put to the policy
         self._events_asked = 0  # how many of `_pending_events` the question out carries
+        self._ahead_asked = False  # the mission start was asked about ahead (`Deciding.ask_ahead`)
+        self._asking_ahead = False  # ... and its answer is still out
+        self._ahead_state = None  # the question asked ahead (until the mission start's is asked)
+        self._ahead = None  # ... and its answer, kept for the mission start
+        self._stale_answers = 0  # answers set aside in a row: the team changed while the policy decided
         self.decisions = 0  # the policy answered (a re-plan that decided, whatever it chose)
         self.decide_s = 0.0  # wall seconds the policy took over them (`perf_fn`)
         self.decide_max_s = 0.0
@@ -568,6 +573,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         now_wall = self.wall()
         self.take_answer()  # before anything new is asked: one question at a time
         self.maybe_start()
+        self.ask_ahead()
         if self.replan_due and not self.decider.busy:
             reasons, self.replan_due = self.replan_due, []
             self.replan(", ".join(dict.fromkeys(reasons)))

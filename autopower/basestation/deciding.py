@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
+from autopower.basestation.decider import Answer
 from autopower.errors import AutoPowerError
 from autopower.model.dvfs import apply_levels, best_levels, has_levels
 from autopower.model.energy import evaluate, round_lifetime
@@ -22,6 +24,13 @@ from autopower.protocol import (
 )
 
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
+
+# How far (virtual seconds) the mission start's question may be from the time the answer asked
+# ahead was for (`Deciding._answered_ahead`)
+AHEAD_SLACK_S = 1.0
+# How many answers in a row may be set aside because the team changed while the policy decided
+# (`Deciding.take_answer`): a team that changes faster than the policy decides still gets a plan
+STALE_ANSWERS_MAX = 3
 
 
 @dataclass
@@ -46,16 +55,16 @@ class Deciding:
                 out[robot] = self.scenario.robot(robot).energy_j
         return out
 
-    def _unavailable(self) -> frozenset[str]:
-        return frozenset(r for r in self.robots if r not in self.alive_nodes())
+    def _unavailable(self, everyone: bool = False) -> frozenset[str]:
+        return frozenset() if everyone else frozenset(r for r in self.robots if r not in self.alive_nodes())
 
     def _cut_links(self) -> frozenset[frozenset[str]]:
         return frozenset(self.links_down | self.operator_cuts)
 
-    def network_in_use(self) -> Network:
+    def network_in_use(self, everyone: bool = False) -> Network:
         """The links the team uses now: the media in use, minus what is down, with the radio faults."""
         return derive_network(self.scenario, self.topology, self.media, self._cut_links(), dict(self.radio_faults),
-                              self._unavailable())
+                              self._unavailable(everyone))
 
     def _current_allocation(self) -> dict[str, str]:
         """What runs (or is being made to run): the target, where a stage is not on its way somewhere
@@ -66,15 +75,16 @@ class Deciding:
                 allocation[stage] = host
         return allocation
 
-    def team_state(self) -> TeamState:
-        """What the policy may know, from the coordinator's view of the team (see the module docstring)."""
-        alive = self.alive_nodes()
+    def team_state(self, *, everyone: bool = False) -> TeamState:
+        """What the policy may know, from the coordinator's view of the team (see the module docstring).
+        ``everyone``: as if every robot of the scenario were in reach (`_ask_ahead`)."""
+        alive = set(self.robots) | {self.base} if everyone else self.alive_nodes()
         energies = self.remaining_energies()
         return TeamState(
-            scenario=self.scenario, time_s=self.now(), network=self.network_in_use(),
+            scenario=self.scenario, time_s=self.now(), network=self.network_in_use(everyone),
             allocation=self._current_allocation(),
             energies_j={r: e for r, e in energies.items() if r in alive},
-            disabled_chains=frozenset(self.disabled), unavailable_nodes=self._unavailable(),
+            disabled_chains=frozenset(self.disabled), unavailable_nodes=self._unavailable(everyone),
             topology=self.topology, cut_links=self._cut_links(), radio_faults=dict(self.radio_faults),
             media_locked=bool(self.config.media), accounting=self.scenario.accounting,
             events=tuple(self._pending_events), migration=self.migration_costs, schedule=self.schedule)
@@ -101,7 +111,8 @@ class Deciding:
         if self.mission is None:
             return False
         if self.decider.busy:
-            self.replan_due.append(reason)  # `on_timer` asks once the answer out is carried out
+            if not (self._asking_ahead and self._take_up_ahead_question(reason)):
+                self.replan_due.append(reason)  # `on_timer` asks once the answer out is carried out
             return True
         if self._awaiting_actual and not after_rejoin:
             # robots are back and have not said what they run yet: decide once they have
@@ -118,21 +129,106 @@ class Deciding:
             self.reconcile()
             self.publish_plan()
             return False
+        state = self.team_state()
         self._events_asked = len(self._pending_events)  # the events this question carries
         self.asked += 1
-        self.decider.ask(self.team_state(), reason)
+        ahead = self._answered_ahead(state)
+        if ahead is not None:
+            self.note(f"decision ({reason}) made ahead, before the robots were heard "
+                      f"({ahead.took_s:.2f} s of policy time off the path to ready)")
+            return self._carry_out_answer(dataclasses.replace(ahead, reason=reason))
+        self.decider.ask(state, reason)
         return self.take_answer() if not self.decider.on_thread else True
+
+    def ask_ahead(self) -> None:
+        """Before the mission: ask the policy about the mission start as it will most likely be
+        asked (every robot in reach, every battery full, time 0), on the decider's thread, while
+        the robots start up and are heard. A 30-robot mission start is a MILP of seconds: most
+        of the time to ready, spent before the first stage is placed. The answer is kept, not
+        carried out; `replan` uses it only for a question equal to the one asked ahead (any
+        difference, a robot missing or a battery not full, and the policy is asked again), which
+        is exact because a policy's answer is a function of the state it is given. Only when
+        deciding on a thread (the simulator and unit tests ask only what they ask)."""
+        if (self.mission is not None or self._ahead_asked or not self.decider.on_thread
+                or self.decider.busy or self.stepped_down is not None):
+            return
+        self._ahead_asked = True
+        self._asking_ahead = True
+        self._ahead_state = self.team_state(everyone=True)
+        self.decider.ask(self._ahead_state, "mission start")
+
+    def _same_as_ahead(self, state: TeamState) -> bool:
+        """Whether ``state`` is the question asked ahead. Its time is the mission's start; a
+        question within `AHEAD_SLACK_S` of it counts as asked then (no policy's answer turns on
+        its first second: revisits and schedules are minutes and hours)."""
+        ahead = self._ahead_state
+        return (ahead is not None and abs(state.time_s - ahead.time_s) <= AHEAD_SLACK_S
+                and dataclasses.replace(state, time_s=ahead.time_s) == ahead)
+
+    def _take_up_ahead_question(self, reason: str) -> bool:
+        """The mission starts while the question asked ahead is out: if it is this question, its
+        answer is this question's (carried out when it comes, as any answer), not asked twice."""
+        if not self._same_as_ahead(self.team_state()):
+            return False
+        self._asking_ahead, self._ahead_state = False, None
+        self._events_asked = len(self._pending_events)
+        self.asked += 1
+        self.note(f"decision ({reason}) asked ahead, before the robots were heard: its answer is on its way")
+        return True
+
+    def _answered_ahead(self, state: TeamState) -> Answer | None:
+        """The answer asked ahead, if it was about this state."""
+        ahead, self._ahead = self._ahead, None  # asked once, used at most once
+        same = self._same_as_ahead(state)
+        self._ahead_state = None
+        if ahead is None or ahead.decision is None or ahead.error is not None or ahead.failure is not None:
+            return None
+        return ahead if same else None
 
     def take_answer(self) -> bool:
         """Carry out the policy's answer, if one is in. True when it answered (a new configuration,
         or keep the current one); False when none is in, or it found nothing feasible.
 
-        An answer is for the team as it was when asked. What changed since (a robot left, a link
-        went down) was queued as the next question's reason; meanwhile this answer is carried
-        out, and `reconcile` places nothing on a node out of reach."""
+        An answer is for the team as it was when asked. If what runs, the links, the robots in
+        reach or the chains changed while the policy decided (a robot back from a cut reported
+        the stages its subgroup moved, and they were adopted), the answer would undo what
+        happened: it is set aside and the question asked again about the team as it is now (at
+        most `STALE_ANSWERS_MAX` times in a row; then the answer is carried out, and `reconcile`
+        places nothing on a node out of reach). What only drifts (time, batteries) does not count."""
         answer = self.decider.take()
         if answer is None:
             return False
+        if self._asking_ahead:
+            self._asking_ahead = False
+            if self.decisions == 0:
+                self._ahead = answer  # kept for the mission start (`_answered_ahead` checks it is for it)
+            if answer.failure is not None:
+                raise answer.failure
+            return False
+        # (inline, nothing can change between the question and its answer)
+        changed = self._changed_since(answer.state) if self.decider.on_thread and answer.failure is None else None
+        if changed is not None and self._stale_answers < STALE_ANSWERS_MAX:
+            self._stale_answers += 1
+            self.decide_s += answer.took_s  # the policy's time all the same (the question is not answered yet)
+            self.note(f"decision ({answer.reason}) asked again: {changed} changed while the policy decided")
+            self._events_asked = len(self._pending_events)
+            self.decider.ask(self.team_state(), answer.reason)
+            return False
+        self._stale_answers = 0
+        return self._carry_out_answer(answer)
+
+    def _changed_since(self, asked: TeamState) -> str | None:
+        """What about the team differs from ``asked`` (None: nothing a decision turns on)."""
+        now = self.team_state()
+        for what, then, current in (("what runs", asked.allocation, now.allocation),
+                                    ("the robots in reach", asked.unavailable_nodes, now.unavailable_nodes),
+                                    ("the links", asked.network, now.network),
+                                    ("the chains that run", asked.disabled_chains, now.disabled_chains)):
+            if then != current:
+                return what
+        return None
+
+    def _carry_out_answer(self, answer: Answer) -> bool:
         self.decisions += 1
         self.decide_s += answer.took_s
         self.decide_max_s = max(self.decide_max_s, answer.took_s)

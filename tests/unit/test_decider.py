@@ -86,7 +86,7 @@ def test_the_coordinator_goes_on_while_the_policy_decides_and_carries_the_answer
     assert policy.threads == {"autopower-decide"}  # decided off the caller's thread
 
 
-def test_what_happens_while_it_decides_goes_with_the_next_question():
+def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_is_set_aside():
     policy = Gated()
     team, answers = threaded_team(policy)
     co = team.coordinator
@@ -95,6 +95,7 @@ def test_what_happens_while_it_decides_goes_with_the_next_question():
     answers.wait_for(1)
     team.pump()
     assert co.ready and co.asked == 1
+    ready_target = dict(co.target)
 
     # an operator's radio change: the reply waits for the decision that carries it out
     waiting = co.on_operator(LinkCommand(node="r3", laptop_robot="gsm", robot_robot="bluetooth"))
@@ -107,24 +108,52 @@ def test_what_happens_while_it_decides_goes_with_the_next_question():
 
     policy.gate.release()
     answers.wait_for(2)
-    team.pump()  # answer 2 carried out; the queued reason asked at once as question 3
-    reply = co.reply_when_decided(waiting)
-    assert reply is not None and reply.ok, reply
-    assert co.asked == 3 and co.decider.busy and co.reply_when_decided(later) is None
+    team.pump()  # answer 2 is about a team that still ran Blob-2: set aside, question 2 asked again
     asked_about = policy.states[1]
-    assert [e.kind for e in asked_about.events] == ["radio-fault"]
-    assert "Blob-2" not in asked_about.disabled_chains  # the state as it was when asked
+    assert [e.kind for e in asked_about.events] == ["radio-fault"] and "Blob-2" not in asked_about.disabled_chains
+    assert co.asked == 2 and co.decisions == 1 and co.decider.busy and co.target == ready_target
+    assert co.reply_when_decided(waiting) is None
+    assert any("asked again: the chains that run changed" in line for line in co.events)
 
     policy.gate.release()
     answers.wait_for(3)
+    team.pump()  # question 2, asked again, carried out; the queued reason asked at once as question 3
+    again = policy.states[2]
+    assert [e.kind for e in again.events] == ["radio-fault", "chain-disable"] and "Blob-2" in again.disabled_chains
+    reply = co.reply_when_decided(waiting)
+    assert reply is not None and reply.ok, reply
+    assert not any(s.startswith("Blob-2") for s in co.target)
+    assert co.asked == 3 and co.decider.busy and co.reply_when_decided(later) is None
+
+    policy.gate.release()
+    answers.wait_for(4)
     team.pump()
     reply = co.reply_when_decided(later)
     assert reply is not None and reply.ok, reply
-    third = policy.states[2]
-    assert [e.kind for e in third.events] == ["chain-disable"]  # each event told once, to its own question
-    assert "Blob-2" in third.disabled_chains
-    assert not any(s.startswith("Blob-2") for s in co.target)
+    assert policy.states[3].events == ()  # each event told once
     assert co.ready and not co.decider.busy and co.asked == co.decisions == 3
+
+
+def test_a_team_that_changes_faster_than_the_policy_decides_still_gets_a_plan():
+    from autopower.basestation.deciding import STALE_ANSWERS_MAX
+
+    policy = Gated()
+    team, answers = threaded_team(policy)
+    co = team.coordinator
+    team.join()
+    policy.gate.release()
+    answers.wait_for(1)
+    team.pump()
+    co.replan("test")
+    for i in range(STALE_ANSWERS_MAX + 1):
+        # each answer's team is gone before it is in: Blob-2 switched while the policy decides
+        co.on_operator(ChainCommand(chain="Blob-2", enabled=i % 2 == 1))
+        policy.gate.release()
+        answers.wait_for(2 + i)
+        team.pump()
+    set_aside = [line for line in co.events if "asked again" in line]
+    assert len(set_aside) == STALE_ANSWERS_MAX  # then the answer is carried out all the same
+    assert co.decisions >= 2 and co.plan_error is None
 
 
 def test_a_policy_that_fails_on_its_thread_fails_on_the_loop_and_the_next_question_is_asked():
@@ -154,6 +183,58 @@ def test_inline_decisions_are_carried_out_before_replan_returns():
     assert not isinstance(reply, AwaitDecision) and reply.ok and co.decisions == 2
 
 
+# ---- the mission start, asked ahead ----------------------------------------------------------------------
+
+
+def test_the_mission_start_asked_ahead_is_carried_out_at_once_when_the_team_is_as_expected():
+    policy = Gated()
+    team, answers = threaded_team(policy)
+    co = team.coordinator
+    co.on_timer()  # the base station is up; no robot seen yet
+    assert co.decider.busy and co.mission is None and co.asked == 0
+    policy.gate.release()
+    answers.wait_for(1)
+    co.on_timer()
+    assert co.decisions == 0 and co.target == {}  # kept, not carried out: there is no mission
+    team.join()  # every robot, every battery full: the question asked ahead
+    assert len(policy.states) == 1  # the policy was not asked again
+    assert co.decisions == co.asked == 1 and co.target and co.ready
+    assert any("made ahead" in line for line in co.events)
+    assert policy.states[0].time_s == 0.0 and policy.states[0].unavailable_nodes == frozenset()
+
+
+def test_a_start_unlike_the_one_asked_ahead_is_asked_again():
+    policy = Gated()
+    answers = Answers()
+    team = SimTeam(FIG7, config=CoordinatorConfig(speed=1.0, policy="rebalance", replan_interval_s=1e12,
+                                                  start_grace_s=0.0),
+                   policy=policy, on_decision_answer=answers)
+    co = team.coordinator
+    co.on_timer()
+    policy.gate.release()
+    answers.wait_for(1)
+    team.join(["r1", "r2"])  # r3 never comes: the mission starts without it
+    assert co.mission is not None and co.decider.busy and co.asked == 1
+    policy.gate.release()
+    answers.wait_for(2)
+    team.pump()
+    assert [s.unavailable_nodes for s in policy.states] == [frozenset(), frozenset({"r3"})]
+    assert co.decisions == 1 and "r3" not in co.target.values() and co.ready
+
+
+def test_a_mission_that_starts_while_its_question_is_asked_ahead_takes_its_answer_and_asks_nothing_more():
+    policy = Gated()
+    team, answers = threaded_team(policy)
+    co = team.coordinator
+    co.on_timer()
+    team.join()  # the start's question is the one asked ahead: its answer will be the start's
+    assert co.mission is not None and co.asked == 1 and co.replan_due == [] and co.decider.busy
+    policy.gate.release()
+    answers.wait_for(1)
+    team.pump()
+    assert len(policy.states) == 1 and co.decisions == co.asked == 1 and co.ready
+
+
 # ---- the base station's process: its loop goes on while the policy decides ----------------------------
 
 
@@ -177,6 +258,14 @@ def wait_until(check, what: str) -> None:
         time.sleep(0.01)
 
 
+def noted(co, text: str) -> bool:
+    """Whether the coordinator (on the loop's thread) has noted ``text``."""
+    try:
+        return any(text in line for line in tuple(co.events))
+    except RuntimeError:  # noted into while we looked
+        return False
+
+
 def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_policy_decides():
     """The process, not only the coordinator: while a decision is out, the loop goes on sending
     each robot its heartbeat (a robot takes a silent base station for gone after a lease) and takes
@@ -198,11 +287,14 @@ def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_poli
         loop = threading.Thread(target=base.run, kwargs={"max_wall_s": WAIT_S}, daemon=True)
         loop.start()
         try:
+            co = base.coordinator
+            wait_until(lambda: co.decider.busy, "the mission start asked ahead")  # before any robot is seen
+            assert co.mission is None
             for name, rt in robots.items():
                 hub.bus(name).declare_token(keys.alive(name))
                 hub.bus(name).publish(keys.status(name), encode(rt.status(0.0)))
-            co = base.coordinator
-            wait_until(lambda: co.decider.busy, "the mission start asked the policy")
+            wait_until(lambda: co.mission is not None, "the mission started")
+            assert co.decider.busy and co.asked == 1  # its question is the one asked ahead
 
             before = len(heartbeats)
             time.sleep(3 * config.status_period_s)  # the policy is held: the loop is not
@@ -212,15 +304,18 @@ def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_poli
             time.sleep(2 * config.status_period_s)
             assert first.replies == [] and not first.closed  # its decision is not even asked yet
 
-            policy.gate.release()  # the mission start's answer; the command's question follows
+            policy.gate.release()  # the start's answer: about a team with Blob-2, set aside, asked again
+            wait_until(lambda: noted(co, "asked again: the chains that run changed"), "the start asked again")
+            policy.gate.release()  # the start, asked again with Blob-2 off; then the command's question
             wait_until(lambda: co.decisions == 1 and co.asked == 2, "the command's question asked")
             assert co.target and first.replies == []
             policy.gate.release()
             wait_until(lambda: first.closed, "the reply to the command")
-            assert len(first.replies) == 1
+            assert len(first.replies) == 1 and co.decisions == 2
             reply = decode(first.replies[0], OperatorReply)
             assert reply.ok and reply.message.startswith("re-planned"), reply.message
-            assert not any(stage.startswith("Blob-2") for stage in co.target)
+            assert co.target and not any(stage.startswith("Blob-2") for stage in co.target)
+            assert [s.disabled_chains for s in policy.states] == [frozenset()] + [frozenset({"Blob-2"})] * 2
 
             second = Request(encode(ChainCommand(chain="Blob-2", enabled=True)))
             base.events.on_request(second)
