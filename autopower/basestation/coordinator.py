@@ -298,9 +298,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
                             "decide_s": 0.0, "epoch": None, "reconfigured_unix": None})
 
     def _mark_reconfigured(self) -> None:
-        """A fault is handled once its new plan runs: placed, and every robot in reach runs its epoch."""
+        """A fault is handled once its new plan runs: placed, and every robot in reach runs its epoch.
+        Not while its decision is out or due: the plan in force then is the one from before it."""
         open_faults = [f for f in self.faults if f["reconfigured_unix"] is None]
-        if not open_faults or not self.ready:
+        if not open_faults or not self.ready or self.decider.busy or self.replan_due:
             return
         for fault in open_faults:
             if fault["epoch"] is None:

@@ -97,7 +97,7 @@ class Deciding:
         """Decide at the next timer (`Coordinator.on_timer`), once for every reason given until then."""
         self.replan_due.append(reason)
 
-    def replan(self, reason: str, *, after_rejoin: bool = False) -> bool:
+    def replan(self, reason: str, *, after_rejoin: bool = False, again: bool = False) -> bool:
         """Ask the policy what to run where now; its answer is carried out by `take_answer`.
 
         ``reason`` says why we ask (for the notes); what happened since the last decision travels
@@ -106,6 +106,8 @@ class Deciding:
         False when it could not be asked (no mission, robots still to report) or found nothing.
         Asked on a thread (`decider.Decider`), True means asked, or queued behind the question
         out: one question at a time, and the reasons that come meanwhile go with the next one.
+        ``again``: the question whose answer was set aside (`take_answer`), asked about the team as
+        it is now: the same question for the operators waiting for it (`asked` stays).
         """
         self.replan_waiting = None
         if self.mission is None:
@@ -131,7 +133,8 @@ class Deciding:
             return False
         state = self.team_state()
         self._events_asked = len(self._pending_events)  # the events this question carries
-        self.asked += 1
+        if not again:
+            self.asked += 1
         ahead = self._answered_ahead(state)
         if ahead is not None:
             self.note(f"decision ({reason}) made ahead, before the robots were heard "
@@ -211,8 +214,7 @@ class Deciding:
             self._stale_answers += 1
             self.decide_s += answer.took_s  # the policy's time all the same (the question is not answered yet)
             self.note(f"decision ({answer.reason}) asked again: {changed} changed while the policy decided")
-            self._events_asked = len(self._pending_events)
-            self.decider.ask(self.team_state(), answer.reason)
+            self.replan(answer.reason, again=True)  # through its checks: e.g. no robot may be left
             return False
         self._stale_answers = 0
         return self._carry_out_answer(answer)

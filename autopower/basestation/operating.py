@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import statistics
 from typing import Any
 
@@ -178,8 +179,9 @@ class Operating:
             "media": self.plan_network.media_by_group() if self.plan_network else None,
             "links": [[l.a, l.b, l.medium] for l in self.plan_network.links] if self.plan_network else [],
             "links_down": sorted(sorted(p) for p in self.links_down),
-            "planned_lifetime_s": self.planned_lifetime_s(),
-            "predicted_lifetime_s": self.predicted_lifetime_s,
+            # a plan that runs nothing (no robot left in it) lasts for ever: not a number JSON or msgpack carry
+            "planned_lifetime_s": _finite(self.planned_lifetime_s()),
+            "predicted_lifetime_s": _finite(self.predicted_lifetime_s),
             "reasons": dict(self.stage_reasons),  # stage -> why it runs there
             "policy": self.policy.name,
             "decision_reasons": list(self.decision_reasons),
@@ -200,6 +202,10 @@ class Operating:
             "faults": list(self.faults),
             "adopted": self.adopted,
         }
+
+
+def _finite(value: float | None) -> float | None:
+    return value if value is not None and math.isfinite(value) else None
 
 
 def _stats(values: list[float]) -> dict[str, float] | None:

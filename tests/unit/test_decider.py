@@ -3,6 +3,7 @@ it comes, and asks once more for what happened while it decided (`basestation/de
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -14,7 +15,7 @@ from autopower.basestation.process import BaseStation, BaseStationConfig
 from autopower.model.loading import load_scenario
 from autopower.node.runtime import NodeRuntime
 from autopower.policies import make_policy
-from autopower.protocol import ChainCommand, Keys, LinkCommand, OperatorReply, decode, encode
+from autopower.protocol import ChainCommand, Keys, LinkCommand, OperatorReply, SnapshotRequest, decode, encode
 from autopower.runtime.bus import InMemoryHub
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
@@ -154,6 +155,57 @@ def test_a_team_that_changes_faster_than_the_policy_decides_still_gets_a_plan():
     set_aside = [line for line in co.events if "asked again" in line]
     assert len(set_aside) == STALE_ANSWERS_MAX  # then the answer is carried out all the same
     assert co.decisions >= 2 and co.plan_error is None
+
+
+def test_a_question_asked_again_after_every_robot_left_is_not_put_to_the_policy():
+    """`autopower demo`: the last robots left while the question about the first one's leaving
+    was out. Asked again without `replan`'s checks, the policy planned a team of no robot
+    (lifetime inf), and every snapshot after failed to encode ("non-finite number inf")."""
+    policy = Gated()
+    team, answers = threaded_team(policy)
+    co = team.coordinator
+    team.join()
+    policy.gate.release()
+    answers.wait_for(1)
+    team.pump()
+    team.leave("r1")  # asked about
+    assert co.decider.busy and co.asked == 2
+    team.leave("r2")
+    team.leave("r3")
+    policy.gate.release()
+    answers.wait_for(2)
+    team.pump()
+    assert len(policy.states) == 2  # set aside, and not asked again: no robot is left to plan
+    assert co.target == {} and any("no robot left" in line for line in co.events)
+    reply = co.on_operator(SnapshotRequest())
+    encode(reply)  # the snapshot an operator asks for still travels
+    assert reply.snapshot["predicted_lifetime_s"] is None or math.isfinite(reply.snapshot["predicted_lifetime_s"])
+
+
+def test_a_fault_is_not_handled_by_the_plan_from_before_its_decision():
+    """`autopower demo`'s cut was marked reconfigured 56 ms before the robots ran its plan: while
+    its decision was out, the plan in force (the one before it) was ready and every robot ran it."""
+    policy = Gated()
+    team, answers = threaded_team(policy)
+    co = team.coordinator
+    team.join()
+    policy.gate.release()
+    answers.wait_for(1)
+    team.pump()
+    team.report_status()
+    before = co.epoch
+    team.leave("r1")
+    assert co.decider.busy and co.ready  # the old plan is in force, and every robot in reach runs it
+    team.report_status()
+    co.on_timer()
+    fault = co.faults[-1]
+    assert fault["kind"] == "node-left" and fault["reconfigured_unix"] is None
+    policy.gate.release()
+    answers.wait_for(2)
+    team.pump()
+    team.report_status()
+    co.on_timer()
+    assert co.epoch > before and fault["epoch"] > before and fault["reconfigured_unix"] is not None
 
 
 def test_a_policy_that_fails_on_its_thread_fails_on_the_loop_and_the_next_question_is_asked():
