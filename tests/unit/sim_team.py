@@ -56,6 +56,19 @@ class FakeComponent:
         self.next_seq, self.count = msgpack.unpackb(state)
 
 
+class FakeRequest:
+    """An operator's query as a base station's process gets it (`runtime.bus.Request`)."""
+
+    def __init__(self, key, payload):
+        self.key, self.payload, self.replies, self.closed = key, payload, [], False
+
+    def reply(self, payload):
+        self.replies.append(payload)
+
+    def close(self):
+        self.closed = True
+
+
 class SimTeam:
     def __init__(self, scenario, *, config: CoordinatorConfig | None = None, policy=None, fake=True,
                  rng: random.Random | None = None, speed: float = 1.0, relay_on_arrival: bool = True,

@@ -26,7 +26,7 @@ from autopower.protocol import (
 from autopower.protocol.codec import looks_like_message, message_kind
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.events import StopRequested
-from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+from tests.unit.sim_team import FakeComponent, FakeRequest, FakeSource, SimTeam
 
 ALL_LAPTOP = {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "laptop", "Blob-2": "laptop", "Blob-3": "laptop"}
 
@@ -229,17 +229,6 @@ def test_stuck_migration_is_abandoned_and_restarted(sc):
     team.pump()
     assert co.aborted == 1
     assert any("abandoned" in e for e in co.events)
-
-
-class FakeRequest:
-    def __init__(self, key, payload):
-        self.key, self.payload, self.replies, self.closed = key, payload, [], False
-
-    def reply(self, payload):
-        self.replies.append(payload)
-
-    def close(self):
-        self.closed = True
 
 
 def test_base_station_process_survives_garbage_on_every_key(sc):

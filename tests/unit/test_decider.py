@@ -17,7 +17,7 @@ from autopower.node.runtime import NodeRuntime
 from autopower.policies import make_policy
 from autopower.protocol import ChainCommand, Keys, LinkCommand, OperatorReply, SnapshotRequest, decode, encode
 from autopower.runtime.bus import InMemoryHub
-from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
+from tests.unit.sim_team import FakeComponent, FakeRequest, FakeSource, SimTeam
 
 FIG7 = load_scenario("paper-fig7")
 WAIT_S = 30.0  # a bound on a thread that must answer, never a figure
@@ -68,6 +68,22 @@ def threaded_team(policy) -> tuple[SimTeam, Answers]:
     return team, answers
 
 
+def answer_next(policy: Gated, answers: Answers, count: int, team: SimTeam) -> None:
+    """Let the policy answer the question out (answer number ``count``) and the loop's timer take it."""
+    policy.gate.release()
+    answers.wait_for(count)
+    team.pump()
+
+
+def started_team() -> tuple[Gated, SimTeam, Answers]:
+    """A team deciding on a thread whose mission start is answered and carried out."""
+    policy = Gated()
+    team, answers = threaded_team(policy)
+    team.join()
+    answer_next(policy, answers, 1, team)
+    return policy, team, answers
+
+
 def test_the_coordinator_goes_on_while_the_policy_decides_and_carries_the_answer_out_after():
     policy = Gated()
     team, answers = threaded_team(policy)
@@ -80,21 +96,14 @@ def test_the_coordinator_goes_on_while_the_policy_decides_and_carries_the_answer
     assert all(robot in co.statuses for robot in co.robots)
     assert not co.idle()  # a loop at rest would not wake for the answer's timers
 
-    policy.gate.release()
-    answers.wait_for(1)
-    team.pump()  # the loop's timer carries the answer out
+    answer_next(policy, answers, 1, team)  # the loop's timer carries the answer out
     assert co.decisions == 1 and not co.decider.busy and co.target and co.ready
     assert policy.threads == {"autopower-decide"}  # decided off the caller's thread
 
 
 def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_is_set_aside():
-    policy = Gated()
-    team, answers = threaded_team(policy)
+    policy, team, answers = started_team()
     co = team.coordinator
-    team.join()
-    policy.gate.release()
-    answers.wait_for(1)
-    team.pump()
     assert co.ready and co.asked == 1
     ready_target = dict(co.target)
 
@@ -107,18 +116,14 @@ def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_
     assert isinstance(later, AwaitDecision) and later.ticket == 3
     assert co.asked == 2 and co.replan_due  # queued, not asked: one question at a time
 
-    policy.gate.release()
-    answers.wait_for(2)
-    team.pump()  # answer 2 is about a team that still ran Blob-2: set aside, question 2 asked again
+    answer_next(policy, answers, 2, team)  # answer 2 is about a team that still ran Blob-2: set aside, question 2 asked again
     asked_about = policy.states[1]
     assert [e.kind for e in asked_about.events] == ["radio-fault"] and "Blob-2" not in asked_about.disabled_chains
     assert co.asked == 2 and co.decisions == 1 and co.decider.busy and co.target == ready_target
     assert co.reply_when_decided(waiting) is None
     assert any("asked again: the chains that run changed" in line for line in co.events)
 
-    policy.gate.release()
-    answers.wait_for(3)
-    team.pump()  # question 2, asked again, carried out; the queued reason asked at once as question 3
+    answer_next(policy, answers, 3, team)  # question 2, asked again, carried out; the queued reason asked at once as question 3
     again = policy.states[2]
     assert [e.kind for e in again.events] == ["radio-fault", "chain-disable"] and "Blob-2" in again.disabled_chains
     reply = co.reply_when_decided(waiting)
@@ -126,9 +131,7 @@ def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_
     assert not any(s.startswith("Blob-2") for s in co.target)
     assert co.asked == 3 and co.decider.busy and co.reply_when_decided(later) is None
 
-    policy.gate.release()
-    answers.wait_for(4)
-    team.pump()
+    answer_next(policy, answers, 4, team)
     reply = co.reply_when_decided(later)
     assert reply is not None and reply.ok, reply
     assert policy.states[3].events == ()  # each event told once
@@ -138,20 +141,13 @@ def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_
 def test_a_team_that_changes_faster_than_the_policy_decides_still_gets_a_plan():
     from autopower.basestation.deciding import STALE_ANSWERS_MAX
 
-    policy = Gated()
-    team, answers = threaded_team(policy)
+    policy, team, answers = started_team()
     co = team.coordinator
-    team.join()
-    policy.gate.release()
-    answers.wait_for(1)
-    team.pump()
     co.replan("test")
     for i in range(STALE_ANSWERS_MAX + 1):
         # each answer's team is gone before it is in: Blob-2 switched while the policy decides
         co.on_operator(ChainCommand(chain="Blob-2", enabled=i % 2 == 1))
-        policy.gate.release()
-        answers.wait_for(2 + i)
-        team.pump()
+        answer_next(policy, answers, 2 + i, team)
     set_aside = [line for line in co.events if "asked again" in line]
     assert len(set_aside) == STALE_ANSWERS_MAX  # then the answer is carried out all the same
     assert co.decisions >= 2 and co.plan_error is None
@@ -161,20 +157,13 @@ def test_a_question_asked_again_after_every_robot_left_is_not_put_to_the_policy(
     """`autopower demo`: the last robots left while the question about the first one's leaving
     was out. Asked again without `replan`'s checks, the policy planned a team of no robot
     (lifetime inf), and every snapshot after failed to encode ("non-finite number inf")."""
-    policy = Gated()
-    team, answers = threaded_team(policy)
+    policy, team, answers = started_team()
     co = team.coordinator
-    team.join()
-    policy.gate.release()
-    answers.wait_for(1)
-    team.pump()
     team.leave("r1")  # asked about
     assert co.decider.busy and co.asked == 2
     team.leave("r2")
     team.leave("r3")
-    policy.gate.release()
-    answers.wait_for(2)
-    team.pump()
+    answer_next(policy, answers, 2, team)
     assert len(policy.states) == 2  # set aside, and not asked again: no robot is left to plan
     assert co.target == {} and any("no robot left" in line for line in co.events)
     reply = co.on_operator(SnapshotRequest())
@@ -185,13 +174,8 @@ def test_a_question_asked_again_after_every_robot_left_is_not_put_to_the_policy(
 def test_a_fault_is_not_handled_by_the_plan_from_before_its_decision():
     """`autopower demo`'s cut was marked reconfigured 56 ms before the robots ran its plan: while
     its decision was out, the plan in force (the one before it) was ready and every robot ran it."""
-    policy = Gated()
-    team, answers = threaded_team(policy)
+    policy, team, answers = started_team()
     co = team.coordinator
-    team.join()
-    policy.gate.release()
-    answers.wait_for(1)
-    team.pump()
     team.report_status()
     before = co.epoch
     team.leave("r1")
@@ -200,9 +184,7 @@ def test_a_fault_is_not_handled_by_the_plan_from_before_its_decision():
     co.on_timer()
     fault = co.faults[-1]
     assert fault["kind"] == "node-left" and fault["reconfigured_unix"] is None
-    policy.gate.release()
-    answers.wait_for(2)
-    team.pump()
+    answer_next(policy, answers, 2, team)
     team.report_status()
     co.on_timer()
     assert co.epoch > before and fault["epoch"] > before and fault["reconfigured_unix"] is not None
@@ -214,15 +196,11 @@ def test_a_policy_that_fails_on_its_thread_fails_on_the_loop_and_the_next_questi
     co = team.coordinator
     with pytest.raises(ValueError, match="a bug in the policy"):  # as an inline decision would raise
         team.join()
-        policy.gate.release()
-        answers.wait_for(1)
-        team.pump()
+        answer_next(policy, answers, 1, team)
     assert co.decisions == 1 and not co.decider.busy and co.target == {}
     policy.fail_with = None
     co.replan("again")
-    policy.gate.release()
-    answers.wait_for(2)
-    team.pump()
+    answer_next(policy, answers, 2, team)
     assert co.ready
 
 
@@ -267,9 +245,7 @@ def test_a_start_unlike_the_one_asked_ahead_is_asked_again():
     answers.wait_for(1)
     team.join(["r1", "r2"])  # r3 never comes: the mission starts without it
     assert co.mission is not None and co.decider.busy and co.asked == 1
-    policy.gate.release()
-    answers.wait_for(2)
-    team.pump()
+    answer_next(policy, answers, 2, team)
     assert [s.unavailable_nodes for s in policy.states] == [frozenset(), frozenset({"r3"})]
     assert co.decisions == 1 and "r3" not in co.target.values() and co.ready
 
@@ -281,26 +257,11 @@ def test_a_mission_that_starts_while_its_question_is_asked_ahead_takes_its_answe
     co.on_timer()
     team.join()  # the start's question is the one asked ahead: its answer will be the start's
     assert co.mission is not None and co.asked == 1 and co.replan_due == [] and co.decider.busy
-    policy.gate.release()
-    answers.wait_for(1)
-    team.pump()
+    answer_next(policy, answers, 1, team)
     assert len(policy.states) == 1 and co.decisions == co.asked == 1 and co.ready
 
 
 # ---- the base station's process: its loop goes on while the policy decides ----------------------------
-
-
-class Request:
-    """An operator's query as the process gets it (`runtime.bus.Request`)."""
-
-    def __init__(self, payload: bytes):
-        self.key, self.payload, self.replies, self.closed = "operator", payload, [], False
-
-    def reply(self, payload: bytes) -> None:
-        self.replies.append(payload)
-
-    def close(self) -> None:
-        self.closed = True
 
 
 def wait_until(check, what: str) -> None:
@@ -351,7 +312,7 @@ def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_poli
             before = len(heartbeats)
             time.sleep(3 * config.status_period_s)  # the policy is held: the loop is not
             assert len(heartbeats) >= before + 2, "no heartbeat while the policy decided"
-            first = Request(encode(ChainCommand(chain="Blob-2", enabled=False)))
+            first = FakeRequest(keys.operator, encode(ChainCommand(chain="Blob-2", enabled=False)))
             base.events.on_request(first)
             time.sleep(2 * config.status_period_s)
             assert first.replies == [] and not first.closed  # its decision is not even asked yet
@@ -369,7 +330,7 @@ def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_poli
             assert co.target and not any(stage.startswith("Blob-2") for stage in co.target)
             assert [s.disabled_chains for s in policy.states] == [frozenset()] + [frozenset({"Blob-2"})] * 2
 
-            second = Request(encode(ChainCommand(chain="Blob-2", enabled=True)))
+            second = FakeRequest(keys.operator, encode(ChainCommand(chain="Blob-2", enabled=True)))
             base.events.on_request(second)
             wait_until(lambda: co.asked == 3, "the second command's question asked")
         finally:
