@@ -70,6 +70,31 @@ def test_moves_find_the_bound_on_most_teams_where_it_is_reachable():
     assert found["moves"] >= 3 and found["moves"] >= found["highs"], found
 
 
+def test_no_move_search_where_the_relaxation_rules_the_bound_out(monkeypatch):
+    """Where the LP relaxation with T fixed at the bound has no point, no plan reaches the bound:
+    the moves are not asked to look for one (at 30 robots they spent their whole second there),
+    and the answer is still the exhaustive optimum, below the bound."""
+    searched = []
+    reach = MoveSearch.reach
+    monkeypatch.setattr(MoveSearch, "reach", lambda self, *a, **kw: searched.append(self) or reach(self, *a, **kw))
+    ruled_out = 0
+    for seed in range(6):
+        problem = make_problem(PlanRequest(scenario=random_scenario(seed, 2, 3, multi_stage=False)))
+        own = milp._own_bounds(problem)
+        lowest = min(b for b, _, _ in own)
+        at_lowest = [i for i, (b, _, _) in enumerate(own) if b <= lowest]
+        relaxations = [milp._relaxation_infeasible(milp._placement_model(
+            dataclasses.replace(problem, networks=[problem.networks[i]]), lowest)[0]) for i in at_lowest]
+        searched.clear()
+        m = milp.solve_milp(problem)
+        assert m.lifetime_s == pytest.approx(exhaustive(problem)[0].lifetime_s, rel=1e-9)
+        if all(relaxations):
+            ruled_out += 1
+            assert not searched and m.found_by is None
+            assert m.lifetime_s < max(problem.energies_j.values()) / lowest * (1 - 1e-9)
+    assert ruled_out >= 3, ruled_out
+
+
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 10_000), loaded=st.sampled_from(["any", "own"]), robots=st.integers(3, 8),
        start_seed=st.integers(0, 1_000))
