@@ -169,13 +169,15 @@ class OperatorClient:
         if self._owns:
             self.bus.close()
 
-    def request(self, command, timeout_s: float = 5.0) -> OperatorReply:
-        """Send one command; retries until the base station answers or ``timeout_s`` passes."""
+    def request(self, command, timeout_s: float = 5.0, *, held_s: float = 0.0) -> OperatorReply:
+        """Send one command; retries until the base station answers or ``timeout_s`` passes.
+        ``held_s``: how long the base station may hold the command before it answers (each try
+        waits that much longer)."""
         deadline = time.monotonic() + timeout_s
         payload = encode(command)
         while True:
             left = deadline - time.monotonic()
-            replies = self.bus.query(self.keys.operator, payload, timeout_s=max(0.2, min(2.0, left)))
+            replies = self.bus.query(self.keys.operator, payload, timeout_s=max(0.2, min(2.0 + held_s, left)))
             for raw in replies:
                 try:
                     return decode(raw, OperatorReply)
@@ -186,5 +188,8 @@ class OperatorClient:
                                      "is `autopower up` (or `autopower basestation`) running for this team?")
             time.sleep(0.05)
 
-    def snapshot(self, timeout_s: float = 5.0) -> dict:
-        return self.request(SnapshotRequest(), timeout_s).snapshot
+    def snapshot(self, timeout_s: float = 5.0, *, until_ready_s: float = 0.0) -> dict:
+        """The team's snapshot; with ``until_ready_s``, once the team is ready or that many seconds
+        have passed (`SnapshotRequest`)."""
+        return self.request(SnapshotRequest(until_ready_s=until_ready_s), max(timeout_s, until_ready_s + 2.0),
+                            held_s=until_ready_s).snapshot

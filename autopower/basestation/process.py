@@ -26,7 +26,9 @@ from typing import Any, Callable
 
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
 from autopower.basestation.decider import AwaitDecision
+from autopower.basestation.operating import status_dict
 from autopower.basestation.peer_view import PeerViews
+from autopower.basestation.ready_waiters import ReadyWaiters
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.node import NodeRuntime
@@ -38,6 +40,7 @@ from autopower.protocol import (
     OperatorReply,
     PlanChange,
     PlanUpdate,
+    SnapshotRequest,
     decode,
     encode,
 )
@@ -122,6 +125,7 @@ class BaseStation:
         self._kept_incarnation: int | None = None  # what the state directory says we used last
         # operator requests whose reply waits for the decision that carries them out
         self._awaiting_decision: list[tuple[Request, AwaitDecision]] = []
+        self._awaiting_ready = ReadyWaiters()  # snapshot queries answered once the team is ready
 
     def _send_view(self, robot: str, key: str, payload: bytes, period: float) -> None:
         """Our status as ``robot`` acts on it: a heartbeat like the status itself.
@@ -234,6 +238,8 @@ class BaseStation:
 
     def __exit__(self, *exc) -> None:
         self._reply_to_waiting(stopping=True)
+        for request in self._awaiting_ready.take_all():
+            self._reply_snapshot(request)
         if self.coordinator is not None and not self.coordinator.decider.close(DECISION_CLOSE_WAIT_S):
             log.warning("base station: stopping while the policy still decides (over %.0f s)", DECISION_CLOSE_WAIT_S)
         close_workers = getattr(self.runtime, "close_workers", None)  # the host's stage worker processes
@@ -369,6 +375,9 @@ class BaseStation:
             self._garbage(self.keys.operator, exc)
             self._reply(request, OperatorReply(ok=False, message=f"bad request: {exc}"))
             return
+        if (isinstance(cmd, SnapshotRequest) and cmd.until_ready_s > 0 and not self.coordinator.ready
+                and self._awaiting_ready.hold(request, time.time() + cmd.until_ready_s)):
+            return  # answered by `_reply_when_ready`
         try:
             reply = self.coordinator.on_operator(cmd)
         except BaseException:
@@ -380,6 +389,17 @@ class BaseStation:
         if reply.snapshot:
             reply = dataclasses.replace(reply, snapshot=self.snapshot(reply.snapshot))
         self._reply(request, reply)
+
+    def _reply_snapshot(self, request: Request) -> None:
+        try:
+            self._reply(request, OperatorReply(ok=True, message="snapshot", snapshot=self.snapshot()))
+        except Exception:  # the operator gave up waiting (its query timed out)
+            log.warning("base station: could not answer a snapshot query", exc_info=True)
+
+    def _reply_when_ready(self) -> None:
+        """Answer the snapshot queries held for the team to get ready (`ReadyWaiters`) that are due."""
+        for request in self._awaiting_ready.due(self.coordinator.ready, time.time()):
+            self._reply_snapshot(request)
 
     def _reply(self, request: Request, reply: OperatorReply) -> None:
         try:
@@ -411,7 +431,7 @@ class BaseStation:
         if self.runtime.started:
             status = self.runtime.status(self.config.status_window_s * self.runtime.clock.speed,
                                          self.events.depth(), self.events.bulk_wait_s())
-            snap["basestation"] = dataclasses.asdict(status)
+            snap["basestation"] = status_dict(status)
         else:
             snap["basestation"] = None
         return snap
@@ -443,6 +463,8 @@ class BaseStation:
                     wake.append(deadline)
                 if rt.started and (t := rt.next_deadline()) is not None:
                     wake.append(rt.clock.wall_at(t))
+                if (t := self._awaiting_ready.next_deadline()) is not None:
+                    wake.append(t)
                 loop_watch.waiting()
                 event = self.events.get(max(0.0, min(wake) - now))
                 loop_watch.working()
@@ -465,6 +487,8 @@ class BaseStation:
                 co.on_timer()
                 if self._awaiting_decision:
                     self._reply_to_waiting()
+                if self._awaiting_ready:
+                    self._reply_when_ready()
                 if co.stepped_down is not None:
                     self.stop_reason = f"stepped down: {co.stepped_down}"
                     break

@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 
 HOST = "127.0.0.1"
 SUPERVISE_EVERY_S = 0.05  # how often the supervisor looks for crashed children (without pidfds)
+READY_HOLD_S = 2.0  # `wait_ready`: how long one query waits for the team (then the children are looked at)
 SUPERVISE_IDLE_S = 0.5  # with pidfds it sleeps until a child exits, a restart is due, or this long
 
 
@@ -470,8 +471,8 @@ class LocalTeam:
         except Exception as exc:  # noqa: BLE001 - a recording problem must not stop the supervision
             log.warning("supervisor event %s not recorded: %s", event.line(), exc)
 
-    def snapshot(self, timeout_s: float = 5.0) -> dict:
-        return self.client.snapshot(timeout_s)
+    def snapshot(self, timeout_s: float = 5.0, *, until_ready_s: float = 0.0) -> dict:
+        return self.client.snapshot(timeout_s, until_ready_s=until_ready_s)
 
     def wait_ready(self, timeout_s: float = 60.0) -> dict:
         """Block until the base station reports every stage where the plan wants it."""
@@ -484,14 +485,19 @@ class LocalTeam:
                 name, why = next(iter(given_up.items()))
                 raise AutoPowerError(f"{name} could not be started ({why}); its log ({self.children[name].log_path}) "
                                      f"ends:\n{self.children[name].tail()}")
+            # held by the base station until the team is ready (no snapshot every 50 ms while it
+            # places the first plan), at most READY_HOLD_S so that a child that died is seen
+            hold = max(0.0, min(READY_HOLD_S, deadline - time.monotonic()))
+            asked = time.monotonic()
             try:
-                snap = self.snapshot(timeout_s=max(0.5, min(3.0, deadline - time.monotonic())))
+                snap = self.snapshot(timeout_s=max(0.5, min(3.0, deadline - time.monotonic())), until_ready_s=hold)
             except AutoPowerError:
                 continue
             if snap.get("ready"):
                 self.mission = self.mission or snap.get("mission")
                 return snap
-            time.sleep(0.05)
+            if time.monotonic() - asked < hold:  # answered before its time (it holds no more queries)
+                time.sleep(0.05)
         detail = json.dumps({k: snap.get(k) for k in ("placement", "target", "migrating", "plan_error", "events")},
                             indent=1) if snap else "no answer from the base station"
         raise AutoPowerError(f"the team was not ready within {timeout_s:g} s (logs in {self.log_dir}):\n{detail}")

@@ -525,7 +525,19 @@ class LinkCommand:
 @message
 @dataclass(frozen=True, kw_only=True)
 class SnapshotRequest:
+    """The team's snapshot. ``until_ready_s`` > 0: answered once the team is ready (every stage where
+    the plan wants it) or when that many seconds have passed, whichever comes first: one query
+    waits for the team instead of a snapshot built, sent and decoded every few tens of ms."""
+
     KIND = "op-snapshot"
+    until_ready_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.until_ready_s <= MAX_UNTIL_READY_S:
+            raise ValueError(f"until_ready_s {self.until_ready_s} is outside [0, {MAX_UNTIL_READY_S:g}] s")
+
+
+MAX_UNTIL_READY_S = 30.0  # a base station holds an operator's query no longer than this
 
 
 @message

@@ -473,3 +473,27 @@ def test_link_changes_within_one_batch_of_events_make_one_decision(sc):
     cut = {frozenset({"laptop", r}) for r in ("r1", "r2", "r3")}
     assert len(asked) == 1 and asked[0].cut_links == cut
     assert co.links_down == cut and all(co.plan_network.medium_between(r, "laptop") is None for r in ("r1", "r2", "r3"))
+
+
+def test_a_snapshot_shows_each_status_as_a_round_trip_through_the_wire_would(sc):
+    """The snapshot's statuses are built by the codec's field readers (`status_dict`), not by
+    `dataclasses.asdict`: the same plain data (lists, not tuples), what msgpack gives back; a
+    status with a number the wire refuses is shown as it is rather than failing the snapshot."""
+    import math
+
+    import msgpack
+
+    from autopower.basestation.operating import _plain, status_dict
+
+    team = SimTeam(sc)
+    team.join()
+    team.report_status()
+    statuses = team.coordinator.statuses
+    assert set(statuses) == {"r1", "r2", "r3"}
+    snap = team.coordinator.snapshot()
+    for name, st in statuses.items():
+        shown = snap["robots"][name]["status"]
+        assert shown == _plain(dataclasses.asdict(st))
+        assert msgpack.unpackb(msgpack.packb(shown), strict_map_key=False) == shown
+    odd = dataclasses.replace(statuses["r1"], cpu_utilisation=math.inf)
+    assert status_dict(odd)["cpu_utilisation"] == math.inf
