@@ -24,7 +24,7 @@ import results
 
 def messages() -> dict[str, tuple[object, object]]:
     """name -> (the message on the wire, the frame its body carries or None)"""
-    from autopower.protocol import ChainFrame, Consumed, NodeStatus, Packet, SinkStats, SourceStats, encode
+    from autopower.protocol import Ack, ChainFrame, Consumed, NodeStatus, Packet, SinkStats, SourceStats, encode
 
     def frame(chain: str, size: int, target: int) -> ChainFrame:
         return ChainFrame(chain=chain, run=0, seq=12345, target=target, t_virtual=617.25, t_unix=1.7e9 + 0.125,
@@ -47,12 +47,16 @@ def messages() -> dict[str, tuple[object, object]]:
         links={"laptop": True, "r1": True, "r3": True}, runs={"Loc-2": 1234}, compute_ms={"Loc-2": 2.5},
         queue_depth=0, errors={}, counters={"forwarded": 0, "late-captures": 12, "custody-frames": 210,
                                             "custody-bytes": 48_000_000, "custody-resent": 0},
-        depleted=False,
-        consumed={f"{c}#1": Consumed(run=0, generation=1, next_seq=1234, max_seq=1240, missing=((1236, 1236),)) for c in chains},
+        depleted=False, acks_wanted=tuple(f"{c}#1" for c in chains),
     )
+    # the acknowledgement that goes with the status, to a producer of five hops (`Ack`)
+    ack = Ack(node="r2", t_unix=1.7e9, queue_wait_s=0.0,
+              consumed={f"{c}#1": Consumed(run=0, generation=1, next_seq=1234, max_seq=1240, missing=((1236, 1236),))
+                        for c in chains})
     camera, laser, output = frame("Blob-2", 230415, 0), frame("Loc-2", 1059, 0), frame("Loc-2", 805, 1)
     return {"camera frame 230 kB": (packet(camera), camera), "laser frame 1 kB": (packet(laser), laser),
-            "Loc output 805 B": (packet(output), output), "robot status": (status, None)}
+            "Loc output 805 B": (packet(output), output), "robot status": (status, None),
+            "acknowledgement": (ack, None)}
 
 
 def measure(rounds: int = 5) -> dict[str, dict[str, float]]:
