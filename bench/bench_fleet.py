@@ -66,7 +66,8 @@ def why_not_ready(log_dir: Path) -> str:
     return "; ".join(dict.fromkeys(w[:100] for w in warnings[-2:])) or (lines[-1][-120:] if lines else "")
 
 
-def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str, neighbours: int) -> dict:
+def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str, neighbours: int,
+              up_args: tuple[str, ...] = ()) -> dict:
     env = {**os.environ, "AUTOPOWER_STATE_DIR": str(folder / f"state-{n}"), "RERUN_ANALYTICS": "0"}
     scenario = folder / f"fleet-{n}.toml"
     subprocess.run([AUTOPOWER, "scenarios", "fleet", str(n), "--topology", topology, "--neighbours", str(neighbours),
@@ -74,7 +75,7 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str,
     started = time.monotonic()
     log_dir = folder / f"logs-{n}"
     code, cpu, rss_kb = run_up([str(scenario), "--speed", f"{speed:g}", "--duration", f"{seconds:g}", "--json",
-                                "--log-dir", str(log_dir)], env, seconds + 600, folder / f"up-{n}.json")
+                                "--log-dir", str(log_dir), *up_args], env, seconds + 600, folder / f"up-{n}.json")
     wall = time.monotonic() - started
     text = (folder / f"up-{n}.json").read_text(errors="replace")
     try:
@@ -115,17 +116,21 @@ def main() -> None:
     parser.add_argument("--neighbours", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--speed", type=float, default=1.0)
+    parser.add_argument("--robot-nice", type=int, default=None, help="up's --robot-nice (default: up's own)")
     parser.add_argument("--keep", type=Path, default=None,
                         help="run in this folder and keep it (scenarios, every process's log, up's JSON)")
     bench_results.add_json_out(parser)
     args = parser.parse_args()
     sizes = [int(x) for x in args.robots.split(",")]
+    up_args = () if args.robot_nice is None else ("--robot-nice", str(args.robot_nice))
     if args.keep is not None:
         args.keep.mkdir(mode=0o700, parents=True, exist_ok=True)
-        runs = [run_fleet(n, args.seconds, args.speed, args.keep, args.topology, args.neighbours) for n in sizes]
+        runs = [run_fleet(n, args.seconds, args.speed, args.keep, args.topology, args.neighbours, up_args)
+                for n in sizes]
     else:
         with tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp:
-            runs = [run_fleet(n, args.seconds, args.speed, Path(tmp), args.topology, args.neighbours) for n in sizes]
+            runs = [run_fleet(n, args.seconds, args.speed, Path(tmp), args.topology, args.neighbours, up_args)
+                    for n in sizes]
     base = runs[0]
     print(f"{'robots':>6} {'ready s':>8} {'missed %':>9} {'cores':>6} {'CPU s/robot':>12} {'outputs':>8} "
           f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6} {'peak MB':>8} {'drops':>6} {'robot kbit/s':>13}")

@@ -12,7 +12,8 @@ Rules that make a forked process as good as a fresh one:
   arguments, its exit handlers, and exits with its status;
 - the server reaps its children and reports each exit status; it dies with `up` (SIGTERM).
 
-Protocol, one JSON object per line. `up` -> server (stdin): ``{"argv": [...], "log": path}``.
+Protocol, one JSON object per line. `up` -> server (stdin): ``{"argv": [...], "log": path, "nice": n}``
+(``nice``, optional: added to the child's nice value before it starts anything).
 Server -> `up` (stdout): ``{"ready": pid}`` once its imports are done, ``{"pid": n}`` for each
 request in order (``{"error": why}`` if the fork failed), ``{"exit": pid, "status": code}``
 (a signal as a negative code, as `subprocess` has it).
@@ -110,12 +111,14 @@ def _fork(out: IO[str], request: dict, own_fds: tuple[int, int]) -> None:
             pass
         _say(out, {"pid": pid})
         return
-    _child(request["argv"], log_fd, own_fds)  # never returns
+    _child(request["argv"], log_fd, own_fds, int(request.get("nice", 0)))  # never returns
 
 
-def _child(argv: list[str], log_fd: int, own_fds: tuple[int, int]) -> None:
+def _child(argv: list[str], log_fd: int, own_fds: tuple[int, int], nice: int = 0) -> None:
     code = 1
     try:
+        if nice > 0:  # first: a thread keeps the nice value of the thread that created it
+            os.nice(nice)
         signal.set_wakeup_fd(-1)
         for fd in own_fds:
             os.close(fd)

@@ -65,11 +65,14 @@ RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still
                    "crashes within --restart-interval it is given up (0: never restart).")
 @click.option("--restart-interval", type=POSITIVE, default=RestartPolicy.interval_s, show_default=True,
               help="Seconds over which --restart-burst counts crashes.")
+@click.option("--robot-nice", type=click.IntRange(0, 19), default=0, show_default=True,
+              help="Added to every robot agent's nice value (not the base station's): on one machine the "
+                   "robots share the cores a real base station has to itself.")
 @INSECURE_OPT
 @stage_workers_option
 def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting, topology, media, pin, no_replan,
        policy, lease_ms, direct_links, team_name, ready_timeout, log_dir, until_depleted, record_dir, restart_burst,
-       restart_interval, insecure, stage_workers):
+       restart_interval, robot_nice, insecure, stage_workers):
     """Start the base station and every robot's agent on this machine and watch them.
 
     Ctrl-C stops every process cleanly. With --duration and --json it runs unattended and
@@ -93,7 +96,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan, policy=policy, stage_workers=stage_workers,
                     lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
-                    record_dir=Path(record_dir) if record_dir else None, secure=not insecure,
+                    record_dir=Path(record_dir) if record_dir else None, secure=not insecure, robot_nice=robot_nice,
                     restart=RestartPolicy(burst=restart_burst, interval_s=restart_interval))
     warn_insecure(insecure)
     if record_dir:

@@ -19,6 +19,7 @@ team (`up`'s loop, the demo) the events since its last call.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -110,13 +111,15 @@ def precompile(env: dict[str, str]) -> None:
         log.warning("could not precompile %s for the team's processes: %s", package, exc)
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec
+def _prepare_child(nice: int) -> None:  # runs in the child between fork and exec
     try:
         import ctypes
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except Exception:
         pass
+    if nice > 0:
+        os.nice(nice)
 
 
 PARENT_PID = "{parent}"  # in a child's arguments: the pid of the process that starts it (`_with_parent`)
@@ -152,6 +155,9 @@ class TeamSpec:
     auto_replan: bool = True
     policy: str = "rebalance"  # the base station's --policy
     stage_workers: str = "off"  # every process's --stage-workers (off, on, auto)
+    # added to every robot agent's nice value (not the base station's): on one machine the robots
+    # share the cores a base station has to itself on a real team (`up --robot-nice`)
+    robot_nice: int = 0
     lease_ms: int = 1000
     # Zenoh keep-alives per lease on an idle link: most of what a team at rest costs (each is
     # received by Zenoh and copied by a link proxy). Two on loopback, where nothing is lost and a
@@ -266,18 +272,19 @@ class LocalTeam:
         that started it. A restarted child's log goes on after its crash."""
         log_path = self.log_dir / f"{name}.log"
         self._commands[name] = args
+        nice = 0 if name == self.scenario.basestation else self.spec.robot_nice
         proc = None
         if self._forkserver is not None and self._forkserver.alive:
             try:
                 proc = self._forkserver.spawn(_with_parent(args, self._forkserver.pid), str(log_path),
-                                              args=self._command(name, _with_parent(args, os.getpid())))
+                                              args=self._command(name, _with_parent(args, os.getpid())), nice=nice)
             except OSError as exc:
                 log.warning("fork server: %s; starting %s as a new interpreter", exc, name)
         if proc is None:
             with open(log_path, "ab") as out:
                 proc = subprocess.Popen(self._command(name, _with_parent(args, os.getpid())), stdin=subprocess.DEVNULL,
                                         stdout=out, stderr=subprocess.STDOUT, process_group=0,
-                                        preexec_fn=_die_with_parent, env=self.child_env)
+                                        preexec_fn=functools.partial(_prepare_child, nice), env=self.child_env)
         self.children[name] = Child(name, proc, log_path)
 
     def proxy(self, a: str, b: str):

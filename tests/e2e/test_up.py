@@ -75,10 +75,11 @@ def test_up_reaches_the_planned_placement(tmp_path):
     assert not list((tmp_path / "state").glob("teams/*"))  # a team that exits leaves nothing behind
 
 
-def start_up(tmp_path: Path, team: str = "t1", env: dict | None = None) -> tuple[subprocess.Popen, dict, dict]:
+def start_up(tmp_path: Path, team: str = "t1", env: dict | None = None,
+             extra: tuple[str, ...] = ()) -> tuple[subprocess.Popen, dict, dict]:
     env = env or env_for(tmp_path)
-    proc = subprocess.Popen([AUTOPOWER, "up", "paper-fig7", "--team", team, "--log-dir", str(tmp_path / f"logs-{team}")],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([AUTOPOWER, "up", "paper-fig7", "--team", team, "--log-dir", str(tmp_path / f"logs-{team}"),
+                             *extra], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     session_file = Path(env["AUTOPOWER_STATE_DIR"]) / "teams" / team / "session.json"
     session = wait_until(lambda: session_file.exists() and json.loads(session_file.read_text()), 30,
                          "up to write its session file")
@@ -93,12 +94,22 @@ def start_up(tmp_path: Path, team: str = "t1", env: dict | None = None) -> tuple
     return proc, session, env
 
 
+def nice_of_every_thread(pid: int) -> set[int]:
+    """The nice value of each of a process's threads (field 19 of /proc/<pid>/task/<tid>/stat)."""
+    tasks = Path(f"/proc/{pid}/task")
+    return {int((tasks / tid / "stat").read_text().rsplit(")", 1)[1].split()[16]) for tid in os.listdir(tasks)}
+
+
 @pytest.mark.slow
 def test_ctrl_c_stops_every_child_and_chain_disable_works(tmp_path):
-    proc, session, env = start_up(tmp_path)
+    proc, session, env = start_up(tmp_path, extra=("--robot-nice", "4"))
     try:
         children = session["children"]
         assert set(children) == {"laptop", "r1", "r2", "r3"} and all(alive(p) for p in children.values())
+        # --robot-nice: every thread of every agent is that much nicer, the base station's are not
+        own = os.nice(0)
+        assert nice_of_every_thread(children["laptop"]) == {own}
+        assert all(nice_of_every_thread(children[r]) == {min(19, own + 4)} for r in ("r1", "r2", "r3"))
         result = run_cli(["chain", "disable", "Blob-2"], env)
         assert result.returncode == 0, result.stderr
         snap = json.loads(run_cli(["status", "--json"], env).stdout)

@@ -67,3 +67,45 @@ def test_children_die_with_the_server(tmp_path):
     assert child.wait(timeout=30) is not None
     with pytest.raises(ProcessLookupError):
         os.kill(child.pid, 0)
+
+
+def _nice_of_every_thread(pid: int) -> set[int]:
+    """The nice value of each of a process's threads (field 19 of /proc/<pid>/task/<tid>/stat)."""
+    out = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+        out.add(int(stat.rsplit(")", 1)[1].split()[16]))
+    return out
+
+
+def test_a_child_asked_to_be_nicer_is_so_in_every_thread_it_starts(server, tmp_path):
+    """`up --robot-nice`: the agent's nice value is raised before it starts a thread, so Zenoh's
+    threads and the loop's all run at it (a thread keeps the value of the thread that made it)."""
+    own = os.nice(0)
+    plain = server.spawn(["agent", "--robot", "r1", "--scenario", "paper-fig7", "--team", "nicetest",
+                          "--parent-pid", str(server.pid)], str(tmp_path / "r1.log"))
+    nicer = server.spawn(["agent", "--robot", "r2", "--scenario", "paper-fig7", "--team", "nicetest",
+                          "--parent-pid", str(server.pid)], str(tmp_path / "r2.log"), nice=5)
+    time.sleep(1.5)  # its Zenoh session is open: its threads are running
+    try:
+        assert len(os.listdir(f"/proc/{nicer.pid}/task")) > 1
+        assert _nice_of_every_thread(nicer.pid) == {min(19, own + 5)}
+        assert _nice_of_every_thread(plain.pid) == {own}
+    finally:
+        for child in (plain, nicer):
+            child.terminate()
+    assert plain.wait(timeout=30) == 0 and nicer.wait(timeout=30) == 0
+
+
+def test_a_child_started_as_a_new_interpreter_is_as_nice_as_asked():
+    """Without the fork server (`TeamSpec.fork_server=False`, or when it fails) the child is made
+    nicer between fork and exec, as the fork server does."""
+    import functools
+    import sys
+
+    from autopower.launch.localhost import _prepare_child
+
+    own = os.nice(0)
+    out = subprocess.run([sys.executable, "-c", "import os; print(os.nice(0))"], capture_output=True, text=True,
+                         preexec_fn=functools.partial(_prepare_child, 3), timeout=30, check=True)
+    assert int(out.stdout) == min(19, own + 3)
