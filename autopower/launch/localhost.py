@@ -111,13 +111,17 @@ def precompile(env: dict[str, str]) -> None:
         log.warning("could not precompile %s for the team's processes: %s", package, exc)
 
 
-def _prepare_child(nice: int) -> None:  # runs in the child between fork and exec
+def _die_with_parent() -> None:  # runs in the child between fork and exec
     try:
         import ctypes
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except Exception:
         pass
+
+
+def _prepare_child(nice: int) -> None:  # runs in the child between fork and exec
+    _die_with_parent()
     if nice > 0:
         os.nice(nice)
 
