@@ -47,8 +47,7 @@ class ReadyWaiters:
     def due(self, ready: bool, now_unix: float) -> list[Request]:
         """The queries to answer now (all of them once the team is ready), no longer held."""
         if ready:
-            out, self._held = [h.request for h in self._held], []
-            return out
+            return self.take_all()
         out = [h.request for h in self._held if h.until_unix <= now_unix]
         self._held = [h for h in self._held if h.until_unix > now_unix]
         return out
