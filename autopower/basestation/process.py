@@ -15,6 +15,7 @@ station of the same team on the same host. The rest is learnt from the robots (`
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import fcntl
 import json
 import logging
@@ -75,6 +76,26 @@ LOOP_STALL_S = 2.0
 # How long a stopping base station waits for a decision still on its thread: a MILP that runs on
 # is abandoned (a daemon thread), so that the supervisor never has to kill us for it
 DECISION_CLOSE_WAIT_S = 2.0
+# A base station still closing after this writes every thread's stack to its log: a launcher kills
+# it at 8 s, and the stacks say what held it (the decision above is the longest wait it allows)
+STOP_STACKS_AFTER_S = 5.0
+
+
+class _StepTimes:
+    """Wall seconds of the steps of a sequence, in order: "0.41 s (replies 0.00, decision 0.40, ...)"."""
+
+    def __init__(self):
+        self._start = self._last = time.monotonic()
+        self._laps: list[tuple[str, float]] = []
+
+    def lap(self, step: str) -> None:
+        now = time.monotonic()
+        self._laps.append((step, now - self._last))
+        self._last = now
+
+    def __str__(self) -> str:
+        laps = ", ".join(f"{step} {seconds:.2f}" for step, seconds in self._laps)
+        return f"{self._last - self._start:.2f} s ({laps})"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -237,17 +258,25 @@ class BaseStation:
             pass
 
     def __exit__(self, *exc) -> None:
+        # each step timed: a launcher kills a base station that does not stop within its limit
+        # (`up`, the testbed: 8 s), and its log must then say which step held it
+        steps = _StepTimes()
+        faulthandler.dump_traceback_later(STOP_STACKS_AFTER_S)  # to stderr: the process's log
         self._reply_to_waiting(stopping=True)
         for request in self._awaiting_ready.take_all():
             self._reply_snapshot(request)
+        steps.lap("replies")
         if self.coordinator is not None and not self.coordinator.decider.close(DECISION_CLOSE_WAIT_S):
             log.warning("base station: stopping while the policy still decides (over %.0f s)", DECISION_CLOSE_WAIT_S)
+        steps.lap("decision")
         close_workers = getattr(self.runtime, "close_workers", None)  # the host's stage worker processes
         if close_workers is not None:
             close_workers()
+        steps.lap("stage workers")
         held = getattr(self.runtime, "held_store", None)
         if held is not None:
             held.close()  # its writer thread finishes first: nothing is written after the state is forgotten
+        steps.lap("held store")
         if (self._lock_fd is not None and self.stop_reason is not None and self.config.parent_pid is not None
                 and exc[0] is None):
             self._forget_state()
@@ -257,9 +286,13 @@ class BaseStation:
         for handle in reversed(self._handles):
             handle.close()
         self._handles.clear()
+        steps.lap("subscriptions")
         if self._owns_bus and self._bus is not None:
             self._bus.close()
             self._bus = None
+        steps.lap("session")
+        faulthandler.cancel_dump_traceback_later()
+        log.info("base station: closed in %s", steps)
 
     def _own_plan(self, plan) -> None:
         try:

@@ -228,7 +228,7 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     bad = {n: c for n, c in codes.items() if c not in (0, None) and n not in given_up}
     error = (f"gave up restarting {', '.join(f'{n} ({why})' for n, why in given_up.items())}; the rest of the "
              f"team ran on; logs in {team.log_dir}" if given_up
-             else f"process(es) exited with errors: {bad}; logs in {team.log_dir}" if bad
+             else team.exit_report(bad) if bad
              else f"{failure} (logs in {team.log_dir})" if failure
              else f"the recording failed ({recording_failure}); the team was stopped cleanly" if recording_failure
              else None)

@@ -141,7 +141,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
                              f"logs in {team.log_dir}")
     bad = {n: c for n, c in codes.items() if c not in (0, None)}
     if bad:
-        raise AutoPowerError(f"process(es) exited with errors: {bad}; logs in {team.log_dir}")
+        raise AutoPowerError(team.exit_report(bad))
 
 
 class _RecordingWatch:

@@ -551,6 +551,13 @@ class LocalTeam:
             self.identities.remove()  # a stopped team's keys are of no use to anyone
         return {n: c for n, c in self.exit_codes.items() if n not in self.expected_exits}
 
+    def exit_report(self, bad: dict[str, int | None], lines: int = 8) -> str:
+        """What a user needs of children that exited with errors (or were killed): their codes, and
+        how each one's log ends (a base station killed for not stopping says what it was doing)."""
+        tails = [f"{name}'s log ends:\n{tail}" for name in sorted(bad) if name in self.children
+                 and (tail := self.children[name].tail(lines))]
+        return "\n".join([f"process(es) exited with errors: {bad}; logs in {self.log_dir}", *tails])
+
     def _remove_resume_files(self) -> None:
         """The agents' resume states (`autopower.agent.resume`) end with the team's mission, and so
         does the team's folder the processes made (an `up`'s session file keeps it until `up` ends)."""
