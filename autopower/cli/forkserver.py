@@ -12,8 +12,10 @@ Rules that make a forked process as good as a fresh one:
   arguments, its exit handlers, and exits with its status;
 - the server reaps its children and reports each exit status; it dies with `up` (SIGTERM).
 
-Protocol, one JSON object per line. `up` -> server (stdin): ``{"argv": [...], "log": path, "nice": n}``
-(``nice``, optional: added to the child's nice value before it starts anything).
+Protocol, one JSON object per line. `up` -> server (stdin): ``{"argv": [...], "log": path, "nice": n,
+"netns": name}`` (``nice``, optional: added to the child's nice value before it starts anything;
+``netns``, optional: the network namespace, made by ``ip netns add``, the child joins before it
+opens a socket: the testbed's nodes).
 Server -> `up` (stdout): ``{"ready": pid}`` once its imports are done, ``{"pid": n}`` for each
 request in order (``{"error": why}`` if the fork failed), ``{"exit": pid, "status": code}``
 (a signal as a negative code, as `subprocess` has it).
@@ -111,10 +113,10 @@ def _fork(out: IO[str], request: dict, own_fds: tuple[int, int]) -> None:
             pass
         _say(out, {"pid": pid})
         return
-    _child(request["argv"], log_fd, own_fds, int(request.get("nice", 0)))  # never returns
+    _child(request["argv"], log_fd, own_fds, int(request.get("nice", 0)), request.get("netns"))  # never returns
 
 
-def _child(argv: list[str], log_fd: int, own_fds: tuple[int, int], nice: int = 0) -> None:
+def _child(argv: list[str], log_fd: int, own_fds: tuple[int, int], nice: int = 0, netns: str | None = None) -> None:
     code = 1
     try:
         if nice > 0:  # first: a thread keeps the nice value of the thread that created it
@@ -142,6 +144,8 @@ def _child(argv: list[str], log_fd: int, own_fds: tuple[int, int], nice: int = 0
         sys.stdin = open(0, closefd=False)  # noqa: SIM115 - the process's own stdin, as Python opens it
         sys.stdout = open(1, "w", buffering=1, closefd=False)  # noqa: SIM115 - line-buffered, as -u gives
         sys.stderr = open(2, "w", buffering=1, closefd=False)  # noqa: SIM115
+        if netns is not None:  # after the log is ours (a refusal is written there), before any socket
+            _enter_netns(netns)
         sys.argv = ["autopower.cli.processes", *argv]
         from autopower.cli.processes import main
 
@@ -181,6 +185,32 @@ def _name_process(argv: list[str]) -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(15, f"ap-{what}".encode()[:15])  # PR_SET_NAME
     except Exception:  # noqa: BLE001 - not Linux: the name is only a convenience
         pass
+
+
+NETNS_DIR = "/var/run/netns"  # where `ip netns add` keeps a handle on each namespace
+CLONE_NEWNET = 0x40000000
+
+
+def _enter_netns(name: str) -> None:
+    """Join the network namespace ``name``, as `ip netns exec` does for the sockets a program opens.
+
+    setns moves the calling thread only: the child is still single-threaded here, so the whole
+    process is in the namespace, and every thread it starts later is too."""
+    if not name or "/" in name or name in (".", ".."):
+        raise ValueError(f"not a network namespace name: {name!r}")
+    fd = os.open(os.path.join(NETNS_DIR, name), os.O_RDONLY | os.O_CLOEXEC)
+    try:
+        if hasattr(os, "setns"):  # Python 3.12+
+            os.setns(fd, CLONE_NEWNET)
+            return
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        if libc.setns(fd, CLONE_NEWNET) != 0:
+            err = ctypes.get_errno()
+            raise OSError(err, f"cannot enter network namespace {name}: {os.strerror(err)}")
+    finally:
+        os.close(fd)
 
 
 def _die_with_parent() -> None:

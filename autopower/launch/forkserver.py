@@ -94,12 +94,15 @@ class ForkServer:
         self._reader = threading.Thread(target=self._read, name="forkserver", daemon=True)
         self._reader.start()
 
-    def spawn(self, argv: list[str], log_path: str, args: list[str] | None = None, nice: int = 0) -> ForkedProcess:
+    def spawn(self, argv: list[str], log_path: str, args: list[str] | None = None, nice: int = 0,
+              netns: str | None = None) -> ForkedProcess:
         """Fork a process running ``autopower.cli.processes`` with ``argv``; ``args``: the command
         that would start it as a new interpreter, kept as its `ForkedProcess.args`; ``nice``: added
-        to its nice value before it starts anything."""
+        to its nice value before it starts anything; ``netns``: the network namespace it joins
+        before it opens a socket (the testbed's nodes)."""
+        request = {"argv": argv, "log": log_path, "nice": nice, **({"netns": netns} if netns else {})}
         with self._lock:
-            self._proc.stdin.write(json.dumps({"argv": argv, "log": log_path, "nice": nice}) + "\n")
+            self._proc.stdin.write(json.dumps(request) + "\n")
             self._proc.stdin.flush()
             while not self._replies:
                 if not self._reply_ready.wait(READY_TIMEOUT_S) or self._proc.poll() is not None:

@@ -270,6 +270,10 @@ class LocalTeam:
         # the process entry points alone: a child does not import the rest of the CLI
         return [sys.executable, "-m", "autopower.cli.processes", *args]
 
+    def _netns(self, name: str) -> str | None:
+        """The network namespace a child runs in (None: this one; the testbed's nodes have their own)."""
+        return None
+
     def _spawn(self, name: str, args: list[str]) -> None:
         """Start a child: forked from the fork server (its imports done once for all), or, without
         one, as a fresh interpreter. Its parent (whose end it follows: ``--parent-pid``) is the one
@@ -281,7 +285,8 @@ class LocalTeam:
         if self._forkserver is not None and self._forkserver.alive:
             try:
                 proc = self._forkserver.spawn(_with_parent(args, self._forkserver.pid), str(log_path),
-                                              args=self._command(name, _with_parent(args, os.getpid())), nice=nice)
+                                              args=self._command(name, _with_parent(args, os.getpid())), nice=nice,
+                                              netns=self._netns(name))
             except OSError as exc:
                 log.warning("fork server: %s; starting %s as a new interpreter", exc, name)
         if proc is None:

@@ -25,7 +25,7 @@ from autopower.deploy.bundle import write_bundle
 from autopower.deploy.fleet import Fleet, FleetNode
 from autopower.deploy.pki import identity_in
 from autopower.errors import AutoPowerError
-from autopower.launch.localhost import Child, LocalTeam, TeamSpec, _die_with_parent
+from autopower.launch.localhost import PARENT_PID, Child, LocalTeam, TeamSpec, _die_with_parent
 from autopower.launch.netns import NamespaceNetwork, require_root
 from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
@@ -90,8 +90,6 @@ class TestbedTeam(LocalTeam):
 
     def __init__(self, spec: TeamSpec, scenario: Scenario, *, shaping: bool = True):
         require_root()
-        # each child starts in its namespace (`_command`), not forked from a server outside them
-        spec = dataclasses.replace(spec, fork_server=False)
         # the loopback parts of LocalTeam (ports, proxies, identities) are not used here
         super().__init__(dataclasses.replace(spec, secure=False, proxied_links=False), scenario)
         self.spec = spec
@@ -131,13 +129,18 @@ class TestbedTeam(LocalTeam):
 
     def _common(self, node: str) -> list[str]:
         args = ["--fleet", str(self.fleet_dir / node), "--status-period", str(self.spec.status_period_s),
-                "--parent-pid", str(__import__("os").getpid()), "--log-level", self.spec.log_level]
+                "--parent-pid", PARENT_PID, "--log-level", self.spec.log_level]
         if self.spec.record_dir is not None:
             args += ["--record-dir", str(self.spec.record_dir)]
         return args
 
     def _command(self, name: str, args: list[str]) -> list[str]:
+        # a new interpreter (no fork server) starts in its namespace this way
         return [*self.net.exec_prefix(name), *super()._command(name, args)]
+
+    def _netns(self, name: str) -> str | None:
+        # forked from the fork server (in ours), a child joins its node's namespace before its first socket
+        return self.net.ns(name)
 
     # ---- lifecycle ----------------------------------------------------------------------------------------
     def start(self) -> None:

@@ -69,10 +69,10 @@ def test_twenty_robots_in_namespaces_handle_a_silent_cut_within_the_demos_bounds
     assert [f["target"] for f in late] == ["laptop-r5"], late
     summary = json.loads(out)
     assert summary["shaped"] and summary["links"]["r5-laptop"]["medium"] == "802.11a"
-    # Ready, but not timed here: in the testbed each of the 21 processes starts cold in its own
-    # namespace (no fork server), which on one 2-core machine took 10.8-13.7 s (network_s 1.5 s of
-    # it) and real robots, each on its own CPU, never pay. A fleet's start is timed where `up` starts
-    # it as a user does (test_up_fleet: 20 robots ready within 10 s).
+    # Ready within the bound a fleet under `up` keeps (test_up_fleet: 20 robots within 10 s). Each
+    # node is forked from the fork server and joins its namespace itself: started cold through
+    # `ip netns exec`, the 21 processes took 10.8-13.7 s on this 2-core machine (6.4 s forked).
+    assert summary["ready_after_s"] <= 10.0, summary["ready_after_s"]
     assert summary["ready"] and summary["network_s"] is not None, summary
     assert summary["exit_codes"] == {**{f"r{i}": 0 for i in range(1, ROBOTS + 1)}, "laptop": 0}  # nothing killed
     assert summary["periods_missed"] == 0, summary["missed_periods_pct"]

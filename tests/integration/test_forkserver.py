@@ -109,3 +109,37 @@ def test_a_child_started_as_a_new_interpreter_is_as_nice_as_asked():
     out = subprocess.run([sys.executable, "-c", "import os; print(os.nice(0))"], capture_output=True, text=True,
                          preexec_fn=functools.partial(_prepare_child, 3), timeout=30, check=True)
     assert int(out.stdout) == min(19, own + 3)
+
+
+def _netns_inode(path: str) -> int:
+    return os.stat(path).st_ino
+
+
+def test_a_child_asked_into_a_network_namespace_runs_there_with_every_thread(server, tmp_path):
+    """The testbed forks its nodes from the fork server: each joins its node's namespace before it
+    opens a socket, as `ip netns exec` would put it there. Needs root (CI runs as root)."""
+    if os.geteuid() != 0:
+        pytest.skip("creating a network namespace needs root")
+    name = f"apfork{os.getpid()}"
+    subprocess.run(["ip", "netns", "add", name], check=True)
+    try:
+        inside = server.spawn(["agent", "--robot", "r1", "--scenario", "paper-fig7", "--team", "nstest",
+                               "--parent-pid", str(server.pid)], str(tmp_path / "r1.log"), netns=name)
+        time.sleep(1.5)  # its Zenoh session is open: its threads are running
+        try:
+            threads = os.listdir(f"/proc/{inside.pid}/task")
+            assert len(threads) > 1
+            assert {_netns_inode(f"/proc/{inside.pid}/task/{t}/ns/net") for t in threads} \
+                == {_netns_inode(f"/var/run/netns/{name}")}
+            assert _netns_inode(f"/proc/{server.pid}/ns/net") == _netns_inode("/proc/self/ns/net")  # not the server
+        finally:
+            inside.terminate()
+        assert inside.wait(timeout=30) == 0
+        # a namespace that does not exist: the child says so in its log and exits 1, nothing else starts
+        log = tmp_path / "r2.log"
+        missing = server.spawn(["agent", "--robot", "r2", "--scenario", "paper-fig7", "--team", "nstest",
+                                "--parent-pid", str(server.pid)], str(log), netns=f"{name}-gone")
+        assert missing.wait(timeout=30) == 1
+        assert f"{name}-gone" in log.read_text() and "joined team" not in log.read_text()
+    finally:
+        subprocess.run(["ip", "netns", "del", name], check=False)
