@@ -70,7 +70,7 @@ class Placing:
             gen = self._next_generation()
             if have is None or have not in alive:
                 self.placement.pop(stage, None)
-                run, resume = self._run_for(chain)
+                run, resume = self._run_for(chain, stage, want)
                 m = self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.wall())
                 self._order(m, want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))
             else:
@@ -78,18 +78,22 @@ class Placing:
                 self._order(m, want, Prepare(stage=stage, generation=gen, from_node=have))
         self._update_running()
 
-    def _run_for(self, chain) -> tuple[int, int | None]:
-        """The run a fresh stage instance joins, and the seq it starts at.
+    def _run_for(self, chain, stage: str, node: str) -> tuple[int, int | None]:
+        """The run a fresh instance of ``stage`` (on ``node``) joins, and the seq it starts at.
 
         A chain that had stopped entirely (disabled, or its only host died) starts a new run at
         seq 0; a stage replacing a dead host in a chain that keeps running continues the run
-        from the first input it sees.
+        from the first input it sees. A new run is said: what the old one still holds upstream
+        is obsolete from then on (docs/known-limits.md).
         """
         names = {s.name for s in chain.stages}
         busy = any(s in self.placement or s in self.migrations for s in names)
         if not busy and chain.name not in self.running:
             self.runs[chain.name] = self.runs.get(chain.name, -1) + 1
             self.run_live[chain.name] = False
+            if self.runs[chain.name] > 0:  # a restart (its first run is the mission's start)
+                self.note(f"{chain.name} starts run {self.runs[chain.name]} with {stage} on {node} (the chain had "
+                          f"stopped)")
         return self.runs[chain.name], (None if self.run_live.get(chain.name) else 0)
 
     def _update_running(self) -> None:

@@ -190,6 +190,9 @@ def test_disable_and_enable_start_a_new_run():
     assert team.coordinator.on_operator(ChainCommand(chain="Blob-2", enabled=True)).ok
     team.run_until(12.0)
     assert team.coordinator.running["Blob-2"] == 1
+    # said, once: what the old run still held upstream is obsolete from here (the first runs are not)
+    said = [e for e in team.coordinator.events if " starts run " in e]
+    assert len(said) == 1 and said[0].endswith("Blob-2 starts run 1 with Blob-2 on laptop (the chain had stopped)"), said
     runner = team.nodes["r2"].sources["Blob-2"]
     assert runner.run == 1 and runner.produced_total > produced_before
     # missed periods count over every run, like produced_total (the summaries divide one by the other)
