@@ -554,6 +554,12 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             self.generation = max(self.generation, int(self.wall() * 1000) + 1)
             self.placement[stage] = status.node
             self.placed_generation[stage] = theirs
+            if stage not in self.target:
+                # its chain had stopped in the plan in force (the robot was away): it runs again, and
+                # where it runs is the target until the policy's next answer. Left out, the next
+                # reconcile released it, the policy saw it "not running" and placed it afresh in a
+                # new run, and what its old run held upstream was obsolete
+                self.target[stage] = status.node
             self.adopted += 1
             self.note(f"{stage} runs on {status.node} (agreed without the base station); adopted")
             adopted = True

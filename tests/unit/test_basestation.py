@@ -497,3 +497,44 @@ def test_a_snapshot_shows_each_status_as_a_round_trip_through_the_wire_would(sc)
         assert msgpack.unpackb(msgpack.packb(shown), strict_map_key=False) == shown
     odd = dataclasses.replace(statuses["r1"], cpu_utilisation=math.inf)
     assert status_dict(odd)["cpu_utilisation"] == math.inf
+
+
+def _back(team, robot: str) -> None:
+    """``robot``'s links to the team return (its subscriptions, as `SimTeam.leave` took them)."""
+    rt, keys = team.nodes[robot], team.keys
+    team.subscriptions[robot] = [rt.bus.subscribe(k, lambda key, p, rt=rt: rt.on_message(key, p))
+                                 for k in (keys.node_data(robot), keys.node_control(robot), keys.plan)]
+
+
+def test_a_stage_adopted_before_the_next_decision_is_neither_released_nor_restarted_meanwhile(sc):
+    """Robots back from a cut report one at a time. r2 runs Blob-2, whose chain the plan in force had
+    stopped (its source, r2, was away): adopted, it stays where it runs until the policy's answer.
+    A reconcile in between (a timer, an order resent) released it, the policy then placed it afresh
+    in a new run, and what r2 had held of the old run was obsolete (test_supervision, 1 run in 5)."""
+    from autopower.protocol import Assign
+
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0))
+    team.join()
+    co = team.coordinator
+    team.run_until(3.0)
+    team.leave("r2")
+    team.leave("r3")
+    assert "Blob-2" not in co.target and "Blob-2" not in co.running  # its source is away: stopped
+    run = co.runs["Blob-2"]
+    # while away, r2 ran Blob-2 itself (a subgroup agreed it), in the chain's run
+    gen = int(team.clock.wall() * 1000) - 5
+    team.nodes["r2"].on_assign(Assign(stage="Blob-2", generation=gen, chain="Blob-2", run=run, resume_seq=None))
+    for robot in ("r2", "r3"):
+        _back(team, robot)
+    team.join(["r2", "r3"])
+    co.on_status(team.nodes["r2"].status(10.0))  # r2 reports; r3 has not yet: no decision before it does
+    team.pump()
+    assert co.placement["Blob-2"] == "r2" and set(co._awaiting_actual) == {"r3"}
+    co.reconcile()
+    team.pump()
+    assert co.placement.get("Blob-2") == "r2" and "Blob-2" in team.nodes["r2"].hosted
+    co.on_status(team.nodes["r3"].status(10.0))
+    team.pump()
+    team.run_until(co.now() + 3.0)
+    assert co.runs["Blob-2"] == run and co.running.get("Blob-2") == run  # the same run goes on
+    assert not [e for e in co.events if "Blob-2 starts run" in e], co.events
