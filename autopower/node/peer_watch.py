@@ -96,6 +96,10 @@ class PeerWatch:
             self._limits[node] = self._limit(node)
         return False
 
+    def heard_at(self, node: str) -> float | None:
+        """The wall time ``node``'s last direct status was taken (None: none since its token came)."""
+        return self._heard.get(node)
+
     def _period_s(self, node: str) -> float:
         """The status period ``node`` announced (ours if it announced none)."""
         return status_period_s(self.settings.own_period_s, self._announced.get(node, 0.0))

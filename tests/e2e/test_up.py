@@ -17,6 +17,7 @@ import pytest
 
 from autopower.model.loading import load_scenario
 from autopower.planner import PlanRequest, plan
+from tests.integration.test_forkserver import nice_of_every_thread
 
 AUTOPOWER = os.environ.get("AUTOPOWER_BIN") or str(Path(sys.executable).parent / "autopower")
 
@@ -93,11 +94,6 @@ def start_up(tmp_path: Path, team: str = "t1", env: dict | None = None,
     wait_until(ready, 60, "the team to be ready")
     return proc, session, env
 
-
-def nice_of_every_thread(pid: int) -> set[int]:
-    """The nice value of each of a process's threads (field 19 of /proc/<pid>/task/<tid>/stat)."""
-    tasks = Path(f"/proc/{pid}/task")
-    return {int((tasks / tid / "stat").read_text().rsplit(")", 1)[1].split()[16]) for tid in os.listdir(tasks)}
 
 
 @pytest.mark.slow

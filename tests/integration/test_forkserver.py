@@ -69,13 +69,10 @@ def test_children_die_with_the_server(tmp_path):
         os.kill(child.pid, 0)
 
 
-def _nice_of_every_thread(pid: int) -> set[int]:
+def nice_of_every_thread(pid: int) -> set[int]:
     """The nice value of each of a process's threads (field 19 of /proc/<pid>/task/<tid>/stat)."""
-    out = set()
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
-        out.add(int(stat.rsplit(")", 1)[1].split()[16]))
-    return out
+    tasks = Path(f"/proc/{pid}/task")
+    return {int((tasks / tid / "stat").read_text().rsplit(")", 1)[1].split()[16]) for tid in os.listdir(tasks)}
 
 
 def test_a_child_asked_to_be_nicer_is_so_in_every_thread_it_starts(server, tmp_path):
@@ -89,8 +86,8 @@ def test_a_child_asked_to_be_nicer_is_so_in_every_thread_it_starts(server, tmp_p
     time.sleep(1.5)  # its Zenoh session is open: its threads are running
     try:
         assert len(os.listdir(f"/proc/{nicer.pid}/task")) > 1
-        assert _nice_of_every_thread(nicer.pid) == {min(19, own + 5)}
-        assert _nice_of_every_thread(plain.pid) == {own}
+        assert nice_of_every_thread(nicer.pid) == {min(19, own + 5)}
+        assert nice_of_every_thread(plain.pid) == {own}
     finally:
         for child in (plain, nicer):
             child.terminate()
