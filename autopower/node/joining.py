@@ -145,12 +145,15 @@ class JoinState:
         self.first_step[flow] = min(step, self.first_step.get(flow, step))
         if frame.seq == 0 and frame.run >= self.began.get(flow, (-1, 0))[0]:
             self.began[flow] = (frame.run, step)
-        if self.next_step is not None and step < self.next_step:
+        if self.next_step is not None and step < self.next_step and self.started:
             self.late += 1
             return "late"
         if step not in self.waiting and len(self.waiting) >= MAX_WAITING_STEPS:
             return "overflow"
-        if self.next_step is None:
+        if self.next_step is None or step < self.next_step:
+            # Before any step ran, the first step is the earliest input seen: producers' first
+            # inputs arrive in any order (each crosses its own route), so an earlier step's input
+            # that comes second opens the join; it is not late.
             self.next_step = step
         self.waiting.setdefault(step, {})[flow] = (frame.data(), frame.t_unix)
         self.first_seen.setdefault(step, now)
@@ -186,6 +189,12 @@ class JoinState:
             self.joined += 1
             self.next_step = k + 1
         return out
+
+    @property
+    def started(self) -> bool:
+        """A step ran or was skipped: every step below `next_step` is closed, so an input for one
+        is late. Until then `next_step` is only the earliest step an input came for."""
+        return self.joined > 0 or self.empty_steps > 0
 
     def starts_after(self, flow: str, step: int) -> bool:
         """The flow's producer certainly began after ``step``: the first output of its run (seq 0)

@@ -266,3 +266,22 @@ def test_a_first_output_that_is_not_seq_0_still_waits_but_is_not_a_loss():
     [first] = join.ready({a, b, c}, now=3.1, wait_s=3.0)
     assert (first.step, first.missing, first.lost) == (0, ["Loc-3"], [])
     assert (join.missing, join.not_started) == (0, 1)
+
+
+def test_an_earlier_step_that_comes_second_opens_the_join_not_late():
+    """Producers' first inputs cross different routes (Loc-1 r1 -> r2, Loc-2 laptop -> r2), so the
+    map may see Loc-1's step 3 before Loc-2's step 2. No step has run yet: step 2 is the first step,
+    its input is not late (the join had counted it "late", an error, and dropped it)."""
+    flows = SC.chain("TeamMap").inputs
+    join = JoinState(flows)
+    a, b, c = (f.name for f in flows)
+    assert join.offer(a, _frame(0, 6.0, b"A3"), 3, now=0.0) == "new"
+    assert join.offer(b, _frame(0, 4.0, b"B2"), 2, now=0.1) == "new"
+    assert join.offer(c, _frame(0, 4.0, b"C2"), 2, now=0.1) == "new"
+    assert join.offer(b, _frame(1, 6.0, b"B3"), 3, now=0.2) == "new"
+    assert join.offer(c, _frame(1, 6.0, b"C3"), 3, now=0.2) == "new"
+    ran = join.ready({a, b, c}, now=0.3, wait_s=3.0)  # Loc-1 began at step 3: step 2 need not wait
+    assert [(j.step, j.missing, j.lost) for j in ran] == [(2, ["Loc-1"], []), (3, [], [])]
+    assert join.late == 0 and (join.missing, join.not_started) == (0, 1)
+    # once a step ran, an input for an earlier one is late
+    assert join.offer(a, _frame(5, 2.0, b"A1"), 1, now=0.4) == "late" and join.late == 1
