@@ -130,16 +130,20 @@ def write(args, result: dict) -> None:
     figures = [results.figure("fault commands refused", sum(1 for f in faults if f["exit"]), "commands",
                               "fault commands sent", len(faults), group=g, note="every `autopower fault` command sent")]
     if "lost" in result:
-        outputs = result["outputs_recorded"]
-        note = "every output the recording holds"
+        outputs = result["outputs_produced"]
+        note = "every output the sources said they produced, per run (tails included)"
         figures += [
-            results.figure("outputs lost", result["lost"], "outputs", "outputs recorded", outputs, group=g, note=note),
-            results.figure("outputs duplicated", result["duplicated"], "outputs", "outputs recorded", outputs,
+            results.figure("outputs lost", result["lost"], "outputs", "outputs produced", outputs, group=g, note=note),
+            results.figure("outputs duplicated", result["duplicated"], "outputs", "outputs produced", outputs,
                            group=g, note=note),
             results.figure("outputs dropped beyond a hold budget", result["dropped_by_budget"],
-                           "outputs", "outputs recorded", outputs, group=g, note=note),
+                           "outputs", "outputs produced", outputs, group=g, note=note),
             results.figure("outputs that died with a crashed process", result["died_with_process"], "outputs",
-                           "outputs recorded", outputs, group=g, note=note),
+                           "outputs produced", outputs, group=g, note=note),
+            results.figure("outputs abandoned when their chain restarted", result["abandoned"], "outputs",
+                           "outputs produced", outputs, group=g, note=note),
+            results.figure("outputs in flight when the team stopped", result["in_flight"], "outputs",
+                           "outputs produced", outputs, group=g, note=note),
             results.figure("invariants failed", len(result["failed_invariants"]), "invariants", "invariants checked",
                            result["invariants_checked"], group=g, note="every invariant the replay checks"),
             results.figure("team energy metered (steady state)", result["energy_metered_steady_j"], "J",
@@ -190,7 +194,9 @@ def main() -> None:
                       dropped_by_budget=s["outputs"].get("held_dropped", 0),
                       died_with_process=s["outputs"].get("died_with_process", 0),
                       unrecorded=s["outputs"].get("unrecorded", 0),
+                      in_flight=s["outputs"].get("in_flight", 0), abandoned=s["outputs"].get("abandoned", 0),
                       outputs_recorded=sum(c["outputs"] for c in s["outputs"]["chains"].values()),
+                      outputs_produced=s["outputs"].get("produced", 0),
                       energy_model_error_pct=s["energy_model_error_pct"],
                       energy_error_pct_per_robot={r: v["error_pct"] for r, v in s["energy"]["per_robot"].items()},
                       failed_invariants=[i for i in s["invariants"] if i["ok"] is False],
@@ -209,7 +215,8 @@ def main() -> None:
         print(f"replay: {result['lost']} lost (besides {result['dropped_by_budget']} dropped beyond a node's hold "
               f"budget, and {result['died_with_process']} of a robot's own chain "
               f"that died with its crashed process, and {result['unrecorded']} a killed sink delivered "
-              "before it flushed their recording), "
+              f"before it flushed their recording, {result['in_flight']} in flight at the stop and "
+              f"{result['abandoned']} abandoned when their chain restarted; of {result['outputs_produced']} produced), "
               f"{result['duplicated']} duplicated; energy vs model {result['energy_model_error_pct']:+.2f} % "
               f"(per robot {', '.join(f'{r} {v:+.1f}' for r, v in result['energy_error_pct_per_robot'].items())})")
         for inv in result["failed_invariants"]:

@@ -99,6 +99,8 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, sta
             if recorder is not None:
                 recorder.attach(process.runtime)
             reason = run_until_signalled(process, duration)
+            if recorder is not None:
+                recorder.record_stop(process.runtime)
     finally:
         if bus is not None:
             bus.close()  # flushes the recording: before os._exit
@@ -188,6 +190,8 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
             if recorder is not None:
                 recorder.attach(process.runtime)
             reason = run_until_signalled(process, duration)
+            if recorder is not None:
+                recorder.record_stop(process.runtime)
     finally:
         if bus is not None:
             bus.close()

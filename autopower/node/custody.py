@@ -303,6 +303,10 @@ class Custody:
         self.resent += 1
         return held.frame
 
+    def frames(self) -> list[ChainFrame]:
+        """Every frame held (what a clean stop leaves in flight: `autopower.node.in_flight`)."""
+        return [held.frame for hop in self.hops.values() for held in hop.values()]
+
     def stats(self) -> dict[str, int]:
         return {"custody-frames": len(self), "custody-bytes": self.bytes, "custody-resent": self.resent,
                 "custody-evicted": self.evicted, "results-kept-bytes": self.result_bytes,

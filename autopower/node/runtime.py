@@ -46,6 +46,7 @@ from autopower.node.frames import Frames
 from autopower.node.guard import ComponentHung, GuardedCalls
 from autopower.node.held_store import HeldStore
 from autopower.node.hosting import Hosting
+from autopower.node.in_flight import ProducedByRun, frames_in_hand, stage_frames
 from autopower.node.joining import Joining
 from autopower.node.meter import BatteryMeter
 from autopower.node.relaying import Relaying
@@ -143,6 +144,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.orphans: dict[str, list[ChainFrame]] = {}
         self.sources: dict[str, SourceRunner] = {}
         self.source_totals: dict[str, SourceStats] = {}
+        self.produced_by_run = ProducedByRun()  # what each source produced per run (`in_flight_at_stop`)
         self._last_turn_wall: float | None = None  # `on_timer`'s last turn (a node away a second was stopped)
         self.sinks: dict[str, SinkLedger] = {}
         self.last_output: dict[str, bytes] = {}
@@ -344,6 +346,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             return
         meter = self.meter
         self.source_totals.update(sources)
+        for name, src in sources.items():
+            self.produced_by_run.note(name, src.run, src.produced)
         self.resumed = True
         self._take_back_held(mission)
         self._died_with_process(sources, mission)
@@ -385,6 +389,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             if self.on_died_with_process is not None:
                 for seq in tail:
                     self.on_died_with_process(name, src.run, seq)
+
+    def in_flight_at_stop(self) -> dict[tuple[str, int], set[int]]:
+        """(chain, run) -> the seqs of the frames this node still has in hand (`autopower.node.in_flight`)."""
+        names = [c.name for c in self.scenario.chains]
+        return frames_in_hand(names, (self.custody.frames(), self.held_outputs.values(), stage_frames(self.hosted),
+                                      *self.orphans.values()))
 
     def resume_state(self) -> dict | None:
         """What a restarted process needs to carry on (None before the mission starts)."""
@@ -744,6 +754,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                            t_unix=self.wall() - waited_s, payload_len=len(data), payload=payload)
         runner.seq += 1
         runner.produced_total += 1
+        self.produced_by_run.note(chain.name, runner.run, runner.seq)
         if self.on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq
             self.on_produced(runner)
         self.emit(frame, host)

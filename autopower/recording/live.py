@@ -14,6 +14,7 @@ Integration recipe (what the `agent` / `basestation` commands and the launcher d
            with Agent(config, bus=bus) as process:                        # BaseStation(config, host_factory=NodeRuntime, bus=bus)
                recorder.attach(process.runtime)
                reason = run_until_signalled(process, duration)
+               recorder.record_stop(process.runtime)                          # produced per run, frames in flight
        finally:
            bus.close()   # flushes the .rrd: must run before any os._exit; BaseStation does not close a given bus
 

@@ -39,7 +39,9 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
   results its full hold let go (`on_held_dropped`) -> ``components/<chain>/run/<run>/held_dropped``;
   outputs a restarted sink's journal says its crashed process delivered in its last commit
   (`on_sink_journal`: their recording may have died with it) -> ``.../run/<run>/sink_journal``
-  (one scalar per output: replay checks exactly-once per (chain, run, seq)) and, at most every
+  (one scalar per output: replay checks exactly-once per (chain, run, seq)); at a clean stop
+  (`record_stop`), what each source here produced per run -> ``.../run/<run>/produced`` and every
+  frame still in hand -> ``.../run/<run>/in_flight`` (one scalar per seq); and, at most every
   `visual_every_s`, what the injected `visualise` draws (the deploy layer's draws a downscaled
   camera frame on ``components/<chain>/camera`` with the blobs as ``Boxes2D`` on ``.../blobs``,
   MCL particles and pose as ``Points2D`` on ``components/<chain>/particles`` and ``.../pose``
@@ -156,6 +158,18 @@ def sink_journal_path(chain: str, run: int) -> str:
     """Entity of a chain's outputs that a restarted sink's journal says the crashed process delivered
     in its last commit (`SinkStore.last_batch`): one scalar (the seq) each."""
     return f"{component_path(chain, f'run/{int(run)}')}/sink_journal"
+
+
+def produced_path(chain: str, run: int) -> str:
+    """Entity of how many outputs a chain's source produced in one run (seqs 0 .. n-1), logged by
+    the source's node as it stops (`Recorder.record_stop`)."""
+    return f"{component_path(chain, f'run/{int(run)}')}/produced"
+
+
+def in_flight_path(chain: str, run: int) -> str:
+    """Entity of a chain's frames a node still had in hand as it stopped (`NodeRuntime.in_flight_at_stop`):
+    one scalar (the seq) each."""
+    return f"{component_path(chain, f'run/{int(run)}')}/in_flight"
 
 
 def record_fault(telemetry: Telemetry, t_s: float, *, kind: str, target: str, phase: str = "injected",
@@ -419,6 +433,21 @@ class Recorder:
         `NodeRuntime.on_died_with_process`, called by the restarted one): the replay counts it apart."""
         self._guard("died-with-process",
                     lambda: self.telemetry.scalar(died_with_process_path(chain, run), self.now(), seq))
+
+    def record_stop(self, runtime) -> None:
+        """At a clean stop (the process's loop has ended): what each source here produced in each
+        run, and every frame this node still had in hand. The replay bounds each chain's tail with
+        the first and checks every output it calls in flight against the second."""
+        self._guard("stop", self._stop, runtime)
+
+    def _stop(self, runtime) -> None:
+        t = self.now()
+        for (chain, run), produced in sorted(runtime.produced_by_run.counts().items()):
+            self.telemetry.scalar(produced_path(chain, run), t, produced)
+        for (chain, run), seqs in sorted(runtime.in_flight_at_stop().items()):
+            path = in_flight_path(chain, run)
+            for seq in sorted(seqs):
+                self.telemetry.scalar(path, t, seq)
 
     def fault(self, *, kind: str, target: str, phase: str = "injected", reason: str = "") -> None:
         with self._lock:

@@ -44,20 +44,31 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
                                        "overhead_j": {"migration": float, "recovery": float}}}},
       "outputs": {"recorded": bool,
-                  "lost": int,  # missing below the highest seq delivered, not dropped by a hold, not died in a crash
+                  "produced": int,  # what the sources produced (per run: `produced`, else up to the last delivered)
+                  "lost": int,  # produced, not delivered, and in no other class below
                   "duplicated": int, "resent": int, "given_up": int,
                   "held_dropped": int,  # results robots cut off from the sink let go, their hold full
                   "held_dropped_known": bool,  # which seqs (else only counts: then "lost" includes them)
                   "died_with_process": int,  # outputs of a robot's own chain that died with its crashed process
                   "unrecorded": int,  # delivered by a sink killed before its recording was flushed
                                       # (named by the restarted sink's journal): not lost, not recorded
-                  "chains": {chain: {"outputs": int, "distinct": int, "lost": int, "duplicated": int,
+                  "in_flight": int,  # a node had them in hand when the team stopped (it says which)
+                  "abandoned": int,  # the tail of a run its chain ended by starting a new one (a loss)
+                  "chains": {chain: {"outputs": int, "distinct": int, "produced": int, "produced_known": bool,
+                                     "lost": int, "duplicated": int,
                                      "held_dropped": int,  # of its missing seqs, dropped by a hold
                                      "died_with_process": int,  # of its missing seqs, died in a crash
                                      "unrecorded": int,  # of its missing seqs, delivered (sink journal)
+                                     "in_flight": int, "abandoned": int,
                                      "lost_seqs": [[int, int]],  # [run, seq] of the first lost ones
                                                                   # (at most LOST_SEQS_SHOWN)
-                                     "runs": [int]}}},
+                                     "runs": [int],
+                                     # per run: produced = delivered + unrecorded + held_dropped
+                                     #   + died_with_process + in_flight + abandoned + lost
+                                     "by_run": {run: {"produced": int, "produced_known": bool,
+                                                      "delivered": int, "duplicated": int, "unrecorded": int,
+                                                      "held_dropped": int, "died_with_process": int,
+                                                      "in_flight": int, "abandoned": int, "lost": int}}}}},
       "quality": {chain: {metric: float}},          # measured quality, mean over the chain's outputs
                                                     # (blob recall, localisation error; see chains.variants)
       "invariants": [{"name": str, "ok": bool | null, "detail": str}],   # null: not checkable here
@@ -90,8 +101,12 @@ from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGE
 
 # one scalar (the seq) per output of a chain's run: delivered at its sink, or counted apart (`_outputs`)
 _APART = ("held_dropped", "died_with_process", "sink_journal")
+# what a seq not delivered is counted as, by the entity that names it (`_outputs`)
+_CLASS_OF = {"sink_journal": "unrecorded", "held_dropped": "held_dropped", "died_with_process": "died_with_process",
+             "in_flight": "in_flight"}
+_CLASSES = ("unrecorded", "held_dropped", "died_with_process", "in_flight", "abandoned", "lost")
 LOST_SEQS_SHOWN = 20  # a chain lists its first lost seqs, so a user (or a failing test) can look them up
-_PER_OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/(?P<what>seq|" + "|".join(_APART) + ")$")
+_PER_OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/(?P<what>seq|produced|in_flight|" + "|".join(_APART) + ")$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
 _SIM_MOVE = re.compile(r"^(?P<stage>\S+): (?P<src>\S+) → (?P<dst>\S+),")
 _EPS = 1e-6
@@ -566,6 +581,11 @@ def _apart(outputs: dict[str, Any]) -> str:
     if outputs.get("died_with_process"):
         parts.append(f"{outputs['died_with_process']} of a robot's own chain that died with its crashed process, "
                      "in its memory only")
+    if outputs.get("in_flight"):
+        parts.append(f"{outputs['in_flight']} still in flight when the team stopped (a node had them in hand)")
+    if outputs.get("abandoned"):
+        parts.append(f"{outputs['abandoned']} abandoned when their chain restarted in a new run (the old run's "
+                     "tail: a loss, see docs/known-limits.md)")
     if outputs.get("unrecorded"):
         parts.append(f"{outputs['unrecorded']} delivered by a sink killed before it flushed their recording "
                      "(named by its journal)")
@@ -576,19 +596,30 @@ def _apart(outputs: dict[str, Any]) -> str:
 
 
 def _outputs(rec: Recording) -> dict[str, Any]:
-    """Outputs per chain: recorded, distinct, lost, duplicated, dropped by a full hold, died in a crash.
+    """Outputs per chain and run: produced, delivered (once, twice), and each one not delivered in
+    exactly one class, so that produced = distinct + unrecorded + held_dropped + died_with_process
+    + in_flight + abandoned + lost, for every run, tails included.
 
-    A seq missing below the highest a run delivered is *lost*, unless a robot cut off from the
-    sink let it go from its full hold (``.../held_dropped``, logged by that robot): that is by
-    design, and counted apart (``held_dropped``); or unless it was an output of a robot's own chain
-    (source and sink there) that died with its crashed process (``.../died_with_process``, logged by
-    the restarted one, `NodeRuntime._died_with_process`), also counted apart; or unless the sink
-    had delivered it and was killed before its recording was flushed (``.../sink_journal``, logged
-    by the restarted sink from its journal, `SinkStore.last_batch`): delivered, counted apart as
-    ``unrecorded``. A recording without those entities (older) can only give the robots' drop
-    counters, and counts every gap as lost."""
+    *Produced* is what the chain's source says it produced in the run (``.../run/<run>/produced``,
+    logged at a clean stop, `Recorder.record_stop`); without it (its robot killed for good, an older
+    recording) the run counts up to the highest seq delivered, and ``produced_known`` says so. A
+    seq not delivered is, in this order:
+    - *unrecorded*: delivered by a sink killed before it flushed its recording (named by the
+      restarted sink's journal, ``.../sink_journal``);
+    - *held_dropped*: let go by a robot cut off from the sink, its hold full (``.../held_dropped``,
+      logged by that robot as it dropped it): by design, within the budget;
+    - *died_with_process*: an output of a robot's own chain (source and sink there) in its crashed
+      process's memory only (``.../died_with_process``, `NodeRuntime._died_with_process`);
+    - *in_flight*: a node still had it in hand when the team stopped (``.../in_flight``, logged by
+      that node at its clean stop: custody, hold, a stage's gate or worker);
+    - *abandoned*: after the last output its run delivered, in a run its chain ended by starting a
+      new one (a later run of the chain is recorded): what the old run still held upstream was
+      obsolete from then on (docs/known-limits.md). A loss, counted apart so it is not hidden in
+      the tail of a run;
+    - *lost*: none of the above."""
     seqs_of: dict[tuple[str, int], list[int]] = {}
-    apart_of: dict[str, dict[tuple[str, int], set[int]]] = {what: {} for what in _APART}
+    apart_of: dict[str, dict[tuple[str, int], set[int]]] = {what: {} for what in (*_APART, "in_flight")}
+    produced_of: dict[tuple[str, int], int] = {}
     for entity, (_, values) in rec.scalars.items():
         m = _PER_OUTPUT.match(entity)
         if not m:
@@ -598,44 +629,49 @@ def _outputs(rec: Recording) -> dict[str, Any]:
         what = m["what"]
         if what == "seq":
             seqs_of.setdefault(key, []).extend(finite)
+        elif what == "produced":
+            produced_of[key] = max([produced_of.get(key, 0), *finite])
         else:
             apart_of[what].setdefault(key, set()).update(finite)
     dropped_of = apart_of["held_dropped"]
+    last_run: dict[str, int] = {}
+    for chain, run in (*seqs_of, *produced_of):
+        last_run[chain] = max(run, last_run.get(chain, run))
     chains: dict[str, Any] = {}
-    lost_all = dup_all = died_all = unrecorded_all = 0
-    for (chain, run), seqs in seqs_of.items():
-        c = chains.setdefault(chain, {"outputs": 0, "distinct": 0, "lost": 0, "duplicated": 0, "held_dropped": 0,
-                                      "died_with_process": 0, "unrecorded": 0, "lost_seqs": [], "runs": []})
+    totals = dict.fromkeys(_CLASSES, 0)
+    totals["duplicated"] = 0
+    for chain, run in sorted({*seqs_of, *produced_of}):
+        seqs = seqs_of.get((chain, run), [])
+        c = chains.setdefault(chain, {"outputs": 0, "distinct": 0, "produced": 0, "produced_known": True,
+                                      **dict.fromkeys(_CLASSES, 0), "duplicated": 0, "lost_seqs": [],
+                                      "runs": [], "by_run": {}})
         distinct = set(seqs)
-        gaps = (max(distinct) + 1 - len(distinct)) if distinct else 0
-
-        def in_gaps(what: str, *besides: set[int]) -> set[int]:
-            """The seqs counted apart as ``what`` that are gaps (one past the last delivered is in none)."""
-            return {seq for seq in apart_of[what].get((chain, run), ())  # noqa: B023 (called in this iteration)
-                    if seq not in distinct and seq < max(distinct) and not any(seq in b for b in besides)}  # noqa: B023 (called in this iteration)
-
-        unrecorded = in_gaps("sink_journal")  # delivered: before a drop or a crash's tail is thought of
-        dropped = in_gaps("held_dropped", unrecorded)
-        died = in_gaps("died_with_process", unrecorded, dropped)
-        lost = gaps - len(dropped) - len(died) - len(unrecorded)
+        after_last = max(distinct, default=-1)  # the tail starts past the last output delivered
+        produced = max(produced_of.get((chain, run), 0), after_last + 1)
+        missing = set(range(produced)) - distinct
+        classes: dict[str, set[int]] = {}
+        for what in ("sink_journal", "held_dropped", "died_with_process", "in_flight"):
+            named = missing & apart_of[what].get((chain, run), set())
+            classes[_CLASS_OF[what]] = named
+            missing -= named
+        classes["abandoned"] = {s for s in missing if s > after_last} if run < last_run[chain] else set()
+        lost = missing - classes["abandoned"]
         if lost and len(c["lost_seqs"]) < LOST_SEQS_SHOWN:
-            missing = sorted(set(range(max(distinct))) - distinct - unrecorded - dropped - died)
-            c["lost_seqs"].extend([run, seq] for seq in missing[:LOST_SEQS_SHOWN - len(c["lost_seqs"])])
-        dup = len(seqs) - len(distinct)
+            c["lost_seqs"].extend([run, seq] for seq in sorted(lost)[:LOST_SEQS_SHOWN - len(c["lost_seqs"])])
+        by_run = {"produced": produced, "produced_known": (chain, run) in produced_of, "delivered": len(distinct),
+                  "duplicated": len(seqs) - len(distinct), **{k: len(v) for k, v in classes.items()},
+                  "lost": len(lost)}
+        c["by_run"][str(run)] = by_run
         c["outputs"] += len(seqs)
         c["distinct"] += len(distinct)
-        c["lost"] += lost
-        c["held_dropped"] += len(dropped)
-        c["died_with_process"] += len(died)
-        c["unrecorded"] += len(unrecorded)
-        c["duplicated"] += dup
+        c["produced"] += produced
+        c["produced_known"] = c["produced_known"] and by_run["produced_known"]
+        c["duplicated"] += by_run["duplicated"]
+        totals["duplicated"] += by_run["duplicated"]
+        for what in _CLASSES:
+            c[what] += by_run[what]
+            totals[what] += by_run[what]
         c["runs"].append(run)
-        lost_all += lost
-        died_all += len(died)
-        unrecorded_all += len(unrecorded)
-        dup_all += dup
-    for c in chains.values():
-        c["runs"].sort()
     custody = {what: sum(_counter_total(times, values) for e, (times, values) in rec.scalars.items()
                          if e.startswith("custody/") and e.endswith(f"/{what}"))
                for what in ("resent", "evicted", "held_dropped")}
@@ -644,10 +680,12 @@ def _outputs(rec: Recording) -> dict[str, Any]:
     held = (sum(len(d - set(seqs_of.get(k, ())) - apart_of["sink_journal"].get(k, set()))
                 for k, d in dropped_of.items()) if dropped_of
             else int(custody["held_dropped"]))
-    return {"recorded": bool(chains), "lost": lost_all, "duplicated": dup_all,
+    return {"recorded": bool(seqs_of), "lost": totals["lost"], "duplicated": totals["duplicated"],
             "resent": int(custody["resent"]), "given_up": int(custody["evicted"]),
-            "held_dropped": held, "held_dropped_known": bool(dropped_of), "died_with_process": died_all,
-            "unrecorded": unrecorded_all,
+            "held_dropped": held, "held_dropped_known": bool(dropped_of),
+            "died_with_process": totals["died_with_process"], "unrecorded": totals["unrecorded"],
+            "in_flight": totals["in_flight"], "abandoned": totals["abandoned"],
+            "produced": sum(c["produced"] for c in chains.values()),
             "chains": dict(sorted(chains.items()))}
 
 

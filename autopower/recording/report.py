@@ -60,7 +60,8 @@ def render_text(summary: dict[str, Any]) -> str:
                  + ", ".join(f"{k} {v:,.2f} J" for k, v in over.items()) + ")" if any(over.values()) else "")]
     o = s["outputs"]
     if o["recorded"]:
-        lines.append(f"outputs: {sum(c['outputs'] for c in o['chains'].values())} recorded, "
+        lines.append((f"outputs: {o['produced']} produced, " if o.get("produced") else "outputs: ")
+                     + f"{sum(c['outputs'] for c in o['chains'].values())} recorded, "
                      f"{o['lost']} lost, {o['duplicated']} duplicated; {o.get('resent', 0)} frame(s) resent from "
                      f"custody after silent losses" + (f", {o['given_up']} given up" if o.get("given_up") else "")
                      + (f"; {o['held_dropped']} {'more ' if o.get('held_dropped_known') else ''}dropped by "
@@ -69,7 +70,10 @@ def render_text(summary: dict[str, Any]) -> str:
                      + (f"; {o['died_with_process']} of a robot's own chain died with its crashed process"
                         if o.get("died_with_process") else "")
                      + (f"; {o['unrecorded']} delivered by a sink killed before it flushed their recording "
-                        "(named by its journal)" if o.get("unrecorded") else ""))
+                        "(named by its journal)" if o.get("unrecorded") else "")
+                     + (f"; {o['in_flight']} in flight when the team stopped" if o.get("in_flight") else "")
+                     + (f"; {o['abandoned']} abandoned when their chain restarted in a new run"
+                        if o.get("abandoned") else ""))
     lines += ["", "invariants:"]
     for inv in s["invariants"]:
         mark = {True: "ok  ", False: "FAIL", None: "n/a "}[inv["ok"]]

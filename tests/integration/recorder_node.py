@@ -34,6 +34,7 @@ def main(role: str, run_dir: str, port: int, seconds: float) -> None:
                 BaseStation(config, host_factory=NodeRuntime, bus=bus) as process:
             recorder.attach(process.runtime)
             process.run(max_wall_s=seconds)
+            recorder.record_stop(process.runtime)
     else:
         settings = ZenohSettings(connect=(endpoint,), lease_ms=500)
         recorder = open_recorder(run_dir, "r1", scenario=scenario)
@@ -41,6 +42,7 @@ def main(role: str, run_dir: str, port: int, seconds: float) -> None:
         with recorder.tap(ZenohBus(settings)) as bus, Agent(config, bus=bus) as process:
             recorder.attach(process.runtime)
             process.run(max_wall_s=seconds)
+            recorder.record_stop(process.runtime)
     print(f"{role} done, recorder errors {recorder.errors}", flush=True)
 
 

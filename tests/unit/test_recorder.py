@@ -136,13 +136,55 @@ def test_lost_and_duplicated_outputs_are_counted(tmp_path):
     rec.on_output("Blob-2", 1, 0, b"")  # a new run starts over at 0
     rec.close()
     s = summarize(load(tmp_path / "x.rrd"))
-    assert s["outputs"]["chains"]["Blob-2"] == {"outputs": 8, "distinct": 5, "lost": 1, "duplicated": 3, "held_dropped": 0,
-                                               "died_with_process": 0, "unrecorded": 0, "runs": [0, 1],
-                                               "lost_seqs": [[0, 2]]}  # which one: to look up in the recording
+    blob = s["outputs"]["chains"]["Blob-2"]
+    assert {k: v for k, v in blob.items() if k != "by_run"} == {
+        "outputs": 8, "distinct": 5, "produced": 6, "produced_known": False, "lost": 1, "duplicated": 3,
+        "held_dropped": 0, "died_with_process": 0, "unrecorded": 0, "in_flight": 0, "abandoned": 0,
+        "runs": [0, 1], "lost_seqs": [[0, 2]]}  # which one: to look up in the recording
     assert s["lost_outputs"] == 1 and s["duplicated_outputs"] == 3
     inv = {i["name"]: i["ok"] for i in s["invariants"]}
     assert inv["every output exactly once at its sink"] is False and not s["ok"]
     assert output_path("Blob-2", 1) in load(tmp_path / "x.rrd").scalars
+
+
+def test_every_produced_output_is_in_one_class_tails_included(tmp_path):
+    """Issue 30: a sink counted gaps only below the highest seq it got, so a run's tail (and a whole
+    old run's after its chain restarted) was counted nowhere. With what the source produced per
+    run and what each node had in hand at its stop, every produced output is in exactly one class."""
+    from autopower.recording.recorder import held_dropped_path, in_flight_path, produced_path
+
+    t = [0.0]
+    rec = Recorder(Telemetry(tmp_path / "x.rrd", kind="live", properties={"scenario": "paper-fig7"}), "laptop",
+                   clock=lambda: t[0])
+    rec.telemetry.battery(0.0, "r1", 100.0)
+    rec.telemetry.battery(1.0, "r1", 90.0)
+    for seq in (0, 1, 3):  # run 0: 2 missing below the last delivered
+        rec.on_output("Loc-1", 0, seq, b"")
+    for seq in (0, 1, 2, 3):  # run 1: delivered 0-3 of 9
+        rec.on_output("Loc-1", 1, seq, b"")
+    tel = rec.telemetry
+    tel.scalar(produced_path("Loc-1", 0), 1.0, 6)  # run 0 produced 0-5: 4 and 5 after the last delivered
+    tel.scalar(produced_path("Loc-1", 1), 1.0, 9)
+    tel.scalar(held_dropped_path("Loc-1", 1), 1.0, 4)  # a full hold let 4 go
+    for seq in (5, 6):  # a node had 5 and 6 in hand at its stop
+        tel.scalar(in_flight_path("Loc-1", 1), 1.0, seq)
+    rec.close()
+    s = summarize(load(tmp_path / "x.rrd"))
+    loc = s["outputs"]["chains"]["Loc-1"]
+    assert loc["by_run"]["0"] == {"produced": 6, "produced_known": True, "delivered": 3, "duplicated": 0,
+                                  "unrecorded": 0, "held_dropped": 0, "died_with_process": 0, "in_flight": 0,
+                                  "abandoned": 2, "lost": 1}  # 2: a gap; 4, 5: the tail of a run that ended
+    assert loc["by_run"]["1"] == {"produced": 9, "produced_known": True, "delivered": 4, "duplicated": 0,
+                                  "unrecorded": 0, "held_dropped": 1, "died_with_process": 0, "in_flight": 2,
+                                  "abandoned": 0, "lost": 2}  # 7, 8: the last run's tail, in no node's hands
+    for run in loc["by_run"].values():
+        assert run["produced"] == sum(run[k] for k in ("delivered", "unrecorded", "held_dropped", "died_with_process",
+                                                        "in_flight", "abandoned", "lost"))
+    assert loc["lost_seqs"] == [[0, 2], [1, 7], [1, 8]]
+    assert s["lost_outputs"] == 3 and s["outputs"]["in_flight"] == 2 and s["outputs"]["abandoned"] == 2
+    assert s["outputs"]["produced"] == 15
+    detail = {i["name"]: i["detail"] for i in s["invariants"]}["every output exactly once at its sink"]
+    assert "2 still in flight when the team stopped" in detail and "2 abandoned when their chain restarted" in detail
 
 
 def test_faults_detection_and_reconfiguration(tmp_path):
