@@ -169,6 +169,8 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.placed_generation: dict[str, int] = {}
         self.target: dict[str, str] = {}
         self.migrations: dict[str, Migration] = {}
+        # orders made while a reconcile runs, per node: sent as one put each when it ends (`Placing.reconcile`)
+        self.control_batch: dict[str, list[bytes]] | None = None
         self.pins: dict[str, str] = dict(config.pins)
         self.disabled: set[str] = set()
         self.failed_stages: dict[str, str] = {}  # stage -> "node: what: why" its component was stopped
@@ -288,7 +290,14 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             raise AutoPowerError(f"unknown node {node!r}; nodes: {', '.join(self.scenario.node_names())}")
 
     def _send(self, node: str, msg) -> None:
-        self.send_to(node, self.keys.node_control(node), encode(msg))
+        self.send_control(node, encode(msg))
+
+    def send_control(self, node: str, payload: bytes) -> None:
+        """An order to ``node``: at once, or with the others of the reconcile that makes it."""
+        if self.control_batch is not None:
+            self.control_batch.setdefault(node, []).append(payload)
+        else:
+            self.send_to(node, self.keys.node_control(node), payload)
 
     # ---- faults -------------------------------------------------------------------------------------
     def record_fault(self, kind: str, target: str, detected_unix: float) -> None:

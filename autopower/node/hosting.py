@@ -26,8 +26,10 @@ from autopower.protocol import (
     StageFailed,
     StageReady,
     StateTransfer,
+    batched,
     decode,
     encode,
+    unbatch,
 )
 from autopower.protocol.messages import CONTROL_MESSAGES
 
@@ -38,12 +40,27 @@ class Hosting:
     """The node's stage lifecycle. Mixed into `NodeRuntime`, whose state it uses."""
 
     def on_control(self, payload: bytes) -> None:
-        msg = decode(payload, CONTROL_MESSAGES)
+        """An order, or a `Batch` of them (every item checked before any is carried out): the
+        answers to one batch go back in one put."""
+        orders = unbatch(payload, CONTROL_MESSAGES)
         if not self.started:
             # The plan that starts the mission may arrive after the first orders (other key).
             if len(self._early_control) < 1000:
                 self._early_control.append(payload)
             return
+        if len(orders) == 1:
+            self._on_order(orders[0][1])
+            return
+        self._answer_batch = []
+        try:
+            for _, msg in orders:
+                self._on_order(msg)
+        finally:
+            answers, self._answer_batch = self._answer_batch, None
+            if answers:
+                self._to_basestation(batched(answers))
+
+    def _on_order(self, msg) -> None:
         if msg.stage not in self.stage_index:
             self.count("unknown-stage", msg.stage)
             return
@@ -105,7 +122,10 @@ class Hosting:
         return payload
 
     def _to_basestation(self, payload: bytes) -> None:
-        self.send_to(self.scenario.basestation, self.keys.inbox, payload)
+        if self._answer_batch is not None:  # answering a batch of orders: the answers go together
+            self._answer_batch.append(payload)
+        else:
+            self.send_to(self.scenario.basestation, self.keys.inbox, payload)
 
     def _answer_again(self, hosted: HostedStage, order: str) -> None:
         """A repeated order this node has carried out already: its answer goes again, nothing is redone."""

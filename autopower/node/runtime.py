@@ -159,6 +159,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
         self.weights: dict[str, float] = {}
         self._early_control: list[bytes] = []
+        self._answer_batch: list[bytes] | None = None  # answers to a `Batch` of orders, sent as one (`on_control`)
         # results whose sink has no route from here (the plan's links): kept in order, within the
         # hold budget with the results in custody (`Custody.keep`), sent when a plan routes them again
         self.held_outputs: OrderedDict[tuple[str, int, int, int], ChainFrame] = OrderedDict()

@@ -3,6 +3,7 @@
 May import: `autopower.errors` only: every process and the recorder decode the same bytes.
 """
 
+from autopower.protocol.batch import MAX_BATCH_ITEMS, batched, unbatch
 from autopower.protocol.codec import PROTOCOL_VERSION, decode, encode, message_kinds
 from autopower.protocol.keys import Keys, check_name
 from autopower.protocol.messages import (
@@ -12,6 +13,7 @@ from autopower.protocol.messages import (
     Ack,
     Assign,
     AutoCommand,
+    Batch,
     ChainCommand,
     ChainFrame,
     Consumed,
@@ -44,8 +46,8 @@ from autopower.protocol.messages import (
 )
 
 __all__ = [
-    "CONTROL_MESSAGES", "INBOX_MESSAGES", "OPERATOR_COMMANDS", "PROTOCOL_VERSION",
-    "Ack", "Assign", "AutoCommand", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo", "OperatorSettings",
+    "CONTROL_MESSAGES", "INBOX_MESSAGES", "MAX_BATCH_ITEMS", "batched", "unbatch", "OPERATOR_COMMANDS", "PROTOCOL_VERSION",
+    "Ack", "Assign", "AutoCommand", "Batch", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo", "OperatorSettings",
     "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet", "PeerStatus",
     "PlanChange", "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "Consumed", "SnapshotRequest", "SourceStats",
     "StageFailed", "StageReady", "StateTransfer", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",

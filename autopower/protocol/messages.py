@@ -2,9 +2,10 @@
 
 Data plane (``node/<n>/data``, CongestionControl.BLOCK): `Packet`, carrying an encoded
 `ChainFrame` or `StateTransfer` hop by hop along a source route.
-Coordinator -> node (``node/<n>/control``, BLOCK): `Assign`, `Prepare`, `MigrateOut`, `Release`;
+Coordinator -> node (``node/<n>/control``, BLOCK): `Assign`, `Prepare`, `MigrateOut`, `Release`, or a
+`Batch` of them;
 and `PlanUpdate` again for a node whose status says it does not run it yet.
-Node -> coordinator (``base/inbox``, BLOCK): `Prepared`, `StageReady`, `StageFailed`.
+Node -> coordinator (``base/inbox``, BLOCK): `Prepared`, `StageReady`, `StageFailed`, or a `Batch` of them.
 Coordinator -> everyone (``base/plan``, BLOCK): `PlanUpdate`, or a new plan as its `PlanChange`
 from the one before (`autopower.protocol.plans`).
 Telemetry (``status/<n>``, DROP): `NodeStatus`, for base stations (and each process's recording).
@@ -629,6 +630,18 @@ class SubgroupDecision:
     # the author's certificate and signature (`runtime.signatures`); empty in an --insecure team
     signer_cert: bytes = b""
     signature: bytes = b""
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class Batch:
+    """Several messages for one key in one put, each encoded on its own: the coordinator's orders
+    to one node in one reconcile (`CONTROL_MESSAGES`), and that node's answers to them
+    (`INBOX_MESSAGES`). A plan that places 150 stages on 30 robots is 30 puts and 30 answers, not
+    150 of each. Its receiver checks every item before it acts on any (`autopower.protocol.batch`)."""
+
+    KIND = "batch"
+    items: tuple[bytes, ...]
 
 
 OPERATOR_COMMANDS = (ChainCommand, MigrateCommand, AutoCommand, LinkCommand, SnapshotRequest)

@@ -133,6 +133,14 @@ def _peek(payload: bytes) -> tuple[str | None, dict]:
     return kind, fields
 
 
+def _peek_items(payload: bytes) -> list[tuple[str | None, dict]]:
+    """`_peek` of a message, or of each message of a `Batch` (a node's orders or answers in one put)."""
+    kind, fields = _peek(payload)
+    if kind != "batch":
+        return [(kind, fields)]
+    return [_peek(item) for item in fields["items"]]
+
+
 def run_recording_id(run_dir: str | Path) -> str:
     """The recording id every process of the run in `run_dir` uses (from the folder's name)."""
     return str(uuid.uuid5(_RUN_NAMESPACE, Path(run_dir).resolve().name))
@@ -365,14 +373,14 @@ class Recorder:
             if fields is not None:
                 self._plan(fields)
         elif key == keys.inbox:
-            kind, fields = _peek(payload)
-            if kind == "stage-ready":
-                self._stage_ready(fields)
-            elif kind == "stage-failed":
-                self._stage_failed(fields)
+            for kind, fields in _peek_items(payload):
+                if kind == "stage-ready":
+                    self._stage_ready(fields)
+                elif kind == "stage-failed":
+                    self._stage_failed(fields)
         else:  # control messages and whatever else a process announces (e.g. subgroup rounds)
-            kind, fields = _peek(payload)
-            self._other(key, kind, fields)
+            for kind, fields in _peek_items(payload):
+                self._other(key, kind, fields)
 
     def on_receive(self, key: str, payload: bytes) -> None:
         """What this process receives: only plans matter (the mission clock, this node's predicted

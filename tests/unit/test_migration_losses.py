@@ -16,7 +16,7 @@ import pytest
 
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
-from autopower.protocol import INBOX_MESSAGES, MigrateCommand, Packet, StateTransfer, decode
+from autopower.protocol import INBOX_MESSAGES, MigrateCommand, Packet, StateTransfer, batched, decode, unbatch
 from autopower.protocol.codec import message_kind
 from autopower.protocol.messages import CONTROL_MESSAGES
 from tests.unit.sim_team import SimTeam
@@ -33,37 +33,49 @@ class LossyMigrations:
         co = team.coordinator
 
         def node_send(sender, dest, key, payload, bus):
-            if not self._lose(key, payload, sender):
-                hub_send(sender, dest, key, payload, bus)
+            kept = self._lose(key, payload, sender)
+            if kept is not None:
+                hub_send(sender, dest, key, kept, bus)
 
         def base_send(node, key, payload):
-            if not self._lose(key, payload, co.scenario.basestation):
-                co.bus.publish(key, payload)
+            kept = self._lose(key, payload, co.scenario.basestation)
+            if kept is not None:
+                co.bus.publish(key, kept)
 
         team._send = node_send
         co.send_to = base_send
         self.keys = keys
 
-    def _lose(self, key: str, payload: bytes, sender: str) -> bool:
-        msg = self._migration_message(key, payload)
-        if msg is None or (sender, key, payload) in self.seen:
-            return False
-        self.seen.add((sender, key, payload))
-        if self.drop(msg):
-            self.dropped.append(type(msg).__name__)
-            return True
-        return False
+    def _lose(self, key: str, payload: bytes, sender: str) -> bytes | None:
+        """What of ``payload`` goes through (None: nothing). Each message is judged the first time
+        it is sent, alone or in a `Batch` of orders or answers: one to lose is taken out of the
+        put, the others go (a resend, alone or in another batch, goes through)."""
+        items = self._migration_messages(key, payload)
+        if not items:
+            return payload
+        kept = []
+        for raw, msg in items:
+            first = (sender, key, raw) not in self.seen
+            self.seen.add((sender, key, raw))
+            if first and self.drop(msg):
+                self.dropped.append(type(msg).__name__)
+            else:
+                kept.append(raw)
+        if len(kept) == len(items):
+            return payload
+        return batched(kept) if kept else None
 
-    def _migration_message(self, key: str, payload: bytes):
+    def _migration_messages(self, key: str, payload: bytes) -> list[tuple[bytes, object]]:
+        """[(bytes, message)] of the migration protocol's messages in a put (none: not one of them)."""
         if key == self.keys.inbox:
-            return decode(payload, INBOX_MESSAGES)
+            return unbatch(payload, INBOX_MESSAGES)
         if key.endswith("/control"):  # orders, or the plan again for a robot behind it (not lost here)
-            return decode(payload, CONTROL_MESSAGES) if message_kind(payload) != "plan" else None
+            return unbatch(payload, CONTROL_MESSAGES) if message_kind(payload) != "plan" else []
         if "/node/" in key and key.endswith("/data"):
             packet = decode(payload, Packet)
             if packet.purpose == "migration" and packet.hop == 1:
-                return decode(packet.body, StateTransfer)
-        return None
+                return [(payload, decode(packet.body, StateTransfer))]
+        return []
 
 
 @pytest.mark.parametrize("lost", ["MigrateOut", "StateTransfer", "Prepare", "Prepared", "StageReady"])
@@ -165,10 +177,10 @@ class LateCopies(LossyMigrations):
         super().__init__(team, lambda msg: False)
         self.copies: list[tuple[str, str, bytes]] = []  # (sender, key, payload)
 
-    def _lose(self, key: str, payload: bytes, sender: str) -> bool:
-        if self._migration_message(key, payload) is not None:
+    def _lose(self, key: str, payload: bytes, sender: str) -> bytes:
+        if self._migration_messages(key, payload):
             self.copies.append((sender, key, payload))
-        return False
+        return payload
 
     def release(self, rng: random.Random) -> None:
         copies, self.copies = self.copies, []
