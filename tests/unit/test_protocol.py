@@ -15,6 +15,7 @@ from autopower.protocol import (
     Ack,
     Assign,
     AutoCommand,
+    Batch,
     ChainCommand,
     ChainFrame,
     Consumed,
@@ -101,6 +102,7 @@ SAMPLES = [
     SubgroupDecision(round_id="r1-1", commit=True, reason="all accepted"),
     StageFailed(stage="Motion-1", generation=3, node="r2", what="raised", detail="run(seq 7): ValueError: bad frame",
                 running=False),
+    Batch(items=(b"\x94\xa2AP", b"")),  # its items are checked by `unbatch`, not by the codec
 ]
 
 
