@@ -1,5 +1,5 @@
 """What a node can prove at a clean stop: what its sources produced in each run, and which of a
-chain's frames it still held (docs/concepts/delivery.md, "At the end of a run").
+chain's frames it still held (docs/reference/recording.md: every output in one class).
 
 A chain's output that never reached its sink was either in flight when the team stopped or lost.
 "In flight" is a claim the replay must be able to check, so each node, as it stops, says which
