@@ -597,8 +597,8 @@ def _apart(outputs: dict[str, Any]) -> str:
 
 def _outputs(rec: Recording) -> dict[str, Any]:
     """Outputs per chain and run: produced, delivered (once, twice), and each one not delivered in
-    exactly one class, so that produced = distinct + unrecorded + held_dropped + died_with_process
-    + in_flight + abandoned + lost, for every run, tails included.
+    exactly one class, so that produced = distinct + unrecorded + held_dropped + in_flight
+    + died_with_process + abandoned + lost, for every run, tails included.
 
     *Produced* is what the chain's source says it produced in the run (``.../run/<run>/produced``,
     logged at a clean stop, `Recorder.record_stop`); without it (its robot killed for good, an older
@@ -608,10 +608,11 @@ def _outputs(rec: Recording) -> dict[str, Any]:
       restarted sink's journal, ``.../sink_journal``);
     - *held_dropped*: let go by a robot cut off from the sink, its hold full (``.../held_dropped``,
       logged by that robot as it dropped it): by design, within the budget;
-    - *died_with_process*: an output of a robot's own chain (source and sink there) in its crashed
-      process's memory only (``.../died_with_process``, `NodeRuntime._died_with_process`);
     - *in_flight*: a node still had it in hand when the team stopped (``.../in_flight``, logged by
       that node at its clean stop: custody, hold, a stage's gate or worker);
+    - *died_with_process*: an output of a robot's own chain (source and sink there) in its crashed
+      process's memory only (``.../died_with_process``, `NodeRuntime._died_with_process`), that
+      no node names in flight (a frame some node still held did not die);
     - *abandoned*: after the last output its run delivered, in a run its chain ended by starting a
       new one (a later run of the chain is recorded): what the old run still held upstream was
       obsolete from then on (docs/known-limits.md). A loss, counted apart so it is not hidden in
@@ -650,7 +651,9 @@ def _outputs(rec: Recording) -> dict[str, Any]:
         produced = max(produced_of.get((chain, run), 0), after_last + 1)
         missing = set(range(produced)) - distinct
         classes: dict[str, set[int]] = {}
-        for what in ("sink_journal", "held_dropped", "died_with_process", "in_flight"):
+        # in this order: a node that names a frame in hand at its stop shows it did not die with
+        # a crashed process, whatever the restarted one guessed from its window
+        for what in ("sink_journal", "held_dropped", "in_flight", "died_with_process"):
             named = missing & apart_of[what].get((chain, run), set())
             classes[_CLASS_OF[what]] = named
             missing -= named

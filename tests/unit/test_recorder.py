@@ -151,7 +151,7 @@ def test_every_produced_output_is_in_one_class_tails_included(tmp_path):
     """Issue 30: a sink counted gaps only below the highest seq it got, so a run's tail (and a whole
     old run's after its chain restarted) was counted nowhere. With what the source produced per
     run and what each node had in hand at its stop, every produced output is in exactly one class."""
-    from autopower.recording.recorder import held_dropped_path, in_flight_path, produced_path
+    from autopower.recording.recorder import died_with_process_path, held_dropped_path, in_flight_path, produced_path
 
     t = [0.0]
     rec = Recorder(Telemetry(tmp_path / "x.rrd", kind="live", properties={"scenario": "paper-fig7"}), "laptop",
@@ -168,6 +168,7 @@ def test_every_produced_output_is_in_one_class_tails_included(tmp_path):
     tel.scalar(held_dropped_path("Loc-1", 1), 1.0, 4)  # a full hold let 4 go
     for seq in (5, 6):  # a node had 5 and 6 in hand at its stop
         tel.scalar(in_flight_path("Loc-1", 1), 1.0, seq)
+    tel.scalar(died_with_process_path("Loc-1", 1), 1.0, 6)  # a restarted robot's window named 6: it did not die
     rec.close()
     s = summarize(load(tmp_path / "x.rrd"))
     loc = s["outputs"]["chains"]["Loc-1"]
