@@ -360,7 +360,7 @@ class Frames:
             return
         ledger = self.sinks.setdefault(chain.name, SinkLedger())
         latency_ms = (self.wall() - frame.t_unix) * 1000.0
-        redundant = ledger.redundant_total
+        redundant, duplicates = ledger.redundant_total, ledger.duplicates_total
         new = ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt)
         if new and self.sink_store is not None and self.mission is not None:
             # noted now, written out with the status that acknowledges it (`SinkStore.commit`)
@@ -370,14 +370,15 @@ class Frames:
             if ledger.redundant_total != redundant:
                 self.tally("redundant-output")  # a resent copy of what arrived late: dropped, as designed
                 return
-            if frame.run >= ledger.run:
+            if ledger.duplicates_total != duplicates or frame.run >= ledger.run:
                 # The operator gets each output once: any other second copy means it was produced
                 # (or carried) twice. Counted (the ledger's `duplicates_total` goes with the status
-                # into the recording and the replay's invariants), never handed on.
+                # into the recording and the replay's invariants), never handed on. This holds for
+                # the last runs before the current one too (`SinkLedger.older`).
                 self.count("duplicate-output", f"{chain.name} run {frame.run} seq {frame.seq}", logging.ERROR)
                 return
             # an older run's output, late or resent after its chain started over, is no error (its
-            # run is over at this sink, whose ledger no longer knows it): handed on, the recording shows it
+            # run is over at this sink): handed on once, the recording shows it
             self.count("stale-output", f"{chain.name} run {frame.run} seq {frame.seq}", logging.INFO)
         elif frame.attempt:
             self.tally("recovered-outputs")  # lost in flight, delivered by a resend

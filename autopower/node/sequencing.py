@@ -33,6 +33,7 @@ GATE_MAX_PENDING = 512  # inputs waiting behind a gap, at most (memory: camera f
 # in the ledger, and its report and journal would grow with the mission until the sink fell behind.
 # 4,096 outputs are 18 s of both camera chains at x55, far beyond custody's resends.
 SINK_MAX_AHEAD = 4096
+OLDER_RUNS_KEPT = 4  # a sink remembers what it got of this many runs before its current one
 
 
 def missing_between(low: int, high: int, have) -> tuple[tuple[int, int], ...]:
@@ -212,6 +213,9 @@ class SinkLedger:
     given_up_total: int = 0  # seqs whose gap stayed open behind SINK_MAX_AHEAD outputs (lost, unless they come late)
     late_total: int = 0  # given-up seqs that came after all (delivered, counted as received)
     _given_up: deque = field(default_factory=lambda: deque(maxlen=SINK_MAX_AHEAD))  # recent given-up seqs
+    # run -> (its contiguous prefix, the seqs above it) for the runs before this one: an older run's
+    # output that comes after its chain started over is handed on once, never twice
+    older: dict[int, tuple[int, set[int]]] = field(default_factory=dict)
 
     def record(self, run: int, seq: int, latency_ms: float | None = None, data: bytes = b"",
                attempt: int = 0, crc: int | None = None) -> bool:
@@ -222,9 +226,12 @@ class SinkLedger:
         twice, and must never happen.
         """
         if run < self.run:
-            self.stale += 1
-            return False
+            return self._record_older(run, seq, attempt)
         if run > self.run:
+            if self.run >= 0:
+                self.older[self.run] = (self.contiguous, self.above)
+                for gone in sorted(self.older)[:-OLDER_RUNS_KEPT]:
+                    del self.older[gone]
             self.run, self.contiguous, self.above = run, 0, set()
             self.received, self.duplicates, self.max_seq = 0, 0, -1
             self.latency_ms_max = 0.0
@@ -264,6 +271,29 @@ class SinkLedger:
             self.latency_ms_max = max(self.latency_ms_max, latency_ms)
         return True
 
+    def _record_older(self, run: int, seq: int, attempt: int) -> bool:
+        """An output of a run before this one (it came after its chain started over): False always
+        (it is not this run's), counted *stale* the first time (the caller hands it on) and as a
+        second copy after that (redundant with a resend involved, else a duplicate: not handed on)."""
+        kept = self.older.get(run)
+        if kept is None:  # older than the runs kept: handed on as stale, unchecked
+            self.stale += 1
+            return False
+        contiguous, above = kept
+        if seq < contiguous or seq in above:
+            if attempt > 0:
+                self.redundant_total += 1
+            else:
+                self.duplicates_total += 1
+            return False
+        above.add(seq)
+        while contiguous in above:
+            above.remove(contiguous)
+            contiguous += 1
+        self.older[run] = (contiguous, above)
+        self.stale += 1
+        return False
+
     def _advance(self) -> None:
         while self.contiguous in self.above:
             self.above.remove(self.contiguous)
@@ -283,7 +313,8 @@ class SinkLedger:
                 "waiting": {str(s): c for s, c in self._waiting.items()}, "received": self.received,
                 "max_seq": self.max_seq, "received_total": self.received_total,
                 "duplicates_total": self.duplicates_total, "redundant_total": self.redundant_total,
-                "digest": self.digest, "given_up_total": self.given_up_total, "late_total": self.late_total}
+                "digest": self.digest, "given_up_total": self.given_up_total, "late_total": self.late_total,
+                "older": {str(r): [c, sorted(a)] for r, (c, a) in self.older.items()}}
 
     @classmethod
     def from_state(cls, state: dict) -> "SinkLedger":
@@ -295,6 +326,9 @@ class SinkLedger:
                      redundant_total=int(state["redundant_total"]), digest=int(state["digest"]))
         ledger._waiting = {int(s): int(c) for s, c in state["waiting"].items()}
         ledger.given_up_total, ledger.late_total = int(state.get("given_up_total", 0)), int(state.get("late_total", 0))
+        ledger.older = {int(r): (int(c), {int(s) for s in a}) for r, (c, a) in state.get("older", {}).items()}
+        if any(r >= ledger.run for r in ledger.older):
+            raise ValueError("a sink state that remembers a run not older than its own")
         if set(ledger._waiting) != ledger.above or any(s < ledger.contiguous for s in ledger.above):
             raise ValueError("a sink state whose outputs above the prefix do not add up")
         return ledger

@@ -49,6 +49,31 @@ def test_sink_ledger():
     assert not ledger.record(0, 7) and ledger.stale == 1
 
 
+def test_an_older_runs_output_is_handed_on_once_never_twice():
+    """Random-fault seed 2 (2026-11-29): Loc-2's seqs 26-30 of run 0 reached the operator twice,
+    once from the laptop (which ran its waiting inputs as it was released) and once from the
+    stage's restart on r2, after the chain had started run 1. The sink kept no ledger for run 0,
+    and handed on every run-0 output as stale. It now remembers the last runs before its own."""
+    from autopower.node.sequencing import OLDER_RUNS_KEPT
+
+    ledger = SinkLedger()
+    for seq in (0, 1, 2):
+        ledger.record(0, seq)
+    ledger.record(1, 0)
+    dups = ledger.duplicates_total
+    assert not ledger.record(0, 4) and ledger.stale == 1  # first copy: the caller hands it on
+    assert not ledger.record(0, 4) and ledger.duplicates_total == dups + 1 and ledger.stale == 1
+    assert not ledger.record(0, 1) and ledger.duplicates_total == dups + 2  # delivered in run 0 already
+    assert not ledger.record(0, 3, attempt=1) and ledger.stale == 2  # a gap filled late: handed on
+    assert not ledger.record(0, 3, attempt=1) and ledger.redundant_total == 1  # its resend: redundant
+    restored = SinkLedger.from_state(ledger.state())  # a restarted sink remembers as much
+    assert not restored.record(0, 4) and restored.duplicates_total == ledger.duplicates_total + 1
+    for run in range(2, 3 + OLDER_RUNS_KEPT):
+        ledger.record(run, 0)
+    assert 0 not in ledger.older and len(ledger.older) == OLDER_RUNS_KEPT  # bounded
+    assert not ledger.record(0, 4) and ledger.stale == 3  # forgotten: handed on as before
+
+
 def test_a_sink_gives_up_a_gap_that_does_not_fill_and_stays_small():
     """A gap its producer gave up on never fills: the ledger stops waiting once SINK_MAX_AHEAD
     outputs sit above it (it kept every later output, and its report and journal grew with the
@@ -201,3 +226,31 @@ def test_disable_and_enable_start_a_new_run():
     assert ledger.run == 1 and ledger.contiguous == runner.seq and ledger.duplicates_total == 0
     runs = sorted({run for run, _, _ in outputs["Blob-2"]})
     assert runs == [0, 1] and sorted(seq for run, seq, _ in outputs["Blob-2"] if run == 1) == list(range(runner.seq))
+
+
+def test_a_sink_hands_an_older_runs_output_on_once():
+    """The node's side of the rule above: the first copy of a run-0 output after run 1 began
+    reaches `on_output` (stale, no error), a second one is a duplicate-output error, not handed on."""
+    from autopower.protocol import ChainFrame
+
+    team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, auto_replan=False))
+    team.join()
+    team.run_until(2.0)
+    r1 = team.nodes["r1"]
+    chain = r1.chains["Loc-1"]
+    got = []
+    r1.on_output = lambda c, run, seq, data: got.append((c, run, seq))
+
+    def frame(run: int, seq: int) -> ChainFrame:
+        return ChainFrame(chain="Loc-1", run=run, seq=seq, target=len(chain.stages), t_virtual=0.0,
+                          t_unix=r1.wall(), payload_len=1, payload=b"x")
+
+    r1.sinks.pop("Loc-1", None)
+    for seq in (0, 1):
+        r1._sink(chain, frame(0, seq))
+    r1._sink(chain, frame(1, 0))
+    r1._sink(chain, frame(0, 5))
+    r1._sink(chain, frame(0, 5))
+    assert got == [("Loc-1", 0, 0), ("Loc-1", 0, 1), ("Loc-1", 1, 0), ("Loc-1", 0, 5)]
+    assert r1.errors.get("duplicate-output") == 1 and r1.counters.get("stale-output", 0) + \
+        r1.errors.get("stale-output", 0) == 1
