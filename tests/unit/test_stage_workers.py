@@ -449,9 +449,10 @@ def test_an_input_a_full_worker_cannot_take_is_refused_before_its_gate_and_resen
         assert refused >= 1 and hosted.gate.next_seq + len(waiting) + refused == produced
         assert "stage-queue-full" not in laptop.errors  # a refusal is not a loss
         team.exchange_statuses()
-        # acknowledged: what has run, and what waits behind a gap in the gate (the gate's report);
-        # r2 still holds the rest, refused or in the worker
-        assert custody_of(r2, "Blob-2") == [s for s in range(hosted.runs, produced) if s not in waiting]
+        # freed: only what has run (`is_run`). What waits behind the refused frame in the gate is
+        # reported received but stays held, like the refused and those in the worker: waiting is not
+        # running, and a stage that migrated before running it must get it again
+        assert custody_of(r2, "Blob-2") == list(range(hosted.runs, produced)), sorted(waiting)
         drain_with_statuses(team, lambda: idle(team) and len(outputs.get("Blob-2", [])) == r2.sources["Blob-2"].seq)
         produced = r2.sources["Blob-2"].seq
         assert sorted(seq for seq, _ in outputs["Blob-2"]) == list(range(produced))
