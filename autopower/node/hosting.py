@@ -48,9 +48,6 @@ class Hosting:
             if len(self._early_control) < 1000:
                 self._early_control.append(payload)
             return
-        if len(orders) == 1:
-            self._on_order(orders[0][1])
-            return
         self._answer_batch = []
         try:
             for _, msg in orders:

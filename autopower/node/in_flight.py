@@ -55,7 +55,7 @@ def stage_frames(hosted: Mapping) -> list[ChainFrame]:
     buffer, or handed to its worker process with no result back yet."""
     out: list[ChainFrame] = []
     for h in hosted.values():
-        out.extend(f for f in h.gate.pending.values() if isinstance(f, ChainFrame))
+        out.extend(h.gate.pending.values())
         out.extend(h.buffer)
         worker = worker_of(h.component)
         if worker is not None:

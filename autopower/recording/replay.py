@@ -100,13 +100,13 @@ from autopower.recording.recorder import parse_event
 from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGES, MIGRATIONS, Recording, read_recording
 
 # one scalar (the seq) per output of a chain's run: delivered at its sink, or counted apart (`_outputs`)
-_APART = ("held_dropped", "died_with_process", "sink_journal")
+_APART = ("held_dropped", "died_with_process", "sink_journal", "in_flight")
 # what a seq not delivered is counted as, by the entity that names it (`_outputs`)
 _CLASS_OF = {"sink_journal": "unrecorded", "held_dropped": "held_dropped", "died_with_process": "died_with_process",
              "in_flight": "in_flight"}
 _CLASSES = ("unrecorded", "held_dropped", "died_with_process", "in_flight", "abandoned", "lost")
 LOST_SEQS_SHOWN = 20  # a chain lists its first lost seqs, so a user (or a failing test) can look them up
-_PER_OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/(?P<what>seq|produced|in_flight|" + "|".join(_APART) + ")$")
+_PER_OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/(?P<what>seq|produced|" + "|".join(_APART) + ")$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
 _SIM_MOVE = re.compile(r"^(?P<stage>\S+): (?P<src>\S+) → (?P<dst>\S+),")
 _EPS = 1e-6
@@ -619,7 +619,7 @@ def _outputs(rec: Recording) -> dict[str, Any]:
       the tail of a run;
     - *lost*: none of the above."""
     seqs_of: dict[tuple[str, int], list[int]] = {}
-    apart_of: dict[str, dict[tuple[str, int], set[int]]] = {what: {} for what in (*_APART, "in_flight")}
+    apart_of: dict[str, dict[tuple[str, int], set[int]]] = {what: {} for what in _APART}
     produced_of: dict[tuple[str, int], int] = {}
     for entity, (_, values) in rec.scalars.items():
         m = _PER_OUTPUT.match(entity)

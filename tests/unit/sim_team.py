@@ -195,6 +195,14 @@ class SimTeam:
             if on_tick is not None:
                 on_tick(self.clock.t)
 
+    def run_exchanging_statuses(self, t_end: float, every_s: float = 0.5) -> None:
+        """Advance to ``t_end`` with statuses (and acknowledgements) exchanged every ``every_s``."""
+        t = self.clock.t
+        while t < t_end:
+            t += every_s
+            self.run_until(t)
+            self.exchange_statuses()
+
     def energy(self, robot: str) -> float:
         self.nodes[robot].settle_relayed()  # what it forwarded on arrival since its last timer
         meter = self.nodes[robot].meter

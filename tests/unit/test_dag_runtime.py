@@ -67,16 +67,9 @@ def test_a_late_input_runs_its_step_without_it_then_is_dropped_once():
     team.run_until(10.0)
     team.cut_silently("r1", "laptop", one_way=True)
     wait = join_wait_s(2.0, 1.0)
-    t = 10.0
-    while t < 20.0:  # the cut lasts 10 s: several steps, each waiting `wait` for Loc-1
-        t += 0.5
-        team.run_until(t)
-        team.exchange_statuses()
+    team.run_exchanging_statuses(20.0)  # the cut lasts 10 s: several steps, each waiting `wait` for Loc-1
     team.heal_silently("r1", "laptop")
-    while t < 40.0:
-        t += 0.5
-        team.run_until(t)
-        team.exchange_statuses()
+    team.run_exchanging_statuses(40.0)
     got = maps(outputs)
     assert [m["step"] for m in got] == list(range(len(got)))  # no step skipped, none twice
     without = [m["step"] for m in got if m["missing"]]
@@ -100,11 +93,7 @@ def test_a_resent_input_within_the_bound_joins_its_step():
     team.join()
     team.run_until(10.0)
     team.cut_silently("r1", "laptop", one_way=True)
-    t = 10.0
-    while t < 30.0:
-        t += 0.5
-        team.run_until(t)
-        team.exchange_statuses()
+    team.run_exchanging_statuses(30.0)
     assert team.lost_in_cuts >= 8 and team.nodes["r1"].counters["resent-frames"] >= 8
     got = maps(outputs)
     assert [m["step"] for m in got] == list(range(len(got))) and all(not m["missing"] for m in got)
@@ -120,20 +109,13 @@ def test_a_lost_input_never_stalls_the_join():
     team.join()
     team.run_until(10.0)
     team.cut_silently("r1", "laptop", one_way=True)
-    t = 10.0
-    while t < 30.0:
-        t += 0.5
-        team.run_until(t)
-        team.exchange_statuses()
+    team.run_exchanging_statuses(30.0)
     cut_steps = [m["step"] for m in maps(outputs) if m["missing"]]
     assert cut_steps == list(range(6, 14))  # t = 12 .. 26 s; t = 28 s's is still within its bound
     assert all(m["missing"] == ["Loc-1"] for m in maps(outputs) if m["missing"])
     assert team.nodes["r1"].counters["resent-frames"] > 0  # custody tried
     team.leave("r1")
-    while t < 40.0:
-        t += 0.5
-        team.run_until(t)
-        team.exchange_statuses()
+    team.run_exchanging_statuses(40.0)
     got = maps(outputs)
     assert [m["step"] for m in got] == list(range(len(got))) and len(got) >= 19
     assert all(m["robots"]["r2"]["age_steps"] == 0 and m["robots"]["r3"]["age_steps"] == 0 for m in got)

@@ -28,11 +28,7 @@ def test_every_frame_produced_is_delivered_or_named_in_flight_by_some_node():
     team, delivered = _team()
     team.run_until(10.0)
     team.cut_silently("r1", "laptop", one_way=True)
-    t = 10.0
-    while t < 16.0:
-        t += 0.5
-        team.run_until(t)
-        team.exchange_statuses()
+    team.run_exchanging_statuses(16.0)
     r1 = team.nodes["r1"]
     runner = r1.sources["Loc-1"]
     assert r1.produced_by_run.counts()[("Loc-1", runner.run)] == runner.seq  # seqs 0 .. seq-1
