@@ -48,6 +48,12 @@ class Hosting:
             if len(self._early_control) < 1000:
                 self._early_control.append(payload)
             return
+        if len(orders) == 1:
+            # A lone order's answer goes out as soon as it is made, before the sends its handling
+            # goes on to make (frames, state, resends): a reliable put on a link that went silent
+            # blocks until the lease ends, and the answer must not wait behind it.
+            self._on_order(orders[0][1])
+            return
         self._answer_batch = []
         try:
             for _, msg in orders:
