@@ -40,6 +40,7 @@ from autopower.runtime.cadence import (
     StatusCadence,
 )
 from autopower.runtime.events import EventQueue, LivelinessChanged, OperatorRequest, Received, StopRequested, WorkDone
+from autopower.runtime.link_traffic import LinkTraffic, link_traffic_of
 from autopower.runtime.loop_watch import LoopWatch
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -105,6 +106,7 @@ class Agent:
         if config.subgroup:
             prepare_rounds()
         self.runtime: NodeRuntime | None = None
+        self.traffic: LinkTraffic | None = None
         self.resume: ResumeFile | None = None
         self.relayer: Relayer | None = None
         self.rounds: SubgroupRounds | None = None
@@ -133,6 +135,7 @@ class Agent:
         self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
         self.runtime.in_sight = self.relayer.direct.__contains__  # what it may forward on arrival
         self.resume = ResumeFile(self.config.resume_path, background=True) if self.config.resume_path else None
+        self.traffic: LinkTraffic | None = link_traffic_of(bus)  # the bytes on its links (`publish_status`)
         if self.resume is not None:
             self.runtime.held_store = HeldStore(self.resume.path.with_name(f"{robot}.held"), background=True)
             # a robot is the sink of its own chains (Loc-*): a restarted one must not take the
@@ -347,6 +350,8 @@ class Agent:
         rt = self.runtime
         window = self.config.status_window_s * rt.clock.speed if rt.started else 0.0
         rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
+        if self.traffic is not None and self.traffic.due(time.monotonic()):
+            rt.charge_control(self.traffic.poll(self._bus.links()))  # the control plane's bytes, metered
         if self._bus.repeated:  # statuses put again while the loop was held up
             rt.counters["status-repeats"] = self._bus.repeated
         if self.watch.tokens_lost:  # peers a token that went took out of sight (`PeerWatch` counts them)

@@ -58,6 +58,7 @@ from autopower.runtime.events import (
     StopRequested,
     WorkDone,
 )
+from autopower.runtime.link_traffic import LinkTraffic, link_traffic_of
 from autopower.runtime.loop_watch import LoopWatch
 from autopower.runtime.relay import Relayer
 from autopower.runtime.signatures import load_signing
@@ -135,6 +136,7 @@ class BaseStation:
         self._policy = policy
         self._host_factory = host_factory
         self.runtime: NodeRuntime | None = None
+        self.traffic: LinkTraffic | None = None  # the bytes on its links, read with its status
         self.coordinator: Coordinator | None = None
         self.stop_reason: str | None = None
         self.garbled = 0
@@ -186,6 +188,7 @@ class BaseStation:
                                        on_decision_answer=lambda: self.events.post(DecisionAnswered()))
         self.peer_views = PeerViews(scenario, self.keys)
         self.runtime.send_to = self.relayer.send
+        self.traffic = link_traffic_of(bus)
         self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
         for key in (keys.node_data(self.node), keys.node_control(self.node), keys.addressed_to(self.node), keys.plan,
                     keys.inbox, keys.status_all, keys.node_relay(self.node)):
@@ -543,6 +546,8 @@ class BaseStation:
                         rt.counters["status-repeats"] = self._bus.repeated
                     if self.events.superseded:  # robots' statuses (and acks) replaced by a newer one while queued
                         rt.counters["statuses-superseded"] = self.events.superseded
+                    if self.traffic is not None and self.traffic.due(time.monotonic()):
+                        rt.charge_control(self.traffic.poll(self._bus.links()))  # its links' bytes, metered
                     if rt.started:  # held back at rest: nothing new in it but what drifts with time
                         status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
                                                             self.events.depth(), self.events.bulk_wait_s()), now)

@@ -411,5 +411,9 @@ def story_from_replay(replay: dict) -> dict:
         "outputs": sum(c["outputs"] for c in replay["outputs"]["chains"].values()),
         "energy_model_error_pct": replay["energy_model_error_pct"],
         "recovery_j": replay["energy"]["overhead_j"].get("recovery"),
+        # the control plane: what each robot's links carried beyond its chain packets (measured), and
+        # the energy its radios paid for it, apart from the model
+        "control_j": replay["energy"]["overhead_j"].get("control"),
+        "control_bytes": {r: e.get("control_bytes") for r, e in replay["energy"]["per_robot"].items()},
         "first_dry": dry,
     }

@@ -4,13 +4,14 @@ CPU: ``cpu_idle``, ``cpu_busy`` (component runs of the plan); radios: ``"<medium
 ``":receive"``, ``":sleep"``. The model's steady state covers exactly these. Overheads it does
 not cover have parts of their own: ``"<medium>:migration"`` (a migrated stage's state on the
 radios), ``"<medium>:recovery"`` (frames resent after a silent loss) and ``cpu_recovery`` (a
-stage restarted without state recomputing inputs its lost predecessor may have run).
+stage restarted without state recomputing inputs its lost predecessor may have run), and ``"<medium>:control"`` (the bytes
+the node's links carried beyond the chain packets, measured: `autopower.node.control_meter`).
 """
 
 from __future__ import annotations
 
 CPU_IDLE, CPU_BUSY, CPU_RECOVERY = "cpu_idle", "cpu_busy", "cpu_recovery"
-OVERHEAD_KINDS = ("migration", "recovery")
+OVERHEAD_KINDS = ("migration", "recovery", "control")
 
 
 def radio_part(medium: str, what: str) -> str:
@@ -19,7 +20,7 @@ def radio_part(medium: str, what: str) -> str:
 
 
 def overhead_kind(part_name: str) -> str | None:
-    """``"migration"`` or ``"recovery"`` for a part outside the model's steady state, else None."""
+    """``"migration"``, ``"recovery"`` or ``"control"`` for a part outside the model's steady state, else None."""
     if part_name == CPU_RECOVERY:
         return "recovery"
     kind = part_name.rpartition(":")[2]

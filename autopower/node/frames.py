@@ -73,7 +73,9 @@ class Frames:
         packet = Packet(path=tuple(path), media=media, hop=1, charge_bytes=charge_bytes, weight=weight,
                         purpose=purpose, chain=chain, body=body)
         self.meter.charge_radio("send", media[0], charge_bytes, weight, self.now(), purpose, peer=path[1])
-        self.send_to(path[1], self.keys.node_data(path[1]), encode(packet))
+        wire = encode(packet)
+        self.control_plane.note_data(path[1], "send", len(wire))
+        self.send_to(path[1], self.keys.node_data(path[1]), wire)
         return True
 
     def on_data(self, payload: bytes) -> None:
@@ -90,13 +92,16 @@ class Frames:
         now = self.now()
         self.meter.charge_radio("receive", packet.media[packet.hop - 1], packet.charge_bytes, packet.weight, now,
                                 packet.purpose, peer=packet.path[packet.hop - 1])
+        self.control_plane.note_data(packet.path[packet.hop - 1], "receive", len(payload))
         if packet.hop < len(packet.path) - 1:  # a relay: pass it on, untouched
             nxt = Packet(path=packet.path, media=packet.media, hop=packet.hop + 1,
                          charge_bytes=packet.charge_bytes, weight=packet.weight, purpose=packet.purpose,
                          chain=packet.chain, body=packet.body)
             self.meter.charge_radio("send", packet.media[packet.hop], packet.charge_bytes, packet.weight, now,
                                     packet.purpose, peer=packet.path[packet.hop + 1])
-            self.send_to(packet.path[packet.hop + 1], self.keys.node_data(packet.path[packet.hop + 1]), encode(nxt))
+            wire = encode(nxt)
+            self.control_plane.note_data(packet.path[packet.hop + 1], "send", len(wire))
+            self.send_to(packet.path[packet.hop + 1], self.keys.node_data(packet.path[packet.hop + 1]), wire)
             self.tally("forwarded")
             return
         body = decode(packet.body, (ChainFrame, StateTransfer))

@@ -51,9 +51,9 @@ class Relaying:
         # Who this node reaches directly; the process sets it (its `Relayer.direct`). Nothing
         # is forwarded on arrival until it does: the loop's `send_to` decides.
         self.in_sight: Callable[[str], bool] = lambda node: False
-        # what was forwarded on arrival, for the loop to charge: (header, virtual time, slow put);
+        # what was forwarded on arrival, for the loop to charge: (header, virtual time, slow put, bytes);
         # appended and taken one at a time (atomic), bounded: when full, packets go to the loop
-        self._relayed: deque[tuple[PacketHeader, float, bool]] = deque()
+        self._relayed: deque[tuple[PacketHeader, float, bool, int]] = deque()  # (..., its size)
         self._congested_until: dict[str, float] = {}  # next node -> monotonic time
         self._data_keys: dict[str, str] = {}  # next node -> its data key
 
@@ -79,11 +79,12 @@ class Relaying:
         if key is None:  # (the key's name check is not free: once per node)
             key = self._data_keys[nxt] = self.keys.node_data(nxt)
         started = time.monotonic()
-        self.bus.publish(key, forwarded(payload, header))
+        out = forwarded(payload, header)
+        self.bus.publish(key, out)
         slow = time.monotonic() - started > CONGESTED_S
         if slow:
             self._congested_until[nxt] = time.monotonic() + CONGESTED_HOLD_S
-        self._relayed.append((header, self.now(), slow))
+        self._relayed.append((header, self.now(), slow, len(out)))
         return True
 
     def _known_media(self, media: tuple[str, ...]) -> bool:
@@ -100,10 +101,12 @@ class Relaying:
         charges: dict[tuple[str, str, int, float, str, str], tuple[int, float]] = {}
         n = slow = 0
         while self._relayed:
-            header, t, congested = self._relayed.popleft()
+            header, t, congested, size = self._relayed.popleft()
             n += 1
             slow += congested
             hop = header.hop
+            self.control_plane.note_data(header.path[hop - 1], "receive", size)
+            self.control_plane.note_data(header.path[hop + 1], "send", size)
             for direction, medium, peer in (("receive", header.media[hop - 1], header.path[hop - 1]),
                                             ("send", header.media[hop], header.path[hop + 1])):
                 key = (direction, medium, header.charge_bytes, header.weight, header.purpose, peer)

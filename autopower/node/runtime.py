@@ -41,6 +41,7 @@ from autopower.model.network import Link, Network, build_network
 from autopower.model.scenario import Scenario
 from autopower.model.variants import apply_variants, runtime_component
 from autopower.node.acknowledging import Acknowledging, AckWants
+from autopower.node.control_meter import ControlPlaneMeter
 from autopower.node.custody import Custody
 from autopower.node.frames import Frames
 from autopower.node.guard import ComponentHung, GuardedCalls
@@ -186,6 +187,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.model_override: dict[str, float] | None = None
         self.on_produced: Callable[[SourceRunner], None] | None = None
         self.custody = Custody(hold_budget_bytes=scenario.hold_budget_bytes)
+        self.control_plane = ControlPlaneMeter()  # the bytes on its links beyond the chain packets
         self.ack_wants = AckWants()  # which peers want the acknowledgements of which chains
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
         # state directory): an output delivered before a crash is not delivered again after it
@@ -800,6 +802,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         """Another node's status: the acknowledgements it wants (`Acknowledging`), and whether the
         base station runs the plan this node runs (else this node's statuses carry the mission)."""
         super().on_peer_status(status)
+        if status.zid and status.node != self.node and not self.control_plane.learn_zid(status.node, status.zid):
+            self.count("zid-refused", f"{status.node} announced session {status.zid[:40]!r}: not a Zenoh id, "
+                                      "or another node's")
         if status.node == self.scenario.basestation:
             # for three periods it announced: one that stops talking may have restarted, and one that
             # runs another plan (or none: `PeerViews.listening`) may be a second base station beside
@@ -871,7 +876,28 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             model_w=self.model_w,
             down=self.down,
             queue_wait_s=queue_wait_s,
+            zid=self.bus.zid,
+            link_bytes=self.control_plane.link_bytes(),
+            control_bytes=self.control_plane.control_bytes(),
         )
+
+    def charge_control(self, by_zid: dict[str, tuple[int, int]]) -> None:
+        """The bytes each peer session exchanged with this node's so far (`LinkTraffic.poll`): what
+        was not chain packets is charged to the radio of its link as the control plane's. Counted
+        from the mission's start: before it, the totals only set where counting starts."""
+        if self.meter is None:
+            self.control_plane.start_from(by_zid)
+            return
+        unpriced = self.control_plane.charge(by_zid, self.meter, self._medium_to, self.now())
+        if unpriced:
+            self.tally("control-bytes-unpriced", unpriced)
+
+    def _medium_to(self, peer: str) -> str | None:
+        """The radio this node talks to ``peer`` on: its plan's link, else its only radio."""
+        medium = self.network.medium_between(self.node, peer) if self.network is not None else None
+        if medium is None and self.meter is not None and len(self.meter.media) == 1:
+            (medium,) = self.meter.media
+        return medium
 
     # ---- dispatch -----------------------------------------------------------------------------------------
     def on_message(self, key: str, payload: bytes) -> bool:

@@ -447,6 +447,13 @@ class NodeStatus:
     # was made: whatever reached it longer ago than that has been taken in, so `consumed` speaks for the
     # frames sent before (t_unix - queue_wait_s) only (its producers' custody waits that much longer)
     queue_wait_s: float = 0.0
+    # this node's Zenoh session id: its peers attribute the bytes of their links to it by it
+    # (`node.control_meter`); "" where there is no Zenoh session (a simulation)
+    zid: str = ""
+    # (sent, received) bytes on every link since the mission started, as the kernel counted them, and
+    # of these the control plane's (everything but the chain packets): `runtime.link_traffic`
+    link_bytes: tuple[int, int] = (0, 0)
+    control_bytes: tuple[int, int] = (0, 0)
 
 
 @message
@@ -471,13 +478,14 @@ class PeerStatus:
     acks_wanted: tuple[str, ...] = ()  # see `NodeStatus.acks_wanted`
     down: tuple[float, float] | None = None  # see `NodeStatus.down`
     next_status_s: float = 0.0  # see `NodeStatus.next_status_s`
+    zid: str = ""  # see `NodeStatus.zid`
 
     @classmethod
     def of(cls, status: NodeStatus) -> "PeerStatus":
         return cls(node=status.node, t_unix=status.t_unix, plan_epoch=status.plan_epoch,
                    battery_j=status.battery_j, hosted=status.hosted, generations=status.generations,
                    links={n: True for n, up in status.links.items() if up}, acks_wanted=status.acks_wanted,
-                   down=status.down, next_status_s=status.next_status_s)
+                   down=status.down, next_status_s=status.next_status_s, zid=status.zid)
 
 
 # ---------------------------------------------------------------------------------------------

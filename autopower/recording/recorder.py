@@ -483,6 +483,11 @@ class Recorder:
                     overhead[kind] += float(joules)
             for kind, joules in overhead.items():
                 tel.scalar(f"robots/{node}/overhead_j/{kind}", t, joules)
+            # the bytes on its links since its process started (a restart counts from 0 again)
+            for what, pair in (("link", s.get("link_bytes")), ("control", s.get("control_bytes"))):
+                if pair:
+                    tel.scalar(f"robots/{node}/bytes/{what}_sent", t, float(pair[0]))
+                    tel.scalar(f"robots/{node}/bytes/{what}_received", t, float(pair[1]))
             # the model's power for what the robot runs, by its own account: a plan names a robot
             # it cannot reach, a subgroup's placement is not the base station's, a stage runs on
             # until its migration lands; the robot knows which plan it runs
@@ -686,6 +691,13 @@ class RecordingBus:
 
     def on_output(self, chain: str, run: int, seq: int, data: bytes) -> None:
         self.recorder.on_output(chain, run, seq, data)
+
+    @property
+    def zid(self) -> str:
+        return self.inner.zid
+
+    def links(self) -> dict[str, list[tuple[str, str]]]:
+        return self.inner.links()
 
     def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
         self.recorder.before_publish(key)

@@ -40,9 +40,12 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                   #  detected_* null, reconfigured_* from the detection)
                   # *_wall_s = *_mission_s / the run's speed-up; null in simulations (no wall clock)
       "energy": {"metered_j": float, "model_j": float | null, "error_pct": float | null,
-                 "overhead_j": {"migration": float, "recovery": float},
+                 "overhead_j": {"migration": float, "recovery": float, "control": float},
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
-                                       "overhead_j": {"migration": float, "recovery": float}}}},
+                                       "overhead_j": {"migration": float, "recovery": float,
+                                                      "control": float},
+                                       "control_bytes": {"sent": int, "received": int,  # the control
+                                                         "link_sent": int, "link_received": int}}}},  # plane's, of the links'
       "outputs": {"recorded": bool,
                   "produced": int,  # what the sources produced (per run: `produced`, else up to the last delivered)
                   "lost": int,  # produced, not delivered, and in no other class below
@@ -177,6 +180,14 @@ def _growth(rec: Recording, entity: str, t0: float, t1: float) -> float:
     return max(0.0, inside[-1] - inside[0]) if len(inside) >= 2 else 0.0
 
 
+def _counted(rec: Recording, entity: str, t0: float, t1: float) -> int:
+    """What a counter series counted over [t0, t1], across restarts of the process that counts (a
+    value below the one before: the counter started again from 0)."""
+    ts, vs = rec.series(entity)
+    inside = [v for t, v in zip(ts, vs, strict=False) if t0 - _EPS <= t <= t1 + _EPS and math.isfinite(v)]
+    return int(sum(b - a if b >= a else b for a, b in zip(inside, inside[1:], strict=False)))
+
+
 def _pct(measured: float, model: float | None) -> float | None:
     if model is None or abs(model) < 1e-12:
         return None
@@ -235,7 +246,10 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         overhead = {what: _growth(rec, f"robots/{r}/overhead_j/{what}", t0, t1) for what in OVERHEAD_KINDS}
         steady = used - sum(overhead.values())
         per_robot_energy[r] = {"metered_j": used, "model_j": model, "error_pct": _pct(steady, model),
-                               "overhead_j": overhead}
+                               "overhead_j": overhead,
+                               "control_bytes": {f"{what}_{way}".removeprefix("control_"):
+                                                 _counted(rec, f"robots/{r}/bytes/{what}_{way}", t0, t1)
+                                                 for what in ("control", "link") for way in ("sent", "received")}}
         for what, joules in overhead.items():
             overhead_sum[what] += joules
         metered_sum += used

@@ -58,6 +58,12 @@ def render_text(summary: dict[str, Any]) -> str:
               + ("—" if e["error_pct"] is None else f"{e['error_pct']:+.2f} %")
               + (" (metered minus overheads the model leaves out: "
                  + ", ".join(f"{k} {v:,.2f} J" for k, v in over.items()) + ")" if any(over.values()) else "")]
+    control = {r: v["control_bytes"] for r, v in (e.get("per_robot") or {}).items() if v.get("control_bytes")}
+    if any(c["sent"] or c["received"] for c in control.values()):
+        lines.append("control plane (measured on each robot's links: the bytes beyond its chain packets, of all "
+                     "the bytes on them; charged apart as `control`): " + "; ".join(
+                         f"{r} sent {c['sent']:,} of {c['link_sent']:,} B, received {c['received']:,} of "
+                         f"{c['link_received']:,} B" for r, c in sorted(control.items())))
     o = s["outputs"]
     if o["recorded"]:
         lines.append((f"outputs: {o['produced']} produced, " if o.get("produced") else "outputs: ")

@@ -70,6 +70,11 @@ class Bus(Protocol):
 
     def query(self, key: str, payload: bytes, timeout_s: float = 2.0) -> list[bytes]: ...
 
+    @property
+    def zid(self) -> str: ...
+
+    def links(self) -> dict[str, list[tuple[str, str]]]: ...
+
     def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None: ...
 
     @property
@@ -275,6 +280,30 @@ class ZenohBus:
         for reply in self.session.get(key, payload=payload, timeout=timeout_s):
             if reply.ok is not None:
                 out.append(reply.ok.payload.to_bytes())
+        return out
+
+    @property
+    def zid(self) -> str:
+        """This session's Zenoh id (what its peers' admin spaces call it)."""
+        return str(self.session.info.zid())
+
+    def links(self, timeout_s: float = 1.0) -> dict[str, list[tuple[str, str]]]:
+        """This session's links, by peer session: zid -> [(our endpoint, theirs)], from Zenoh's
+        admin space (local: nothing crosses the network). Empty once closed."""
+        if self._closed:
+            return {}
+        out: dict[str, list[tuple[str, str]]] = {}
+        for reply in self.session.get(f"@/{self.zid}/session/transport/unicast/*/link/*", timeout=timeout_s):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).split("/")
+            try:
+                link = json.loads(reply.ok.payload.to_bytes())
+                src, dst = link["src"], link["dst"]
+            except (ValueError, KeyError, TypeError):
+                continue
+            if len(parts) >= 7 and isinstance(src, str) and isinstance(dst, str):
+                out.setdefault(parts[5], []).append((src, dst))
         return out
 
     def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None:
@@ -535,6 +564,11 @@ class InMemoryBus:
 
     def __enter__(self) -> "InMemoryBus":
         return self
+
+    zid = ""  # no Zenoh session, and no links whose bytes the kernel counts (`links`)
+
+    def links(self) -> dict[str, list[tuple[str, str]]]:
+        return {}
 
     def __exit__(self, *exc) -> None:
         self.close()

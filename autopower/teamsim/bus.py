@@ -55,6 +55,11 @@ class SimBus:
         network.attach(node, self)
 
     # ---- the Bus protocol ------------------------------------------------------------------------
+    zid = ""  # a simulated network: no Zenoh session, no kernel counting its links' bytes
+
+    def links(self) -> dict[str, list[tuple[str, str]]]:
+        return {}
+
     def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
         if self.closed:
             return

@@ -79,6 +79,12 @@ def test_the_demo_story_in_the_testbed_with_mtls_and_access_control(tmp_path, cl
     assert out["lost_outputs"] == 0 and out["duplicated_outputs"] == 0
     assert out["live"]["lost_outputs"] == 0 and out["live"]["duplicated_outputs"] == 0
     assert out["first_depletion"] is not None
+    # the control plane measured on each robot's own TLS links in its namespace (the session's admin
+    # space names the links under default-deny access control), charged to its radio apart
+    assert out["control_j"] > 0
+    for robot, counted in out["control_bytes"].items():
+        assert 0 < counted["sent"] < counted["link_sent"] and 0 < counted["received"] < counted["link_received"], \
+            (robot, counted)
     assert out["wall_s"] < 90
 
 

@@ -147,6 +147,12 @@ def test_up_records_a_run_that_replay_reads(tmp_path):
     assert set(data["robots"]) == {"r1", "r2", "r3"}
     assert data["duplicated_outputs"] == 0 and data["lost_outputs"] == 0  # no faults: exactly once
     assert abs(data["energy_model_error_pct"]) <= 1.0
+    # each robot's links carried statuses, keep-alives and framing beyond its chain packets: measured
+    # on its sockets, charged to its radios as `control`, apart from the model's steady state
+    for robot, energy in data["energy"]["per_robot"].items():
+        sent = energy["control_bytes"]
+        assert 0 < sent["sent"] < sent["link_sent"] and 0 < sent["received"] < sent["link_received"], (robot, sent)
+        assert energy["overhead_j"]["control"] > 0, robot
 
 
 def test_up_runs_the_policy_it_is_given(tmp_path):

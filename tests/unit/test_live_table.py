@@ -59,3 +59,14 @@ def test_the_header_names_each_link_groups_medium_for_people():
                                                                       "robot-robot": "bluetooth"})
     assert "media —" in header(None)  # before the first plan
     assert "{" not in header({"laptop-robot": "gsm"})
+
+
+def test_each_robot_shows_what_its_control_plane_draws_and_the_bytes_it_sent_and_received():
+    snap = snapshot()
+    status = snap["robots"]["r2"]["status"]
+    status["power_w"] = {"cpu_idle": 1.0, "802.11a:control": 0.0021, "gsm:control": 0.0004, "802.11a:send": 0.5}
+    status["control_bytes"] = [74_448, 52_345]
+    out = io.StringIO()
+    Console(file=out, width=200, color_system=None).print(render(snap, 5.0))
+    row = next(line for line in out.getvalue().splitlines() if line.startswith("│ r2 "))
+    assert [c.strip() for c in row.split("│")[1:-1]][3] == "0.0025 (74/52)"

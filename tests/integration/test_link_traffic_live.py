@@ -1,0 +1,96 @@
+"""The bytes a node's session exchanges with a peer, as `LinkTraffic` reads them from the kernel,
+checked against an independent count: the link's proxy, which counts every byte it forwards in
+user space. The peer is another process with its own Zenoh session; the proxy's own sockets are
+in this process too, and must not be taken for the link."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from autopower.launch.linkproxy import LinkProxy
+from autopower.launch.localhost import endpoint
+from autopower.runtime.bus import ZenohBus, ZenohSettings
+from autopower.runtime.link_traffic import LinkTraffic, supported
+
+pytestmark = [pytest.mark.parallel,  # no wall-clock bound: it waits for what it counts, within 60 s
+              pytest.mark.skipif(not supported(), reason="reads TCP_INFO through /proc (Linux)")]
+
+MESSAGES, SIZE = 200, 5_000
+
+PEER = textwrap.dedent("""
+    import sys, time
+    from autopower.runtime.bus import ZenohBus, ZenohSettings
+    bus = ZenohBus(ZenohSettings(listen=("{endpoint}",)))
+    print(bus.zid, flush=True)
+    sys.stdin.readline()  # the other session is connected
+    for _ in range({n}):
+        bus.publish("lt/data", b"x" * {size})
+    sys.stdin.readline()  # counted: stop
+    bus.close()
+""")
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def wait_for(what, check, timeout_s: float = 60.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_the_bytes_to_a_peer_session_are_what_its_link_carried_and_nothing_else():
+    port = free_port()
+    code = PEER.format(n=MESSAGES, size=SIZE, endpoint=endpoint(port))
+    peer = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    got: list[int] = []
+    try:
+        peer_zid = peer.stdout.readline().strip()
+        with LinkProxy("r1-laptop", port) as proxy:
+            bus = ZenohBus(ZenohSettings(connect=(endpoint(proxy.port),)))
+            try:
+                bus.subscribe("lt/data", lambda key, payload: got.append(len(payload)))
+                links = wait_for("the link to the peer", lambda: bus.links().get(peer_zid))
+                assert all(src.startswith("tcp/127.0.0.1:") and dst == endpoint(proxy.port) for src, dst in links)
+                traffic = LinkTraffic()
+                peer.stdin.write("go\n")
+                peer.stdin.flush()
+                wait_for("every message", lambda: len(got) == MESSAGES)
+                time.sleep(0.5)  # what is in flight lands
+                by_peer = traffic.poll(bus.links())
+                forwarded = proxy.bytes_forwarded
+                sent, received = traffic.payload_by_peer[peer_zid]
+                # the proxy forwarded what the session sent and received, both ways; only keep-alives
+                # (a few dozen bytes each) may cross between the two readings
+                assert abs((sent + received) - forwarded) <= 512, (sent, received, forwarded)
+                assert received >= MESSAGES * SIZE and sent > 0
+                # what the radio carries adds the TCP/IP headers of every segment
+                assert by_peer[peer_zid][1] > received and by_peer[peer_zid][0] > sent
+                # the proxy's own two sockets live in this process too: never counted as the link
+                assert traffic.unattributed[0] + traffic.unattributed[1] >= forwarded
+                assert set(by_peer) == {peer_zid}
+                again = traffic.poll(bus.links())  # a reading adds only what crossed since the last
+                assert again[peer_zid][1] - by_peer[peer_zid][1] < 1_000
+            finally:
+                bus.close()
+    finally:
+        if peer.poll() is None:
+            peer.stdin.write("stop\n")
+            peer.stdin.flush()
+            try:
+                peer.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                peer.kill()
