@@ -264,14 +264,13 @@ class Agent:
                 if problem is not None:
                     rt.count("forged", problem)
                     return
-                if not relayed:
-                    self._heard(status.node, status.next_status_s)  # before the duplicate check: a relayed copy may come first
+                if not relayed:  # before the duplicate check: a relayed copy may come first
+                    self._heard(status.node, status.next_status_s)
+                    self.relayer.on_direct(status.node)  # (`Relayer.on_direct`: why every direct copy counts)
                 last = self.statuses.get(status.node)
                 if last is not None and status.t_unix <= last.t_unix:
                     return  # a duplicate (direct and relayed) or an older one overtaken
                 self.relayer.on_status(status)
-                if not relayed:
-                    self.relayer.on_direct(status.node)
                 self.statuses[status.node] = status
                 rt.on_peer_status(status)  # what it consumed: acks for our custody buffer
                 if rt.yield_to_newer(status):

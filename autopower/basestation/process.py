@@ -379,14 +379,14 @@ class BaseStation:
                     if problem is not None:
                         rt.count("forged", problem)
                         return
+                    if not relayed and status.node != self.node:  # before the duplicate check
+                        self.relayer.on_direct(status.node)  # (`Relayer.on_direct`: why every direct copy counts)
                     # a status can come twice (direct and relayed) and out of order: the newest counts
                     if status.t_unix <= self._status_t.get(status.node, 0.0):
                         return
                     self._status_t[status.node] = status.t_unix
                     if status.node != self.node:
                         self.relayer.on_status(status)
-                        if not relayed:
-                            self.relayer.on_direct(status.node)
                         rt.on_peer_status(status)  # what it consumed: acks for our retransmit buffer
                         if (status.node in co.robots and status.node not in co.present
                                 and self.relayer.reachable(status.node)):

@@ -184,7 +184,11 @@ def zenoh_settings(listen: tuple[str, ...], connect: tuple[str, ...], lease_ms: 
 
     if lease_ms < 100:
         raise AutoPowerError(f"--lease-ms {lease_ms} is too short; use >= 100 ms")
-    return ZenohSettings(listen=tuple(listen), connect=tuple(connect), lease_ms=lease_ms, keep_alive=keep_alive)
+    # No shared memory: Zenoh carries a message over 3 kB between two processes on one host through
+    # it (measured on 1.10: 25 bytes of a 230 kB frame crossed the TCP link), so a team on one host
+    # would not put its frames on the links its radios stand for (the proxies, the meter's counts)
+    return ZenohSettings(listen=tuple(listen), connect=tuple(connect), lease_ms=lease_ms, keep_alive=keep_alive,
+                         shared_memory=False)
 
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from autopower.model.parts import overhead_kind
+
 KEEP_UP_THRESHOLD_PCT = 1.0  # source periods missed beyond startup jitter: the speed-up is too fast
 
 
@@ -80,16 +82,24 @@ def supervisor_line(supervision: dict) -> str:
     return line
 
 
-def placed_power_w(status: dict, at_ready: dict | None) -> float | None:
+def overhead_j(status: dict) -> float:
+    """The energy a status's meter charged outside the model's steady state (migrations, recovery,
+    the control plane: `model.parts.overhead_kind`)."""
+    return sum(float(j) for part, j in (status.get("energy_j") or {}).items() if overhead_kind(part) is not None)
+
+
+def placed_power_w(status: dict, at_ready: dict | None, *, overheads: bool = False) -> float | None:
     """A robot's metered mean power since the team was ready (every stage where the plan wants it,
     the configuration the model predicts a power for), from two of its own statuses: battery and
-    virtual time each from the same status. None without a usable status at ready."""
+    virtual time each from the same status, less what it charged outside the model's steady state
+    (with ``overheads``: that part alone). None without a usable status at ready."""
     before = (at_ready or {}).get("status") or {}
     b0, t0 = before.get("battery_j"), before.get("t_virtual")
     b1, t1 = status.get("battery_j"), status.get("t_virtual")
     if None in (b0, t0, b1, t1) or t1 - t0 <= 0:
         return None
-    return (b0 - b1) / (t1 - t0)
+    over = overhead_j(status) - overhead_j(before)
+    return (over if overheads else (b0 - b1) - over) / (t1 - t0)
 
 
 def _usable(robot: dict | None, name: str, at_ready: dict) -> bool:
@@ -130,7 +140,8 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
     """The JSON summary of a run: placement, batteries vs the model, sources, sinks, errors.
 
     ``at_ready``: the snapshot taken when the team was first ready. ``power_error`` compares the
-    power metered since then with the model's for the plan (``placed_power_w``); the start-up before
+    power metered since then, less the overheads the model leaves out (``placed_overhead_w``, as
+    the replay does), with the model's for the plan (``placed_power_w``); the start-up before
     it (no stage placed yet: seconds of virtual time, more on a loaded machine) is in
     ``mean_power_w``, the whole run's mean, but not in the comparison."""
     robots = {}
@@ -146,6 +157,9 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
             "present": info.get("present"), "departed": info.get("departed"),
             "initial_j": initial, "battery_j": battery, "consumed_j": consumed, "t_virtual": t,
             "mean_power_w": measured, "placed_power_w": placed, "predicted_w": predicted,
+            # beside the comparison: what it charged over the same time outside the model's steady
+            # state (migrations, recovery, its control plane), in W
+            "placed_overhead_w": placed_power_w(st, ((at_ready or {}).get("robots") or {}).get(name), overheads=True),
             "power_error": (compared / predicted - 1) if compared and predicted else None,
             "window_power_w": sum(st.get("power_w", {}).values()) if st else None,
             "cpu_utilisation": st.get("cpu_utilisation"), "hosted": st.get("hosted", {}),

@@ -66,6 +66,11 @@ class Relayer:
 
         Undoes a shun: the relayed message that caused it may have been sent before the link came
         back and arrived after (it went the long way), which must not cut us off from a node we see.
+        Every direct copy counts, the duplicate of a relayed one too: a node that shunned us relays
+        its statuses to us beside the direct copy, we shun it back on the relayed one, and, if the
+        direct copy were dropped as a duplicate, each would send the other everything through a
+        third node for good (seen in a 20-robot testbed: one robot's camera frames to the base
+        station all crossed a neighbour's radio, 43 MB in 9 s).
         """
         if node in self.shunned:
             self.shunned.discard(node)

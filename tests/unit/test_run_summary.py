@@ -76,3 +76,18 @@ def test_a_status_sent_before_the_robot_ran_the_ready_plan_does_not_start_its_co
     assert at_ready_complete(at_ready)
     r1 = run_summary(end, team="t", speed=1, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)["robots"]["r1"]
     assert r1["placed_power_w"] == pytest.approx(2.0) and r1["power_error"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_overheads_the_model_leaves_out_are_shown_beside_the_comparison_not_in_it():
+    """As the replay's check: the control plane's bytes (and migrations, recovery) are charged to the
+    battery, reported as `placed_overhead_w`, and left out of `power_error`."""
+    def snap(t: float, battery: float, control_j: float) -> dict:
+        status = {"initial_j": 1000.0, "battery_j": battery, "t_virtual": t,
+                  "energy_j": {"cpu_idle": 1000.0 - battery - control_j, "802.11a:control": control_j}}
+        return {"robots": {"r1": {"present": True, "predicted_w": 2.0, "status": status}}}
+
+    at_ready = snap(10.0, 1000.0 - 10 * 2.0 - 0.5, 0.5)
+    end = snap(110.0, 1000.0 - 110 * 2.0 - 0.5 - 100 * 0.05, 0.5 + 100 * 0.05)  # 50 mW of control
+    r1 = run_summary(end, team="t", speed=10, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)["robots"]["r1"]
+    assert r1["placed_overhead_w"] == pytest.approx(0.05)
+    assert r1["placed_power_w"] == pytest.approx(2.0) and r1["power_error"] == pytest.approx(0.0, abs=1e-12)
