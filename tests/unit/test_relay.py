@@ -107,3 +107,26 @@ def test_a_status_lists_the_nodes_a_robot_has_links_with_and_has_seen_not_the_wh
         rt.on_liveliness(f"stranger{i}", True)
         rt.on_liveliness(f"stranger{i}", False)
     assert set(rt.status(1.0).links) == {"laptop", "r2", "r3", "r11", "r12", "r7"}
+
+
+def test_a_relayed_message_from_a_node_that_sees_us_does_not_shun_it_and_a_shun_ends_when_it_sees_us():
+    """Two nodes must not shun each other for good: a node relays to us also when it shunned us
+    (on a relayed message of ours), and then its status still lists us. Only a node whose status
+    does not list us is cut from us; its next status that lists us ends the shun."""
+    hub = InMemoryHub(record=True)
+    r20 = make(hub, "r20", ["r1", "laptop"])
+    relayed = encode(Relayed(path=("laptop", "r1", "r20"), hop=2, key=KEYS.plan, payload=b"plan"))
+    # at start-up the laptop relayed before it saw our token: its status does not list us yet
+    r20.on_status(status("laptop", ["r1"]))
+    assert r20.on_relay(relayed) == (KEYS.plan, b"plan")
+    assert "laptop" in r20.shunned and "laptop" not in r20.direct
+    r20.on_status(status("laptop", ["r1", "r20"]))  # now it sees us
+    assert "laptop" in r20.direct and "laptop" not in r20.shunned
+    # the laptop, meanwhile, got our statuses relayed (we had shunned it) while we listed it
+    laptop = make(hub, "laptop", ["r1", "r20"])
+    laptop.on_status(status("r20", ["r1", "laptop"]))
+    ours = encode(Relayed(path=("r20", "r1", "laptop"), hop=2, key=KEYS.status("r20"), payload=b"s"))
+    assert laptop.on_relay(ours) == (KEYS.status("r20"), b"s")
+    assert "r20" in laptop.direct and "r20" not in laptop.shunned  # not taken for a cut
+    assert laptop.send("r20", KEYS.node_control("r20"), b"order")
+    assert hub.published[-1][0] == KEYS.node_control("r20")  # directly
