@@ -1,0 +1,147 @@
+"""The control plane's bytes per robot: what a robot's links carry beyond its chain packets.
+
+    .venv/bin/python bench/bench_control_plane.py [--seconds S] [--lease-ms MS] [SCENARIO]
+
+Not a timed test. A team under `up --speed 1` (the default mission in real time, link proxies, the
+default lease) runs S wall seconds with its chains, then S more at rest (every chain disabled). Each robot's status says
+what its links carried since the mission started (`link_bytes`, read from its sockets: TCP payload
+plus each segment's IP and TCP headers) and of that the control plane's (`control_bytes`: all but
+its chain packets); the figures are their growth over each window, per wall second, read from two
+statuses (`autopower status --json`). Baseline, same run: the bytes of the robot's chain packets
+(link minus control) while the chains run. The share of a radio's time is the model's airtime for
+those bytes on that medium (`model.energy.airtime_s`, the scenario's radios): what the control
+plane costs each radio. At ×1 on purpose: the timers (lease, keep-alives, statuses) run on wall
+time and the chains' framing on mission time, so only at ×1 do both add up as on a robot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import results
+
+from autopower.model.energy import airtime_s
+from autopower.model.loading import load_scenario
+
+AUTOPOWER = str(Path(sys.executable).parent / "autopower")
+
+
+def snapshot(name: str, env: dict) -> dict:
+    out = subprocess.run([AUTOPOWER, "status", "--team", name, "--json", "--timeout", "3"], env=env,
+                         capture_output=True, text=True, timeout=30)
+    try:
+        return json.loads(out.stdout) if out.returncode == 0 else {}
+    except ValueError:
+        return {}
+
+
+def counts(snap: dict) -> dict[str, tuple[float, int, int, int, int]]:
+    """robot -> (its status's wall time, link sent, link received, control sent, control received)."""
+    out = {}
+    for robot, info in (snap.get("robots") or {}).items():
+        st = info.get("status") or {}
+        if st.get("link_bytes") is not None:
+            out[robot] = (st["t_unix"], *st["link_bytes"], *st["control_bytes"])
+    return out
+
+
+def rates(first: dict, second: dict) -> dict[str, dict[str, float]]:
+    """Per robot, bytes per wall second over the window between two readings."""
+    out = {}
+    for robot, (t0, *a) in first.items():
+        if robot not in second or second[robot][0] <= t0:
+            continue
+        t1, *b = second[robot]
+        dt = t1 - t0
+        link_out, link_in, ctl_out, ctl_in = ((y - x) / dt for x, y in zip(a, b, strict=True))
+        out[robot] = {"control_out": ctl_out, "control_in": ctl_in, "chain_out": link_out - ctl_out,
+                      "chain_in": link_in - ctl_in, "window_s": dt}
+    return out
+
+
+def measure(scenario: str, seconds: float, lease_ms: int | None) -> dict[str, dict]:
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {**os.environ, "AUTOPOWER_STATE_DIR": str(Path(tmp) / "state"), "RERUN_ANALYTICS": "0"}
+        name = f"ctl{os.getpid()}"
+        extra = ("--lease-ms", str(lease_ms)) if lease_ms else ()
+        up = subprocess.Popen([AUTOPOWER, "up", scenario, "--speed", "1", "--team", name, "--json", "--log-dir",
+                               str(Path(tmp) / "logs"), *extra], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, env=env, cwd=tmp)
+        try:
+            deadline = time.monotonic() + 90
+            while not (snap := snapshot(name, env)).get("ready"):
+                if time.monotonic() > deadline or up.poll() is not None:
+                    raise SystemExit("the team did not get ready")
+                time.sleep(1.0)
+            time.sleep(4.0)  # past the start: placement orders and the first plan are not the steady state
+            first = counts(snapshot(name, env))
+            time.sleep(seconds)
+            running = rates(first, counts(snap := snapshot(name, env)))
+            for chain in snap.get("running") or []:
+                subprocess.run([AUTOPOWER, "chain", "disable", chain, "--team", name], env=env,
+                               capture_output=True, timeout=30)
+            time.sleep(6.0)  # the last frames drain, the statuses settle into their rest cadence
+            first = counts(snapshot(name, env))
+            time.sleep(seconds)
+            rest = rates(first, counts(snapshot(name, env)))
+            return {"running": running, "rest": rest}
+        finally:
+            up.send_signal(signal.SIGTERM)
+            try:
+                up.wait(30)
+            except subprocess.TimeoutExpired:
+                up.kill()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("scenario", nargs="?", default="paper-fig7")
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--lease-ms", type=int, default=None, help="the Zenoh lease (default: up's)")
+    results.add_json_out(parser)
+    args = parser.parse_args()
+    radios = load_scenario(args.scenario).radios
+    got = measure(args.scenario, args.seconds, args.lease_ms)
+    figures = []
+    for phase, label in (("running", "default mission"), ("rest", "at rest (every chain disabled)")):
+        per = got[phase]
+        if not per:
+            raise SystemExit(f"no robot reported its link bytes ({phase})")
+        ctl = statistics.mean(r["control_out"] + r["control_in"] for r in per.values())
+        chain = statistics.mean(r["chain_out"] + r["chain_in"] for r in per.values())
+        print(f"{label}: per robot, B/s wall (sent + received)")
+        for robot, r in sorted(per.items()):
+            print(f"  {robot}: control {r['control_out']:8,.0f} out {r['control_in']:8,.0f} in; "
+                  f"chain packets {r['chain_out']:10,.0f} out {r['chain_in']:10,.0f} in  "
+                  f"(over {r['window_s']:.1f} s)")
+        figures.append(results.figure(f"control plane, {label}", ctl, "B/s per robot", "chain packets (default mission)",
+                                      statistics.mean(r["chain_out"] + r["chain_in"] for r in got["running"].values()),
+                                      group="bytes per robot per wall second",
+                                      note="the same robots' chain packets while the default mission ran, this run"))
+        if phase == "running":
+            print(f"  mean per robot: control {ctl:,.0f} B/s, chain packets {chain:,.0f} B/s")
+        sent = statistics.mean(r["control_out"] for r in per.values())
+        for medium, radio in sorted(radios.items()):
+            share = airtime_s(sent, radio) * 100.0  # seconds of airtime per second sent
+            figures.append(results.figure(f"{medium}: a robot's control sends, {label}", share, "% of the radio's time",
+                                          "2 % (issue 32's ceiling for GSM)", 2.0,
+                                          group="the control plane's share of each radio (sending, at x1)",
+                                          note="the model's airtime for the bytes a robot sent beyond its chain "
+                                               "packets per wall second"))
+            print(f"  {medium:10s} {share:7.3f} % of its time sending control ({label})")
+    results.write_result("control_plane", {"scenario": args.scenario, "seconds": args.seconds,
+                                           "lease_ms": args.lease_ms}, figures, args.json_out,
+                         what=__doc__.splitlines()[0], extra=got)
+
+
+if __name__ == "__main__":
+    main()
