@@ -23,12 +23,19 @@ pytestmark = [pytest.mark.parallel,  # no wall-clock bound: it waits for what it
 
 MESSAGES, SIZE = 200, 5_000
 
+# The peer probes until told to go: Zenoh drops a put at its source while the subscriber's
+# declaration has not reached it (the link being up does not mean it has), so the messages counted
+# go only once a probe has arrived.
 PEER = textwrap.dedent("""
-    import sys, time
+    import sys, threading, time
     from autopower.runtime.bus import ZenohBus, ZenohSettings
     bus = ZenohBus(ZenohSettings(listen=("{endpoint}",), shared_memory=False))
     print(bus.zid, flush=True)
-    sys.stdin.readline()  # the other session is connected
+    go = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.readline(), go.set()), daemon=True).start()
+    while not go.is_set():
+        bus.publish("lt/probe", b"?")
+        time.sleep(0.1)
     for _ in range({n}):
         bus.publish("lt/data", b"x" * {size})
     sys.stdin.readline()  # counted: stop
@@ -64,9 +71,12 @@ def test_the_bytes_to_a_peer_session_are_what_its_link_carried_and_nothing_else(
             # through it between two processes on one host, and the link would see 25 bytes of it
             bus = ZenohBus(ZenohSettings(connect=(endpoint(proxy.port),), shared_memory=False))
             try:
+                probes: list[int] = []
                 bus.subscribe("lt/data", lambda key, payload: got.append(len(payload)))
+                bus.subscribe("lt/probe", lambda key, payload: probes.append(len(payload)))
                 links = wait_for("the link to the peer", lambda: bus.links().get(peer_zid))
                 assert all(src.startswith("tcp/127.0.0.1:") and dst == endpoint(proxy.port) for src, dst in links)
+                wait_for("the peer to reach our subscription", lambda: probes)
                 traffic = LinkTraffic()
                 peer.stdin.write("go\n")
                 peer.stdin.flush()
