@@ -17,7 +17,6 @@ time and the chains' framing on mission time, so only at ×1 do both add up as o
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import statistics
@@ -28,20 +27,12 @@ import time
 from pathlib import Path
 
 import results
+from bench_idle import team_status, wait_ready
 
 from autopower.model.energy import airtime_s
 from autopower.model.loading import load_scenario
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
-
-
-def snapshot(name: str, env: dict) -> dict:
-    out = subprocess.run([AUTOPOWER, "status", "--team", name, "--json", "--timeout", "3"], env=env,
-                         capture_output=True, text=True, timeout=30)
-    try:
-        return json.loads(out.stdout) if out.returncode == 0 else {}
-    except ValueError:
-        return {}
 
 
 def counts(snap: dict) -> dict[str, tuple[float, int, int, int, int]]:
@@ -77,22 +68,18 @@ def measure(scenario: str, seconds: float, lease_ms: int | None) -> dict[str, di
                                str(Path(tmp) / "logs"), *extra], stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, env=env, cwd=tmp)
         try:
-            deadline = time.monotonic() + 90
-            while not (snap := snapshot(name, env)).get("ready"):
-                if time.monotonic() > deadline or up.poll() is not None:
-                    raise SystemExit("the team did not get ready")
-                time.sleep(1.0)
+            wait_ready(up, name, env)
             time.sleep(4.0)  # past the start: placement orders and the first plan are not the steady state
-            first = counts(snapshot(name, env))
+            first = counts(team_status(name, env))
             time.sleep(seconds)
-            running = rates(first, counts(snap := snapshot(name, env)))
+            running = rates(first, counts(snap := team_status(name, env)))
             for chain in snap.get("running") or []:
                 subprocess.run([AUTOPOWER, "chain", "disable", chain, "--team", name], env=env,
                                capture_output=True, timeout=30)
             time.sleep(6.0)  # the last frames drain, the statuses settle into their rest cadence
-            first = counts(snapshot(name, env))
+            first = counts(team_status(name, env))
             time.sleep(seconds)
-            rest = rates(first, counts(snapshot(name, env)))
+            rest = rates(first, counts(team_status(name, env)))
             return {"running": running, "rest": rest}
         finally:
             up.send_signal(signal.SIGTERM)

@@ -117,6 +117,26 @@ def waiting_basestation(command: str, seconds: float, src: str | None = None) ->
         proc.wait(15)
 
 
+def team_status(name: str, env: dict) -> dict:
+    """`autopower status --team NAME --json`'s snapshot ({} when it did not answer)."""
+    out = subprocess.run([AUTOPOWER, "status", "--team", name, "--json", "--timeout", "3"], env=env,
+                         capture_output=True, text=True, timeout=30)
+    try:
+        return json.loads(out.stdout) if out.returncode == 0 else {}
+    except ValueError:
+        return {}
+
+
+def wait_ready(up: subprocess.Popen, name: str, env: dict, timeout_s: float = 90.0) -> dict:
+    """The first snapshot of team NAME that says it is ready (exits if `up` ends or it takes too long)."""
+    deadline = time.monotonic() + timeout_s
+    while not (snap := team_status(name, env)).get("ready"):
+        if time.monotonic() > deadline or up.poll() is not None:
+            raise SystemExit("the team did not get ready")
+        time.sleep(1.0)
+    return snap
+
+
 def team(seconds: float, src: str | None = None, extra: tuple[str, ...] = (), running: bool = True) -> dict:
     """{"running": per_process, "rest": per_process} for a whole team under `up` (the default mission)."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -126,19 +146,7 @@ def team(seconds: float, src: str | None = None, extra: tuple[str, ...] = (), ru
                                *extra], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
                               cwd=tmp)  # `python -m` puts the working directory first on the children's path
         try:
-            def status() -> dict:
-                out = subprocess.run([AUTOPOWER, "status", "--team", name, "--json", "--timeout", "3"], env=env,
-                                     capture_output=True, text=True, timeout=30)
-                try:
-                    return json.loads(out.stdout) if out.returncode == 0 else {}
-                except ValueError:
-                    return {}
-
-            deadline = time.monotonic() + 90
-            while not (snap := status()).get("ready"):
-                if time.monotonic() > deadline or up.poll() is not None:
-                    raise SystemExit("the team did not get ready")
-                time.sleep(1.0)
+            snap = wait_ready(up, name, env)
             time.sleep(2.0)
             children = {}
             for pid in tree(up.pid)[1:]:

@@ -17,6 +17,7 @@ from autopower.launch.linkproxy import LinkProxy
 from autopower.launch.localhost import endpoint
 from autopower.runtime.bus import ZenohBus, ZenohSettings
 from autopower.runtime.link_traffic import LinkTraffic, supported
+from tests.e2e.test_up import wait_until
 
 pytestmark = [pytest.mark.parallel,  # no wall-clock bound: it waits for what it counts, within 60 s
               pytest.mark.skipif(not supported(), reason="reads TCP_INFO through /proc (Linux)")]
@@ -49,16 +50,6 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def wait_for(what, check, timeout_s: float = 60.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def test_the_bytes_to_a_peer_session_are_what_its_link_carried_and_nothing_else():
     port = free_port()
     code = PEER.format(n=MESSAGES, size=SIZE, endpoint=endpoint(port))
@@ -74,13 +65,13 @@ def test_the_bytes_to_a_peer_session_are_what_its_link_carried_and_nothing_else(
                 probes: list[int] = []
                 bus.subscribe("lt/data", lambda key, payload: got.append(len(payload)))
                 bus.subscribe("lt/probe", lambda key, payload: probes.append(len(payload)))
-                links = wait_for("the link to the peer", lambda: bus.links().get(peer_zid))
+                links = wait_until(lambda: bus.links().get(peer_zid), 60.0, "the link to the peer")
                 assert all(src.startswith("tcp/127.0.0.1:") and dst == endpoint(proxy.port) for src, dst in links)
-                wait_for("the peer to reach our subscription", lambda: probes)
+                wait_until(lambda: probes, 60.0, "the peer to reach our subscription")
                 traffic = LinkTraffic()
                 peer.stdin.write("go\n")
                 peer.stdin.flush()
-                wait_for("every message", lambda: len(got) == MESSAGES)
+                wait_until(lambda: len(got) == MESSAGES, 60.0, "every message")
                 time.sleep(0.5)  # what is in flight lands
                 by_peer = traffic.poll(bus.links())
                 forwarded = proxy.bytes_forwarded
