@@ -44,6 +44,9 @@ Address = tuple[str, int]  # (IP in its canonical text form, port)
 # wall seconds between two readings: a node reads its links with its status, at most this often
 # (each reading asks Zenoh's admin space and reads every socket: about a millisecond per dozen links)
 POLL_EVERY_S = 2.0
+# a socket missing from a reading (its descriptor listed as another between listing and reading, a
+# short read of /proc) keeps its last totals this many readings: seen again, it adds only its growth
+KEEP_UNSEEN_READINGS = 5
 
 
 @dataclass(frozen=True)
@@ -159,7 +162,8 @@ class LinkTraffic:
     def __init__(self, every_s: float = POLL_EVERY_S) -> None:
         self.every_s = every_s
         self._next = 0.0  # monotonic time of the next reading (`due`)
-        self._last: dict[str, SocketTotals] = {}  # socket inode -> totals at the last poll
+        # socket inode -> (its totals when last read, readings since): a socket read again adds its growth
+        self._last: dict[str, tuple[SocketTotals, int]] = {}
         self.by_peer: dict[str, tuple[int, int]] = {}  # peer zid -> (sent, received) since the start
         self.payload_by_peer: dict[str, tuple[int, int]] = {}  # of these, TCP's payload (headers left out)
         self.unattributed = (0, 0)  # TCP bytes on connections no Zenoh link names (not ours to price)
@@ -186,10 +190,10 @@ class LinkTraffic:
                 ours, theirs = parse_endpoint(src), parse_endpoint(dst)
                 if ours is not None and theirs is not None:
                     peer_of[(ours, theirs)] = zid
-        seen: dict[str, SocketTotals] = {}
+        seen: dict[str, tuple[SocketTotals, int]] = {}
         for pair, (inode, totals) in connections.items():
-            seen[inode] = totals
-            before = self._last.get(inode, SocketTotals(0, 0))
+            seen[inode] = (totals, 0)
+            before = self._last.get(inode, (SocketTotals(0, 0), 0))[0]
             grew = (max(0, totals.sent - before.sent), max(0, totals.received - before.received))
             zid = peer_of.get(pair)
             if zid is None:
@@ -199,6 +203,9 @@ class LinkTraffic:
             self.payload_by_peer[zid] = _plus(self.payload_by_peer.get(zid, (0, 0)),
                                               (max(0, totals.payload_sent - before.payload_sent),
                                                max(0, totals.payload_received - before.payload_received)))
+        for inode, (totals, missed) in self._last.items():
+            if inode not in seen and missed + 1 < KEEP_UNSEEN_READINGS:
+                seen[inode] = (totals, missed + 1)
         self._last = seen
         return dict(self.by_peer)
 

@@ -13,6 +13,7 @@ from autopower.model.energy import airtime_s
 from autopower.model.loading import load_scenario
 from autopower.node.control_meter import ControlPlaneMeter
 from autopower.runtime.link_traffic import (
+    KEEP_UNSEEN_READINGS,
     LinkTraffic,
     SocketTotals,
     canonical,
@@ -54,6 +55,17 @@ def test_each_connection_adds_what_it_carried_since_the_last_reading_and_a_recon
     assert traffic.poll(LINK, {PAIR: ("socket:[2]", SocketTotals(300, 100)), other: ("socket:[3]", SocketTotals(9, 9))}) \
         == {ZID_LAPTOP: (1904, 552)}
     assert traffic.unattributed == (9, 9)
+
+
+def test_a_socket_missing_from_one_reading_adds_only_its_growth_when_read_again():
+    traffic = LinkTraffic()
+    traffic.poll(LINK, {PAIR: ("socket:[1]", SocketTotals(1000, 400))})
+    traffic.poll(LINK, {})  # not listed this time (its descriptor changed between listing and reading)
+    assert traffic.poll(LINK, {PAIR: ("socket:[1]", SocketTotals(1200, 400))}) == {ZID_LAPTOP: (1200, 400)}
+    for _ in range(KEEP_UNSEEN_READINGS):  # gone for good: forgotten, so the table does not grow
+        traffic.poll(LINK, {})
+    assert traffic.poll(LINK, {}) == {ZID_LAPTOP: (1200, 400)}
+    assert not traffic._last
 
 
 @pytest.mark.skipif(not supported(), reason="reads TCP_INFO through /proc (Linux)")
