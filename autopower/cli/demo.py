@@ -90,9 +90,13 @@ def human_summary(result: dict) -> str:
                  f"{result['duplicated_outputs']} duplicated")
     error = result.get("energy_model_error_pct")
     if error is not None:
-        recovery = result.get("recovery_j")
+        # what the model leaves out, set apart before the comparison and said (not hidden in it)
+        apart = [f"{what} {result[key]:.0f} J" for what, key in (("recovery after the cuts", "recovery_j"),
+                                                                  ("the runtime's own CPU", "runtime_j"),
+                                                                  ("the control plane", "control_j"))
+                 if result.get(key)]
         lines.append(f"  energy: metered within {abs(error):.1f} % of the model"
-                     + (f" (recovery after the cuts: {recovery:.0f} J, set apart)" if recovery else ""))
+                     + (f" (set apart: {', '.join(apart)})" if apart else ""))
     dry = result.get("first_dry")
     if dry:
         lines.append(f"  first to run dry: {dry['robot']} at {dry['at_s']:.0f} s mission time"

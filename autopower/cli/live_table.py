@@ -13,6 +13,7 @@ def render(snap: dict, speed: float):
 
     from autopower.launch.summary import chain_latencies, keep_up_warning, supervisor_line
     from autopower.model.network import describe_media
+    from autopower.model.parts import CPU_RUNTIME
 
     revisit = snap.get("revisit_at_s")
     parts = [f"{snap.get('scenario')}", f"{snap.get('accounting')} accounting",
@@ -29,13 +30,15 @@ def render(snap: dict, speed: float):
     if snap.get("recording_error"):
         head.append(f"\nRECORDING FAILED: {snap['recording_error']} (stopping the team)", style="bold red")
     # control: the power its links' bytes beyond the chain packets draw (statuses, keep-alives,
-    # plans, framing; measured, apart from the plan), and those bytes sent/received so far
-    robots = Table("robot", "battery", "power W (plan)", "control W (kB out/in)", "CPU", "hosts",
+    # plans, framing; measured, apart from the plan), and those bytes sent/received so far; runtime:
+    # the power its process's own CPU draws (all but component code, through the platform's slowdown),
+    # and that CPU in seconds on this computer so far
+    robots = Table("robot", "battery", "power W (plan)", "control W (kB out/in)", "runtime W (CPU s)", "CPU", "hosts",
                    "sources (frames/missed)", "links", title="robots", title_justify="left")
     for name, info in snap.get("robots", {}).items():
         st = info.get("status")
         if not st:
-            robots.add_row(name, "joining" if info.get("present") else "absent", "", "", "", "", "", "")
+            robots.add_row(name, "joining" if info.get("present") else "absent", "", "", "", "", "", "", "")
             continue
         battery = st["battery_j"]
         pct = battery / st["initial_j"] * 100 if st["initial_j"] else 0
@@ -45,9 +48,11 @@ def render(snap: dict, speed: float):
         links = " ".join(f"{p}{'✓' if up else '✗'}" for p, up in st["links"].items())
         control_w = sum(w for part, w in st["power_w"].items() if part.endswith(":control"))
         out_b, in_b = st.get("control_bytes") or (0, 0)
+        runtime_w = st["power_w"].get(CPU_RUNTIME, 0.0)
         robots.add_row(name, f"{battery:,.0f} J ({pct:.1f}%)" + (" DEPLETED" if st["depleted"] else ""),
                        f"{power:.3f} ({plan_w:.3f})" if plan_w else f"{power:.3f}",
                        f"{control_w:.4f} ({out_b / 1e3:,.0f}/{in_b / 1e3:,.0f})",
+                       f"{runtime_w:.3f} ({st.get('runtime_cpu_s', 0.0):.1f})",
                        f"{st['cpu_utilisation']:.0%}", ", ".join(st["hosted"]) or "-", sources or "-", links)
     stages = Table("stage", "runs on", "planned", "why", title="components", title_justify="left")
     for stage, want in snap.get("target", {}).items():

@@ -415,5 +415,9 @@ def story_from_replay(replay: dict) -> dict:
         # the energy its radios paid for it, apart from the model
         "control_j": replay["energy"]["overhead_j"].get("control"),
         "control_bytes": {r: e.get("control_bytes") for r, e in replay["energy"]["per_robot"].items()},
+        # the runtime's own CPU (each robot's process beyond its component code) and what the
+        # robots' batteries paid for it through their platform's slowdown, apart from the model
+        "runtime_j": replay["energy"]["overhead_j"].get("runtime"),
+        "cpu_s": {r: e.get("cpu_s") for r, e in replay["energy"]["per_robot"].items()},
         "first_dry": dry,
     }

@@ -350,7 +350,8 @@ class ScenarioParser:
             busy = self.number(spec, "busy_w", path, minimum=0.0, default=idle if mains else None)
             if busy < idle:
                 raise self.fail(f"{path}.busy_w", f"busy_w {busy} < idle_w {idle}", "busy_w >= idle_w")
-            out[name] = Platform(name=name, idle_w=idle, busy_w=busy, mains=mains,
+            slowdown = self.number(spec, "slowdown", path, positive=True) if "slowdown" in spec else None
+            out[name] = Platform(name=name, idle_w=idle, busy_w=busy, mains=mains, slowdown=slowdown,
                                  levels=parse_levels(self, spec["levels"], f"{path}.levels") if "levels" in spec else ())
         return out
 

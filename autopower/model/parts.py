@@ -5,13 +5,15 @@ CPU: ``cpu_idle``, ``cpu_busy`` (component runs of the plan); radios: ``"<medium
 not cover have parts of their own: ``"<medium>:migration"`` (a migrated stage's state on the
 radios), ``"<medium>:recovery"`` (frames resent after a silent loss) and ``cpu_recovery`` (a
 stage restarted without state recomputing inputs its lost predecessor may have run), and ``"<medium>:control"`` (the bytes
-the node's links carried beyond the chain packets, measured: `autopower.node.control_meter`).
+the node's links carried beyond the chain packets, measured: `autopower.node.control_meter`),
+and ``cpu_runtime`` (the CPU the node's process spent beyond component code, on this machine, times
+its platform's ``slowdown``: `BatteryMeter.charge_runtime`).
 """
 
 from __future__ import annotations
 
-CPU_IDLE, CPU_BUSY, CPU_RECOVERY = "cpu_idle", "cpu_busy", "cpu_recovery"
-OVERHEAD_KINDS = ("migration", "recovery", "control")
+CPU_IDLE, CPU_BUSY, CPU_RECOVERY, CPU_RUNTIME = "cpu_idle", "cpu_busy", "cpu_recovery", "cpu_runtime"
+OVERHEAD_KINDS = ("migration", "recovery", "control", "runtime")
 
 
 def radio_part(medium: str, what: str) -> str:
@@ -20,8 +22,11 @@ def radio_part(medium: str, what: str) -> str:
 
 
 def overhead_kind(part_name: str) -> str | None:
-    """``"migration"``, ``"recovery"`` or ``"control"`` for a part outside the model's steady state, else None."""
+    """``"migration"``, ``"recovery"``, ``"control"`` or ``"runtime"`` for a part outside the model's
+    steady state, else None."""
     if part_name == CPU_RECOVERY:
         return "recovery"
+    if part_name == CPU_RUNTIME:
+        return "runtime"
     kind = part_name.rpartition(":")[2]
     return kind if kind in OVERHEAD_KINDS else None

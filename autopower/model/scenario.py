@@ -26,6 +26,9 @@ class Platform:
     busy_w: float
     mains: bool = False  # mains-powered nodes (the base station) pay no energy
     levels: tuple = ()  # DVFS frequency levels (model.dvfs.FrequencyLevel); () = one fixed level
+    # how many times slower than the computer running AutoPower this platform runs code: the
+    # runtime's own CPU there is charged as that many seconds busy; None: measured, not charged
+    slowdown: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True)

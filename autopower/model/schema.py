@@ -90,6 +90,9 @@ TABLES: tuple[Table, ...] = (
         _opt("idle_w", "number >= 0", "power when idle (W); required unless `mains`", "0 when `mains`"),
         _opt("busy_w", "number >= idle_w", "power when busy (W); required unless `mains`", "idle_w when `mains`"),
         _opt("mains", _BOOL, "mains powered: pays no energy (a robot's platform may not be)", "false"),
+        _opt("slowdown", "number > 0", "how many times slower than the computer running AutoPower this "
+             "platform runs code: the runtime's own CPU (all but component code) is charged as that many "
+             "seconds busy, part `cpu_runtime`", "none: the runtime's CPU is measured, not charged"),
         _opt("levels", _TABLE, "DVFS frequency levels; the platform's latencies are its fastest level's",
              of="platforms.<platform>.levels"),
     )),

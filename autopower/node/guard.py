@@ -28,6 +28,10 @@ using CPU until the process ends. Meanwhile the node's loop was stalled once, fo
 verdict took (the limit plus a probe; at most `SPIN_FACTOR` limits for a spinning call). A
 component that might spin belongs in a stage worker process (``--stage-workers on``), where a
 hung call's process is killed.
+
+The CPU time each call takes in its thread is added up (`component_cpu_s`): what a node's process
+spends beyond it is the runtime's own (`NodeRuntime.charge_runtime`). A hung call's CPU is counted
+up to the verdict; an abandoned thread that spins on is then the runtime's, which overstates it.
 """
 
 from __future__ import annotations
@@ -61,17 +65,19 @@ class GuardedCalls:
         self._jobs: queue.SimpleQueue | None = None
         self._cpu_clock: int | None = None  # the worker's CPU-time clock
         self.abandoned = 0  # workers left behind in a hung call
+        self.component_cpu_s = 0.0  # CPU time the calls took in their threads (returned or raised)
 
     def call(self, fn: Callable[..., Any], *args: Any, timeout_s: float) -> Any:
         """``fn(*args)``'s result or exception; `ComponentHung` if it hangs (see the module docstring)."""
         if _ships_with_autopower(getattr(fn, "__self__", None)):
-            return fn(*args)
+            return self.counted(fn, *args)
         if self._jobs is None:
             self._start_worker()
         started = time.monotonic()
         done = threading.Event()
         outcome: list = []
         self._jobs.put((fn, args, outcome, done))
+        call_cpu_at = self._worker_cpu_s()
         finished = done.wait(timeout_s)
         while not finished:
             before = self._worker_cpu_s()
@@ -81,13 +87,26 @@ class GuardedCalls:
             waited = time.monotonic() - started
             used = None if before is None else self._worker_cpu_s() - before
             if used is None or used < _IDLE_CPU_S or waited >= SPIN_FACTOR * timeout_s:
+                now_cpu = self._worker_cpu_s()
+                if now_cpu is not None and call_cpu_at is not None:
+                    self.component_cpu_s += max(0.0, now_cpu - call_cpu_at)
                 self._abandon_worker()
                 how = "blocked" if used is not None and used < _IDLE_CPU_S else "still running"
                 raise ComponentHung(f"no result after {waited:.3g} s ({how}; limit {timeout_s:.3g} s)")
-        ok, value = outcome[0]
+        ok, value, cpu_s = outcome[0]
+        self.component_cpu_s += cpu_s
         if not ok:
             raise value
         return value
+
+    def counted(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(*args)`` on this thread with no time limit, its CPU counted as the components'
+        (building a component or source: its constructor is component code too)."""
+        before = time.thread_time()
+        try:
+            return fn(*args)
+        finally:
+            self.component_cpu_s += time.thread_time() - before
 
     def close(self) -> None:
         if self._jobs is not None:
@@ -130,8 +149,10 @@ def _work(jobs: queue.SimpleQueue) -> None:
         if job is None:
             return
         fn, args, outcome, done = job
+        before = time.thread_time()
         try:
-            outcome.append((True, fn(*args)))
+            result = (True, fn(*args))
         except BaseException as exc:  # handed to the caller, who decides
-            outcome.append((False, exc))
+            result = (False, exc)
+        outcome.append((*result, time.thread_time() - before))
         done.set()

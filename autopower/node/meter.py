@@ -20,7 +20,8 @@ What is charged, and why it reproduces `autopower.model.energy.evaluate` for the
 Work the model's steady state does not include is kept in parts of its own, so that a run can
 be checked against the model and its overheads reported beside it: migrations (the state on
 the radios) and recovery after a silent loss (resent frames; a stage restarted without state
-recomputing inputs): see `autopower.model.parts`.
+recomputing inputs), the control plane's bytes, and the runtime's own CPU (`charge_runtime`): see
+`autopower.model.parts`.
 """
 
 from __future__ import annotations
@@ -31,7 +32,15 @@ from collections import deque
 from typing import Iterable, Mapping
 
 from autopower.model.energy import airtime_s
-from autopower.model.parts import CPU_BUSY, CPU_IDLE, CPU_RECOVERY, OVERHEAD_KINDS, overhead_kind, radio_part as part
+from autopower.model.parts import (
+    CPU_BUSY,
+    CPU_IDLE,
+    CPU_RECOVERY,
+    CPU_RUNTIME,
+    OVERHEAD_KINDS,
+    overhead_kind,
+    radio_part as part,
+)
 from autopower.model.scenario import Platform, Radio
 
 __all__ = ["BatteryMeter", "CPU_BUSY", "CPU_IDLE", "CPU_RECOVERY", "part"]
@@ -62,6 +71,7 @@ class BatteryMeter:
         self.media: frozenset[str] = frozenset(media)
         self.energy_j: dict[str, float] = {}
         self.cpu_busy_s = 0.0  # modelled busy time, for utilisation
+        self.runtime_cpu_s = 0.0  # the runtime's own CPU on this platform (`charge_runtime`): seconds busy
         self.airtime_s: dict[str, float] = {}  # weighted busy airtime per medium
         self._history: deque[tuple[float, dict[str, float], float]] = deque([(self.t, {}, 0.0)])
 
@@ -105,6 +115,21 @@ class BatteryMeter:
         joules = (self.platform.busy_w - self.platform.idle_w) * latency_s
         self._add(CPU_BUSY if purpose == "chain" else CPU_RECOVERY, joules)
         self.cpu_busy_s += latency_s
+        return joules
+
+    def charge_runtime(self, host_cpu_s: float, t: float) -> float:
+        """Charge the CPU the node's runtime (all but component code) used on the computer running it:
+        on this platform that is ``slowdown`` times as many seconds busy (at a DVFS level, its
+        latency factor times more). A platform without ``slowdown`` (or a mains-powered one) pays
+        nothing: the figure is the status's ``runtime_cpu_s`` alone."""
+        self.advance(t)
+        slowdown = self.nominal.slowdown
+        if self.mains or slowdown is None or host_cpu_s <= 0:
+            return 0.0
+        busy_s = host_cpu_s * slowdown * self.latency_factor
+        joules = (self.platform.busy_w - self.platform.idle_w) * busy_s
+        self._add(CPU_RUNTIME, joules)
+        self.runtime_cpu_s += busy_s
         return joules
 
     def charge_radio(self, direction: str, medium: str, n_bytes: int, weight: float, t: float,
@@ -160,6 +185,7 @@ class BatteryMeter:
             self.initial_j = _finite(saved["initial_j"])
         self.energy_j = {str(k): _finite(v) for k, v in saved.get("energy_j", {}).items()}
         self.cpu_busy_s = _finite(saved.get("cpu_busy_s", 0.0))
+        self.runtime_cpu_s = _finite(saved.get("runtime_cpu_s", 0.0))
         self.airtime_s = {str(k): _finite(v) for k, v in saved.get("airtime_s", {}).items()}
         self.t = min(_finite(saved.get("t_virtual", self.t)), self.t)
         self.media = frozenset(m for m in saved.get("media", ()) if m in self.radios)

@@ -196,6 +196,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self.held_store: HeldStore | None = None
         self._held_journaled: dict[tuple[str, int, int, int], ChainFrame] = {}  # (chain, target, run, seq)
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
+        self._cpu_at: tuple[float, float] | None = None  # (process, component) CPU at the last `charge_runtime`
+        # since the mission started in this process, on the computer running it (`charge_runtime`):
+        self.runtime_cpu_s = 0.0  # the runtime's CPU
+        self.component_cpu_s = 0.0  # the component code's (runs, sources, state, constructors)
         # each stage's component in a worker process of its own, called asynchronously (`agent.workers`)
         self.stage_workers = stage_workers
         self._zygote = None
@@ -328,7 +332,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
     def _build(self, factory, component: str, robot: str, seed: int):
         """A component or source of a stage's component (a variant's: with its parameters)."""
         kind, parameters = runtime_component(self.scenario, component)
-        return factory(kind, robot, seed, parameters) if parameters else factory(kind, robot, seed)
+        args = (kind, robot, seed, parameters) if parameters else (kind, robot, seed)
+        return self.guard.counted(factory, *args)
 
     def _resume(self, mission: MissionInfo) -> None:
         """Carry on from a crashed process's saved state if it belongs to this very mission."""
@@ -414,7 +419,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                              "produced_total": runner.produced_total, "missed_stopped": runner.missed_stopped}
         return {"node": self.node, "mission": mission_key(self.mission), "t_virtual": meter.t,
                 "initial_j": meter.initial_j, "energy_j": dict(meter.energy_j), "cpu_busy_s": meter.cpu_busy_s,
-                "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources,
+                "runtime_cpu_s": meter.runtime_cpu_s, "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources,
                 # the plan we run (a subgroup round's placement included): see `saved_plan`
                 "plan": base64.b64encode(encode(self.plan)).decode("ascii") if self.plan is not None else None,
                 "saved_unix": self.wall()}
@@ -879,6 +884,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             zid=self.bus.zid,
             link_bytes=self.control_plane.link_bytes(),
             control_bytes=self.control_plane.control_bytes(),
+            runtime_cpu_s=self.runtime_cpu_s,
+            component_cpu_s=self.component_cpu_s,
         )
 
     def charge_control(self, by_zid: dict[str, tuple[int, int]]) -> None:
@@ -891,6 +898,21 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         unpriced = self.control_plane.charge(by_zid, self.meter, self._medium_to, self.now())
         if unpriced:
             self.tally("control-bytes-unpriced", unpriced)
+
+    def charge_runtime(self, process_cpu_s: float) -> None:
+        """The CPU this node's process has used so far (``time.process_time``, every thread: the loop,
+        Zenoh's, the guard's): what its component code did not use (`GuardedCalls.component_cpu_s`)
+        is the runtime's, charged through the platform's ``slowdown`` (`BatteryMeter.charge_runtime`).
+        Counted from the mission's start: before it, the readings only set where counting starts."""
+        reading = (process_cpu_s, self.guard.component_cpu_s)
+        last, self._cpu_at = self._cpu_at, reading
+        if self.meter is None or last is None:
+            return
+        components = max(0.0, reading[1] - last[1])
+        runtime = max(0.0, (reading[0] - last[0]) - components)  # a call's CPU counted late can make it dip
+        self.component_cpu_s += components
+        self.runtime_cpu_s += runtime
+        self.meter.charge_runtime(runtime, self.now())
 
     def _medium_to(self, peer: str) -> str | None:
         """The radio this node talks to ``peer`` on: its plan's link, else its only radio."""

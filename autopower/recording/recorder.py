@@ -488,6 +488,11 @@ class Recorder:
                 if pair:
                     tel.scalar(f"robots/{node}/bytes/{what}_sent", t, float(pair[0]))
                     tel.scalar(f"robots/{node}/bytes/{what}_received", t, float(pair[1]))
+            # CPU seconds on the computer running it since its process took the mission up: the
+            # runtime's own (charged as `cpu_runtime`) and the component code's
+            for what in ("runtime", "component"):
+                if s.get(f"{what}_cpu_s") is not None:
+                    tel.scalar(f"robots/{node}/cpu_s/{what}", t, float(s[f"{what}_cpu_s"]))
             # the model's power for what the robot runs, by its own account: a plan names a robot
             # it cannot reach, a subgroup's placement is not the base station's, a stage runs on
             # until its migration lands; the robot knows which plan it runs

@@ -40,12 +40,15 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                   #  detected_* null, reconfigured_* from the detection)
                   # *_wall_s = *_mission_s / the run's speed-up; null in simulations (no wall clock)
       "energy": {"metered_j": float, "model_j": float | null, "error_pct": float | null,
-                 "overhead_j": {"migration": float, "recovery": float, "control": float},
+                 "overhead_j": {"migration": float, "recovery": float, "control": float, "runtime": float},
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
                                        "overhead_j": {"migration": float, "recovery": float,
-                                                      "control": float},
+                                                      "control": float, "runtime": float},
                                        "control_bytes": {"sent": int, "received": int,  # the control
-                                                         "link_sent": int, "link_received": int}}}},  # plane's, of the links'
+                                                         "link_sent": int, "link_received": int},  # plane's, of the links'
+                                       # CPU seconds on the computer that ran it: the runtime's own
+                                       # (charged as overhead "runtime") and its component code's
+                                       "cpu_s": {"runtime": float, "component": float}}}},
       "outputs": {"recorded": bool,
                   "produced": int,  # what the sources produced (per run: `produced`, else up to the last delivered)
                   "lost": int,  # produced, not delivered, and in no other class below
@@ -180,12 +183,13 @@ def _growth(rec: Recording, entity: str, t0: float, t1: float) -> float:
     return max(0.0, inside[-1] - inside[0]) if len(inside) >= 2 else 0.0
 
 
-def _counted(rec: Recording, entity: str, t0: float, t1: float) -> int:
+def _counted(rec: Recording, entity: str, t0: float, t1: float, *, integer: bool = True) -> int | float:
     """What a counter series counted over [t0, t1], across restarts of the process that counts (a
-    value below the one before: the counter started again from 0)."""
+    value below the one before: the counter started again from 0); an int unless not ``integer``."""
     ts, vs = rec.series(entity)
     inside = [v for t, v in zip(ts, vs, strict=False) if t0 - _EPS <= t <= t1 + _EPS and math.isfinite(v)]
-    return int(sum(b - a if b >= a else b for a, b in zip(inside, inside[1:], strict=False)))
+    total = sum(b - a if b >= a else b for a, b in zip(inside, inside[1:], strict=False))
+    return int(total) if integer else float(total)
 
 
 def _pct(measured: float, model: float | None) -> float | None:
@@ -249,7 +253,9 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
                                "overhead_j": overhead,
                                "control_bytes": {f"{what}_{way}".removeprefix("control_"):
                                                  _counted(rec, f"robots/{r}/bytes/{what}_{way}", t0, t1)
-                                                 for what in ("control", "link") for way in ("sent", "received")}}
+                                                 for what in ("control", "link") for way in ("sent", "received")},
+                               "cpu_s": {what: _counted(rec, f"robots/{r}/cpu_s/{what}", t0, t1, integer=False)
+                                         for what in ("runtime", "component")}}
         for what, joules in overhead.items():
             overhead_sum[what] += joules
         metered_sum += used

@@ -58,12 +58,30 @@ def render_text(summary: dict[str, Any]) -> str:
               + ("—" if e["error_pct"] is None else f"{e['error_pct']:+.2f} %")
               + (" (metered minus overheads the model leaves out: "
                  + ", ".join(f"{k} {v:,.2f} J" for k, v in over.items()) + ")" if any(over.values()) else "")]
-    control = {r: v["control_bytes"] for r, v in (e.get("per_robot") or {}).items() if v.get("control_bytes")}
+    per_robot = e.get("per_robot") or {}
+    if any(any((v.get("overhead_j") or {}).values()) for v in per_robot.values()):
+        # each robot's battery drop split: what the model's steady state prices (idle, component runs,
+        # chain packets, sleeping radios) and each overhead it leaves out
+        kinds = [k for k in ("control", "runtime", "migration", "recovery")
+                 if any((v.get("overhead_j") or {}).get(k) for v in per_robot.values())]
+        lines.append(f"  {'split':<8}{'chains J':>12}" + "".join(f"{k + ' J':>13}" for k in kinds))
+        for r, v in sorted(per_robot.items()):
+            over = v.get("overhead_j") or {}
+            lines.append(f"  {r + ':':<8}{v['metered_j'] - sum(over.values()):>12,.2f}"
+                         + "".join(f"{over.get(k, 0.0):>13,.2f}" for k in kinds))
+    control = {r: v["control_bytes"] for r, v in per_robot.items() if v.get("control_bytes")}
     if any(c["sent"] or c["received"] for c in control.values()):
         lines.append("control plane (measured on each robot's links: the bytes beyond its chain packets, of all "
                      "the bytes on them; charged apart as `control`): " + "; ".join(
                          f"{r} sent {c['sent']:,} of {c['link_sent']:,} B, received {c['received']:,} of "
                          f"{c['link_received']:,} B" for r, c in sorted(control.items())))
+    cpu = {r: v["cpu_s"] for r, v in per_robot.items() if v.get("cpu_s")}
+    if any(c["runtime"] for c in cpu.values()):
+        runtime_j = {r: ((per_robot[r].get("overhead_j") or {}).get("runtime") or 0.0) for r in cpu}
+        lines.append("runtime CPU (each robot's process beyond its component code, on the computer that ran it; "
+                     "charged apart as `runtime` through its platform's slowdown): " + "; ".join(
+                         f"{r} {c['runtime']:,.2f} s ({runtime_j[r]:,.2f} J) beside {c['component']:,.2f} s of "
+                         "components" for r, c in sorted(cpu.items())))
     o = s["outputs"]
     if o["recorded"]:
         lines.append((f"outputs: {o['produced']} produced, " if o.get("produced") else "outputs: ")

@@ -30,9 +30,11 @@ from autopower.protocol import NodeStatus
 REPEAT_AFTER_PERIODS = 1.1
 REPEAT_EVERY_PERIODS = 0.5
 
-# What changes with time alone, also at rest: not a reason to speak before the rest period.
+# What changes with time alone, also at rest: not a reason to speak before the rest period (the
+# runtime's own bytes and CPU grow at rest too: keep-alives, statuses, the loop's wake-ups).
 DRIFTING = {"t_virtual": 0.0, "t_unix": 0.0, "battery_j": None, "energy_j": {}, "power_w": {},
-            "cpu_utilisation": 0.0, "next_status_s": 0.0}
+            "cpu_utilisation": 0.0, "next_status_s": 0.0, "link_bytes": (0, 0), "control_bytes": (0, 0),
+            "runtime_cpu_s": 0.0, "component_cpu_s": 0.0}
 
 
 class StatusCadence:

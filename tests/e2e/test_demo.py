@@ -53,6 +53,10 @@ def test_demo_json(tmp_path):
     assert out["recording"] and Path(out["recording"]).is_file()
     text = human_summary(out)  # what `autopower demo` prints without --json: a few readable lines
     assert "{" not in text and len(text.splitlines()) <= 10 and "subgroup committed" in text
+    # the robots' runtime (their processes beyond component code) paid through the Sitsang's slowdown:
+    # set apart from the model's comparison, and said
+    assert out["runtime_j"] > 0 and all(c["runtime"] > 0 for c in out["cpu_s"].values()), out["cpu_s"]
+    assert f"the runtime's own CPU {out['runtime_j']:.0f} J" in text, text
     assert out["first_depletion"] is not None  # the mission ran to its end
     # Frames in flight on a link when it is cut silently are lost on the wire; custody resends
     # them (and a stage restarted by the subgroup recomputes them), so every output arrives once.

@@ -153,6 +153,11 @@ def test_up_records_a_run_that_replay_reads(tmp_path):
         sent = energy["control_bytes"]
         assert 0 < sent["sent"] < sent["link_sent"] and 0 < sent["received"] < sent["link_received"], (robot, sent)
         assert energy["overhead_j"]["control"] > 0, robot
+        # its process's CPU beyond its component code (Zenoh, the loop, encoding, metering) is the
+        # runtime's: charged as `runtime` at the Sitsang's busy-minus-idle power, x50 (its slowdown)
+        cpu = energy["cpu_s"]
+        assert cpu["runtime"] > 0 and cpu["component"] > 0, (robot, cpu)
+        assert energy["overhead_j"]["runtime"] == pytest.approx((2.27 - 1.34) * 50 * cpu["runtime"], rel=0.01), robot
 
 
 def test_up_runs_the_policy_it_is_given(tmp_path):

@@ -198,7 +198,7 @@ def test_time_sharing_bound_on_dags_column_generation_matches_enumeration(seed):
 def test_dag_inputs_with_dvfs_levels_are_refused_not_planned_wrong():
     """The variant and level search does not charge DAG flows yet: such a file is refused at its
     first fan-in, naming what it combines."""
-    text = edited("busy_w = 2.27\n", "busy_w = 2.27\n\n[platforms.sitsang.levels.\"100MHz\"]\nidle_w = 1.25\n"
-                  "busy_w = 1.39\nlatency_factor = 4.0\n")
+    text = edited("[platforms.laptop]", "[platforms.sitsang.levels.\"100MHz\"]\nidle_w = 1.25\n"
+                  "busy_w = 1.39\nlatency_factor = 4.0\n\n[platforms.laptop]")
     with pytest.raises(ScenarioError, match=r"DAG inputs together with platforms\.sitsang\.levels"):
         parse_scenario(text, "dag.toml")

@@ -70,3 +70,14 @@ def test_each_robot_shows_what_its_control_plane_draws_and_the_bytes_it_sent_and
     Console(file=out, width=200, color_system=None).print(render(snap, 5.0))
     row = next(line for line in out.getvalue().splitlines() if line.startswith("│ r2 "))
     assert [c.strip() for c in row.split("│")[1:-1]][3] == "0.0025 (74/52)"
+
+
+def test_each_robot_shows_what_its_runtimes_own_cpu_draws_and_the_cpu_seconds_it_took():
+    snap = snapshot()
+    status = snap["robots"]["r2"]["status"]
+    status["power_w"] = {"cpu_idle": 1.0, "cpu_runtime": 0.0412, "802.11a:send": 0.5}
+    status["runtime_cpu_s"] = 3.26
+    out = io.StringIO()
+    Console(file=out, width=220, color_system=None).print(render(snap, 5.0))
+    row = next(line for line in out.getvalue().splitlines() if line.startswith("│ r2 "))
+    assert [c.strip() for c in row.split("│")[1:-1]][4] == "0.041 (3.3)"

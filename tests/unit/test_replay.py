@@ -190,3 +190,22 @@ def test_the_robot_table_prints_no_negative_zero_and_keeps_its_columns(simulated
     assert rows[robots[1]].split()[2] == "13" and rows[robots[1]].endswith("4,321.0 s*")
     assert rows[robots[0]].endswith("100.0 s ")
     assert len(rows[robots[0]]) == len(rows[robots[1]])
+
+
+def test_each_robots_energy_is_split_into_the_models_steady_state_and_each_overhead(simulated):
+    from autopower.recording.report import render_text
+
+    path, _ = simulated
+    s = summarize(load(path), path)
+    for per in s["energy"]["per_robot"].values():
+        per["overhead_j"] = {"migration": 0.0, "recovery": 0.0, "control": 0.0, "runtime": 0.0}
+    robot = next(iter(s["energy"]["per_robot"]))
+    per = s["energy"]["per_robot"][robot]
+    per["metered_j"] = 100.0
+    per["overhead_j"].update(control=1.25, runtime=7.5)
+    text = render_text(s)
+    head = next(line for line in text.splitlines() if line.strip().startswith("split"))
+    assert head.split() == ["split", "chains", "J", "control", "J", "runtime", "J"]  # only the overheads there are
+    row = next(line for line in text.splitlines() if line.strip().startswith(f"{robot}:"))
+    cols = dict(zip([w for w in head.split() if w != "J"], row.split(), strict=True))
+    assert cols["chains"] == "91.25" and cols["control"] == "1.25" and cols["runtime"] == "7.50"

@@ -33,7 +33,10 @@ def test_a_status_with_nothing_new_but_what_drifts_goes_out_at_the_rest_period_a
     resting = cadence.due(status(0.5, battery=99.0), 0.5)
     assert resting is not None and resting.next_status_s == 2.0  # the first one at rest announces it
     assert resting.battery_j == 99.0 and resting.t_virtual == 0.5  # sent as built, drift included
-    assert [cadence.due(status(t, battery=99.0 - t), t) for t in (1.0, 1.5, 2.0)] == [None] * 3
+    # so do the runtime's own bytes on its links (keep-alives) and its CPU (the loop's wake-ups)
+    assert [cadence.due(status(t, battery=99.0 - t, link_bytes=(int(t * 900), int(t * 700)),
+                               control_bytes=(int(t * 800), int(t * 600)), runtime_cpu_s=t / 100,
+                               component_cpu_s=t / 1000), t) for t in (1.0, 1.5, 2.0)] == [None] * 3
     heartbeat = cadence.due(status(2.5, battery=97.0), 2.5)  # the rest period has passed
     assert heartbeat is not None and heartbeat.next_status_s == 2.0
     # anything else new (a counter, a stage, a link) goes out at once, on the normal cadence
