@@ -1,4 +1,4 @@
-"""The control plane's bytes per robot: what a robot's links carry beyond its chain packets.
+"""The runtime's own cost per robot: the control plane's bytes on its links and its process's own CPU.
 
     .venv/bin/python bench/bench_control_plane.py [--seconds S] [--lease-ms MS] [SCENARIO]
 
@@ -10,7 +10,10 @@ its chain packets); the figures are their growth over each window, per wall seco
 statuses (`autopower status --json`). Baseline, same run: the bytes of the robot's chain packets
 (link minus control) while the chains run. The share of a radio's time is the model's airtime for
 those bytes on that medium (`model.energy.airtime_s`, the scenario's radios): what the control
-plane costs each radio. At ×1 on purpose: the timers (lease, keep-alives, statuses) run on wall
+plane costs each radio. The same statuses say the CPU the robot's process spent beyond its component
+code (`runtime_cpu_s`) and in it (`component_cpu_s`): the runtime's share of a core here, and of the
+robot's CPU through its platform's slowdown (x50 for the paper's Sitsang), against its component
+code's in the same run. At ×1 on purpose: the timers (lease, keep-alives, statuses) run on wall
 time and the chains' framing on mission time, so only at ×1 do both add up as on a robot.
 """
 
@@ -31,31 +34,38 @@ from bench_idle import team_status, wait_ready
 
 from autopower.model.energy import airtime_s
 from autopower.model.loading import load_scenario
+from autopower.model.parts import CPU_RUNTIME, overhead_kind
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 
 
-def counts(snap: dict) -> dict[str, tuple[float, int, int, int, int]]:
-    """robot -> (its status's wall time, link sent, link received, control sent, control received)."""
+def counts(snap: dict) -> dict[str, tuple[float, ...]]:
+    """robot -> (its status's wall time, link sent, link received, control sent, control received,
+    runtime CPU s, component CPU s, the runtime's energy J, the energy of the model's steady state J)."""
     out = {}
     for robot, info in (snap.get("robots") or {}).items():
         st = info.get("status") or {}
         if st.get("link_bytes") is not None:
-            out[robot] = (st["t_unix"], *st["link_bytes"], *st["control_bytes"])
+            energy = st.get("energy_j") or {}
+            steady = sum(j for part, j in energy.items() if overhead_kind(part) is None)
+            out[robot] = (st["t_unix"], *st["link_bytes"], *st["control_bytes"], st.get("runtime_cpu_s", 0.0),
+                          st.get("component_cpu_s", 0.0), energy.get(CPU_RUNTIME, 0.0), steady)
     return out
 
 
 def rates(first: dict, second: dict) -> dict[str, dict[str, float]]:
-    """Per robot, bytes per wall second over the window between two readings."""
+    """Per robot, bytes and CPU seconds per wall second over the window between two readings."""
     out = {}
     for robot, (t0, *a) in first.items():
         if robot not in second or second[robot][0] <= t0:
             continue
         t1, *b = second[robot]
         dt = t1 - t0
-        link_out, link_in, ctl_out, ctl_in = ((y - x) / dt for x, y in zip(a, b, strict=True))
+        link_out, link_in, ctl_out, ctl_in, runtime, component, runtime_w, steady_w = (
+            (y - x) / dt for x, y in zip(a, b, strict=True))
         out[robot] = {"control_out": ctl_out, "control_in": ctl_in, "chain_out": link_out - ctl_out,
-                      "chain_in": link_in - ctl_in, "window_s": dt}
+                      "chain_in": link_in - ctl_in, "runtime_cpu": runtime, "component_cpu": component,
+                      "runtime_w": runtime_w, "steady_w": steady_w, "window_s": dt}
     return out
 
 
@@ -96,7 +106,9 @@ def main() -> None:
     parser.add_argument("--lease-ms", type=int, default=None, help="the Zenoh lease (default: up's)")
     results.add_json_out(parser)
     args = parser.parse_args()
-    radios = load_scenario(args.scenario).radios
+    scenario = load_scenario(args.scenario)
+    radios = scenario.radios
+    slowdown = next((p.slowdown for p in (scenario.platforms[r.platform] for r in scenario.robots) if p.slowdown), None)
     got = measure(args.scenario, args.seconds, args.lease_ms)
     figures = []
     for phase, label in (("running", "default mission"), ("rest", "at rest (every chain disabled)")):
@@ -125,6 +137,26 @@ def main() -> None:
                                           note="the model's airtime for the bytes a robot sent beyond its chain "
                                                "packets per wall second"))
             print(f"  {medium:10s} {share:7.3f} % of its time sending control ({label})")
+        runtime = statistics.mean(r["runtime_cpu"] for r in per.values()) * 100.0
+        component = statistics.mean(r["component_cpu"] for r in got["running"].values()) * 100.0
+        print(f"  runtime CPU {runtime:.2f} % of a core here per robot (its component code, default mission: "
+              f"{component:.2f} %)" + (f"; x{slowdown:g} on the robot: {runtime * slowdown:.1f} % of its CPU"
+                                       if slowdown else ""))
+        figures.append(results.figure(f"runtime CPU, {label}", runtime, "% of a core per robot",
+                                      "component code (default mission)", component,
+                                      group="the runtime's own CPU per robot (x1)",
+                                      note="the robot's process beyond its component code; the baseline is its "
+                                           "component code's CPU while the default mission ran, this run"))
+        if slowdown:
+            runtime_w = statistics.mean(r["runtime_w"] for r in per.values())
+            steady_w = statistics.mean(r["steady_w"] for r in got["running"].values())
+            print(f"  the robot pays {runtime_w:.3f} W for it (the model's steady state, default mission: "
+                  f"{steady_w:.3f} W); above 100 % of its CPU a robot could not keep up")
+            figures.append(results.figure(f"runtime power on the robot, {label}", runtime_w, "W per robot",
+                                          "the model's steady state (default mission)", steady_w,
+                                          group="the runtime's own CPU per robot (x1)",
+                                          note="metered: idle CPU, component runs, chain packets and sleeping radios "
+                                               "(all but the overheads) per second, the same robots, this run"))
     results.write_result("control_plane", {"scenario": args.scenario, "seconds": args.seconds,
                                            "lease_ms": args.lease_ms}, figures, args.json_out,
                          what=__doc__.splitlines()[0], extra=got)

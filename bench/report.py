@@ -78,7 +78,7 @@ BENCHES = (
     Bench("faults", "bench/bench_faults.py", ("--cuts", "20"), "Faults", "performance", 2.5),
     Bench("idle", "bench/bench_idle.py", ("--seconds", "20"), "At rest", "performance", 1.4),
     Bench("control_plane", "bench/bench_control_plane.py", ("--seconds", "20"),
-          "The control plane's bytes on a robot's links", "performance", 1.2),
+          "The runtime's own cost: control-plane bytes and CPU", "performance", 1.2),
     Bench("zenoh_floor", "bench/bench_zenoh_floor.py", ("--seconds", "10", "--team"), "Zenoh's floor",
           "performance", 1.5),
     Bench("live_speed", "bench/bench_live_speed.py", ("--speeds", "55,100", "--seconds", "15"), "Live speed",
