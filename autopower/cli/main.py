@@ -6,26 +6,22 @@ what to do. Tracebacks are for bugs only.
 
 from __future__ import annotations
 
+import importlib
+
 import click
 
-from autopower.cli import (
-    analysis,
-    demo,
-    deploy,
-    evaluate,
-    fault,
-    operator,
-    processes,
-    profile,
-    quality,
-    recording,
-    replay,
-    sim,
-    simulate,
-    team,
-    testbed,
-)
 from autopower.cli.entry import run_command
+
+# Each command and the module of `autopower.cli` that defines it (in its COMMANDS), imported only
+# when the command runs: `autopower status` then loads no planner, numpy or Rerun (1.3 s -> 0.2 s
+# a call, and operators script it). A test checks the table against every module's COMMANDS.
+COMMAND_MODULES = {
+    "agent": "processes", "analyze": "analysis", "basestation": "processes", "chain": "operator",
+    "check": "analysis", "demo": "demo", "deploy": "deploy", "evaluate": "evaluate", "fault": "fault",
+    "migrate": "operator", "plan": "analysis", "profile": "profile", "quality": "quality",
+    "recording": "recording", "replay": "replay", "scenarios": "scenarios", "sim": "sim",
+    "simulate": "simulate", "status": "operator", "testbed": "testbed", "up": "team",
+}
 
 
 def _versions() -> str:
@@ -50,7 +46,21 @@ def _print_version(ctx, _param, value) -> None:
         ctx.exit()
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _CommandsOnDemand(click.Group):
+    """A group whose commands are imported when named (`COMMAND_MODULES`)."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMAND_MODULES)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        module = COMMAND_MODULES.get(name)
+        if module is None:
+            return None
+        commands = importlib.import_module(f"autopower.cli.{module}").COMMANDS
+        return next(c for c in commands if c.name == name)
+
+
+@click.group(cls=_CommandsOnDemand, context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_print_version,
               help="Print the versions of autopower and of the libraries it talks through, and exit.")
 def cli() -> None:
@@ -59,11 +69,6 @@ def cli() -> None:
     SCENARIO is a built-in name (paper-fig7, paper-fig8, ...) or a path to a .toml file.
     """
 
-
-for _module in (analysis, evaluate, profile, simulate, sim, replay, recording, processes, team, operator, fault, demo,
-                deploy, testbed, quality):
-    for _command in _module.COMMANDS:
-        cli.add_command(_command)
 
 
 def main() -> None:

@@ -7,13 +7,17 @@ import math
 import os
 import re
 import sys
+from typing import TYPE_CHECKING
 
 import click
 
 from autopower.errors import AutoPowerError
-from autopower.model.loading import apply_latency_profile, load_scenario
-from autopower.model.scenario import Scenario
-from autopower.policies import POLICY_NAMES
+
+if TYPE_CHECKING:
+    from autopower.model.scenario import Scenario
+
+# The model and the policies (numpy, networkx, HiGHS: 0.6 s) are imported where they are used, not
+# here: the operator's commands (`status`, `chain`, `fault`) use these options and load no scenario.
 
 DEFAULT_SPEED = 10.0  # two 4 Hz blob chains at 10x = 80 frames of 230 KB a second: what 2 cores keep up with
 
@@ -157,6 +161,8 @@ def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float 
     ``to_run``: every component must have code (a team runs it, not only the planner), including
     those an installed package declares (entry points; planning does not look for them).
     """
+    from autopower.model.loading import apply_latency_profile, load_scenario
+
     scenario = load_scenario(name)
     if to_run or any(spec.implementation for spec in scenario.components.values()):
         # imported here: the components' imports are heavy, and planning alone needs no code
@@ -321,6 +327,8 @@ def stage_workers_wanted(choice: str, basestation: bool, speed: float | None = N
 
 def mission_options(f):
     """The mission settings `basestation` and `up` share (one definition, so they cannot drift)."""
+    from autopower.policies import POLICY_NAMES
+
     for option in reversed([
         click.option("--energy", multiple=True, metavar="ROBOT=J", help="Starting energy of a robot (repeatable)."),
         click.option("--energy-scale", type=POSITIVE, default=None,
