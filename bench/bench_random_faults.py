@@ -192,6 +192,7 @@ def main() -> None:
         s = json.loads(replay.stdout)
         result.update(recording=str(recordings[-1]), lost=s["lost_outputs"], duplicated=s["duplicated_outputs"],
                       dropped_by_budget=s["outputs"].get("held_dropped", 0),
+                      superseded=s["outputs"].get("superseded", 0),
                       died_with_process=s["outputs"].get("died_with_process", 0),
                       unrecorded=s["outputs"].get("unrecorded", 0),
                       in_flight=s["outputs"].get("in_flight", 0), abandoned=s["outputs"].get("abandoned", 0),

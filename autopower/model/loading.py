@@ -44,6 +44,7 @@ INPUT_KEYS = schema.required("chains[].stages[].inputs[]")  # a DAG input is exa
 MAX_SCENARIO_BYTES = 64 * 2**20  # a 2,000-robot fleet is well under 1 MB
 MAX_INTEGER = 2**53  # beyond this a float loses integers, and nothing physical is that large
 MAX_MESSAGE_BYTES = 2**30  # one message of a gigabyte is already far past any radio here
+KEEP_CHOICES = ("all", "latest")  # a chain's `keep`: what a node cut off from its sink holds of its results
 MAX_NESTING = 100  # real scenarios nest 4 levels; TOML parsers recurse per level (brackets in strings count too)
 
 
@@ -573,7 +574,8 @@ class ScenarioParser:
                                 f"a source with those sensors (it has {', '.join(sorted(robot_by_name[source].sensors)) or 'none'})")
             out.append(Chain(name=name, source=source, sink=sink, period_s=period, stages=stages,
                              message_bytes=tuple(sizes), requires=requires, sourced=sourced,
-                             min_quality=self.number(spec, "min_quality", path, minimum=0.0, default=0.0)))
+                             min_quality=self.number(spec, "min_quality", path, minimum=0.0, default=0.0),
+                             keep=self.string(spec, "keep", path, choices=KEEP_CHOICES, default="all")))
         check_chain_variants(self, out, components)
         return self.dag_flows(tuple(out))
 

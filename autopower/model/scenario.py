@@ -83,6 +83,9 @@ class Chain:
     # message_bytes[0] = 0)
     inputs: tuple[Flow, ...] = ()
     sourced: bool = True
+    # what a node cut off from the sink holds of its results: "all" (within the hold budget) or
+    # "latest" (the newest only; the older ones are superseded: `NodeRuntime.hold_output`)
+    keep: str = "all"
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -192,6 +192,9 @@ TABLES: tuple[Table, ...] = (
         _opt("pin", _STRING, "a one-stage chain: the node it must run on"),
         _opt("hosts", _STRINGS, "a one-stage chain: the only nodes it may run on"),
         _opt("min_quality", "number >= 0", "variants scoring less may not run this chain", "0"),
+        _opt("keep", '"all" or "latest"', 'what a node cut off from the sink holds of its results: "all" (in '
+             'order, within the hold budget) or "latest" (only the newest: a camera-like chain that wants fresh '
+             'data; the ones it replaces are counted as superseded, not lost)', '"all"'),
         _opt("inputs", _TABLES, "a one-stage chain without a source: outputs of other chains' stages it takes",
              of="chains[].stages[].inputs[]"),
     )),

@@ -165,13 +165,15 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # hold budget with the results in custody (`Custody.keep`), sent when a plan routes them again
         self.held_outputs: OrderedDict[tuple[str, int, int, int], ChainFrame] = OrderedDict()
         self.held_dropped = 0  # results dropped, the hold budget full (counted apart from lost ones)
+        self.held_superseded = 0  # results of a latest-only chain replaced in the hold by a newer one
         # migration state with no route yet (an order overtook the plan that brings the route
         # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
         self.parked_transfers: list[tuple[str, bytes, str]] = []
         self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
-        # every result this node dropped, its hold budget full (chain, run, seq): the recording tells
+        # every result this node let go from its hold (chain, run, seq, why): "budget" (the hold
+        # budget full) or "superseded" (a newer result of a latest-only chain); the recording tells
         # these outputs from lost ones (`autopower.recording.replay`)
-        self.on_held_dropped: Callable[[str, int, int], None] | None = None
+        self.on_held_dropped: Callable[[str, int, int, str], None] | None = None
         # a seq of a chain sourced and sunk here that died with the crashed process (`_died_with_process`)
         self.on_died_with_process: Callable[[str, int, int], None] | None = None
         # an output the crashed sink here had delivered in its last commit, said by the restarted one
@@ -544,6 +546,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # taken as new and delivered twice. Marked, a sink that has it drops it as redundant.
         frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
         self.held_outputs[_held_key(frame)] = frame
+        self._supersede_held(frame)
         self.keep_result(frame, sent=False)  # in custody already when produced here (`emit`)
         self.custody.mark(frame, None)  # not on the wire: no resend is due until it is
         self._journal_held(frame)
@@ -564,6 +567,23 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
                 if r == run and (chain, target, run, seq) not in self._held_journaled]
         return min(held) if held else None
 
+    def _supersede_held(self, newest: ChainFrame) -> None:
+        """A chain that keeps only its latest result (`keep = "latest"`) holds one per run for its sink:
+        the older ones this node held are let go, counted as superseded (the replay counts one so only
+        if a later output of its run reached the sink or was in hand at the stop; else it is lost)."""
+        chain = self.chains.get(newest.chain)
+        if chain is None or chain.keep != "latest":
+            return
+        older = [frame for frame in self.held_outputs.values()
+                 if frame.chain == newest.chain and frame.run == newest.run and frame.seq < newest.seq]
+        for frame in older:
+            del self.held_outputs[_held_key(frame)]
+            self.custody.forget(frame)
+            self.held_superseded += 1
+            self.tally("held-outputs-superseded")
+            if self.on_held_dropped is not None:
+                self.on_held_dropped(frame.chain, frame.run, frame.seq, "superseded")
+
     def keep_result(self, frame: ChainFrame, sent: bool = True) -> None:
         """Keep a chain's result in custody until its sink acknowledges it; results beyond the hold
         budget (oldest first) are dropped and counted as such."""
@@ -572,7 +592,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.held_dropped += 1
             self.tally("held-outputs-dropped")
             if self.on_held_dropped is not None:
-                self.on_held_dropped(dropped.chain, dropped.run, dropped.seq)
+                self.on_held_dropped(dropped.chain, dropped.run, dropped.seq, "budget")
 
     def _journal_held(self, frame: ChainFrame) -> None:
         key = _held_key(frame)
@@ -609,6 +629,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # would be delivered twice.
         for frame in journal:
             self.held_outputs[_held_key(frame)] = frame
+            self._supersede_held(frame)  # a latest-only chain: journaled before the older ones were let go
             self.keep_result(frame, sent=False)  # within this process's budget (oldest dropped, counted)
         frames = list(self.held_outputs.values())
         if self.held_store.rewrite(mission_key(mission), frames):  # this process's journal from now on

@@ -36,7 +36,8 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
 - sink stats in a status -> ``components/<chain>/sink/received_total``, ``duplicates_total``,
   ``missing`` (seqs below the highest seen not arrived yet), ``latency_ms_p50|max`` (end to end);
 - outputs reaching this node as their sink (`on_output`) -> ``components/<chain>/run/<run>/seq``;
-  results its full hold let go (`on_held_dropped`) -> ``components/<chain>/run/<run>/held_dropped``;
+  results its full hold let go (`on_held_dropped`) -> ``components/<chain>/run/<run>/held_dropped``,
+  and those a latest-only chain's newer result replaced in it -> ``.../run/<run>/superseded``;
   outputs a restarted sink's journal says its crashed process delivered in its last commit
   (`on_sink_journal`: their recording may have died with it) -> ``.../run/<run>/sink_journal``
   (one scalar per output: replay checks exactly-once per (chain, run, seq)); at a clean stop
@@ -154,6 +155,12 @@ def output_path(chain: str, run: int) -> str:
 def held_dropped_path(chain: str, run: int) -> str:
     """Entity of a chain's results dropped in one run by a robot's full hold: one scalar (the seq) each."""
     return f"{component_path(chain, f'run/{int(run)}')}/held_dropped"
+
+
+def superseded_path(chain: str, run: int) -> str:
+    """Entity of a latest-only chain's results a robot let go from its hold in one run, each replaced
+    by a newer one: one scalar (the seq) each."""
+    return f"{component_path(chain, f'run/{int(run)}')}/superseded"
 
 
 def died_with_process_path(chain: str, run: int) -> str:
@@ -426,10 +433,12 @@ class Recorder:
         """An output reached this node, its chain's sink (hook for `NodeRuntime.on_output`)."""
         self._guard("output", self._output, chain, run, seq, data)
 
-    def on_held_dropped(self, chain: str, run: int, seq: int) -> None:
+    def on_held_dropped(self, chain: str, run: int, seq: int, why: str = "budget") -> None:
         """A result this node held for a sink out of its reach was let go (hook for
-        `NodeRuntime.on_held_dropped`): lost by design, and the replay says so."""
-        self._guard("held-dropped", lambda: self.telemetry.scalar(held_dropped_path(chain, run), self.now(), seq))
+        `NodeRuntime.on_held_dropped`): its hold budget full, or superseded by a newer result of a
+        latest-only chain; the replay counts each apart (a superseded one only with a later one delivered)."""
+        path = superseded_path(chain, run) if why == "superseded" else held_dropped_path(chain, run)
+        self._guard("held-dropped", lambda: self.telemetry.scalar(path, self.now(), seq))
 
     def on_sink_journal(self, chain: str, run: int, seq: int) -> None:
         """An output the crashed sink here had delivered and noted in its last commit (hook for
@@ -527,7 +536,7 @@ class Recorder:
             tel.scalar(component_path(chain, "source/produced_total"), t, st["produced_total"])
         counters = s.get("counters") or {}
         for name, what in (("custody-resent", "resent"), ("custody-frames", "held"), ("custody-evicted", "evicted"),
-                           ("held-outputs-dropped", "held_dropped")):
+                           ("held-outputs-dropped", "held_dropped"), ("held-outputs-superseded", "superseded")):
             # frames lost in flight and resent (see autopower.node.custody); results a robot cut off
             # from their sink dropped beyond the hold budget (`[delivery] hold_budget_mb`)
             if name in counters:

@@ -55,6 +55,8 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                   "duplicated": int, "resent": int, "given_up": int,
                   "held_dropped": int,  # results robots cut off from the sink let go, their hold full
                   "held_dropped_known": bool,  # which seqs (else only counts: then "lost" includes them)
+                  "superseded": int,  # a latest-only chain's results a newer one replaced in a hold
+                                      # (each with a later output of its run delivered or in hand)
                   "died_with_process": int,  # outputs of a robot's own chain that died with its crashed process
                   "unrecorded": int,  # delivered by a sink killed before its recording was flushed
                                       # (named by the restarted sink's journal): not lost, not recorded
@@ -63,6 +65,7 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                   "chains": {chain: {"outputs": int, "distinct": int, "produced": int, "produced_known": bool,
                                      "lost": int, "duplicated": int,
                                      "held_dropped": int,  # of its missing seqs, dropped by a hold
+                                     "superseded": int,  # of its missing seqs, replaced by a newer one
                                      "died_with_process": int,  # of its missing seqs, died in a crash
                                      "unrecorded": int,  # of its missing seqs, delivered (sink journal)
                                      "in_flight": int, "abandoned": int,
@@ -70,10 +73,11 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                                                                   # (at most LOST_SEQS_SHOWN)
                                      "runs": [int],
                                      # per run: produced = delivered + unrecorded + held_dropped
-                                     #   + died_with_process + in_flight + abandoned + lost
+                                     #   + superseded + died_with_process + in_flight + abandoned + lost
                                      "by_run": {run: {"produced": int, "produced_known": bool,
                                                       "delivered": int, "duplicated": int, "unrecorded": int,
-                                                      "held_dropped": int, "died_with_process": int,
+                                                      "held_dropped": int, "superseded": int,
+                                                      "died_with_process": int,
                                                       "in_flight": int, "abandoned": int, "lost": int}}}}},
       "quality": {chain: {metric: float}},          # measured quality, mean over the chain's outputs
                                                     # (blob recall, localisation error; see chains.variants)
@@ -106,11 +110,11 @@ from autopower.recording.recorder import parse_event
 from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGES, MIGRATIONS, Recording, read_recording
 
 # one scalar (the seq) per output of a chain's run: delivered at its sink, or counted apart (`_outputs`)
-_APART = ("held_dropped", "died_with_process", "sink_journal", "in_flight")
+_APART = ("held_dropped", "superseded", "died_with_process", "sink_journal", "in_flight")
 # what a seq not delivered is counted as, by the entity that names it (`_outputs`)
-_CLASS_OF = {"sink_journal": "unrecorded", "held_dropped": "held_dropped", "died_with_process": "died_with_process",
-             "in_flight": "in_flight"}
-_CLASSES = ("unrecorded", "held_dropped", "died_with_process", "in_flight", "abandoned", "lost")
+_CLASS_OF = {"sink_journal": "unrecorded", "held_dropped": "held_dropped", "superseded": "superseded",
+             "died_with_process": "died_with_process", "in_flight": "in_flight"}
+_CLASSES = ("unrecorded", "held_dropped", "superseded", "died_with_process", "in_flight", "abandoned", "lost")
 LOST_SEQS_SHOWN = 20  # a chain lists its first lost seqs, so a user (or a failing test) can look them up
 _PER_OUTPUT = re.compile(r"^components/(?P<chain>.+)/run/(?P<run>\d+)/(?P<what>seq|produced|" + "|".join(_APART) + ")$")
 _SIM_LINK = re.compile(r"link (\S+)[–-](\S+) (cut|healed)")
@@ -598,6 +602,9 @@ def _apart(outputs: dict[str, Any]) -> str:
     if outputs["held_dropped"]:
         parts.append(f"{outputs['held_dropped']} dropped by robots cut off from their sink, their hold full"
                      + (": by design" if outputs["held_dropped_known"] else ""))
+    if outputs.get("superseded"):
+        parts.append(f"{outputs['superseded']} of latest-only chains replaced in a hold by a newer one "
+                     "(delivered, or in hand at the stop)")
     if outputs.get("died_with_process"):
         parts.append(f"{outputs['died_with_process']} of a robot's own chain that died with its crashed process, "
                      "in its memory only")
@@ -617,8 +624,8 @@ def _apart(outputs: dict[str, Any]) -> str:
 
 def _outputs(rec: Recording) -> dict[str, Any]:
     """Outputs per chain and run: produced, delivered (once, twice), and each one not delivered in
-    exactly one class, so that produced = distinct + unrecorded + held_dropped + in_flight
-    + died_with_process + abandoned + lost, for every run, tails included.
+    exactly one class, so that produced = distinct + unrecorded + held_dropped + superseded
+    + in_flight + died_with_process + abandoned + lost, for every run, tails included.
 
     *Produced* is what the chain's source says it produced in the run (``.../run/<run>/produced``,
     logged at a clean stop, `Recorder.record_stop`); without it (its robot killed for good, an older
@@ -628,6 +635,10 @@ def _outputs(rec: Recording) -> dict[str, Any]:
       restarted sink's journal, ``.../sink_journal``);
     - *held_dropped*: let go by a robot cut off from the sink, its hold full (``.../held_dropped``,
       logged by that robot as it dropped it): by design, within the budget;
+    - *superseded*: a latest-only chain's result (``keep = "latest"``) a robot cut off from the
+      sink let go when a newer one of the run replaced it in its hold (``.../superseded``), and
+      only if a later output of the run was delivered or is named in flight: the newer one did
+      what it was let go for. Without that evidence the seq falls through to the classes below;
     - *in_flight*: a node still had it in hand when the team stopped (``.../in_flight``, logged by
       that node at its clean stop: custody, hold, a stage's gate or worker);
     - *died_with_process*: an output of a robot's own chain (source and sink there) in its crashed
@@ -673,8 +684,11 @@ def _outputs(rec: Recording) -> dict[str, Any]:
         classes: dict[str, set[int]] = {}
         # in this order: a node that names a frame in hand at its stop shows it did not die with
         # a crashed process, whatever the restarted one guessed from its window
-        for what in ("sink_journal", "held_dropped", "in_flight", "died_with_process"):
+        newest_kept = max([after_last, *apart_of["in_flight"].get((chain, run), ())])
+        for what in ("sink_journal", "held_dropped", "superseded", "in_flight", "died_with_process"):
             named = missing & apart_of[what].get((chain, run), set())
+            if what == "superseded":  # the evidence: a later output of the run reached the sink or is in hand
+                named = {seq for seq in named if seq < newest_kept}
             classes[_CLASS_OF[what]] = named
             missing -= named
         classes["abandoned"] = {s for s in missing if s > after_last} if run < last_run[chain] else set()
@@ -705,7 +719,7 @@ def _outputs(rec: Recording) -> dict[str, Any]:
             else int(custody["held_dropped"]))
     return {"recorded": bool(seqs_of), "lost": totals["lost"], "duplicated": totals["duplicated"],
             "resent": int(custody["resent"]), "given_up": int(custody["evicted"]),
-            "held_dropped": held, "held_dropped_known": bool(dropped_of),
+            "held_dropped": held, "held_dropped_known": bool(dropped_of), "superseded": totals["superseded"],
             "died_with_process": totals["died_with_process"], "unrecorded": totals["unrecorded"],
             "in_flight": totals["in_flight"], "abandoned": totals["abandoned"],
             "produced": sum(c["produced"] for c in chains.values()),

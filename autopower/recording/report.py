@@ -91,6 +91,8 @@ def render_text(summary: dict[str, Any]) -> str:
                      + (f"; {o['held_dropped']} {'more ' if o.get('held_dropped_known') else ''}dropped by "
                         "robots cut off from their sink too long (beyond their hold budget, `[delivery] "
                         "hold_budget_mb`, the oldest results go)" if o.get("held_dropped") else "")
+                     + (f"; {o['superseded']} of latest-only chains (`keep = \"latest\"`) replaced in a robot's "
+                        "hold by a newer one (delivered, or in hand at the stop)" if o.get("superseded") else "")
                      + (f"; {o['died_with_process']} of a robot's own chain died with its crashed process"
                         if o.get("died_with_process") else "")
                      + (f"; {o['unrecorded']} delivered by a sink killed before it flushed their recording "

@@ -5,8 +5,9 @@ What it records as the run goes:
 - production: every frame a source emitted (chain, run, seq), when, at which trace event;
 - deliveries: every output a sink handed on, counted once its sink committed it (the status
   that acknowledges it went out: what a recording keeps); one handed on twice is a duplicate;
-- the budget: outputs a node let go by design and said so per output (a full hold's drops,
-  outputs that died in a crashed process's memory), and the chains the operator stopped (from
+- the budget: outputs a node let go by design and said so per output (a full hold's drops, a
+  latest-only chain's results a newer one replaced in a hold (in the budget only if a later output
+  of their run is delivered), outputs that died in a crashed process's memory), and the chains the operator stopped (from
   the fault schedule, not from the team); and, from the production itself, the undelivered tail
   of a run its chain left for a newer one (the chain was restarted without its state: what the
   old run had in flight has no consumer any more);
@@ -113,6 +114,8 @@ class Ledger:
                 c.delivered += 1
                 continue
             reason = self.budget.get(key) or ("operator-stopped" if self._stopped(key[0], t) else None)
+            if reason == "superseded" and key[2] > last_delivered.get(key[:2], -1):
+                reason = None  # replaced by a newer result that never arrived either: nothing did its job
             if reason is None and key[1] < newest_run[key[0]] and key[2] > last_delivered.get(key[:2], -1):
                 reason = "run-ended"  # the tail of a run its chain left for a newer one (restarted without state)
             if reason is not None:

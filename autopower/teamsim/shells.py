@@ -79,10 +79,20 @@ class Shell:
     def build(self) -> None:
         """The process's own parts, subscriptions and token (after the runtime exists)."""
 
-    def _dropped_by_budget(self, chain: str, run: int, seq: int) -> None:
-        """A result the node dropped beyond its hold budget: in the oracle's budget only if the
-        node's kept results and this one (its payload is its chain's declared size) exceed it."""
+    def _dropped_by_budget(self, chain: str, run: int, seq: int, why: str) -> None:
+        """A result the node let go from its hold: beyond its hold budget, in the oracle's budget only
+        if the node's kept results and this one (its payload is its chain's declared size) exceed it;
+        superseded, only if its chain keeps the latest and the node holds a newer result of the run."""
         w, custody = self.world, self.rt.custody
+        if why == "superseded":
+            newer = any(f.chain == chain and f.run == run and f.seq > seq for f in self.rt.held_outputs.values())
+            if w.scenario.chain(chain).keep != "latest" or not newer:
+                w.ledger.violate("exactly-once", f"{self.node} let {chain} run {run} seq {seq} go as superseded "
+                                 f"(keep = {w.scenario.chain(chain).keep!r}, a newer one held: {newer})",
+                                 w.scheduler.now, w.trace.events)
+                return
+            w.ledger.let_go((chain, run, seq), "superseded")
+            return
         size = w.scenario.chain(chain).message_bytes[-1]
         if custody.result_bytes + size <= custody.hold_budget_bytes:
             w.ledger.violate("exactly-once", f"{self.node} dropped {chain} run {run} seq {seq} for its hold budget "

@@ -684,17 +684,53 @@ def test_results_beyond_the_hold_budget_are_dropped_oldest_first_and_leave_custo
                          payload_len=100, payload=bytes(100)) for i in range(8)]
     before = len(r2.custody)
     told = []
-    r2.on_held_dropped = lambda chain, run, seq: told.append((chain, run, seq))  # the recorder's hook
+    r2.on_held_dropped = lambda chain, run, seq, why: told.append((chain, run, seq, why))  # the recorder's hook
     for frame in frames:
         r2.keep_result(frame, sent=False)  # as `Frames.emit` does for a result
         r2.hold_output(frame)  # as `send_routed` does with no route to the sink
     assert len(r2.held_outputs) == 5 and r2.held_dropped == 3
-    assert told == [("Blob-2", 0, 10_000), ("Blob-2", 0, 10_001), ("Blob-2", 0, 10_002)]
+    assert told == [("Blob-2", 0, 10_000, "budget"), ("Blob-2", 0, 10_001, "budget"), ("Blob-2", 0, 10_002, "budget")]
     assert len(r2.custody) == before + 5  # the three dropped ones are not held any more
     assert r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
     stats = r2.custody.stats()
     assert stats["dropped-by-budget"] == 3 and stats["dropped-by-budget-bytes"] == 300
     assert stats["results-kept-bytes"] == 500 and r2.custody.evicted == 0
+
+
+def test_a_latest_only_chain_holds_its_newest_result_and_lets_the_older_ones_go_as_superseded():
+    """`keep = "latest"`: a robot cut off from the sink holds one result per run of the chain; each
+    newer one supersedes the one before (counted, told to the recorder, out of custody and of the
+    hold), other chains and other runs are untouched, and the newest goes out once a route returns."""
+    import dataclasses
+
+    sc = load_scenario("paper-fig7")
+    sc = dataclasses.replace(sc, chains=tuple(dataclasses.replace(c, keep="latest") if c.name == "Blob-2" else c
+                                              for c in sc.chains))
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False))
+    team.join()
+    team.run_until(2.0)
+    r2 = team.nodes["r2"]
+    team.pump()
+
+    def result(chain, run, seq, target):
+        return ChainFrame(chain=chain, run=run, seq=seq, target=target, t_virtual=0.0, t_unix=0.0,
+                          payload_len=100, payload=bytes(100))
+
+    told = []
+    r2.on_held_dropped = lambda chain, run, seq, why: told.append((chain, run, seq, why))
+    before = len(r2.custody)
+    frames = [result("Blob-2", 0, 10_000 + i, 1) for i in range(4)] + [result("Blob-2", 1, 5, 1),
+                                                                      result("Loc-2", 0, 9_000, 1),
+                                                                      result("Loc-2", 0, 9_001, 1)]
+    for frame in frames:
+        r2.keep_result(frame, sent=False)
+        r2.hold_output(frame)
+    assert told == [("Blob-2", 0, 10_000 + i, "superseded") for i in range(3)]
+    assert r2.held_superseded == 3 and r2.held_dropped == 0
+    held = {(f.chain, f.run, f.seq) for f in r2.held_outputs.values()}
+    assert held == {("Blob-2", 0, 10_003), ("Blob-2", 1, 5), ("Loc-2", 0, 9_000), ("Loc-2", 0, 9_001)}
+    assert len(r2.custody) == before + 4 and r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
+    assert r2.status(1.0).counters["held-outputs-superseded"] == 3
 
 
 def test_results_outlive_custodys_age_and_count_limits_within_the_budget():

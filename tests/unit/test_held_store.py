@@ -99,7 +99,7 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     team.run_until(20.0)
     old = team.nodes["r2"]
     old.held_store = HeldStore(tmp_path / "r2.held")
-    old.on_held_dropped = lambda chain, run, seq: None  # logged into a recording batch the kill loses
+    old.on_held_dropped = lambda chain, run, seq, why: None  # logged into a recording batch the kill loses
     results = [_result(100_000 + i) for i in range(HOLD + 4)]
     for frame in results:  # as `Frames.emit` and `send_routed` do with the sink out of reach
         old.keep_result(frame, sent=False)
@@ -114,7 +114,7 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     rt.held_store = HeldStore(tmp_path / "r2.held")
     rt.resume_from = saved
     logged = []
-    rt.on_held_dropped = lambda chain, run, seq: logged.append((chain, run, seq))
+    rt.on_held_dropped = lambda chain, run, seq, why: logged.append((chain, run, seq))
     rt.on_plan(old.plan)
     # the four beyond the budget are in the crashed process's journal: the new one drops them again, logged
     assert logged == [("Blob-2", 0, f.seq) for f in results[:4]]

@@ -124,6 +124,34 @@ def test_a_recorded_team_replays_with_migrations_outputs_and_energy(recorded_tea
     assert "robots/r1/model_w" in rec.scalars and "team/allocation" in rec.graphs
 
 
+def test_a_superseded_output_counts_apart_only_with_a_later_one_delivered_or_in_hand(tmp_path):
+    """A latest-only chain's result a newer one replaced in a robot's hold is not lost if the newer
+    one did its job: some later output of the run reached the sink, or a node had one in hand at
+    its stop. Named superseded past every such output, it is lost: the label alone proves nothing."""
+    from autopower.recording.recorder import in_flight_path, produced_path, superseded_path
+
+    t = [0.0]
+    rec = Recorder(Telemetry(tmp_path / "x.rrd", kind="live", properties={"scenario": "paper-fig7"}), "laptop",
+                   clock=lambda: t[0])
+    rec.telemetry.battery(0.0, "r1", 100.0)
+    rec.telemetry.battery(1.0, "r1", 90.0)
+    for seq in (0, 1, 5):
+        rec.on_output("Blob-2", 0, seq, b"")
+    tel = rec.telemetry
+    tel.scalar(produced_path("Blob-2", 0), 1.0, 10)
+    for seq in (2, 3, 4, 7, 9):  # 2-4: superseded by 5 (delivered); 7: by 8 (in hand); 9: by nothing
+        tel.scalar(superseded_path("Blob-2", 0), 1.0, seq)
+    tel.scalar(in_flight_path("Blob-2", 0), 1.0, 8)
+    rec.close()
+    s = summarize(load(tmp_path / "x.rrd"))
+    run = s["outputs"]["chains"]["Blob-2"]["by_run"]["0"]
+    assert (run["delivered"], run["superseded"], run["in_flight"], run["lost"]) == (3, 4, 1, 2)  # lost: 6 and 9
+    assert s["outputs"]["superseded"] == 4 and s["lost_outputs"] == 2
+    assert s["outputs"]["chains"]["Blob-2"]["lost_seqs"] == [[0, 6], [0, 9]]
+    from autopower.recording.report import render_text
+    assert "4 of latest-only chains" in render_text(s)
+
+
 def test_lost_and_duplicated_outputs_are_counted(tmp_path):
     t = [0.0]
     rec = Recorder(Telemetry(tmp_path / "x.rrd", kind="live", properties={"scenario": "paper-fig7"}), "laptop",
@@ -139,7 +167,7 @@ def test_lost_and_duplicated_outputs_are_counted(tmp_path):
     blob = s["outputs"]["chains"]["Blob-2"]
     assert {k: v for k, v in blob.items() if k != "by_run"} == {
         "outputs": 8, "distinct": 5, "produced": 6, "produced_known": False, "lost": 1, "duplicated": 3,
-        "held_dropped": 0, "died_with_process": 0, "unrecorded": 0, "in_flight": 0, "abandoned": 0,
+        "held_dropped": 0, "superseded": 0, "died_with_process": 0, "unrecorded": 0, "in_flight": 0, "abandoned": 0,
         "runs": [0, 1], "lost_seqs": [[0, 2]]}  # which one: to look up in the recording
     assert s["lost_outputs"] == 1 and s["duplicated_outputs"] == 3
     inv = {i["name"]: i["ok"] for i in s["invariants"]}
@@ -173,14 +201,14 @@ def test_every_produced_output_is_in_one_class_tails_included(tmp_path):
     s = summarize(load(tmp_path / "x.rrd"))
     loc = s["outputs"]["chains"]["Loc-1"]
     assert loc["by_run"]["0"] == {"produced": 6, "produced_known": True, "delivered": 3, "duplicated": 0,
-                                  "unrecorded": 0, "held_dropped": 0, "died_with_process": 0, "in_flight": 0,
-                                  "abandoned": 2, "lost": 1}  # 2: a gap; 4, 5: the tail of a run that ended
+                                  "unrecorded": 0, "held_dropped": 0, "superseded": 0, "died_with_process": 0,
+                                  "in_flight": 0, "abandoned": 2, "lost": 1}  # 2: a gap; 4, 5: the tail of a run that ended
     assert loc["by_run"]["1"] == {"produced": 9, "produced_known": True, "delivered": 4, "duplicated": 0,
-                                  "unrecorded": 0, "held_dropped": 1, "died_with_process": 0, "in_flight": 2,
-                                  "abandoned": 0, "lost": 2}  # 7, 8: the last run's tail, in no node's hands
+                                  "unrecorded": 0, "held_dropped": 1, "superseded": 0, "died_with_process": 0,
+                                  "in_flight": 2, "abandoned": 0, "lost": 2}  # 7, 8: the last run's tail, in no node's hands
     for run in loc["by_run"].values():
-        assert run["produced"] == sum(run[k] for k in ("delivered", "unrecorded", "held_dropped", "died_with_process",
-                                                        "in_flight", "abandoned", "lost"))
+        assert run["produced"] == sum(run[k] for k in ("delivered", "unrecorded", "held_dropped", "superseded",
+                                                        "died_with_process", "in_flight", "abandoned", "lost"))
     assert loc["lost_seqs"] == [[0, 2], [1, 7], [1, 8]]
     assert s["lost_outputs"] == 3 and s["outputs"]["in_flight"] == 2 and s["outputs"]["abandoned"] == 2
     assert s["outputs"]["produced"] == 15

@@ -274,6 +274,38 @@ def test_beyond_a_small_hold_budget_the_oldest_results_are_dropped_and_the_oracl
     assert any("for its hold budget with" in v.detail for v in result.violations), result.violations
 
 
+def test_a_latest_only_chain_cut_from_its_sink_delivers_its_newest_result_and_loses_nothing(monkeypatch):
+    """`keep = "latest"` on the camera chains: cut from the laptop for 60 s, each robot holds only its
+    newest Blob result; the rest are superseded (in the oracle's budget because a later output of
+    their run arrives), nothing is lost, and the Loc chains (keep all) deliver everything."""
+    import dataclasses
+
+    from autopower.node.runtime import NodeRuntime
+
+    latest = dataclasses.replace(SC, chains=tuple(dataclasses.replace(c, keep="latest") if c.name.startswith("Blob")
+                                                  else c for c in SC.chains))
+    split = Fault(kind="partition", t=20.0, duration=60.0, nodes=("laptop",))
+    result = run(SimConfig(scenario=latest, seed=1, faults=(split,), mission_s=100.0, quiet_s=30.0))
+    assert result.ok, result.violations
+    for name, chain in result.chains.items():
+        assert chain.lost == 0 and chain.delivered + chain.dropped_by_budget == chain.produced, name
+        if name.startswith("Blob"):  # 4 Hz for 60 s: all but a handful superseded
+            assert chain.budget == {"superseded": chain.dropped_by_budget} and chain.dropped_by_budget > 150, chain
+        else:
+            assert chain.dropped_by_budget == 0, (name, chain)
+    # a node that lets a result go as superseded with no newer one held is caught, not believed
+    supersede = NodeRuntime._supersede_held
+
+    def eager(self, newest):
+        supersede(self, newest)
+        if self.chains[newest.chain].keep == "latest" and self.on_held_dropped is not None:
+            self.on_held_dropped(newest.chain, newest.run, newest.seq + 1, "superseded")
+
+    monkeypatch.setattr(NodeRuntime, "_supersede_held", eager)
+    result = run(SimConfig(scenario=latest, seed=1, faults=(split,), mission_s=100.0, quiet_s=30.0))
+    assert any("go as superseded" in v.detail for v in result.violations), result.violations
+
+
 def test_shrinking_keeps_only_the_fault_that_fails(monkeypatch):
     monkeypatch.setattr(Acknowledging, "resend_lost", lambda self, now: None)
     harmless = [Fault(kind="reorder", t=12.0, duration=3.0, a="r1", b="r3", p=0.01),
