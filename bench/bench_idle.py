@@ -36,6 +36,8 @@ from pathlib import Path
 
 import results
 
+from autopower.model.loading import load_scenario
+
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 ZENOH_THREADS = ("rx-", "tx-", "net-", "acc-", "app-", "Watchdog")  # Zenoh's runtime threads (by name)
 
@@ -148,12 +150,16 @@ def team(seconds: float, src: str | None = None, extra: tuple[str, ...] = (), ru
         try:
             snap = wait_ready(up, name, env)
             time.sleep(2.0)
-            children = {}
-            for pid in tree(up.pid)[1:]:
-                args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-                node = args[args.index(b"--robot") + 1].decode() if b"--robot" in args else "base station"
-                children[node] = pid
-            pids = {"up": up.pid, **dict(sorted(children.items()))}
+            # the nodes by `up`'s session (node -> pid): the agents are forked from its fork server
+            # and carry the server's command line, so /proc cannot tell them apart
+            session = json.loads((Path(env["AUTOPOWER_STATE_DIR"]) / "teams" / name / "session.json").read_text())
+            base = load_scenario(session["scenario"]).basestation
+            children = {("base station" if node == base else node): int(pid)
+                        for node, pid in session["children"].items()}
+            named = set(children.values())
+            others = [pid for pid in tree(up.pid)[1:] if pid not in named]  # the fork server, helpers
+            pids = {"up": up.pid, **dict(sorted(children.items())),
+                    **{f"other {i + 1}": pid for i, pid in enumerate(others)}}
             out = {}
             if running:
                 out["running"] = per_process(pids, seconds)
