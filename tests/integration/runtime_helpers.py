@@ -6,6 +6,7 @@ import time
 
 from autopower.chains import make_component, make_source
 from autopower.errors import AutoPowerError
+from autopower.launch.summary import overhead_j
 from autopower.model.scenario import Scenario
 from autopower.node.sequencing import fold_digest
 from autopower.node.stages import chain_seed
@@ -77,6 +78,9 @@ def reference_digest(scenario: Scenario, chain_name: str, n: int) -> int:
 
 
 def measured_power(s1: dict, s2: dict, robot: str) -> float:
+    """A robot's metered power between two snapshots, less what the model leaves out (migrations,
+    recovery, the control plane, the runtime's own CPU: `model.parts.overhead_kind`), as the run
+    summary and the replay compare it with the model."""
     a, b = s1["robots"][robot]["status"], s2["robots"][robot]["status"]
-    consumed = (a["battery_j"] - b["battery_j"])
+    consumed = (a["battery_j"] - b["battery_j"]) - (overhead_j(b) - overhead_j(a))
     return consumed / (b["t_virtual"] - a["t_virtual"])
