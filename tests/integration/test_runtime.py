@@ -203,8 +203,19 @@ def test_no_output_lost_or_duplicated_over_200_random_migrations(tmp_path):
             time.sleep(rng.choice([0.0, 0.01, 0.03, 0.08]))
         end = wait_for(team, lambda s: s["ready"], 30, "the last migrations to land")
         produced = {c: s["produced"] for c, s in sources_of(end).items()}
-        final = wait_for(team, lambda s: all(sinks_of(s)[c]["contiguous"] >= n for c, n in produced.items()),
-                         30, "every output produced so far at its sink (a lost one would stall this)")
+        try:
+            final = wait_for(team, lambda s: all(sinks_of(s)[c]["contiguous"] >= n for c, n in produced.items()),
+                             30, "every output produced so far at its sink (a lost one would stall this)")
+        except AssertionError as stalled:  # what a stall leaves to look at: custody, sinks, errors, logs
+            snap = team.snapshot()
+            statuses = {"basestation": snap.get("basestation") or {},
+                        **{n: i.get("status") or {} for n, i in snap["robots"].items()}}
+            custody = {n: {k: v for k, v in (st.get("counters") or {}).items()
+                           if k.startswith(("custody", "held", "gate", "given", "redundant"))}
+                       for n, st in statuses.items()}
+            raise AssertionError(f"{stalled}; produced={produced}; custody={custody}; "
+                                 f"sinks={ {c: {k: v for k, v in st.items() if k != 'digest'} for c, st in sinks_of(snap).items()} }; "
+                                 f"errors={errors_of(snap)}; logs in {tmp_path}") from None
         assert final["migrations_done"] >= 200
         for chain, stats in sinks_of(final).items():
             assert stats["duplicates_total"] == 0 and stats["run"] == 0, chain
