@@ -107,10 +107,14 @@ def test_testbed_runs_the_team_in_namespaces_and_a_silent_cut_is_detected(tmp_pa
         snap = json.loads(run_cli(["status", "--json"], env).stdout)
         before = len(snap["faults"])
         # the table `status` draws (and `up` keeps live) has each chain's end-to-end latency
-        table = run_cli(["status"], {**env, "COLUMNS": "200"}).stdout
-        assert "chains (end-to-end latency, source to sink)" in table
-        rows = {line.split("│")[1].strip(): line for line in table.splitlines() if line.count("│") == 8}
-        assert {"Loc-1", "Loc-2", "Loc-3", "Blob-2", "Blob-3"} <= set(rows) and " ms" in rows["Blob-2"], table
+        # (each chain once it has an output: `status` answers in 0.3 s, before Loc-1's first at x5)
+        def chain_rows():
+            table = run_cli(["status"], {**env, "COLUMNS": "200"}).stdout
+            assert "chains (end-to-end latency, source to sink)" in table
+            rows = {line.split("│")[1].strip(): line for line in table.splitlines() if line.count("│") == 8}
+            return rows if {"Loc-1", "Loc-2", "Loc-3", "Blob-2", "Blob-3"} <= set(rows) else None
+        rows = wait_until(chain_rows, 15, "every chain's row in the status table")
+        assert " ms" in rows["Blob-2"], rows
         result = run_cli(["fault", "cut", "r1", "laptop", "--json"], env)
         assert result.returncode == 0, result.stderr
         t_cut = json.loads(result.stdout)["fault"]["t_unix"]
