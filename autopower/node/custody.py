@@ -31,7 +31,10 @@ that stage's host's to keep, so a frame lost after a stateful stage (MCL) is res
 stage's output, never recomputed (which would run MCL twice on one input).
 
 Custody is bounded (frames per hop, bytes per node, age); what is evicted can no longer be
-resent and is counted, so a loss is visible instead of silent.
+resent and is counted, so a loss is visible instead of silent. A source does not fill it up to
+that point: while its first hop has no room (`has_room`) it skips its captures, counted as
+missed periods (``missed-periods-backlog``), so a consumer that falls behind gets the stream
+late but whole, never with holes.
 
 A chain's results (the frames for its sink) are the exception: they are what the operator wants,
 so they are kept, and resent, for as long as their sink needs to come back (store and forward),
@@ -140,6 +143,9 @@ class Custody:
         self.acknowledged = 0
         self.resent = 0
         self.evicted = 0  # dropped unacknowledged (bounds, age, attempts): possibly lost
+        # of ``evicted``, why: the custody full (frames per hop, bytes), or given up (age, attempts)
+        self.evicted_full = 0
+        self.evicted_given_up = 0
         self.result_bytes = 0  # of ``bytes``: the results kept (what the hold budget bounds)
         self.dropped_by_budget = 0  # results dropped, the budget full (returned by `keep`, counted here)
         self.dropped_by_budget_bytes = 0
@@ -178,11 +184,29 @@ class Custody:
             return self._over_budget()
         while len(hop) > self.max_frames_per_hop:
             self._drop(hop, next(iter(hop)), evicted=True)
+            self.evicted_full += 1
         while self.bytes - self.result_bytes > self.max_bytes:
             oldest = min((h for h in self.hops.values() if h and not next(iter(h.values())).result),
                          key=lambda h: next(iter(h.values())).kept_unix)
             self._drop(oldest, next(iter(oldest)), evicted=True)
+            self.evicted_full += 1
         return []
+
+    def has_room(self, chain: str, target: int, size: int) -> bool:
+        """Whether a frame of ``size`` bytes for this hop can be kept without evicting another.
+
+        A source asks before it captures: a consumer that has fallen this far behind (a stage
+        stalled by a migration, a machine that cannot keep up) is not sent more. Evicting the
+        oldest frame instead opened a gap in the middle of the stream that its gate waited on
+        and then gave up: the frames held were lost, and the newest kept coming."""
+        hop = self.hops.get((chain, target))
+        if hop is not None and len(hop) >= self.max_frames_per_hop:
+            return False
+        return self.bytes - self.result_bytes + size <= self.max_bytes
+
+    def held_for(self, chain: str, target: int) -> int:
+        """How many frames this node holds for a hop."""
+        return len(self.hops.get((chain, target), ()))
 
     def _over_budget(self) -> list[ChainFrame]:
         """Drop the oldest results while they take more than the hold budget."""
@@ -286,6 +310,7 @@ class Custody:
                 if not held.result and (now - held.kept_unix > self.max_age_s
                                         or held.frame.attempt >= self.max_attempts):
                     self._drop(frames, key, evicted=True)
+                    self.evicted_given_up += 1
                     continue
                 if (report is None or held.sent_unix is None
                         or report.t_unix - report.queue_wait_s < held.sent_unix + self.resend_after_s
@@ -309,5 +334,6 @@ class Custody:
 
     def stats(self) -> dict[str, int]:
         return {"custody-frames": len(self), "custody-bytes": self.bytes, "custody-resent": self.resent,
-                "custody-evicted": self.evicted, "results-kept-bytes": self.result_bytes,
+                "custody-evicted": self.evicted, "custody-evicted-full": self.evicted_full,
+                "custody-evicted-given-up": self.evicted_given_up, "results-kept-bytes": self.result_bytes,
                 "dropped-by-budget": self.dropped_by_budget, "dropped-by-budget-bytes": self.dropped_by_budget_bytes}

@@ -764,6 +764,16 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def _produce(self, runner: SourceRunner, t_tick: float) -> None:
         chain = runner.chain
+        if not self.custody.has_room(chain.name, 0, chain.message_bytes[0]):
+            # back-pressure: the first stage has not run what this node holds for it (`Custody.has_room`)
+            runner.missed += 1
+            self.tally("missed-periods")
+            self.tally("missed-periods-backlog")
+            if self.counters["missed-periods-backlog"] == 1 or self.counters["missed-periods-backlog"] % 100 == 0:
+                log.warning("%s: source %s skipped a capture: its consumer has not run the %d frame(s) held for it "
+                            "(custody full; %d skipped so far)", self.node, chain.name,
+                            self.custody.held_for(chain.name, 0), self.counters["missed-periods-backlog"])
+            return
         try:
             data = self.guard.call(runner.source.produce, runner.seq, timeout_s=self.hang_limit_s(chain))
             payload = pad(data, chain.message_bytes[0], f"{chain.name} source")

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from autopower.launch.summary import lost_outputs
+from autopower.node.held_store import HeldStore
 from tests.e2e.test_up import AUTOPOWER, alive, env_for, run_cli, wait_until
 
 REJOIN_S = 15.0  # SIGKILL -> restarted -> joined -> back on the plan with its stage (a loaded machine)
@@ -159,6 +160,11 @@ def test_an_agent_restarted_while_the_base_station_is_out_of_reach_goes_on_with_
         # restarts what the round put on it (killed before, its peers' next round restarts it:
         # test_subgroup_rounds)
         wait_until(lambda: "committed" in (logs / "r2.log").read_text(), 20, "r2 to apply the round")
+        # killed once it holds a result on disk for the base station out of reach (what the end checks
+        # it took back): the round restarts Blob-2 on r2, and its first result may come after the commit
+        held = Path(env["AUTOPOWER_STATE_DIR"]) / "teams" / "sup3" / "agents" / "r2.held"
+        mission = {k: before["mission"][k] for k in ("scenario", "epoch_unix", "speed")}
+        wait_until(lambda: HeldStore(held).load(mission), 20, "r2 to hold a result on disk")
         assert run_cli(["fault", "crash", "r2", "--json"], env).returncode == 0
         t_crash = time.time()
         line = wait_until(lambda: next((ln for ln in (logs / "r2.log").read_text().splitlines()

@@ -96,9 +96,9 @@ def test_metered_power_matches_the_model(accounting, topology, media, allocation
     ev = evaluate(sc, network, allocation, accounting=accounting)
     assert ev.feasible, ev.violations
     t0, t1 = 10.0, 110.0
-    team.run_until(t0)
+    team.run_exchanging_statuses(t0)  # with the acknowledgements that free each robot's custody
     start = {r: team.energy(r) for r in ("r1", "r2", "r3")}
-    team.run_until(t1)
+    team.run_exchanging_statuses(t1)
     for robot in ("r1", "r2", "r3"):
         measured_w = (team.energy(robot) - start[robot]) / (t1 - t0)
         assert measured_w == pytest.approx(ev.robots[robot].total_w, rel=2e-3), robot
@@ -115,9 +115,9 @@ def test_meter_parts_match_the_model_breakdown():
     team.join()
     ev = evaluate(sc, team.coordinator.plan_network, MIXED)
     assert ev.feasible
-    team.run_until(20.0)
+    team.run_exchanging_statuses(20.0)
     before = {r: (team.energy(r), dict(team.nodes[r].meter.energy_j))[1] for r in ("r1", "r2", "r3")}
-    team.run_until(120.0)
+    team.run_exchanging_statuses(120.0)
     for robot in ("r1", "r2", "r3"):
         team.energy(robot)
         after = team.nodes[robot].meter.energy_j

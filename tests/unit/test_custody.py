@@ -284,13 +284,17 @@ def test_a_lost_mcl_pose_is_resent_from_custody_not_recomputed():
     check_exactly_once(team, outputs)
 
 
-def run_with_backlog(*, say_wait: bool, drop_every: int = 7):
+def run_with_backlog(*, say_wait: bool, drop_every: int = 7, r2_holds: int | None = None):
     """The laptop's loop falls 3 s behind for a while (its frames wait in its event queue, and one
-    in ``drop_every`` finds the queue full and is dropped), then catches up."""
+    in ``drop_every`` finds the queue full and is dropped; 0: none is), then catches up.
+
+    ``r2_holds``: the camera frames r2's custody may hold for one hop (its `max_frames_per_hop`)."""
     sc = load_scenario("paper-fig7")
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Blob-2": "laptop"}))
     outputs = collect(team)
     team.join()
+    if r2_holds is not None:
+        team.nodes["r2"].custody.max_frames_per_hop = r2_holds
     laptop, data_key = team.nodes["laptop"], team.keys.node_data("laptop")
     backlog: list[tuple[float, str, bytes]] = []  # (queued at, key, payload): the laptop's bulk queue
     arrived, dropped, send = [0], [0], team._send
@@ -298,7 +302,7 @@ def run_with_backlog(*, say_wait: bool, drop_every: int = 7):
     def slow_laptop(sender, dest, key, payload, bus):
         if dest == "laptop" and key == data_key and 10.0 <= team.clock.t < 20.0:
             arrived[0] += 1
-            if arrived[0] % drop_every:
+            if not drop_every or arrived[0] % drop_every:
                 backlog.append((team.clock.wall(), key, payload))
             else:
                 dropped[0] += 1  # "queue-full": lost on arrival
@@ -344,6 +348,23 @@ def test_a_consumer_behind_on_its_queue_is_resent_only_what_its_queue_dropped():
     assert sum(rt.custody.resent for rt in team.nodes.values()) == dropped
     assert team.nodes["laptop"].counters.get("redundant-input", 0) == 0
     check_exactly_once(team, outputs)
+
+
+def test_a_source_whose_consumer_falls_behind_skips_captures_instead_of_evicting_what_it_holds():
+    # r2 may hold 8 camera frames for the blob finder on the laptop, whose loop is 3 s (12 frames,
+    # plus a status period for the report) behind: full, r2 skips captures, counted as missed
+    # periods, and the stream arrives late but whole. (Evicting the oldest held frame instead left
+    # a gap the laptop's gate waited on and gave up: every frame evicted was lost.)
+    team, outputs, dropped = run_with_backlog(say_wait=True, drop_every=0, r2_holds=8)
+    r2 = team.nodes["r2"]
+    assert dropped == 0
+    skipped = r2.counters.get("missed-periods-backlog", 0)
+    assert skipped > 0, "the custody never filled: the test proves nothing"
+    assert r2.custody.evicted == 0
+    assert r2.sources["Blob-2"].missed == skipped
+    check_exactly_once(team, outputs)
+    # the source went on once the laptop caught up: 30 s of camera periods, less those skipped
+    assert r2.sources["Blob-2"].seq + skipped == pytest.approx(30.0 / 0.25, abs=2)
 
 
 def test_a_consumer_that_does_not_say_how_far_behind_it_is_gets_its_queue_again():

@@ -258,9 +258,9 @@ def test_a_team_on_lossy_links_meters_what_the_model_says():
     network = team.coordinator.plan_network
     ev, clean = evaluate(sc, network, LAPTOP), evaluate(FIG7, network, LAPTOP)
     t0, t1 = 10.0, 110.0
-    team.run_until(t0)
+    team.run_exchanging_statuses(t0)  # with the acknowledgements that free each robot's custody
     start = {r: team.energy(r) for r in ("r1", "r2", "r3")}
-    team.run_until(t1)
+    team.run_exchanging_statuses(t1)
     for robot in ("r1", "r2", "r3"):
         measured_w = (team.energy(robot) - start[robot]) / (t1 - t0)
         assert measured_w == pytest.approx(ev.robots[robot].total_w, rel=2e-3), robot
