@@ -277,10 +277,17 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
             time.sleep(0.1)
         if not commits:
             raise AutoPowerError(f"demo: no subgroup agreement within 10 s (logs in {log_dir})")
-        # the base station has just lost every robot; its answer may wait on links Zenoh is closing
-        snap = _wait(team, lambda s: True, 10, "the base station's answer after the cut")
-        lost = [f for f in snap["faults"][before:] if f["kind"] == "node-left"]
-        detected = max((f["detected_unix"] for f in lost), default=None)
+        # The base station loses every robot at its own lease, which may end after the robots' rounds
+        # committed: asked too soon it has not seen them go (its answer may also wait on links Zenoh
+        # is closing). Waited for up to 10 s; a robot it still has not lost leaves detection unknown.
+        def lost_of(s: dict) -> list[dict]:
+            return [f for f in s["faults"][before:] if f["kind"] == "node-left"]
+
+        give_up = time.monotonic() + 10
+        snap = _wait(team, lambda s: len(lost_of(s)) >= len(robots), 12, "the base station's answer after the cut",
+                     unless=lambda: time.monotonic() > give_up)
+        lost = lost_of(snap) if snap else []
+        detected = max(f["detected_unix"] for f in lost) if len(lost) >= len(robots) else None
         faults_out.append({"kind": "cut", "target": ",".join(f"{r}-{base}" for r in robots),
                            "parts": [f"{r}-{base}" for r in robots],
                            "detected_wall_s": (detected - t_cut) if detected else None,
