@@ -13,7 +13,8 @@ paper's team size). Printed per size: the time until the team is ready, the peri
 CPU the whole team used (every process, per wall second and per robot), the outputs its sinks
 took in with any gap or second copy, the largest gap between a robot's metered power and the
 model's, whether every process stopped by itself, the largest process's memory (peak RSS) and the
-messages the base station's event queue dropped. A team that is not ready within the time `up`
+messages the base station's event queue dropped, and per process: the base station's CPU and the
+busiest agent's (each from its status: since the mission started) and their peak memory. A team that is not ready within the time `up`
 allows is reported as such, with the base station's last log lines that say why.
 """
 
@@ -33,22 +34,44 @@ import results as bench_results
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 
 
-def run_up(args: list[str], env: dict, timeout_s: float, out_path: Path) -> tuple[int, float, int]:
+def peak_rss_kb(pid: int) -> int:
+    """A live process's peak resident memory (the kernel's VmHWM), 0 once it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def run_up(args: list[str], env: dict, timeout_s: float, out_path: Path,
+           session_file: Path) -> tuple[int, float, int, dict[str, int]]:
     """Run `autopower up`, stdout to ``out_path``: (exit code, CPU s, peak RSS in KB) of it and every
-    process it started (`wait4` sums what its children used; the RSS is the largest one's)."""
+    process it started (`wait4` sums what its children used; the RSS is the largest one's), and the
+    peak RSS in KB of each node's process, read while it runs (the nodes' pids from up's session)."""
     with open(out_path, "wb") as out:
         proc = subprocess.Popen([AUTOPOWER, "up", *args], env=env, stdout=out, stderr=subprocess.DEVNULL,
                                 stdin=subprocess.DEVNULL)
     deadline = time.monotonic() + timeout_s
+    children: dict[str, int] = {}
+    peaks: dict[str, int] = {}
     while True:
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid:
             break
         if time.monotonic() > deadline:
             proc.kill()
+        if not children:
+            try:
+                children = {node: int(p) for node, p in json.loads(session_file.read_text())["children"].items()}
+            except (OSError, ValueError, KeyError):
+                pass  # not written yet
+        for node, child in children.items():
+            peaks[node] = max(peaks.get(node, 0), peak_rss_kb(child))
         time.sleep(0.2)
     proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, usage.ru_utime + usage.ru_stime, usage.ru_maxrss
+    return proc.returncode, usage.ru_utime + usage.ru_stime, usage.ru_maxrss, peaks
 
 
 def queue_drops(summary: dict) -> int:
@@ -74,8 +97,11 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str,
                     "--out", str(scenario)], env=env, check=True, capture_output=True, timeout=120)
     started = time.monotonic()
     log_dir = folder / f"logs-{n}"
-    code, cpu, rss_kb = run_up([str(scenario), "--speed", f"{speed:g}", "--duration", f"{seconds:g}", "--json",
-                                "--log-dir", str(log_dir), *up_args], env, seconds + 600, folder / f"up-{n}.json")
+    team = f"fleet-{n}"
+    code, cpu, rss_kb, peaks = run_up(
+        [str(scenario), "--team", team, "--speed", f"{speed:g}", "--duration", f"{seconds:g}", "--json",
+         "--log-dir", str(log_dir), *up_args], env, seconds + 600, folder / f"up-{n}.json",
+        Path(env["AUTOPOWER_STATE_DIR"]) / "teams" / team / "session.json")
     wall = time.monotonic() - started
     text = (folder / f"up-{n}.json").read_text(errors="replace")
     try:
@@ -92,6 +118,15 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str,
              **{c: s for r in summary["robots"].values() for c, s in r["sinks"].items()}}
     run_wall = wall - summary["ready_after_s"]
     robots = list(summary["robots"])
+    # each process's CPU over the mission's wall time (its status counts from the mission's start)
+    mission_wall = (summary.get("t_virtual") or 0.0) / speed
+
+    def cores(cpu_s: dict | None) -> float:
+        return sum((cpu_s or {}).values()) / mission_wall if mission_wall > 0 else 0.0
+
+    agent_cores = [cores(r.get("cpu_s")) for r in summary["robots"].values()]
+    base_name = next((node for node in peaks if node not in summary["robots"]), None)
+    agent_peaks = [kb for node, kb in peaks.items() if node in summary["robots"]]
     per_robot = [sum(b for pair, b in summary.get("link_bytes", {}).items() if r in pair.split("-")) for r in robots]
     out.update(ready_after_s=summary["ready_after_s"], missed_pct=summary["missed_periods_pct"],
                outputs=sum(s["received"] for s in sinks.values()),
@@ -105,7 +140,12 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str,
                cores=cpu / wall, run_wall_s=run_wall,
                robot_kbps=max(per_robot, default=0) / wall / 1e3 * 8,
                robot_links=max((sum(r in p.split("-") for p in summary.get("link_bytes", {})) for r in robots),
-                               default=0))
+                               default=0),
+               basestation_cores=cores(summary["basestation"].get("cpu_s")),
+               agent_cores_max=max(agent_cores, default=0.0),
+               agent_cores_mean=sum(agent_cores) / len(agent_cores) if agent_cores else 0.0,
+               basestation_peak_mb=peaks.get(base_name, 0) / 1024 if base_name else 0.0,
+               agent_peak_mb_max=max(agent_peaks, default=0) / 1024)
     return out
 
 
@@ -133,14 +173,17 @@ def main() -> None:
                     for n in sizes]
     base = runs[0]
     print(f"{'robots':>6} {'ready s':>8} {'missed %':>9} {'cores':>6} {'CPU s/robot':>12} {'outputs':>8} "
-          f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6} {'peak MB':>8} {'drops':>6} {'robot kbit/s':>13}")
+          f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6} {'peak MB':>8} {'drops':>6} {'robot kbit/s':>13} "
+          f"{'base cores':>11} {'agent cores':>12} {'base MB':>8} {'agent MB':>9}")
     for r in runs:
         if not r["ready"]:
             print(f"{r['robots']:>6} not ready ({r['error'][:90]}) {r['why']}")
             continue
         print(f"{r['robots']:>6} {r['ready_after_s']:>8.1f} {r['missed_pct']:>9.2f} {r['cores']:>6.2f} "
               f"{r['cpu_s'] / r['robots']:>12.2f} {r['outputs']:>8} {r['gaps']:>5} {r['duplicates']:>5} "
-              f"{r['power_error_pct']:>14.2f} {str(r['clean']):>6} {r['peak_rss_mb']:>8.0f} {r['queue_drops']:>6} {r['robot_kbps']:>13.0f}")
+              f"{r['power_error_pct']:>14.2f} {str(r['clean']):>6} {r['peak_rss_mb']:>8.0f} {r['queue_drops']:>6} {r['robot_kbps']:>13.0f} "
+              f"{r['basestation_cores']:>11.3f} {r['agent_cores_max']:>12.3f} {r['basestation_peak_mb']:>8.0f} "
+              f"{r['agent_peak_mb_max']:>9.0f}")
     note = f"the {base['robots']}-robot fleet, run the same way in the same run"
     figures = []
     for r in runs[1:]:
@@ -175,6 +218,16 @@ def main() -> None:
                                         f"keep-alives, TLS), the whole run"),
             bench_results.figure("largest process's peak memory", r["peak_rss_mb"], "MB", f"{base['robots']} robots",
                                  base["peak_rss_mb"], group=g, note=note),
+            bench_results.figure("the base station's CPU", r["basestation_cores"], "cores",
+                                 f"{base['robots']} robots", base["basestation_cores"], group=g, note=note,
+                                 detail="its process since the mission started: runtime and the stages it hosts"),
+            bench_results.figure("the busiest agent's CPU", r["agent_cores_max"], "cores",
+                                 f"{base['robots']} robots", base["agent_cores_max"], group=g, note=note,
+                                 detail=f"mean of the agents {r['agent_cores_mean']:.3f} cores"),
+            bench_results.figure("the base station's peak memory", r["basestation_peak_mb"], "MB",
+                                 f"{base['robots']} robots", base["basestation_peak_mb"], group=g, note=note),
+            bench_results.figure("the largest agent's peak memory", r["agent_peak_mb_max"], "MB",
+                                 f"{base['robots']} robots", base["agent_peak_mb_max"], group=g, note=note),
             bench_results.figure("messages the base station's queue dropped", r["queue_drops"], "messages",
                                  f"{base['robots']} robots", base["queue_drops"], group=g, note=note),
         ]

@@ -166,6 +166,7 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
             "sources": st.get("sources", {}), "sinks": st.get("sinks", {}),
             "errors": st.get("errors", {}), "counters": st.get("counters", {}),
             "energy_by_part_j": st.get("energy_j", {}),
+            "cpu_s": process_cpu_s(st),
         }
     base = snap.get("basestation") or {}
     produced, missed, missed_pct = missed_periods(snap)
@@ -182,7 +183,7 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
         "robots": robots,
         "basestation": {"sinks": base.get("sinks", {}), "errors": base.get("errors", {}),
                         "counters": base.get("counters", {}), "hosted": base.get("hosted", {}),
-                        "compute_ms": base.get("compute_ms", {})},
+                        "compute_ms": base.get("compute_ms", {}), "cpu_s": process_cpu_s(base)},
         "frames_produced": produced, "periods_missed": missed,
         "periods_missed_while_stopped": missed_while_stopped(snap),
         "missed_ratio": missed / (produced + missed) if produced + missed else 0.0,
@@ -192,6 +193,12 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
         "replans": snap.get("replans"), "first_depletion": snap.get("first_depletion"),
         "events": snap.get("events"), "exit_codes": exit_codes or {}, "log_dir": log_dir,
     }
+
+
+def process_cpu_s(status: dict) -> dict[str, float]:
+    """A node's CPU seconds on this computer since the mission started in its process (a restarted
+    process counts from its own start): the runtime's and its component code's (`NodeStatus`)."""
+    return {"runtime": status.get("runtime_cpu_s", 0.0), "components": status.get("component_cpu_s", 0.0)}
 
 
 def team_sinks(snap: dict) -> list[dict]:

@@ -91,3 +91,16 @@ def test_the_overheads_the_model_leaves_out_are_shown_beside_the_comparison_not_
     r1 = run_summary(end, team="t", speed=10, ready_after_s=1.0, wall_s=10.0, at_ready=at_ready)["robots"]["r1"]
     assert r1["placed_overhead_w"] == pytest.approx(0.05)
     assert r1["placed_power_w"] == pytest.approx(2.0) and r1["power_error"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_each_process_says_the_cpu_its_runtime_and_its_components_used():
+    end = _snap(100.0, 800.0)
+    end["robots"]["r1"]["status"].update(runtime_cpu_s=1.5, component_cpu_s=0.25)
+    end["basestation"] = {"runtime_cpu_s": 3.0, "component_cpu_s": 7.0, "sinks": {}}
+    out = run_summary(end, team="t", speed=10, ready_after_s=1.0, wall_s=10.0)
+    assert out["robots"]["r1"]["cpu_s"] == {"runtime": 1.5, "components": 0.25}
+    assert out["basestation"]["cpu_s"] == {"runtime": 3.0, "components": 7.0}
+    # a robot never heard from used nothing it could say
+    end["robots"]["r2"] = {"present": False}
+    assert run_summary(end, team="t", speed=10, ready_after_s=1.0,
+                       wall_s=10.0)["robots"]["r2"]["cpu_s"] == {"runtime": 0.0, "components": 0.0}
