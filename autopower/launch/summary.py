@@ -27,6 +27,13 @@ def missed_while_stopped(snap: dict) -> int:
     return sum(s.get("missed_stopped", 0) for s in _sources(snap))
 
 
+def missed_for_backlog(snap: dict) -> int:
+    """Of the periods missed, the captures sources skipped because the first stage had not yet run
+    what they held for it (its custody full: `Custody.has_room`), over every robot."""
+    return sum(((info.get("status") or {}).get("counters") or {}).get("missed-periods-backlog", 0)
+               for info in (snap.get("robots") or {}).values())
+
+
 def keep_up_warning(snap: dict, speed: float) -> str | None:
     """What to tell the user when this machine cannot keep up with the chosen speed-up, else None.
 
@@ -38,8 +45,11 @@ def keep_up_warning(snap: dict, speed: float) -> str | None:
     pct = 100.0 * slow / (produced + missed) if produced + missed else 0.0
     if pct <= KEEP_UP_THRESHOLD_PCT:
         return None
-    return (f"{slow} source periods missed ({pct:.1f} %) with no agent stopped: this machine cannot keep up with "
-            f"--speed {speed:g}; lower --speed (and use --energy-scale for shorter missions)")
+    backlog = missed_for_backlog(snap)
+    why = (f", {backlog} of them skipped because a stage had not run the frames its source held for it"
+           if backlog else "")
+    return (f"{slow} source periods missed ({pct:.1f} %) with no agent stopped{why}: this machine cannot keep up "
+            f"with --speed {speed:g}; lower --speed (and use --energy-scale for shorter missions)")
 
 
 def every_robot_depleted(snap: dict) -> bool:
@@ -186,6 +196,7 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
                         "compute_ms": base.get("compute_ms", {}), "cpu_s": process_cpu_s(base)},
         "frames_produced": produced, "periods_missed": missed,
         "periods_missed_while_stopped": missed_while_stopped(snap),
+        "periods_missed_backlog": missed_for_backlog(snap),
         "missed_ratio": missed / (produced + missed) if produced + missed else 0.0,
         "missed_periods_pct": round(missed_pct, 2),
         "warnings": [warning] if warning else [],

@@ -79,3 +79,17 @@ def test_up_does_not_blame_the_speed_up_for_periods_missed_while_an_agent_was_st
     warning = keep_up_warning(snap(100, 40), 10.0)  # 60 of them with nothing stopped: too fast
     assert warning.startswith("60 source periods missed (5.5 %) with no agent stopped") and "--speed 10" in warning
     assert keep_up_warning(snap(5, 0), 10.0) is None  # start-up jitter
+
+
+def test_up_says_which_missed_periods_a_stage_behind_its_source_caused():
+    from autopower.launch.summary import keep_up_warning, run_summary
+
+    source = {"run": 0, "produced": 1000, "missed": 80, "produced_total": 1000, "missed_stopped": 0}
+    snap = {"t_virtual": 100.0, "ready": True,
+            "robots": {"r2": {"present": True, "status": {"sources": {"Blob-2": source},
+                                                          "counters": {"missed-periods-backlog": 30}}}}}
+    warning = keep_up_warning(snap, 10.0)
+    assert warning.startswith("80 source periods missed (7.4 %) with no agent stopped, 30 of them skipped because "
+                              "a stage had not run the frames its source held for it"), warning
+    out = run_summary(snap, team="t", speed=10, ready_after_s=1.0, wall_s=10.0)
+    assert (out["periods_missed"], out["periods_missed_backlog"]) == (80, 30)
