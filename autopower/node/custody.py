@@ -32,7 +32,8 @@ stage's output, never recomputed (which would run MCL twice on one input).
 
 Custody is bounded (frames per hop, bytes per node, age); what is evicted can no longer be
 resent and is counted, so a loss is visible instead of silent. A source does not fill it up to
-that point: while its first hop has no room (`has_room`) it skips its captures, counted as
+that point: while its first hop has no room (`has_room`: its frames per hop, or its share of the
+bytes) it skips its captures, counted as
 missed periods (``missed-periods-backlog``), so a consumer that falls behind gets the stream
 late but whole, never with holes.
 
@@ -139,6 +140,7 @@ class Custody:
         self.hops: dict[Hop, OrderedDict[tuple[int, int], Held]] = {}
         self.reports: dict[Hop, Report] = {}
         self.bytes = 0
+        self.hop_bytes: dict[Hop, int] = {}  # of ``bytes``, each hop's
         self.kept = 0
         self.acknowledged = 0
         self.resent = 0
@@ -178,6 +180,7 @@ class Custody:
         if len(seqs) > 2 * len(hop) + 64:  # mostly seqs dropped below a lasting floor: start afresh
             seqs[:] = sorted(seq for (run, seq) in hop if run == frame.run)  # a sorted list is a heap
         self.bytes += len(frame.payload)
+        self.hop_bytes[(frame.chain, frame.target)] = self.hop_bytes.get((frame.chain, frame.target), 0) + len(frame.payload)
         self.kept += 1
         if result:
             self.result_bytes += len(frame.payload)
@@ -192,17 +195,22 @@ class Custody:
             self.evicted_full += 1
         return []
 
-    def has_room(self, chain: str, target: int, size: int) -> bool:
-        """Whether a frame of ``size`` bytes for this hop can be kept without evicting another.
+    def has_room(self, chain: str, target: int, size: int, sharers: int = 1) -> bool:
+        """Whether a frame of ``size`` bytes for this hop can be kept without evicting another, the
+        hop taking at most its share of the bytes: 1 / ``sharers`` (the node's sources).
 
         A source asks before it captures: a consumer that has fallen this far behind (a stage
         stalled by a migration, a machine that cannot keep up) is not sent more. Evicting the
         oldest frame instead opened a gap in the middle of the stream that its gate waited on
-        and then gave up: the frames held were lost, and the newest kept coming."""
+        and then gave up: the frames held were lost, and the newest kept coming. The share keeps
+        one stalled camera chain from filling the node's bytes and stopping a healthy chain's
+        source beside it."""
         hop = self.hops.get((chain, target))
         if hop is not None and len(hop) >= self.max_frames_per_hop:
             return False
-        return self.bytes - self.result_bytes + size <= self.max_bytes
+        share = self.max_bytes // max(1, sharers)
+        return (self.hop_bytes.get((chain, target), 0) + size <= share
+                and self.bytes - self.result_bytes + size <= self.max_bytes)
 
     def held_for(self, chain: str, target: int) -> int:
         """How many frames this node holds for a hop."""
@@ -254,6 +262,10 @@ class Custody:
             for run in [r for (h, r) in self._seqs if h == (held.frame.chain, held.frame.target)]:
                 del self._seqs[((held.frame.chain, held.frame.target), run)]
         self.bytes -= len(held.frame.payload)
+        held_hop = (held.frame.chain, held.frame.target)
+        self.hop_bytes[held_hop] = self.hop_bytes.get(held_hop, 0) - len(held.frame.payload)
+        if not hop:
+            self.hop_bytes.pop(held_hop, None)
         if held.result:
             self.result_bytes -= len(held.frame.payload)
         if evicted:

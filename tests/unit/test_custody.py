@@ -131,6 +131,26 @@ def test_custody_is_bounded_and_counts_what_it_gives_up():
     assert len(custody) == 0 and custody.evicted == 6 and custody.acknowledged == 1
 
 
+def test_a_source_has_room_up_to_its_share_so_a_stalled_chain_does_not_stop_the_one_beside_it():
+    custody = Custody(max_frames_per_hop=100, max_bytes=1_000)
+    for seq in range(5):  # a stalled camera chain: nothing acknowledged
+        assert custody.has_room("Blob-2", 0, 100, sharers=2)
+        custody.keep(frame(seq, size=100), now=0.0)
+    assert not custody.has_room("Blob-2", 0, 100, sharers=2)  # its half of the bytes is full
+    assert custody.has_room("Blob-2", 0, 100, sharers=1)  # alone on the node it could take all
+    assert custody.has_room("Loc-2", 0, 100, sharers=2)  # the other source's half is free
+    for seq in range(4):
+        custody.keep(frame(seq, chain="Loc-2", size=100), now=0.0)
+    assert not custody.has_room("Loc-2", 0, 200, sharers=2)
+    custody.on_report("Blob-2", 0, report(next_seq=3, max_seq=4))  # the blob finder ran 0-2
+    assert custody.hop_bytes == {("Blob-2", 0): 200, ("Loc-2", 0): 400} and custody.evicted == 0
+    assert custody.has_room("Blob-2", 0, 100, sharers=2)
+    small = Custody(max_frames_per_hop=2)
+    small.keep(frame(0), now=0.0)
+    small.keep(frame(1), now=0.0)
+    assert not small.has_room("Blob-2", 0, 1)  # the frames per hop bound too
+
+
 def test_gate_reports_its_gaps_and_gives_up_a_gap_that_stays_open():
     gate = SequenceGate(next_seq=0, max_pending=4)
     assert gate.report(0, 3) == Consumed(run=0, generation=3, next_seq=0, max_seq=-1, missing=())
@@ -623,6 +643,7 @@ def test_the_floor_is_the_lowest_seq_held_whatever_was_kept_and_dropped(ops):
         for r in (0, 1):
             held = [s for (hr, s) in custody.hops.get(("c", 1), {}) if hr == r]
             assert custody.floor("c", 1, r, default=-1) == (min(held) if held else -1)
+        assert custody.hop_bytes.get(("c", 1), 0) == len(custody.hops.get(("c", 1), {})) == custody.bytes
     assert sum(len(h) for h in custody._seqs.values()) <= 2 * 25 * 2 + 2 * 64 + 2  # dropped seqs do not pile up
 
 
