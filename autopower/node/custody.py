@@ -32,10 +32,10 @@ stage's output, never recomputed (which would run MCL twice on one input).
 
 Custody is bounded (frames per hop, bytes per node, age); what is evicted can no longer be
 resent and is counted, so a loss is visible instead of silent. A source does not fill it up to
-that point: while its first hop has no room (`has_room`: its frames per hop, or its share of the
-bytes) it skips its captures, counted as
-missed periods (``missed-periods-backlog``), so a consumer that falls behind gets the stream
-late but whole, never with holes.
+that point when its consumer is behind: while its first hop is full (its frames per hop, or its
+share of the bytes) and the oldest frame in it waits for longer than a resend would, it skips its
+captures, counted as missed periods (``missed-periods-backlog``), so a consumer that falls behind
+gets the stream late but whole, never with holes (`has_room`).
 
 A chain's results (the frames for its sink) are the exception: they are what the operator wants,
 so they are kept, and resent, for as long as their sink needs to come back (store and forward),
@@ -195,22 +195,25 @@ class Custody:
             self.evicted_full += 1
         return []
 
-    def has_room(self, chain: str, target: int, size: int, sharers: int = 1) -> bool:
-        """Whether a frame of ``size`` bytes for this hop can be kept without evicting another, the
-        hop taking at most its share of the bytes: 1 / ``sharers`` (the node's sources).
+    def has_room(self, chain: str, target: int, size: int, now: float, sharers: int = 1) -> bool:
+        """Whether a source may capture a frame of ``size`` bytes for this hop: False only while the
+        hop is full (its frames, or its share of the bytes: 1 / ``sharers``, the node's sources)
+        *and* its consumer is behind (the oldest frame held was kept ``resend_after_s`` ago or more).
 
-        A source asks before it captures: a consumer that has fallen this far behind (a stage
-        stalled by a migration, a machine that cannot keep up) is not sent more. Evicting the
-        oldest frame instead opened a gap in the middle of the stream that its gate waited on
-        and then gave up: the frames held were lost, and the newest kept coming. The share keeps
-        one stalled camera chain from filling the node's bytes and stopping a healthy chain's
-        source beside it."""
+        A consumer that has fallen this far behind (a stage stalled by a migration, a machine
+        that cannot keep up) is not sent more. Evicting the oldest frame instead opened a gap in
+        the middle of the stream that its gate waited on and then gave up: the frames held were
+        lost, and the newest kept coming. The share keeps one stalled camera chain from stopping a
+        healthy chain's source beside it. A hop that is full only because its acknowledgements
+        take a status period to come back (a camera hop at x100 fills in a third of a second) is
+        not behind: it keeps the newest frame and `keep` evicts the oldest, most likely run by now."""
         hop = self.hops.get((chain, target))
-        if hop is not None and len(hop) >= self.max_frames_per_hop:
-            return False
+        if not hop:
+            return True
         share = self.max_bytes // max(1, sharers)
-        return (self.hop_bytes.get((chain, target), 0) + size <= share
-                and self.bytes - self.result_bytes + size <= self.max_bytes)
+        full = (len(hop) >= self.max_frames_per_hop or self.hop_bytes.get((chain, target), 0) + size > share
+                or self.bytes - self.result_bytes + size > self.max_bytes)
+        return not full or now - next(iter(hop.values())).kept_unix < self.resend_after_s
 
     def held_for(self, chain: str, target: int) -> int:
         """How many frames this node holds for a hop."""

@@ -764,7 +764,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def _produce(self, runner: SourceRunner, t_tick: float) -> None:
         chain = runner.chain
-        if not self.custody.has_room(chain.name, 0, chain.message_bytes[0], sharers=len(self.sources)):
+        if not self.custody.has_room(chain.name, 0, chain.message_bytes[0], self.wall(), sharers=len(self.sources)):
             # back-pressure: the first stage has not run what this node holds for it (`Custody.has_room`)
             runner.missed += 1
             self.tally("missed-periods")

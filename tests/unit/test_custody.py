@@ -131,24 +131,27 @@ def test_custody_is_bounded_and_counts_what_it_gives_up():
     assert len(custody) == 0 and custody.evicted == 6 and custody.acknowledged == 1
 
 
-def test_a_source_has_room_up_to_its_share_so_a_stalled_chain_does_not_stop_the_one_beside_it():
-    custody = Custody(max_frames_per_hop=100, max_bytes=1_000)
+def test_a_source_has_room_until_its_hop_is_full_and_behind_and_a_stalled_chain_does_not_stop_the_other():
+    custody = Custody(max_frames_per_hop=100, max_bytes=1_000, resend_after_s=1.0)
     for seq in range(5):  # a stalled camera chain: nothing acknowledged
-        assert custody.has_room("Blob-2", 0, 100, sharers=2)
+        assert custody.has_room("Blob-2", 0, 100, now=0.0, sharers=2)
         custody.keep(frame(seq, size=100), now=0.0)
-    assert not custody.has_room("Blob-2", 0, 100, sharers=2)  # its half of the bytes is full
-    assert custody.has_room("Blob-2", 0, 100, sharers=1)  # alone on the node it could take all
-    assert custody.has_room("Loc-2", 0, 100, sharers=2)  # the other source's half is free
+    # its half of the bytes is full, but its oldest frame is younger than a resend: only the
+    # acknowledgements are on their way (keep evicts the oldest, as a fast consumer has run it)
+    assert custody.has_room("Blob-2", 0, 100, now=0.5, sharers=2)
+    assert not custody.has_room("Blob-2", 0, 100, now=1.0, sharers=2)  # behind: no more captures
+    assert custody.has_room("Blob-2", 0, 100, now=1.0, sharers=1)  # alone on the node it could take all
+    assert custody.has_room("Loc-2", 0, 100, now=1.0, sharers=2)  # the other source's half is free
     for seq in range(4):
-        custody.keep(frame(seq, chain="Loc-2", size=100), now=0.0)
-    assert not custody.has_room("Loc-2", 0, 200, sharers=2)
+        custody.keep(frame(seq, chain="Loc-2", size=100), now=1.0)
+    assert not custody.has_room("Loc-2", 0, 200, now=2.0, sharers=2)
     custody.on_report("Blob-2", 0, report(next_seq=3, max_seq=4))  # the blob finder ran 0-2
     assert custody.hop_bytes == {("Blob-2", 0): 200, ("Loc-2", 0): 400} and custody.evicted == 0
-    assert custody.has_room("Blob-2", 0, 100, sharers=2)
+    assert custody.has_room("Blob-2", 0, 100, now=2.0, sharers=2)
     small = Custody(max_frames_per_hop=2)
     small.keep(frame(0), now=0.0)
     small.keep(frame(1), now=0.0)
-    assert not small.has_room("Blob-2", 0, 1)  # the frames per hop bound too
+    assert not small.has_room("Blob-2", 0, 1, now=5.0)  # the frames per hop bound too
 
 
 def test_gate_reports_its_gaps_and_gives_up_a_gap_that_stays_open():
