@@ -32,9 +32,10 @@ from pathlib import Path
 import results
 from bench_idle import team_status, wait_ready
 
+from autopower.launch.summary import overhead_j
 from autopower.model.energy import airtime_s
 from autopower.model.loading import load_scenario
-from autopower.model.parts import CPU_RUNTIME, overhead_kind
+from autopower.model.parts import CPU_RUNTIME
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 
@@ -47,7 +48,7 @@ def counts(snap: dict) -> dict[str, tuple[float, ...]]:
         st = info.get("status") or {}
         if st.get("link_bytes") is not None:
             energy = st.get("energy_j") or {}
-            steady = sum(j for part, j in energy.items() if overhead_kind(part) is None)
+            steady = sum(energy.values()) - overhead_j(st)  # the model's steady state, as the summary splits it
             out[robot] = (st["t_unix"], *st["link_bytes"], *st["control_bytes"], st.get("runtime_cpu_s", 0.0),
                           st.get("component_cpu_s", 0.0), energy.get(CPU_RUNTIME, 0.0), steady)
     return out

@@ -65,7 +65,9 @@ def test_a_socket_missing_from_one_reading_adds_only_its_growth_when_read_again(
     for _ in range(KEEP_UNSEEN_READINGS):  # gone for good: forgotten, so the table does not grow
         traffic.poll(LINK, {})
     assert traffic.poll(LINK, {}) == {ZID_LAPTOP: (1200, 400)}
-    assert not traffic._last
+    # forgotten: the same socket seen again counts as new, from 0 (its whole totals added), where
+    # one still remembered would add only its growth (100 B)
+    assert traffic.poll(LINK, {PAIR: ("socket:[1]", SocketTotals(1300, 400))}) == {ZID_LAPTOP: (2500, 800)}
 
 
 @pytest.mark.skipif(not supported(), reason="reads TCP_INFO through /proc (Linux)")
