@@ -12,10 +12,11 @@ wall time at ``--speed``. The first size is the baseline measured in the same ru
 paper's team size). Printed per size: the time until the team is ready, the periods missed, the
 CPU the whole team used (every process, per wall second and per robot), the outputs its sinks
 took in with any gap or second copy, the largest gap between a robot's metered power and the
-model's, whether every process stopped by itself, the largest process's memory (peak RSS) and the
+model's, whether every process stopped by itself, the largest process's memory (peak RSS), the
 messages the base station's event queue dropped, and per process: the base station's CPU and the
-busiest agent's (each from its status: since the mission started) and their peak memory. A team that is not ready within the time `up`
-allows is reported as such, with the base station's last log lines that say why.
+busiest agent's (each from its status: since the mission started) and their peak memory. A team
+that is not ready within the time `up` allows is reported as such, with the base station's last
+log lines that say why.
 """
 
 from __future__ import annotations
@@ -37,12 +38,9 @@ AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 def peak_rss_kb(pid: int) -> int:
     """A live process's peak resident memory (the kernel's VmHWM), 0 once it is gone."""
     try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1])
-    except (OSError, ValueError):
-        pass
-    return 0
+        return bench_results.proc_status_kb(pid, "VmHWM") or 0
+    except OSError:
+        return 0
 
 
 def run_up(args: list[str], env: dict, timeout_s: float, out_path: Path,

@@ -42,10 +42,8 @@ def free_port() -> int:
 
 
 def rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+    kb = results.proc_status_kb(pid, "VmRSS")
+    return kb / 1024 if kb is not None else float("nan")
 
 
 ENVELOPE = b"\x94\xc4\x02AP"  # what every encoded message starts with: a 4-array, then the magic

@@ -43,6 +43,15 @@ def load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
+def proc_status_kb(pid: int, field: str) -> int | None:
+    """A memory figure of a live process in KiB, as /proc/<pid>/status shows it (``VmRSS``, the
+    peak ``VmHWM``, ...); None if the kernel does not list it; OSError once the process is gone."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(f"{field}:"):
+            return int(line.split()[1])
+    return None
+
+
 def cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():

@@ -170,17 +170,18 @@ class Custody:
         full (oldest first: the caller counts them as dropped by the budget, never as lost).
 
         ``result``: the frame is a chain's result for its sink (see the module's rules)."""
-        hop = self.hops.setdefault((frame.chain, frame.target), OrderedDict())
+        hop_id = (frame.chain, frame.target)
+        hop = self.hops.setdefault(hop_id, OrderedDict())
         key = (frame.run, frame.seq)
         if key in hop:
             return []
         hop[key] = Held(frame=frame, kept_unix=now, sent_unix=now if sent else None, result=result)
-        seqs = self._seqs.setdefault(((frame.chain, frame.target), frame.run), [])
+        seqs = self._seqs.setdefault((hop_id, frame.run), [])
         heapq.heappush(seqs, frame.seq)
         if len(seqs) > 2 * len(hop) + 64:  # mostly seqs dropped below a lasting floor: start afresh
             seqs[:] = sorted(seq for (run, seq) in hop if run == frame.run)  # a sorted list is a heap
         self.bytes += len(frame.payload)
-        self.hop_bytes[(frame.chain, frame.target)] = self.hop_bytes.get((frame.chain, frame.target), 0) + len(frame.payload)
+        self.hop_bytes[hop_id] = self.hop_bytes.get(hop_id, 0) + len(frame.payload)
         self.kept += 1
         if result:
             self.result_bytes += len(frame.payload)
