@@ -504,13 +504,18 @@ def _faults(rec: Recording, kind: str, raw, decision_times: list[float], migrati
         t_f = fault["t_s"]
         t_next = min((f["t_s"] for f in faults[i + 1:] if f["t_s"] > t_f + _EPS), default=math.inf)
         if fault.pop("_from_detection", False):
-            t_det, det = t_f, None  # injection time unknown
+            t_first_seen, det = t_f, None  # injection time unknown
         else:
-            t_det = _detection(fault["parts"], detected, t_f, t_next, base)
-            if t_det is None and kind == "simulation":
-                t_det = t_f  # the simulator reacts to events the moment they happen
-            det = None if t_det is None else max(0.0, t_det - t_f)
-        t_ref = t_f if t_det is None else t_det  # a radio fault is not seen by liveliness: its replan is
+            seen = _detection(fault["parts"], detected, t_f, t_next, base)
+            if seen is None and kind == "simulation":
+                seen = (t_f, t_f)  # the simulator reacts to events the moment they happen
+            t_first_seen = None if seen is None else seen[0]
+            det = None if seen is None else max(0.0, seen[1] - t_f)
+        # The team may act on the first part it sees (a subgroup round commits once its members lost
+        # the base station, whatever a third robot has yet to notice): the reaction is searched from
+        # the first part seen, while the fault counts as detected when its last part is.
+        # a fault no liveliness shows (a radio change): its reaction is searched from its injection
+        t_ref = t_f if t_first_seen is None else t_first_seen
         gone = set(fault["parts"]) if fault["kind"] == "crash-agent" else set()
         reconf, how = _reconfiguration(rec, kind, t_ref, t_next, plans, commits, decision_times, stage_ready, gone)
         if reconf is None and kind == "simulation" and not [t for t in decision_times if t_ref - _EPS <= t < t_next - _EPS]:
@@ -528,11 +533,12 @@ def _faults(rec: Recording, kind: str, raw, decision_times: list[float], migrati
     return out
 
 
-def _detection(parts: list[str], detected, t_f: float, t_next: float, base: str | None) -> float | None:
-    """When a fault was seen: a link when either of its ends first saw it (the team acts on the
-    first report: the base station replans from a robot's relayed status before its own liveliness
-    lease runs out), a node when the base station saw it (else when any node did); a fault of
-    several parts when its last part was seen. None if no part was seen."""
+def _detection(parts: list[str], detected, t_f: float, t_next: float,
+               base: str | None) -> tuple[float, float] | None:
+    """(first, last): when the first and the last part of a fault were seen. A link is seen when
+    either of its ends first saw it (the team acts on the first report: the base station replans
+    from a robot's relayed status before its own liveliness lease runs out), a node when the base
+    station saw it (else when any node did). None if no part was seen."""
     seen = []
     for target in parts:
         names = set(target.split("-")) if target else set()
@@ -542,7 +548,7 @@ def _detection(parts: list[str], detected, t_f: float, t_next: float, base: str 
             by_end = [t for t, observer in hits if len(names) > 1 and observer in names]
             by_base = [t for t, observer in hits if observer == base]
             seen.append(min(by_end or by_base or [t for t, _ in hits]))
-    return max(seen) if seen else None
+    return (min(seen), max(seen)) if seen else None
 
 
 def _reconfiguration(rec, kind, t_ref, t_next, plans, commits, decision_times, stage_ready, gone=frozenset()):

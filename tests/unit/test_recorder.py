@@ -409,3 +409,32 @@ def test_a_plan_change_heard_back_before_its_publication_is_recorded_as_its_deci
     rec.close()
     decided = [p["epoch"] for _, _, p in _events(load(tmp_path / "b.rrd"), DECISIONS) if p and p.get("type") == "plan"]
     assert decided == [1, 2] and rec.errors == 0
+
+
+def test_a_fault_of_several_parts_is_reconfigured_by_the_round_committed_before_its_last_part_was_seen(tmp_path):
+    """Testbed demo in CI, 2026-11-30: every robot cut from the base station at once (three links).
+    r1 and r2 saw it at once, their subgroup round committed at 1.22 s; the base station saw the
+    third link only at 1.52 s on a loaded machine, and the base station's later plan was credited.
+    The fault is detected when its last part is seen, but reconfigured by the first reaction after
+    its first part was."""
+    tel = Telemetry(tmp_path / "laptop.rrd", kind="live", properties={"scenario": "paper-fig7",
+                                                                     "basestation": "laptop"})
+    tel.battery(0.0, "r1", 10.0)
+    for robot in ("r1", "r2", "r3"):
+        record_fault(tel, 100.0, kind="cut", target=f"{robot}-laptop")
+    record_fault(tel, 100.3, kind="node-lost", target="laptop", phase="detected", observer="r1")
+    record_fault(tel, 100.35, kind="node-lost", target="laptop", phase="detected", observer="r2")
+    record_fault(tel, 100.4, kind="node-lost", target="r1", phase="detected", observer="laptop")
+    record_fault(tel, 100.4, kind="node-lost", target="r2", phase="detected", observer="laptop")
+    tel.decision(100.9, tag_event("round 7 proposed", type="sg-propose", round_id="r1-7",
+                                  moves=[{"stage": "Loc-1", "to": "r2"}]))
+    tel.decision(101.22, tag_event("round 7 committed", type="sg-decision", round_id="r1-7", commit=True))
+    record_fault(tel, 101.52, kind="node-lost", target="r3", phase="detected", observer="laptop")
+    tel.decision(104.29, tag_event("plan epoch 7", type="plan", epoch=7, placement={}))
+    tel.battery(106.0, "r1", 9.0)
+    tel.close()
+    [fault] = summarize(load(tmp_path / "laptop.rrd"))["faults"]
+    assert fault["parts"] == ["r1-laptop", "r2-laptop", "r3-laptop"]
+    assert fault["detected_mission_s"] == pytest.approx(1.52)  # the last part seen
+    assert fault["reconfigured_by"] == "subgroup round r1-7"
+    assert fault["reconfigured_mission_s"] == pytest.approx(1.22)
