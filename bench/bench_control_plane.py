@@ -33,8 +33,10 @@ import results
 from bench_idle import team_status, wait_ready
 
 from autopower.launch.summary import overhead_j
+from autopower.model.control_plane import ControlPlaneSpec
 from autopower.model.energy import airtime_s
 from autopower.model.loading import load_scenario
+from autopower.model.network import build_network
 from autopower.model.parts import CPU_RUNTIME
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
@@ -68,6 +70,19 @@ def rates(first: dict, second: dict) -> dict[str, dict[str, float]]:
                       "chain_in": link_in - ctl_in, "runtime_cpu": runtime, "component_cpu": component,
                       "runtime_w": runtime_w, "steady_w": steady_w, "window_s": dt}
     return out
+
+
+UP_LEASE_MS = 500  # `autopower up`'s default lease, with 2 keep-alives per lease (launch.localhost)
+STATUS_PERIOD_S = {"running": 0.5, "rest": 2.0}  # the runtime's status cadences (runtime.cadence)
+
+
+def model_bytes_per_robot(scenario, status_period_s: float, lease_s: float) -> float:
+    """The control plane's bytes a second per robot, sent and received, by the model's rules on the
+    scenario's network (`model.control_plane`), for this team's cadence and lease."""
+    spec = ControlPlaneSpec(enabled=True, status_period_s=status_period_s, lease_s=lease_s, keep_alives_per_lease=2)
+    directed = spec.directed_bytes(build_network(scenario))
+    robots = [r.name for r in scenario.robots]
+    return statistics.mean(sum(b for (u, v), b in directed.items() if robot in (u, v)) for robot in robots)
 
 
 def measure(scenario: str, seconds: float, lease_ms: int | None) -> dict[str, dict]:
@@ -129,6 +144,14 @@ def main() -> None:
                                       note="the same robots' chain packets while the default mission ran, this run"))
         if phase == "running":
             print(f"  mean per robot: control {ctl:,.0f} B/s, chain packets {chain:,.0f} B/s")
+        model = model_bytes_per_robot(scenario, STATUS_PERIOD_S[phase], (args.lease_ms or UP_LEASE_MS) / 1000.0)
+        print(f"  the model's control plane (model.control_plane): {model:,.0f} B/s per robot, "
+              f"{model / ctl:.2f} x the metered")
+        figures.append(results.figure(f"the model's control plane, {label}", model, "B/s per robot",
+                                      f"metered ({label})", ctl, group="bytes per robot per wall second",
+                                      note="what the same robots' links carried beyond their chain packets, this "
+                                           "run; running, it also holds the TCP framing and acknowledgements of the "
+                                           "chain packets, which the model leaves out"))
         sent = statistics.mean(r["control_out"] for r in per.values())
         for medium, radio in sorted(radios.items()):
             share = airtime_s(sent, radio) * 100.0  # seconds of airtime per second sent

@@ -328,7 +328,7 @@ class Deciding:
     def _predict(self) -> None:
         ev = self._evaluate(self.target, self.plan_network, self.remaining_energies())
         ev = self._at_levels(ev)
-        self.predicted_w = {r: p.total_w for r, p in ev.robots.items()} if ev else {}
+        self.predicted_w = {r: p.steady_w for r, p in ev.robots.items()} if ev else {}
         self.predicted_lifetime_s = ev.lifetime_s if ev else None
         self.plan_t_virtual = self.now()
         self._reset_baselines()
@@ -345,7 +345,7 @@ class Deciding:
         running = set(self.running)
         allocation = {s: n for s, n in self.placement.items() if self.chain_of[s].name in running}
         ev = self._evaluate(allocation, self.plan_network, {}, running=running, levels=self.levels)
-        return {r: p.total_w for r, p in ev.robots.items()} if ev else {}
+        return {r: p.steady_w for r, p in ev.robots.items()} if ev else {}
 
     def _at_levels(self, ev):
         """DVFS: every robot at the cheapest frequency level at which its placement fits (a robot's

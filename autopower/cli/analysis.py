@@ -9,6 +9,7 @@ from rich.table import Table
 
 from autopower.cli.options import (
     ACCOUNTING_OPT,
+    CONTROL_PLANE_OPT,
     ENERGY_OPT,
     JSON_OPT,
     POSITIVE,
@@ -38,16 +39,18 @@ def check(scenario: str) -> None:
 @click.option("--ties", default=4, show_default=True, help="How many tied optima to list per media pair.")
 @click.option("--markdown", is_flag=True, help="Print a Markdown table (for reports).")
 @profile_opts
+@CONTROL_PLANE_OPT
 @click.option("--only", type=click.Choice(["all", "paper", "optimal"]), default="all", show_default=True,
               help="Rows to show: everything, the paper's reference rows, or the optimum per media pair.")
 @click.option("--pareto", is_flag=True,
               help="Print the Pareto front of lifetime against quality instead (scenarios with quality variants).")
 def analyze(scenario: str, energy, accounting, as_json: bool, ties: int, markdown: bool, only: str,
-            profile, as_platform, pareto: bool) -> None:
+            profile, as_platform, control_plane, pareto: bool) -> None:
     """Tabulate all-local, all-laptop and the optimum per topology and media pair (the paper's Fig 7)."""
     from autopower.planner.analysis import analyze as run
 
-    s = build_scenario(scenario, energy, accounting=accounting, profile=profile, as_platform=as_platform)
+    s = build_scenario(scenario, energy, accounting=accounting, profile=profile, as_platform=as_platform,
+                       control_plane=control_plane)
     if pareto:
         from autopower.cli.quality import print_front
 
@@ -122,12 +125,14 @@ def markdown_table(s: Scenario, rows, normaliser) -> str:
 @click.option("--time-limit", type=POSITIVE, default=None, help="MILP time limit in seconds.")
 @click.option("--no-bound", is_flag=True, help="Skip the time-sharing bound.")
 @profile_opts
+@CONTROL_PLANE_OPT
 def plan_cmd(scenario, energy, accounting, as_json, topology, method, disable, without, time_limit, no_bound,
-             profile, as_platform) -> None:
+             profile, as_platform, control_plane) -> None:
     """The optimal allocation and media, with reasons and the time-sharing bound."""
     from autopower.planner import PlanRequest, plan
 
-    s = build_scenario(scenario, energy, accounting=accounting, profile=profile, as_platform=as_platform)
+    s = build_scenario(scenario, energy, accounting=accounting, profile=profile, as_platform=as_platform,
+                       control_plane=control_plane)
     for chain in disable:
         s.chain(chain)
     for robot in without:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -153,8 +154,10 @@ def parse_pairs(values: tuple[str, ...], what: str, example: str) -> dict[str, s
 
 def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float | None = None,
                    accounting: str | None = None, profile: str | None = None,
-                   as_platform: str | None = None, *, to_run: bool = False) -> Scenario:
-    """The scenario with a latency profile, energy overrides (absolute, then scaled) and an accounting mode.
+                   as_platform: str | None = None, *, to_run: bool = False,
+                   control_plane: bool | None = None) -> Scenario:
+    """The scenario with a latency profile, energy overrides (absolute, then scaled), an accounting
+    mode, and the control plane charged or not (``None``: as the scenario says).
 
     Its plug-in components are imported and checked here, before anything starts (a one-line
     `ScenarioError` naming the file and line otherwise), and registered for this process;
@@ -177,6 +180,9 @@ def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float 
         if not energy_scale > 0:
             raise AutoPowerError(f"--energy-scale must be > 0, got {energy_scale}")
         scenario = scenario.with_energies({r.name: r.energy_j * energy_scale for r in scenario.robots})
+    if control_plane is not None:
+        scenario = dataclasses.replace(
+            scenario, control_plane=dataclasses.replace(scenario.control_plane, enabled=control_plane))
     return scenario.with_accounting(accounting)
 
 
@@ -215,6 +221,12 @@ SCENARIO_ARG = click.argument("scenario", default="paper-fig7", metavar="SCENARI
 ENERGY_OPT = click.option("--energy", multiple=True, metavar="ROBOT=J", help="Override a robot's starting energy (repeatable).")
 ACCOUNTING_OPT = click.option("--accounting", type=click.Choice(["paper", "physical"]), default=None,
                               help="Message accounting (default: the scenario's).")
+CONTROL_PLANE_OPT = click.option(
+    "--control-plane/--no-control-plane", "control_plane", default=None,
+    help="Charge the team's own statuses and keep-alives on every link (the scenario's [control_plane]; "
+         "default: as the scenario says, off for the paper's scenarios).")
+
+
 def profile_opts(f):
     f = click.option("--latency-profile", "profile", default=None, metavar="FILE",
                      help="Latencies measured by `autopower profile` ...")(f)

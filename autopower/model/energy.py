@@ -133,6 +133,18 @@ class LoadSpace:
             for medium in network.media_of(robot):
                 self.present[i, self.medium_index[medium]] = True
         self._chain_cache: dict[tuple[str, tuple[str, ...]], np.ndarray] = {}
+        # the team's own statuses and keep-alives on every link (`model.control_plane`): the same
+        # whatever runs where, so every load of this space carries it (`split`); None when off
+        self.control = self._control_load() if scenario.control_plane.enabled else None
+
+    def _control_load(self) -> np.ndarray:
+        load = np.zeros(self.size)
+        for (u, v), n_bytes in self.scenario.control_plane.directed_bytes(self.network).items():
+            medium = self.network.medium_between(u, v)
+            air = airtime_s(n_bytes, self.scenario.radios[medium], self.scenario.link_loss(u, v))
+            load[self.send_slot(u, medium)] += air
+            load[self.recv_slot(v, medium)] += air
+        return load
 
     def cpu_slot(self, node: str) -> int:
         return self.node_index[node]
@@ -183,7 +195,10 @@ class LoadSpace:
 
     # ---- load -> power -------------------------------------------------------------------------
     def split(self, loads: np.ndarray):
-        """(cpu_u (K,N), send_air (K,N,M), recv_air (K,N,M)) views of a (K, size) batch."""
+        """(cpu_u (K,N), send_air (K,N,M), recv_air (K,N,M)) of a (K, size) batch, the control
+        plane's load added when the scenario charges it."""
+        if self.control is not None:
+            loads = loads + self.control
         k = loads.shape[0]
         n, m = len(self.nodes), len(self.media)
         cpu = loads[:, :n]
@@ -206,6 +221,15 @@ class LoadSpace:
             "sleep_w": self.present * self.sleep_w * np.clip(1.0 - busy, 0.0, None),
             "busy": busy,
         }
+
+    def control_w(self, robot: str) -> float:
+        """What the control plane's airtime costs ``robot`` beyond its radios' sleep power (0 when off)."""
+        if self.control is None:
+            return 0.0
+        i = self.node_index[robot]
+        send = self.control[self._send0 + i * len(self.media):self._send0 + (i + 1) * len(self.media)]
+        recv = self.control[self._recv0 + i * len(self.media):self._recv0 + (i + 1) * len(self.media)]
+        return float(send @ (self.send_w - self.sleep_w) + recv @ (self.receive_w - self.sleep_w))
 
     def feasible(self, loads: np.ndarray) -> np.ndarray:
         return self.peak_utilisation(loads) <= UTILISATION_LIMIT
@@ -256,6 +280,14 @@ class RobotPower:
     radios: Mapping[str, RadioPower]
     total_w: float
     lifetime_s: float
+    # of total_w, what the control plane's airtime costs beyond the radios' sleep (0 when not charged)
+    control_w: float = 0.0
+
+    @property
+    def steady_w(self) -> float:
+        """The model's power without the control plane: what a live robot's metered steady state
+        is compared with (the meter counts the control plane it measures among the overheads)."""
+        return self.total_w - self.control_w
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -308,6 +340,7 @@ class Evaluation:
                     "cpu_w": rp.cpu_w,
                     "cpu_utilisation": rp.cpu_utilisation,
                     "lifetime_s": rp.lifetime_s,
+                    "control_w": rp.control_w,
                     "radios": {m: {"send_w": r.send_w, "receive_w": r.receive_w, "sleep_w": r.sleep_w,
                                    "busy": r.busy} for m, r in rp.radios.items()},
                 }
@@ -393,7 +426,7 @@ def evaluate(
         total = float(parts["cpu_w"][i] + sum(r.total_w for r in radios.values()))
         robots[robot] = RobotPower(robot=robot, energy_j=space.energy_j[i], cpu_w=float(parts["cpu_w"][i]),
                                    cpu_utilisation=float(parts["cpu_u"][i]), radios=radios, total_w=total,
-                                   lifetime_s=space.energy_j[i] / total)
+                                   lifetime_s=space.energy_j[i] / total, control_w=space.control_w(robot))
     base_radios = {}
     if space.network.basestation in space.node_index:
         b = space.node_index[space.network.basestation]

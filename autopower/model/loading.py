@@ -18,6 +18,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 from autopower.errors import ScenarioError
 from autopower.model import schema
+from autopower.model.control_plane import ControlPlaneSpec
 from autopower.model.dag import Flow, find_cycle
 from autopower.model.dvfs import parse_levels
 from autopower.model.network import connected_parts
@@ -306,6 +307,7 @@ class ScenarioParser:
             basestation_radio_limit=limit_radios,
             quality_weight=self.quality_weight(top.get("mission", {})),
             hold_budget_bytes=self.hold_budget(top.get("delivery", {})),
+            control_plane=self.control_plane(top.get("control_plane", {})),
         )
         self.check_lossy_links(scenario)
         self.check_routable(scenario)
@@ -335,6 +337,30 @@ class ScenarioParser:
     def hold_budget(self, obj: Any) -> int:
         delivery = self.section(obj, "delivery", "delivery")
         return int(self.number(delivery, "hold_budget_mb", "delivery", positive=True, default=64.0) * 2**20)
+
+    def control_plane(self, obj: Any) -> ControlPlaneSpec:
+        section = self.section(obj, "control_plane", "control_plane")
+        enabled = section.get("enabled", False)
+        if not isinstance(enabled, bool):
+            raise self.fail("control_plane.enabled", f"found {enabled!r}", "true or false")
+        numbers = {key: self.number(section, key, "control_plane", positive=True)
+                   for key in ("status_period_s", "lease_s", "max_detection_s") if key in section}
+        sizes = {key: int(self.number(section, key, "control_plane", minimum=0.0))
+                 for key in ("status_bytes", "peer_status_bytes", "keep_alive_bytes", "packet_overhead_bytes",
+                             "ack_bytes", "relayed_extra_bytes") if key in section}
+        if "keep_alives_per_lease" in section:
+            sizes["keep_alives_per_lease"] = int(self.number(section, "keep_alives_per_lease", "control_plane",
+                                                             minimum=1.0))
+        if "max_detection_s" in numbers and "lease_s" not in numbers:
+            try:
+                numbers["lease_s"] = ControlPlaneSpec.lease_for(numbers["max_detection_s"])
+            except ScenarioError as exc:
+                raise self.fail("control_plane.max_detection_s", str(exc), "a requirement of at least 0.5 s") from None
+        try:
+            return ControlPlaneSpec(enabled=enabled, **numbers, **sizes)
+        except ScenarioError as exc:
+            raise self.fail("control_plane", str(exc).removeprefix("control_plane: "),
+                            "a lease no longer than max_detection_s") from None
 
     def platforms(self, obj: Any) -> dict[str, Platform]:
         obj = self.table(obj, "platforms", obj.keys() if isinstance(obj, dict) else [])

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from autopower.errors import ScenarioError
+from autopower.model.control_plane import OFF, ControlPlaneSpec
 from autopower.model.dag import Flow
 
 ACCOUNTING_MODES = ("paper", "physical")
@@ -163,6 +164,8 @@ class Scenario:
     quality_weight: float = 0.0
     # [delivery] hold_budget_mb, in bytes: results a node keeps for a sink out of reach (`node.custody`)
     hold_budget_bytes: int = 64 * 2**20
+    # [control_plane]: the team's own statuses and keep-alives, charged when enabled (`model.control_plane`)
+    control_plane: ControlPlaneSpec = OFF
 
     # ---- lookups -------------------------------------------------------------------------
     def node_names(self) -> list[str]:

@@ -75,6 +75,8 @@ TABLES: tuple[Table, ...] = (
         _opt("migration", _TABLE, "what moving a running component costs", of="migration"),
         _opt("mission", _TABLE, "how lifetime and quality are traded", of="mission"),
         _opt("delivery", _TABLE, "what a node keeps for a sink out of its reach", of="delivery"),
+        _opt("control_plane", _TABLE, "whether the team's own statuses and keep-alives are charged",
+             of="control_plane"),
     )),
     Table("scenario", "[scenario]", "The scenario's name and accounting.", (
         _req("name", _STRING, "the scenario's name"),
@@ -242,6 +244,25 @@ TABLES: tuple[Table, ...] = (
         _opt("hold_budget_mb", "number > 0", "results a node keeps (in memory and in its journal on disk) until "
              "their sink acknowledges them; beyond it the oldest are dropped, counted apart from lost ones",
              "64"),
+    )),
+    Table("control_plane", "[control_plane]", "The team's own messages on every direct link: statuses, "
+          "keep-alives and their acknowledgements (docs/concepts/energy-model.md).", (
+        _opt("enabled", "true or false", "charge them in the model and the planner (false: the paper's "
+             "assumption, Fig. 7 exactly)", "false"),
+        _opt("status_period_s", "number > 0", "seconds between two statuses of a running node", "0.5"),
+        _opt("lease_s", "number > 0", "the transport's lease: a cut link or dead peer is seen after it",
+             "0.5, or the longest allowed by max_detection_s"),
+        _opt("max_detection_s", "number > 0", "the mission's requirement: a failure seen within this; "
+             "the lease is the longest within it (every control cost falls with a longer lease)", "none"),
+        _opt("keep_alives_per_lease", "integer >= 1", "keep-alives per lease on a link that sends nothing else",
+             "2"),
+        _opt("status_bytes", "integer >= 0", "a robot's status to the base station, encoded, with its key", "1300"),
+        _opt("peer_status_bytes", "integer >= 0", "the status robots send each other, encoded, with its key", "260"),
+        _opt("keep_alive_bytes", "integer >= 0", "one keep-alive message", "8"),
+        _opt("packet_overhead_bytes", "integer >= 0", "IP, TCP and TLS framing around each message", "74"),
+        _opt("ack_bytes", "integer >= 0", "the acknowledgement each message gets back", "52"),
+        _opt("relayed_extra_bytes", "integer >= 0", "a status relayed to a base station out of direct reach: "
+             "its route and signature, on every hop", "517"),
     )),
 )
 

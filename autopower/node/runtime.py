@@ -536,7 +536,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         except (AutoPowerError, KeyError, ValueError) as exc:
             log.info("%s: no model prediction for the placement %s: %s", self.node, dict(plan.placement), exc)
             return {}
-        return {r: p.total_w for r, p in ev.robots.items()}
+        return {r: p.steady_w for r, p in ev.robots.items()}
 
     def hold_output(self, frame: ChainFrame) -> None:
         # Sent late, as a retransmission: the sink may have had this output meanwhile from another

@@ -174,6 +174,7 @@ class PlacementModel:
                             add(send[(a, medium)], self.const_send, (a, medium), term, air)
                             add(recv[(b, medium)], self.const_recv, (b, medium), term, air)
         self._add_dag_flows(add, send, recv)
+        self._add_control_plane(add, send, recv)
         self.cpu, self.send, self.recv = cpu, send, recv
 
         # radio presence r[i, m] >= y[g, m] for every link of i (a constant 1 for fixed media)
@@ -225,6 +226,19 @@ class PlacementModel:
                         air = airtime_s(flow.n_bytes, self.scenario.radios[medium], self.scenario.link_loss(a, b)) * rate
                         add(send[(a, medium)], self.const_send, (a, medium), hosts_term + m_term, air)
                         add(recv[(b, medium)], self.const_recv, (b, medium), hosts_term + m_term, air)
+
+    def _add_control_plane(self, add, send: dict, recv: dict) -> None:
+        """The team's own messages on every link (`model.control_plane`): the same whatever runs
+        where, priced on the medium the link gets (`LoadSpace._control_load` for a fixed network)."""
+        spec = self.scenario.control_plane
+        if not spec.enabled:
+            return
+        for (u, v), n_bytes in spec.directed_bytes(self.structure).items():
+            loss = self.scenario.link_loss(u, v)
+            for medium, m_term in self.media_terms(u, v):
+                air = airtime_s(n_bytes, self.scenario.radios[medium], loss)
+                add(send[(u, medium)], self.const_send, (u, medium), m_term, air)
+                add(recv[(v, medium)], self.const_recv, (v, medium), m_term, air)
 
     def power(self, robot: str) -> tuple[dict[int, float], float]:
         """P_robot as (col -> coef, constant) watts."""

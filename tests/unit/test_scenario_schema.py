@@ -76,6 +76,10 @@ downtime_s = 0.1
 state_bytes = { A = 10 }
 [mission]
 quality_weight = 0.5
+[control_plane]
+enabled = true
+max_detection_s = 3.0
+status_bytes = 900
 """
 
 
