@@ -13,6 +13,7 @@ from rich.table import Table
 
 from autopower.cli.options import (
     ACCOUNTING_OPT,
+    CONTROL_PLANE_OPT,
     ENERGY_OPT,
     JSON_OPT,
     SCENARIO_ARG,
@@ -111,6 +112,7 @@ def breakdown(scenario: Scenario, network: Network, ev: Evaluation, notes: list[
                 "power_w": rp.total_w,
                 "cpu_w": rp.cpu_w,
                 "cpu_util": rp.cpu_utilisation,
+                "control_w": rp.control_w,
                 "lifetime_raw_s": rp.lifetime_s,
                 "radios": {m: {"busy": r.busy, "power_w": r.total_w, "send_w": r.send_w,
                                "receive_w": r.receive_w, "sleep_w": r.sleep_w} for m, r in rp.radios.items()},
@@ -137,10 +139,11 @@ def breakdown(scenario: Scenario, network: Network, ev: Evaluation, notes: list[
 @click.option("--topology", type=click.Choice(TOPOLOGIES), default=None, help="Default: the scenario's.")
 @ENERGY_OPT
 @ACCOUNTING_OPT
+@CONTROL_PLANE_OPT
 @JSON_OPT
-def evaluate_cmd(scenario, place, media, topology, energy, accounting, as_json) -> None:
+def evaluate_cmd(scenario, place, media, topology, energy, accounting, control_plane, as_json) -> None:
     """Score one allocation: power, CPU and radio load per robot, lifetime, violations, routes."""
-    s = build_scenario(scenario, energy, accounting=accounting)
+    s = build_scenario(scenario, energy, accounting=accounting, control_plane=control_plane)
     network = build_network(s, topology, parse_pairs(media, "--media", "laptop-robot=gsm"))
     allocation, notes = placement(s, network, parse_pairs(place, "--place", "Loc-1=laptop"))
     ev = evaluate(s, network, allocation)
@@ -162,11 +165,14 @@ def _print(r: dict) -> None:
                       f"rounded to {r['rounding_s']:g} s), bottleneck {r['bottleneck']}")
     else:
         console.print(f"[bold red]infeasible[/bold red]: {len(r['violations'])} limit(s) exceeded")
-    table = Table("robot", "energy J", "power W", "CPU W", "CPU util", "radios (busy, W)", "lifetime s (raw)")
+    charged = any(rp["control_w"] for rp in r["robots"].values())  # `--control-plane`: its own column
+    table = Table("robot", "energy J", "power W", "CPU W", "CPU util", "radios (busy, W)",
+                  *(["of which control W"] if charged else []), "lifetime s (raw)")
     for name, rp in r["robots"].items():
         radios = ", ".join(f"{m} {x['busy']:.1%} {x['power_w']:.4f} W" for m, x in rp["radios"].items())
         table.add_row(name, f"{rp['energy_j']:g}", f"{rp['power_w']:.4f}", f"{rp['cpu_w']:.4f}",
-                      f"{rp['cpu_util']:.1%}", radios, f"{rp['lifetime_raw_s']:.1f}")
+                      f"{rp['cpu_util']:.1%}", radios, *([f"{rp['control_w']:.4f}"] if charged else []),
+                      f"{rp['lifetime_raw_s']:.1f}")
     console.print(table)
     base = r["basestation"]
     console.print(f"{base['name']} (base station): CPU {base['cpu_util']:.1%}; radios "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -148,3 +149,19 @@ def test_a_team_whose_scenario_charges_it_plans_with_it_and_meters_against_the_r
     for robot, rp in expected.robots.items():
         told = team.nodes[robot].plan.predicted_w[robot]
         assert rp.control_w > 0 and told == pytest.approx(rp.steady_w, rel=1e-9)
+
+
+def test_evaluate_shows_the_control_planes_share_in_its_own_column_when_charged():
+    autopower = str(Path(sys.executable).parent / "autopower")
+    args = [autopower, "evaluate", "paper-fig7", "--media", "laptop-robot=gsm"]
+    on = subprocess.run([*args, "--control-plane"], capture_output=True, text=True, timeout=120,
+                        env={"COLUMNS": "200", "PATH": ""})
+    off = subprocess.run(args, capture_output=True, text=True, timeout=120, env={"COLUMNS": "200", "PATH": ""})
+    assert on.returncode == 0 and off.returncode == 0, on.stderr + off.stderr
+    assert "of which control W" in on.stdout and "of which control W" not in off.stdout
+    assert "lifetime 29121.6 s" in off.stdout  # Fig. 7's row 4, as the paper prints it
+
+    def lifetime(out: str) -> float:
+        return float(re.search(r"^lifetime ([0-9.]+) s", out, re.M)[1])
+
+    assert lifetime(on.stdout) < lifetime(off.stdout)
