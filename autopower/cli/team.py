@@ -41,6 +41,14 @@ STATUS_LINE_EVERY_S = 5.0  # how often it prints a plain status line to a pipe o
 RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still being written
 
 
+def control_plane_settings(spec, lease_ms: int | None) -> dict:
+    """The team's lease, keep-alives and status period: what the scenario's ``[control_plane]``
+    says (`model.control_plane`: what the planner charges when it is enabled, with the runtime's
+    defaults otherwise), the lease overridden by ``--lease-ms``."""
+    return {"lease_ms": lease_ms if lease_ms is not None else round(spec.lease_s * 1000),
+            "keep_alive": spec.keep_alives_per_lease, "status_period_s": spec.status_period_s}
+
+
 @click.command("up")
 @click.argument("scenario_name", default="paper-fig7", metavar="[SCENARIO]")
 @click.option("--speed", type=POSITIVE, default=DEFAULT_SPEED, show_default=True,
@@ -48,8 +56,9 @@ RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still
 @click.option("--duration", type=POSITIVE, default=None, help="Stop after this many wall seconds (default: Ctrl-C).")
 @click.option("--json", "as_json", is_flag=True, help="No live table; print a JSON summary at the end.")
 @mission_options
-@click.option("--lease-ms", default=500, show_default=True, type=LEASE_MS,
-              help="Zenoh lease: a silent cut or a frozen robot is detected after about this long.")
+@click.option("--lease-ms", default=None, type=LEASE_MS,
+              help="Zenoh lease: a silent cut or a frozen robot is detected after about this long "
+                   "(default: the scenario's [control_plane] lease_s, 500 ms unless it says otherwise).")
 @click.option("--direct-links", is_flag=True,
               help="Connect processes directly (no link proxies: `autopower fault cut` is unavailable).")
 @click.option("--team", "team_name", default=None, type=TEAM_NAME,
@@ -95,7 +104,8 @@ def up(scenario_name, speed, duration, as_json, energy, energy_scale, accounting
     spec = TeamSpec(scenario=scenario_name, speed=speed, energy=tuple(energy), energy_scale=energy_scale,
                     accounting=accounting, topology=topology, media=tuple(media), pins=tuple(pin),
                     auto_replan=not no_replan, policy=policy, stage_workers=stage_workers,
-                    lease_ms=lease_ms, log_dir=log_dir, proxied_links=not direct_links, team=team_name,
+                    log_dir=log_dir, proxied_links=not direct_links, team=team_name,
+                    **control_plane_settings(scenario.control_plane, lease_ms),
                     record_dir=Path(record_dir) if record_dir else None, secure=not insecure, robot_nice=robot_nice,
                     restart=RestartPolicy(burst=restart_burst, interval_s=restart_interval))
     warn_insecure(insecure)

@@ -165,3 +165,19 @@ def test_evaluate_shows_the_control_planes_share_in_its_own_column_when_charged(
         return float(re.search(r"^lifetime ([0-9.]+) s", out, re.M)[1])
 
     assert lifetime(on.stdout) < lifetime(off.stdout)
+
+
+def test_up_runs_the_lease_keep_alives_and_status_period_the_scenario_plans_with():
+    from autopower.cli.team import control_plane_settings
+    from autopower.launch.localhost import TeamSpec
+
+    default = load_scenario("paper-fig7").control_plane
+    assert control_plane_settings(default, None) == {"lease_ms": 500, "keep_alive": 2, "status_period_s": 0.5}
+    relaxed = ScenarioParser(with_section("max_detection_s = 3.0\nstatus_period_s = 1.0"), "", "f.toml").scenario()
+    settings = control_plane_settings(relaxed.control_plane, None)
+    assert settings == {"lease_ms": 2000, "keep_alive": 2, "status_period_s": 1.0}
+    assert control_plane_settings(relaxed.control_plane, 700)["lease_ms"] == 700  # --lease-ms wins
+    spec = TeamSpec(scenario="paper-fig7", **settings)
+    assert (spec.lease_ms, spec.keep_alive, spec.status_period_s) == (2000, 2, 1.0)
+    with pytest.raises(ScenarioError, match="control_plane.lease_s: found 0.05"):
+        ScenarioParser(with_section("lease_s = 0.05"), "", "f.toml").scenario()
