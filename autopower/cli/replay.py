@@ -61,11 +61,14 @@ def _json_safe(value):
 @click.option("--topology", type=click.Choice(["fully-connected", "relay", "explicit"]), default=None,
               help="What-if: plan on this topology (default: the recorded network).")
 @click.option("--disable", multiple=True, metavar="CHAIN", help="What-if: switch a chain off (repeatable).")
+@click.option("--control-plane/--no-control-plane", "control_plane", default=None,
+              help="What-if: charge the team's own statuses and keep-alives on every link (default: as the "
+                   "scenario says); the recorded allocation's lifetime and the best plan both change.")
 @click.option("--serve", is_flag=True, help="Open the Rerun web viewer on the file (bound to 127.0.0.1, WebGL: "
                                            "works without a GPU); prints its URL.")
 @click.option("--serve-seconds", type=POSITIVE, default=None, metavar="S",
               help="With --serve: stop the viewer after S seconds (default: at Ctrl-C).")
-def replay(recording, as_json, whatif, at_s, accounting, energy, policy, topology, disable, serve,
+def replay(recording, as_json, whatif, at_s, accounting, energy, policy, topology, disable, control_plane, serve,
            serve_seconds) -> None:
     """Summarise a recorded run (simulated or live), check its invariants, replan what-ifs, view it."""
     from autopower.recording.replay import load, summarize
@@ -73,13 +76,15 @@ def replay(recording, as_json, whatif, at_s, accounting, energy, policy, topolog
     from autopower.recording.what_if import what_if
 
     energies = _energy(energy)
-    if not whatif and (at_s is not None or accounting or energies or policy or topology or disable):
-        raise AutoPowerError("--at, --accounting, --energy, --policy, --topology and --disable need --what-if")
+    if not whatif and (at_s is not None or accounting or energies or policy or topology or disable
+                       or control_plane is not None):
+        raise AutoPowerError("--at, --accounting, --energy, --policy, --topology, --disable and --control-plane "
+                             "need --what-if")
     rec = load(recording)
     summary = summarize(rec, recording)
     if whatif:
         summary["what_if"] = what_if(rec, at_s=at_s, accounting=accounting, energies=energies, policy=policy,
-                                     topology=topology, disable=tuple(disable))
+                                     topology=topology, disable=tuple(disable), control_plane=control_plane)
     if as_json:
         click.echo(json.dumps(_json_safe(summary), sort_keys=False))
     else:

@@ -64,14 +64,18 @@ def recorded_state(rec: Recording, at_s: float | None = None) -> dict[str, Any]:
 
 def what_if(rec: Recording, *, at_s: float | None = None, accounting: str | None = None,
             energies: Mapping[str, float] | None = None, policy: str | None = None, topology: str | None = None,
-            disable: tuple[str, ...] = (), scenario=None) -> dict[str, Any]:
+            disable: tuple[str, ...] = (), scenario=None, control_plane: bool | None = None) -> dict[str, Any]:
     """Replan offline from the recorded state at `at_s` with other settings; compare with the run.
 
     Robots with no battery data, an empty battery, or whose liveliness was lost (and not back)
     by then are unavailable. Returns ``{"at_s", "unavailable", "settings", "state": {"energies_j", "allocation", "links"},
     "recorded": {"allocation", "lifetime_s", "note"}, "plan": {"allocation", "media", "lifetime_s",
     "bottleneck", "reasons", "method", "dropped_chains"}, "gain_s", "policy": {...} | null}``.
+    ``control_plane``: charge the team's statuses and keep-alives (`model.control_plane`) or not;
+    None: as the scenario says.
     """
+    import dataclasses
+
     from autopower.model.loading import load_scenario
     from autopower.model.network import Link, Network
     from autopower.planner import PlanRequest, evaluate_in, make_problem, plan
@@ -81,6 +85,9 @@ def what_if(rec: Recording, *, at_s: float | None = None, accounting: str | None
         if not name:
             raise RecordingError("the recording does not name its scenario; pass --scenario to --what-if")
         scenario = load_scenario(name)
+    if control_plane is not None:
+        scenario = dataclasses.replace(
+            scenario, control_plane=dataclasses.replace(scenario.control_plane, enabled=control_plane))
     state = recorded_state(rec, at_s)
     energies_j = {**state["energies_j"], **dict(energies or {})}
     unknown = set(energies or {}) - {r.name for r in scenario.robots}
@@ -137,7 +144,8 @@ def what_if(rec: Recording, *, at_s: float | None = None, accounting: str | None
         "at_s": state["at_s"],
         "unavailable": sorted(dry),
         "settings": {"accounting": request.accounting or scenario.accounting, "topology": topology,
-                     "energies_j": dict(energies or {}), "disable": sorted(disable), "policy": policy},
+                     "energies_j": dict(energies or {}), "disable": sorted(disable), "policy": policy,
+                     "control_plane": scenario.control_plane.enabled},
         "state": {"energies_j": state["energies_j"], "allocation": recorded_alloc,
                   "links": [list(l) for l in state["links"]] if state["links"] is not None else None},
         "recorded": {"allocation": recorded_alloc, "lifetime_s": recorded_life, "note": note},

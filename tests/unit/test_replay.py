@@ -100,6 +100,22 @@ def test_what_if_from_the_recorded_state(simulated, capsys):
     assert code == 2 and "--what-if" in err
 
 
+def test_what_if_with_the_control_plane_charged(simulated, capsys):
+    """The same recorded state, the team's statuses and keep-alives charged: the recorded
+    allocation lives shorter, and so does the best plan (they are never free)."""
+    path, _ = simulated
+    free = what_if(load(path), at_s=100.0)
+    charged = what_if(load(path), at_s=100.0, control_plane=True)
+    assert charged["settings"]["control_plane"] and not free["settings"]["control_plane"]
+    assert charged["recorded"]["lifetime_s"] < free["recorded"]["lifetime_s"]
+    assert charged["plan"]["lifetime_s"] < free["plan"]["lifetime_s"]
+    code, out, err = run_cli(capsys, path, "--json", "--what-if", "--at", 100, "--control-plane")
+    assert code == 0, err
+    assert json.loads(out)["what_if"]["recorded"]["lifetime_s"] == pytest.approx(charged["recorded"]["lifetime_s"])
+    code, out, err = run_cli(capsys, path, "--control-plane")
+    assert code == 2 and "--what-if" in err
+
+
 @pytest.mark.parametrize("kind", ["missing", "empty", "garbage", "truncated", "foreign"])
 def test_bad_files_get_one_clear_error(kind, simulated, tmp_path, capsys):
     path = tmp_path / f"{kind}.rrd"
