@@ -31,6 +31,7 @@ import results
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec
 from autopower.launch.summary import chain_latencies, missed_periods
+from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
 
 sys.path.insert(0, str(Path(__file__).parent))
 import stall_probe  # noqa: E402
@@ -38,6 +39,31 @@ from bench_live_speed import tree_cpu_s  # noqa: E402  (the same /proc reading)
 
 SCENARIO = "paper-fig7"
 MEDIA = ("laptop-robot=802.11a", "robot-robot=802.11a")
+
+
+def energy_split(snap: dict) -> dict[str, dict[str, float]]:
+    """Per robot, what its meter charged by the end: the model's steady state and each overhead
+    (`model.parts.overhead_kind`: migration, recovery, control, runtime), in joules, from its last
+    status: what the lifetime's gap to the model is made of."""
+    out = {}
+    for robot, info in (snap.get("robots") or {}).items():
+        energy = ((info or {}).get("status") or {}).get("energy_j") or {}
+        parts = {"steady": 0.0, **{kind: 0.0 for kind in OVERHEAD_KINDS}}
+        for part, joules in energy.items():
+            parts[overhead_kind(part) or "steady"] += float(joules)
+        out[robot] = parts
+    return out
+
+
+def with_control_plane(directory: Path) -> str:
+    """paper-fig7 with ``[control_plane] enabled = true``, written to a file in ``directory``: every
+    process of the team loads it, so the base station plans, and predicts, with the control plane."""
+    from autopower.model.loading import resolve_scenario_path
+
+    _, text = resolve_scenario_path(SCENARIO)
+    path = directory / "paper-fig7-control-plane.toml"
+    path.write_text(text + "\n[control_plane]\nenabled = true\n")
+    return str(path)
 
 
 def main() -> None:
@@ -49,18 +75,23 @@ def main() -> None:
     ap.add_argument("--stall-probe", action="store_true",
                     help="run a probe outside the team that logs when the whole machine stops, the agents at "
                          "'info' (they log each skipped period), and match the two (bench/stall_probe.py)")
+    ap.add_argument("--control-plane", action="store_true",
+                    help="plan with the team's statuses and keep-alives charged (the scenario with [control_plane] "
+                         "enabled = true): the model the metered lifetime is compared with includes them")
     ap.add_argument("--json", action="store_true")
     results.add_json_out(ap)
     args = ap.parse_args()
-    scenario = build_scenario(SCENARIO)
     loads = [os.getloadavg()[0]]
     print(f"== whole mission: {SCENARIO} fully-connected 802.11a, static policy, x{args.speed:g}, "
-          f"--stage-workers {args.stage_workers} (load average {loads[0]:.2f}, {os.cpu_count()} cores) ==", flush=True)
+          f"--stage-workers {args.stage_workers}{', control plane charged' if args.control_plane else ''} "
+          f"(load average {loads[0]:.2f}, {os.cpu_count()} cores) ==", flush=True)
     stalls = None
     with tempfile.TemporaryDirectory() as tmp:
+        scenario_arg = with_control_plane(Path(tmp)) if args.control_plane else SCENARIO
+        scenario = build_scenario(scenario_arg)
         log_dir = Path(args.log_dir or tmp)
         log_dir.mkdir(parents=True, exist_ok=True)
-        spec = TeamSpec(scenario=SCENARIO, speed=args.speed, media=MEDIA, policy="static", log_dir=log_dir,
+        spec = TeamSpec(scenario=scenario_arg, speed=args.speed, media=MEDIA, policy="static", log_dir=log_dir,
                         log_level="info" if args.stall_probe else "warning", stage_workers=args.stage_workers)
         probe_out = log_dir / "stall-probe.txt"
         probe = stall_probe.start(probe_out, args.max_wall_s + 300) if args.stall_probe else None
@@ -122,6 +153,12 @@ def main() -> None:
         print(f"restarted by the supervisor: {', '.join(sorted(restarted))} (CPU above covers the first process "
               f"only); {supervision}")
     print(f"placement at the end: {snap.get('placement')}")
+    split = energy_split(snap)
+    result["energy_split_j"] = split
+    for robot, parts in sorted(split.items()):
+        used = sum(parts.values())
+        print(f"  {robot}: metered {used:,.0f} J: steady state {parts['steady']:,.0f} J, "
+              + ", ".join(f"{k} {v:,.0f} J ({v / used:.2%})" for k, v in parts.items() if k != "steady" and v))
     # an overloaded base station must not look like a cut network (issue 17, item 4's failure mode)
     robots = snap.get("robots") or {}
     silent = {r: ((info.get("status") or {}).get("counters") or {}).get("silent-peers", 0) for r, info in robots.items()}
@@ -132,7 +169,8 @@ def main() -> None:
           f"status repeats {(base.get('counters') or {}).get('status-repeats', 0)}")
     if stalls is not None:
         print(stall_probe.describe(stalls))
-    g = f"paper-fig7, fully connected, 802.11a, static policy, x{args.speed:g}"
+    g = (f"paper-fig7, fully connected, 802.11a, static policy, x{args.speed:g}"
+         + (", control plane charged" if args.control_plane else ""))
     figures = [
         results.figure("metered lifetime (first robot empty)", first["t_virtual"] if first else None, "s",
                        "the model", planned, group=g, detail=f"first empty: {first['robot']}" if first else "none empty",
@@ -143,6 +181,14 @@ def main() -> None:
         results.figure("source periods missed", missed, "periods", "periods due", produced + missed, group=g,
                        note="every source period of the run"),
     ]
+    if first and first["robot"] in split:
+        parts = split[first["robot"]]
+        used = sum(parts.values())
+        for kind in ("runtime", "control"):
+            figures.append(results.figure(
+                f"{first['robot']}'s battery spent on the {kind} part", parts[kind], "J", "its battery used", used,
+                group=g, note="what its meter charged by the end outside the model's steady state (the runtime's "
+                              "CPU through the platform's slowdown; the links' bytes beyond the chains)"))
     for kind in ("Blob", "Loc"):
         period = min(c.period_s for c in scenario.chains if c.name.startswith(kind))
         lat = [v for c, v in result["latency_p50_ms"].items() if c.startswith(kind) and v is not None]
@@ -151,7 +197,8 @@ def main() -> None:
                                           period / args.speed * 1e3, group=g,
                                           note="the chain's period in wall time at that speed"))
     results.write_result("whole_mission", {"speed": args.speed, "stage_workers": args.stage_workers,
-                                           "max_wall_s": args.max_wall_s, "stall_probe": args.stall_probe},
+                                           "max_wall_s": args.max_wall_s, "stall_probe": args.stall_probe,
+                                           "control_plane": args.control_plane},
                          figures, args.json_out, what=__doc__.splitlines()[0],
                          extra={k: v for k, v in result.items() if k not in ("events",)})
     if args.json:

@@ -92,7 +92,7 @@ BENCHES = (
           "performance", 2.5, long=True),
     Bench("flood", "bench/bench_flood.py", ("--messages", "4000", "16000"), "A flood of garbage", "performance",
           2.0, long=True),
-    Bench("whole_mission", "bench/bench_whole_mission.py", ("--speed", "55"), "The whole mission live",
+    Bench("whole_mission", "bench/bench_whole_mission.py", ("--speed", "55", "--control-plane"), "The whole mission live",
           "performance", 15.0, long=True),
     Bench("fleet", "bench/bench_fleet.py", ("--robots", "3,10,20,30,50", "--seconds", "30"), "Live fleets",
           "performance", 5.0, long=True),

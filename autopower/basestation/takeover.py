@@ -33,6 +33,7 @@ import os
 import secrets
 import socket
 
+from autopower.basestation.placing import Migration
 from autopower.protocol import NodeStatus, PlanChange, PlanUpdate, Release
 from autopower.runtime.clock import VirtualClock
 
@@ -106,8 +107,12 @@ class TakingOver:
             self.statuses[node] = status  # batteries, links: what the policy starts from
         # the operator's pins, disabled chains, links and radios, from the newest plan the robots run
         kept = self.adopt_operator_settings(newest.plan_operator) if newest.plan_operator else []
-        placement, stale = _placement_of(reports, set(self.chain_of))
+        placement, stale, waiting = _placement_of(reports, set(self.chain_of))
         self.placement = placement
+        for stage, (node, generation) in waiting.items():
+            # its state is on its way or lost: its StageReady completes it, else the migration
+            # timeout restarts it there without (`Coordinator.on_timer`), not a stage starting for good
+            self.migrations[stage] = Migration(stage, generation, node, None, "transferring", self.wall())
         self.placed_generation = {stage: reports[node].generations.get(stage, 0) for stage, node in placement.items()}
         self.target = dict(placement)
         for chain in self.scenario.chains:
@@ -167,13 +172,17 @@ class TakingOver:
                       f"older than this one (incarnation {self.incarnation}) and steps down when it hears of us")
 
 
-def _placement_of(reports: dict[str, NodeStatus], stages: set[str]) -> tuple[dict[str, str], list[tuple[str, str]]]:
-    """(stage -> node running it, [(node, stage) copies to release]) from the robots' statuses.
+def _placement_of(reports: dict[str, NodeStatus], stages: set[str]
+                  ) -> tuple[dict[str, str], list[tuple[str, str]], dict[str, tuple[str, int]]]:
+    """(stage -> node running it, [(node, stage) copies to release], stage -> (node, generation)
+    of those still waiting for their state) from the robots' statuses.
 
     A stage running on two nodes (an order that crossed the crash) runs where its generation is
     newest; the other copy is released. A stage that was migrating when the old base station
-    died (starting on one node, already handed over by the other) is taken as placed on the
-    node its state went to.
+    died (starting on one node, already handed over by another) is taken as placed on the node
+    its state went to, and as still waiting for that state: whether it arrives, nobody can tell
+    from here (the handed-over copy may be a move before, and the state may have died with the
+    old base station), so the adopter gives it a migration's time and then starts it without.
     """
     running: dict[str, list[tuple[int, str]]] = {}
     starting: dict[str, list[tuple[int, str]]] = {}
@@ -194,7 +203,10 @@ def _placement_of(reports: dict[str, NodeStatus], stages: set[str]) -> tuple[dic
         hosts.sort(reverse=True)
         placement[stage] = hosts[0][1]
         stale += [(node, stage) for _, node in hosts[1:]]
+    waiting = {}
     for stage, hosts in starting.items():
         if stage not in placement and stage in handed_over:
-            placement[stage] = max(hosts)[1]
-    return placement, stale
+            generation, node = max(hosts)
+            placement[stage] = node
+            waiting[stage] = (node, generation)
+    return placement, stale, waiting

@@ -43,13 +43,14 @@ FOUND_WITH_ACCRUAL: tuple[int, ...] = ()
 # producer's custody: a stage restarted without state after its migration was given up saw inputs
 # no one had run (`custody.is_run`). Fixed; 479 (beyond this range) and 187 (the rounds plan) are
 # regression tests in test_teamsim_findings.py, the others run in the sweep again.
-# seeds beyond this range that fail (a 500-seed run of this plan): 354, a migration to r1 over a
-# lossy link that a base station's crash leaves starting for good. Strict xfail in
+# seeds beyond this range that failed (a 500-seed run of this plan): 354, a migration to r1 over a
+# lossy link that a base station's crash left starting for good; fixed (an adopted stage still
+# waiting for its state is a migration of the adopter's), a regression test in
 # test_teamsim_findings.py. (168, in this range, lost a result its host lost on the link and
 # crashed before resending: fixed, a regression test there.)
 # (372 lost two results of a chain's older run, made obsolete by its sink's newer run; it passes
 # since statuses split, by timing: test_custody pins the mechanism.)
-FOUND_BEYOND_RANGE = (354,)
+FIXED_BEYOND_RANGE = (354,)
 # seeds whose sink counted a copy a duplicating link made on an earlier hop of a routed packet (the
 # oracle took the copy for one the team made): 53 and 270 (in this range), 382 (a regression test)
 FIXED_FORWARDED_COPIES = (53, 270, 382)
