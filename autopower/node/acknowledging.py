@@ -58,7 +58,7 @@ class Acknowledging:
         wait = min(max(ack.queue_wait_s, 0.0), self.custody.max_age_s)
         # never newer than its arrival: a consumer whose clock runs ahead must not make
         # frames still in flight look lost
-        self._acknowledge(ack.node, min(ack.t_unix, now), ack.consumed, wait)
+        self._acknowledge(ack.node, min(ack.t_unix, now), ack.consumed, wait, ack.older)
         self.resend_lost(now)
 
     def on_peer_status(self, status: NodeStatus | PeerStatus) -> None:
@@ -86,9 +86,20 @@ class Acknowledging:
             dests.update(self.ack_wants.of(chain))
             for dest in dests - {self.node}:
                 to.setdefault(dest, {}).update(hops)
+        older = self.older_consumed()
         t_unix = self.wall()
-        return {dest: Ack(node=self.node, t_unix=t_unix, consumed=consumed, queue_wait_s=queue_wait_s)
+        return {dest: Ack(node=self.node, t_unix=t_unix, consumed=consumed, queue_wait_s=queue_wait_s,
+                          older={key: older[key] for key in consumed if key in older})
                 for dest, consumed in sorted(to.items())}
+
+    def older_consumed(self) -> dict[str, tuple[Consumed, ...]]:
+        """Per sink hop, what the sink got of the older runs it remembers (`SinkLedger.older_reports`)."""
+        out = {}
+        for name, ledger in self.sinks.items():
+            reports = ledger.older_reports()
+            if reports and name in self.chains:
+                out[hop_key(name, len(self.chains[name].stages))] = reports
+        return out
 
     def ack_interest(self) -> set[str]:
         """The chains whose acknowledgements this node needs: those whose frames it may send.
@@ -147,14 +158,16 @@ class Acknowledging:
         return {chain: nodes - {None, self.node} for chain, nodes in out.items() if nodes - {None, self.node}}
 
     def _acknowledge(self, node: str, t_unix: float, consumed: dict[str, Consumed],
-                     queue_wait_s: float = 0.0) -> None:
+                     queue_wait_s: float = 0.0, older: dict[str, tuple[Consumed, ...]] | None = None) -> None:
         for key, report in consumed.items():
             hop = parse_hop_key(key)
             if hop is None or hop[0] not in self.chains:
                 self.count("garbled", f"{node} reports an unknown hop {key!r}")
                 continue
+            # a sink's older runs: only those before its current one count (a peer's word, checked)
+            runs = {c.run: c for c in (older or {}).get(key, ()) if c.run < report.run}
             self.custody.on_report(hop[0], hop[1], Report(node=node, t_unix=t_unix, consumed=report,
-                                                          queue_wait_s=queue_wait_s))
+                                                          queue_wait_s=queue_wait_s, older=runs))
 
     def resend_lost(self, now: float) -> None:
         """Resend what a consumer reported missing well after it was sent (throttled)."""

@@ -48,9 +48,10 @@ from __future__ import annotations
 
 import heapq
 from collections import OrderedDict
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from typing import Mapping
 
-from autopower.node.sequencing import MAX_MISSING, in_ranges
+from autopower.node.sequencing import MAX_MISSING, OLDER_RUNS_KEPT, in_ranges
 from autopower.protocol import ChainFrame, Consumed
 
 RESEND_AFTER_S = 1.0  # wall seconds between a send and a report that may call the frame lost
@@ -77,6 +78,29 @@ class Report:
     t_unix: float
     consumed: Consumed
     queue_wait_s: float = 0.0  # what waited in the consumer's event queue this long is not in ``consumed``
+    # a sink's: run -> what it got of that run before its current one (`Ack.older`)
+    older: Mapping[int, Consumed] = field(default_factory=dict)
+
+    def result_taken(self, run: int, seq: int) -> bool:
+        """Has the sink taken this result in, or can it no more? A result of an older run than the
+        sink's is obsolete only once the sink has forgotten that run (`SinkLedger.older`: it keeps
+        OLDER_RUNS_KEPT, and reports them all): until then it hands such a result on once (a chain
+        that started over leaves its old run's tail held upstream: a cut sink, a frozen base
+        station), so the result is kept and sent."""
+        said = self.for_run(run)
+        return True if said is None else is_consumed(said, run, seq)
+
+    def for_run(self, run: int) -> Consumed | None:
+        """What the sink said of ``run``: its current run's report, an older run's it remembers, or
+        that it has none of a run it may still take (nothing received yet); None for a run it has
+        forgotten, or one newer than its own (not reported yet: `is_consumed` keeps its frames)."""
+        if run >= self.consumed.run:
+            return self.consumed
+        if run in self.older:
+            return self.older[run]
+        if len(self.older) >= OLDER_RUNS_KEPT and run < min(self.older):
+            return None
+        return Consumed(run=run, generation=0, next_seq=0, max_seq=-1, missing=())
 
 
 Hop = tuple[str, int]  # (chain, target)
@@ -307,7 +331,8 @@ class Custody:
         if frames:
             # a sink's report speaks for what it delivered; a stage's only for what it ran (`is_run`)
             done = [k for k, held in frames.items()
-                    if (is_consumed if held.result else is_run)(c, held.frame.run, held.frame.seq)]
+                    if (report.result_taken(held.frame.run, held.frame.seq) if held.result
+                        else is_run(c, held.frame.run, held.frame.seq))]
             for key in done:
                 self._drop(frames, key, evicted=False)
 
@@ -328,11 +353,14 @@ class Custody:
                     self._drop(frames, key, evicted=True)
                     self.evicted_given_up += 1
                     continue
-                if (report is None or held.sent_unix is None
+                said = (None if report is None
+                        else report.consumed if held.frame.run == report.consumed.run
+                        else report.for_run(held.frame.run) if held.result and held.frame.run < report.consumed.run
+                        else None)  # a newer run's frames wait for the consumer's first word of it
+                if (said is None or held.sent_unix is None
                         or report.t_unix - report.queue_wait_s < held.sent_unix + self.resend_after_s
-                        or held.frame.run != report.consumed.run
-                        or is_consumed(report.consumed, held.frame.run, held.frame.seq)
-                        or beyond_known(report.consumed, held.frame.seq)):  # wait for a report that says
+                        or is_consumed(said, held.frame.run, held.frame.seq)
+                        or beyond_known(said, held.frame.seq)):  # wait for a report that says
                     continue
                 out.append((report.node, held))
         return out

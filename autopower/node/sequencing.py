@@ -276,6 +276,14 @@ class SinkLedger:
         (it is not this run's), counted *stale* the first time (the caller hands it on) and as a
         second copy after that (redundant with a resend involved, else a duplicate: not handed on)."""
         kept = self.older.get(run)
+        if kept is None and (len(self.older) < OLDER_RUNS_KEPT or run > min(self.older)):
+            # a run this sink never saw an output of (all held upstream when its chain started
+            # over): remembered from now on, so that its results are reported (`older_reports`:
+            # their producers let them go) and a second copy is told from the first
+            kept = (0, set())
+            self.older[run] = kept
+            for gone in sorted(self.older)[:-OLDER_RUNS_KEPT]:
+                del self.older[gone]
         if kept is None:  # older than the runs kept: handed on as stale, unchecked
             self.stale += 1
             return False
@@ -306,6 +314,16 @@ class SinkLedger:
             return None
         return Consumed(run=self.run, generation=0, next_seq=self.contiguous, max_seq=self.max_seq,
                         missing=missing_between(self.contiguous, self.max_seq, self.above))
+
+    def older_reports(self) -> tuple[Consumed, ...]:
+        """What this sink got of each run before its current one that it remembers, oldest first:
+        their results still to come are handed on once (`_record_older`), so they are not obsolete."""
+        out = []
+        for run, (contiguous, above) in sorted(self.older.items()):
+            top = max(above, default=contiguous - 1)
+            out.append(Consumed(run=run, generation=0, next_seq=contiguous, max_seq=top,
+                                missing=missing_between(contiguous, top, above)))
+        return tuple(out)
 
     def state(self) -> dict:
         """What a restarted sink needs to go on exactly where this one is (`from_state`): JSON-able."""

@@ -141,6 +141,9 @@ class Ack:
     # wall seconds the oldest chain data waiting in the node's event queue had waited (see
     # `NodeStatus.queue_wait_s`): ``consumed`` speaks for frames sent before t_unix - queue_wait_s
     queue_wait_s: float = 0.0
+    # a sink's hop -> what it got of the runs before its current one that it still remembers
+    # (`SinkLedger.older`): an older run's results are not obsolete while the sink still takes them
+    older: dict[str, tuple[Consumed, ...]] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -200,18 +200,41 @@ def test_gate_waits_on_a_gap_while_its_producer_says_it_still_holds_it():
     assert gate.skipped == 1
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "open (sweep seed 372, which no longer meets it since statuses split): r1 held two of Blob-3's results, "
-    "sent into a laptop freeze; a subgroup round restarted Blob-3 on r3 and its source began run 1; the "
-    "laptop's sink, reporting run 1, made the run-0 results obsolete (`is_consumed`: an older run) and r1 "
-    "dropped them undelivered. The sink's ledger keeps one run, so it cannot say which old results it has"))
 def test_a_result_of_an_older_run_leaves_custody_only_once_its_sink_has_it():
+    """Sweep seeds 91 and 372: r1 held two of Blob-2's run-0 results, sent into a laptop freeze; the chain
+    started run 1; the laptop's sink, reporting run 1, made them obsolete (`is_consumed`: an older run)
+    and r1 dropped them undelivered. An older run's result is obsolete only once its sink has forgotten
+    that run; until then it is kept, resent while its sink's report of that run lacks it, and let go
+    once it has it."""
     custody = Custody(resend_after_s=1.0)
     for seq in (75, 76):
         custody.keep(frame(seq, run=0, target=1), now=19.5, result=True)
-    custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=21.4, consumed=Consumed(
-        run=1, generation=0, next_seq=2, max_seq=1, missing=())))
-    assert len(custody) == 2  # never delivered: kept (and resent), not obsolete
+        custody.mark(frame(seq, run=0, target=1), 19.5)
+    run1 = Consumed(run=1, generation=0, next_seq=2, max_seq=1, missing=())
+    custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=21.4, consumed=run1))
+    assert len(custody) == 2  # the sink said nothing of run 0 (it never saw it): kept, and resent
+    assert sorted(held.frame.seq for _, held in custody.due(21.5)) == [75, 76]
+    run0 = Consumed(run=0, generation=0, next_seq=75, max_seq=76, missing=((75, 75),))  # it has 76
+    custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=23.0, consumed=run1, older={0: run0}))
+    assert [held.frame.seq for hop in custody.hops.values() for held in hop.values()] == [75]
+    # a sink that has forgotten run 0 (it remembers four runs since, all reported) can take it no more
+    forgot = {r: Consumed(run=r, generation=0, next_seq=0, max_seq=-1, missing=()) for r in (1, 2, 3, 4)}
+    custody.on_report("Blob-2", 1, Report(node="laptop", t_unix=24.0, consumed=Consumed(
+        run=5, generation=0, next_seq=0, max_seq=-1, missing=()), older=forgot))
+    assert len(custody) == 0
+
+
+def test_a_sink_reports_the_older_runs_it_remembers_even_one_it_saw_nothing_of_before():
+    ledger = SinkLedger()
+    for seq in range(3):
+        ledger.record(1, seq)
+    ledger.record(2, 0)  # run 2 starts: run 1 is remembered
+    assert not ledger.record(0, 5)  # run 0's result, held upstream all along: handed on (stale), remembered
+    assert not ledger.record(0, 5)  # and a second copy is told from it
+    assert ledger.duplicates_total == 1
+    assert ledger.older_reports() == (
+        Consumed(run=0, generation=0, next_seq=0, max_seq=5, missing=((0, 4),)),
+        Consumed(run=1, generation=0, next_seq=3, max_seq=2, missing=()))
 
 
 def test_sink_ledger_tells_redundant_resends_from_real_duplicates():
