@@ -14,7 +14,9 @@ CPU the whole team used (every process, per wall second and per robot), the outp
 took in with any gap or second copy, the largest gap between a robot's metered power and the
 model's, whether every process stopped by itself, the largest process's memory (peak RSS), the
 messages the base station's event queue dropped, and per process: the base station's CPU and the
-busiest agent's (each from its status: since the mission started) and their peak memory. A team
+busiest agent's (each from its status: since the mission started) and their peak memory, and per
+robot the packets (TCP segments, bare acknowledgements included) and bytes its links carried a second,
+as its own kernel counted them, and of the bytes the control plane's. A team
 that is not ready within the time `up` allows is reported as such, with the base station's last
 log lines that say why.
 """
@@ -126,6 +128,12 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str,
     base_name = next((node for node in peaks if node not in summary["robots"]), None)
     agent_peaks = [kb for node, kb in peaks.items() if node in summary["robots"]]
     per_robot = [sum(b for pair, b in summary.get("link_bytes", {}).items() if r in pair.split("-")) for r in robots]
+    # each robot's own count of its links (its kernel's), per second of the mission's wall time
+    own = [r.get("links") or {} for r in summary["robots"].values()]
+
+    def per_s(what: str) -> list[float]:
+        return [(o.get(f"{what}_sent", 0) + o.get(f"{what}_received", 0)) / mission_wall if mission_wall > 0 else 0.0
+                for o in own]
     out.update(ready_after_s=summary["ready_after_s"], missed_pct=summary["missed_periods_pct"],
                outputs=sum(s["received"] for s in sinks.values()),
                gaps=sum(s["max_seq"] + 1 - s["contiguous"] for s in sinks.values()),
@@ -143,7 +151,11 @@ def run_fleet(n: int, seconds: float, speed: float, folder: Path, topology: str,
                agent_cores_max=max(agent_cores, default=0.0),
                agent_cores_mean=sum(agent_cores) / len(agent_cores) if agent_cores else 0.0,
                basestation_peak_mb=peaks.get(base_name, 0) / 1024 if base_name else 0.0,
-               agent_peak_mb_max=max(agent_peaks, default=0) / 1024)
+               agent_peak_mb_max=max(agent_peaks, default=0) / 1024,
+               robot_packets_per_s_max=max(per_s("packets"), default=0.0),
+               robot_packets_per_s_mean=sum(per_s("packets")) / len(own) if own else 0.0,
+               robot_bytes_per_s_mean=sum(per_s("bytes")) / len(own) if own else 0.0,
+               robot_control_bytes_per_s_mean=sum(per_s("control_bytes")) / len(own) if own else 0.0)
     return out
 
 
@@ -172,7 +184,8 @@ def main() -> None:
     base = runs[0]
     print(f"{'robots':>6} {'ready s':>8} {'missed %':>9} {'cores':>6} {'CPU s/robot':>12} {'outputs':>8} "
           f"{'gaps':>5} {'dups':>5} {'|power err| %':>14} {'clean':>6} {'peak MB':>8} {'drops':>6} {'robot kbit/s':>13} "
-          f"{'base cores':>11} {'agent cores':>12} {'base MB':>8} {'agent MB':>9}")
+          f"{'base cores':>11} {'agent cores':>12} {'base MB':>8} {'agent MB':>9} {'robot pkt/s':>12} {'robot B/s':>10} "
+          f"{'of it control':>14}")
     for r in runs:
         if not r["ready"]:
             print(f"{r['robots']:>6} not ready ({r['error'][:90]}) {r['why']}")
@@ -181,7 +194,8 @@ def main() -> None:
               f"{r['cpu_s'] / r['robots']:>12.2f} {r['outputs']:>8} {r['gaps']:>5} {r['duplicates']:>5} "
               f"{r['power_error_pct']:>14.2f} {str(r['clean']):>6} {r['peak_rss_mb']:>8.0f} {r['queue_drops']:>6} {r['robot_kbps']:>13.0f} "
               f"{r['basestation_cores']:>11.3f} {r['agent_cores_max']:>12.3f} {r['basestation_peak_mb']:>8.0f} "
-              f"{r['agent_peak_mb_max']:>9.0f}")
+              f"{r['agent_peak_mb_max']:>9.0f} {r['robot_packets_per_s_mean']:>12.0f} {r['robot_bytes_per_s_mean']:>10.0f} "
+              f"{r['robot_control_bytes_per_s_mean']:>14.0f}")
     note = f"the {base['robots']}-robot fleet, run the same way in the same run"
     figures = []
     for r in runs[1:]:
@@ -228,6 +242,13 @@ def main() -> None:
                                  f"{base['robots']} robots", base["agent_peak_mb_max"], group=g, note=note),
             bench_results.figure("messages the base station's queue dropped", r["queue_drops"], "messages",
                                  f"{base['robots']} robots", base["queue_drops"], group=g, note=note),
+            bench_results.figure("packets a robot's links carry a second (mean)", r["robot_packets_per_s_mean"],
+                                 "packets/s", f"{base['robots']} robots", base["robot_packets_per_s_mean"], group=g,
+                                 note=note, detail=f"busiest robot {r['robot_packets_per_s_max']:.0f}/s; TCP segments "
+                                                   "both ways, as each robot's kernel counted them"),
+            bench_results.figure("bytes a robot's links carry a second (mean)", r["robot_bytes_per_s_mean"], "B/s",
+                                 f"{base['robots']} robots", base["robot_bytes_per_s_mean"], group=g, note=note,
+                                 detail=f"of which the control plane {r['robot_control_bytes_per_s_mean']:.0f} B/s"),
         ]
     bench_results.write_result("fleet", {"robots": sizes, "seconds": args.seconds, "speed": args.speed,
                                          "topology": args.topology, "neighbours": args.neighbours}, figures,

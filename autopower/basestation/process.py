@@ -547,7 +547,7 @@ class BaseStation:
                     if self.events.superseded:  # robots' statuses (and acks) replaced by a newer one while queued
                         rt.counters["statuses-superseded"] = self.events.superseded
                     if self.traffic is not None and self.traffic.due(time.monotonic()):
-                        rt.charge_control(self.traffic.poll(self._bus.links()))  # its links' bytes, metered
+                        rt.charge_control(self.traffic.poll(self._bus.links()), self.traffic.packets_by_peer)  # its links' bytes, metered
                     rt.charge_runtime(time.process_time())  # its own CPU, measured (mains: reported, not charged)
                     if rt.started:  # held back at rest: nothing new in it but what drifts with time
                         status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,

@@ -177,6 +177,7 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
             "errors": st.get("errors", {}), "counters": st.get("counters", {}),
             "energy_by_part_j": st.get("energy_j", {}),
             "cpu_s": process_cpu_s(st),
+            "links": link_totals(st),
         }
     base = snap.get("basestation") or {}
     produced, missed, missed_pct = missed_periods(snap)
@@ -204,6 +205,17 @@ def run_summary(snap: dict, *, team: str, speed: float, ready_after_s: float, wa
         "replans": snap.get("replans"), "first_depletion": snap.get("first_depletion"),
         "events": snap.get("events"), "exit_codes": exit_codes or {}, "log_dir": log_dir,
     }
+
+
+def link_totals(status: dict) -> dict[str, int]:
+    """What a node's links carried since the mission started in its process, as its kernel counted
+    them (`runtime.link_traffic`): bytes and TCP segments (packets) each way, and of the bytes the
+    control plane's (all but the chain packets). Zeros where nothing could be read."""
+    out = {}
+    for field, name in (("link_bytes", "bytes"), ("link_packets", "packets"), ("control_bytes", "control_bytes")):
+        sent, received = status.get(field) or (0, 0)
+        out[f"{name}_sent"], out[f"{name}_received"] = int(sent), int(received)
+    return out
 
 
 def process_cpu_s(status: dict) -> dict[str, float]:

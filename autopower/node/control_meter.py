@@ -39,6 +39,8 @@ class ControlPlaneMeter:
         # the totals when counting started (`start_from`): what came before is not this mission's
         self._link_at_start: dict[tuple[str, Direction], int] = {}
         self._control_at_start: dict[tuple[str, Direction], int] = {}
+        self.packets: dict[tuple[str, Direction], int] = {}  # (peer, direction) -> TCP segments, measured
+        self._packets_at_start: dict[tuple[str, Direction], int] = {}
 
     # ---- what the node learns ---------------------------------------------------------------------
     def learn_zid(self, node: str, zid: str) -> bool:
@@ -85,10 +87,25 @@ class ControlPlaneMeter:
                 due.append((key[0], key[1], grew))
         return due
 
-    def start_from(self, by_zid: Mapping[str, tuple[int, int]]) -> None:
+    def count_packets(self, by_zid: Mapping[str, tuple[int, int]]) -> None:
+        """The segments each peer session exchanged so far (`LinkTraffic.packets_by_peer`): what a
+        radio carries as packets, whatever their size (reported, not priced: the bytes are)."""
+        totals: dict[tuple[str, Direction], int] = {}
+        for zid, (sent, received) in by_zid.items():
+            node = self._node_of_zid.get(zid)
+            if node is not None:
+                for direction, n in (("send", sent), ("receive", received)):
+                    totals[(node, direction)] = totals.get((node, direction), 0) + n
+        for key, total in totals.items():
+            self.packets[key] = max(self.packets.get(key, 0), total)
+
+    def start_from(self, by_zid: Mapping[str, tuple[int, int]],
+                   packets_by_zid: Mapping[str, tuple[int, int]] | None = None) -> None:
         """Counting starts here: these totals (before the mission) are neither charged nor reported."""
         self.measure(by_zid)
+        self.count_packets(packets_by_zid or {})
         self._link_at_start, self._control_at_start = dict(self.link), dict(self.charged)
+        self._packets_at_start = dict(self.packets)
 
     def charge(self, by_zid: Mapping[str, tuple[int, int]], meter, medium_to: Callable[[str], str | None],
                t: float) -> int:
@@ -109,6 +126,10 @@ class ControlPlaneMeter:
     def link_bytes(self) -> tuple[int, int]:
         """(sent, received) on every link since counting started, as measured."""
         return _by_direction(self.link, self._link_at_start)
+
+    def link_packets(self) -> tuple[int, int]:
+        """(sent, received) TCP segments on every link since counting started, as measured."""
+        return _by_direction(self.packets, self._packets_at_start)
 
     def control_bytes(self) -> tuple[int, int]:
         """(sent, received) of the control plane since counting started (what was charged)."""

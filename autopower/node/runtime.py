@@ -914,18 +914,22 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             queue_wait_s=queue_wait_s,
             zid=self.bus.zid,
             link_bytes=self.control_plane.link_bytes(),
+            link_packets=self.control_plane.link_packets(),
             control_bytes=self.control_plane.control_bytes(),
             runtime_cpu_s=self.runtime_cpu_s,
             component_cpu_s=self.component_cpu_s,
         )
 
-    def charge_control(self, by_zid: dict[str, tuple[int, int]]) -> None:
+    def charge_control(self, by_zid: dict[str, tuple[int, int]],
+                       packets_by_zid: dict[str, tuple[int, int]] | None = None) -> None:
         """The bytes each peer session exchanged with this node's so far (`LinkTraffic.poll`): what
         was not chain packets is charged to the radio of its link as the control plane's. Counted
-        from the mission's start: before it, the totals only set where counting starts."""
+        from the mission's start: before it, the totals only set where counting starts. And the
+        packets (`LinkTraffic.packets_by_peer`), reported in the status (`link_packets`)."""
         if self.meter is None:
-            self.control_plane.start_from(by_zid)
+            self.control_plane.start_from(by_zid, packets_by_zid)
             return
+        self.control_plane.count_packets(packets_by_zid or {})
         unpriced = self.control_plane.charge(by_zid, self.meter, self._medium_to, self.now())
         if unpriced:
             self.tally("control-bytes-unpriced", unpriced)

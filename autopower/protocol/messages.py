@@ -457,6 +457,8 @@ class NodeStatus:
     # of these the control plane's (everything but the chain packets): `runtime.link_traffic`
     link_bytes: tuple[int, int] = (0, 0)
     control_bytes: tuple[int, int] = (0, 0)
+    # (sent, received) TCP segments on those links: the packets its radios carry, whatever their size
+    link_packets: tuple[int, int] = (0, 0)
     # CPU seconds on the computer running the node since the mission started in this process: the
     # runtime's own (all but component code; charged as `cpu_runtime` through its platform's
     # slowdown, `NodeRuntime.charge_runtime`) and its component code's

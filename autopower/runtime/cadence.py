@@ -34,6 +34,7 @@ REPEAT_EVERY_PERIODS = 0.5
 # runtime's own bytes and CPU grow at rest too: keep-alives, statuses, the loop's wake-ups).
 DRIFTING = {"t_virtual": 0.0, "t_unix": 0.0, "battery_j": None, "energy_j": {}, "power_w": {},
             "cpu_utilisation": 0.0, "next_status_s": 0.0, "link_bytes": (0, 0), "control_bytes": (0, 0),
+            "link_packets": (0, 0),
             "runtime_cpu_s": 0.0, "component_cpu_s": 0.0}
 
 

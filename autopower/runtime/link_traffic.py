@@ -58,6 +58,8 @@ class SocketTotals:
     payload_received: int
     headers_sent: int = 0
     headers_received: int = 0
+    segments_sent: int = 0  # the packets the radio carries, bare ACKs and retransmissions included
+    segments_received: int = 0
 
     @property
     def sent(self) -> int:
@@ -109,7 +111,7 @@ def _totals(sock: socket.socket) -> SocketTotals | None:
     if info[_TCPI_OPTIONS] & _TCPI_OPT_TIMESTAMPS:
         header += _TIMESTAMP_OPTION
     return SocketTotals(payload_sent=sent, payload_received=received, headers_sent=segs_out * header,
-                        headers_received=segs_in * header)
+                        headers_received=segs_in * header, segments_sent=segs_out, segments_received=segs_in)
 
 
 def tcp_connections() -> dict[tuple[Address, Address], tuple[str, SocketTotals]]:
@@ -166,6 +168,7 @@ class LinkTraffic:
         self._last: dict[str, tuple[SocketTotals, int]] = {}
         self.by_peer: dict[str, tuple[int, int]] = {}  # peer zid -> (sent, received) since the start
         self.payload_by_peer: dict[str, tuple[int, int]] = {}  # of these, TCP's payload (headers left out)
+        self.packets_by_peer: dict[str, tuple[int, int]] = {}  # peer zid -> (segments sent, received) since the start
         self.unattributed = (0, 0)  # TCP bytes on connections no Zenoh link names (not ours to price)
 
     def due(self, now: float) -> bool:
@@ -203,6 +206,9 @@ class LinkTraffic:
             self.payload_by_peer[zid] = _plus(self.payload_by_peer.get(zid, (0, 0)),
                                               (max(0, totals.payload_sent - before.payload_sent),
                                                max(0, totals.payload_received - before.payload_received)))
+            self.packets_by_peer[zid] = _plus(self.packets_by_peer.get(zid, (0, 0)),
+                                              (max(0, totals.segments_sent - before.segments_sent),
+                                               max(0, totals.segments_received - before.segments_received)))
         for inode, (totals, missed) in self._last.items():
             if inode not in seen and missed + 1 < KEEP_UNSEEN_READINGS:
                 seen[inode] = (totals, missed + 1)

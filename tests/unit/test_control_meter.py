@@ -50,10 +50,13 @@ def test_each_connection_adds_what_it_carried_since_the_last_reading_and_a_recon
     # the connection closed and the session reconnected (a new socket, counting from 0 again)
     assert traffic.poll(LINK, {PAIR: ("socket:[2]", SocketTotals(300, 100))}) == {ZID_LAPTOP: (1904, 552)}
     assert traffic.payload_by_peer[ZID_LAPTOP] == (1800, 500)
+    assert traffic.packets_by_peer[ZID_LAPTOP] == (0, 0)  # these readings counted no segment
+    assert traffic.poll(LINK, {PAIR: ("socket:[2]", SocketTotals(400, 100, segments_sent=3, segments_received=2))})
+    assert traffic.packets_by_peer[ZID_LAPTOP] == (3, 2)
     # a socket no Zenoh link names (the proxy's, an operator's): counted apart, never as the link
     other = (("127.0.0.1", 5000), ("127.0.0.1", 6000))
-    assert traffic.poll(LINK, {PAIR: ("socket:[2]", SocketTotals(300, 100)), other: ("socket:[3]", SocketTotals(9, 9))}) \
-        == {ZID_LAPTOP: (1904, 552)}
+    assert traffic.poll(LINK, {PAIR: ("socket:[2]", SocketTotals(400, 100)), other: ("socket:[3]", SocketTotals(9, 9))}) \
+        == {ZID_LAPTOP: (2004, 552)}
     assert traffic.unattributed == (9, 9)
 
 
@@ -84,6 +87,7 @@ def test_the_kernel_counts_a_connections_payload_and_its_segments_headers():
             _, totals = tcp_connections()[(canonical(*ours), canonical(*theirs))]
             assert totals.payload_sent == 50_000 and totals.payload_received == 0
             assert 0 < totals.headers_sent <= 52 * 60 and totals.sent == 50_000 + totals.headers_sent
+            assert 0 < totals.segments_sent <= 60 and totals.headers_sent % totals.segments_sent == 0  # each its headers
             _, mirror = tcp_connections()[(canonical(*theirs), canonical(*ours))]
             assert mirror.payload_received == 50_000
 
@@ -153,3 +157,22 @@ def test_before_the_mission_the_bytes_only_set_where_counting_starts():
                                     5_000 + r1.control_plane.data.get(("laptop", "receive"), 0))})
     assert r1.control_plane.control_bytes() == (100, 0)
     assert r1.control_plane.link_bytes()[0] == r1.control_plane.data[("laptop", "send")] + 100
+
+
+def test_a_node_reports_the_packets_its_links_carried_since_the_mission_started():
+    """What a radio carries as packets (TCP segments, bare acknowledgements too), per peer session
+    its status names, from the mission's start on: `up --json`'s `links` and bench_fleet show it."""
+    from autopower.launch.summary import link_totals
+
+    team = SimTeam(SC, config=CoordinatorConfig(speed=1.0, auto_replan=False))
+    r1 = team.nodes["r1"]
+    r1.control_plane.learn_zid("laptop", ZID_LAPTOP)
+    r1.charge_control({ZID_LAPTOP: (5_000, 5_000)}, {ZID_LAPTOP: (40, 30), "c3" * 16: (7, 7)})  # joining
+    team.join()
+    team.run_until(2.0)
+    r1.charge_control({ZID_LAPTOP: (6_000, 6_000)}, {ZID_LAPTOP: (52, 33), "c3" * 16: (9, 9)})
+    status = r1.status(1.0)
+    assert status.link_packets == (12, 3)  # since the mission started; a session no one named is not counted
+    links = link_totals(dataclasses.asdict(status))
+    assert (links["packets_sent"], links["packets_received"]) == (12, 3)
+    assert links["bytes_sent"] == status.link_bytes[0] and links["control_bytes_sent"] == status.control_bytes[0]
