@@ -40,11 +40,12 @@ SETTLE_S = 15.0
 
 
 class Team:
-    def __init__(self, workdir: Path, speed: float, team: str):
+    def __init__(self, workdir: Path, speed: float, team: str, stage_workers: str = "auto"):
         self.workdir, self.team = workdir, team
         self.env = {**os.environ, "AUTOPOWER_STATE_DIR": str(workdir / "state"), "RERUN_ANALYTICS": "0"}
         self.up = subprocess.Popen([AUTOPOWER, "up", "--team", team, "--speed", f"{speed:g}",
-                                    "--log-dir", str(workdir / "logs"), "--record-dir", str(workdir / "rec")],
+                                    "--log-dir", str(workdir / "logs"), "--record-dir", str(workdir / "rec"),
+                                    "--stage-workers", stage_workers],
                                    stdout=open(workdir / "up.out", "w"), stderr=open(workdir / "up.err", "w"),
                                    env=self.env, cwd=workdir)
 
@@ -165,12 +166,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--faults", type=int, default=20)
     parser.add_argument("--speed", type=float, default=10.0)
+    parser.add_argument("--stage-workers", choices=("off", "on", "auto"), default="auto",
+                        help="up's: each stage's component in a worker process of its own (on), or in the node's")
     parser.add_argument("--json", action="store_true", help="one JSON object on stdout, nothing else")
     results.add_json_out(parser)
     args = parser.parse_args()
     rng = random.Random(args.seed)
     workdir = Path(tempfile.mkdtemp(prefix=f"random-faults-{args.seed}-"))
-    team = Team(workdir, args.speed, f"rf{os.getpid()}")
+    team = Team(workdir, args.speed, f"rf{os.getpid()}", args.stage_workers)
     log: list[dict] = []
     try:
         team.wait_ready()
@@ -184,7 +187,7 @@ def main() -> None:
     finally:
         up_exit = team.stop()
     recordings = sorted((workdir / "rec").rglob("run.rrd"))
-    result: dict = {"seed": args.seed, "faults": log, "up_exit": up_exit, "workdir": str(workdir),
+    result: dict = {"seed": args.seed, "stage_workers": args.stage_workers, "faults": log, "up_exit": up_exit, "workdir": str(workdir),
                     "log_errors": log_errors(workdir / "logs")}
     if recordings:
         replay = subprocess.run([AUTOPOWER, "replay", str(recordings[-1]), "--json"], env=team.env,
