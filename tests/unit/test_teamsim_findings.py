@@ -20,6 +20,7 @@ from tests.integration.test_sim_sweep import (
     FIXED_WAITING_INPUTS,
     FIXED_WAITING_INPUTS_WITH_ROUNDS,
     FOUND,
+    FOUND_BEYOND_RANGE,
     FOUND_PLAN,
     FOUND_WITH_ACCRUAL,
     FOUND_WITH_RADIO,
@@ -178,9 +179,15 @@ def test_sweep_seeds_where_a_relay_passed_on_a_copy_the_network_made(seed):
     assert verdict.ok, verdict.first
 
 
+BEYOND_REASON = ("open: found in a 2,000-seed run of CI's plan (611-2610), each also failing before the fixes of "
+                 "2026-11-30: outputs lost around a link slowed below a chain's rate (as 16 and 110), one-way "
+                 "cuts with crashes or freezes, a flapping link with a partition; not investigated yet")
+
+
 @pytest.mark.parametrize("seed", [pytest.param(seed, marks=pytest.mark.xfail(strict=True, reason=reason))
                                   for seeds, reason in ((FOUND_WITH_RADIO, RADIO_REASON),
-                                                        (FOUND_WITH_ACCRUAL, ACCRUAL_REASON))
+                                                        (FOUND_WITH_ACCRUAL, ACCRUAL_REASON),
+                                                        (FOUND_BEYOND_RANGE, BEYOND_REASON))
                                   for seed in seeds])
 def test_sweep_seeds_of_the_ci_plan_that_still_fail(seed):
     verdict = run_seed(PLAN, seed)
