@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -180,10 +179,7 @@ def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float 
         if not energy_scale > 0:
             raise AutoPowerError(f"--energy-scale must be > 0, got {energy_scale}")
         scenario = scenario.with_energies({r.name: r.energy_j * energy_scale for r in scenario.robots})
-    if control_plane is not None:
-        scenario = dataclasses.replace(
-            scenario, control_plane=dataclasses.replace(scenario.control_plane, enabled=control_plane))
-    return scenario.with_accounting(accounting)
+    return scenario.with_control_plane(control_plane).with_accounting(accounting)
 
 
 def setup_logging(level: str) -> None:

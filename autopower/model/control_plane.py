@@ -83,7 +83,8 @@ class ControlPlaneSpec:
         allowed = [c for c in choices_s if c <= max_detection_s]
         if not allowed:
             raise ScenarioError(f"control_plane: max_detection_s {max_detection_s:g} is shorter than the "
-                                f"shortest lease the runtime supports ({min(choices_s):g} s)")
+                                f"shortest lease chosen from ({min(choices_s):g} s); give lease_s yourself "
+                                f"(at least 0.1 s) or a longer requirement")
         return max(allowed)
 
     def messages_per_s(self) -> float:

@@ -226,9 +226,8 @@ class LoadSpace:
         """What the control plane's airtime costs ``robot`` beyond its radios' sleep power (0 when off)."""
         if self.control is None:
             return 0.0
-        i = self.node_index[robot]
-        send = self.control[self._send0 + i * len(self.media):self._send0 + (i + 1) * len(self.media)]
-        recv = self.control[self._recv0 + i * len(self.media):self._recv0 + (i + 1) * len(self.media)]
+        send = self.control[[self.send_slot(robot, m) for m in self.media]]
+        recv = self.control[[self.recv_slot(robot, m) for m in self.media]]
         return float(send @ (self.send_w - self.sleep_w) + recv @ (self.receive_w - self.sleep_w))
 
     def feasible(self, loads: np.ndarray) -> np.ndarray:

@@ -357,7 +357,8 @@ class ScenarioParser:
             try:
                 numbers["lease_s"] = ControlPlaneSpec.lease_for(numbers["max_detection_s"])
             except ScenarioError as exc:
-                raise self.fail("control_plane.max_detection_s", str(exc), "a requirement of at least 0.5 s") from None
+                raise self.fail("control_plane.max_detection_s", str(exc).removeprefix("control_plane: "),
+                                "a requirement of at least 0.5 s") from None
         try:
             return ControlPlaneSpec(enabled=enabled, **numbers, **sizes)
         except ScenarioError as exc:

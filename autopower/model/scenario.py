@@ -227,6 +227,12 @@ class Scenario:
             )
         return dataclasses.replace(self, accounting=accounting)
 
+    def with_control_plane(self, enabled: bool | None) -> "Scenario":
+        """The team's own statuses and keep-alives charged (`model.control_plane`) or not; None: as is."""
+        if enabled is None:
+            return self
+        return dataclasses.replace(self, control_plane=dataclasses.replace(self.control_plane, enabled=enabled))
+
     def with_latencies(self, measured: Mapping[str, Any], platform: str, where: str) -> "Scenario":
         """A copy whose components run on `platform` with measured latencies (seconds per run, by
         component type; types the measurement lacks keep theirs). `where` names the measurement."""

@@ -70,15 +70,8 @@ class ControlPlaneMeter:
         """The link totals per peer session so far (`LinkTraffic.poll`): the control bytes not yet
         charged, as (peer node, direction, bytes). Sessions no status names yet wait (their
         totals are kept by the caller, so nothing is lost by waiting)."""
-        totals: dict[tuple[str, Direction], int] = {}
-        for zid, (sent, received) in by_zid.items():
-            node = self._node_of_zid.get(zid)
-            if node is None:
-                continue
-            for direction, n in (("send", sent), ("receive", received)):
-                totals[(node, direction)] = totals.get((node, direction), 0) + n
         due = []
-        for key, total in totals.items():
+        for key, total in self._by_node(by_zid).items():
             self.link[key] = max(self.link.get(key, 0), total)
             control = max(0, self.link[key] - self.data.get(key, 0))
             grew = control - self.charged.get(key, 0)
@@ -90,14 +83,19 @@ class ControlPlaneMeter:
     def count_packets(self, by_zid: Mapping[str, tuple[int, int]]) -> None:
         """The segments each peer session exchanged so far (`LinkTraffic.packets_by_peer`): what a
         radio carries as packets, whatever their size (reported, not priced: the bytes are)."""
+        for key, total in self._by_node(by_zid).items():
+            self.packets[key] = max(self.packets.get(key, 0), total)
+
+    def _by_node(self, by_zid: Mapping[str, tuple[int, int]]) -> dict[tuple[str, Direction], int]:
+        """Per-session (sent, received) totals summed per (peer node, direction): the sessions a
+        status names only (a restarted node's old and new sessions add up)."""
         totals: dict[tuple[str, Direction], int] = {}
         for zid, (sent, received) in by_zid.items():
             node = self._node_of_zid.get(zid)
             if node is not None:
                 for direction, n in (("send", sent), ("receive", received)):
                     totals[(node, direction)] = totals.get((node, direction), 0) + n
-        for key, total in totals.items():
-            self.packets[key] = max(self.packets.get(key, 0), total)
+        return totals
 
     def start_from(self, by_zid: Mapping[str, tuple[int, int]],
                    packets_by_zid: Mapping[str, tuple[int, int]] | None = None) -> None:

@@ -513,8 +513,8 @@ def _faults(rec: Recording, kind: str, raw, decision_times: list[float], migrati
             det = None if seen is None else max(0.0, seen[1] - t_f)
         # The team may act on the first part it sees (a subgroup round commits once its members lost
         # the base station, whatever a third robot has yet to notice): the reaction is searched from
-        # the first part seen, while the fault counts as detected when its last part is.
-        # a fault no liveliness shows (a radio change): its reaction is searched from its injection
+        # the first part seen, while the fault counts as detected when its last part is; for a fault
+        # no liveliness shows (a radio change), from its injection.
         t_ref = t_f if t_first_seen is None else t_first_seen
         gone = set(fault["parts"]) if fault["kind"] == "crash-agent" else set()
         reconf, how = _reconfiguration(rec, kind, t_ref, t_next, plans, commits, decision_times, stage_ready, gone)

@@ -74,8 +74,6 @@ def what_if(rec: Recording, *, at_s: float | None = None, accounting: str | None
     ``control_plane``: charge the team's statuses and keep-alives (`model.control_plane`) or not;
     None: as the scenario says.
     """
-    import dataclasses
-
     from autopower.model.loading import load_scenario
     from autopower.model.network import Link, Network
     from autopower.planner import PlanRequest, evaluate_in, make_problem, plan
@@ -85,9 +83,7 @@ def what_if(rec: Recording, *, at_s: float | None = None, accounting: str | None
         if not name:
             raise RecordingError("the recording does not name its scenario; pass --scenario to --what-if")
         scenario = load_scenario(name)
-    if control_plane is not None:
-        scenario = dataclasses.replace(
-            scenario, control_plane=dataclasses.replace(scenario.control_plane, enabled=control_plane))
+    scenario = scenario.with_control_plane(control_plane)
     state = recorded_state(rec, at_s)
     energies_j = {**state["energies_j"], **dict(energies or {})}
     unknown = set(energies or {}) - {r.name for r in scenario.robots}
