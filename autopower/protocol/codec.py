@@ -1,9 +1,14 @@
 """One strict msgpack codec for every AutoPower message.
 
-Wire form: a msgpack array ``[b"AP", version, kind, {field: value, ...}]``. Decoding checks the
-magic, the protocol version, the kind, the exact set of fields and every field's type (nested
-structs, tuples, dicts included; numbers finite: NaN and ±inf are refused both ways); anything else raises ProtocolError, which the processes log
-and drop. Nothing here trusts the sender.
+Wire form: a msgpack array ``[b"AP", version, kind, [value, ...]]``: a message's fields, and a
+nested struct's, as an array in the class's declaration order, without their names. Names were
+half of every status (a robot's 1,255 B to the base station: 607 B without them) and, on a slow
+radio, half of what the control plane costs; the class is known from the kind, and every node runs
+the same build (the version says so). Decoding checks the magic, the protocol version, the kind,
+the exact number of fields and every field's type (nested structs, tuples, dicts included; numbers
+finite: NaN and ±inf are refused both ways); anything else raises ProtocolError, which the
+processes log and drop. Nothing here trusts the sender. `wire_data` (an operator's snapshot, JSON)
+and `named_fields` (the recorder's quick look) give the same values with their names.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import msgpack
 
 from autopower.errors import ProtocolError
 
-PROTOCOL_VERSION = 2  # 2: acknowledgements left the status for `Ack` messages
+PROTOCOL_VERSION = 3  # 2: acknowledgements left the status for `Ack` messages; 3: fields by position
 MAGIC = b"AP"
 # The first bytes of every encoded message (a 4-element array, then the magic): a check cheap
 # enough for a transport thread, so that a flood of random bytes is dropped before it is queued.
@@ -74,23 +79,27 @@ def _field_names(cls: type) -> tuple[str, ...] | None:
 
 
 @lru_cache(maxsize=None)
-def _fields_to_wire(cls: type) -> Callable[[Any], dict] | None:
-    """A dataclass's fields as a wire map, compiled once per class (None: not a dataclass): what
-    `_to_wire` does field by field, without a call for each field that goes on the wire as it is."""
+def _fields_to_wire(cls: type, named: bool) -> Callable[[Any], Any] | None:
+    """A dataclass's fields in wire form, compiled once per class (None: not a dataclass): an array
+    in declaration order (``named``: a map by field name), what `_wire` does field by field,
+    without a call for each field that goes on the wire as it is."""
     names = _field_names(cls)
     if names is None:
         return None
     lines = ["def fields(value):"]
     for i, name in enumerate(names):
         lines.append(f"    _f{i} = value.{name}")
-        lines.append(f"    if type(_f{i}) not in _PLAIN: _f{i} = _to_wire(_f{i})")
-    lines.append("    return {" + ", ".join(f"{name!r}: _f{i}" for i, name in enumerate(names)) + "}")
-    ns: dict[str, Any] = {"_PLAIN": _PLAIN, "_to_wire": _to_wire}
+        lines.append(f"    if type(_f{i}) not in _PLAIN: _f{i} = _wire(_f{i}, {named})")
+    if named:
+        lines.append("    return {" + ", ".join(f"{name!r}: _f{i}" for i, name in enumerate(names)) + "}")
+    else:
+        lines.append("    return [" + ", ".join(f"_f{i}" for i in range(len(names))) + "]")
+    ns: dict[str, Any] = {"_PLAIN": _PLAIN, "_wire": _wire}
     exec("\n".join(lines), ns)  # noqa: S102 - source generated from the class's own field names
     return ns["fields"]
 
 
-def _to_wire(value: Any) -> Any:
+def _wire(value: Any, named: bool = False) -> Any:
     # the common cases first, by exact type: every frame of a live team goes through here
     t = type(value)
     if t in _PLAIN:
@@ -99,27 +108,83 @@ def _to_wire(value: Any) -> Any:
         if not math.isfinite(value):
             raise ValueError(f"non-finite number {value}")
         return value
-    fields = _fields_to_wire(t)
+    fields = _fields_to_wire(t, named)
     if fields is not None:
         return fields(value)
     if isinstance(value, float) and not math.isfinite(value):
         raise ValueError(f"non-finite number {value}")  # the receiver would refuse it: fail at the sender
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _to_wire(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, (tuple, list)):
-        return [_to_wire(v) for v in value]
+        return [_wire(v, named) for v in value]
     if isinstance(value, dict):
-        return {k: _to_wire(v) for k, v in value.items()}
+        return {k: _wire(v, named) for k, v in value.items()}
     return value
 
 
 def wire_data(value: Any) -> Any:
-    """``value`` as it goes on the wire: dataclasses as dicts of their fields, tuples as lists, the
-    rest as it is (a new container at every level; the leaves are immutable). What an operator's
-    snapshot shows of a status, as a round trip through msgpack or JSON would give it, built by the
-    per-class field readers `encode` uses (a quarter of `dataclasses.asdict`'s time, which
-    deep-copies every leaf). ValueError for a non-finite number, as `encode` refuses it."""
-    return _to_wire(value)
+    """``value`` as the wire carries it, with names: dataclasses as dicts of their fields, tuples as
+    lists, the rest as it is (a new container at every level; the leaves are immutable). What an
+    operator's snapshot shows of a status, built by the per-class field readers `encode` uses (a
+    quarter of `dataclasses.asdict`'s time, which deep-copies every leaf). ValueError for a
+    non-finite number, as `encode` refuses it."""
+    return _wire(value, named=True)
+
+
+def named_fields(kind: str, fields: Any) -> dict:
+    """The wire fields of a message of ``kind`` (as msgpack decoded them) with their names, nested
+    structs too: what `wire_data` gives of the decoded message, without checking a value's type
+    (the recorder's look at what its own process just encoded). ProtocolError for an unknown kind
+    or a shape that is not the class's."""
+    cls = _MESSAGES.get(kind)
+    if cls is None:
+        raise ProtocolError(f"unknown message kind {kind!r}")
+    return _namer(cls)(fields, kind)
+
+
+@lru_cache(maxsize=None)
+def _namer(hint: Any) -> Callable[[Any, str], Any]:
+    """What names the wire value of a field of type ``hint`` (worked out once per hint): `_as_is`
+    where no struct is inside."""
+    if isinstance(hint, type) and (hint in _STRUCTS or hint in _MESSAGES.values()):
+        hints, names = _hints(hint), _field_names(hint)
+
+        def struct_fields(value: Any, where: str) -> Any:
+            if type(value) is not list or len(value) != len(names):
+                raise _fail(where, f"expected the {len(names)} fields of {hint.__name__}")
+            return {n: _namer(hints[n])(v, f"{where}.{n}") for n, v in zip(names, value, strict=True)}
+        return struct_fields
+    origin, args = get_origin(hint), get_args(hint)
+    if origin in (Union, types.UnionType):  # the messages' unions hold one struct at most (X | None)
+        inner = [n for n in (_namer(a) for a in args) if n is not _as_is]
+        if not inner:
+            return _as_is
+        return lambda value, where: None if value is None else inner[0](value, where)
+    if origin is tuple:
+        variadic = len(args) == 2 and args[1] is Ellipsis
+        namers = [_namer(args[0])] if variadic else [_namer(a) for a in args]
+        if all(n is _as_is for n in namers):
+            return _as_is
+
+        def items(value: Any, where: str) -> Any:
+            if type(value) is not list:
+                raise _fail(where, "expected a list")
+            each = namers * len(value) if variadic else namers
+            return [n(v, f"{where}[{i}]") for i, (n, v) in enumerate(zip(each, value, strict=False))]
+        return items
+    if origin is dict:
+        item = _namer(args[1])
+        if item is _as_is:
+            return _as_is
+
+        def values(value: Any, where: str) -> Any:
+            if type(value) is not dict:
+                raise _fail(where, "expected a map")
+            return {k: item(v, f"{where}[{k!r}]") for k, v in value.items()}
+        return values
+    return _as_is
+
+
+def _as_is(value: Any, where: str) -> Any:
+    return value
 
 
 def encode(msg: Any) -> bytes:
@@ -128,7 +193,7 @@ def encode(msg: Any) -> bytes:
     if _MESSAGES.get(kind) is not type(msg):
         raise ProtocolError(f"cannot encode {type(msg).__name__}: not a registered message")
     try:
-        return msgpack.packb([MAGIC, PROTOCOL_VERSION, kind, _to_wire(msg)], use_bin_type=True)
+        return msgpack.packb([MAGIC, PROTOCOL_VERSION, kind, _wire(msg)], use_bin_type=True)
     except (TypeError, ValueError, OverflowError) as exc:
         raise ProtocolError(f"cannot encode {kind}: {exc}") from exc
 
@@ -250,20 +315,14 @@ def _plan(cls: type) -> tuple[tuple[str, ...], frozenset[str], tuple[Callable[[A
 
 
 def _build(cls: type, fields: Any, where: str) -> Any:
-    if not isinstance(fields, dict):
-        raise _fail(where, f"expected a map of fields, got {type(fields).__name__}")
-    names, allowed, converters = _plan(cls)
-    if len(fields) != len(names) or any(k not in allowed for k in fields) or any(n not in fields for n in names):
-        unknown = [k for k in fields if k not in allowed]
-        missing = [n for n in names if n not in fields]
-        if unknown or missing:
-            detail = []
-            if unknown:
-                detail.append(f"unknown field(s) {', '.join(map(repr, unknown))}")
-            if missing:
-                detail.append(f"missing field(s) {', '.join(missing)}")
-            raise _fail(where, "; ".join(detail))
-    kwargs = {n: c(fields[n], f"{where}.{n}") for n, c in zip(names, converters, strict=False)}
+    names, _, converters = _plan(cls)
+    if not isinstance(fields, list):
+        raise _fail(where, f"expected the {len(names)} fields of {cls.__name__} as a list, got {type(fields).__name__}")
+    if len(fields) != len(names):
+        said = f"{len(names)} fields ({', '.join(names)})"
+        raise _fail(where, f"expected {said}, got {len(fields)}: a node of another AutoPower build? "
+                           "Run the same version on every node")
+    kwargs = {n: c(v, f"{where}.{n}") for n, c, v in zip(names, converters, fields, strict=True)}
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
@@ -372,10 +431,9 @@ def _fast_builder(cls: type) -> Callable[[Any], Any]:
                           "_new": object.__new__}
     c = _Compiler(ns)
     c.emit(0, "def build(fields):")
-    c.emit(1, f"if type(fields) is not dict or len(fields) != {len(names)}: raise _Slow")
-    for i, name in enumerate(names):
-        c.emit(1, f"_f{i} = fields.get({name!r}, _Slow)")
-        c.emit(1, f"if _f{i} is _Slow: raise _Slow")
+    c.emit(1, f"if type(fields) is not list or len(fields) != {len(names)}: raise _Slow")
+    if names:
+        c.emit(1, ", ".join(f"_f{i}" for i in range(len(names))) + ", = fields")
     values = [c.value(hints[name], f"_f{i}", 1) for i, name in enumerate(names)]
     # what the frozen dataclass's __init__ does (every field is on the wire: no defaults to fill),
     # without its object.__setattr__ per field; its __post_init__ still judges the values
@@ -450,4 +508,4 @@ def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...]
 
 
 __all__ = ["MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "decode", "encode", "looks_like_message", "message", "message_kind", "wire_data",
-           "message_kinds", "struct"]
+           "message_kinds", "named_fields", "struct"]

@@ -6,7 +6,7 @@ field checked through the type hints) and encodes it again (the body copied twic
 230 KB camera frame that is most of what a relay costs. Here:
 
 - `read_header` reads the header of a packet in the codec's own layout (`encode` writes the
-  fields in declaration order, ``body`` last) and checks it exactly as `decode(data, Packet)`
+  fields as an array in declaration order, ``body`` last) and checks it exactly as `decode(data, Packet)`
   would (types, finiteness, the `Packet` invariants); it never copies the body, only notes where
   it starts. Anything it does not recognise gives None, and the caller hands the bytes to the
   strict codec, which decides (and counts) what they are: this reader may refuse what the codec
@@ -31,9 +31,7 @@ HEADER_FIELDS = ("path", "media", "hop", "charge_bytes", "weight", "purpose", "c
 MAX_HEADER = 4096  # bytes: a path of a few node names; a longer header goes to the strict codec
 MAX_BODY = 64 * 2**20  # the codec's max_bin_len
 _BIN = {0xC4: 1, 0xC5: 2, 0xC6: 4}  # msgpack bin 8/16/32: length bytes after the type byte
-_BODY_KEY = msgpack.packb("body")
 _EMPTY_BIN = msgpack.packb(b"", use_bin_type=True)
-_FIELDS = {*HEADER_FIELDS, "body"}
 
 
 class PacketHeader(NamedTuple):
@@ -54,23 +52,30 @@ def _strings(value) -> bool:
 def read_header(data: bytes) -> PacketHeader | None:
     """The header of an encoded `Packet`, checked as strictly as the codec; None: ask the codec."""
     size = len(data)
-    # The body is the last field: ``"body"`` and a bin that ends the message. Find that bin (a
-    # chain named "body" may come first), then decode what precedes it with an empty bin in its
-    # place: the codec would read the same fields from ``data``, and the body from where it is.
-    at = -1
-    while True:
-        at = data.find(_BODY_KEY, at + 1, MAX_HEADER)
-        if at < 0:
+    # Walk the message up to the body (the last field: a bin that ends the message), then decode what
+    # precedes it with an empty bin in its place: the codec would read the same fields from
+    # ``data``, and the body from where it is.
+    walk = msgpack.Unpacker(raw=False, strict_map_key=False)
+    walk.feed(bytes(data[:MAX_HEADER]))
+    try:
+        if walk.read_array_header() != 4:
             return None
-        body_at = at + len(_BODY_KEY)
-        width = _BIN.get(data[body_at]) if body_at < size else None
-        if width is not None:
-            length = int.from_bytes(data[body_at + 1:body_at + 1 + width], "big")
-            if body_at + 1 + width + length == size:
-                break
-    if length > MAX_BODY:
+        for _ in range(3):  # the magic, the version, the kind: `_read_fields` checks them
+            walk.skip()
+        if walk.read_array_header() != len(HEADER_FIELDS) + 1:
+            return None
+        for _ in HEADER_FIELDS:
+            walk.skip()
+        body_at = walk.tell()
+    except Exception:  # garbage, or a header longer than MAX_HEADER: the strict codec says which
         return None
-    return _read_fields(data[:body_at])
+    width = _BIN.get(data[body_at]) if body_at < size else None
+    if width is None:
+        return None
+    length = int.from_bytes(data[body_at + 1:body_at + 1 + width], "big")
+    if body_at + 1 + width + length != size or length > MAX_BODY:
+        return None
+    return _read_fields(bytes(data[:body_at]))
 
 
 @lru_cache(maxsize=256)  # a relay sees a handful of distinct headers (chain, route, hop), packet after packet
@@ -85,10 +90,9 @@ def _read_fields(head: bytes) -> PacketHeader | None:
         return None
     magic, version, kind, fields = message
     if (magic != MAGIC or type(version) is not int or version != PROTOCOL_VERSION or kind != KIND
-            or type(fields) is not dict or fields.keys() != _FIELDS or fields["body"] != b""):
+            or type(fields) is not list or len(fields) != len(HEADER_FIELDS) + 1 or fields[-1] != b""):
         return None
-    path, media, hop, charge_bytes = fields["path"], fields["media"], fields["hop"], fields["charge_bytes"]
-    weight, purpose, chain = fields["weight"], fields["purpose"], fields["chain"]
+    path, media, hop, charge_bytes, weight, purpose, chain, _ = fields
     # the codec's checks for these hints: int excludes bool, a float field takes an int, finite only
     if (not _strings(path) or not _strings(media) or type(hop) is not int or type(charge_bytes) is not int
             or type(purpose) is not str or type(chain) is not str):
@@ -113,7 +117,6 @@ def forwarded(data: bytes, header: PacketHeader) -> bytes:
 @lru_cache(maxsize=256)
 def _next_head(header: PacketHeader) -> bytes:
     """The next hop's encoding up to the body's bin."""
-    fields = {"path": list(header.path), "media": list(header.media), "hop": header.hop + 1,
-              "charge_bytes": header.charge_bytes, "weight": header.weight, "purpose": header.purpose,
-              "chain": header.chain, "body": b""}
+    fields = [list(header.path), list(header.media), header.hop + 1, header.charge_bytes, header.weight,
+              header.purpose, header.chain, b""]
     return msgpack.packb([MAGIC, PROTOCOL_VERSION, KIND, fields], use_bin_type=True)[:-len(_EMPTY_BIN)]

@@ -75,7 +75,7 @@ import msgpack
 
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
-from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION, encode, message_kind
+from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION, encode, message_kind, named_fields
 from autopower.protocol.plans import PlanAssembler
 from autopower.recording.telemetry import (
     EVENT_TAG,
@@ -129,9 +129,9 @@ def _peek(payload: bytes) -> tuple[str | None, dict]:
     and the recorder's guard counts and drops it.
     """
     magic, version, kind, fields = msgpack.unpackb(payload, raw=False, strict_map_key=False)
-    if magic != MAGIC or version != PROTOCOL_VERSION or not isinstance(fields, dict):
+    if magic != MAGIC or version != PROTOCOL_VERSION or not isinstance(fields, list):
         raise ProtocolError("not an AutoPower message of this protocol version")
-    return kind, fields
+    return kind, named_fields(kind, fields)
 
 
 def _peek_items(payload: bytes) -> list[tuple[str | None, dict]]:

@@ -62,7 +62,7 @@ def test_waiters_hold_a_bounded_number_and_give_them_all_up_at_a_stop():
 def test_a_snapshot_request_with_a_wait_out_of_bounds_is_refused(wait):
     with pytest.raises(ValueError, match="until_ready_s"):
         SnapshotRequest(until_ready_s=wait)
-    wire = msgpack.packb([MAGIC, PROTOCOL_VERSION, SnapshotRequest.KIND, {"until_ready_s": wait}])
+    wire = msgpack.packb([MAGIC, PROTOCOL_VERSION, SnapshotRequest.KIND, [wait]])
     with pytest.raises(ProtocolError):  # from the network as well: garbled, not held
         decode(wire, SnapshotRequest)
 
