@@ -270,10 +270,12 @@ class Agent:
                 last = self.statuses.get(status.node)
                 if last is not None and status.t_unix <= last.t_unix:
                     return  # a duplicate (direct and relayed) or an older one overtaken
+                base_was_reachable = self.relayer.reachable(self.config.scenario.basestation)
                 self.relayer.on_status(status)
                 self.statuses[status.node] = status
                 rt.on_peer_status(status)  # what it consumed: acks for our custody buffer
-                if rt.yield_to_newer(status):
+                if (rt.yield_to_newer(status) or rt.take_status_asked()
+                        or self._base_came_within_reach(base_was_reachable)):
                     self.publish_status()
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
@@ -285,6 +287,12 @@ class Agent:
             self.publish_status()  # acknowledges the new plan at once (reconfiguration is timed on it)
         elif rt.model_w != model_w:
             self.publish_status()  # a stage left: the recording's model steps down when it did
+
+    def _base_came_within_reach(self, was_reachable: bool) -> bool:
+        """The base station is within reach again through a peer's links (relayed): it hears us
+        only through our statuses, which would otherwise wait for the heartbeat (a base station that
+        came back learns the team within a listening window shorter than that)."""
+        return not was_reachable and self.relayer.reachable(self.config.scenario.basestation)
 
     # ---- subgroup (no base station): `node.subgroup_rounds` ------------------------------------------
     def _subgroup_tick(self) -> None:
@@ -342,9 +350,11 @@ class Agent:
         Also before the mission starts: with the relay topology the base station sees r2 and r3
         only through r1's statuses (who it sees) and theirs (relayed), and starts the mission as
         soon as every robot is known to be reachable rather than after the start grace.
-        The periodic one (not ``urgent``) is held back at rest (`StatusCadence`); False then.
+        The periodic one (not ``urgent``) is held back when it says nothing new (`StatusCadence`);
+        False then, what flowed since the last acknowledged all the same.
         ``save_resume``: the resume state is saved first (at rest its state only drifts: saved with
-        the statuses that go out, the restart charges idle power from there).
+        the statuses that go out, the restart charges idle power from there; while anything runs,
+        every period).
         """
         rt = self.runtime
         window = self.config.status_window_s * rt.clock.speed if rt.started else 0.0
@@ -356,13 +366,17 @@ class Agent:
             rt.counters["status-repeats"] = self._bus.repeated
         if self.watch.tokens_lost:  # peers a token that went took out of sight (`PeerWatch` counts them)
             rt.counters["tokens-lost"] = self.watch.tokens_lost
-        status = self.cadence.due(rt.status(window, self.events.depth(), self.events.bulk_wait_s()), time.time(), urgent=urgent)
-        if status is None:
-            return False
+        built = rt.status(window, self.events.depth(), self.events.bulk_wait_s())
+        status = self.cadence.due(built, time.time(), urgent=urgent)
+        if status is None and self._quiet():
+            return False  # at rest: nothing new, nothing to acknowledge
         if save_resume:
             self.save_resume()
-        if rt.sink_store is not None:  # the outputs this status acknowledges are kept first (as the base station's)
+        if rt.sink_store is not None:  # the outputs acknowledged are kept first (as the base station's)
             rt.sink_store.commit()
+        if status is None:  # only counts moved: the heartbeat waits, what flowed is acknowledged now
+            rt.send_acks(self.relayer.reachable, built.queue_wait_s)
+            return False
         # the whole status to base stations, the part robots use to the robots (each a heartbeat)
         base = self.config.scenario.basestation
         for key, payload, dests in ((self.keys.status(self.config.robot), encode(status), [base]),

@@ -549,9 +549,11 @@ class BaseStation:
                     if self.traffic is not None and self.traffic.due(time.monotonic()):
                         rt.charge_control(self.traffic.poll(self._bus.links()), self.traffic.packets_by_peer)  # its links' bytes, metered
                     rt.charge_runtime(time.process_time())  # its own CPU, measured (mains: reported, not charged)
-                    if rt.started:  # held back at rest: nothing new in it but what drifts with time
-                        status = self.cadence.due(rt.status(self.config.status_window_s * rt.clock.speed,
-                                                            self.events.depth(), self.events.bulk_wait_s()), now)
+                    built = None
+                    if rt.started:  # held back when nothing in it is new but what drifts or counts
+                        built = rt.status(self.config.status_window_s * rt.clock.speed, self.events.depth(),
+                                          self.events.bulk_wait_s())
+                        status = self.cadence.due(built, now)
                     else:  # no mission yet: each robot in reach hears that we run no plan
                         for robot, key, payload in self.peer_views.addressed(co, None, now, period):
                             self._send_view(robot, key, payload, period)
@@ -571,6 +573,11 @@ class BaseStation:
                         for robot, key, payload in self.peer_views.addressed(co, status, now, status.next_status_s):
                             self._send_view(robot, key, payload, status.next_status_s)
                         rt.send_acks(self.relayer.reachable, status.queue_wait_s)  # to the nodes that sent us frames
+                    elif built is not None and not self._quiet():  # only counts moved: what flowed is acknowledged now
+                        if rt.sink_store is not None:
+                            rt.sink_store.commit()
+                        rt.settle_held_store()
+                        rt.send_acks(self.relayer.reachable, built.queue_wait_s)
                     if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                         self.stop_reason = "parent exited"
                         break

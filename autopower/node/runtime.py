@@ -154,6 +154,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # wall: until when a base station's status said it runs our plan, and one said it does not
         self._base_runs_our_plan_until = 0.0
         self._mission_wanted_until = 0.0
+        self._status_asked = False  # a base station listening for the team asked: `take_status_asked`
         self._link_ends = build_network(scenario).neighbours(node)  # the scenario's links of this node
         self._team = frozenset(scenario.node_names())
         self.errors: dict[str, int] = {}  # things that should not happen (garbage, lost frames)
@@ -849,7 +850,19 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             if self.plan is not None and status.plan_epoch == self.plan.epoch:
                 self._base_runs_our_plan_until = until
             else:
+                if status.plan_epoch < 0 and self.wall() >= self._mission_wanted_until:
+                    self._status_asked = True  # a base station that runs nothing yet, newly heard
                 self._mission_wanted_until = until
+
+    def take_status_asked(self) -> bool:
+        """Whether a base station that runs no plan yet (`PeerViews.listening`: one taking over the
+        team, or a second one) began listening since last asked: it learns the team from the
+        statuses it hears within its listening window (`CoordinatorConfig.learn_team_s`), and a
+        robot whose status says nothing new would speak only at its heartbeat, after the window:
+        the process sends one at once. (A takeover that missed a robot adopted the team without its
+        stages, and restarted its chains in a new run, losing what was in flight.)"""
+        asked, self._status_asked = self._status_asked, False
+        return asked
 
     def _mission_wanted(self) -> bool:
         """Whether this node's status names its mission (`on_peer_status`)."""

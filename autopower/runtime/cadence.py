@@ -1,15 +1,22 @@
-"""When a node publishes its status: every period while anything in it changes, slower at rest.
+"""When a node publishes its status: at once when something in it changed, else a slow heartbeat.
 
-A team at rest (every chain disabled, nothing in flight) would otherwise send, receive and
-decode every node's status every period for nothing: most of what a resting team costs. A
-status that says nothing new beyond what drifts with time (clock, battery, energy, mean power)
-is held back until the rest period has passed since the last one; anything else in it (a plan,
-a stage, a counter, a link, an acknowledgement) goes out at the next period, as it always did.
+A status that says nothing new beyond what drifts with time (clock, battery, energy, mean power)
+and what counts the work flowing through the node (frames produced, outputs received, runs,
+counters) is held back until the rest period has passed since the last one: that is the slow
+heartbeat, at rest and while the chains run alike. Anything else in it (a plan, a stage's state, a
+generation, a link, a chain's run, a failed component) goes out at the next period, as it always did.
+No node decides anything on a count (the base station reads a source's run, not how many frames
+it produced); the counts are for the recording and the live table, which see them every heartbeat.
+A running robot's status to the base station was most of the team's control bytes, sent every
+period because a count had moved: over GSM that alone kept the radio busy a third of the time.
+
+What flowed is still acknowledged every period (`NodeRuntime.send_acks`): custody, not the
+status, needs that, and a producer's frames must not wait for the next heartbeat to be let go.
 
 Every status announces when the next one is due (``NodeStatus.next_status_s``): a receiver's
-status-silence detector waits that long, not its own period, so it neither fires at a resting
-node nor waits longer than today for an active one. The status that first finds the node at
-rest announces the rest period, so no receiver ever expects the short one when it is not coming.
+status-silence detector waits that long, not its own period, so it neither fires at a node on the
+slow heartbeat nor waits longer than needed for one that has news. The status that first finds
+nothing new announces the rest period, so no receiver ever expects the short one when it is not coming.
 
 A node's loop need not even wake to build a status that would be held back: while it rests and
 nothing it does is timed (no source, no stage, nothing in custody: the loop knows), it sleeps until
@@ -36,6 +43,17 @@ DRIFTING = {"t_virtual": 0.0, "t_unix": 0.0, "battery_j": None, "energy_j": {}, 
             "cpu_utilisation": 0.0, "next_status_s": 0.0, "link_bytes": (0, 0), "control_bytes": (0, 0),
             "link_packets": (0, 0),
             "runtime_cpu_s": 0.0, "component_cpu_s": 0.0}
+# What counts the work that flows through the node: changes every period while a chain runs, read by
+# the recording and the live table only. (A source's and a sink's run stay: a new run is news.)
+FLOWING = {"runs": {}, "compute_ms": {}, "queue_depth": 0, "errors": {}, "counters": {}, "queue_wait_s": 0.0}
+
+
+def steady_part(status: NodeStatus) -> NodeStatus:
+    """``status`` without what drifts with time or counts what flows: what must be said at once
+    when it changes (two statuses with equal steady parts say nothing new to any peer)."""
+    return dataclasses.replace(status, **DRIFTING, **FLOWING,
+                               sources={name: s.run for name, s in status.sources.items()},
+                               sinks={name: s.run for name, s in status.sinks.items()})
 
 
 class StatusCadence:
@@ -68,7 +86,7 @@ class StatusCadence:
         ``urgent``: something the others must hear at once (a link seen or lost, a new plan): it
         goes out and announces the normal period.
         """
-        steady = dataclasses.replace(status, **DRIFTING)
+        steady = steady_part(status)
         unchanged = steady == self._last
         if (unchanged and not urgent and self._last_announced == self.rest_period_s and self._last_wall is not None
                 and now - self._last_wall < self.rest_period_s - self.period_s / 2):

@@ -3,13 +3,16 @@
 Each shell does what its process does with events (`autopower.agent.process.Agent`,
 `autopower.basestation.process.BaseStation`), in simulated time: it hands messages and sight
 changes to its `NodeRuntime` (and the base station's `Coordinator`), relays through the real
-`Relayer`, publishes its status every status period (what the status acknowledges is kept first:
-the sink's notes, the resume state, the held results), and wakes for its next deadline. After each
+`Relayer`, builds its status every status period and publishes it when its cadence says so
+(`StatusCadence`: at once when something in it changed, else a slow heartbeat; what flowed is
+acknowledged every period, and kept first: the sink's notes, the resume state, the held results),
+and wakes for its next deadline. After each
 event and each wake it takes one turn of its loop. The stores are the real ones, in the run's
 folder: a restarted process reads what the killed one wrote.
 
 Not here (the processes' own logic, outside the cores until the node-core refactor moves it in):
-subgroup rounds, the silence detector, a restarted robot going on alone, the status cadence at rest.
+subgroup rounds, the silence detector, a restarted robot going on alone; the loop that sleeps
+through the rest period (the sim builds a status every period and the cadence holds it back).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from autopower.protocol import (
     encode,
 )
 from autopower.protocol.access import carries_peer_status, status_problem
+from autopower.runtime.cadence import StatusCadence
 from autopower.runtime.relay import Relayer
 from autopower.teamsim.bus import SimBus
 from autopower.teamsim.scheduler import EPOCH_UNIX
@@ -58,6 +62,7 @@ class Shell:
         self.rt: NodeRuntime | None = None
         self.relayer: Relayer | None = None
         self.next_status = 0.0
+        self.cadence: StatusCadence | None = None
 
     # ---- life ---------------------------------------------------------------------------------
     def start(self) -> None:
@@ -72,6 +77,7 @@ class Shell:
         self.rt.on_output = self._output
         self.rt.on_held_dropped = self._dropped_by_budget
         self.rt.on_died_with_process = lambda c, r, s: w.ledger.let_go((c, r, s), "died-with-process")
+        self.cadence = StatusCadence(w.status_period_s, w.status_rest_period_s)  # a new process's: it says all at once
         self.build()
         self.next_status = w.scheduler.wall()
         self.turn()
@@ -258,12 +264,16 @@ class RobotShell(Shell):
             last = self.statuses.get(status.node)
             if last is not None and status.t_unix <= last.t_unix:
                 return
+            base = self.world.scenario.basestation
+            base_was_reachable = self.relayer.reachable(base)
             self.relayer.on_status(status)
             if not relayed:
                 self.relayer.on_direct(status.node)
             self.statuses[status.node] = status
             rt.on_peer_status(status)
-            if rt.yield_to_newer(status):
+            # as the agent: a base station asking, or back within reach through a peer, hears us at once
+            if (rt.yield_to_newer(status) or rt.take_status_asked()
+                    or (not base_was_reachable and self.relayer.reachable(base))):
                 self.publish_status()
             return
         order, model_w = rt.plan_order, rt.model_w
@@ -272,16 +282,26 @@ class RobotShell(Shell):
         elif rt.plan_order != order or rt.model_w != model_w:
             self.publish_status()  # a new plan acknowledged at once; a stage that left, said at once
 
-    def publish_status(self, save_resume: bool = False) -> None:
+    def publish_status(self, save_resume: bool = False, urgent: bool = True) -> None:
+        """As the agent's (`Agent.publish_status`): the periodic one (not ``urgent``) held back when
+        it says nothing new; what flowed acknowledged every period all the same."""
         rt, keys, w = self.rt, self.keys, self.world
         window = w.status_window_s * rt.clock.speed if rt.started else 0.0
         if self.watch.tokens_lost:  # peers a token that went took out of sight, as the agent counts them
             rt.counters["tokens-lost"] = self.watch.tokens_lost
-        status = rt.status(window)
+        built = rt.status(window)
+        status = self.cadence.due(built, w.scheduler.wall(), urgent=urgent)
+        if status is None and rt.idle() and self.rounds.idle():
+            self._status_sent(built)  # at rest: nothing new, nothing to acknowledge
+            return
         if save_resume:
             self.save_resume()
         rt.sink_store.commit()
         self.commit_outputs()
+        if status is None:  # only counts moved: the heartbeat waits
+            rt.send_acks(self.relayer.reachable, built.queue_wait_s)
+            self._status_sent(built)
+            return
         base = w.scenario.basestation
         for key, payload, dests in ((keys.status(self.node), encode(status), [base]),
                                     (keys.peer(self.node), encode(PeerStatus.of(status)),
@@ -309,7 +329,7 @@ class RobotShell(Shell):
             rt.meter.advance(rt.now())
         now = s.wall()
         if now >= self.next_status:
-            self.publish_status(save_resume=True)
+            self.publish_status(save_resume=True, urgent=False)
             self.next_status = max(self.next_status + self.world.status_period_s, now)
         silent_at = self.watch.next_deadline()
         wake = min([self.next_status, *self.rounds.wake_times(now), *([silent_at + MIN_WAKE_S] if silent_at else [])])
@@ -474,11 +494,21 @@ class BaseShell(Shell):
             self.relayer.send(robot, key, payload, reliable=False)
 
     def publish_status(self) -> None:
+        """As the base station's loop does: held back when it says nothing new (`StatusCadence`),
+        what flowed acknowledged every period all the same."""
         rt, co, w = self.rt, self.co, self.world
-        status = rt.status(w.status_window_s * rt.clock.speed)
+        built = rt.status(w.status_window_s * rt.clock.speed)
+        status = self.cadence.due(built, w.scheduler.wall())
+        if status is None and rt.idle() and co.idle() and not self.suspects:
+            self._status_sent(built)
+            return
         rt.sink_store.commit()
         self.commit_outputs()
         rt.settle_held_store()
+        if status is None:
+            rt.send_acks(self.relayer.reachable, built.queue_wait_s)
+            self._status_sent(built)
+            return
         self.bus.publish(self.keys.status(self.node), encode(status), reliable=False)  # standby base stations
         # each robot the part it acts on (`basestation.peer_view`)
         for robot, key, payload in self.peer_views.addressed(co, status, w.scheduler.wall(), status.next_status_s):

@@ -49,6 +49,7 @@ DRAIN_S = 10.0  # outputs produced in the last seconds of a run are still on the
 SETTLE_S = 2.0  # the run is judged once the newest plan is this old and no migration is under way...
 SETTLE_MAX_S = 30.0  # ... or this long after the quiet phase, whichever comes first
 STATUS_PERIOD_S = 0.5
+STATUS_REST_PERIOD_S = 2.0  # the slow heartbeat (`AgentConfig.status_rest_period_s`)
 STATUS_WINDOW_S = 2.0
 ENERGY_TOLERANCE = 1e-6  # relative
 
@@ -130,6 +131,7 @@ class World:
         self.ledger = Ledger([c.name for c in self.scenario.chains])
         self.store_dir = store_dir
         self.status_period_s = STATUS_PERIOD_S
+        self.status_rest_period_s = STATUS_REST_PERIOD_S
         self.subgroup = config.subgroup
         self.status_window_s = STATUS_WINDOW_S
         self.coordinator_config = CoordinatorConfig(speed=config.speed, policy=config.policy,
@@ -203,6 +205,12 @@ class World:
     def stepped_down(self, shell: BaseShell) -> None:
         self.trace.note(self.scheduler.now, f"{shell.node} stepped down: {shell.co.stepped_down}")
         shell.crash()
+
+    def close(self) -> None:
+        """Every process still up stops as a kill would: its stores' files closed (a sweep runs
+        thousands of teams in one process: each left 17 journals open, and a worker ran out of files)."""
+        for shell in self.shells.values():
+            shell.crash()
 
     # ---- what the oracle watches as the run goes -------------------------------------------------------
     def internal_error(self, node: str, exc: Exception) -> None:
@@ -323,6 +331,13 @@ def _memory_folder() -> str | None:
 
 def _run(config: SimConfig, store_dir: Path, started: float) -> SimResult:
     world = World(config, store_dir)
+    try:
+        return _judged(config, world, started)
+    finally:
+        world.close()
+
+
+def _judged(config: SimConfig, world: World, started: float) -> SimResult:
     world.start(config.scenario.basestation)
     for robot in sorted(r.name for r in config.scenario.robots):
         world.start(robot)

@@ -33,7 +33,7 @@ def test_a_resting_node_with_nothing_timed_builds_its_next_status_when_the_rest_
     assert cadence.next_build(3.0, quiet=True) == 3.0  # (never before the tick it was given)
     assert cadence.due(status(1.0), 1.0) is None  # what a tick in between would have built: held back
     assert cadence.due(status(2.5, battery=99.0), 2.5).next_status_s == 2.0  # the heartbeat goes out then
-    cadence.due(status(2.7, counters={"forwarded": 4}), 2.7)  # something new: out, the normal cadence
+    cadence.due(status(2.7, hosted={"Blob-1": "running"}), 2.7)  # something new: out, the normal cadence
     assert not cadence.resting and cadence.next_build(3.0, quiet=True) == 3.0
 
 
