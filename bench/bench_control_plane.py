@@ -73,13 +73,13 @@ def rates(first: dict, second: dict) -> dict[str, dict[str, float]]:
 
 
 UP_LEASE_MS = 500  # `autopower up`'s default lease, with 2 keep-alives per lease (launch.localhost)
-STATUS_PERIOD_S = {"running": 0.5, "rest": 2.0}  # the runtime's status cadences (runtime.cadence)
 
 
-def model_bytes_per_robot(scenario, status_period_s: float, lease_s: float) -> float:
+def model_bytes_per_robot(scenario, lease_s: float) -> float:
     """The control plane's bytes a second per robot, sent and received, by the model's rules on the
-    scenario's network (`model.control_plane`), for this team's cadence and lease."""
-    spec = ControlPlaneSpec(enabled=True, status_period_s=status_period_s, lease_s=lease_s, keep_alives_per_lease=2)
+    scenario's network (`model.control_plane`), for this team's lease and the runtime's heartbeat
+    (a steady team, running or at rest, says nothing new: a status a heartbeat, `runtime.cadence`)."""
+    spec = ControlPlaneSpec(enabled=True, lease_s=lease_s, keep_alives_per_lease=2)
     directed = spec.directed_bytes(build_network(scenario))
     robots = [r.name for r in scenario.robots]
     return statistics.mean(sum(b for (u, v), b in directed.items() if robot in (u, v)) for robot in robots)
@@ -144,7 +144,7 @@ def main() -> None:
                                       note="the same robots' chain packets while the default mission ran, this run"))
         if phase == "running":
             print(f"  mean per robot: control {ctl:,.0f} B/s, chain packets {chain:,.0f} B/s")
-        model = model_bytes_per_robot(scenario, STATUS_PERIOD_S[phase], (args.lease_ms or UP_LEASE_MS) / 1000.0)
+        model = model_bytes_per_robot(scenario, (args.lease_ms or UP_LEASE_MS) / 1000.0)
         print(f"  the model's control plane (model.control_plane): {model:,.0f} B/s per robot, "
               f"{model / ctl:.2f} x the metered")
         figures.append(results.figure(f"the model's control plane, {label}", model, "B/s per robot",

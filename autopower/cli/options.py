@@ -291,7 +291,11 @@ def network_options(f):
     f = click.option("--keep-alive", default=4, show_default=True, type=click.IntRange(2, 16),
                      help="Zenoh keep-alives per lease on an idle link: a link survives a silence of "
                           "lease x (1 - 1/N) between them (lost or late keep-alives); fewer is less CPU at rest.")(f)
-    f = click.option("--status-period", default=0.5, type=POSITIVE, show_default=True, help="Wall seconds between status messages.")(f)
+    f = click.option("--status-period", default=0.5, type=POSITIVE, show_default=True,
+                     help="Wall seconds within which a change (a plan, a stage, a link) is said in a status.")(f)
+    f = click.option("--heartbeat", default=2.0, type=POSITIVE, show_default=True,
+                     help="Wall seconds between statuses with nothing new in them (counts move, nothing "
+                          "changes); at least --status-period.")(f)
     f = click.option("--duration", type=POSITIVE, default=None, help="Stop after this many wall seconds.")(f)
     f = click.option("--parent-pid", type=int, default=None, hidden=True)(f)
     f = click.option("--record-dir", type=click.Path(file_okay=False), default=None,

@@ -76,7 +76,7 @@ def exit_now(message: str) -> None:
               help="Which robot of the scenario this agent is (with --fleet: which node directory).")
 @network_options
 @stage_workers_option
-def agent(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, status_period, duration, parent_pid, log_level,
+def agent(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, status_period, heartbeat, duration, parent_pid, log_level,
           record_dir, stage_workers):
     """Run one robot's agent: host components, meter the battery, forward, publish status."""
     from autopower.agent.process import Agent, AgentConfig
@@ -91,7 +91,7 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, sta
 
     config = AgentConfig(robot=robot, scenario=scenario, team=team,
                          zenoh=secure(zenoh, robot, scenario, team),
-                         status_period_s=status_period, parent_pid=parent_pid,
+                         status_period_s=status_period, status_rest_period_s=heartbeat, parent_pid=parent_pid,
                          resume_path=team_dir(team) / AGENTS_DIR / f"{robot}.json")
     recorder, bus = _recording_bus(record_dir, robot, scenario, config.zenoh)
     try:
@@ -144,7 +144,7 @@ def _recording_bus(record_dir, node: str, scenario, zenoh):
 @click.option("--start-grace", type=NON_NEGATIVE, default=30.0, show_default=True,
               help="Wall seconds to wait for every robot before starting without the missing ones.")
 @stage_workers_option
-def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, status_period, duration, parent_pid, log_level,
+def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, status_period, heartbeat, duration, parent_pid, log_level,
                 record_dir, node, speed, energy, energy_scale, accounting, topology, media, pin, no_replan, policy,
                 replan_interval, start_grace, stage_workers):
     """Run the base station: plan, place and migrate components; the operator's sink."""
@@ -173,7 +173,8 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
     # what survives a restart (incarnation, the operator sink's ledgers): the team's state directory
     state = team_dir(team)
     config = BaseStationConfig(scenario=scenario, team=team, zenoh=zenoh, state_dir=state,
-                               coordinator=coordinator, status_period_s=status_period, parent_pid=parent_pid)
+                               coordinator=coordinator, status_period_s=status_period, status_rest_period_s=heartbeat,
+                               parent_pid=parent_pid)
 
     workers = stage_workers_wanted(stage_workers, basestation=True, speed=speed)
 

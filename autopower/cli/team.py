@@ -42,11 +42,12 @@ RECORDING_CHECK_EVERY_S = 2.0  # how often it checks that the recording is still
 
 
 def control_plane_settings(spec, lease_ms: int | None) -> dict:
-    """The team's lease, keep-alives and status period: what the scenario's ``[control_plane]``
+    """The team's lease, keep-alives, status period and heartbeat: what the scenario's ``[control_plane]``
     says (`model.control_plane`: what the planner charges when it is enabled, with the runtime's
     defaults otherwise), the lease overridden by ``--lease-ms``."""
     return {"lease_ms": lease_ms if lease_ms is not None else round(spec.lease_s * 1000),
-            "keep_alive": spec.keep_alives_per_lease, "status_period_s": spec.status_period_s}
+            "keep_alive": spec.keep_alives_per_lease, "status_period_s": spec.status_period_s,
+            "heartbeat_s": spec.heartbeat_s}
 
 
 @click.command("up")

@@ -169,6 +169,7 @@ class TeamSpec:
     # (4) stays for links that lose packets (a radio under TCP waits out a retransmission).
     keep_alive: int = 2
     status_period_s: float = 0.5
+    heartbeat_s: float = 2.0  # a status with nothing new in it, this often (`runtime.cadence`)
     team: str | None = None
     log_dir: Path | None = None
     log_level: str = "info"
@@ -255,7 +256,7 @@ class LocalTeam:
         args = ["--scenario", self.spec.scenario, "--team", self.team,
                 "--listen", endpoint(self.ports[node], scheme=self.scheme), "--lease-ms", str(self.spec.lease_ms),
                 "--keep-alive", str(self.spec.keep_alive),
-                "--status-period", str(self.spec.status_period_s),
+                "--status-period", str(self.spec.status_period_s), "--heartbeat", str(self.spec.heartbeat_s),
                 "--parent-pid", PARENT_PID, "--log-level", self.spec.log_level,
                 "--stage-workers", self.spec.stage_workers]
         for ep in self.connects[node]:

@@ -129,6 +129,7 @@ class TestbedTeam(LocalTeam):
 
     def _common(self, node: str) -> list[str]:
         args = ["--fleet", str(self.fleet_dir / node), "--status-period", str(self.spec.status_period_s),
+                "--heartbeat", str(self.spec.heartbeat_s),
                 "--parent-pid", PARENT_PID, "--log-level", self.spec.log_level]
         if self.spec.record_dir is not None:
             args += ["--record-dir", str(self.spec.record_dir)]

@@ -6,8 +6,10 @@ keep-alives, and each of those small messages is acknowledged by the other end. 
 is a rounding error; over GSM it is a third of a robot's idle power (docs/concepts/energy-model.md).
 
 Rules, per direct link u-v and per direction u -> v (the scenario's ``[control_plane]``):
-- u sends one status a status period: the whole status (``status_bytes``) to a base station, the
-  compact one robots read of each other (``peer_status_bytes``) to a robot.
+- u sends one status a heartbeat (``heartbeat_s``): the whole status (``status_bytes``) to a base
+  station, the compact one robots read of each other (``peer_status_bytes``) to a robot. A node
+  says a change (a plan, a stage's state, a link) within a status period (``status_period_s``),
+  but a team runs in its steady state: counts move, nothing changes (`runtime.cadence`).
 - The transport sends a keep-alive (``keep_alive_bytes``) every lease / ``keep_alives_per_lease``
   in which it sent nothing else on that link: the keep-alives fill the intervals the statuses
   leave, so a link carries max(keep-alive rate, status rate) messages a second each way.
@@ -38,10 +40,11 @@ from typing import Any
 
 from autopower.errors import ScenarioError
 
-# Measured on the runtime (bench/bench_control_plane.py, docs/concepts/energy-model.md): the
-# encoded status a robot sends to the base station, and the peer status it sends to robots.
-DEFAULT_STATUS_BYTES = 1_300
-DEFAULT_PEER_STATUS_BYTES = 260
+# Measured on the runtime (the paper's team under `up`, its default mission, fields by position:
+# docs/concepts/energy-model.md): the status a robot sends to the base station (736-761 B encoded)
+# and the one it sends robots (111-118 B), each with Zenoh's put and key.
+DEFAULT_STATUS_BYTES = 790
+DEFAULT_PEER_STATUS_BYTES = 150
 # A Zenoh keep-alive: its message and the stream's length prefix.
 DEFAULT_KEEP_ALIVE_BYTES = 8
 # IPv4 (20) + TCP with timestamps (32) + a TLS 1.3 record (22) around each small message.
@@ -56,7 +59,8 @@ class ControlPlaneSpec:
     """The scenario's ``[control_plane]``: whether the team's own messages are charged, and their shape."""
 
     enabled: bool = False
-    status_period_s: float = 0.5
+    status_period_s: float = 0.5  # a change is said within this (the runtime's tick); not charged
+    heartbeat_s: float = 2.0  # a status with nothing new in it, this often: what a steady team sends
     lease_s: float = 0.5
     keep_alives_per_lease: int = 2
     status_bytes: int = DEFAULT_STATUS_BYTES
@@ -71,6 +75,10 @@ class ControlPlaneSpec:
         if self.status_period_s <= 0 or self.lease_s <= 0 or self.keep_alives_per_lease < 1:
             raise ScenarioError("control_plane: status_period_s and lease_s must be > 0 and "
                                 "keep_alives_per_lease >= 1")
+        if self.heartbeat_s < self.status_period_s:
+            raise ScenarioError(f"control_plane: heartbeat_s {self.heartbeat_s:g} is shorter than status_period_s "
+                                f"{self.status_period_s:g}: a status goes out at most once a status period; "
+                                f"give a heartbeat_s >= {self.status_period_s:g}")
         if self.max_detection_s is not None and self.lease_s > self.max_detection_s:
             raise ScenarioError(f"control_plane: lease_s {self.lease_s:g} is longer than max_detection_s "
                                 f"{self.max_detection_s:g}: a failure would be seen too late; give a "
@@ -89,12 +97,12 @@ class ControlPlaneSpec:
 
     def messages_per_s(self) -> float:
         """Messages each way on one link a second: statuses, and keep-alives where none went."""
-        return max(self.keep_alives_per_lease / self.lease_s, 1.0 / self.status_period_s)
+        return max(self.keep_alives_per_lease / self.lease_s, 1.0 / self.heartbeat_s)
 
     def own_bytes_per_s(self, to_basestation: bool) -> float:
         """Bytes a second a node puts on its link to a neighbour of its own: its status (the whole
         one to a base station, the short one to a robot) and keep-alives in the intervals left."""
-        status_rate = 1.0 / self.status_period_s
+        status_rate = 1.0 / self.heartbeat_s
         keep_alive_rate = self.messages_per_s() - status_rate
         status = self.status_bytes if to_basestation else self.peer_status_bytes
         return (status_rate * (status + self.packet_overhead_bytes)
@@ -113,7 +121,7 @@ class ControlPlaneSpec:
             for u, v in ((link.a, link.b), (link.b, link.a)):
                 out[u, v] = (out.get((u, v), 0.0) + self.own_bytes_per_s(to_basestation=v == base)
                              + self.messages_per_s() * self.ack_bytes)
-        status_rate = 1.0 / self.status_period_s
+        status_rate = 1.0 / self.heartbeat_s
         for robot in network.nodes:
             if robot == base or base in network.neighbours(robot) or not network.reachable(robot, base):
                 continue

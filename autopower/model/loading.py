@@ -344,7 +344,7 @@ class ScenarioParser:
         if not isinstance(enabled, bool):
             raise self.fail("control_plane.enabled", f"found {enabled!r}", "true or false")
         numbers = {key: self.number(section, key, "control_plane", positive=True)
-                   for key in ("status_period_s", "max_detection_s") if key in section}
+                   for key in ("status_period_s", "heartbeat_s", "max_detection_s") if key in section}
         if "lease_s" in section:  # the runtime's floor: below it a busy machine looks like a dead peer
             numbers["lease_s"] = self.number(section, "lease_s", "control_plane", minimum=0.1)
         sizes = {key: int(self.number(section, key, "control_plane", minimum=0.0))

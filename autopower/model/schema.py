@@ -249,15 +249,18 @@ TABLES: tuple[Table, ...] = (
           "keep-alives and their acknowledgements (docs/concepts/energy-model.md).", (
         _opt("enabled", "true or false", "charge them in the model and the planner (false: the paper's "
              "assumption, Fig. 7 exactly)", "false"),
-        _opt("status_period_s", "number > 0", "seconds between two statuses of a running node", "0.5"),
+        _opt("status_period_s", "number > 0", "a change (a plan, a stage, a link) is said within this many seconds",
+             "0.5"),
+        _opt("heartbeat_s", "number >= status_period_s", "seconds between two statuses with nothing new in them "
+             "(counts move, nothing changes): what a steady team sends", "2"),
         _opt("lease_s", "number > 0", "the transport's lease: a cut link or dead peer is seen after it",
              "0.5, or the longest allowed by max_detection_s"),
         _opt("max_detection_s", "number > 0", "the mission's requirement: a failure seen within this; "
              "the lease is the longest within it (every control cost falls with a longer lease)", "none"),
         _opt("keep_alives_per_lease", "integer >= 1", "keep-alives per lease on a link that sends nothing else",
              "2"),
-        _opt("status_bytes", "integer >= 0", "a robot's status to the base station, encoded, with its key", "1300"),
-        _opt("peer_status_bytes", "integer >= 0", "the status robots send each other, encoded, with its key", "260"),
+        _opt("status_bytes", "integer >= 0", "a robot's status to the base station, encoded, with its key", "790"),
+        _opt("peer_status_bytes", "integer >= 0", "the status robots send each other, encoded, with its key", "150"),
         _opt("keep_alive_bytes", "integer >= 0", "one keep-alive message", "8"),
         _opt("packet_overhead_bytes", "integer >= 0", "IP, TCP and TLS framing around each message", "74"),
         _opt("ack_bytes", "integer >= 0", "the acknowledgement each message gets back", "52"),

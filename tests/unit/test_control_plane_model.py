@@ -33,17 +33,17 @@ def test_off_by_default_so_the_papers_figures_stay_exact():
 
 
 def test_a_robots_control_power_is_the_rules_worked_by_hand():
-    """r1 on 802.11a with three links (laptop, r2, r3), a status every 0.5 s, a 0.5 s lease with two
-    keep-alives per lease: per second on each link 2 statuses and 2 keep-alives (the four quarter
-    seconds, two of which carry a status), each in a packet of 74 bytes more, each answered by a
-    52-byte acknowledgement."""
+    """r1 on 802.11a with three links (laptop, r2, r3), a status every 2 s (the heartbeat of a
+    steady team), a 0.5 s lease with two keep-alives per lease: per second on each link half a
+    status and 3.5 keep-alives (the four quarter seconds, one in eight of which carries a status),
+    each in a packet of 74 bytes more, each answered by a 52-byte acknowledgement."""
     fig7 = load_scenario("paper-fig7")
     network = build_network(fig7, media={"laptop-robot": "802.11a", "robot-robot": "802.11a"})
     without = evaluate(fig7, network, ALL_LAPTOP).robots["r1"]
     with_cp = evaluate(charged(fig7), network, ALL_LAPTOP).robots["r1"]
-    keep_alives = 2 * (8 + 74)
-    sent = (2 * (1300 + 74) + keep_alives + 4 * 52) + 2 * (2 * (260 + 74) + keep_alives + 4 * 52)
-    received = 3 * (2 * (260 + 74) + keep_alives + 4 * 52)  # the laptop sends robots the short status
+    keep_alives = 3.5 * (8 + 74)
+    sent = (0.5 * (790 + 74) + keep_alives + 4 * 52) + 2 * (0.5 * (150 + 74) + keep_alives + 4 * 52)
+    received = 3 * (0.5 * (150 + 74) + keep_alives + 4 * 52)  # the laptop sends robots the short status
     radio = fig7.radios["802.11a"]
     seconds_per_byte = 8 / (radio.kbps * 1024)
     expected_w = (sent * seconds_per_byte * (radio.send_w - radio.sleep_w)
@@ -68,8 +68,7 @@ def test_the_milp_and_the_exhaustive_search_agree_with_the_control_plane_charged
 def test_over_gsm_the_relayed_statuses_turn_the_relay_from_best_to_worst():
     """The paper's GSM uplink. Without the control plane, relaying through r1 (one GSM session)
     outlives the full mesh (three). Counted, r1 also carries r2's and r3's whole statuses to the
-    laptop over its GSM link, signed, twice a second: the relay now dies first, and its optimum
-    moves Loc-2 and Loc-3 off the laptop, so that r1 carries less of theirs."""
+    laptop over its GSM link, signed, at each heartbeat: the relay now dies first."""
     fig7 = load_scenario("paper-fig7")
     media = {"laptop-robot": "gsm", "robot-robot": "802.11a"}
 
@@ -81,8 +80,6 @@ def test_over_gsm_the_relayed_statuses_turn_the_relay_from_best_to_worst():
     full, relay = best(on, "fully-connected"), best(on, "relay")
     assert full.evaluation.lifetime_s > relay.evaluation.lifetime_s
     assert relay.evaluation.bottleneck == "r1"
-    assert (relay.allocation["Loc-2"], relay.allocation["Loc-3"]) == ("r2", "r3")
-    assert best(fig7, "relay").allocation["Loc-2"] == "laptop"
 
 
 def test_the_longest_lease_within_the_detection_requirement_is_chosen():
@@ -172,12 +169,16 @@ def test_up_runs_the_lease_keep_alives_and_status_period_the_scenario_plans_with
     from autopower.launch.localhost import TeamSpec
 
     default = load_scenario("paper-fig7").control_plane
-    assert control_plane_settings(default, None) == {"lease_ms": 500, "keep_alive": 2, "status_period_s": 0.5}
-    relaxed = ScenarioParser(with_section("max_detection_s = 3.0\nstatus_period_s = 1.0"), "", "f.toml").scenario()
+    assert control_plane_settings(default, None) == {"lease_ms": 500, "keep_alive": 2, "status_period_s": 0.5,
+                                                     "heartbeat_s": 2.0}
+    relaxed = ScenarioParser(with_section("max_detection_s = 3.0\nstatus_period_s = 1.0\nheartbeat_s = 5.0"), "",
+                             "f.toml").scenario()
     settings = control_plane_settings(relaxed.control_plane, None)
-    assert settings == {"lease_ms": 2000, "keep_alive": 2, "status_period_s": 1.0}
+    assert settings == {"lease_ms": 2000, "keep_alive": 2, "status_period_s": 1.0, "heartbeat_s": 5.0}
     assert control_plane_settings(relaxed.control_plane, 700)["lease_ms"] == 700  # --lease-ms wins
     spec = TeamSpec(scenario="paper-fig7", **settings)
-    assert (spec.lease_ms, spec.keep_alive, spec.status_period_s) == (2000, 2, 1.0)
+    assert (spec.lease_ms, spec.keep_alive, spec.status_period_s, spec.heartbeat_s) == (2000, 2, 1.0, 5.0)
+    with pytest.raises(ScenarioError, match="heartbeat_s 0.2 is shorter than status_period_s 0.5"):
+        ScenarioParser(with_section("heartbeat_s = 0.2"), "", "f.toml").scenario()
     with pytest.raises(ScenarioError, match="control_plane.lease_s: found 0.05"):
         ScenarioParser(with_section("lease_s = 0.05"), "", "f.toml").scenario()
