@@ -85,6 +85,41 @@ def model_bytes_per_robot(scenario, lease_s: float) -> float:
     return statistics.mean(sum(b for (u, v), b in directed.items() if robot in (u, v)) for robot in robots)
 
 
+DETECTION_REQUIREMENTS_S = (None, 1.0, 2.0, 5.0, 10.0)  # None: no requirement (up's 0.5 s lease, 2 s heartbeat)
+
+
+def gsm_link_figures(scenario) -> list[dict]:
+    """The model's control plane on one robot's GSM link to the base station (its only link there:
+    Fig. 7's GSM uplink, robots meshed over 802.11a), both ways, by the mission's detection
+    requirement (the lease and heartbeat it fixes, `ControlPlaneSpec.lease_for`, `heartbeat_for`),
+    against issue 32's ceiling: 2 % of the radio's time."""
+    gsm = scenario.radios["gsm"]
+    network = build_network(scenario, "fully-connected", {"laptop-robot": "gsm", "robot-robot": "802.11a"})
+    robot, base = scenario.robots[0].name, scenario.basestation
+    out = []
+    for requirement in DETECTION_REQUIREMENTS_S:
+        if requirement is None:
+            spec = ControlPlaneSpec(enabled=True, lease_s=UP_LEASE_MS / 1000.0, keep_alives_per_lease=2)
+        else:
+            spec = ControlPlaneSpec(enabled=True, lease_s=ControlPlaneSpec.lease_for(requirement),
+                                    heartbeat_s=ControlPlaneSpec.heartbeat_for(requirement), keep_alives_per_lease=2,
+                                    max_detection_s=requirement)
+        directed = spec.directed_bytes(network)
+        both_ways = directed[robot, base] + directed[base, robot]
+        share = airtime_s(both_ways, gsm) * 100.0
+        label = "none (lease 0.5 s)" if requirement is None else f"{requirement:g} s"
+        print(f"  model, one GSM link both ways, detection requirement {label}: lease {spec.lease_s:g} s, heartbeat "
+              f"{spec.heartbeat_s:g} s: {both_ways:,.0f} B/s, {share:.2f} % of the radio's time")
+        out.append(results.figure(f"one GSM link, detection requirement {label}", share, "% of the radio's time",
+                                  "2 % (issue 32's ceiling for GSM)", 2.0,
+                                  group="the model's control plane on a robot's GSM uplink, by detection requirement",
+                                  detail=f"lease {spec.lease_s:g} s, heartbeat {spec.heartbeat_s:g} s, "
+                                         f"{both_ways:,.0f} B/s both ways",
+                                  note="the model's rules (model.control_plane) with the runtime's measured sizes; "
+                                       "not a measurement"))
+    return out
+
+
 def measure(scenario: str, seconds: float, lease_ms: int | None) -> dict[str, dict]:
     with tempfile.TemporaryDirectory() as tmp:
         env = {**os.environ, "AUTOPOWER_STATE_DIR": str(Path(tmp) / "state"), "RERUN_ANALYTICS": "0"}
@@ -181,6 +216,7 @@ def main() -> None:
                                           group="the runtime's own CPU per robot (x1)",
                                           note="metered: idle CPU, component runs, chain packets and sleeping radios "
                                                "(all but the overheads) per second, the same robots, this run"))
+    figures += gsm_link_figures(scenario)
     results.write_result("control_plane", {"scenario": args.scenario, "seconds": args.seconds,
                                            "lease_ms": args.lease_ms}, figures, args.json_out,
                          what=__doc__.splitlines()[0], extra=got)

@@ -28,9 +28,10 @@ terms (`planner.milp`). ``enabled = false`` (the default, and the paper's assump
 figure as the paper's Fig. 7.
 
 The lease is the failure detection time (a cut link or a dead peer is seen once its lease runs
-out), so a mission requirement ``max_detection_s`` fixes it: every term above only falls with a
-longer lease or status period, so the lifetime-optimal choice within the requirement is the
-longest allowed (`ControlPlaneSpec.lease_for`), not a search.
+out), and two heartbeats are (a peer whose loop is stuck while its session lives: the status-silence
+detector, `node.peer_watch`), so a mission requirement ``max_detection_s`` fixes both: every term
+above only falls with a longer lease or heartbeat, so the lifetime-optimal choice within the
+requirement is the longest allowed (`ControlPlaneSpec.lease_for`, `heartbeat_for`), not a search.
 """
 
 from __future__ import annotations
@@ -52,6 +53,8 @@ DEFAULT_PACKET_OVERHEAD_BYTES = 74
 DEFAULT_ACK_BYTES = 52  # an empty TCP segment with timestamps
 # A relayed message's envelope: its route and the sender's signature (measured: +517 B).
 DEFAULT_RELAYED_EXTRA_BYTES = 517
+# Heartbeats a peer may miss before the status-silence detector takes it for gone (`WatchSettings.periods`).
+SILENT_HEARTBEATS = 2
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -75,6 +78,11 @@ class ControlPlaneSpec:
         if self.status_period_s <= 0 or self.lease_s <= 0 or self.keep_alives_per_lease < 1:
             raise ScenarioError("control_plane: status_period_s and lease_s must be > 0 and "
                                 "keep_alives_per_lease >= 1")
+        if self.max_detection_s is not None and SILENT_HEARTBEATS * self.heartbeat_s > self.max_detection_s:
+            raise ScenarioError(f"control_plane: heartbeat_s {self.heartbeat_s:g} is longer than half of "
+                                f"max_detection_s {self.max_detection_s:g}: a peer whose loop is stuck is found "
+                                f"after two heartbeats; give a heartbeat_s <= {self.max_detection_s / 2:g} or "
+                                "leave it out to have it chosen")
         if self.heartbeat_s < self.status_period_s:
             raise ScenarioError(f"control_plane: heartbeat_s {self.heartbeat_s:g} is shorter than status_period_s "
                                 f"{self.status_period_s:g}: a status goes out at most once a status period; "
@@ -94,6 +102,12 @@ class ControlPlaneSpec:
                                 f"shortest lease chosen from ({min(choices_s):g} s); give lease_s yourself "
                                 f"(at least 0.1 s) or a longer requirement")
         return max(allowed)
+
+    @staticmethod
+    def heartbeat_for(max_detection_s: float, status_period_s: float = 0.5) -> float:
+        """The longest heartbeat whose silence (`SILENT_HEARTBEATS` of them) still shows a stuck
+        peer within ``max_detection_s``, never shorter than the status period."""
+        return max(status_period_s, max_detection_s / SILENT_HEARTBEATS)
 
     def messages_per_s(self) -> float:
         """Messages each way on one link a second: statuses, and keep-alives where none went."""

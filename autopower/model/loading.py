@@ -359,11 +359,14 @@ class ScenarioParser:
             except ScenarioError as exc:
                 raise self.fail("control_plane.max_detection_s", str(exc).removeprefix("control_plane: "),
                                 "a requirement of at least 0.5 s") from None
+        if "max_detection_s" in numbers and "heartbeat_s" not in numbers:
+            numbers["heartbeat_s"] = ControlPlaneSpec.heartbeat_for(
+                numbers["max_detection_s"], numbers.get("status_period_s", ControlPlaneSpec.status_period_s))
         try:
             return ControlPlaneSpec(enabled=enabled, **numbers, **sizes)
         except ScenarioError as exc:
             raise self.fail("control_plane", str(exc).removeprefix("control_plane: "),
-                            "a lease no longer than max_detection_s") from None
+                            "a lease no longer than max_detection_s and a heartbeat no longer than half of it") from None
 
     def platforms(self, obj: Any) -> dict[str, Platform]:
         obj = self.table(obj, "platforms", obj.keys() if isinstance(obj, dict) else [])

@@ -252,11 +252,12 @@ TABLES: tuple[Table, ...] = (
         _opt("status_period_s", "number > 0", "a change (a plan, a stage, a link) is said within this many seconds",
              "0.5"),
         _opt("heartbeat_s", "number >= status_period_s", "seconds between two statuses with nothing new in them "
-             "(counts move, nothing changes): what a steady team sends", "2"),
+             "(counts move, nothing changes): what a steady team sends", "2, or half of max_detection_s"),
         _opt("lease_s", "number > 0", "the transport's lease: a cut link or dead peer is seen after it",
              "0.5, or the longest allowed by max_detection_s"),
         _opt("max_detection_s", "number > 0", "the mission's requirement: a failure seen within this; "
-             "the lease is the longest within it (every control cost falls with a longer lease)", "none"),
+             "the lease is the longest within it and the heartbeat half of it (every control cost falls with "
+             "longer ones)", "none"),
         _opt("keep_alives_per_lease", "integer >= 1", "keep-alives per lease on a link that sends nothing else",
              "2"),
         _opt("status_bytes", "integer >= 0", "a robot's status to the base station, encoded, with its key", "790"),

@@ -53,8 +53,10 @@ def test_a_base_station_held_up_by_a_slow_stage_stays_in_the_team(plugin_path, t
         with ZenohBus(settings) as observer:
             observer.subscribe(keys.status(base), lambda _k, p: arrivals.append(
                 (time.monotonic(), decode(p, NodeStatus).next_status_s)))
+            watched_from = time.monotonic()
             wait_for(team, lambda s: sinks_of(s).get("Motion-1", {}).get("contiguous", 0) >= SLOW_FRAMES.stop + 20,
                      30 + len(SLOW_FRAMES) * SLOW_S * 3, "Motion-1 to get past its slow frames")
+            watched_s = time.monotonic() - watched_from
         later = wait_for(team, lambda s: all(v["contiguous"] >= SLOW_FRAMES.stop + 40 for v in sinks_of(s).values()),
                          30, "both chains to go on")
         team.check_children()
@@ -69,7 +71,8 @@ def test_a_base_station_held_up_by_a_slow_stage_stays_in_the_team(plugin_path, t
     assert later["basestation"]["counters"].get("redundant-input", 0) == 0, later["basestation"]["counters"]
     # each status came before the robots' silence detectors stopped waiting for it (what the one
     # before it announced: 2 periods, at rest 2 rest periods, never less than the lease)
-    assert len(arrivals) > 10
+    # (a status each heartbeat at least, the counts moving with nothing else new: enough to judge)
+    assert len(arrivals) >= max(4, watched_s / spec.heartbeat_s - 1), (len(arrivals), watched_s)
     for (t0, announced), (t1, _) in zip(arrivals, arrivals[1:], strict=False):
         limit = silence_limit_s(2.0, spec.status_period_s, announced, spec.lease_ms / 1000)
         assert t1 - t0 < limit, f"no status from the base station for {t1 - t0:.2f} s (its peers wait {limit:.2f} s)"

@@ -171,14 +171,19 @@ def test_up_runs_the_lease_keep_alives_and_status_period_the_scenario_plans_with
     default = load_scenario("paper-fig7").control_plane
     assert control_plane_settings(default, None) == {"lease_ms": 500, "keep_alive": 2, "status_period_s": 0.5,
                                                      "heartbeat_s": 2.0}
-    relaxed = ScenarioParser(with_section("max_detection_s = 3.0\nstatus_period_s = 1.0\nheartbeat_s = 5.0"), "",
-                             "f.toml").scenario()
+    relaxed = ScenarioParser(with_section("max_detection_s = 3.0\nstatus_period_s = 1.0"), "", "f.toml").scenario()
     settings = control_plane_settings(relaxed.control_plane, None)
-    assert settings == {"lease_ms": 2000, "keep_alive": 2, "status_period_s": 1.0, "heartbeat_s": 5.0}
+    # the longest lease within 3 s, and a heartbeat of half of it: two missed show a stuck peer in time
+    assert settings == {"lease_ms": 2000, "keep_alive": 2, "status_period_s": 1.0, "heartbeat_s": 1.5}
     assert control_plane_settings(relaxed.control_plane, 700)["lease_ms"] == 700  # --lease-ms wins
     spec = TeamSpec(scenario="paper-fig7", **settings)
-    assert (spec.lease_ms, spec.keep_alive, spec.status_period_s, spec.heartbeat_s) == (2000, 2, 1.0, 5.0)
-    with pytest.raises(ScenarioError, match="heartbeat_s 0.2 is shorter than status_period_s 0.5"):
-        ScenarioParser(with_section("heartbeat_s = 0.2"), "", "f.toml").scenario()
+    assert (spec.lease_ms, spec.keep_alive, spec.status_period_s, spec.heartbeat_s) == (2000, 2, 1.0, 1.5)
+    slow = ScenarioParser(with_section("max_detection_s = 10.0"), "", "f.toml").scenario().control_plane
+    assert (slow.lease_s, slow.heartbeat_s) == (10.0, 5.0)
+    for section, said in (("heartbeat_s = 0.2", "heartbeat_s 0.2 is shorter than status_period_s 0.5"),
+                          ("max_detection_s = 3.0\nheartbeat_s = 2.0", "heartbeat_s 2 is longer than half of "
+                                                                       "max_detection_s 3")):
+        with pytest.raises(ScenarioError, match=said):
+            ScenarioParser(with_section(section), "", "f.toml").scenario()
     with pytest.raises(ScenarioError, match="control_plane.lease_s: found 0.05"):
         ScenarioParser(with_section("lease_s = 0.05"), "", "f.toml").scenario()
