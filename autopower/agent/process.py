@@ -375,6 +375,7 @@ class Agent:
         if rt.sink_store is not None:  # the outputs acknowledged are kept first (as the base station's)
             rt.sink_store.commit()
         if status is None:  # only counts moved: the heartbeat waits, what flowed is acknowledged now
+            self._bus.flush_recording()  # what was committed is recorded before the next commit
             rt.send_acks(self.relayer.reachable, built.queue_wait_s)
             return False
         # the whole status to base stations, the part robots use to the robots (each a heartbeat)

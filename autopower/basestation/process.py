@@ -576,6 +576,7 @@ class BaseStation:
                     elif built is not None and not self._quiet():  # only counts moved: what flowed is acknowledged now
                         if rt.sink_store is not None:
                             rt.sink_store.commit()
+                        self._bus.flush_recording()  # what was committed is recorded before the next commit
                         rt.settle_held_store()
                         rt.send_acks(self.relayer.reachable, built.queue_wait_s)
                     if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:

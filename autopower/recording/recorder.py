@@ -666,12 +666,18 @@ class Recorder:
         """Flush recorded outputs before the status and the acknowledgements (`Ack`) that follow
         it are sent: a SIGKILL after the acknowledgement then cannot lose from the recording what
         custody no longer resends."""
-        if self._outputs_unflushed and ("/status/" in key or "/from/" in key):
+        if "/status/" in key or "/from/" in key:
+            self.flush_outputs()
+
+    def flush_outputs(self) -> None:
+        """Write out the outputs recorded since the last flush (nothing if none): before anything
+        acknowledges them (the sink's notes are committed first, `node.sink_store`)."""
+        if self._outputs_unflushed:
             try:
                 self.flush()
             except Exception as exc:  # noqa: BLE001 - recording must never stop a robot
                 self.errors += 1
-                log.warning("recorder %s: flush before a status failed (%s); continuing", self.node, exc)
+                log.warning("recorder %s: flush before acknowledging failed (%s); continuing", self.node, exc)
 
     def close(self) -> None:
         with self._lock:
@@ -747,6 +753,13 @@ class RecordingBus:
 
     def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None:
         self.inner.repeat_until_next(key, payload, after_s, every_s)  # a copy: recorded once, when first put
+
+    def flush_recording(self) -> None:
+        """The outputs recorded so far written out, before what acknowledges them leaves (a status
+        or an `Ack` flushes them too, `Recorder.before_publish`): a process whose status is held
+        back commits its sink's notes and flushes here, so that each commit is flushed before the
+        next (`node.sink_store`: only the last commit may miss its recording after a kill)."""
+        self.recorder.flush_outputs()
 
     @property
     def repeated(self) -> int:

@@ -77,6 +77,8 @@ class Bus(Protocol):
 
     def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None: ...
 
+    def flush_recording(self) -> None: ...
+
     @property
     def repeated(self) -> int: ...
 
@@ -325,6 +327,9 @@ class ZenohBus:
             if self._repeater is None:
                 self._repeater = _Repeater(lambda k, p: self._publisher(k, False).put(p))
         self._repeater.arm(key, payload, after_s, every_s)
+
+    def flush_recording(self) -> None:
+        """Nothing to do: this bus records nothing (`RecordingBus.flush_recording`)."""
 
     @property
     def repeated(self) -> int:
@@ -634,6 +639,9 @@ class InMemoryBus:
 
     def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None:
         """Nothing to do: an in-memory loop is never late for its peers (unit tests drive time)."""
+
+    def flush_recording(self) -> None:
+        """Nothing to do: this bus records nothing."""
 
     repeated = 0
 

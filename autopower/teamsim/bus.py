@@ -116,6 +116,9 @@ class SimBus:
     def repeat_until_next(self, key: str, payload: bytes, after_s: float, every_s: float) -> None:
         """Nothing: a simulated loop is never late for its peers."""
 
+    def flush_recording(self) -> None:
+        """Nothing: the shells keep what a recording would (`Shell.commit_outputs`)."""
+
     repeated = 0
 
     def close(self) -> None:

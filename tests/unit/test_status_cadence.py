@@ -93,6 +93,32 @@ def test_a_held_back_status_still_acknowledges_what_flowed(team, monkeypatch):  
     assert not r2.publish_status(urgent=False) and len(acks) == 3
 
 
+def test_a_held_back_status_records_what_its_sink_committed_before_anything_acknowledges_it(team, monkeypatch):  # noqa: F811
+    """A sink commits its notes, the recording of those outputs is flushed, then acknowledgements
+    leave, every period: a kill may then only lose the recording of the last commit, which the
+    restarted sink names (`node.sink_store`). A status flushed it on its way out; held back, with no
+    acknowledgement to send (a chain whose sink is its own robot), nothing did, and a live
+    random-fault run killed r1 with three Loc-1 outputs delivered, noted two commits back and never
+    recorded: the replay counted them lost."""
+    hub, agents, _ = team
+    r2 = agents["r2"]
+    order = []
+
+    class Notes:
+        def commit(self) -> None:
+            order.append("commit")
+
+    monkeypatch.setattr(r2.runtime, "sink_store", Notes())
+    monkeypatch.setattr(r2._bus, "flush_recording", lambda: order.append("flush"))
+    monkeypatch.setattr(r2.runtime, "send_acks", lambda reachable, wait=0.0: order.append("acks") or 0)
+    monkeypatch.setattr(r2.runtime, "idle", lambda: False)  # a chain runs through it
+    assert r2.publish_status() and r2.publish_status(urgent=False)
+    order.clear()
+    r2.runtime.tally("forwarded")  # a count moved, nothing else: held back
+    assert not r2.publish_status(urgent=False)
+    assert order == ["commit", "flush", "acks"]
+
+
 def test_an_urgent_status_always_goes_out_and_announces_the_normal_period():
     cadence = StatusCadence(0.5, 2.0)
     cadence.due(status(0.0), 0.0)
