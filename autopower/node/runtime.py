@@ -856,11 +856,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
 
     def take_status_asked(self) -> bool:
         """Whether a base station that runs no plan yet (`PeerViews.listening`: one taking over the
-        team, or a second one) began listening since last asked: it learns the team from the
-        statuses it hears within its listening window (`CoordinatorConfig.learn_team_s`), and a
-        robot whose status says nothing new would speak only at its heartbeat, after the window:
-        the process sends one at once. (A takeover that missed a robot adopted the team without its
-        stages, and restarted its chains in a new run, losing what was in flight.)"""
+        team, or a second one) began listening since last asked. It learns the team from the
+        statuses it hears within its listening window (`CoordinatorConfig.learn_team_s`), shorter
+        than the heartbeat a robot with nothing new keeps: the process then sends one at once, or
+        the takeover would go on without that robot's stages."""
         asked, self._status_asked = self._status_asked, False
         return asked
 

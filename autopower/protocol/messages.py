@@ -474,7 +474,7 @@ class PeerStatus:
     rounds, a newer instance of a stage) and which acknowledgements it wants. The rest of a
     `NodeStatus` (sink ledgers, meters, counters, errors) goes to base stations only: the robots
     read none of it, and the base station's ledgers grew with the team (5.7 kB of its 13.9 kB
-    status at 30 robots, sent to every robot twice a second).
+    status at 30 robots, sent to every robot each status period).
     """
 
     KIND = "peer-status"
