@@ -7,8 +7,8 @@ radio, half of what the control plane costs; the class is known from the kind, a
 the same build (the version says so). Decoding checks the magic, the protocol version, the kind,
 the exact number of fields and every field's type (nested structs, tuples, dicts included; numbers
 finite: NaN and ±inf are refused both ways); anything else raises ProtocolError, which the
-processes log and drop. Nothing here trusts the sender. `wire_data` (an operator's snapshot, JSON)
-and `named_fields` (the recorder's quick look) give the same values with their names.
+processes log and drop. Nothing here trusts the sender. `wire_data` gives the same values with
+their names (an operator's snapshot, JSON; the recorder's look at what its process sends).
 """
 
 from __future__ import annotations
@@ -127,64 +127,6 @@ def wire_data(value: Any) -> Any:
     quarter of `dataclasses.asdict`'s time, which deep-copies every leaf). ValueError for a
     non-finite number, as `encode` refuses it."""
     return _wire(value, named=True)
-
-
-def named_fields(kind: str, fields: Any) -> dict:
-    """The wire fields of a message of ``kind`` (as msgpack decoded them) with their names, nested
-    structs too: what `wire_data` gives of the decoded message, without checking a value's type
-    (the recorder's look at what its own process just encoded). ProtocolError for an unknown kind
-    or a shape that is not the class's."""
-    cls = _MESSAGES.get(kind)
-    if cls is None:
-        raise ProtocolError(f"unknown message kind {kind!r}")
-    return _namer(cls)(fields, kind)
-
-
-@lru_cache(maxsize=None)
-def _namer(hint: Any) -> Callable[[Any, str], Any]:
-    """What names the wire value of a field of type ``hint`` (worked out once per hint): `_as_is`
-    where no struct is inside."""
-    if isinstance(hint, type) and (hint in _STRUCTS or hint in _MESSAGES.values()):
-        hints, names = _hints(hint), _field_names(hint)
-
-        def struct_fields(value: Any, where: str) -> Any:
-            if type(value) is not list or len(value) != len(names):
-                raise _fail(where, f"expected the {len(names)} fields of {hint.__name__}")
-            return {n: _namer(hints[n])(v, f"{where}.{n}") for n, v in zip(names, value, strict=True)}
-        return struct_fields
-    origin, args = get_origin(hint), get_args(hint)
-    if origin in (Union, types.UnionType):  # the messages' unions hold one struct at most (X | None)
-        inner = [n for n in (_namer(a) for a in args) if n is not _as_is]
-        if not inner:
-            return _as_is
-        return lambda value, where: None if value is None else inner[0](value, where)
-    if origin is tuple:
-        variadic = len(args) == 2 and args[1] is Ellipsis
-        namers = [_namer(args[0])] if variadic else [_namer(a) for a in args]
-        if all(n is _as_is for n in namers):
-            return _as_is
-
-        def items(value: Any, where: str) -> Any:
-            if type(value) is not list:
-                raise _fail(where, "expected a list")
-            each = namers * len(value) if variadic else namers
-            return [n(v, f"{where}[{i}]") for i, (n, v) in enumerate(zip(each, value, strict=False))]
-        return items
-    if origin is dict:
-        item = _namer(args[1])
-        if item is _as_is:
-            return _as_is
-
-        def values(value: Any, where: str) -> Any:
-            if type(value) is not dict:
-                raise _fail(where, "expected a map")
-            return {k: item(v, f"{where}[{k!r}]") for k, v in value.items()}
-        return values
-    return _as_is
-
-
-def _as_is(value: Any, where: str) -> Any:
-    return value
 
 
 def encode(msg: Any) -> bytes:
@@ -307,15 +249,15 @@ def _converter(hint: Any) -> Callable[[Any, str], Any]:
 
 
 @lru_cache(maxsize=None)
-def _plan(cls: type) -> tuple[tuple[str, ...], frozenset[str], tuple[Callable[[Any, str], Any], ...]]:
-    """A class's field names, the names its hints allow, and each field's converter."""
+def _plan(cls: type) -> tuple[tuple[str, ...], tuple[Callable[[Any, str], Any], ...]]:
+    """A class's field names and each field's converter."""
     hints = _hints(cls)
     names = tuple(f.name for f in dataclasses.fields(cls))
-    return names, frozenset(hints), tuple(_converter(hints[n]) for n in names)
+    return names, tuple(_converter(hints[n]) for n in names)
 
 
 def _build(cls: type, fields: Any, where: str) -> Any:
-    names, _, converters = _plan(cls)
+    names, converters = _plan(cls)
     if not isinstance(fields, list):
         raise _fail(where, f"expected the {len(names)} fields of {cls.__name__} as a list, got {type(fields).__name__}")
     if len(fields) != len(names):
@@ -425,7 +367,7 @@ def _lazy_builder(cls: type) -> Callable[[Any], Any]:
 
 @lru_cache(maxsize=None)
 def _fast_builder(cls: type) -> Callable[[Any], Any]:
-    names, _, _ = _plan(cls)
+    names, _ = _plan(cls)
     hints = _hints(cls)
     ns: dict[str, Any] = {"_Slow": _Slow, "ProtocolError": ProtocolError, "_cls": cls, "_BIG": 2.0**1023,
                           "_new": object.__new__}
@@ -508,4 +450,4 @@ def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...]
 
 
 __all__ = ["MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "decode", "encode", "looks_like_message", "message", "message_kind", "wire_data",
-           "message_kinds", "named_fields", "struct"]
+           "message_kinds", "struct"]

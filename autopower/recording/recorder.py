@@ -71,11 +71,9 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, Callable, Mapping
 
-import msgpack
-
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
-from autopower.protocol.codec import MAGIC, PROTOCOL_VERSION, encode, message_kind, named_fields
+from autopower.protocol.codec import decode, message_kind, wire_data
 from autopower.protocol.plans import PlanAssembler
 from autopower.recording.telemetry import (
     EVENT_TAG,
@@ -122,16 +120,11 @@ def parse_event(line: str | None) -> tuple[str, dict[str, Any] | None]:
 
 
 def _peek(payload: bytes) -> tuple[str | None, dict]:
-    """(kind, fields) of an AutoPower message, without the codec's full validation.
-
-    The tap reads what its own process has just encoded (or a plan, whose fields it only
-    reads): the strict `decode` costs ~150 µs for a status, this ~10 µs. Anything odd raises,
-    and the recorder's guard counts and drops it.
-    """
-    magic, version, kind, fields = msgpack.unpackb(payload, raw=False, strict_map_key=False)
-    if magic != MAGIC or version != PROTOCOL_VERSION or not isinstance(fields, list):
-        raise ProtocolError("not an AutoPower message of this protocol version")
-    return kind, named_fields(kind, fields)
+    """(kind, fields by name) of an AutoPower message: the tap reads what its own process has just
+    encoded, through the strict codec (a status in about 25 µs, decoded and named). Anything odd
+    raises `ProtocolError`, and the recorder's guard counts and drops it."""
+    msg = decode(payload)
+    return msg.KIND, wire_data(msg)
 
 
 def _peek_items(payload: bytes) -> list[tuple[str | None, dict]]:
@@ -407,7 +400,7 @@ class Recorder:
         plan = self._plans[stream].whole(payload)
         if plan is None:
             return None
-        return _peek(payload if kind == "plan" else encode(plan))[1]
+        return wire_data(plan)
 
     def _received_plan(self, key: str, payload: bytes) -> None:
         fields = self._whole_plan(payload, "receive")

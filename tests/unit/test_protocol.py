@@ -154,18 +154,12 @@ def _fields(msg) -> dict:
     return dict(zip(names, msgpack.unpackb(encode(msg), raw=False)[3], strict=True))
 
 
-def test_fields_go_on_the_wire_by_position_and_the_recorder_reads_them_by_name():
-    from autopower.protocol.codec import named_fields, wire_data
-
+def test_fields_go_on_the_wire_by_position_without_their_names():
     status = next(m for m in SAMPLES if isinstance(m, NodeStatus))
     wire = msgpack.unpackb(encode(status), raw=False, strict_map_key=False)
     assert wire[:3] == [b"AP", PROTOCOL_VERSION, "status"] and isinstance(wire[3], list)
     assert b"battery_j" not in encode(status) and b"received" not in encode(status)  # no name, nested or not
-    assert named_fields("status", wire[3]) == wire_data(status)  # names back, nested structs too
-    with pytest.raises(ProtocolError, match="fields of NodeStatus"):
-        named_fields("status", wire[3][1:])
-    with pytest.raises(ProtocolError, match="unknown message kind"):
-        named_fields("no-such-kind", [])
+    assert len(wire[3]) == len(dataclasses.fields(NodeStatus))
 
 
 @pytest.mark.parametrize("data, match", [
