@@ -372,25 +372,25 @@ class Agent:
             return False  # at rest: nothing new, nothing to acknowledge
         if save_resume:
             self.save_resume()
-        if rt.sink_store is not None:  # the outputs acknowledged are kept first (as the base station's)
+        # what is acknowledged is kept first, every period (as the base station's): the sink's notes,
+        # then their recording, so that each commit is flushed before the next (`node.sink_store`)
+        if rt.sink_store is not None:
             rt.sink_store.commit()
-        if status is None:  # only counts moved: the heartbeat waits, what flowed is acknowledged now
-            self._bus.flush_recording()  # what was committed is recorded before the next commit
-            rt.send_acks(self.relayer.reachable, built.queue_wait_s)
-            return False
-        # the whole status to base stations, the part robots use to the robots (each a heartbeat)
-        base = self.config.scenario.basestation
-        for key, payload, dests in ((self.keys.status(self.config.robot), encode(status), [base]),
-                                    (self.keys.peer(self.config.robot), encode(PeerStatus.of(status)),
-                                     sorted(rt.producers() - {base}))):
-            self._bus.publish(key, payload, reliable=False)
-            self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
-                                        REPEAT_EVERY_PERIODS * status.next_status_s)
-            # out of sight: through a robot that still sees them, to the base station and to the
-            # robots whose frames we consume (they route by what we see)
-            self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
-        rt.send_acks(self.relayer.reachable, status.queue_wait_s)  # to the nodes that sent us frames
-        return True
+        self._bus.flush_recording()
+        if status is not None:  # (held back: only counts moved, the heartbeat waits)
+            # the whole status to base stations, the part robots use to the robots (each a heartbeat)
+            base = self.config.scenario.basestation
+            for key, payload, dests in ((self.keys.status(self.config.robot), encode(status), [base]),
+                                        (self.keys.peer(self.config.robot), encode(PeerStatus.of(status)),
+                                         sorted(rt.producers() - {base}))):
+                self._bus.publish(key, payload, reliable=False)
+                self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
+                                            REPEAT_EVERY_PERIODS * status.next_status_s)
+                # out of sight: through a robot that still sees them, to the base station and to the
+                # robots whose frames we consume (they route by what we see)
+                self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
+        rt.send_acks(self.relayer.reachable, built.queue_wait_s)  # to the nodes that sent us frames
+        return status is not None
 
     def _quiet(self) -> bool:
         """Nothing here is timed but the status (`StatusCadence.next_build`): no source, stage or frame

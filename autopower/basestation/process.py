@@ -557,28 +557,27 @@ class BaseStation:
                     else:  # no mission yet: each robot in reach hears that we run no plan
                         for robot, key, payload in self.peer_views.addressed(co, None, now, period):
                             self._send_view(robot, key, payload, period)
-                    if status is not None:
-                        key, payload = self.keys.status(self.node), encode(status)
-                        # what this status acknowledges is kept first: the sink's notes here, the recording
-                        # of those outputs by the recording bus (`Recorder.before_publish`); an operator's
-                        # snapshot builds a status too but acknowledges nothing, so it keeps nothing
+                    if built is not None and (status is not None or not self._quiet()):
+                        # what is acknowledged is kept first, every period (held back too: only counts
+                        # moved, the heartbeat waits): the sink's notes, then the recording of those
+                        # outputs, so that each commit is flushed before the next (`node.sink_store`);
+                        # an operator's snapshot builds a status too but acknowledges nothing
                         if rt.sink_store is not None:
                             rt.sink_store.commit()
+                        self._bus.flush_recording()
                         rt.settle_held_store()  # what the robots acknowledged leaves the held journal
-                        # the whole status for a standby base station and the recording, to each robot the
-                        # part it acts on (`peer_view`), relayed to those out of sight; each is a heartbeat
-                        self._bus.publish(key, payload, reliable=False)
-                        self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
-                                                    REPEAT_EVERY_PERIODS * status.next_status_s)
-                        for robot, key, payload in self.peer_views.addressed(co, status, now, status.next_status_s):
-                            self._send_view(robot, key, payload, status.next_status_s)
-                        rt.send_acks(self.relayer.reachable, status.queue_wait_s)  # to the nodes that sent us frames
-                    elif built is not None and not self._quiet():  # only counts moved: what flowed is acknowledged now
-                        if rt.sink_store is not None:
-                            rt.sink_store.commit()
-                        self._bus.flush_recording()  # what was committed is recorded before the next commit
-                        rt.settle_held_store()
-                        rt.send_acks(self.relayer.reachable, built.queue_wait_s)
+                        if status is not None:
+                            # the whole status for a standby base station and the recording, to each robot
+                            # the part it acts on (`peer_view`), relayed to those out of sight; each is a
+                            # heartbeat
+                            key, payload = self.keys.status(self.node), encode(status)
+                            self._bus.publish(key, payload, reliable=False)
+                            self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
+                                                        REPEAT_EVERY_PERIODS * status.next_status_s)
+                            for robot, key, payload in self.peer_views.addressed(co, status, now,
+                                                                                 status.next_status_s):
+                                self._send_view(robot, key, payload, status.next_status_s)
+                        rt.send_acks(self.relayer.reachable, built.queue_wait_s)  # to the nodes that sent us frames
                     if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                         self.stop_reason = "parent exited"
                         break

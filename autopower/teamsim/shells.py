@@ -298,18 +298,15 @@ class RobotShell(Shell):
             self.save_resume()
         rt.sink_store.commit()
         self.commit_outputs()
-        if status is None:  # only counts moved: the heartbeat waits
-            rt.send_acks(self.relayer.reachable, built.queue_wait_s)
-            self._status_sent(built)
-            return
-        base = w.scenario.basestation
-        for key, payload, dests in ((keys.status(self.node), encode(status), [base]),
-                                    (keys.peer(self.node), encode(PeerStatus.of(status)),
-                                     sorted(rt.producers() - {base}))):
-            self.bus.publish(key, payload, reliable=False)
-            self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
-        rt.send_acks(self.relayer.reachable, status.queue_wait_s)
-        self._status_sent(status)
+        if status is not None:  # (held back: only counts moved, the heartbeat waits)
+            base = w.scenario.basestation
+            for key, payload, dests in ((keys.status(self.node), encode(status), [base]),
+                                        (keys.peer(self.node), encode(PeerStatus.of(status)),
+                                         sorted(rt.producers() - {base}))):
+                self.bus.publish(key, payload, reliable=False)
+                self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
+        rt.send_acks(self.relayer.reachable, built.queue_wait_s)
+        self._status_sent(built)
 
     def save_resume(self) -> None:
         rt = self.rt
@@ -505,13 +502,11 @@ class BaseShell(Shell):
         rt.sink_store.commit()
         self.commit_outputs()
         rt.settle_held_store()
-        if status is None:
-            rt.send_acks(self.relayer.reachable, built.queue_wait_s)
-            self._status_sent(built)
-            return
-        self.bus.publish(self.keys.status(self.node), encode(status), reliable=False)  # standby base stations
-        # each robot the part it acts on (`basestation.peer_view`)
-        for robot, key, payload in self.peer_views.addressed(co, status, w.scheduler.wall(), status.next_status_s):
-            self._send_view(robot, key, payload)
-        rt.send_acks(self.relayer.reachable, status.queue_wait_s)
-        self._status_sent(status)
+        if status is not None:  # (held back: only counts moved, the heartbeat waits)
+            self.bus.publish(self.keys.status(self.node), encode(status), reliable=False)  # standby base stations
+            # each robot the part it acts on (`basestation.peer_view`)
+            for robot, key, payload in self.peer_views.addressed(co, status, w.scheduler.wall(),
+                                                                 status.next_status_s):
+                self._send_view(robot, key, payload)
+        rt.send_acks(self.relayer.reachable, built.queue_wait_s)
+        self._status_sent(built)
