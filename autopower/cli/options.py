@@ -182,6 +182,13 @@ def build_scenario(name: str, energy: tuple[str, ...] = (), energy_scale: float 
     return scenario.with_control_plane(control_plane).with_accounting(accounting)
 
 
+def check_heartbeat(status_period: float, heartbeat: float) -> None:
+    """A status goes out at most once a status period: a shorter heartbeat is a mistake, said."""
+    if heartbeat < status_period:
+        raise AutoPowerError(f"--heartbeat {heartbeat:g} is shorter than --status-period {status_period:g}: a "
+                             f"status goes out at most once a status period; give --heartbeat >= {status_period:g}")
+
+
 def setup_logging(level: str) -> None:
     logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -18,6 +18,7 @@ from autopower.cli.options import (
     NON_NEGATIVE,
     POSITIVE,
     build_scenario,
+    check_heartbeat,
     fleet_dir,
     mission_options,
     network_options,
@@ -81,6 +82,7 @@ def agent(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, sta
     """Run one robot's agent: host components, meter the battery, forward, publish status."""
     from autopower.agent.process import Agent, AgentConfig
 
+    check_heartbeat(status_period, heartbeat)
     setup_logging(log_level)
     robot, scenario_name, team, zenoh = _joining(robot, scenario_name, team, listen, connect, lease_ms, keep_alive, "robot")
     if robot is None:
@@ -155,6 +157,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
     from autopower.node.runtime import NodeRuntime
     from autopower.node.sink_store import SinkStore
 
+    check_heartbeat(status_period, heartbeat)
     setup_logging(log_level)
     if not speed > 0:
         raise AutoPowerError(f"--speed must be > 0, got {speed}")

@@ -9,6 +9,8 @@ import pkgutil
 import subprocess
 import sys
 
+import pytest
+
 import autopower.cli
 from autopower.cli.main import COMMAND_MODULES, cli
 
@@ -34,3 +36,14 @@ def test_an_operators_command_loads_no_planner_numpy_or_coordinator():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("command", [["agent", "--robot", "r1"], ["basestation"]])
+def test_a_heartbeat_shorter_than_the_status_period_is_refused_before_anything_starts(command):
+    from pathlib import Path
+
+    autopower = str(Path(sys.executable).parent / "autopower")
+    out = subprocess.run([autopower, *command, "--status-period", "0.5", "--heartbeat", "0.2"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and out.stdout == "", (out.returncode, out.stdout)
+    assert "--heartbeat 0.2 is shorter than --status-period 0.5" in out.stderr, out.stderr
