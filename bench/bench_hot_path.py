@@ -57,9 +57,7 @@ def measure(virtual_s: float) -> dict:
     for name in sc.node_names():
         bus = hub.bus(name)
         rt = NodeRuntime(node=name, scenario=sc, bus=bus, keys=keys, clock_factory=lambda m: clock,
-                         make_component=make_component, make_source=make_source)
-        rt.wall = clock.wall
-        rt.send_to = lambda dest, key, payload, bus=bus: bus.publish(key, payload)
+                         make_component=make_component, make_source=make_source, wall=clock.wall)
         for key in (keys.node_data(name), keys.node_control(name)):
             bus.subscribe(key, lambda k, p, rt=rt: rt.on_message(k, p))
         nodes[name] = rt

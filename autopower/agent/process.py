@@ -21,6 +21,7 @@ from autopower.errors import ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.node.held_store import HeldStore
 from autopower.node.peer_watch import PeerWatch, WatchSettings
+from autopower.node.ports import NodePorts, NodeStores
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
 from autopower.node.subgroup_rounds import RoundSettings, SubgroupRounds
@@ -124,26 +125,18 @@ class Agent:
         if self._bus is None:
             self._bus = ZenohBus(self.config.zenoh)
         bus, keys, robot = self._bus, self.keys, self.config.robot
-        self.runtime = NodeRuntime(node=robot, scenario=self.config.scenario, bus=bus, keys=keys,
-                                   **self._runtime_kwargs)
         scenario = self.config.scenario
         access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
         self.signing = load_signing(robot, self.config.zenoh.tls)  # None: --insecure, nothing signed
-        self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self.runtime.count, access=access,
+        self.relayer = Relayer(node=robot, bus=bus, keys=keys, count=self._count, access=access,
                                signing=self.signing)
-        self.runtime.send_to = self.relayer.send
-        self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
-        self.runtime.in_sight = self.relayer.direct.__contains__  # what it may forward on arrival
         self.resume = ResumeFile(self.config.resume_path, background=True) if self.config.resume_path else None
         self.traffic: LinkTraffic | None = link_traffic_of(bus)  # the bytes on its links (`publish_status`)
-        if self.resume is not None:
-            self.runtime.held_store = HeldStore(self.resume.path.with_name(f"{robot}.held"), background=True)
-            # a robot is the sink of its own chains (Loc-*): a restarted one must not take the
-            # results its producers resend (their acknowledgements were lost) for new ones
-            self.runtime.sink_store = SinkStore(self.resume.path.with_name(f"{robot}.sinks.json"))
-            self.runtime.resume_from = self.resume.load()
-            self.runtime.on_produced = lambda r: self.resume.note_source(r.chain.name, r.run, r.seq, r.missed,
-                                                                         r.produced_total, r.missed_stopped)
+        ports = NodePorts(send_to=self.relayer.send,
+                          in_sight=self.relayer.direct.__contains__,  # what it may forward on arrival
+                          notify_work=lambda: self.events.post(WorkDone()))  # a stage worker's result is in
+        self.runtime = NodeRuntime(node=robot, scenario=scenario, bus=bus, keys=keys, ports=ports,
+                                   stores=self._stores(), **self._runtime_kwargs)
         cfg = self.config
         self.rounds = SubgroupRounds(
             runtime=self.runtime, scenario=scenario, bus=bus, keys=keys, wall=time.time,
@@ -163,6 +156,24 @@ class Agent:
         self._handles.append(bus.declare_token(keys.alive(robot)))
         log.info("agent %s joined team %s", robot, self.config.team)
         return self
+
+    def _stores(self) -> NodeStores:
+        """What survives this agent's process, beside its resume file (none without one)."""
+        if self.resume is None:
+            return NodeStores()
+        folder, robot, resume = self.resume.path.parent, self.config.robot, self.resume
+        return NodeStores(
+            held_store=HeldStore(folder / f"{robot}.held", background=True),
+            # a robot is the sink of its own chains (Loc-*): a restarted one must not take the
+            # results its producers resend (their acknowledgements were lost) for new ones
+            sink_store=SinkStore(folder / f"{robot}.sinks.json"),
+            resume_from=resume.load(),
+            on_produced=lambda r: resume.note_source(r.chain.name, r.run, r.seq, r.missed, r.produced_total,
+                                                     r.missed_stopped))
+
+    def _count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None:
+        """The relayer's errors go to the runtime's (built after it: the runtime sends through it)."""
+        self.runtime.count(what, detail, level)
 
     def __exit__(self, *exc) -> None:
         if self.runtime is not None:

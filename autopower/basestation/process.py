@@ -33,6 +33,7 @@ from autopower.basestation.ready_waiters import ReadyWaiters
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.scenario import Scenario
 from autopower.node import NodeRuntime
+from autopower.node.ports import NodePorts
 from autopower.policies import Policy
 from autopower.protocol import (
     OPERATOR_COMMANDS,
@@ -171,12 +172,14 @@ class BaseStation:
         if self._bus is None:
             self._bus = ZenohBus(self.config.zenoh)
         bus, keys = self._bus, self.keys
-        self.runtime = self._host_factory(node=self.node, scenario=self.config.scenario, bus=bus, keys=keys)
         scenario = self.config.scenario
         access = TeamAccess(keys, scenario.basestation, tuple(r.name for r in scenario.robots))
         self.signing = load_signing(self.node, self.config.zenoh.tls)  # None: --insecure, nothing signed
-        self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self.runtime.count, access=access,
+        self.relayer = Relayer(node=self.node, bus=bus, keys=keys, count=self._count, access=access,
                                signing=self.signing)
+        ports = NodePorts(send_to=self.relayer.send,
+                          notify_work=lambda: self.events.post(WorkDone()))  # a stage worker's result is in
+        self.runtime = self._host_factory(node=self.node, scenario=scenario, bus=bus, keys=keys, ports=ports)
         if self.config.state_dir is not None:
             self._keep_state(Path(self.config.state_dir))
         kept = self._kept_incarnation
@@ -187,9 +190,7 @@ class BaseStation:
                                        on_own_plan=self._own_plan,
                                        on_decision_answer=lambda: self.events.post(DecisionAnswered()))
         self.peer_views = PeerViews(scenario, self.keys)
-        self.runtime.send_to = self.relayer.send
         self.traffic = link_traffic_of(bus)
-        self.runtime.notify_work = lambda: self.events.post(WorkDone())  # a stage worker's result is in
         for key in (keys.node_data(self.node), keys.node_control(self.node), keys.addressed_to(self.node), keys.plan,
                     keys.inbox, keys.status_all, keys.node_relay(self.node)):
             self._handles.append(bus.subscribe(key, self.events.on_message))
@@ -199,6 +200,10 @@ class BaseStation:
         log.info("base station %s up for team %s (scenario %s)", self.node, self.config.team,
                  self.config.scenario.name)
         return self
+
+    def _count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None:
+        """The relayer's errors go to the host's (built after it: the host sends through it)."""
+        self.runtime.count(what, detail, level)
 
     # ---- what survives a restart ----------------------------------------------------------------
     def _keep_state(self, folder: Path) -> None:

@@ -154,6 +154,7 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
     from autopower.basestation.operator import team_dir
     from autopower.basestation.process import BaseStation, BaseStationConfig
     from autopower.node.held_store import HeldStore
+    from autopower.node.ports import NodeStores
     from autopower.node.runtime import NodeRuntime
     from autopower.node.sink_store import SinkStore
 
@@ -182,11 +183,11 @@ def basestation(scenario_name, team, listen, connect, lease_ms, keep_alive, stat
     workers = stage_workers_wanted(stage_workers, basestation=True, speed=speed)
 
     def host(**kwargs) -> NodeRuntime:
-        runtime = NodeRuntime(**kwargs, stage_workers=workers)
-        runtime.sink_store = SinkStore(state / "sinks.json")
-        # results it holds for a robot's chain whose sink is out of reach: a restart takes them back
-        runtime.held_store = HeldStore(state / "basestation.held", background=True)
-        return runtime
+        stores = NodeStores(sink_store=SinkStore(state / "sinks.json"),
+                            # results it holds for a robot's chain whose sink is out of reach: a
+                            # restart takes them back
+                            held_store=HeldStore(state / "basestation.held", background=True))
+        return NodeRuntime(**kwargs, stage_workers=workers, stores=stores)
 
     recorder, bus = _recording_bus(record_dir, scenario.basestation, scenario, config.zenoh)
     try:

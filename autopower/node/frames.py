@@ -388,6 +388,6 @@ class Frames:
         elif frame.attempt:
             self.tally("recovered-outputs")  # lost in flight, delivered by a resend
         self.last_output[chain.name] = frame.data()
-        if self.on_output is not None:
-            self.on_output(chain.name, frame.run, frame.seq, frame.data())
+        if self._sink_listeners:
+            self._sink_listeners.output(chain.name, frame.run, frame.seq, frame.data())
 

@@ -47,10 +47,10 @@ SETTLE_LIMIT = 100_000  # forwards not charged yet (the loop charges them every 
 class Relaying:
     """Forwarding on the transport's thread. Mixed into `NodeRuntime`, whose state it reads."""
 
-    def init_relaying(self) -> None:
-        # Who this node reaches directly; the process sets it (its `Relayer.direct`). Nothing
-        # is forwarded on arrival until it does: the loop's `send_to` decides.
-        self.in_sight: Callable[[str], bool] = lambda node: False
+    def init_relaying(self, in_sight: Callable[[str], bool]) -> None:
+        # Who this node reaches directly: the process's `Relayer.direct` (`NodePorts.in_sight`).
+        # Without it nothing is forwarded on arrival: the loop's `send_to` decides.
+        self.in_sight = in_sight
         # what was forwarded on arrival, for the loop to charge: (header, virtual time, slow put, bytes);
         # appended and taken one at a time (atomic), bounded: when full, packets go to the loop
         self._relayed: deque[tuple[PacketHeader, float, bool, int]] = deque()  # (..., its size)

@@ -50,6 +50,7 @@ from autopower.node.hosting import Hosting
 from autopower.node.in_flight import ProducedByRun, frames_in_hand, stage_frames
 from autopower.node.joining import Joining
 from autopower.node.meter import BatteryMeter
+from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
 from autopower.node.relaying import Relaying
 from autopower.node.sequencing import SinkLedger
 from autopower.node.sink_store import SinkStore
@@ -107,10 +108,14 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
                  make_component: Callable | None = None, make_source: Callable | None = None,
                  clock_factory: Callable[[MissionInfo], Clock] | None = None, stage_workers: bool = False,
-                 wall: Callable[[], float] | None = None, perf: Callable[[], float] | None = None):
+                 wall: Callable[[], float] | None = None, perf: Callable[[], float] | None = None,
+                 ports: NodePorts | None = None, stores: NodeStores | None = None):
         """``wall`` is the node's wall clock (custody, gates, joins, the status's ``t_unix``, a
         frame's capture time) and ``perf`` the clock a component run is timed with (the status's
-        ``compute_ms``); a simulator passes its own time for both."""
+        ``compute_ms``); a simulator passes its own time for both. ``ports`` and ``stores`` are its
+        ways out to the owning process (`autopower.node.ports`)."""
+        ports = ports or NodePorts()
+        stores = stores or NodeStores()
         if node not in scenario.node_names():
             raise AutoPowerError(f"node {node!r} is not in scenario {scenario.name} "
                                  f"(nodes: {', '.join(scenario.node_names())})")
@@ -170,33 +175,26 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # migration state with no route yet (an order overtook the plan that brings the route
         # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
         self.parked_transfers: list[tuple[str, bytes, str]] = []
-        self.on_output: Callable[[str, int, int, bytes], None] | None = None  # every result at this sink
-        # every result this node let go from its hold (chain, run, seq, why): "budget" (the hold
-        # budget full) or "superseded" (a newer result of a latest-only chain); the recording tells
-        # these outputs from lost ones (`autopower.recording.replay`)
-        self.on_held_dropped: Callable[[str, int, int, str], None] | None = None
-        # a seq of a chain sourced and sunk here that died with the crashed process (`_died_with_process`)
-        self.on_died_with_process: Callable[[str, int, int], None] | None = None
-        # an output the crashed sink here had delivered in its last commit, said by the restarted one
-        # (its recording may have died with the process: `SinkStore.last_batch`)
-        self.on_sink_journal: Callable[[str, int, int], None] | None = None
+        # who hears of the sink's outputs, and of the results let go or lost in a crash (`listen`):
+        # the recording tells these outputs from lost ones (`autopower.recording.replay`)
+        self._sink_listeners = SinkListeners()
         # where a restarted process carries on (`autopower.agent.resume`): its saved state, applied
         # at the first plan of the same mission; and who to tell when a source advanced
-        self.resume_from: dict | None = None
+        self.resume_from: dict | None = stores.resume_from
         self.resumed: bool = False
         self.down: tuple[float, float] | None = None  # see NodeStatus.down
         # the model's power per robot once a stage has left us and before the plan says where it
         # landed (`Hosting.on_migrate_out`): we no longer run it; None: the plan's prediction holds
         self.model_override: dict[str, float] | None = None
-        self.on_produced: Callable[[SourceRunner], None] | None = None
+        self._on_produced = stores.on_produced
         self.custody = Custody(hold_budget_bytes=scenario.hold_budget_bytes)
         self.control_plane = ControlPlaneMeter()  # the bytes on its links beyond the chain packets
         self.ack_wants = AckWants()  # which peers want the acknowledgements of which chains
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
         # state directory): an output delivered before a crash is not delivered again after it
-        self.sink_store: SinkStore | None = None
+        self.sink_store: SinkStore | None = stores.sink_store
         # results held for a sink out of reach, on disk (`agent.held_store`): a crash loses none
-        self.held_store: HeldStore | None = None
+        self.held_store: HeldStore | None = stores.held_store
         self._held_journaled: dict[tuple[str, int, int, int], ChainFrame] = {}  # (chain, target, run, seq)
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
         self._cpu_at: tuple[float, float] | None = None  # (process, component) CPU at the last `charge_runtime`
@@ -211,7 +209,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self._zygote.prestart()
         # how a worker's result wakes the owning process's loop (it posts an event); without it
         # results are collected at the next timer tick
-        self.notify_work: Callable[[], None] | None = None
+        self.notify_work: Callable[[], None] | None = ports.notify_work
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
         self.hung_sources: dict[str, int] = {}  # chain -> the run whose source hung here (not restarted)
         # sources built before the mission (`prepare_sources`), each taken by its chain's first run here
@@ -219,11 +217,16 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         self._next_custody_check = 0.0
         self.wall: Callable[[], float] = wall or time.time
         self.perf: Callable[[], float] = perf or time.perf_counter
-        # How a message for one node leaves: the process replaces it with its `Relayer.send`
-        # so that a node out of direct sight is still reached through other agents.
-        self.send_to: Callable[..., object] = (  # (dest, key, payload, *, reliable=True)
+        # How a message for one node leaves: the process gives its `Relayer.send`, so that a node
+        # out of direct sight is still reached through other agents.
+        self.send_to: Callable[..., object] = ports.send_to or (  # (dest, key, payload, *, reliable=True)
             lambda dest, key, payload, reliable=True: self.bus.publish(key, payload, reliable=reliable))
-        self.init_relaying()  # packets only crossing this node: forwarded on arrival (`agent.relaying`)
+        self.init_relaying(ports.in_sight)  # packets only crossing this node: forwarded on arrival
+
+    def listen(self, listener: SinkListener) -> None:
+        """Tell ``listener`` of every output reaching this node as its chain's sink, and of every
+        result let go or lost in a crash here (`autopower.node.ports.SinkListener`)."""
+        self._sink_listeners.add(listener)
 
     # ---- small helpers -----------------------------------------------------------------------
     def now(self) -> float:
@@ -262,9 +265,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             if self.sink_store is not None:  # a restarted sink goes on from what it had delivered
                 self.sinks.update(self.sink_store.load(plan.mission.epoch_unix))
             self.clock = self._clock_factory(plan.mission)
-            if self.sink_store is not None and self.on_sink_journal is not None:  # at mission time
+            if self.sink_store is not None:  # at mission time
                 for chain, run, seq in self.sink_store.last_batch:
-                    self.on_sink_journal(chain, run, seq)
+                    self._sink_listeners.sink_journal(chain, run, seq)
             if not self.platform.mains and self.node not in plan.mission.energies_j:
                 raise AutoPowerError(f"the mission gives no starting energy for {self.node}")
             self._use_variants(plan.variants)
@@ -397,9 +400,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.tally("died-with-process", len(tail))
             log.warning("%s: %s seq %d-%d died with the crashed process (in its memory only)", self.node, name,
                         tail[0], tail[-1])
-            if self.on_died_with_process is not None:
-                for seq in tail:
-                    self.on_died_with_process(name, src.run, seq)
+            for seq in tail:
+                self._sink_listeners.died_with_process(name, src.run, seq)
 
     def in_flight_at_stop(self) -> dict[tuple[str, int], set[int]]:
         """(chain, run) -> the seqs of the frames this node still has in hand (`autopower.node.in_flight`)."""
@@ -582,8 +584,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.custody.forget(frame)
             self.held_superseded += 1
             self.tally("held-outputs-superseded")
-            if self.on_held_dropped is not None:
-                self.on_held_dropped(frame.chain, frame.run, frame.seq, "superseded")
+            self._sink_listeners.held_dropped(frame.chain, frame.run, frame.seq, "superseded")
 
     def keep_result(self, frame: ChainFrame, sent: bool = True) -> None:
         """Keep a chain's result in custody until its sink acknowledges it; results beyond the hold
@@ -592,8 +593,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
             self.held_outputs.pop(_held_key(dropped), None)
             self.held_dropped += 1
             self.tally("held-outputs-dropped")
-            if self.on_held_dropped is not None:
-                self.on_held_dropped(dropped.chain, dropped.run, dropped.seq, "budget")
+            self._sink_listeners.held_dropped(dropped.chain, dropped.run, dropped.seq, "budget")
 
     def _journal_held(self, frame: ChainFrame) -> None:
         key = _held_key(frame)
@@ -795,8 +795,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         runner.seq += 1
         runner.produced_total += 1
         self.produced_by_run.note(chain.name, runner.run, runner.seq)
-        if self.on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq
-            self.on_produced(runner)
+        if self._on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq
+            self._on_produced(runner)
         self.emit(frame, host)
 
     def _source_hung(self, runner: SourceRunner, detail: str) -> None:

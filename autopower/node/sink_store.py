@@ -28,7 +28,7 @@ died with the process; the resent copies are redundant to the new sink and are n
 so the recording would miss outputs the operator has. Only the last commit can be in that window
 (each flush comes before the next commit), and the markers say where it starts: `load` gives its
 outputs as `last_batch`, and the restarted sink logs them to the recording
-(`NodeRuntime.on_sink_journal`), so replay does not count them as lost. Noting after the flush
+(`SinkListener.sink_journal`), so replay does not count them as lost. Noting after the flush
 instead would turn the same window into duplicates delivered to the operator.
 """
 

@@ -6,7 +6,7 @@ Each process (agent, base station) wraps its bus once::
                                                                # Recorder.open (no output drawings)
     bus = recorder.tap(ZenohBus(settings))   # a RecordingBus: same Bus surface -> runs/<run-id>/<node>.rrd
     ...
-    recorder.attach(runtime)        # the sink's outputs (NodeRuntime.on_output), see below
+    recorder.attach(runtime)        # the sink's outputs (`NodeRuntime.listen`), see below
     bus.close()                     # closes the inner bus, flushes and closes the recording
 
 Every process of a run writes its own file with the same recording id (derived from the run
@@ -36,10 +36,10 @@ What is recorded, on the mission timeline (virtual seconds; the clock comes from
 - sink stats in a status -> ``components/<chain>/sink/received_total``, ``duplicates_total``,
   ``missing`` (seqs below the highest seen not arrived yet), ``latency_ms_p50|max`` (end to end);
 - outputs reaching this node as their sink (`on_output`) -> ``components/<chain>/run/<run>/seq``;
-  results its full hold let go (`on_held_dropped`) -> ``components/<chain>/run/<run>/held_dropped``,
+  results its full hold let go (`SinkListener.held_dropped`) -> ``components/<chain>/run/<run>/held_dropped``,
   and those a latest-only chain's newer result replaced in it -> ``.../run/<run>/superseded``;
   outputs a restarted sink's journal says its crashed process delivered in its last commit
-  (`on_sink_journal`: their recording may have died with it) -> ``.../run/<run>/sink_journal``
+  (`SinkListener.sink_journal`: their recording may have died with it) -> ``.../run/<run>/sink_journal``
   (one scalar per output: replay checks exactly-once per (chain, run, seq)); at a clean stop
   (`record_stop`), what each source here produced per run -> ``.../run/<run>/produced`` and every
   frame still in hand -> ``.../run/<run>/in_flight`` (one scalar per seq); and, at most every
@@ -73,6 +73,7 @@ from typing import Any, Callable, Mapping
 
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
+from autopower.node.ports import SinkListener
 from autopower.protocol.codec import decode, message_kind, wire_data
 from autopower.protocol.plans import PlanAssembler
 from autopower.recording.telemetry import (
@@ -299,20 +300,12 @@ class Recorder:
     def attach(self, runtime) -> None:
         """Record every output reaching `runtime` (a `NodeRuntime`) as its chain's sink, and every
         result its full hold lets go."""
-        runtime.on_held_dropped = self.on_held_dropped
-        runtime.on_died_with_process = self.on_died_with_process
-        runtime.on_sink_journal = self.on_sink_journal
+        runtime.listen(SinkListener(output=self.on_output, held_dropped=self.on_held_dropped,
+                                    died_with_process=self.on_died_with_process,
+                                    sink_journal=self.on_sink_journal))
         # the mission clock of a runtime that started without a plan on the bus (a robot restarted
         # out of the base station's reach goes on with its saved plan): its outputs were logged at 0
         self._runtime = runtime
-        previous = getattr(runtime, "on_output", None)
-        if previous is None:
-            runtime.on_output = self.on_output
-        else:
-            def both(chain, run, seq, data, _prev=previous):
-                self.on_output(chain, run, seq, data)
-                _prev(chain, run, seq, data)
-            runtime.on_output = both
 
     # ---- time --------------------------------------------------------------------------------------
     def now(self) -> float:
@@ -423,24 +416,24 @@ class Recorder:
         self._guard("liveliness", self._liveliness, key, alive)
 
     def on_output(self, chain: str, run: int, seq: int, data: bytes) -> None:
-        """An output reached this node, its chain's sink (hook for `NodeRuntime.on_output`)."""
+        """An output reached this node, its chain's sink (its `SinkListener.output`)."""
         self._guard("output", self._output, chain, run, seq, data)
 
     def on_held_dropped(self, chain: str, run: int, seq: int, why: str = "budget") -> None:
         """A result this node held for a sink out of its reach was let go (hook for
-        `NodeRuntime.on_held_dropped`): its hold budget full, or superseded by a newer result of a
+        `SinkListener.held_dropped`): its hold budget full, or superseded by a newer result of a
         latest-only chain; the replay counts each apart (a superseded one only with a later one delivered)."""
         path = superseded_path(chain, run) if why == "superseded" else held_dropped_path(chain, run)
         self._guard("held-dropped", lambda: self.telemetry.scalar(path, self.now(), seq))
 
     def on_sink_journal(self, chain: str, run: int, seq: int) -> None:
         """An output the crashed sink here had delivered and noted in its last commit (hook for
-        `NodeRuntime.on_sink_journal`, called by the restarted one): the replay takes it as delivered."""
+        `SinkListener.sink_journal`, called by the restarted one): the replay takes it as delivered."""
         self._guard("sink-journal", lambda: self.telemetry.scalar(sink_journal_path(chain, run), self.now(), seq))
 
     def on_died_with_process(self, chain: str, run: int, seq: int) -> None:
         """An output of this robot's own chain that died with its crashed process (hook for
-        `NodeRuntime.on_died_with_process`, called by the restarted one): the replay counts it apart."""
+        `SinkListener.died_with_process`, called by the restarted one): the replay counts it apart."""
         self._guard("died-with-process",
                     lambda: self.telemetry.scalar(died_with_process_path(chain, run), self.now(), seq))
 

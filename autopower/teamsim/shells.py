@@ -17,6 +17,7 @@ through the rest period (the sim builds a status every period and the cadence ho
 
 from __future__ import annotations
 
+import logging
 import math
 
 from autopower.agent.resume import ResumeFile
@@ -25,6 +26,7 @@ from autopower.basestation.peer_view import PeerViews
 from autopower.errors import ProtocolError
 from autopower.node.held_store import HeldStore
 from autopower.node.peer_watch import PeerWatch, WatchSettings
+from autopower.node.ports import NodePorts, NodeStores, SinkListener
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sink_store import SinkStore
 from autopower.node.subgroup_rounds import RoundSettings, SubgroupRounds
@@ -69,18 +71,25 @@ class Shell:
         w = self.world
         self.up = True
         self.bus = SimBus(self.node, w.network, w.trace, self._after_event)
+        self.relayer = Relayer(node=self.node, bus=self.bus, keys=self.keys, count=self._count, access=w.access)
         self.rt = NodeRuntime(node=self.node, scenario=w.scenario, bus=self.bus, keys=self.keys,
                               make_component=w.make_component, make_source=w.make_source,
-                              clock_factory=w.clock_for, wall=w.scheduler.wall, perf=w.scheduler.wall)
-        self.relayer = Relayer(node=self.node, bus=self.bus, keys=self.keys, count=self.rt.count, access=w.access)
-        self.rt.send_to = self.relayer.send
-        self.rt.on_output = self._output
-        self.rt.on_held_dropped = self._dropped_by_budget
-        self.rt.on_died_with_process = lambda c, r, s: w.ledger.let_go((c, r, s), "died-with-process")
+                              clock_factory=w.clock_for, wall=w.scheduler.wall, perf=w.scheduler.wall,
+                              ports=NodePorts(send_to=self.relayer.send), stores=self.stores())
+        self.rt.listen(SinkListener(
+            output=self._output, held_dropped=self._dropped_by_budget,
+            died_with_process=lambda c, r, s: w.ledger.let_go((c, r, s), "died-with-process")))
         self.cadence = StatusCadence(w.status_period_s, w.status_rest_period_s)  # a new process's: it says all at once
         self.build()
         self.next_status = w.scheduler.wall()
         self.turn()
+
+    def _count(self, what: str, detail: str = "", level: int = logging.WARNING) -> None:
+        self.rt.count(what, detail, level)  # the relayer's errors (it is built before the runtime)
+
+    def stores(self) -> NodeStores:
+        """What this process keeps on disk across a crash (its subclass says)."""
+        raise NotImplementedError
 
     def build(self) -> None:
         """The process's own parts, subscriptions and token (after the runtime exists)."""
@@ -190,14 +199,15 @@ class Shell:
 class RobotShell(Shell):
     """A robot's agent: its stores, its statuses to every peer, superseded instances stopped."""
 
+    def stores(self) -> NodeStores:
+        folder, robot = self.world.store_dir, self.node
+        self.resume = ResumeFile(folder / f"{robot}.json")
+        return NodeStores(held_store=HeldStore(folder / f"{robot}.held"),
+                          sink_store=SinkStore(folder / f"{robot}.sinks.json"),
+                          resume_from=self.resume.load(), on_produced=self._produced)
+
     def build(self) -> None:
         w, rt, robot, keys = self.world, self.rt, self.node, self.keys
-        folder = w.store_dir
-        self.resume = ResumeFile(folder / f"{robot}.json")
-        rt.held_store = HeldStore(folder / f"{robot}.held")
-        rt.sink_store = SinkStore(folder / f"{robot}.sinks.json")
-        rt.resume_from = self.resume.load()
-        rt.on_produced = self._produced
         self.statuses: dict[str, PeerStatus] = {}  # the peers' last (`PeerStatus`)
         self.watch = PeerWatch(WatchSettings(own_period_s=w.status_period_s, lease_s=w.network.lease_s))
         self.rounds = SubgroupRounds(
@@ -344,10 +354,12 @@ class BaseShell(Shell):
         self.co: Coordinator | None = None
         self.plan_since: dict[tuple[int, int], float] = {}  # (incarnation, epoch) -> when first published
 
+    def stores(self) -> NodeStores:
+        folder = self.world.store_dir
+        return NodeStores(sink_store=SinkStore(folder / "sinks.json"), held_store=HeldStore(folder / "basestation.held"))
+
     def build(self) -> None:
-        w, rt, keys, base = self.world, self.rt, self.keys, self.node
-        rt.sink_store = SinkStore(w.store_dir / "sinks.json")
-        rt.held_store = HeldStore(w.store_dir / "basestation.held")
+        w, keys, base = self.world, self.keys, self.node
         kept = w.base_state.get("incarnation")
         self.peer_views = PeerViews(w.scenario, self.keys)
         self.co = Coordinator(scenario=w.scenario, bus=self.bus, keys=keys, config=w.coordinator_config,

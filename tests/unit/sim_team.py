@@ -12,6 +12,7 @@ import random
 import msgpack
 
 from autopower.basestation.coordinator import Coordinator, CoordinatorConfig
+from autopower.node.ports import NodePorts, NodeStores
 from autopower.node.runtime import NodeRuntime
 from autopower.protocol import Keys, Packet, decode
 from autopower.runtime.bus import InMemoryHub
@@ -72,7 +73,8 @@ class FakeRequest:
 class SimTeam:
     def __init__(self, scenario, *, config: CoordinatorConfig | None = None, policy=None, fake=True,
                  rng: random.Random | None = None, speed: float = 1.0, relay_on_arrival: bool = True,
-                 on_decision_answer=None):
+                 on_decision_answer=None, stores: dict[str, NodeStores] | None = None):
+        """``stores``: node -> what its process keeps on disk (none for the others)."""
         self.scenario = scenario
         self.clock = ManualClock(speed=speed, epoch_unix=1_000_000.0)
         self.hub = InMemoryHub(synchronous=False)
@@ -86,13 +88,15 @@ class SimTeam:
         self.subscriptions: dict[str, list] = {}
         for node in scenario.node_names():
             bus = self.hub.bus(node)
+            ports = NodePorts(
+                send_to=lambda dest, key, payload, node=node, bus=bus, reliable=True: self._send(node, dest, key, payload, bus),
+                # as an agent does: a packet only crossing this node is forwarded on arrival (not
+                # across a silent cut: that one goes to `on_data`, whose send is lost in `_send`)
+                in_sight=lambda dest, node=node: relay_on_arrival and (node, dest) not in self.cut_links)
             rt = NodeRuntime(node=node, scenario=scenario, bus=bus, keys=self.keys,
-                             clock_factory=lambda mission: self.clock, **kwargs)
-            rt.wall = self.clock.wall  # custody ages frames on the test's clock
-            rt.send_to = lambda dest, key, payload, rt=rt, bus=bus, reliable=True: self._send(rt.node, dest, key, payload, bus)
-            # as an agent does: a packet only crossing this node is forwarded on arrival (not
-            # across a silent cut: that one goes to `on_data`, whose send is lost in `_send`)
-            rt.in_sight = lambda dest, rt=rt: relay_on_arrival and (rt.node, dest) not in self.cut_links
+                             clock_factory=lambda mission: self.clock,
+                             wall=self.clock.wall,  # custody ages frames on the test's clock
+                             ports=ports, stores=(stores or {}).get(node), **kwargs)
             self.nodes[node] = rt
             self.subscriptions[node] = [
                 bus.subscribe(k, lambda key, payload, rt=rt: rt.on_message(key, payload))

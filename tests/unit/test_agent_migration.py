@@ -11,6 +11,7 @@ import pytest
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.errors import ProtocolError
 from autopower.model.loading import load_scenario
+from autopower.node.ports import SinkListener
 from autopower.node.sequencing import SequenceGate, SinkLedger
 from autopower.node.stages import Lifecycle, pad
 from autopower.protocol import ChainCommand, MigrateCommand
@@ -111,7 +112,7 @@ def test_pad():
 def collect(team: SimTeam) -> dict:
     outputs: dict[str, list[tuple[int, int, bytes]]] = {}
     for rt in team.nodes.values():
-        rt.on_output = lambda chain, run, seq, data: outputs.setdefault(chain, []).append((run, seq, data))
+        rt.listen(SinkListener(output=lambda chain, run, seq, data: outputs.setdefault(chain, []).append((run, seq, data))))
     return outputs
 
 
@@ -239,7 +240,7 @@ def test_a_sink_hands_an_older_runs_output_on_once():
     r1 = team.nodes["r1"]
     chain = r1.chains["Loc-1"]
     got = []
-    r1.on_output = lambda c, run, seq, data: got.append((c, run, seq))
+    r1.listen(SinkListener(output=lambda c, run, seq, data: got.append((c, run, seq))))
 
     def frame(run: int, seq: int) -> ChainFrame:
         return ChainFrame(chain="Loc-1", run=run, seq=seq, target=len(chain.stages), t_virtual=0.0,

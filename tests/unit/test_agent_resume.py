@@ -8,6 +8,7 @@ import pytest
 
 from autopower.agent.resume import ResumeFile
 from autopower.model.loading import load_scenario
+from autopower.node.ports import NodeStores, SinkListener
 from autopower.node.runtime import NodeRuntime
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 from tests.unit.slow_disk import SlowDisk
@@ -23,8 +24,8 @@ def _team_at(t_end: float) -> SimTeam:
 def _restarted(team: SimTeam, robot: str, saved: dict | None) -> NodeRuntime:
     old = team.nodes[robot]
     rt = NodeRuntime(node=robot, scenario=team.scenario, bus=team.hub.bus(robot + "-again"), keys=team.keys,
-                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
-    rt.resume_from = saved
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     stores=NodeStores(resume_from=saved))
     rt.on_plan(old.plan)
     return rt
 
@@ -182,9 +183,8 @@ def test_a_crash_while_the_snapshot_is_written_resumes_from_the_older_one_and_ev
 def _fresh(team: SimTeam, robot: str, saved: dict | None) -> NodeRuntime:
     """A restarted process of ``robot`` that has heard no plan yet."""
     rt = NodeRuntime(node=robot, scenario=team.scenario, bus=team.hub.bus(robot + "-fresh"), keys=team.keys,
-                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
-    rt.wall = team.clock.wall
-    rt.resume_from = saved
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     wall=team.clock.wall, stores=NodeStores(resume_from=saved))
     return rt
 
 
@@ -261,22 +261,21 @@ def test_a_restarted_robot_sink_does_not_take_a_resent_result_for_a_new_one(tmp_
     from autopower.protocol import ChainFrame
 
     team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, pins={"Loc-3": "r1"},
-                                                                          auto_replan=False))
+                                                                          auto_replan=False),
+                   stores={"r3": NodeStores(sink_store=SinkStore(tmp_path / "r3.sinks.json"))})
     team.join()
     old = team.nodes["r3"]
-    old.sink_store = SinkStore(tmp_path / "r3.sinks.json")
     team.run_until(30.0)
     ledger = old.sinks["Loc-3"]
     assert ledger.received > 3
     old.sink_store.commit()  # what `AgentProcess.publish_status` does before each status
     saved = old.resume_state()
     rt = NodeRuntime(node="r3", scenario=team.scenario, bus=team.hub.bus("r3-again"), keys=team.keys,
-                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
-    rt.sink_store = SinkStore(tmp_path / "r3.sinks.json")
-    rt.resume_from = saved
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     stores=NodeStores(sink_store=SinkStore(tmp_path / "r3.sinks.json"), resume_from=saved))
     rt.on_plan(old.plan)
     outputs = []
-    rt.on_output = lambda chain, run, seq, data: outputs.append(seq)
+    rt.listen(SinkListener(output=lambda chain, run, seq, data: outputs.append(seq)))
     resent = ChainFrame(chain="Loc-3", run=ledger.run, seq=ledger.contiguous - 1, target=1, t_virtual=0.0,
                         t_unix=0.0, payload_len=0, payload=b"", attempt=1)
     rt.deliver_frame(resent, 0)

@@ -19,6 +19,7 @@ import pytest
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
 from autopower.node import guard
+from autopower.node.ports import SinkListener
 from autopower.node.stages import Lifecycle
 from autopower.protocol import MigrateCommand
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
@@ -89,7 +90,7 @@ def _release_hung_threads():
 def outputs_of(team: SimTeam) -> dict[str, list[int]]:
     out: dict[str, list[int]] = {}
     for rt in team.nodes.values():
-        rt.on_output = lambda chain, run, seq, data: out.setdefault(chain, []).append(seq)
+        rt.listen(SinkListener(output=lambda chain, run, seq, data: out.setdefault(chain, []).append(seq)))
     return out
 
 
@@ -179,7 +180,7 @@ def test_a_state_that_imports_at_home_but_not_on_the_new_host_goes_on_there_with
                                                                    FakeComponent)(kind, robot, seed)
     outputs: dict[str, list[tuple[int, bytes]]] = {}
     for rt in team.nodes.values():
-        rt.on_output = lambda chain, run, seq, data: outputs.setdefault(chain, []).append((seq, data))
+        rt.listen(SinkListener(output=lambda chain, run, seq, data: outputs.setdefault(chain, []).append((seq, data))))
     team.join()
     team.run_until(5.0)
     co = team.coordinator

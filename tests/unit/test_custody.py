@@ -16,6 +16,7 @@ from hypothesis import given, settings, strategies as st
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
 from autopower.node.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
+from autopower.node.ports import SinkListener
 from autopower.node.sequencing import MAX_MISSING, SequenceGate, SinkLedger, in_ranges, missing_between, ranges_of
 from autopower.protocol import Ack, ChainFrame, Consumed, NodeStatus, decode, encode
 from tests.unit.sim_team import SimTeam
@@ -752,7 +753,7 @@ def test_results_beyond_the_hold_budget_are_dropped_oldest_first_and_leave_custo
                          payload_len=100, payload=bytes(100)) for i in range(8)]
     before = len(r2.custody)
     told = []
-    r2.on_held_dropped = lambda chain, run, seq, why: told.append((chain, run, seq, why))  # the recorder's hook
+    r2.listen(SinkListener(held_dropped=lambda chain, run, seq, why: told.append((chain, run, seq, why))))  # as the recorder listens
     for frame in frames:
         r2.keep_result(frame, sent=False)  # as `Frames.emit` does for a result
         r2.hold_output(frame)  # as `send_routed` does with no route to the sink
@@ -785,7 +786,7 @@ def test_a_latest_only_chain_holds_its_newest_result_and_lets_the_older_ones_go_
                           payload_len=100, payload=bytes(100))
 
     told = []
-    r2.on_held_dropped = lambda chain, run, seq, why: told.append((chain, run, seq, why))
+    r2.listen(SinkListener(held_dropped=lambda chain, run, seq, why: told.append((chain, run, seq, why))))
     before = len(r2.custody)
     frames = [result("Blob-2", 0, 10_000 + i, 1) for i in range(4)] + [result("Blob-2", 1, 5, 1),
                                                                       result("Loc-2", 0, 9_000, 1),

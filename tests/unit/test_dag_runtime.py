@@ -13,6 +13,7 @@ from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.chains.teammap import decode_join, decode_map
 from autopower.model.loading import load_scenario
 from autopower.node.joining import EdgeGate, JoinState, join_wait_s
+from autopower.node.ports import SinkListener
 from autopower.protocol import ChainFrame, MigrateCommand
 from tests.unit.sim_team import SimTeam
 
@@ -25,7 +26,7 @@ def team_of(**config) -> tuple[SimTeam, dict]:
     team = SimTeam(SC, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, **config), fake=False)
     outputs: dict = {}
     for rt in team.nodes.values():
-        rt.on_output = lambda chain, run, seq, data: outputs.setdefault(chain, []).append((run, seq, data))
+        rt.listen(SinkListener(output=lambda chain, run, seq, data: outputs.setdefault(chain, []).append((run, seq, data))))
     return team, outputs
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 
 from autopower.model.loading import load_scenario
+from autopower.node.ports import NodeStores, SinkListener
 from autopower.node.runtime import NodeRuntime
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
 
@@ -23,12 +24,11 @@ def _restart(team: SimTeam, old: NodeRuntime, ahead: int) -> tuple[NodeRuntime, 
     assert committed > 10 and not ledger.above
     saved["sources"]["Loc-1"]["seq"] = committed + ahead
     rt = NodeRuntime(node="r1", scenario=team.scenario, bus=team.hub.bus("r1-again"), keys=team.keys,
-                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
-    rt.wall = team.clock.wall
-    rt.resume_from = saved
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     wall=team.clock.wall, stores=NodeStores(resume_from=saved))
     rt.sinks["Loc-1"] = copy.deepcopy(ledger)  # as its `SinkStore` gives it back
     died = []
-    rt.on_died_with_process = lambda chain, run, seq: died.append((chain, run, seq))
+    rt.listen(SinkListener(died_with_process=lambda chain, run, seq: died.append((chain, run, seq))))
     rt.on_plan(old.plan)
     return rt, died, committed
 
@@ -66,14 +66,15 @@ def test_the_replay_counts_outputs_that_died_with_a_process_apart_from_lost_ones
     t = [0.0]
     run_dir = tmp_path / "run-5"
     robot = Recorder.open(run_dir, "r1", clock=lambda: t[0])
-    runtime = SimpleNamespace(on_output=None)
-    robot.attach(runtime)
+    listeners = []
+    robot.attach(SimpleNamespace(listen=listeners.append))
+    runtime = listeners[0]  # what the runtime tells the recorder (`SinkListener`)
     robot.telemetry.battery(0.0, "r1", 100.0)
     for seq in (*range(0, 10), *range(12, 20)):
         t[0] += 0.5
         robot.on_output("Loc-1", 0, seq, b"")
-    runtime.on_died_with_process("Loc-1", 0, 10)  # 11 died too, but nobody said so: lost
-    runtime.on_died_with_process("Loc-1", 0, 12)  # said, but it arrived after all: no gap there
+    runtime.died_with_process("Loc-1", 0, 10)  # 11 died too, but nobody said so: lost
+    runtime.died_with_process("Loc-1", 0, 12)  # said, but it arrived after all: no gap there
     robot.telemetry.battery(10.0, "r1", 90.0)
     robot.close()
     o = summarize(load(merge_run(run_dir)))["outputs"]

@@ -7,6 +7,7 @@ import stat
 
 from autopower.model.loading import load_scenario
 from autopower.node.held_store import HeldStore
+from autopower.node.ports import NodeStores, SinkListener
 from autopower.node.runtime import NodeRuntime, mission_key
 from autopower.protocol import ChainFrame, encode
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
@@ -94,12 +95,10 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     """Random faults, seed 3: r2, cut off from the base station, held 532 Blob-2 results in memory
     and was SIGKILLed: all were lost. Held results are journaled; the restarted process holds
     them again and sends them when the sink is in reach; the journal empties once it acknowledges."""
-    team = SimTeam(_budgeted())
+    team = SimTeam(_budgeted(), stores={"r2": NodeStores(held_store=HeldStore(tmp_path / "r2.held"))})
     team.join()
     team.run_until(20.0)
-    old = team.nodes["r2"]
-    old.held_store = HeldStore(tmp_path / "r2.held")
-    old.on_held_dropped = lambda chain, run, seq, why: None  # logged into a recording batch the kill loses
+    old = team.nodes["r2"]  # what it lets go is logged into a recording batch the kill loses
     results = [_result(100_000 + i) for i in range(HOLD + 4)]
     for frame in results:  # as `Frames.emit` and `send_routed` do with the sink out of reach
         old.keep_result(frame, sent=False)
@@ -109,12 +108,10 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     old.held_store.close()
     # the process is killed; a new one starts, and the plan of the same mission comes
     rt = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-again"), keys=team.keys,
-                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
-    rt.wall = team.clock.wall
-    rt.held_store = HeldStore(tmp_path / "r2.held")
-    rt.resume_from = saved
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     wall=team.clock.wall, stores=NodeStores(held_store=HeldStore(tmp_path / "r2.held"), resume_from=saved))
     logged = []
-    rt.on_held_dropped = lambda chain, run, seq, why: logged.append((chain, run, seq))
+    rt.listen(SinkListener(held_dropped=lambda chain, run, seq, why: logged.append((chain, run, seq))))
     rt.on_plan(old.plan)
     # the four beyond the budget are in the crashed process's journal: the new one drops them again, logged
     assert logged == [("Blob-2", 0, f.seq) for f in results[:4]]
@@ -136,11 +133,10 @@ def test_held_results_the_sink_already_had_are_dropped_there_as_redundant_not_co
     was killed before its next status tick rewrote the journal. The restarted process took them
     back and sent them as new: the sink counted and recorded 50 Blob-2 outputs twice. They go
     again as retransmissions now, and a sink that has them drops them as redundant."""
-    team = SimTeam(load_scenario("paper-fig7"))
+    team = SimTeam(load_scenario("paper-fig7"), stores={"r2": NodeStores(held_store=HeldStore(tmp_path / "r2.held"))})
     team.join()
     team.run_until(20.0)
     old = team.nodes["r2"]
-    old.held_store = HeldStore(tmp_path / "r2.held")
     sink_node = team.nodes["laptop"]
     results = [_result(200_000 + i) for i in range(6)]
     for frame in results:
@@ -154,16 +150,12 @@ def test_held_results_the_sink_already_had_are_dropped_there_as_redundant_not_co
     saved = old.resume_state()
     old.held_store.close()  # killed before the journal was rewritten: it still lists all six
     recorded = []
-    previous = sink_node.on_output
-    sink_node.on_output = lambda chain, run, seq, data: recorded.append(seq)
+    sink_node.listen(SinkListener(output=lambda chain, run, seq, data: recorded.append(seq)))
     rt = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-again"), keys=team.keys,
-                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
-    rt.wall = team.clock.wall
-    rt.held_store = HeldStore(tmp_path / "r2.held")
-    rt.resume_from = saved
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     wall=team.clock.wall, stores=NodeStores(held_store=HeldStore(tmp_path / "r2.held"), resume_from=saved))
     rt.on_plan(old.plan)
     team.pump()
-    sink_node.on_output = previous
     assert not [seq for seq in recorded if seq >= 200_000]  # none handed on (recorded) again
     assert sink.duplicates_total == 0 and sink.redundant_total >= 6
 
@@ -190,7 +182,7 @@ def test_a_held_result_that_reaches_its_sink_late_is_redundant_where_another_ins
     assert 300_000 in sink.above
     laptop.sinks["Blob-2"] = sink = SinkLedger.from_state(sink.state())  # the sink restarted since
     handed_on = []
-    laptop.on_output = lambda chain, run, seq, data: handed_on.append(seq)
+    laptop.listen(SinkListener(output=lambda chain, run, seq, data: handed_on.append(seq)))
     r2.flush_held_outputs()  # back in reach: the held copy goes
     team.pump()
     assert handed_on == [] and sink.duplicates_total == 0 and sink.redundant_total == 1
@@ -201,11 +193,10 @@ def test_the_base_stations_host_takes_back_what_it_held_after_a_restart(tmp_path
     released stage and held their results for r1's sink; r1 had had their acknowledgement. The
     laptop was then killed and the held results died in its memory: Loc-1 seq 10 was lost. The
     base station's host has no resume state, and now keeps its held results on disk all the same."""
-    team = SimTeam(load_scenario("paper-fig7"))
+    team = SimTeam(load_scenario("paper-fig7"), stores={"laptop": NodeStores(held_store=HeldStore(tmp_path / "laptop.held"))})
     team.join()
     team.run_until(20.0)
     old = team.nodes["laptop"]
-    old.held_store = HeldStore(tmp_path / "laptop.held")
     results = [ChainFrame(chain="Loc-1", run=0, seq=400_000 + i, target=1, t_virtual=0.0, t_unix=0.0,
                           payload_len=3, payload=b"abc") for i in range(3)]
     for frame in results:
@@ -214,9 +205,8 @@ def test_the_base_stations_host_takes_back_what_it_held_after_a_restart(tmp_path
     old.held_store.close()
     # killed; the restarted base station's host gets the plan of the same mission (no resume state)
     rt = NodeRuntime(node="laptop", scenario=team.scenario, bus=team.hub.bus("laptop-again"), keys=team.keys,
-                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
-    rt.wall = team.clock.wall
-    rt.held_store = HeldStore(tmp_path / "laptop.held")
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     wall=team.clock.wall, stores=NodeStores(held_store=HeldStore(tmp_path / "laptop.held")))
     rt.on_plan(old.plan)
     team.pump()
     sink = team.nodes["r1"].sinks["Loc-1"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
+from autopower.node.ports import SinkListener
 from tests.unit.sim_team import SimTeam
 
 SC = load_scenario("paper-fig7")
@@ -16,7 +17,7 @@ def _team() -> tuple[SimTeam, dict]:
     team = SimTeam(SC, config=CoordinatorConfig(speed=1.0, auto_replan=False, pins={"Loc-1": "laptop"}))
     delivered: dict = {}
     for rt in team.nodes.values():
-        rt.on_output = lambda chain, run, seq, data: delivered.setdefault((chain, run), set()).add(seq)
+        rt.listen(SinkListener(output=lambda chain, run, seq, data: delivered.setdefault((chain, run), set()).add(seq)))
     team.join()
     return team, delivered
 

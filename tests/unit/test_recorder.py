@@ -341,8 +341,9 @@ def test_the_replay_tells_results_a_full_hold_dropped_from_lost_ones(tmp_path):
     run_dir = tmp_path / "run-3"
     sink = Recorder.open(run_dir, "laptop", clock=lambda: t[0])
     robot = Recorder.open(run_dir, "r2", clock=lambda: t[0])
-    runtime = SimpleNamespace(on_output=None)
-    robot.attach(runtime)
+    listeners = []
+    robot.attach(SimpleNamespace(listen=listeners.append))
+    runtime = listeners[0]  # what the runtime tells the recorder (`SinkListener`)
     sink.telemetry.battery(0.0, "r2", 100.0)
     sink.telemetry.battery(1.0, "r2", 90.0)
     for seq in (*range(0, 5), *range(605, 610)):
@@ -351,7 +352,7 @@ def test_the_replay_tells_results_a_full_hold_dropped_from_lost_ones(tmp_path):
     # 602-604 were not dropped: lost; 700 is past the last delivered; 606 reached the sink (a
     # restarted robot logs every result of its journal it does not take back, acknowledged or not)
     for seq in (*range(5, 602), 700, 606):
-        runtime.on_held_dropped("Blob-2", 0, seq)
+        runtime.held_dropped("Blob-2", 0, seq, "budget")
     sink.close()
     robot.close()
     s = summarize(load(merge_run(run_dir)))
@@ -371,7 +372,7 @@ def test_outputs_of_a_runtime_that_started_without_a_plan_on_the_bus_get_its_mis
 
     run_dir = tmp_path / "run-4"
     robot = Recorder.open(run_dir, "r1")
-    runtime = SimpleNamespace(on_output=None, clock=None)
+    runtime = SimpleNamespace(listen=lambda listener: None, clock=None)
     robot.attach(runtime)
     robot.telemetry.battery(0.0, "r1", 100.0)
     robot.on_output("Loc-1", 0, 0, b"")  # before the runtime has a clock: 0, as before

@@ -12,6 +12,7 @@ import autopower.node.relaying as relaying
 from autopower.agent.process import Agent, AgentConfig
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
+from autopower.node.ports import NodePorts
 from autopower.node.runtime import NodeRuntime
 from autopower.protocol import ChainFrame, Keys, LinkInfo, MissionInfo, Packet, PlanUpdate, decode, encode
 from autopower.runtime.bus import InMemoryHub
@@ -31,10 +32,10 @@ def plan() -> PlanUpdate:
                       predicted_lifetime_s=None, plan_t_virtual=0.0)
 
 
-def node(hub: InMemoryHub, clock: ManualClock, name: str = "r1") -> NodeRuntime:
-    rt = NodeRuntime(node=name, scenario=SCENARIO, bus=hub.bus(name), keys=KEYS, clock_factory=lambda m: clock)
+def node(hub: InMemoryHub, clock: ManualClock, name: str = "r1", in_sight=lambda dest: True) -> NodeRuntime:
+    rt = NodeRuntime(node=name, scenario=SCENARIO, bus=hub.bus(name), keys=KEYS, clock_factory=lambda m: clock,
+                     ports=NodePorts(in_sight=in_sight))
     rt.on_plan(plan())
-    rt.in_sight = lambda dest: True
     return rt
 
 
@@ -105,11 +106,11 @@ def test_what_only_the_loop_may_judge_is_left_to_it(case, payload):
 
 def test_nothing_is_forwarded_on_arrival_before_the_mission_or_to_a_node_out_of_sight():
     hub = InMemoryHub(record=True)
-    idle = NodeRuntime(node="r1", scenario=SCENARIO, bus=hub.bus("r1"), keys=KEYS)
-    idle.in_sight = lambda dest: True
+    idle = NodeRuntime(node="r1", scenario=SCENARIO, bus=hub.bus("r1"), keys=KEYS,
+                       ports=NodePorts(in_sight=lambda dest: True))
     assert not idle.relay_now(packet())  # no mission yet: the loop counts it (data-before-mission)
-    rt = node(hub, ManualClock(t=1.0))
-    rt.in_sight = lambda dest: dest != "laptop"  # the loop's Relayer routes around a node out of sight
+    # the loop's Relayer routes around a node out of sight
+    rt = node(hub, ManualClock(t=1.0), in_sight=lambda dest: dest != "laptop")
     assert not rt.relay_now(packet())
     assert rt.relay_now(packet(path=("laptop", "r1", "r2"), media=("802.11a", "bluetooth")))
     assert [k for k, _, _ in hub.published] == [KEYS.node_data("r2")]

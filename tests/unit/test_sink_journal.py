@@ -13,6 +13,7 @@ import zlib
 
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
+from autopower.node.ports import NodeStores, SinkListener
 from autopower.node.runtime import NodeRuntime
 from autopower.node.sequencing import SinkLedger
 from autopower.node.sink_store import SinkStore
@@ -62,20 +63,20 @@ def test_a_journal_without_markers_names_every_note_after_its_snapshot(tmp_path)
 
 
 def test_a_restarted_sink_says_what_its_last_commit_delivered(tmp_path):
-    team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, auto_replan=False))
+    team = SimTeam(load_scenario("paper-fig7"), config=CoordinatorConfig(speed=1.0, auto_replan=False),
+                   stores={"laptop": NodeStores(sink_store=SinkStore(tmp_path / "sinks.json"))})
     team.join()
     old = team.nodes["laptop"]
-    old.sink_store = SinkStore(tmp_path / "sinks.json")
     team.run_until(20.0)
     old.sink_store.commit()
     team.run_until(22.0)
     delivered = {c: (l.run, l.contiguous) for c, l in old.sinks.items()}
     old.sink_store.commit()  # the last status before the kill; then killed before the flush
     rt = NodeRuntime(node="laptop", scenario=team.scenario, bus=team.hub.bus("laptop-again"), keys=team.keys,
-                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock)
-    rt.sink_store = SinkStore(tmp_path / "sinks.json")
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     stores=NodeStores(sink_store=SinkStore(tmp_path / "sinks.json")))
     named = []
-    rt.on_sink_journal = lambda chain, run, seq: named.append((chain, run, seq))
+    rt.listen(SinkListener(sink_journal=lambda chain, run, seq: named.append((chain, run, seq))))
     rt.on_plan(old.plan)
     assert named, "the restarted sink named nothing"
     # each named output is one the old sink had delivered in its last two seconds, none twice
@@ -95,14 +96,15 @@ def test_the_replay_takes_outputs_a_killed_sink_delivered_as_delivered(tmp_path)
     t = [0.0]
     run_dir = tmp_path / "run-7"
     sink = Recorder.open(run_dir, "laptop", clock=lambda: t[0])
-    runtime = SimpleNamespace(on_output=None)
-    sink.attach(runtime)
+    listeners = []
+    sink.attach(SimpleNamespace(listen=listeners.append))
+    runtime = listeners[0]  # what the runtime tells the recorder (`SinkListener`)
     sink.telemetry.battery(0.0, "r1", 100.0)
     for seq in (*range(0, 10), *range(15, 20)):  # 10-14 delivered, their recording died with the process
         t[0] += 0.5
         sink.on_output("Blob-2", 0, seq, b"")
     for seq in (10, 11, 12, 13, 14, 15):  # the restarted sink's journal: 15 was recorded after all
-        runtime.on_sink_journal("Blob-2", 0, seq)
+        runtime.sink_journal("Blob-2", 0, seq)
     sink.telemetry.battery(10.0, "r1", 90.0)
     sink.close()
     s = summarize(load(merge_run(run_dir)))

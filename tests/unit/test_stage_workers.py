@@ -21,6 +21,7 @@ import pytest
 from autopower.basestation.coordinator import CoordinatorConfig
 from autopower.model.loading import load_scenario
 from autopower.node import guard
+from autopower.node.ports import SinkListener
 from autopower.node.sequencing import in_ranges
 from autopower.node.workers import (
     STAGE_QUEUE,
@@ -307,7 +308,7 @@ def close(team: SimTeam) -> None:
 def outputs_of(team: SimTeam) -> dict[str, list[tuple[int, bytes]]]:
     out: dict[str, list[tuple[int, bytes]]] = {}
     for rt in team.nodes.values():
-        rt.on_output = lambda chain, run, seq, data: out.setdefault(chain, []).append((seq, data))
+        rt.listen(SinkListener(output=lambda chain, run, seq, data: out.setdefault(chain, []).append((seq, data))))
     return out
 
 

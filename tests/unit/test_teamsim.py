@@ -298,8 +298,8 @@ def test_a_latest_only_chain_cut_from_its_sink_delivers_its_newest_result_and_lo
 
     def eager(self, newest):
         supersede(self, newest)
-        if self.chains[newest.chain].keep == "latest" and self.on_held_dropped is not None:
-            self.on_held_dropped(newest.chain, newest.run, newest.seq + 1, "superseded")
+        if self.chains[newest.chain].keep == "latest":
+            self._sink_listeners.held_dropped(newest.chain, newest.run, newest.seq + 1, "superseded")
 
     monkeypatch.setattr(NodeRuntime, "_supersede_held", eager)
     result = run(SimConfig(scenario=latest, seed=1, faults=(split,), mission_s=100.0, quiet_s=30.0))
