@@ -10,15 +10,15 @@ offers each packet here first (`relay_now`), which
   codec; what it cannot judge goes to the codec on the loop),
 - checks what `Frames.on_data` checks: the mission has started, this node is the hop the packet is
   addressed to, every medium is one of the scenario's radios; and that the next node is in direct
-  sight (`in_sight`, the process's `Relayer` view), so it is published straight to it,
+  sight (`NodePorts.in_sight`, the process's `Relayer` view), so it is published straight to it,
 - publishes the next hop's copy: the header re-encoded with ``hop + 1``, the body bytes as they came.
 
 Everything else goes to the loop exactly as before: the last hop (this node consumes the packet), a
 next node out of sight (the loop's `Relayer` routes around it), before the mission, garbage.
 
 The loop's state is never touched from here. Each forward is noted (its header and virtual time)
-in a deque, and the loop charges them (`settle_relayed`, before every timer turn, status and saved
-state): the radios' energy, receive on the incoming hop's medium and send on the outgoing one, as
+in a deque, and the loop charges them (`NodeRuntime.settle_relayed`, before every timer turn,
+status and saved state): the radios' energy, receive on the incoming hop's medium and send on the outgoing one, as
 `on_data` charges it, and the "forwarded" count; so the battery, the status and the recording see
 the same energy as if the loop had forwarded each packet itself.
 
@@ -35,25 +35,40 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from typing import Callable
+from typing import Callable, Mapping
 
+from autopower.node.control_meter import ControlPlaneMeter
+from autopower.node.meter import BatteryMeter
+from autopower.protocol import Keys
 from autopower.protocol.forwarding import PacketHeader, forwarded, read_header
+from autopower.runtime.bus import Bus
 
 CONGESTED_S = 0.05  # a forward's put that took this long: the next node's link is backed up
 CONGESTED_HOLD_S = 1.0  # then its packets go through the loop for this long (wall seconds)
 SETTLE_LIMIT = 100_000  # forwards not charged yet (the loop charges them every turn, at least every status period)
 
 
-class Relaying:
-    """Forwarding on the transport's thread. Mixed into `NodeRuntime`, whose state it reads."""
+class ArrivalRelay:
+    """Forwarding on the transport's thread (`relay_now`), charged on the loop (`settle`).
 
-    def init_relaying(self, in_sight: Callable[[str], bool]) -> None:
-        # Who this node reaches directly: the process's `Relayer.direct` (`NodePorts.in_sight`).
-        # Without it nothing is forwarded on arrival: the loop's `send_to` decides.
-        self.in_sight = in_sight
+    It owns what was forwarded and not charged yet, which next nodes are backed up, and their data
+    keys. It reads the node only through what it is given: whether the mission has started, its
+    virtual time, who is in direct sight; ``monotonic`` times a put (wall seconds)."""
+
+    def __init__(self, *, node: str, radios: Mapping[str, object], keys: Keys, bus: Bus,
+                 in_sight: Callable[[str], bool], started: Callable[[], bool], now: Callable[[], float],
+                 monotonic: Callable[[], float] = time.monotonic):
+        self._node = node
+        self._radios = radios
+        self._keys = keys
+        self._bus = bus
+        self._in_sight = in_sight
+        self._started = started
+        self._now = now
+        self._monotonic = monotonic
         # what was forwarded on arrival, for the loop to charge: (header, virtual time, slow put, bytes);
         # appended and taken one at a time (atomic), bounded: when full, packets go to the loop
-        self._relayed: deque[tuple[PacketHeader, float, bool, int]] = deque()  # (..., its size)
+        self._relayed: deque[tuple[PacketHeader, float, bool, int]] = deque()
         self._congested_until: dict[str, float] = {}  # next node -> monotonic time
         self._data_keys: dict[str, str] = {}  # next node -> its data key
 
@@ -62,42 +77,40 @@ class Relaying:
 
         Thread-safe; True if it was forwarded, False if the loop must handle it (`on_data`).
         """
-        if self.mission is None or len(self._relayed) >= SETTLE_LIMIT:
+        if not self._started() or len(self._relayed) >= SETTLE_LIMIT:
             return False
         header = read_header(payload)
         if header is None:
             return False
         path, hop = header.path, header.hop
-        if hop >= len(path) - 1 or path[hop] != self.node:
+        if hop >= len(path) - 1 or path[hop] != self._node:
             return False
         nxt = path[hop + 1]
-        if not self.in_sight(nxt) or not self._known_media(header.media):
+        if not self._in_sight(nxt) or not self._known_media(header.media):
             return False
-        if nxt in self._congested_until and self._congested_until[nxt] > time.monotonic():
+        if nxt in self._congested_until and self._congested_until[nxt] > self._monotonic():
             return False
         key = self._data_keys.get(nxt)
         if key is None:  # (the key's name check is not free: once per node)
-            key = self._data_keys[nxt] = self.keys.node_data(nxt)
-        started = time.monotonic()
+            key = self._data_keys[nxt] = self._keys.node_data(nxt)
+        started = self._monotonic()
         out = forwarded(payload, header)
-        self.bus.publish(key, out)
-        slow = time.monotonic() - started > CONGESTED_S
+        self._bus.publish(key, out)
+        slow = self._monotonic() - started > CONGESTED_S
         if slow:
-            self._congested_until[nxt] = time.monotonic() + CONGESTED_HOLD_S
-        self._relayed.append((header, self.now(), slow, len(out)))
+            self._congested_until[nxt] = self._monotonic() + CONGESTED_HOLD_S
+        self._relayed.append((header, self._now(), slow, len(out)))
         return True
 
     def _known_media(self, media: tuple[str, ...]) -> bool:
-        radios = self.scenario.radios
         for medium in media:
-            if medium not in radios:
+            if medium not in self._radios:
                 return False
         return True
 
-    def settle_relayed(self) -> None:
-        """On the loop: charge the meter and count what was forwarded on arrival since last time."""
-        if self.meter is None or not self._relayed:
-            return  # (forwarded before the mission's meter exists: charged at the next call)
+    def settle(self, meter: BatteryMeter, control_plane: ControlPlaneMeter) -> tuple[int, int]:
+        """On the loop: charge ``meter`` and ``control_plane`` for what was forwarded on arrival
+        since last time; (packets, of them after a slow put)."""
         charges: dict[tuple[str, str, int, float, str, str], tuple[int, float]] = {}
         n = slow = 0
         while self._relayed:
@@ -105,8 +118,8 @@ class Relaying:
             n += 1
             slow += congested
             hop = header.hop
-            self.control_plane.note_data(header.path[hop - 1], "receive", size)
-            self.control_plane.note_data(header.path[hop + 1], "send", size)
+            control_plane.note_data(header.path[hop - 1], "receive", size)
+            control_plane.note_data(header.path[hop + 1], "send", size)
             for direction, medium, peer in (("receive", header.media[hop - 1], header.path[hop - 1]),
                                             ("send", header.media[hop], header.path[hop + 1])):
                 key = (direction, medium, header.charge_bytes, header.weight, header.purpose, peer)
@@ -114,8 +127,5 @@ class Relaying:
         # one charge per kind for its n packets (the meter's charge is linear in the weight), at
         # the virtual time of the latest: what `on_data` charges packet by packet
         for (direction, medium, charge_bytes, weight, purpose, peer), (count, t) in charges.items():
-            self.meter.charge_radio(direction, medium, charge_bytes, weight * count, t, purpose, peer=peer)
-        self.tally("forwarded", n)
-        self.tally("forwarded-on-arrival", n)
-        if slow:
-            self.tally("relay-congested", slow)
+            meter.charge_radio(direction, medium, charge_bytes, weight * count, t, purpose, peer=peer)
+        return n, slow

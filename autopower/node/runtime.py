@@ -18,9 +18,10 @@ still lacks it a while after it was sent gets it resent. That is what makes each
 its sink exactly once even when a link is cut silently with frames in flight.
 
 This module holds the node's state, plan, sources, timers and status; the class is assembled from
-three parts that use that state: `frames.py` (the data plane), `hosting.py` (the control messages
-that start, move and stop stages) and `acknowledging.py` (custody acknowledgements and resends);
-`relaying.py` forwards packets that only cross this node on the transport's thread.
+parts that use that state: `frames.py` (the data plane), `hosting.py` (the control messages
+that start, move and stop stages), `acknowledging.py` (custody acknowledgements and resends) and
+`joining.py` (DAG flows). `ArrivalRelay` (`relaying.py`), which owns its state, forwards packets that
+only cross this node on the transport's thread.
 What a node hosts is described in `stages.py`.
 """
 
@@ -51,7 +52,7 @@ from autopower.node.in_flight import ProducedByRun, frames_in_hand, stage_frames
 from autopower.node.joining import Joining
 from autopower.node.meter import BatteryMeter
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
-from autopower.node.relaying import Relaying
+from autopower.node.relaying import ArrivalRelay
 from autopower.node.sequencing import SinkLedger
 from autopower.node.sink_store import SinkStore
 from autopower.node.stages import (
@@ -102,7 +103,7 @@ DIED_WITH_PROCESS_S = 2.0
 RESUME_ALONE_MAX_AGE_S = 300.0
 
 
-class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
+class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
     """Chain data handling for one node; see the module docstring."""
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
@@ -221,7 +222,25 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining, Relaying):
         # out of direct sight is still reached through other agents.
         self.send_to: Callable[..., object] = ports.send_to or (  # (dest, key, payload, *, reliable=True)
             lambda dest, key, payload, reliable=True: self.bus.publish(key, payload, reliable=reliable))
-        self.init_relaying(ports.in_sight)  # packets only crossing this node: forwarded on arrival
+        # packets only crossing this node: forwarded on the transport's thread (`relay_now`)
+        self.arrivals = ArrivalRelay(node=node, radios=scenario.radios, keys=keys, bus=bus, in_sight=ports.in_sight,
+                                     started=lambda: self.mission is not None, now=self.now)
+
+    def relay_now(self, payload: bytes) -> bool:
+        """On the transport's thread: forward ``payload`` if it only crosses this node (True), or
+        leave it to the loop (`on_data`). See `autopower.node.relaying`."""
+        return self.arrivals.relay_now(payload)
+
+    def settle_relayed(self) -> None:
+        """On the loop: charge the meter and count what was forwarded on arrival since last time."""
+        if self.meter is None:
+            return  # (forwarded before the mission's meter exists: charged at the next call)
+        n, slow = self.arrivals.settle(self.meter, self.control_plane)
+        if n:
+            self.tally("forwarded", n)
+            self.tally("forwarded-on-arrival", n)
+        if slow:
+            self.tally("relay-congested", slow)
 
     def listen(self, listener: SinkListener) -> None:
         """Tell ``listener`` of every output reaching this node as its chain's sink, and of every

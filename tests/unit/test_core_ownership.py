@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[2] / "autopower"
 NODE_CORE = sorted((ROOT / "node").glob("*.py"))
 COORDINATOR_CORE = [ROOT / "basestation" / f"{name}.py"
                     for name in ("coordinator", "deciding", "placing", "operating", "takeover")]
-CORE_CLASSES = {"NodeRuntime", "Frames", "Hosting", "Acknowledging", "Joining", "Relaying",
+CORE_CLASSES = {"NodeRuntime", "Frames", "Hosting", "Acknowledging", "Joining", "ArrivalRelay",
                 "Coordinator", "Deciding", "Placing", "Operating", "TakingOver"}
 # the packages that build and drive core objects (the layers above `node`: test_layering.py)
 SHELLS = ("agent", "basestation", "recording", "deploy", "launch", "teamsim", "cli")
@@ -52,7 +52,7 @@ def assignments_from_outside(path: Path, names: set[str]) -> list[str]:
 def test_the_core_attributes_are_known():
     names = core_attributes()
     # the ways out a shell used to assign, now constructor arguments (`NodePorts`, `NodeStores`)
-    assert {"send_to", "notify_work", "in_sight", "held_store", "sink_store", "resume_from"} <= names
+    assert {"send_to", "notify_work", "held_store", "sink_store", "resume_from"} <= names
     assert {"incarnation", "placement"} <= names
 
 
@@ -69,7 +69,7 @@ def test_no_shell_assigns_into_a_core_object():
 
 def test_the_check_sees_an_assignment_from_outside(tmp_path):
     shell = tmp_path / "shell.py"
-    shell.write_text("def wire(rt, relayer):\n    rt.send_to = relayer.send\n    a.b, rt.in_sight = 1, 2\n"
+    shell.write_text("def wire(rt, relayer):\n    rt.send_to = relayer.send\n    a.b, rt.notify_work = 1, 2\n"
                      "    self.send_to = relayer.send\n")
     assert [line.split(": ", 1)[1] for line in assignments_from_outside(shell, core_attributes())] == [
-        "rt.send_to = ...", "rt.in_sight = ..."]
+        "rt.send_to = ...", "rt.notify_work = ..."]

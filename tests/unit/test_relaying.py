@@ -1,4 +1,4 @@
-"""Forwarding on arrival (`agent.relaying`): the same packet, the same energy and counts as the
+"""Forwarding on arrival (`node.relaying`): the same packet, the same energy and counts as the
 loop's `on_data`, only for packets that merely cross the node; the rest is left to the loop."""
 
 from __future__ import annotations
@@ -12,7 +12,10 @@ import autopower.node.relaying as relaying
 from autopower.agent.process import Agent, AgentConfig
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
+from autopower.node.control_meter import ControlPlaneMeter
+from autopower.node.meter import BatteryMeter
 from autopower.node.ports import NodePorts
+from autopower.node.relaying import ArrivalRelay
 from autopower.node.runtime import NodeRuntime
 from autopower.protocol import ChainFrame, Keys, LinkInfo, MissionInfo, Packet, PlanUpdate, decode, encode
 from autopower.runtime.bus import InMemoryHub
@@ -117,17 +120,21 @@ def test_nothing_is_forwarded_on_arrival_before_the_mission_or_to_a_node_out_of_
 
 
 def test_a_slow_put_sends_that_node_s_packets_through_the_loop_for_a_while(monkeypatch):
-    hub = InMemoryHub()
-    rt = node(hub, ManualClock(t=1.0))
+    wall = [100.0]  # the relay's monotonic clock (wall seconds)
+    relay = ArrivalRelay(node="r1", radios=SCENARIO.radios, keys=KEYS, bus=InMemoryHub().bus("r1"),
+                         in_sight=lambda dest: True, started=lambda: True, now=lambda: 1.0, monotonic=lambda: wall[0])
     monkeypatch.setattr(relaying, "CONGESTED_S", -1.0)  # every put counts as slow
-    assert rt.relay_now(packet(0))  # sent (a put is never undone), then that link counts as backed up
-    assert not rt.relay_now(packet(1))  # through the loop now, where a blocked put holds no transport thread
-    assert rt.relay_now(packet(2, path=("laptop", "r1", "r2"), media=("802.11a", "bluetooth")))  # other nodes: not
+    assert relay.relay_now(packet(0))  # sent (a put is never undone), then that link counts as backed up
+    assert not relay.relay_now(packet(1))  # through the loop now, where a blocked put holds no transport thread
+    assert relay.relay_now(packet(2, path=("laptop", "r1", "r2"), media=("802.11a", "bluetooth")))  # other nodes: not
     monkeypatch.setattr(relaying, "CONGESTED_S", 1.0)
-    rt._congested_until["laptop"] = 0.0  # the hold is over
-    assert rt.relay_now(packet(3))
-    rt.settle_relayed()
-    assert rt.counters["relay-congested"] == 2 and rt.counters["forwarded"] == 3
+    wall[0] += relaying.CONGESTED_HOLD_S * 0.99
+    assert not relay.relay_now(packet(3))  # still held
+    wall[0] += relaying.CONGESTED_HOLD_S * 0.02  # the hold is over
+    assert relay.relay_now(packet(4))
+    meter = BatteryMeter(platform=SCENARIO.platform_of("r1"), radios=SCENARIO.radios, initial_j=1000.0, t0=0.0)
+    assert relay.settle(meter, ControlPlaneMeter()) == (3, 2)  # three forwarded, two after a slow put
+    assert meter.consumed_j > 0 and relay.settle(meter, ControlPlaneMeter()) == (0, 0)
 
 
 def test_forwards_from_several_transport_threads_are_all_charged():
