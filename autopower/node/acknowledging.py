@@ -126,7 +126,7 @@ class Acknowledging:
             report = ledger.report()
             if report is not None and name in self.chains:
                 out[hop_key(name, len(self.chains[name].stages))] = report
-        out.update(self.flow_consumed())  # DAG flows: each fan-in stage's edge gates
+        out.update(self.flows.consumed(self.hosted.values()))  # DAG flows: each fan-in stage's edge gates
         return out
 
     def _consumer_of(self, frame: ChainFrame) -> str | None:
@@ -153,7 +153,7 @@ class Acknowledging:
             chain = self.chains.get(name)
             if chain is not None and chain.stages:
                 out.setdefault(name, set()).add(placement.get(chain.stages[-1].name))
-        for flow, producer in self.flow_producers().items():
+        for flow, producer in self.flows.producers(self.hosted.values(), self.plan).items():
             out.setdefault(flow, set()).add(producer)
         return {chain: nodes - {None, self.node} for chain, nodes in out.items() if nodes - {None, self.node}}
 

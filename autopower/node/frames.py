@@ -166,7 +166,9 @@ class Frames:
         (one of the inputs a migration carries): its producer no longer holds it, so it is taken
         even when the stage's worker is full."""
         if frame.chain != hosted.chain.name:  # a DAG flow into this stage: joined by step
-            self.admit_flow(hosted, frame)
+            speed = self.mission.speed if self.mission else 1.0
+            for ready in self.flows.admit(hosted, frame, self.plan, speed, self.wall()):
+                self._run(hosted, ready)
             return
         if frame.run != hosted.run:
             self.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
@@ -231,7 +233,8 @@ class Frames:
         again = recomputed or frame.attempt > 0
         out = ChainFrame(chain=chain.name, run=frame.run, seq=frame.seq, target=target, t_virtual=frame.t_virtual,
                          t_unix=frame.t_unix, payload_len=len(output), payload=payload, attempt=int(again))
-        self.emit_flows(hosted, frame, output)  # DAG fan-out: the same output along each flow it feeds
+        for flow_frame, flow_dest in self.flows.fan_out(hosted, frame, output, self.plan):
+            self.emit(flow_frame, flow_dest)  # DAG fan-out: the same output along each flow it feeds
         dest = chain.sink if target == len(chain.stages) else self.plan.placement.get(chain.stages[target].name)
         if dest is None:
             self.count("unplaced-stage", f"{chain.stages[target].name} has no host")

@@ -77,8 +77,8 @@ class Hosting:
             self.on_release(msg)
 
     def _new_component(self, chain: Chain, stage: Stage):
-        return self.wrap_joined(self._component_instance(chain, stage),
-                                stage.name)  # a fan-in stage's join travels with its state
+        return self.flows.wrap(self._component_instance(chain, stage), stage.name,
+                               self.wall)  # a fan-in stage's join travels with its state
 
     def _component_instance(self, chain: Chain, stage: Stage):
         """A new instance of the stage's component: in a worker process of its own with

@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterable, Iterator, Mapping
 
 import msgpack
 
@@ -41,7 +41,7 @@ from autopower.model.scenario import Chain, Scenario
 from autopower.node.custody import hop_key
 from autopower.node.sequencing import missing_between
 from autopower.node.stages import HostedStage, Lifecycle, pad
-from autopower.protocol import ChainFrame, Consumed
+from autopower.protocol import ChainFrame, Consumed, PlanUpdate
 
 log = logging.getLogger("autopower.node.runtime")
 
@@ -278,121 +278,135 @@ class JoinedComponent:
         self.join.restore(obj["join"], self.wall())
 
 
-class Joining:
-    """The node's DAG flows. Mixed into `NodeRuntime`, whose state it uses."""
+class Flows:
+    """The scenario's DAG flows as one node sees them: fan-out of a stage's output along the flows it
+    feeds, and fan-in of a stage's inputs by step (`JoinedComponent`).
 
-    def init_flows(self) -> None:
-        self.flow_chains = flow_chains(self.scenario)
-        self.chains.update(self.flow_chains)  # a flow's frames travel like a chain hop's
-        self.flows_out: dict[str, list[Flow]] = {}
-        self.flows_in: dict[str, tuple[Flow, ...]] = {}
-        for chain in self.scenario.chains:
+    It owns the flows' layout, read once from the scenario (who feeds whom, the pseudo-chain each
+    flow travels as). It is given the plan, the stages hosted here and the wall time with each
+    call, and returns what the node must do: the frames to send (`fan_out`) and the inputs a join
+    released to run (`admit`, `ready`). ``count`` and ``tally`` are the node's error and event
+    counters."""
+
+    def __init__(self, scenario: Scenario, *, count: Callable[..., None], tally: Callable[..., None]):
+        self.chains = flow_chains(scenario)  # a flow's frames travel like a chain hop's
+        self._count = count
+        self._tally = tally
+        self._out: dict[str, list[Flow]] = {}  # producing stage -> the flows it feeds
+        self._in: dict[str, tuple[Flow, ...]] = {}  # consuming stage -> the flows into it
+        for chain in scenario.chains:
             for flow in chain.inputs:
-                self.flows_out.setdefault(flow.producer, []).append(flow)
-                self.flows_in[flow.consumer] = (*self.flows_in.get(flow.consumer, ()), flow)
-        self.chain_of = {s.name: c for c in self.scenario.chains for s in c.stages}
+                self._out.setdefault(flow.producer, []).append(flow)
+                self._in[flow.consumer] = (*self._in.get(flow.consumer, ()), flow)
+        self._chain_of = {s.name: c for c in scenario.chains for s in c.stages}
 
-    def flow_weights(self, accounting: str) -> dict[str, float]:
-        return {f.name: flow_weight(self.chain_of[f.producer], accounting)
-                for flows in self.flows_out.values() for f in flows}
+    def weights(self, accounting: str) -> dict[str, float]:
+        return {f.name: flow_weight(self._chain_of[f.producer], accounting)
+                for flows in self._out.values() for f in flows}
 
-    def running_flows(self) -> set[str]:
-        running = self.plan.running if self.plan else {}
-        return {f.name for flows in self.flows_out.values() for f in flows
-                if self.chain_of[f.producer].name in running and self.chain_of[f.consumer].name in running}
+    def running(self, plan: PlanUpdate | None) -> set[str]:
+        """The flows whose producer's and consumer's chains both run."""
+        running = plan.running if plan else {}
+        return {f.name for flows in self._out.values() for f in flows
+                if self._chain_of[f.producer].name in running and self._chain_of[f.consumer].name in running}
 
-    def wrap_joined(self, component, stage_name: str):
-        flows = self.flows_in.get(stage_name)
-        return JoinedComponent(component, flows, self.wall) if flows else component
+    def wrap(self, component, stage_name: str, wall: Callable[[], float]):
+        """A fan-in stage's component with the join of its flows (its state travels with it)."""
+        flows = self._in.get(stage_name)
+        return JoinedComponent(component, flows, wall) if flows else component
 
     # ---- producer side: fan-out ------------------------------------------------------------------
-    def emit_flows(self, hosted: HostedStage, frame: ChainFrame, output: bytes) -> None:
-        """Send a stage's output (already sent to its own successor) along each flow it feeds."""
-        running = self.running_flows()
-        for flow in self.flows_out.get(hosted.stage.name, ()):
+    def fan_out(self, hosted: HostedStage, frame: ChainFrame, output: bytes,
+                plan: PlanUpdate) -> list[tuple[ChainFrame, str]]:
+        """A stage's output (already sent to its own successor) as a frame for each running flow it
+        feeds, with where the plan runs that flow's consumer."""
+        running = self.running(plan)
+        out = []
+        for flow in self._out.get(hosted.stage.name, ()):
             if flow.name not in running:
                 continue
             if len(output) > flow.n_bytes:
-                self.count("flow-oversize", f"{flow.name}: {len(output)} B, the flow declares {flow.n_bytes} B "
-                           "(raise its bytes in the scenario)", logging.ERROR)
+                self._count("flow-oversize", f"{flow.name}: {len(output)} B, the flow declares {flow.n_bytes} B "
+                            "(raise its bytes in the scenario)", logging.ERROR)
                 continue
-            dest = self.plan.placement.get(flow.consumer)
+            dest = plan.placement.get(flow.consumer)
             if dest is None:
-                self.count("unplaced-stage", f"{flow.consumer} has no host")
+                self._count("unplaced-stage", f"{flow.consumer} has no host")
                 continue
-            out = ChainFrame(chain=flow.name, run=frame.run, seq=frame.seq, target=0, t_virtual=frame.t_virtual,
-                             t_unix=frame.t_unix, payload_len=len(output), payload=pad(output, flow.n_bytes, flow.name),
-                             attempt=frame.attempt)
-            self.tally("flow-frames")
-            self.emit(out, dest)
+            out.append((ChainFrame(chain=flow.name, run=frame.run, seq=frame.seq, target=0,
+                                   t_virtual=frame.t_virtual, t_unix=frame.t_unix, payload_len=len(output),
+                                   payload=pad(output, flow.n_bytes, flow.name), attempt=frame.attempt), dest))
+            self._tally("flow-frames")
+        return out
 
     # ---- consumer side: fan-in -------------------------------------------------------------------
-    def admit_flow(self, hosted: HostedStage, frame: ChainFrame) -> None:
+    def admit(self, hosted: HostedStage, frame: ChainFrame, plan: PlanUpdate | None, speed: float,
+              wall: float) -> Iterator[ChainFrame]:
+        """Offer a flow's frame to its stage's join (now); then the inputs the stage's gate releases,
+        as `ready` gives them."""
         component = hosted.component
         if not isinstance(component, JoinedComponent) or frame.chain not in component.join.flows:
-            self.count("unexpected-flow", f"{frame.chain} at {hosted.stage.name}")
-            return
+            self._count("unexpected-flow", f"{frame.chain} at {hosted.stage.name}")
+            return iter(())
         period = hosted.chain.period_s
         step = int(round(frame.t_virtual / period))
-        verdict = component.join.offer(frame.chain, frame, step, self.wall())
+        verdict = component.join.offer(frame.chain, frame, step, wall)
         if verdict == "duplicate" and frame.attempt:
-            self.tally("redundant-input")  # a resent copy of an input that was only late
+            self._tally("redundant-input")  # a resent copy of an input that was only late
         elif verdict == "duplicate":
-            self.count("duplicate-input", f"{frame.chain} seq {frame.seq}", logging.INFO)
+            self._count("duplicate-input", f"{frame.chain} seq {frame.seq}", logging.INFO)
         elif verdict == "late":
-            self.count("join-late", f"{hosted.stage.name}: {frame.chain} step {step} came after its step ran",
-                       logging.INFO)
+            self._count("join-late", f"{hosted.stage.name}: {frame.chain} step {step} came after its step ran",
+                        logging.INFO)
         elif verdict in ("stale", "overflow"):
-            self.count(f"join-{verdict}", f"{frame.chain} run {frame.run} seq {frame.seq}")
-        self.run_joins(hosted)
+            self._count(f"join-{verdict}", f"{frame.chain} run {frame.run} seq {frame.seq}")
+        return self.ready(hosted, plan, speed, wall)
 
-    def run_joins(self, hosted: HostedStage) -> None:
+    def ready(self, hosted: HostedStage, plan: PlanUpdate | None, speed: float, wall: float) -> Iterator[ChainFrame]:
+        """The steps of a running fan-in stage whose inputs are all in or whose wait is over, as the
+        inputs its gate releases, in order. The caller runs each before it takes the next (a step's
+        seq is the gate's next after the runs before it), and takes them all."""
         component = hosted.component
         if hosted.lifecycle is not Lifecycle.RUNNING or not isinstance(component, JoinedComponent):
             return
-        running = self.running_flows()
+        running = self.running(plan)
         expected = {name for name in component.join.flows if name in running}
-        wait = join_wait_s(hosted.chain.period_s, self.mission.speed if self.mission else 1.0)
+        wait = join_wait_s(hosted.chain.period_s, speed)
         before = component.join.missing
-        for join in component.join.ready(expected, self.wall(), wait):
+        for join in component.join.ready(expected, wall, wait):
             if join.lost:  # an input of a producer that had delivered before: lost or late
-                self.count("join-missing", f"{hosted.stage.name} step {join.step} ran without "
-                           f"{', '.join(join.lost)}", logging.INFO)
+                self._count("join-missing", f"{hosted.stage.name} step {join.step} ran without "
+                            f"{', '.join(join.lost)}", logging.INFO)
             elif join.missing:  # at start-up: a producer that has not produced anything yet
-                self.tally("join-not-started", len(join.missing))
+                self._tally("join-not-started", len(join.missing))
             seq = hosted.gate.next_seq if hosted.gate.next_seq is not None else 0
             frame = ChainFrame(chain=hosted.chain.name, run=hosted.run, seq=seq, target=hosted.index,
                                t_virtual=join.step * hosted.chain.period_s, t_unix=join.t_unix,
                                payload_len=len(join.payload), payload=join.payload)
-            for ready in hosted.gate.offer(seq, frame, now=self.wall()):
-                self._run(hosted, ready)
+            yield from hosted.gate.offer(seq, frame, now=wall)
         if component.join.missing != before:
-            self.tally("join-missing-inputs", component.join.missing - before)
+            self._tally("join-missing-inputs", component.join.missing - before)
 
-    def join_tick(self) -> None:
-        """Run the steps whose wait is over (from the node's timer)."""
-        for hosted in list(self.hosted.values()):
-            if isinstance(hosted.component, JoinedComponent):
-                self.run_joins(hosted)
-
-    def flow_consumed(self) -> dict[str, Consumed]:
+    def consumed(self, hosted: Iterable[HostedStage]) -> dict[str, Consumed]:
+        """Each running fan-in stage's edge gates, as acknowledgements to the flows' producers."""
         out = {}
-        for hosted in self.hosted.values():
-            if hosted.lifecycle is Lifecycle.RUNNING and isinstance(hosted.component, JoinedComponent):
-                out.update(hosted.component.join.consumed(hosted.generation))
+        for stage in hosted:
+            if stage.lifecycle is Lifecycle.RUNNING and isinstance(stage.component, JoinedComponent):
+                out.update(stage.component.join.consumed(stage.generation))
         return out
 
-    def flow_producers(self) -> dict[str, str | None]:
+    def producers(self, hosted: Iterable[HostedStage], plan: PlanUpdate | None) -> dict[str, str | None]:
         """Per flow into a stage hosted here: where the plan runs its producer."""
-        placement = self.plan.placement if self.plan else {}
-        return {f.name: placement.get(f.producer) for h in self.hosted.values() for f in self.flows_in.get(h.stage.name, ())}
+        placement = plan.placement if plan else {}
+        return {f.name: placement.get(f.producer) for h in hosted for f in self._in.get(h.stage.name, ())}
 
-    def join_stats(self) -> dict[str, dict[str, int]]:
+    @staticmethod
+    def stats(hosted: Mapping[str, HostedStage]) -> dict[str, dict[str, int]]:
         """Per fan-in stage hosted here: steps joined, inputs late, missing, empty steps."""
         return {name: {"joined": h.component.join.joined, "late": h.component.join.late,
                        "missing": h.component.join.missing, "not_started": h.component.join.not_started,
                        "empty_steps": h.component.join.empty_steps}
-                for name, h in self.hosted.items() if isinstance(h.component, JoinedComponent)}
+                for name, h in hosted.items() if isinstance(h.component, JoinedComponent)}
 
 
-__all__ = ["EdgeGate", "JoinState", "JoinedComponent", "Joining", "flow_chains", "join_wait_s", "ProtocolError"]
+__all__ = ["EdgeGate", "Flows", "JoinState", "JoinedComponent", "flow_chains", "join_wait_s", "ProtocolError"]

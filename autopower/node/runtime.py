@@ -19,9 +19,10 @@ its sink exactly once even when a link is cut silently with frames in flight.
 
 This module holds the node's state, plan, sources, timers and status; the class is assembled from
 parts that use that state: `frames.py` (the data plane), `hosting.py` (the control messages
-that start, move and stop stages), `acknowledging.py` (custody acknowledgements and resends) and
-`joining.py` (DAG flows). `ArrivalRelay` (`relaying.py`), which owns its state, forwards packets that
-only cross this node on the transport's thread.
+that start, move and stop stages) and `acknowledging.py` (custody acknowledgements and resends).
+Collaborators that own their state: `Flows` (`joining.py`, the DAG flows' fan-out and fan-in),
+`ArrivalRelay` (`relaying.py`, forwarding packets that only cross this node on the transport's
+thread), `Custody`, the gates and ledgers (`sequencing.py`) and the meters.
 What a node hosts is described in `stages.py`.
 """
 
@@ -49,7 +50,7 @@ from autopower.node.guard import ComponentHung, GuardedCalls
 from autopower.node.held_store import HeldStore
 from autopower.node.hosting import Hosting
 from autopower.node.in_flight import ProducedByRun, frames_in_hand, stage_frames
-from autopower.node.joining import Joining
+from autopower.node.joining import Flows
 from autopower.node.meter import BatteryMeter
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
 from autopower.node.relaying import ArrivalRelay
@@ -103,7 +104,7 @@ DIED_WITH_PROCESS_S = 2.0
 RESUME_ALONE_MAX_AGE_S = 300.0
 
 
-class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
+class NodeRuntime(Frames, Hosting, Acknowledging):
     """Chain data handling for one node; see the module docstring."""
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
@@ -135,7 +136,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         self._clock_factory = clock_factory or (lambda m: VirtualClock(m.epoch_unix, m.speed))
         self.chains = {c.name: c for c in scenario.chains}
         self.stage_index = {s.name: (c, i) for c in scenario.chains for i, s in enumerate(c.stages)}
-        self.init_flows()  # DAG flows: pseudo-chains in self.chains (autopower.node.joining)
+        # DAG flows (`autopower.node.joining`): each travels as a pseudo-chain in self.chains
+        self.flows = Flows(scenario, count=self.count, tally=self.tally)
+        self.chains.update(self.flows.chains)
 
         self.mission: MissionInfo | None = None
         self.clock: Clock | None = None
@@ -242,6 +245,17 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
         if slow:
             self.tally("relay-congested", slow)
 
+    def join_tick(self) -> None:
+        """Run the fan-in steps whose wait is over (from the node's timer)."""
+        speed, wall = self.mission.speed if self.mission else 1.0, self.wall()
+        for hosted in list(self.hosted.values()):
+            for frame in self.flows.ready(hosted, self.plan, speed, wall):
+                self._run(hosted, frame)
+
+    def join_stats(self) -> dict[str, dict[str, int]]:
+        """Per fan-in stage hosted here: steps joined, inputs late, missing, empty steps."""
+        return self.flows.stats(self.hosted)
+
     def listen(self, listener: SinkListener) -> None:
         """Tell ``listener`` of every output reaching this node as its chain's sink, and of every
         result let go or lost in a crash here (`autopower.node.ports.SinkListener`)."""
@@ -296,7 +310,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
                                       loss={peer: loss for peer in self.scenario.node_names()
                                             if (loss := self.scenario.link_loss(self.node, peer))})
             self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
-            self.weights.update(self.flow_weights(plan.mission.accounting))
+            self.weights.update(self.flows.weights(plan.mission.accounting))
             self._resume(plan.mission)
             if not self.resumed and self.held_store is not None:
                 # a process without a resume state (the base station's host) keeps its held results
@@ -322,7 +336,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging, Joining):
                 for frame in frames:
                     self.send_frame(frame, host)
         self._sync_sources()
-        for chain in ({hop[0] for hop in self.custody.hops} - set(plan.running) - self.running_flows()) \
+        for chain in ({hop[0] for hop in self.custody.hops} - set(plan.running) - self.flows.running(plan)) \
                 & set(plan.operator.disabled):
             # Stopped by the operator (or a failed component): nobody will consume the frames for its
             # stages; its sink still takes its results. A chain stopped because the base station lost
