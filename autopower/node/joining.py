@@ -286,12 +286,14 @@ class Flows:
     flow travels as). It is given the plan, the stages hosted here and the wall time with each
     call, and returns what the node must do: the frames to send (`fan_out`) and the inputs a join
     released to run (`admit`, `ready`). ``count`` and ``tally`` are the node's error and event
-    counters."""
+    counters; ``joined(chain, run, seq)`` hears of each input a join step makes."""
 
-    def __init__(self, scenario: Scenario, *, count: Callable[..., None], tally: Callable[..., None]):
+    def __init__(self, scenario: Scenario, *, count: Callable[..., None], tally: Callable[..., None],
+                 joined: Callable[[str, int, int], None]):
         self.chains = flow_chains(scenario)  # a flow's frames travel like a chain hop's
         self._count = count
         self._tally = tally
+        self._joined = joined
         self._out: dict[str, list[Flow]] = {}  # producing stage -> the flows it feeds
         self._in: dict[str, tuple[Flow, ...]] = {}  # consuming stage -> the flows into it
         for chain in scenario.chains:
@@ -383,6 +385,7 @@ class Flows:
             frame = ChainFrame(chain=hosted.chain.name, run=hosted.run, seq=seq, target=hosted.index,
                                t_virtual=join.step * hosted.chain.period_s, t_unix=join.t_unix,
                                payload_len=len(join.payload), payload=join.payload)
+            self._joined(frame.chain, frame.run, seq)
             yield from hosted.gate.offer(seq, frame, now=wall)
         if component.join.missing != before:
             self._tally("join-missing-inputs", component.join.missing - before)

@@ -68,13 +68,16 @@ class SinkListener:
     - ``died_with_process(chain, run, seq)``: an output of a chain sourced and sunk here died with
       the crashed process (in its memory only);
     - ``sink_journal(chain, run, seq)``: an output the crashed sink here had delivered in its last
-      commit, named by the restarted one (its recording may have died with the process).
+      commit, named by the restarted one (its recording may have died with the process);
+    - ``joined(chain, run, seq)``: a fan-in stage here made its chain's input seq from one join
+      step (`autopower.node.joining`): what a source's frame is to a sourced chain.
     """
 
     output: Callable[[str, int, int, bytes], None] = _ignore
     held_dropped: Callable[[str, int, int, str], None] = _ignore
     died_with_process: Callable[[str, int, int], None] = _ignore
     sink_journal: Callable[[str, int, int], None] = _ignore
+    joined: Callable[[str, int, int], None] = _ignore
 
 
 class SinkListeners:
@@ -105,3 +108,7 @@ class SinkListeners:
     def sink_journal(self, chain: str, run: int, seq: int) -> None:
         for listener in self._listeners:
             listener.sink_journal(chain, run, seq)
+
+    def joined(self, chain: str, run: int, seq: int) -> None:
+        for listener in self._listeners:
+            listener.joined(chain, run, seq)

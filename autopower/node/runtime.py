@@ -137,7 +137,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.chains = {c.name: c for c in scenario.chains}
         self.stage_index = {s.name: (c, i) for c in scenario.chains for i, s in enumerate(c.stages)}
         # DAG flows (`autopower.node.joining`): each travels as a pseudo-chain in self.chains
-        self.flows = Flows(scenario, count=self.count, tally=self.tally)
+        self.flows = Flows(scenario, count=self.count, tally=self.tally,
+                           joined=lambda chain, run, seq: self._sink_listeners.joined(chain, run, seq))
         self.chains.update(self.flows.chains)
 
         self.mission: MissionInfo | None = None

@@ -12,6 +12,7 @@ import zlib
 
 import msgpack
 
+from autopower.chains.teammap import decode_join
 from autopower.model.scenario import Chain
 
 
@@ -50,13 +51,25 @@ class StandInComponent:
         self.next_seq: int | None = None
 
     def run(self, payload: bytes) -> bytes:
-        robot, seq, *_ = msgpack.unpackb(payload)
+        data = msgpack.unpackb(payload)
+        if isinstance(data, dict):  # a fan-in stage's input: one join step (`chains.teammap.encode_join`)
+            return self._run_join(payload)
+        robot, seq, *_ = data
         if robot != self.robot:
             raise ValueError(f"an input of {robot} given to {self.robot}'s {self.component_type}")
         if self.next_seq is not None and seq != self.next_seq:
             raise ValueError(f"expected seq {self.next_seq}, got {seq}: an input was lost, repeated or reordered")
         self.next_seq = seq + 1
         return transform(self.component_type, payload)
+
+    def _run_join(self, payload: bytes) -> bytes:
+        """A join's output: this node's name, the step, a checksum of the step's inputs. Its state
+        is the next step it may run: steps only go forward (empty ones are skipped), never twice."""
+        step = decode_join(payload)["step"]
+        if self.next_seq is not None and step < self.next_seq:
+            raise ValueError(f"join step {step} after step {self.next_seq - 1}: a step ran twice or out of order")
+        self.next_seq = step + 1
+        return msgpack.packb([self.robot, step, zlib.crc32(payload + self.component_type.encode())])
 
     def export_state(self) -> bytes:
         return msgpack.packb(self.next_seq)

@@ -78,7 +78,9 @@ class Shell:
                               ports=NodePorts(send_to=self.relayer.send), stores=self.stores())
         self.rt.listen(SinkListener(
             output=self._output, held_dropped=self._dropped_by_budget,
-            died_with_process=lambda c, r, s: w.ledger.let_go((c, r, s), "died-with-process")))
+            died_with_process=lambda c, r, s: w.ledger.let_go((c, r, s), "died-with-process"),
+            # a fan-in chain's input is made by a join step: that is its production
+            joined=lambda c, r, s: w.ledger.on_produced((c, r, s), w.scheduler.now, w.trace.events)))
         self.cadence = StatusCadence(w.status_period_s, w.status_rest_period_s)  # a new process's: it says all at once
         self.build()
         self.next_status = w.scheduler.wall()

@@ -9,6 +9,7 @@ import re
 import msgpack
 import pytest
 
+from autopower.chains.teammap import encode_join
 from autopower.model.loading import load_scenario
 from autopower.node.acknowledging import Acknowledging
 from autopower.node.meter import BatteryMeter
@@ -328,6 +329,44 @@ def test_stand_ins_compute_what_the_oracle_expects_and_refuse_a_skipped_input():
         moved.run(source.produce(3))
     with pytest.raises(ValueError, match="r3"):
         StandInComponent("Blob", "r2", 0).run(msgpack.packb(["r3", 0]))
+
+
+def test_a_fan_in_stand_in_runs_each_join_step_once_and_in_order():
+    joined = StandInComponent("TeamMap", "laptop", 0)
+    step = [encode_join(s, {"Loc-1": b"a", "Loc-2": b"b"}, []) for s in range(6)]
+    first = joined.run(step[1])
+    assert first == joined.__class__("TeamMap", "laptop", 0).run(step[1])  # a pure function of the step
+    assert joined.run(step[4]) != first  # empty steps between are skipped
+    moved = StandInComponent("TeamMap", "laptop", 0)
+    moved.import_state(joined.export_state())
+    with pytest.raises(ValueError, match="step 4 after step 4"):
+        moved.run(step[4])  # a step joined twice
+    assert msgpack.unpackb(moved.run(step[5]))[:2] == ["laptop", 5]
+
+
+def test_a_dag_team_delivers_each_joined_output_once_through_partitions_and_a_robot_crash():
+    """The fan-in chain's production is its join steps (`SinkListener.joined`): the oracle judges them
+    as it judges a source's frames."""
+    teammap = load_scenario("paper-teammap")
+    faults = (Fault(kind="partition", t=8.0, duration=4.0, nodes=("laptop", "r2")),
+              Fault(kind="crash", t=15.0, duration=3.0, a="r3"))
+    result = run(SimConfig(scenario=teammap, seed=1, faults=faults, mission_s=30.0, quiet_s=20.0))
+    assert result.ok, [v.to_json() for v in result.violations]
+    joined = result.chains["TeamMap"]
+    assert joined.produced >= 12 and joined.delivered == joined.produced and joined.lost == 0
+
+
+@pytest.mark.xfail(strict=True, reason="open: a fan-in stage restarted with the base station numbers its "
+                   "joined inputs from 0 again in the same run (its seq lives only in its gate)")
+def test_a_fan_in_chain_restarted_with_its_base_station_never_reuses_an_outputs_name():
+    """Found by the simulator once it ran DAG scenarios (paper-teammap, seed 7, shrunk to its one
+    fault). The base station's host lost TeamMap with the process; the new instance joined steps as
+    seq 0, 1, ... of the same run, names the sink had already delivered: the sink drops them as
+    copies, and the operator gets no map until the seq passes the old ones (9 of 19 lost here)."""
+    teammap = load_scenario("paper-teammap")
+    crash = Fault(kind="basestation-crash", t=16.7, duration=2.0)
+    result = run(SimConfig(scenario=teammap, seed=7, faults=(crash,), mission_s=30.0, quiet_s=20.0))
+    assert result.ok, [v.to_json() for v in result.violations]
 
 
 def test_the_oracle_finds_energy_a_restarted_robot_did_not_charge(monkeypatch):
