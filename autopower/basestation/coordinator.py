@@ -450,6 +450,12 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
                 del self.placement[stage]
         self._update_running()
 
+    def on_host_status(self, status: NodeStatus) -> None:
+        """The status of the base station's own host, built in the same process (each period once
+        its mission runs). It is no robot's; as the sink of a fan-in chain it says the chain's run."""
+        if self.runs_unknown:
+            self._learn_runs(status)
+
     def on_status(self, status: NodeStatus) -> None:
         if status.node not in self.robots:
             return
@@ -503,14 +509,17 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         """The run of each chain ``status.node`` is the source of, when a takeover did not know it.
 
         A source robot reports the last run of every chain it ever ran (`NodeRuntime.status`); one
-        that reports none for a chain never ran it, and the chain starts a fresh run.
+        that reports none for a chain never ran it, and the chain starts a fresh run. A fan-in chain
+        has no source: its stage names its outputs, and its sink (its ``source`` node) reports the
+        last run it got, once its mission has started (its ledgers are kept across a restart).
         """
         learned = []
         for name in sorted(self.runs_unknown):
-            if self.scenario.chain(name).source != status.node:
+            chain = self.scenario.chain(name)
+            if chain.source != status.node or (not chain.sourced and status.mission is None):
                 continue
             self.runs_unknown.discard(name)
-            stats = status.sources.get(name)
+            stats = status.sources.get(name) if chain.sourced else status.sinks.get(name)
             if stats is not None:
                 self.runs[name] = max(self.runs.get(name, -1), stats.run)
                 self.run_live[name] = True  # its sequence goes on

@@ -558,6 +558,7 @@ class BaseStation:
                     if rt.started:  # held back when nothing in it is new but what drifts or counts
                         built = rt.status(self.config.status_window_s * rt.clock.speed, self.events.depth(),
                                           self.events.bulk_wait_s())
+                        co.on_host_status(built)
                         status = self.cadence.due(built, now)
                     else:  # no mission yet: each robot in reach hears that we run no plan
                         for robot, key, payload in self.peer_views.addressed(co, None, now, period):

@@ -122,6 +122,11 @@ class TakingOver:
                 self.run_live[chain.name] = True  # its sequence goes on: a new instance starts where inputs are
             elif chain.source in self.robots and chain.source not in reports:
                 self.runs_unknown.add(chain.name)  # its source robot has not spoken: `_learn_runs`
+            elif not chain.sourced:
+                # a fan-in chain's stage names its outputs: a fresh instance in the run its sink
+                # already got outputs of would give new outputs their names. Its sink says the run
+                # (`_learn_runs`), and a stage that died starts the next one (`_run_for`).
+                self.runs_unknown.add(chain.name)
         self._update_running()
         for node, stage in stale:
             self._send(node, Release(stage=stage, generation=self._next_generation()))

@@ -509,6 +509,7 @@ class BaseShell(Shell):
         what flowed acknowledged every period all the same."""
         rt, co, w = self.rt, self.co, self.world
         built = rt.status(w.status_window_s * rt.clock.speed)
+        co.on_host_status(built)
         status = self.cadence.due(built, w.scheduler.wall())
         if status is None and rt.idle() and co.idle() and not self.suspects:
             self._status_sent(built)
