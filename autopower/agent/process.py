@@ -181,9 +181,7 @@ class Agent:
         if self.resume is not None:
             self.resume.close()
         if self.runtime is not None:
-            for store in (self.runtime.held_store, self.runtime.sink_store):
-                if store is not None:
-                    store.close()
+            self.runtime.close_stores()
         for handle in reversed(self._handles):
             handle.close()
         self._handles.clear()

@@ -281,9 +281,10 @@ class BaseStation:
         if close_workers is not None:
             close_workers()
         steps.lap("stage workers")
-        held = getattr(self.runtime, "held_store", None)
-        if held is not None:
-            held.close()  # its writer thread finishes first: nothing is written after the state is forgotten
+        if self.runtime is not None:
+            # the held results' writer thread finishes first: nothing is written after the state is
+            # forgotten; the sink's last commit is its last status's (the recording's order)
+            self.runtime.close_stores(commit_sinks=False)
         steps.lap("held store")
         if (self._lock_fd is not None and self.stop_reason is not None and self.config.parent_pid is not None
                 and exc[0] is None):

@@ -34,7 +34,6 @@ import dataclasses
 import logging
 import math
 import time
-from collections import OrderedDict
 from typing import Callable
 
 from autopower.errors import AutoPowerError, ProtocolError
@@ -47,7 +46,7 @@ from autopower.node.control_meter import ControlPlaneMeter
 from autopower.node.custody import Custody
 from autopower.node.frames import Frames
 from autopower.node.guard import ComponentHung, GuardedCalls
-from autopower.node.held_store import HeldStore
+from autopower.node.holds import Holds
 from autopower.node.hosting import Hosting
 from autopower.node.in_flight import ProducedByRun, frames_in_hand, stage_frames
 from autopower.node.joining import Flows
@@ -86,10 +85,6 @@ from autopower.runtime.bus import Bus
 from autopower.runtime.clock import Clock, VirtualClock
 
 log = logging.getLogger(__name__)
-
-
-def _held_key(frame: ChainFrame) -> tuple[str, int, int, int]:
-    return frame.chain, frame.target, frame.run, frame.seq
 
 
 def mission_key(mission) -> dict:
@@ -172,11 +167,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.weights: dict[str, float] = {}
         self._early_control: list[bytes] = []
         self._answer_batch: list[bytes] | None = None  # answers to a `Batch` of orders, sent as one (`on_control`)
-        # results whose sink has no route from here (the plan's links): kept in order, within the
-        # hold budget with the results in custody (`Custody.keep`), sent when a plan routes them again
-        self.held_outputs: OrderedDict[tuple[str, int, int, int], ChainFrame] = OrderedDict()
-        self.held_dropped = 0  # results dropped, the hold budget full (counted apart from lost ones)
-        self.held_superseded = 0  # results of a latest-only chain replaced in the hold by a newer one
         # migration state with no route yet (an order overtook the plan that brings the route
         # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
         self.parked_transfers: list[tuple[str, bytes, str]] = []
@@ -198,9 +188,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
         # state directory): an output delivered before a crash is not delivered again after it
         self.sink_store: SinkStore | None = stores.sink_store
-        # results held for a sink out of reach, on disk (`agent.held_store`): a crash loses none
-        self.held_store: HeldStore | None = stores.held_store
-        self._held_journaled: dict[tuple[str, int, int, int], ChainFrame] = {}  # (chain, target, run, seq)
+        # results whose sink has no route from here (the plan's links): kept in order, within the
+        # hold budget with the results in custody, on disk when the process gives a `HeldStore`
+        self.holds = Holds(node=node, custody=self.custody, store=stores.held_store, chain=lambda name: self.chains.get(name),
+                           listeners=self._sink_listeners, tally=self.tally, wall=lambda: self.wall())
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
         self._cpu_at: tuple[float, float] | None = None  # (process, component) CPU at the last `charge_runtime`
         # since the mission started in this process, on the computer running it (`charge_runtime`):
@@ -313,11 +304,11 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
             self.weights.update(self.flows.weights(plan.mission.accounting))
             self._resume(plan.mission)
-            if not self.resumed and self.held_store is not None:
+            if not self.resumed and self.holds.store is not None:
                 # a process without a resume state (the base station's host) keeps its held results
                 # on disk all the same: their producers have had the acknowledgement, so a held result
                 # lost with this process is held nowhere else
-                self._take_back_held(plan.mission)
+                self.holds.take_back(mission_key(plan.mission))
         self._set_plan(plan)
         self.follow_plan_runs(plan)
         for hosted in self.hosted.values():
@@ -397,7 +388,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         for name, src in sources.items():
             self.produced_by_run.note(name, src.run, src.produced)
         self.resumed = True
-        self._take_back_held(mission)
+        self.holds.take_back(mission_key(mission))
         self._died_with_process(sources, mission)
         # what `advance` charges for the time we were down (the robot drew idle current, radios asleep)
         self.down = (meter.t, 0.0 if meter.mains else meter.platform.idle_w + sum(
@@ -575,125 +566,34 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             return {}
         return {r: p.steady_w for r, p in ev.robots.items()}
 
+    # ---- held results (`autopower.node.holds`) --------------------------------------------------
+    @property
+    def held_outputs(self):
+        """The results held for a sink out of reach, in order (read only: `Holds` owns them)."""
+        return self.holds.held
+
     def hold_output(self, frame: ChainFrame) -> None:
-        # Sent late, as a retransmission: the sink may have had this output meanwhile from another
-        # instance (a released stage runs the inputs waiting in its gate, while their producer, its
-        # acknowledgement cut off, resends them to the stage's next instance). A restarted sink does
-        # not keep on disk what came as a resend, so an unmarked held copy arriving later would be
-        # taken as new and delivered twice. Marked, a sink that has it drops it as redundant.
-        frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
-        self.held_outputs[_held_key(frame)] = frame
-        self._supersede_held(frame)
-        self.keep_result(frame, sent=False)  # in custody already when produced here (`emit`)
-        self.custody.mark(frame, None)  # not on the wire: no resend is due until it is
-        self._journal_held(frame)
-        if len(self.held_outputs) == 1:
-            log.info("%s: the sink of %s is out of reach; holding its results here (within %.0f MB, oldest "
-                     "dropped beyond) until a plan routes them", self.node, frame.chain,
-                     self.custody.hold_budget_bytes / 2**20)
-
-    def unsafe_output_floor(self, chain: str, target: int, run: int) -> int | None:
-        """The lowest seq of a hop and run this node holds in custody in memory only (not journaled):
-        what a crash here would lose unless its input is still held upstream; None if none is."""
-        low = self.custody.floor(chain, target, run, -1)
-        if low < 0:
-            return None
-        if (chain, target, run, low) not in self._held_journaled:
-            return low
-        held = [seq for (r, seq) in self.custody.hops.get((chain, target), {})
-                if r == run and (chain, target, run, seq) not in self._held_journaled]
-        return min(held) if held else None
-
-    def _supersede_held(self, newest: ChainFrame) -> None:
-        """A chain that keeps only its latest result (`keep = "latest"`) holds one per run for its sink:
-        the older ones this node held are let go, counted as superseded (the replay counts one so only
-        if a later output of its run reached the sink or was in hand at the stop; else it is lost)."""
-        chain = self.chains.get(newest.chain)
-        if chain is None or chain.keep != "latest":
-            return
-        older = [frame for frame in self.held_outputs.values()
-                 if frame.chain == newest.chain and frame.run == newest.run and frame.seq < newest.seq]
-        for frame in older:
-            del self.held_outputs[_held_key(frame)]
-            self.custody.forget(frame)
-            self.held_superseded += 1
-            self.tally("held-outputs-superseded")
-            self._sink_listeners.held_dropped(frame.chain, frame.run, frame.seq, "superseded")
+        self.holds.hold(frame, mission_key(self.mission) if self.mission is not None else None)
 
     def keep_result(self, frame: ChainFrame, sent: bool = True) -> None:
-        """Keep a chain's result in custody until its sink acknowledges it; results beyond the hold
-        budget (oldest first) are dropped and counted as such."""
-        for dropped in self.custody.keep(frame, self.wall(), sent=sent, result=True):
-            self.held_outputs.pop(_held_key(dropped), None)
-            self.held_dropped += 1
-            self.tally("held-outputs-dropped")
-            self._sink_listeners.held_dropped(dropped.chain, dropped.run, dropped.seq, "budget")
+        self.holds.keep(frame, sent)
 
-    def _journal_held(self, frame: ChainFrame) -> None:
-        key = _held_key(frame)
-        if self.held_store is None or self.mission is None or key in self._held_journaled:
-            return
-
-        if self.held_store.append(mission_key(self.mission), frame):  # not on disk: a crash here loses it
-            self._held_journaled[key] = frame
+    def unsafe_output_floor(self, chain: str, target: int, run: int) -> int | None:
+        return self.holds.unsafe_floor(chain, target, run)
 
     def settle_held_store(self) -> None:
-        """Drop from the disk the held results that are done with (acknowledged by their sink, or
-        let go by a full hold): the file is rewritten with the rest once most of it is done with,
-        emptied once all of it is (`agent.held_store`). At each status tick."""
-        if self.held_store is None or self.mission is None or not self._held_journaled:
-            return
-
-        at_risk = {key: frame for key, frame in self._held_journaled.items()
-                   if (frame.run, frame.seq) in self.custody.hops.get((frame.chain, frame.target), {})}
-        if len(at_risk) == len(self._held_journaled):
-            return
-        self._held_journaled = at_risk
-        if not at_risk or self.held_store.records > 2 * len(at_risk) + 64:
-            self.held_store.rewrite(mission_key(self.mission), list(at_risk.values()))
-
-    def _take_back_held(self, mission: MissionInfo) -> None:
-        """A restarted process takes back the results the crashed one held (same mission only)."""
-        if self.held_store is None:
-            return
-
-        journal = [f for f in self.held_store.load(mission_key(mission)) if f.chain in self.chains]
-        # Each goes again as the retransmission `hold_output` journaled it as: the crashed process
-        # may have delivered it, and its sink acknowledged it, before the journal was next rewritten
-        # (at a status tick); a sink that has it drops the copy as redundant, where a copy sent as new
-        # would be delivered twice.
-        for frame in journal:
-            self.held_outputs[_held_key(frame)] = frame
-            self._supersede_held(frame)  # a latest-only chain: journaled before the older ones were let go
-            self.keep_result(frame, sent=False)  # within this process's budget (oldest dropped, counted)
-        frames = list(self.held_outputs.values())
-        if self.held_store.rewrite(mission_key(mission), frames):  # this process's journal from now on
-            self._held_journaled.update((_held_key(frame), frame) for frame in frames)
-        if frames:
-            spans = {}
-            for frame in frames:
-                low, high = spans.get(frame.chain, (frame.seq, frame.seq))
-                spans[frame.chain] = (min(low, frame.seq), max(high, frame.seq))
-            log.warning("%s: took back %d result(s) held before the restart (%s); they go to their sink once "
-                        "it is in reach", self.node, len(frames),
-                        ", ".join(f"{c} seq {low}-{high}" for c, (low, high) in sorted(spans.items())))
+        self.holds.settle_store(mission_key(self.mission) if self.mission is not None else None)
 
     def flush_held_outputs(self) -> None:
-        if not self.held_outputs or self.network is None:
-            return
-        held, self.held_outputs = self.held_outputs, OrderedDict()
-        sent = 0
-        for key, frame in held.items():
-            sink = self.chains[frame.chain].sink
-            if self.network.path(self.node, sink) is None:
-                self.held_outputs[key] = frame
-            else:
-                self.send_frame(frame, sink)
-                self.custody.mark(frame, self.wall())
-                sent += 1
-        if sent:
-            log.info("%s: delivered %d held result(s)", self.node, sent)
-            self.tally("held-outputs-delivered", sent)
+        self.holds.flush(self.network, self.send_frame)
+
+    def close_stores(self, *, commit_sinks: bool = True) -> None:
+        """Close what it keeps on disk (the held results' writer finishes first). ``commit_sinks``
+        False: the sink's notes since its last commit are not written (as a killed process leaves them)."""
+        if self.holds.store is not None:
+            self.holds.store.close()
+        if self.sink_store is not None:
+            self.sink_store.close(commit=commit_sinks)
 
     def prepare_sources(self) -> None:
         """Build this node's sources now, before it joins: the first plan takes them ready-made.

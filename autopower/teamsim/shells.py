@@ -125,10 +125,7 @@ class Shell:
         self.up = False
         self.pending.clear()
         self.bus.close()
-        if self.rt.held_store is not None:
-            self.rt.held_store.close()
-        if self.rt.sink_store is not None:
-            self.rt.sink_store.close(commit=False)  # a kill writes nothing more
+        self.rt.close_stores(commit_sinks=False)  # a kill writes nothing more
 
     def freeze(self) -> None:
         self.bus.freeze()

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[2] / "autopower"
 NODE_CORE = sorted((ROOT / "node").glob("*.py"))
 COORDINATOR_CORE = [ROOT / "basestation" / f"{name}.py"
                     for name in ("coordinator", "deciding", "placing", "operating", "takeover")]
-CORE_CLASSES = {"NodeRuntime", "Frames", "Hosting", "Acknowledging", "Joining", "ArrivalRelay",
+CORE_CLASSES = {"NodeRuntime", "Frames", "Hosting", "Acknowledging", "ArrivalRelay", "Flows", "Holds",
                 "Coordinator", "Deciding", "Placing", "Operating", "TakingOver"}
 # the packages that build and drive core objects (the layers above `node`: test_layering.py)
 SHELLS = ("agent", "basestation", "recording", "deploy", "launch", "teamsim", "cli")
@@ -52,7 +52,7 @@ def assignments_from_outside(path: Path, names: set[str]) -> list[str]:
 def test_the_core_attributes_are_known():
     names = core_attributes()
     # the ways out a shell used to assign, now constructor arguments (`NodePorts`, `NodeStores`)
-    assert {"send_to", "notify_work", "held_store", "sink_store", "resume_from"} <= names
+    assert {"send_to", "notify_work", "sink_store", "resume_from", "store", "held"} <= names
     assert {"incarnation", "placement"} <= names
 
 

@@ -757,7 +757,7 @@ def test_results_beyond_the_hold_budget_are_dropped_oldest_first_and_leave_custo
     for frame in frames:
         r2.keep_result(frame, sent=False)  # as `Frames.emit` does for a result
         r2.hold_output(frame)  # as `send_routed` does with no route to the sink
-    assert len(r2.held_outputs) == 5 and r2.held_dropped == 3
+    assert len(r2.held_outputs) == 5 and r2.holds.dropped == 3
     assert told == [("Blob-2", 0, 10_000, "budget"), ("Blob-2", 0, 10_001, "budget"), ("Blob-2", 0, 10_002, "budget")]
     assert len(r2.custody) == before + 5  # the three dropped ones are not held any more
     assert r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
@@ -795,7 +795,7 @@ def test_a_latest_only_chain_holds_its_newest_result_and_lets_the_older_ones_go_
         r2.keep_result(frame, sent=False)
         r2.hold_output(frame)
     assert told == [("Blob-2", 0, 10_000 + i, "superseded") for i in range(3)]
-    assert r2.held_superseded == 3 and r2.held_dropped == 0
+    assert r2.holds.superseded == 3 and r2.holds.dropped == 0
     held = {(f.chain, f.run, f.seq) for f in r2.held_outputs.values()}
     assert held == {("Blob-2", 0, 10_003), ("Blob-2", 1, 5), ("Loc-2", 0, 9_000), ("Loc-2", 0, 9_001)}
     assert len(r2.custody) == before + 4 and r2.custody.floor("Blob-2", 1, 0, -1) == 10_003

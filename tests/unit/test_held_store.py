@@ -105,7 +105,7 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
         old.hold_output(frame)
     saved = old.resume_state()
     assert len(HeldStore(tmp_path / "r2.held").load(mission_key(old.mission))) == len(results)
-    old.held_store.close()
+    old.holds.store.close()
     # the process is killed; a new one starts, and the plan of the same mission comes
     rt = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-again"), keys=team.keys,
                      make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
@@ -148,7 +148,7 @@ def test_held_results_the_sink_already_had_are_dropped_there_as_redundant_not_co
     had = {f.seq for f in results if f.seq < sink.contiguous or f.seq in sink.above}
     assert had == {f.seq for f in results}
     saved = old.resume_state()
-    old.held_store.close()  # killed before the journal was rewritten: it still lists all six
+    old.holds.store.close()  # killed before the journal was rewritten: it still lists all six
     recorded = []
     sink_node.listen(SinkListener(output=lambda chain, run, seq, data: recorded.append(seq)))
     rt = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-again"), keys=team.keys,
@@ -202,7 +202,7 @@ def test_the_base_stations_host_takes_back_what_it_held_after_a_restart(tmp_path
     for frame in results:
         old.keep_result(frame, sent=False)
         old.hold_output(frame)
-    old.held_store.close()
+    old.holds.store.close()
     # killed; the restarted base station's host gets the plan of the same mission (no resume state)
     rt = NodeRuntime(node="laptop", scenario=team.scenario, bus=team.hub.bus("laptop-again"), keys=team.keys,
                      make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,

@@ -281,7 +281,7 @@ def test_a_latest_only_chain_cut_from_its_sink_delivers_its_newest_result_and_lo
     their run arrives), nothing is lost, and the Loc chains (keep all) deliver everything."""
     import dataclasses
 
-    from autopower.node.runtime import NodeRuntime
+    from autopower.node.holds import Holds
 
     latest = dataclasses.replace(SC, chains=tuple(dataclasses.replace(c, keep="latest") if c.name.startswith("Blob")
                                                   else c for c in SC.chains))
@@ -295,14 +295,14 @@ def test_a_latest_only_chain_cut_from_its_sink_delivers_its_newest_result_and_lo
         else:
             assert chain.dropped_by_budget == 0, (name, chain)
     # a node that lets a result go as superseded with no newer one held is caught, not believed
-    supersede = NodeRuntime._supersede_held
+    supersede = Holds._supersede
 
     def eager(self, newest):
         supersede(self, newest)
-        if self.chains[newest.chain].keep == "latest":
-            self._sink_listeners.held_dropped(newest.chain, newest.run, newest.seq + 1, "superseded")
+        if self._chain(newest.chain).keep == "latest":
+            self._listeners.held_dropped(newest.chain, newest.run, newest.seq + 1, "superseded")
 
-    monkeypatch.setattr(NodeRuntime, "_supersede_held", eager)
+    monkeypatch.setattr(Holds, "_supersede", eager)
     result = run(SimConfig(scenario=latest, seed=1, faults=(split,), mission_s=100.0, quiet_s=30.0))
     assert any("go as superseded" in v.detail for v in result.violations), result.violations
 
