@@ -32,14 +32,13 @@ import base64
 import copy
 import dataclasses
 import logging
-import math
 import time
 from typing import Callable
 
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
 from autopower.model.network import Link, Network, build_network
-from autopower.model.scenario import Scenario
+from autopower.model.scenario import Chain, Scenario
 from autopower.model.variants import apply_variants, runtime_component
 from autopower.node.acknowledging import Acknowledging, AckWants
 from autopower.node.control_meter import ControlPlaneMeter
@@ -48,16 +47,15 @@ from autopower.node.frames import Frames
 from autopower.node.guard import ComponentHung, GuardedCalls
 from autopower.node.holds import Holds
 from autopower.node.hosting import Hosting
-from autopower.node.in_flight import ProducedByRun, frames_in_hand, stage_frames
+from autopower.node.in_flight import frames_in_hand, stage_frames
 from autopower.node.joining import Flows
 from autopower.node.meter import BatteryMeter
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
 from autopower.node.relaying import ArrivalRelay
 from autopower.node.sequencing import SinkLedger
 from autopower.node.sink_store import SinkStore
+from autopower.node.sources import Sources
 from autopower.node.stages import (
-    SENSOR_QUEUE,
-    STOPPED_AFTER_S,
     HostedStage,
     SourceRunner,
     chain_seed,
@@ -148,9 +146,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.out_of_reach: frozenset[str] = frozenset()
         self.hosted: dict[str, HostedStage] = {}
         self.orphans: dict[str, list[ChainFrame]] = {}
-        self.sources: dict[str, SourceRunner] = {}
-        self.source_totals: dict[str, SourceStats] = {}
-        self.produced_by_run = ProducedByRun()  # what each source produced per run (`in_flight_at_stop`)
+        # the chains this node feeds from its own sensors (`autopower.node.sources`)
+        self.feeds = Sources(node=node, key_of=self._source_key,
+                             build=lambda key: self._build(self._make_source, *key),
+                             count=self.count, tally=self.tally)
         self._last_turn_wall: float | None = None  # `on_timer`'s last turn (a node away a second was stopped)
         self.sinks: dict[str, SinkLedger] = {}
         self.last_output: dict[str, bytes] = {}
@@ -207,9 +206,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         # results are collected at the next timer tick
         self.notify_work: Callable[[], None] | None = ports.notify_work
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
-        self.hung_sources: dict[str, int] = {}  # chain -> the run whose source hung here (not restarted)
-        # sources built before the mission (`prepare_sources`), each taken by its chain's first run here
-        self._prepared_sources: dict[tuple[str, str, int], object] = {}
         self._next_custody_check = 0.0
         self.wall: Callable[[], float] = wall or time.time
         self.perf: Callable[[], float] = perf or time.perf_counter
@@ -327,7 +323,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
                 del self.orphans[stage]
                 for frame in frames:
                     self.send_frame(frame, host)
-        self._sync_sources()
+        self.feeds.sync(plan.running, self.chains, self.now())
         for chain in ({hop[0] for hop in self.custody.hops} - set(plan.running) - self.flows.running(plan)) \
                 & set(plan.operator.disabled):
             # Stopped by the operator (or a failed component): nobody will consume the frames for its
@@ -384,9 +380,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             log.warning("%s: resume state unusable (%s); starting from the mission's energies", self.node, exc)
             return
         meter = self.meter
-        self.source_totals.update(sources)
-        for name, src in sources.items():
-            self.produced_by_run.note(name, src.run, src.produced)
+        self.feeds.resume(sources)
         self.resumed = True
         self.holds.take_back(mission_key(mission))
         self._died_with_process(sources, mission)
@@ -443,10 +437,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         meter = self.meter
         sources = {n: {"run": s.run, "seq": s.produced, "missed": s.missed, "produced_total": s.produced_total,
                        "missed_stopped": s.missed_stopped}
-                   for n, s in self.source_totals.items()}
-        for name, runner in self.sources.items():
-            sources[name] = {"run": runner.run, "seq": runner.seq, "missed": runner.missed,
-                             "produced_total": runner.produced_total, "missed_stopped": runner.missed_stopped}
+                   for n, s in self.feeds.stats().items()}
         return {"node": self.node, "mission": mission_key(self.mission), "t_virtual": meter.t,
                 "initial_j": meter.initial_j, "energy_j": dict(meter.energy_j), "cpu_busy_s": meter.cpu_busy_s,
                 "runtime_cpu_s": meter.runtime_cpu_s, "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources,
@@ -595,63 +586,27 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         if self.sink_store is not None:
             self.sink_store.close(commit=commit_sinks)
 
+    # ---- sources (`autopower.node.sources`) ---------------------------------------------------------
+    @property
+    def sources(self) -> dict[str, SourceRunner]:
+        """The sources running here, by chain (read only: `Sources` owns them)."""
+        return self.feeds.runners
+
+    @property
+    def produced_by_run(self):
+        return self.feeds.produced_by_run
+
     def prepare_sources(self) -> None:
-        """Build this node's sources now, before it joins: the first plan takes them ready-made.
+        """Build this node's sources before it joins (`Sources.prepare`)."""
+        self.feeds.prepare(self.chains.values())
 
-        A camera renders its scene when built (~30 ms alone). Built at the first plan, every robot
-        of a fleet does it at the same instant: 20 robots on 2 cores kept each loop busy 0.5-0.6 s,
-        their statuses came late and peers took links for down, at a start with no fault at all.
-        """
-        for chain in self.chains.values():
-            if chain.source != self.node or not chain.sourced:
-                continue
-            key = (chain.stages[0].component, chain.source, chain_seed(self.scenario, chain))
-            try:
-                self._prepared_sources[key] = self._build(self._make_source, *key)
-            except Exception:  # noqa: BLE001 - the plan's own build says what is wrong, as ever
-                continue
-
-    def _sync_sources(self) -> None:
-        running = self.plan.running if self.plan else {}
-        for name, runner in list(self.sources.items()):
-            if running.get(name) != runner.run:
-                self._retire_source(runner)
-        for name, run in running.items():
-            chain = self.chains.get(name)
-            if (chain is None or chain.source != self.node or name in self.sources or self.hung_sources.get(name) == run
-                    or not chain.sourced):  # a DAG chain fed by other stages has no source to run
-                continue
-            key = (chain.stages[0].component, chain.source, chain_seed(self.scenario, chain))
-            try:
-                source = self._prepared_sources.pop(key, None) or self._build(self._make_source, *key)
-            except Exception as exc:  # a broken component type must not take the agent down
-                self.count("source-failed", f"{name}: {exc}", logging.ERROR)
-                continue
-            period = chain.period_s
-            before = self.source_totals.get(name)
-            self.sources[name] = SourceRunner(chain=chain, source=source, run=run,
-                                              next_t=math.ceil(self.now() / period - 1e-9) * period,
-                                              produced_total=before.produced_total if before else 0,
-                                              # like produced_total, over every run: summaries divide one
-                                              # by the other (it restarted at 0 with each new run, so a
-                                              # chain re-planned while late reported no missed period)
-                                              missed=before.missed if before else 0,
-                                              missed_stopped=before.missed_stopped if before else 0,
-                                              # the same run after a restart: go on from its next seq
-                                              seq=before.produced if before and before.run == run else 0)
-
-    def _retire_source(self, runner: SourceRunner) -> None:
-        del self.sources[runner.chain.name]
-        self.source_totals[runner.chain.name] = self.source_stats(runner)
-
-    def source_stats(self, runner: SourceRunner) -> SourceStats:
-        return SourceStats(run=runner.run, produced=runner.seq, missed=runner.missed,
-                           produced_total=runner.produced_total, missed_stopped=runner.missed_stopped)
+    def _source_key(self, chain: Chain) -> tuple[str, str, int]:
+        return chain.stages[0].component, chain.source, chain_seed(self.scenario, chain)
 
     # ---- timers --------------------------------------------------------------------------------
     def next_deadline(self) -> float | None:
         """Virtual time of the next source tick (None: nothing scheduled)."""
-        return min((r.next_t for r in self.sources.values()), default=None)
+        return self.feeds.next_deadline()
 
     def idle(self) -> bool:
         """Nothing here is timed: no source, no stage hosted, no frame in custody, held or parked.
@@ -659,7 +614,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         The loop of an idle node may sleep until an event or its next status (`StatusCadence.next_build`)
         instead of calling `on_timer` every status period.
         """
-        return not (self.sources or self.hosted or self.custody or self.orphans or self.held_outputs
+        return not (self.feeds or self.hosted or self.custody or self.orphans or self.held_outputs
                     or self.parked_transfers)
 
     def on_timer(self) -> None:
@@ -675,31 +630,12 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         now = self.now()
         away_s = wall - self._last_turn_wall if self._last_turn_wall is not None else 0.0
         self._last_turn_wall = wall
-        for runner in list(self.sources.values()):
-            if runner.next_t > now:
-                continue
-            period = runner.chain.period_s
-            # the captures since the last tick wait in the sensor's queue; older ones were overwritten
-            late = int((now - runner.next_t) // period) + 1 - SENSOR_QUEUE
-            if late > 0:
-                runner.missed += late
-                runner.next_t += late * period
-                self.tally("missed-periods", late)
-                stopped = away_s >= STOPPED_AFTER_S
-                if stopped:
-                    runner.missed_stopped += late
-                    self.tally("missed-periods-stopped", late)
-                log.info("%s: source %s is %d period(s) late; skipped them%s", self.node, runner.chain.name, late,
-                         f" (this node was stopped for {away_s:.1f} s)" if stopped else "")
-            while runner.next_t <= now and runner.chain.name in self.sources:
-                if runner.next_t + period <= now:
-                    self.tally("late-captures")  # taken from the sensor's queue, after a later one was due
-                self._produce(runner, runner.next_t)
-                runner.next_t += period
+        for runner, t_tick in self.feeds.due(now, away_s):
+            self._produce(runner, t_tick)
 
     def _produce(self, runner: SourceRunner, t_tick: float) -> None:
         chain = runner.chain
-        if not self.custody.has_room(chain.name, 0, chain.message_bytes[0], self.wall(), sharers=len(self.sources)):
+        if not self.custody.has_room(chain.name, 0, chain.message_bytes[0], self.wall(), sharers=len(self.feeds)):
             # back-pressure: the first stage has not run what this node holds for it (`Custody.has_room`)
             runner.missed += 1
             self.tally("missed-periods")
@@ -726,9 +662,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         waited_s = max(0.0, self.clock.wall() - self.clock.wall_at(t_tick))
         frame = ChainFrame(chain=chain.name, run=runner.run, seq=runner.seq, target=0, t_virtual=t_tick,
                            t_unix=self.wall() - waited_s, payload_len=len(data), payload=payload)
-        runner.seq += 1
-        runner.produced_total += 1
-        self.produced_by_run.note(chain.name, runner.run, runner.seq)
+        self.feeds.produced(runner)
         if self._on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq
             self._on_produced(runner)
         self.emit(frame, host)
@@ -736,37 +670,11 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
     def _source_hung(self, runner: SourceRunner, detail: str) -> None:
         """A source that hangs is stopped (one that raises only loses that frame, counted)."""
         chain = runner.chain
-        self._retire_source(runner)
-        self.hung_sources[chain.name] = runner.run  # not restarted in this run
+        self.feeds.hang(runner)  # not restarted in this run
         self.failed[f"{chain.name} source"] = f"hung: {detail}"
         self.count("source-failed", f"{chain.name}: hung: {detail}", logging.ERROR)
         self._reply(StageFailed(stage=chain.stages[0].name, generation=-1, node=self.node, what="source-hung",
                                 detail=detail, running=False))
-
-    # ---- sending -----------------------------------------------------------------------------
-
-
-
-    # ---- receiving -----------------------------------------------------------------------------
-
-
-
-
-
-    # ---- control: hosting and migration -----------------------------------------------------------
-
-
-
-
-
-
-
-
-
-
-
-
-
 
     # ---- peers ----------------------------------------------------------------------------------------
     def on_peer_status(self, status: NodeStatus | PeerStatus) -> None:
@@ -822,9 +730,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         # that went down must be seen coming back, one that never came up must be reported down.
         # Not every node of the team: a robot's status grew with the team (1.4 of its 2.5 kB at 100).
         others = sorted((self._link_ends | self._ever_alive) - {self.node})
-        sources = {n: self.source_stats(r) for n, r in self.sources.items()}
-        for name, stats in self.source_totals.items():
-            sources.setdefault(name, stats)
+        sources = self.feeds.stats()
         return NodeStatus(
             node=self.node, t_virtual=now, t_unix=self.wall(), plan_epoch=self.plan.epoch if self.plan else -1,
             initial_j=self.meter.initial_j if self.meter else None,

@@ -210,9 +210,9 @@ def test_disable_and_enable_start_a_new_run():
     team.run_until(8.0)
     assert "Blob-2" not in team.coordinator.running and "Blob-2" not in team.coordinator.placement
     assert "Blob-2" not in team.nodes["r2"].sources
-    before = team.nodes["r2"].source_totals["Blob-2"]
+    before = team.nodes["r2"].feeds.totals["Blob-2"]
     produced_before = before.produced_total
-    team.nodes["r2"].source_totals["Blob-2"] = replace(before, missed=3)  # as if it had run late
+    team.nodes["r2"].feeds.totals["Blob-2"] = replace(before, missed=3)  # as if it had run late
     assert team.coordinator.on_operator(ChainCommand(chain="Blob-2", enabled=True)).ok
     team.run_until(12.0)
     assert team.coordinator.running["Blob-2"] == 1

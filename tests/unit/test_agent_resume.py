@@ -296,7 +296,7 @@ def test_sources_built_before_the_mission_are_the_ones_its_first_plan_runs():
     rt.prepare_sources()
     own = [c.name for c in team.scenario.chains if c.source == "r2" and c.sourced]
     assert own and len(built) == len(own)
-    prepared = set(map(id, rt._prepared_sources.values()))
+    prepared = set(map(id, rt.feeds._prepared.values()))
     rt.on_plan(team.nodes["r2"].plan)
     assert len(built) == len(own)  # the plan built nothing more
     assert {id(runner.source) for runner in rt.sources.values()} == prepared
