@@ -99,7 +99,8 @@ class Agent:
         self.config = config
         self.keys = Keys(config.team)
         # everything an agent subscribes to is an encoded message: random bytes never take room
-        self.events = EventQueue(bulk_keys=[self.keys.node_data(config.robot)], admit=looks_like_message)
+        self._data_key = self.keys.node_data(config.robot)  # relayed on arrival when it only crosses us
+        self.events = EventQueue(bulk_keys=[self._data_key], admit=looks_like_message)
         self._bus = bus
         self._owns_bus = bus is None
         self._handles: list = []
@@ -146,10 +147,11 @@ class Agent:
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=self._started_unix,
             signing=self.signing)
         self.runtime.prepare_sources()  # before anyone sees us: a camera's scene takes a while to render
-        self._handles.append(bus.subscribe(keys.node_data(robot), self._on_data))
-        # the peers' statuses as robots need them (`PeerStatus`); whole statuses go to base stations
-        for key in (keys.node_control(robot), keys.addressed_to(robot), keys.plan, keys.node_relay(robot), keys.peer_all,
-                    keys.subgroup):
+        # what is for this robot (data, control, relayed control, what others address to it) on one
+        # subscription (`Keys.node_all`); the peers' statuses as robots need them (`PeerStatus`):
+        # whole statuses go to base stations
+        self._handles.append(bus.subscribe(keys.node_all(robot), self._on_own_key))
+        for key in (keys.plan, keys.peer_all, keys.subgroup):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))
         # Presence last: once the base station sees us, everything we need is declared.
@@ -188,6 +190,13 @@ class Agent:
         if self._owns_bus and self._bus is not None:
             self._bus.close()
             self._bus = None
+
+    def _on_own_key(self, key: str, payload: bytes) -> None:
+        """On the transport's thread: a sample on one of this robot's keys."""
+        if key == self._data_key:
+            self._on_data(key, payload)
+        else:
+            self.events.on_message(key, payload)
 
     def _on_data(self, key: str, payload: bytes) -> None:
         """On the transport's thread: a packet only crossing us goes on at once (`agent.relaying`),

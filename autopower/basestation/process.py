@@ -191,8 +191,9 @@ class BaseStation:
                                        on_decision_answer=lambda: self.events.post(DecisionAnswered()))
         self.peer_views = PeerViews(scenario, self.keys)
         self.traffic = link_traffic_of(bus)
-        for key in (keys.node_data(self.node), keys.node_control(self.node), keys.addressed_to(self.node), keys.plan,
-                    keys.inbox, keys.status_all, keys.node_relay(self.node)):
+        # what is for its host on one subscription (`Keys.node_all`): data, control, relayed control
+        # and what robots address to it
+        for key in (keys.node_all(self.node), keys.base_all, keys.status_all):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.serve(keys.operator, self.events.on_request))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))

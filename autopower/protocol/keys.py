@@ -89,6 +89,13 @@ class Keys:
         """Control-plane messages another node asks this one to carry on (`Relayed`)."""
         return self._node_key(node, "relay")
 
+    def node_all(self, node: str) -> str:
+        """Everything for ``node``: its data, control and relay keys and what others address to it
+        (`addressed_to`). A node takes them on one subscription: each subscription is a thread of its
+        process that wakes ten times a second at rest (`runtime.bus._Pump`) and a declaration every
+        peer keeps."""
+        return f"{self.prefix}/node/{check_name(node, 'node')}/**"
+
     @cached_property
     def subgroup(self) -> str:
         """Subgroup agreement rounds among robots (propose, votes, decision)."""
@@ -165,6 +172,12 @@ class Keys:
     @cached_property
     def inbox(self) -> str:
         return f"{self.prefix}/base/inbox"
+
+    @cached_property
+    def base_all(self) -> str:
+        """The plans and the inbox on one subscription (`node_all`: why); the operator's key is a
+        queryable's, which no put reaches."""
+        return f"{self.prefix}/base/*"
 
     @cached_property
     def operator(self) -> str:
