@@ -2,8 +2,10 @@
 
 A robot's loop that stops turning misses source periods, statuses and silence checks; its log
 then says *that* it was away ("stopped for 1.4 s") but not *where*. A `LoopWatch` thread looks
-every `check_s`; when the loop has been working (not waiting for an event) for `after_s`, it logs
-the loop thread's innermost frames once for that stall. Its own lateness is evidence too: a check
+every `check_s` while the loop works, every `idle_check_s` while it waits for an event (each look
+wakes the process: ten a second were a fifth of an agent's CPU at rest); when the loop has been
+working (not waiting for an event) for `after_s`, it logs the loop thread's innermost frames once
+for that stall, at most `idle_check_s` + `check_s` after it began. Its own lateness is evidence too: a check
 that itself ran `after_s` late means the whole process was not running (the machine, or a C call
 holding the GIL), not one blocked call.
 
@@ -25,11 +27,12 @@ FRAMES_SHOWN = 6  # innermost frames: the blocked call and what called it
 
 
 class LoopWatch:
-    def __init__(self, name: str, *, after_s: float = 0.5, check_s: float = 0.1,
+    def __init__(self, name: str, *, after_s: float = 0.5, check_s: float = 0.1, idle_check_s: float | None = None,
                  clock=time.monotonic, loop_thread: threading.Thread | None = None):
         self.name = name
         self.after_s = after_s
         self.check_s = check_s
+        self.idle_check_s = after_s if idle_check_s is None else idle_check_s
         self._clock = clock
         self._loop_ident = (loop_thread or threading.current_thread()).ident
         self._working_since: float | None = None
@@ -54,11 +57,12 @@ class LoopWatch:
     def _run(self) -> None:
         while True:
             before = self._clock()
-            if self._stop.wait(self.check_s):
+            step = self.check_s if self._working_since is not None else self.idle_check_s
+            if self._stop.wait(step):
                 return
             now = self._clock()
             # only the wait counts: a report's own logging may wait for the disk like the loop did
-            late = now - before - self.check_s
+            late = now - before - step
             if late >= self.after_s:
                 log.warning("%s: this process did not run for %.1f s (the machine, or a call holding the GIL)",
                             self.name, late)

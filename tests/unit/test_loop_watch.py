@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 from autopower.runtime.loop_watch import LoopWatch
 
@@ -51,7 +52,29 @@ def test_a_watch_that_itself_ran_late_says_the_whole_process_was_stopped(caplog)
             return 2.01
 
     with caplog.at_level("WARNING", logger="autopower.runtime.loop_watch"):
-        watch = LoopWatch("agent r9", after_s=0.5, check_s=0.01, clock=clock)
+        watch = LoopWatch("agent r9", after_s=0.5, check_s=0.01, idle_check_s=0.01, clock=clock)
         assert stopped.wait(5)
         watch.stop()
     assert any("did not run for 2.0 s" in r.getMessage() for r in caplog.records)
+
+
+def test_a_loop_waiting_for_events_is_looked_at_seldom_and_a_stall_still_reported_soon(caplog):
+    """Each look wakes the process: an idle team's agents woke ten times a second for this alone."""
+    looks = []
+
+    def clock():
+        looks.append(None)
+        return time.monotonic()
+
+    with caplog.at_level("WARNING", logger="autopower.runtime.loop_watch"):
+        watch = LoopWatch("agent r9", after_s=0.2, check_s=0.02, idle_check_s=0.3, clock=clock)
+        try:
+            time.sleep(1.0)  # the loop waits for events
+            assert len(looks) <= 2 * (1.0 / 0.3 + 2), len(looks)  # two clock reads a look (every 0.02 s: 100)
+            watch.working()  # a stall begins during an idle wait: reported within after_s + idle_check_s + check_s
+            deadline = time.monotonic() + 0.2 + 0.3 + 0.02 + 1.0  # (and a second for a busy machine)
+            while not any("busy for" in r.getMessage() for r in caplog.records):
+                assert time.monotonic() < deadline, "a stall was not reported"
+                time.sleep(0.01)
+        finally:
+            watch.stop()
