@@ -219,6 +219,7 @@ class ZenohBus:
         self._zenoh = zenoh
         self.settings = settings
         self.session = zenoh.open(settings.to_config())
+        self._zid = str(self.session.info.zid())  # a session's id never changes (read with every status)
         self._publishers: dict[tuple[str, bool], object] = {}
         self._pumps: set[_Pump] = set()
         self._lock = threading.Lock()
@@ -287,7 +288,7 @@ class ZenohBus:
     @property
     def zid(self) -> str:
         """This session's Zenoh id (what its peers' admin spaces call it)."""
-        return str(self.session.info.zid())
+        return self._zid
 
     def links(self, timeout_s: float = 1.0) -> dict[str, list[tuple[str, str]]]:
         """This session's links, by peer session: zid -> [(our endpoint, theirs)], from Zenoh's
