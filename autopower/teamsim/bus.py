@@ -10,20 +10,26 @@
 
 from __future__ import annotations
 
+import functools
+import re
 from typing import Callable
 
 from autopower.protocol.keys import key_matches
 from autopower.teamsim.network import SimNetwork
 from autopower.teamsim.trace import Trace
 
-_MATCHES: dict[tuple[str, str], bool] = {}
 
-
-def matches(pattern: str, key: str) -> bool:
-    found = _MATCHES.get((pattern, key))
-    if found is None:
-        found = _MATCHES[(pattern, key)] = key_matches(pattern, key)
-    return found
+@functools.lru_cache(maxsize=None)
+def matcher(pattern: str) -> Callable[[str], bool]:
+    """``key -> whether it matches pattern`` (`key_matches`), built once per pattern: no state per
+    (pattern, key) pair, which a team of n robots has n^2 of (each robot's ``node/<r>/from/*``
+    against every key the base station addresses)."""
+    chunks = pattern.split("/")
+    if "*" not in pattern:
+        return pattern.__eq__
+    if "**" not in chunks and all(c == "*" or "*" not in c for c in chunks):
+        return re.compile("/".join("[^/]*" if c == "*" else re.escape(c) for c in chunks)).fullmatch
+    return functools.partial(key_matches, pattern)
 
 
 class _Handle:
@@ -46,8 +52,9 @@ class SimBus:
         self.after_event = after_event
         self.frozen = False
         self.closed = False
-        self.subs: list[tuple[str, Callable[[str, bytes], None]]] = []
-        self._subscribes: dict[str, bool] = {}  # key -> does a subscription match it
+        self.subs: list[tuple[str, Callable[[str], object], Callable[[str, bytes], None]]] = []
+        self._exact: dict[str, int] = {}  # the subscriptions' keys without wildcards (how many of each)
+        self._wild: list[Callable[[str], object]] = []  # the others' matchers
         self.watchers: list[tuple[str, Callable[[str, bool], None]]] = []
         self.tokens: list[str] = []
         self.seen: dict[str, list[str]] = {}  # peer -> its tokens this process sees
@@ -66,22 +73,29 @@ class SimBus:
         payload = bytes(payload)
         if self.subscribes(key):
             self.network.scheduler.at(self.network.scheduler.now, self.arrive, self.node, key, payload)
-        for peer in self.network.neighbours[self.node]:
-            far = self.network.endpoints.get(peer)
-            if far is not None and far.subscribes(key):
-                self.network.transmit(self.node, peer, key, payload)
+        for peer in self.network.subscribers(self.node, key):
+            self.network.transmit(self.node, peer, key, payload)
 
     def subscribe(self, key_expr: str, callback: Callable[[str, bytes], None]):
-        entry = (key_expr, callback)
+        entry = (key_expr, matcher(key_expr), callback)
         self.subs.append(entry)
-        self._subscribes.clear()
+        self._index()
 
         def unsubscribe() -> None:
             if entry in self.subs:
                 self.subs.remove(entry)
-                self._subscribes.clear()
+                self._index()
 
         return _Handle(unsubscribe)
+
+    def _index(self) -> None:
+        self._exact, self._wild = {}, []
+        for pattern, match, _ in self.subs:
+            if "*" in pattern:
+                self._wild.append(match)
+            else:
+                self._exact[pattern] = self._exact.get(pattern, 0) + 1
+        self.network.subscriptions_changed()
 
     def declare_token(self, key: str):
         self.tokens.append(key)
@@ -99,11 +113,12 @@ class SimBus:
         return _Handle(undeclare)
 
     def watch_liveliness(self, key_expr: str, callback: Callable[[str, bool], None]):
-        entry = (key_expr, callback)
+        match = matcher(key_expr)
+        entry = (match, callback)
         self.watchers.append(entry)
         for peer, keys in self.seen.items():  # history: the tokens seen already
             for key in keys:
-                if matches(key_expr, key):
+                if match(key):
                     self.network.scheduler.at(self.network.scheduler.now, self._sighted, peer, key, True)
         return _Handle(lambda: self.watchers.remove(entry) if entry in self.watchers else None)
 
@@ -129,10 +144,7 @@ class SimBus:
 
     # ---- from the network --------------------------------------------------------------------------
     def subscribes(self, key: str) -> bool:
-        found = self._subscribes.get(key)
-        if found is None:
-            found = self._subscribes[key] = any(matches(pattern, key) for pattern, _ in self.subs)
-        return found
+        return key in self._exact or any(match(key) for match in self._wild)
 
     def arrive(self, sender: str, key: str, payload: bytes) -> None:
         if self.closed:
@@ -172,15 +184,15 @@ class SimBus:
     # ---- handling -------------------------------------------------------------------------------------
     def _handle(self, sender: str, key: str, payload: bytes) -> None:
         self.trace.message(self.network.scheduler.now, sender, self.node, key, payload)
-        for pattern, callback in list(self.subs):
-            if matches(pattern, key):
+        for _, match, callback in list(self.subs):
+            if match(key):
                 callback(key, payload)
         self.after_event()
 
     def _handle_sight(self, peer: str, key: str, alive: bool) -> None:
         self.trace.liveliness(self.network.scheduler.now, self.node, peer, alive)
-        for pattern, callback in list(self.watchers):
-            if matches(pattern, key):
+        for match, callback in list(self.watchers):
+            if match(key):
                 callback(key, alive)
         self.after_event()
 

@@ -92,15 +92,18 @@ class SimNetwork:
         self.reconnect_s = reconnect_s
         self.nodes = tuple(scenario.node_names())
         self.directions: dict[tuple[str, str], Direction] = {}
-        self.neighbours: dict[str, tuple[str, ...]] = {n: () for n in self.nodes}
+        peers: dict[str, list[str]] = {n: [] for n in self.nodes}
         for link in build_network(scenario).links:
             kbps = scenario.radios[link.medium].kbps
             for a, b in ((link.a, link.b), (link.b, link.a)):
                 self.directions[(a, b)] = Direction(kbps=kbps)
-                self.neighbours[a] = (*self.neighbours[a], b)
-        self.neighbours = {n: tuple(sorted(peers)) for n, peers in self.neighbours.items()}
+                peers[a].append(b)
+        self.neighbours: dict[str, tuple[str, ...]] = {n: tuple(sorted(p)) for n, p in peers.items()}
         self.pairs: dict[frozenset[str], Pair] = {frozenset(d): Pair() for d in self.directions}
         self.endpoints: dict[str, Endpoint] = {}
+        # (sender, key) -> (the subscriptions' version it was found at, the neighbours that subscribe)
+        self._fanout: dict[tuple[str, str], tuple[int, tuple[str, ...]]] = {}
+        self._subscriptions = 0  # bumped whenever a process comes, goes or (un)subscribes
         self.stats = NetStats()
         # second copies that reached their receiver, per (receiver, key): the evidence a sink's count
         # of duplicated outputs is checked against (`World.final_checks`)
@@ -115,16 +118,34 @@ class SimNetwork:
     def attach(self, node: str, endpoint: Endpoint) -> None:
         """``node``'s process is up (its sessions connect after the reconnect delay)."""
         self.endpoints[node] = endpoint
+        self.subscriptions_changed()
         self._reevaluate(node)
 
     def detach(self, node: str) -> None:
         """``node``'s process ended: its peers see its sessions close now."""
         self.endpoints.pop(node, None)
+        self.subscriptions_changed()
         for peer in self.neighbours[node]:
             pair = self.pairs[frozenset((node, peer))]
             pair.healthy, pair.version = False, pair.version + 1
             if pair.connected:
                 self._disconnect(node, peer)
+
+    def subscriptions_changed(self) -> None:
+        self._subscriptions += 1
+
+    def subscribers(self, sender: str, key: str) -> tuple[str, ...]:
+        """The neighbours of ``sender`` whose process subscribes to ``key``, in `neighbours` order
+        (the order messages leave in). Found once per (sender, key) until a subscription changes:
+        a key the base station addresses to one robot is not asked of each of its n neighbours at
+        every status."""
+        found = self._fanout.get((sender, key))
+        if found is None or found[0] != self._subscriptions:
+            endpoints = self.endpoints
+            found = self._fanout[(sender, key)] = (self._subscriptions, tuple(
+                peer for peer in self.neighbours[sender]
+                if (far := endpoints.get(peer)) is not None and far.subscribes(key)))
+        return found[1]
 
     def frozen_changed(self, node: str) -> None:
         self._reevaluate(node)

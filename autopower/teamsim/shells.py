@@ -419,7 +419,7 @@ class BaseShell(Shell):
                 co.link_lost(self.node, node, detected_unix=since)
             else:
                 co.on_liveliness(node, False, detected_unix=since)
-        for node in sorted(co.present):
+        for node in sorted(co.present - self.relayer.direct - self.suspects.keys()):  # (at each turn: not all)
             if node not in self.relayer.direct and node not in self.suspects and not self.relayer.reachable(node):
                 co.on_liveliness(node, False)
 

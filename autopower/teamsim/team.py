@@ -226,8 +226,8 @@ class World:
         rt = shell.rt
         if rt.meter is not None and not rt.resumed and shell.node != self.scenario.basestation:
             self.idle_from[shell.node] = rt.meter.t0
-        leaders = [s.node for s in self.shells.values()
-                   if isinstance(s, BaseShell) and s.up and s.co.mission is not None and s.co.stepped_down is None]
+        leaders = [s.node for s in self.base_shells if self.shells.get(s.node) is s
+                   and s.up and s.co.mission is not None and s.co.stepped_down is None]
         if len(leaders) > 1:
             self.ledger.violate("one-leader", f"{len(leaders)} base stations lead at once", self.scheduler.now,
                                 self.trace.events)
