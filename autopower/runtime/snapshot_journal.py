@@ -47,6 +47,11 @@ class SnapshotJournal:
         self._spare: tuple[int, int] | None = None  # (generation, fd): created ahead by the writer
         self._pending: tuple[int, bytes, int | None] | None = None  # (generation, content, fd it retires)
         self._closing = False
+        # The generations on disk, listed once, then kept as this journal creates and removes them
+        # (only its own process writes them): a snapshot does not list a folder that other
+        # processes' stores share (n agents of a localhost team, n robots of a simulated one).
+        self._on_disk: set[int] | None = None
+        self._on_disk_lock = threading.Lock()
         self.skipped = 0  # snapshots not written because the one before was still being written
         self._thread: threading.Thread | None = None
         if background:
@@ -70,6 +75,18 @@ class SnapshotJournal:
         except OSError:
             return []
         return sorted(int(n[len(prefix):]) for n in names if n.startswith(prefix) and n[len(prefix):].isdigit())
+
+    def _known_generations(self) -> list[int]:
+        """`generations` as this journal keeps them (the folder listed the first time only)."""
+        with self._on_disk_lock:
+            if self._on_disk is None:
+                self._on_disk = set(self.generations())
+            return sorted(self._on_disk)
+
+    def _known(self, generation: int, on_disk: bool) -> None:
+        with self._on_disk_lock:
+            if self._on_disk is not None:
+                (self._on_disk.add if on_disk else self._on_disk.discard)(generation)
 
     def read_snapshot(self) -> bytes | None:
         """The snapshot's content (None if there is none); OSError if it cannot be read."""
@@ -147,7 +164,7 @@ class SnapshotJournal:
 
     # ---- the writer ----------------------------------------------------------------------------
     def _open_next(self) -> tuple[int, int] | None:
-        generation = max(self.generations() + [self._generation], default=0) + 1  # after any left on disk
+        generation = max(self._known_generations() + [self._generation], default=0) + 1  # after any left on disk
         try:
             self.path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
             return generation, self._create(generation)
@@ -156,7 +173,10 @@ class SnapshotJournal:
             return None
 
     def _create(self, generation: int) -> int:
-        return os.open(self.generation_path(generation), os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o600)
+        self._known_generations()  # (listed before the new one exists)
+        fd = os.open(self.generation_path(generation), os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o600)
+        self._known(generation, True)
+        return fd
 
     def _run(self) -> None:
         spare = self._open_next()  # ahead of the first snapshot, which must not create it on the loop
@@ -182,9 +202,10 @@ class SnapshotJournal:
                 os.close(fd)
             os.replace(self._tmp, self.path)
             # the snapshot is in place: what the older generations said, it says
-            for old in self.generations():
+            for old in self._known_generations():
                 if old < generation:
                     self.generation_path(old).unlink(missing_ok=True)
+                    self._known(old, False)
             supersedes, self._supersedes = self._supersedes, ()
             for path in supersedes:
                 path.unlink(missing_ok=True)
