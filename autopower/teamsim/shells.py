@@ -199,7 +199,9 @@ class RobotShell(Shell):
     """A robot's agent: its stores, its statuses to every peer, superseded instances stopped."""
 
     def stores(self) -> NodeStores:
-        folder, robot = self.world.store_dir, self.node
+        robot = self.node
+        folder = self.world.store_dir / robot  # its own, as an agent's state directory on its robot
+        folder.mkdir(exist_ok=True)
         self.resume = ResumeFile(folder / f"{robot}.json")
         return NodeStores(held_store=HeldStore(folder / f"{robot}.held"),
                           sink_store=SinkStore(folder / f"{robot}.sinks.json"),
