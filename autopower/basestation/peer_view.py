@@ -50,6 +50,8 @@ class PeerViews:
         alive = co.alive_nodes()
         listening = (encode(self.listening(self._node, t_unix, alive - {self._node}, next_status_s))
                      if status is None else None)
+        whole = PeerStatus.of(status) if status is not None else None
+        placed = self._placed_chains((co.placement, co.target)) if status is not None else {}
         for robot in co.robots:
             if robot not in alive:
                 continue
@@ -57,17 +59,28 @@ class PeerViews:
                 payload = listening
             else:
                 reported = co.statuses.get(robot)
-                chains = self.chains_of(robot, (co.placement, co.target), reported.hosted if reported else ())
-                payload = encode(self.view(status, chains))
+                chains = self._touched(robot, placed.get(robot, ()), reported.hosted if reported else ())
+                payload = encode(self._view(whole, chains))
             yield robot, self._keys.addressed(robot, self._node), payload
 
     def chains_of(self, robot: str, placements: Iterable[Mapping[str, str]], hosted: Iterable[str]) -> set[str]:
         """The chains ``robot`` touches: its own, those of stages ``placements`` put on it and of
         the stages it reports it runs (``hosted``)."""
-        out = set(self._own.get(robot, ()))
+        return self._touched(robot, self._placed_chains(placements).get(robot, ()), hosted)
+
+    def _placed_chains(self, placements: Iterable[Mapping[str, str]]) -> dict[str, set[str]]:
+        """node -> the chains of the stages ``placements`` put on it (one pass for every robot)."""
+        out: dict[str, set[str]] = {}
         for placement in placements:
-            out.update(self._chain_of_stage[s] for s, node in placement.items()
-                       if node == robot and s in self._chain_of_stage)
+            for stage, node in placement.items():
+                chain = self._chain_of_stage.get(stage)
+                if chain is not None:
+                    out.setdefault(node, set()).add(chain)
+        return out
+
+    def _touched(self, robot: str, placed: Iterable[str], hosted: Iterable[str]) -> set[str]:
+        out = set(self._own.get(robot, ()))
+        out.update(placed)
         out.update(self._chain_of_stage[s] for s in hosted if s in self._chain_of_stage)
         return out
 
@@ -82,7 +95,9 @@ class PeerViews:
 
     def view(self, status: NodeStatus, chains: set[str]) -> PeerStatus:
         """``status`` as a robot touching ``chains`` needs it."""
-        whole = PeerStatus.of(status)
+        return self._view(PeerStatus.of(status), chains)
+
+    def _view(self, whole: PeerStatus, chains: set[str]) -> PeerStatus:
         mine = {s for s in whole.hosted if self._chain_of_stage.get(s) in chains}
         return dataclasses.replace(
             whole, hosted={s: v for s, v in whole.hosted.items() if s in mine},
