@@ -7,6 +7,8 @@ difference, not a full re-evaluation (this stays cheap at 300 stages).
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 import numpy as np
 
 from autopower.model.energy import Evaluation, LoadSpace, dag_load, load_of
@@ -18,7 +20,10 @@ def _fmt_life(life: float) -> str:
     return "infeasible" if not np.isfinite(life) else f"{life:,.1f} s"
 
 
-def explain(problem: Problem, network: Network, allocation: dict[str, str], evaluation: Evaluation) -> dict[str, str]:
+def explain(problem: Problem, network: Network, allocation: dict[str, str], evaluation: Evaluation,
+            stages: Collection[str] | None = None) -> dict[str, str]:
+    """Why each stage runs where it runs (only ``stages``, when given), and why each unroutable
+    chain is not placed."""
     space = LoadSpace(problem.scenario, network, problem.accounting, problem.energies_j)
     base = load_of(space, problem.chains, allocation)
     base_power = space.total_power(base[None, :])[0]
@@ -31,6 +36,8 @@ def explain(problem: Problem, network: Network, allocation: dict[str, str], eval
         hosts = tuple(allocation[s.name] for s in chain.stages)
         old = space.chain_load(chain, hosts)
         for k, stage in enumerate(chain.stages):
+            if stages is not None and stage.name not in stages:
+                continue
             host = hosts[k]
             alternatives = [h for h in problem.hosts[stage.name] if h != host]
             if not alternatives:
@@ -48,8 +55,8 @@ def explain(problem: Problem, network: Network, allocation: dict[str, str], eval
             if host != chain.source and chain.source in alternatives:
                 alt = chain.source
             else:
-                lives = {h: space.lifetimes(trial(h)[None, :])[0] for h in alternatives}
-                alt = max(lives, key=lambda h: lives[h])
+                lives = space.lifetimes(np.stack([trial(h) for h in alternatives]))  # one batch
+                alt = alternatives[int(np.argmax(lives))]  # (the first of equals, as max() over them)
             load = trial(alt)
             alt_life = space.lifetimes(load[None, :])[0]
             alt_power = space.total_power(load[None, :])[0]

@@ -191,7 +191,8 @@ class DecisionView:
             from autopower.planner.reasons import explain
 
             problem = dataclasses.replace(self.problem, networks=[network])
-            why = explain(problem, network, dict(allocation), evaluate_in(problem, network, dict(allocation)))
+            why = explain(problem, network, dict(allocation), evaluate_in(problem, network, dict(allocation)),
+                          stages=set(stages))
             return {s: why[s] for s in stages if s in why}
         except AutoPowerError:  # pragma: no cover - explanations are a courtesy
             return {}
