@@ -63,6 +63,10 @@ class Decider:
         self._answer: Answer | None = None
         self._thread: threading.Thread | None = None
         self._asked = False  # a question is out and its answer not yet taken
+        # answers whose configuration the policy did not prove optimal (`Decision.proven_optimal`),
+        # and the largest MILP gap among them (None: none, or no gap known)
+        self.unproven = 0
+        self.unproven_max_gap: float | None = None
 
     @property
     def on_thread(self) -> bool:
@@ -123,5 +127,9 @@ class Decider:
             if self._on_answer is None:
                 raise
             failure = exc
+        if decision is not None and decision.proven_optimal is False:
+            self.unproven += 1
+            if decision.mip_gap is not None:
+                self.unproven_max_gap = max(self.unproven_max_gap or 0.0, decision.mip_gap)
         return Answer(state=state, reason=reason, decision=decision, error=error,
                       took_s=self._perf() - started, failure=failure)

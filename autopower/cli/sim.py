@@ -185,8 +185,13 @@ def _print(out: dict) -> None:
                f"{out['events']} events, {out['virtual_s']:.1f} mission s in {out['wall_s']:.2f} s")
     decisions, per = out["decisions"], out["per_robot_per_s"]
     mean_ms = 1e3 * decisions["seconds"] / decisions["count"] if decisions["count"] else 0.0
+    unproven = decisions.get("not_proven", 0)
+    gap = decisions.get("not_proven_max_gap")
     click.echo(f"{out['robots']} robots; {decisions['count']} decisions (policy: {mean_ms:.0f} ms mean, "
-               f"{1e3 * decisions['max_s']:.0f} ms max, wall); sent per robot per mission s: control "
+               f"{1e3 * decisions['max_s']:.0f} ms max, wall"
+               + (f"; {unproven} not proven optimal" + (f", MILP gap up to {gap:.2%}" if gap is not None else "")
+                  if unproven else "")
+               + "); sent per robot per mission s: control "
                f"{per['control']['messages']:g} messages ({per['control']['bytes']:,.0f} B), data "
                f"{per['data']['messages']:g} ({per['data']['bytes']:,.0f} B)")
     click.echo(f"fault kinds: {', '.join(out['kinds']) or 'none'}")

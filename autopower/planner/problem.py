@@ -6,6 +6,7 @@ the same problem.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from itertools import product
 from typing import Mapping
@@ -98,3 +99,39 @@ def make_problem(request: PlanRequest) -> Problem:
                 and chain.name not in request.disabled_chains):
             problem.unroutable[chain.name] = f"{chain.name} cannot run: none of its inputs runs"
     return problem
+
+
+def host_binaries(problem: Problem) -> int:
+    """The placement MILP's stage-host binaries per media choice (`milp.MAX_HOST_BINARIES`)."""
+    return sum(len(hosts) for hosts in problem.hosts.values())
+
+
+def near_hosts(problem: Problem, keep: Mapping[str, str] = {}) -> Problem:  # noqa: B006 (read only)
+    """``problem`` with each stage's candidate hosts cut down to those near its chain: its source
+    and its sink, the neighbours of those that are robots (one hop on the problem's network), the
+    base station, and the host ``keep`` gives it (the plan in force: staying is always a
+    candidate). The hosts stay in the order the problem gives them, and a stage keeps only hosts
+    it already had (pins and declared hosts hold; one with none of them near keeps all its own).
+
+    A plan for this problem is a plan for the whole one, but its optimum is the optimum among
+    those hosts only: with every node a candidate, a team of n robots has O(n^2) binaries (two
+    million at 1,000 robots), which no MILP builds in a decision's time; a stage that runs
+    farther than one hop from both ends of its chain pays for the relays on its way and is
+    rarely the better plan, but nothing here proves it never is."""
+    structure = problem.networks[0]
+    around: dict[str, set[str]] = {}
+
+    def near(node: str) -> set[str]:  # (the base station's neighbours are the whole team: itself only)
+        found = around.get(node)
+        if found is None:
+            found = around[node] = ({node} if node == structure.basestation or node not in structure.nodes
+                                    else {node, *structure.neighbours(node)})
+        return found
+
+    hosts = {}
+    for chain in problem.chains:
+        ends = near(chain.source) | near(chain.sink) | {structure.basestation}
+        for stage in chain.stages:
+            wanted = ends | {keep[stage.name]} if stage.name in keep else ends
+            hosts[stage.name] = [h for h in problem.hosts[stage.name] if h in wanted] or problem.hosts[stage.name]
+    return dataclasses.replace(problem, hosts={**problem.hosts, **hosts})

@@ -111,7 +111,9 @@ class RebalancePolicy:
                              reasons=reasons, forced=forced, stay_value=stay_value, schedule=rest,
                              revisit_at_s=state.time_s + first.duration_s, predicted_s=choice.value_s)
         if not quiet:
-            reasons.append(f"the best single configuration: predicted {choice.value_s:,.0f} s"
+            reasons.append(("the best single configuration" if choice.proven is not False else
+                            f"the best single configuration found (not proven optimal: {choice.not_proven})")
+                           + f": predicted {choice.value_s:,.0f} s"
                            + ("" if stay is None else f" vs {stay.value_s:,.0f} s staying"))
         return make_decision(self.name, view, choice, reasons=reasons, forced=forced, stay_value=stay_value)
 

@@ -20,7 +20,7 @@ from autopower.model.energy import LoadSpace, load_of
 from autopower.model.network import Network
 from autopower.model.scenario import Chain
 from autopower.planner.exhaustive import TIE_REL, add_flow_loads, combine, decode_allocation
-from autopower.planner.problem import PlanRequest, make_problem
+from autopower.planner.problem import PlanRequest, host_binaries, make_problem, near_hosts
 from autopower.policies.team import (
     EXHAUSTIVE_UP_TO,
     NEVER,
@@ -34,6 +34,15 @@ from autopower.policies.team import (
     plan_moves,
     total_energy,
 )
+
+# The placement MILP of a decision: its time limit and the relative gap that counts as optimal
+MILP_TIME_LIMIT_S = 30.0
+MILP_GAP = 1e-6
+# Stage-host choices beyond which a decision searches only the hosts near each chain
+# (`planner.problem.near_hosts`; its decisions are then not proven optimal): a team whose every
+# node may host every stage has n^2 of them, 20,200 at 100 robots (a MILP of 3-12 s), 180,000 at
+# 300 (a minute), two million at 1,000 (refused: `milp.MAX_HOST_BINARIES`).
+NEAR_HOSTS_ABOVE = 50_000
 
 # ---------------------------------------------------------------------------------------------
 # One decision's view: the problem, energies, configurations and their values
@@ -49,6 +58,11 @@ class Option:
     spread: float = 0.0  # sum_i P_i / E_i: the planner's tie-breaker
     label: str = ""
     schedule: list[SchedulePhase] = field(default_factory=list)  # for schedule options: all phases
+    # for the search's optimum (`DecisionView.best_static`): proven the best of every configuration
+    # the policy may choose, or not (`not_proven` says why, `mip_gap` how far over what was searched)
+    proven: bool | None = None
+    mip_gap: float | None = None
+    not_proven: str = ""
 
 
 class DecisionView:
@@ -71,6 +85,11 @@ class DecisionView:
                               accounting=self.accounting)
         self.problem = make_problem(request)
         self.problem.networks = list(self.networks)
+        # a team whose every node may host every stage: only the hosts near each chain (`near_hosts`)
+        self.all_binaries = host_binaries(self.problem)
+        self.near_only = self.all_binaries > NEAR_HOSTS_ABOVE
+        if self.near_only:
+            self.problem = near_hosts(self.problem, state.allocation)
         self.stages = [s.name for c in self.problem.chains for s in c.stages]
         self.current = {s: h for s, h in state.allocation.items() if s in self.stages}
         self._spaces: dict[Network, LoadSpace] = {}
@@ -160,15 +179,34 @@ class DecisionView:
             return self.value(self.stay_network() if self.stay_network() in self.networks else self.networks[0],
                               {}, "optimum")
         if self.problem.combinations() <= EXHAUSTIVE_UP_TO:
-            return self._enumerate(hosts)
+            return self._proven(self._enumerate(hosts), True, None)
         from autopower.planner.milp import solve_milp
 
         # warm: the plan in force, repaired where it fails, is the first incumbent (often the answer)
-        result = solve_milp(self.problem, time_limit_s=30.0, mip_rel_gap=1e-6, start=self.current or None)
+        result = solve_milp(self.problem, time_limit_s=MILP_TIME_LIMIT_S, mip_rel_gap=MILP_GAP,
+                            start=self.current or None)
         if result.allocation is None:
             return None
         # the MILP ignores migration costs; callers weigh its plan against staying, costs included
-        return self.value(result.network, result.allocation, "optimum")
+        return self._proven(self.value(result.network, result.allocation, "optimum"), result.optimal, result.mip_gap)
+
+    def _proven(self, option: Option | None, optimal: bool, gap: float | None) -> Option | None:
+        """The search's optimum with what it proves: the best of every configuration the policy may
+        choose only when the search was exact over every candidate host."""
+        if option is None:
+            return None
+        option.proven = optimal and not self.near_only
+        option.mip_gap = gap
+        if option.proven:
+            return option
+        why = []
+        if not optimal:  # (its gap is the decision's `mip_gap`: a figure of the time limit, not of the plan)
+            why.append("the MILP stopped at its time limit")
+        if self.near_only:
+            why.append(f"only the hosts near each chain were searched, {host_binaries(self.problem):,} of the team's "
+                       f"{self.all_binaries:,} stage-host choices")
+        option.not_proven = ", and ".join(why)
+        return option
 
     def _enumerate(self, hosts: Mapping[str, Sequence[str]] | None = None) -> Option | None:
         best: tuple | None = None
@@ -281,6 +319,7 @@ def make_decision(policy: str, view: DecisionView, option: Option, *, reasons: l
         forced=forced, schedule=tuple(schedule), revisit_at_s=revisit_at_s,
         dropped=dict(view.problem.unroutable),
         degraded={k: v for k, v in view.degraded.items() if any(c.name == k for c in view.problem.chains)},
+        proven_optimal=option.proven, mip_gap=option.mip_gap,
     )
 
 

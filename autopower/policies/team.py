@@ -133,6 +133,12 @@ class Decision:
     revisit_at_s: float | None = None  # ask again at this mission time even without events
     dropped: Mapping[str, str] = field(default_factory=dict)  # chains that cannot run, and why
     degraded: Mapping[str, str] = field(default_factory=dict)  # chains whose results are buffered, and why
+    # Whether the search proved `allocation` and `network` the best configuration the policy may
+    # choose: None, the policy claims nothing (a heuristic, or it keeps what runs); False, it did
+    # not (a MILP stopped at its time limit, or only the hosts near each chain were searched),
+    # and `mip_gap` says how far from proven it is over the hosts it searched (None: unknown).
+    proven_optimal: bool | None = None
+    mip_gap: float | None = None
 
     @property
     def changes_anything(self) -> bool:

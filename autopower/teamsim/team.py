@@ -85,7 +85,8 @@ class SimResult:
     network: dict = field(default_factory=dict)
     trace: list[str] | None = None
     robots: int = 0
-    # the base station's policy over every incarnation: {"count", "seconds", "max_s"} (wall)
+    # the base station's policy over every incarnation: {"count", "seconds", "max_s"} (wall), and its
+    # answers not proven optimal: "not_proven" (how many), "not_proven_max_gap" (the largest MILP gap known)
     decisions: dict = field(default_factory=dict)
 
     @property
@@ -154,8 +155,11 @@ class World:
     def decisions(self) -> dict:
         """How often the base station's policy decided, over all its starts, and the wall time it took."""
         cos = [shell.co for shell in self.base_shells if shell.co is not None]
+        gaps = [co.decider.unproven_max_gap for co in cos if co.decider.unproven_max_gap is not None]
         return {"count": sum(co.decisions for co in cos), "seconds": round(sum(co.decide_s for co in cos), 4),
-                "max_s": round(max((co.decide_max_s for co in cos), default=0.0), 4)}
+                "max_s": round(max((co.decide_max_s for co in cos), default=0.0), 4),
+                "not_proven": sum(co.decider.unproven for co in cos),
+                "not_proven_max_gap": round(max(gaps), 6) if gaps else None}
 
     def clock_for(self, mission) -> VirtualClock:
         return VirtualClock(mission.epoch_unix, mission.speed, wall_fn=self.scheduler.wall)

@@ -56,3 +56,30 @@ def test_the_acknowledgements_a_robot_gets_do_not_grow_with_the_team():
         _, size = result.network["by_kind"]["ack"]
         per_robot[n] = size / n / result.virtual_s
     assert per_robot[20] < 1.25 * per_robot[5], per_robot
+
+
+def test_a_decision_for_a_team_too_large_for_every_host_says_it_is_not_proven_optimal():
+    """With every node a candidate host, n robots give the placement n^2 stage-host choices (two
+    million at 1,000 robots, which the MILP refuses): beyond `NEAR_HOSTS_ABOVE` the policy searches
+    the hosts near each chain only, and its decision says it is not proven optimal. Below it, the
+    same policy's decision is proven."""
+    from autopower.model.network import build_network
+    from autopower.policies.rebalance import RebalancePolicy
+    from autopower.policies.search import NEAR_HOSTS_ABOVE
+    from autopower.policies.team import TeamState
+
+    decisions = {}
+    for n in (40, 200):
+        _, fleet = paper_fleet(n, topology="neighbours", neighbours=2)
+        state = TeamState(scenario=fleet, time_s=0.0, network=build_network(fleet), allocation={},
+                          energies_j={r.name: r.energy_j for r in fleet.robots})
+        decisions[n] = decision = RebalancePolicy().decide(state)
+        network = build_network(fleet)
+        for chain in fleet.chains:  # every stage placed, each near its chain when only those were searched
+            host = decision.allocation[chain.stages[0].name]
+            near = {chain.source, chain.sink, fleet.basestation, *network.neighbours(chain.source)}
+            assert n * 2 * (n + 1) <= NEAR_HOSTS_ABOVE or host in near, (chain.name, host)
+    assert decisions[40].proven_optimal is True
+    assert not any("not proven" in r for r in decisions[40].reasons)
+    assert decisions[200].proven_optimal is False, decisions[200].reasons
+    assert any("not proven optimal" in r and "only the hosts near each chain" in r for r in decisions[200].reasons)
