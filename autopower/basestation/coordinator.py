@@ -45,6 +45,7 @@ from typing import Any, Callable
 from autopower.basestation.decider import Decider
 from autopower.basestation.deciding import Baseline, Deciding
 from autopower.basestation.links import LinkStates, pair_name
+from autopower.basestation.listening import TeamListening
 from autopower.basestation.operating import Operating
 from autopower.basestation.placing import Migration, Placing
 from autopower.basestation.takeover import TakingOver, instance_id
@@ -212,16 +213,14 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         # any the robots report when taking over; the process raises it to what its host remembers
         self.incarnation = incarnation
         self.leader = leader or instance_id()
-        self.up_unix = self.wall()
-        self.heard: dict[str, NodeStatus] = {}  # robot -> its status before we run the mission
+        # what it hears of the team before it runs the mission (`basestation.listening`)
+        self.listening = TeamListening(up_unix=self.wall(), learn_team_s=config.learn_team_s)
         self.takeover: dict | None = None  # how the running team was adopted (None: we started the mission)
         self.mission_unix = 0.0  # when we started or adopted the mission
         self.stepped_down: str | None = None  # why we yielded to another base station
         self._rival_seen: str | None = None
         self._foreign_noted = False
-        self.first_seen_unix: float | None = None
         self._far_generation: set[str] = set()  # robots that reported a generation too far ahead (warned)
-        self.seen_unix: dict[str, float] = {}  # robot -> when it last came into sight (it must speak before we decide)
         self.next_republish = 0.0
         self.last_republish = 0.0  # when the plan last went out (new or repeated)
         self.last_plan_unix = 0.0  # when the last new plan went out (`CoordinatorConfig.plan_batch_s`)
@@ -367,14 +366,15 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
     def maybe_start(self) -> None:
         if self.mission is not None or self.stepped_down is not None:
             return
-        if self._takeover_due():
+        listening, now, alive = self.listening, self.wall(), self.alive_nodes()
+        if listening.takeover_due(alive, self.robots, now):
             self._adopt_team()
             return
-        if self._running_reports() or not self._team_known():
+        if listening.running_reports(alive) or not listening.team_known(self.present - self.departed, now):
             return  # a running team is still to be heard, or robots in sight have not said what they run
         everyone = set(self.robots) <= self.present
-        late = (self.first_seen_unix is not None
-                and self.wall() - self.first_seen_unix >= self.config.start_grace_s)
+        late = (listening.first_seen_unix is not None
+                and now - listening.first_seen_unix >= self.config.start_grace_s)
         if not (everyone or (late and self.present)):
             return
         self.mission = MissionInfo(scenario=self.scenario.name, accounting=self.scenario.accounting,
@@ -420,9 +420,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
                 return
             self.present.add(node)
             self.departed.discard(node)
-            self.seen_unix[node] = self.wall()
-            if self.first_seen_unix is None:
-                self.first_seen_unix = self.wall()
+            self.listening.came_into_sight(node, self.wall())
             self.note(f"{node} joined")
             if self.mission is None:
                 self.maybe_start()
@@ -656,15 +654,10 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             deadlines.append(max(self.wall(), self._ready_plan_unix()))
         if self.mission is not None:
             deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
-        elif self.first_seen_unix is not None:
-            deadlines.append(self.first_seen_unix + self.config.start_grace_s)  # a late start
-            # done listening (only ahead of us: a deadline in the past would spin the loop)
-            now, listening = self.wall(), []
-            if self._running_reports() and not self._listened_enough():
-                listening.append(self.up_unix + self.config.learn_team_s)
-            listening += [self.seen_unix.get(r, self.first_seen_unix) + self.config.learn_team_s
-                          for r in self.present - self.departed if r not in self.heard]
-            deadlines += [t for t in listening if t > now]
+        elif self.listening.first_seen_unix is not None:
+            deadlines.append(self.listening.first_seen_unix + self.config.start_grace_s)  # a late start
+            deadlines += self.listening.deadlines(self.alive_nodes(), self.robots, self.present - self.departed,
+                                                  self.wall())  # done listening
         # nothing else is timed before the first robot appears: the next event wakes us
         if self.clock is not None and self.revisit_at_s is not None:
             deadlines.append(self.clock.wall_at(self.revisit_at_s))

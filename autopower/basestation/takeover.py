@@ -52,37 +52,13 @@ class TakingOver:
         """A robot's status before this base station runs the mission: what the robot runs."""
         if self.mission is not None or status.node not in self.robots:
             return
-        self.heard[status.node] = status
+        self.listening.heard_from(status)
         self.maybe_start()
-
-    def _running_reports(self) -> dict[str, NodeStatus]:
-        """The statuses of robots in the team that run a mission (a plan and its clock). A robot
-        names its mission only to a base station that does not run its plan (`NodeRuntime.status`):
-        until this one's status reaches it, it runs one without saying which, and none may start."""
-        alive = self.alive_nodes()
-        return {n: s for n, s in self.heard.items() if n in alive and s.plan_epoch >= 0}
-
-    def _listened_enough(self) -> bool:
-        """Every robot of the scenario has spoken, or we listened for ``learn_team_s``."""
-        return set(self.robots) <= set(self.heard) or self.wall() - self.up_unix >= self.config.learn_team_s
-
-    def _team_known(self) -> bool:
-        """Enough is known to decide: every robot in sight has spoken, or had the time to since it
-        came into sight. Counted per robot: a robot that comes into sight late may be the one that
-        still runs the mission (the others restarted while this base station was down, and know
-        none). Timed from the first robot seen, such a robot would never be waited for, and a second
-        mission would start beside the running one."""
-        now = self.wall()
-        return all(r in self.heard or now - self.seen_unix.get(r, now) >= self.config.learn_team_s
-                   for r in self.present - self.departed)
-
-    def _takeover_due(self) -> bool:
-        reports = self._running_reports().values()
-        return any(s.mission is not None for s in reports) and self._listened_enough()
 
     def _adopt_team(self) -> None:
         """Go on with the mission the robots run: its clock, their placement, epochs and generations."""
-        reports = {n: s for n, s in self._running_reports().items() if s.mission is not None}
+        reports = {n: s for n, s in self.listening.running_reports(self.alive_nodes()).items()
+                   if s.mission is not None}
         newest = max(reports.values(), key=lambda s: (s.plan_incarnation, s.plan_epoch))
         mission = newest.mission
         if mission.scenario != self.scenario.name:
@@ -97,7 +73,7 @@ class TakingOver:
         self.clock = VirtualClock(mission.epoch_unix, mission.speed, wall_fn=self.wall)
         if mission.speed != self.config.speed:
             self.note(f"the team runs at speed {mission.speed:g}, not {self.config.speed:g}: going on at its speed")
-        heard = list(self.heard.values())
+        heard = list(self.listening.heard.values())
         self.incarnation = max(self.incarnation, max(s.plan_incarnation for s in heard) + 1)
         self.epoch = max(s.plan_epoch for s in heard)  # the next plan is one above anything running
         generations = [g for s in heard for g in s.generations.values()]
@@ -132,11 +108,11 @@ class TakingOver:
             self._send(node, Release(stage=stage, generation=self._next_generation()))
         self.next_periodic_replan = self.now() + self.config.replan_interval_s
         self.adopted += len(placement)
-        self.takeover = {"up_unix": self.up_unix, "adopted_unix": self.wall(), "incarnation": self.incarnation,
+        self.takeover = {"up_unix": self.listening.up_unix, "adopted_unix": self.wall(), "incarnation": self.incarnation,
                          "from_robots": sorted(reports), "mission_t_s": self.now(), "stages": len(placement),
                          "previous": {"incarnation": newest.plan_incarnation, "epoch": newest.plan_epoch,
                                       "leader": newest.plan_leader}}
-        self.note(f"took over a running team after {self.wall() - self.up_unix:.2f} s: mission time "
+        self.note(f"took over a running team after {self.wall() - self.listening.up_unix:.2f} s: mission time "
                   f"{self.now():.1f} s (its clock goes on), {len(placement)} stage(s) running "
                   f"({', '.join(f'{s}@{n}' for s, n in sorted(placement.items())) or 'none'}), "
                   f"heard {', '.join(sorted(reports))}; incarnation {self.incarnation} (after {newest.plan_leader or '?'}'s "
