@@ -56,7 +56,10 @@ class Deciding:
         return out
 
     def _unavailable(self, everyone: bool = False) -> frozenset[str]:
-        return frozenset() if everyone else frozenset(r for r in self.robots if r not in self.alive_nodes())
+        if everyone:
+            return frozenset()
+        alive = self.alive_nodes()  # (a set built per call: once, not once per robot)
+        return frozenset(r for r in self.robots if r not in alive)
 
     def _cut_links(self) -> frozenset[frozenset[str]]:
         return frozenset(self.links_down | self.operator_cuts)
@@ -319,9 +322,8 @@ class Deciding:
         scenario = apply_levels(self.scenario, levels) if levels else self.scenario
         disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
         try:
-            return evaluate(scenario, network.without_nodes(
-                {r for r in self.robots if r not in self.alive_nodes()}), allocation,
-                energies_j=energies, disabled_chains=disabled)
+            return evaluate(scenario, network.without_nodes(set(self._unavailable())), allocation,
+                            energies_j=energies, disabled_chains=disabled)
         except AutoPowerError:
             return None
 

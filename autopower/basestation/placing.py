@@ -275,7 +275,8 @@ class Placing:
             update, payload, changed_only = self._new_plan()
         self.plan_due = False
         self.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
-        in_reach = [r for r in self.robots if r in self.alive_nodes()]
+        alive = self.alive_nodes()  # (a set built per call: once, not once per robot)
+        in_reach = [r for r in self.robots if r in alive]
         self.bus.publish(self.keys.plan, payload)
         self.also_relay(in_reach, self.keys.plan, payload)
         if not repeat:
