@@ -58,6 +58,20 @@ def test_the_acknowledgements_a_robot_gets_do_not_grow_with_the_team():
     assert per_robot[20] < 1.25 * per_robot[5], per_robot
 
 
+@pytest.mark.slow
+def test_the_control_messages_a_robot_sends_do_not_grow_with_the_team():
+    """A robot's statuses go to the base station and the robots it talks to, its acknowledgements
+    to the nodes that feed its chains: the messages it sends per second are the same for 10 robots
+    and for 80 (a status to every peer would make them grow with the team)."""
+    per_robot = {}
+    for n in (10, 80):
+        _, fleet = paper_fleet(n, topology="neighbours", neighbours=2)
+        result = run(SimConfig(scenario=fleet, seed=0, mission_s=10.0, quiet_s=5.0))
+        assert result.ok, [v.to_json() for v in result.violations]
+        per_robot[n] = result.traffic()["control"]["messages"]
+    assert per_robot[80] < 1.25 * per_robot[10], per_robot
+
+
 def test_a_decision_for_a_team_too_large_for_every_host_says_it_is_not_proven_optimal():
     """With every node a candidate host, n robots give the placement n^2 stage-host choices (two
     million at 1,000 robots, which the MILP refuses): beyond `NEAR_HOSTS_ABOVE` the policy searches
