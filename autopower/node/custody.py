@@ -16,6 +16,14 @@ was last sent still lacks it: the report, not a timer, decides, so a frame that 
 slow (queued behind a migration) is not resent while its consumer keeps receiving. Consumers
 drop second copies (the stage's sequence gate, the sink's ledger), so resending is safe.
 
+A frame past the highest seq its consumer has seen is either lost with everything sent after it,
+or still on its way behind the others. While that highest seq keeps rising (the consumer got a
+later frame than before within ``resend_after_s`` of its report) the link delivers, only slower
+than the frames are sent (a radio slowed below the chain's rate): a copy would queue behind its
+original and double what the slow link must carry, so it waits. It is resent once the consumer
+has received nothing new for ``resend_after_s``; one lost while later ones arrive is reported
+missing below the highest seq, and resent as before.
+
 A report speaks only for what reached its consumer's loop: frames still waiting in the
 consumer's event queue are in none of its counts. The status says how long the oldest of them
 had waited (`NodeStatus.queue_wait_s`), and that much is taken off the report's time before it
@@ -163,6 +171,10 @@ class Custody:
         self.max_attempts = max_attempts
         self.hops: dict[Hop, OrderedDict[tuple[int, int], Held]] = {}
         self.reports: dict[Hop, Report] = {}
+        # hop -> the time of the consumer's last report whose highest seq rose above the one in its
+        # report before (the same instance and run): frames past that seq wait while it keeps rising
+        # (see the module's rules)
+        self._advanced: dict[Hop, float] = {}
         self.bytes = 0
         self.hop_bytes: dict[Hop, int] = {}  # of ``bytes``, each hop's
         self.kept = 0
@@ -326,6 +338,11 @@ class Custody:
                 return
             if (c.generation, c.run) == (k.generation, k.run) and report.t_unix <= known.t_unix:
                 return
+        if known is not None and (c.generation, c.run) == (known.consumed.generation, known.consumed.run) \
+                and c.max_seq > known.consumed.max_seq:
+            self._advanced[hop] = report.t_unix
+        elif known is None or (c.generation, c.run) != (known.consumed.generation, known.consumed.run):
+            self._advanced.pop(hop, None)  # a new instance or run: nothing seen rise yet
         self.reports[hop] = report
         frames = self.hops.get(hop)
         if frames:
@@ -362,6 +379,10 @@ class Custody:
                         or is_consumed(said, held.frame.run, held.frame.seq)
                         or beyond_known(said, held.frame.seq)):  # wait for a report that says
                     continue
+                advanced = self._advanced.get(hop)
+                if (said is report.consumed and held.frame.seq > said.max_seq and advanced is not None
+                        and report.t_unix - advanced < self.resend_after_s):
+                    continue  # on its way behind the frames the consumer keeps receiving (a slow link)
                 out.append((report.node, held))
         return out
 
