@@ -66,7 +66,7 @@ def main() -> None:
               f"({out['wall_s'] / out['virtual_s']:.2f} wall s per s, {out['events'] / out['wall_s']:,.0f} events/s); "
               f"{d['count']} decisions, {mean_ms:.0f} ms mean, {1e3 * d['max_s']:.0f} ms max, "
               f"{decisions_per_s(out) or 0:.2f} per policy s, {d.get('not_proven', 0)} not proven optimal"
-              + (f" (MILP gap up to {gap:.1%})" if gap else "") + "; per robot per s: "
+              + (f" (MILP gap up to {gap:.1%} over the hosts searched)" if gap is not None else "") + "; per robot per s: "
               f"control {per['control']['messages']:.1f} msgs {per['control']['bytes']:,.0f} B, "
               f"data {per['data']['bytes']:,.0f} B; {out['violations_n']} violation(s)", flush=True)
     base_n = sizes[0]

@@ -189,7 +189,7 @@ def _print(out: dict) -> None:
     gap = decisions.get("not_proven_max_gap")
     click.echo(f"{out['robots']} robots; {decisions['count']} decisions (policy: {mean_ms:.0f} ms mean, "
                f"{1e3 * decisions['max_s']:.0f} ms max, wall"
-               + (f"; {unproven} not proven optimal" + (f", MILP gap up to {gap:.2%}" if gap is not None else "")
+               + (f"; {unproven} not proven optimal" + (f", MILP gap up to {gap:.2%} over the hosts searched" if gap is not None else "")
                   if unproven else "")
                + "); sent per robot per mission s: control "
                f"{per['control']['messages']:g} messages ({per['control']['bytes']:,.0f} B), data "
