@@ -51,7 +51,7 @@ class Injector:
         d.dup = max((v for what, v in active if what == "dup"), default=0.0)
         d.jitter_s = max((v for what, v in active if what == "jitter_s"), default=0.0)
         medium = self.kbps.setdefault(direction, d.kbps)
-        d.kbps = medium * min((v for what, v in active if what == "rate"), default=1.0)
+        net.set_rate(*direction, medium * min((v for what, v in active if what == "rate"), default=1.0))
         net.set_cut(*direction, any(what == "cut" for what, _ in active))
 
     # ---- start and end ------------------------------------------------------------------------------

@@ -5,9 +5,11 @@ Rules:
 
 - The links are the scenario's (its topology, each link on its first medium choice). A message
   crosses one link, in one direction; a direction sends one message at a time, each taking the
-  airtime of its size at the medium's rate, then the link's latency (plus a jitter drawn from
-  ``[0, jitter_s]``, which reorders messages), unless the direction loses it (``loss``, drawn) or
-  is cut. A duplicated message (``dup``, drawn) arrives twice.
+  airtime of its size at the rate in force while it is on air, then the link's latency (plus a
+  jitter drawn from ``[0, jitter_s]``, which reorders messages), unless the direction loses it
+  (``loss``, drawn) or is cut. A duplicated message (``dup``, drawn) arrives twice. A change of
+  rate (`set_rate`) re-times what is queued or on air: a backlog built while a link was slow
+  drains at its rate once it is restored, as a radio's queue does.
 - A message is sent only on a session (the pair is connected); it arrives only if the session
   still holds, the direction is not cut and the receiving process is the one it was sent to.
 - A pair is healthy when both processes are up and not frozen and neither direction is cut. A
@@ -20,6 +22,7 @@ Rules:
 from __future__ import annotations
 
 import random
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -49,6 +52,20 @@ class Endpoint(Protocol):
 
 
 @dataclass
+class OnAir:
+    """A message queued or on air in one direction, until its last bit is sent (`SimNetwork.set_rate`)."""
+
+    start: float  # when its airtime begins
+    end: float  # when its last bit is sent
+    bits: float  # what it sends from ``start``
+    latency_s: float  # after its last bit, the link's latency
+    jitter_s: float  # ... and its jitter (drawn when it was sent)
+    dup: bool  # it arrives twice
+    arrival: tuple  # `SimNetwork._arrive`'s arguments
+    live: list = field(default_factory=lambda: [True])  # False once re-timed: its scheduled arrival does nothing
+
+
+@dataclass
 class Direction:
     """One direction of a link: its rate and what faults do to it now."""
 
@@ -59,6 +76,7 @@ class Direction:
     loss: float = 0.0
     dup: float = 0.0
     jitter_s: float = 0.0
+    on_air: deque = field(default_factory=deque)  # `OnAir`s whose last bit is not sent yet, in order
 
 
 @dataclass
@@ -221,15 +239,50 @@ class SimNetwork:
             self.stats.lost += 1
             return
         now = self.scheduler.now
-        d.busy_until = max(now, d.busy_until) + len(payload) * 8 / (d.kbps * 1000.0)
-        arrival = d.busy_until + d.latency_s + (self.rng.uniform(0.0, d.jitter_s) if d.jitter_s else 0.0)
-        target = self.endpoints[receiver]
-        self.scheduler.at(arrival, self._arrive, sender, receiver, key, payload, target, carries_copy)
+        while d.on_air and d.on_air[0].end <= now:
+            d.on_air.popleft()
+        bits = len(payload) * 8
+        start = max(now, d.busy_until)
+        d.busy_until = start + bits / (d.kbps * 1000.0)
+        jitter_s = self.rng.uniform(0.0, d.jitter_s) if d.jitter_s else 0.0
+        air = OnAir(start, d.busy_until, bits, d.latency_s, jitter_s, False,
+                    (sender, receiver, key, payload, self.endpoints[receiver], carries_copy))
         if d.dup and self.rng.random() < d.dup:
             self.stats.duplicated += 1
             if kind in _CARRIERS and (body := _body(payload)) is not None:
                 self._copied_bodies.add(body)
-            self.scheduler.at(arrival + DUPLICATE_GAP_S, self._arrive, sender, receiver, key, payload, target, True)
+            air.dup = True
+        d.on_air.append(air)
+        self._schedule(air)
+
+    def _schedule(self, air: OnAir) -> None:
+        arrival = air.end + air.latency_s + air.jitter_s
+        self.scheduler.at(arrival, self._arrive_live, air.live, *air.arrival)
+        if air.dup:
+            self.scheduler.at(arrival + DUPLICATE_GAP_S, self._arrive_live, air.live, *air.arrival[:5], True)
+
+    def set_rate(self, sender: str, receiver: str, kbps: float) -> None:
+        """The direction's rate from now on: what it has queued or on air is sent at it."""
+        d = self.directions[(sender, receiver)]
+        if kbps == d.kbps:
+            return
+        now = self.scheduler.now
+        while d.on_air and d.on_air[0].end <= now:
+            d.on_air.popleft()
+        t = now
+        for air in d.on_air:
+            if air.start < now:  # on air: what is left of it
+                air.bits *= (air.end - now) / (air.end - air.start)
+                air.start = now
+            else:  # queued behind the others (its start was the end of the one before)
+                air.start = t
+            air.end = air.start + air.bits / (kbps * 1000.0)
+            t = air.end
+            air.live[0] = False  # its arrival at the old time does nothing
+            air.live = [True]
+            self._schedule(air)
+        d.busy_until = t if d.on_air else d.busy_until
+        d.kbps = kbps
 
     def _passes_on_a_copy(self, sender: str, payload: bytes) -> bool:
         """``sender`` passes on a packet (or a relayed message) whose body a link duplicated before, for
@@ -240,6 +293,10 @@ class SimNetwork:
             return False
         times = self._passed_on[(sender, body)] = self._passed_on.get((sender, body), 0) + 1
         return times > 1
+
+    def _arrive_live(self, live: list, *arrival) -> None:
+        if live[0]:
+            self._arrive(*arrival)
 
     def _arrive(self, sender: str, receiver: str, key: str, payload: bytes, target: Endpoint,
                 copy: bool = False) -> None:

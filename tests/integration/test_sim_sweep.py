@@ -61,10 +61,11 @@ FIXED_BEYOND_RANGE = (354,)
 # class passes and 2524 of it fails (every frame resent behind its original on the slowed link):
 # 12 of 2,400 seeds (211-2610) before and after.
 # The slowed-link fix (custody, 2026-11-30) fixed 1008, 1411, 2524 and 1647, 1664, 1989 (each also has a
-# link slowed below a chain's rate, with its crashes or freezes): regression tests in
-# test_teamsim_findings.py. A 2,611-seed run (0-2610) after it fails these six and no other.
-FIXED_SLOWED_LINKS_BEYOND_RANGE = (1008, 1411, 1647, 1664, 1989, 2524)
-FOUND_BEYOND_RANGE = (634, 1065, 1550, 1626, 2106, 2171)
+# link slowed below a chain's rate, with its crashes or freezes), and 1550 once the simulated link
+# sent its backlog at the rate restored (it held it to the slow rate): regression tests in
+# test_teamsim_findings.py. A 2,611-seed run (0-2610) after both fails these five and no other.
+FIXED_SLOWED_LINKS_BEYOND_RANGE = (1008, 1411, 1550, 1647, 1664, 1989, 2524)
+FOUND_BEYOND_RANGE = (634, 1065, 1626, 2106, 2171)
 # seeds whose sink counted a copy a duplicating link made on an earlier hop of a routed packet (the
 # oracle took the copy for one the team made): 53 and 270 (in this range), 382 (a regression test)
 FIXED_FORWARDED_COPIES = (53, 270, 382)

@@ -151,6 +151,24 @@ def test_a_rate_fault_slows_a_links_airtime_and_its_end_restores_the_medium():
     assert net.direction("r2", "laptop").kbps == net.direction("laptop", "r2").kbps == 54_000
 
 
+def test_a_backlog_built_on_a_slowed_link_drains_at_its_rate_once_it_is_restored():
+    """A radio's queue sends at the rate in force: the frames queued while the link was slow are not
+    held to the slow rate after it ends (seed 1550 lost the outputs behind such a backlog)."""
+    slow = Fault(kind="rate", t=1.0, duration=2.0, a="laptop", b="r2", p=0.1)
+    scheduler, net, laptop, _ = injected([slow])
+    scheduler.run_until(1.5)
+    frame = bytes(230_415)
+    for _ in range(10):  # 3.4 s of airtime at a tenth of the rate
+        net.transmit("r2", "laptop", "k", frame)
+    scheduler.run_until(10.0)
+    slow_s, fast_s = len(frame) * 8 / 5_400_000, len(frame) * 8 / 54_000_000
+    times = [t for t, _, _ in laptop.got]
+    assert times[0] == pytest.approx(1.5 + slow_s + LATENCY_S)  # on air while the link was slow
+    sent_slow = 1.5 / slow_s  # frames sent (whole and in part) in the 1.5 s slow
+    assert times[-1] == pytest.approx(3.0 + (10 - sent_slow) * fast_s + LATENCY_S)  # the rest at full rate
+    assert times == sorted(times) and len(times) == 10
+
+
 def test_a_roam_is_a_short_outage_that_keeps_the_session():
     roam = Fault(kind="roam", t=1.0, duration=0.12, a="laptop", b="r2")
     scheduler, net, laptop, _ = injected([roam])

@@ -173,7 +173,7 @@ def test_sweep_seeds_where_a_relay_passed_on_a_copy_the_network_made(seed):
 
 
 BEYOND_REASON = ("open: found in a 2,000-seed run of CI's plan (611-2610): outputs lost around a link slowed below "
-                 "a chain's rate together with a migration and crashes (1065) or a freeze (1550), one-way cuts "
+                 "a chain's rate together with a migration and crashes (1065), one-way cuts "
                  "with crashes or freezes (634, 2106), flapping links with one-way cuts or a partition (1626, "
                  "2171); not investigated yet")
 
