@@ -156,6 +156,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.migration_costs = MigrationCosts.from_scenario(scenario)
         self.base = scenario.basestation
         self.robots = [r.name for r in scenario.robots]
+        self._robot_names = frozenset(self.robots)  # (asked for every robot at every turn of a fleet)
         self.chain_of = {s.name: c for c in scenario.chains for s in c.stages}
         for stage, node in config.pins.items():
             self._check_pin(stage, node)
@@ -316,7 +317,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
                 fault["epoch"] = self.epoch
         for fault in open_faults:
             acked = all(self.statuses.get(r) is not None and self.runs_plan(self.statuses[r], fault["epoch"], newer=True)
-                        for r in self.alive_nodes() if r in self.robots)
+                        for r in self.alive_nodes() if r in self._robot_names)
             if acked:
                 fault["reconfigured_unix"] = self.wall()
                 self.note(f"{fault['kind']} {fault['target']}: reconfigured "
@@ -413,7 +414,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
 
     # ---- events --------------------------------------------------------------------------------------------
     def on_liveliness(self, node: str, alive: bool, detected_unix: float | None = None) -> None:
-        if node == self.base or node not in self.robots:
+        if node == self.base or node not in self._robot_names:
             return
         if alive:
             if node in self.present and node not in self.departed:
@@ -455,7 +456,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
             self._learn_runs(status)
 
     def on_status(self, status: NodeStatus) -> None:
-        if status.node not in self.robots:
+        if status.node not in self._robot_names:
             return
         self.statuses[status.node] = status
         self._pass_generations(status)

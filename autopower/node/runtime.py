@@ -140,6 +140,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.plan: PlanUpdate | None = None
         self._plan_payload: bytes | None = None  # the last plan message handled (a repeat of it is skipped)
         self._plans = PlanAssembler()  # plans sent as their change from the one before (`protocol.plans`)
+        self._plan_text_of: tuple[PlanUpdate, str] | None = None  # (plan, its resume-state text): `_plan_text`
         self.network: Network | None = None
         # nodes this one does not reach while it decides without the base station (`set_out_of_reach`):
         # the model's power leaves out what cannot reach them
@@ -442,8 +443,17 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
                 "initial_j": meter.initial_j, "energy_j": dict(meter.energy_j), "cpu_busy_s": meter.cpu_busy_s,
                 "runtime_cpu_s": meter.runtime_cpu_s, "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources,
                 # the plan we run (a subgroup round's placement included): see `saved_plan`
-                "plan": base64.b64encode(encode(self.plan)).decode("ascii") if self.plan is not None else None,
+                "plan": self._plan_text(),
                 "saved_unix": self.wall()}
+
+    def _plan_text(self) -> str | None:
+        """The plan we run as the resume state keeps it: encoded once per plan (a fleet's plan is
+        large, and the state is saved with every status)."""
+        if self.plan is None:
+            return None
+        if self._plan_text_of is None or self._plan_text_of[0] is not self.plan:
+            self._plan_text_of = (self.plan, base64.b64encode(encode(self.plan)).decode("ascii"))
+        return self._plan_text_of[1]
 
     def saved_plan(self, max_age_s: float = RESUME_ALONE_MAX_AGE_S) -> PlanUpdate | None:
         """The plan a crashed process of this node ran, from its resume state, if it was saved less
@@ -470,8 +480,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.model_override = None
         if not same_links:  # most new plans move stages, not links: the routes stay (O(links) to build)
             nodes = self.scenario.node_names()
+            known = frozenset(nodes)
             links = [Link(a=l.a, b=l.b, medium=l.medium, group="runtime") for l in plan.links
-                     if l.a in nodes and l.b in nodes and l.medium in self.scenario.radios]
+                     if l.a in known and l.b in known and l.medium in self.scenario.radios]
             self.network = Network(nodes, self.scenario.basestation, links, "runtime")
         self.meter.set_media(self.network.media_of(self.node), self.now())
         self.meter.set_level(self._level(plan.levels.get(self.node)), self.now())
