@@ -16,13 +16,15 @@ was last sent still lacks it: the report, not a timer, decides, so a frame that 
 slow (queued behind a migration) is not resent while its consumer keeps receiving. Consumers
 drop second copies (the stage's sequence gate, the sink's ledger), so resending is safe.
 
-A frame past the highest seq its consumer has seen is either lost with everything sent after it,
-or still on its way behind the others. While that highest seq keeps rising (the consumer got a
-later frame than before within ``resend_after_s`` of its report) the link delivers, only slower
-than the frames are sent (a radio slowed below the chain's rate): a copy would queue behind its
-original and double what the slow link must carry, so it waits. It is resent once the consumer
-has received nothing new for ``resend_after_s``; one lost while later ones arrive is reported
-missing below the highest seq, and resent as before.
+A frame sent once and past the highest seq its consumer has seen is either lost with everything
+sent after it, or still on its way behind the others. While that highest seq keeps rising (the
+consumer got a later frame than before within ``resend_after_s`` of its report) the link
+delivers, only slower than the frames are sent (a radio slowed below the chain's rate): a copy
+would queue behind its original and double what the slow link must carry, so it waits. It is
+resent once the consumer has received nothing new for ``resend_after_s``; one lost while later
+ones arrive is reported missing below the highest seq, and resent as before. A frame already
+resent never waits so: its loss is known (a cut), and when the link comes back the copies of the
+others arriving raise the highest seq too, which says nothing about where this one is.
 
 A report speaks only for what reached its consumer's loop: frames still waiting in the
 consumer's event queue are in none of its counts. The status says how long the oldest of them
@@ -380,8 +382,8 @@ class Custody:
                         or beyond_known(said, held.frame.seq)):  # wait for a report that says
                     continue
                 advanced = self._advanced.get(hop)
-                if (said is report.consumed and held.frame.seq > said.max_seq and advanced is not None
-                        and report.t_unix - advanced < self.resend_after_s):
+                if (said is report.consumed and held.frame.attempt == 0 and held.frame.seq > said.max_seq
+                        and advanced is not None and report.t_unix - advanced < self.resend_after_s):
                     continue  # on its way behind the frames the consumer keeps receiving (a slow link)
                 out.append((report.node, held))
         return out
