@@ -575,7 +575,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         return self.holds.held
 
     def hold_output(self, frame: ChainFrame) -> None:
-        self.holds.hold(frame, mission_key(self.mission) if self.mission is not None else None)
+        self.holds.hold(frame, self._mission_key())
 
     def keep_result(self, frame: ChainFrame, sent: bool = True) -> None:
         self.holds.keep(frame, sent)
@@ -584,7 +584,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         return self.holds.unsafe_floor(chain, target, run)
 
     def settle_held_store(self) -> None:
-        self.holds.settle_store(mission_key(self.mission) if self.mission is not None else None)
+        self.holds.settle_store(self._mission_key())
+
+    def _mission_key(self) -> dict | None:
+        return mission_key(self.mission) if self.mission is not None else None
 
     def flush_held_outputs(self) -> None:
         self.holds.flush(self.network, self.send_frame)

@@ -78,6 +78,11 @@ class Direction:
     jitter_s: float = 0.0
     on_air: deque = field(default_factory=deque)  # `OnAir`s whose last bit is not sent yet, in order
 
+    def sent_by(self, now: float) -> None:
+        """Forget what has left this direction by ``now`` (its arrival is scheduled for good)."""
+        while self.on_air and self.on_air[0].end <= now:
+            self.on_air.popleft()
+
 
 @dataclass
 class Pair:
@@ -239,8 +244,7 @@ class SimNetwork:
             self.stats.lost += 1
             return
         now = self.scheduler.now
-        while d.on_air and d.on_air[0].end <= now:
-            d.on_air.popleft()
+        d.sent_by(now)
         bits = len(payload) * 8
         start = max(now, d.busy_until)
         d.busy_until = start + bits / (d.kbps * 1000.0)
@@ -267,8 +271,7 @@ class SimNetwork:
         if kbps == d.kbps:
             return
         now = self.scheduler.now
-        while d.on_air and d.on_air[0].end <= now:
-            d.on_air.popleft()
+        d.sent_by(now)
         t = now
         for air in d.on_air:
             if air.start < now:  # on air: what is left of it
