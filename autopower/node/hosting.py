@@ -379,20 +379,29 @@ class Hosting:
                                 detail=_bounded(detail), running=False))
 
     def on_release(self, msg: Release) -> None:
-        """Stop hosting a stage. The inputs waiting in its gate run here first, or are kept.
+        """Stop hosting a stage. The inputs waiting in its gate behind a gap are left to their
+        producer, run here first, or kept.
 
-        A gate's report counts the inputs waiting behind a gap as consumed (their producers drop
-        them from custody), so a stage released with inputs waiting would lose them. An in-process
-        stage gives the gap up and runs them, in order, before it stops: their outputs go on as any
-        output does (a sink out of reach holds them). Kept for the stage's next instance instead,
-        they would reach it after its gate had started above them, and it would drop them. A stage
-        in a worker keeps them as orphans (sent to the stage's host once a plan places it). A chain
-        the operator stopped, or whose component failed, drops them.
+        Producers keep a stage's input until a gate has run it (custody's `is_run`). While the
+        producer says it still holds the gap (`SequenceGate.held_upstream`) and is in sight, it
+        holds what waits behind it too, and sends them to the stage's next instance in order:
+        nothing is run here (running them past the gap would deliver later outputs and lose the
+        gap's for good). Otherwise (the producer gave the gap up, or is gone), an in-process stage gives the
+        gap up and runs them, in order, before it stops: their outputs go on as any output does (a
+        sink out of reach holds them). A stage in a worker keeps them as orphans (sent to the
+        stage's host once a plan places it). A chain the operator stopped, or whose component
+        failed, drops them.
         """
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:
+            held_upstream = hosted.gate.held_upstream(self.wall()) and self._producer_in_sight(hosted)
             waiting = hosted.gate.take_pending()
-            if waiting and not self._disabled(hosted.chain.name):
+            if waiting and held_upstream:
+                # their producer holds the gap and everything after it until a gate runs them
+                # (custody): it sends them to the stage's next instance, in order
+                log.info("%s: %s released with %d input(s) waiting behind a gap its producer holds; left to it",
+                         self.node, msg.stage, len(waiting))
+            elif waiting and not self._disabled(hosted.chain.name):
                 if worker_of(hosted.component) is None and hosted.lifecycle is Lifecycle.RUNNING:
                     hosted.gate.skipped += waiting[0].seq - (hosted.gate.next_seq or waiting[0].seq)
                     log.info("%s: %s released with %d input(s) waiting behind a gap; run before it stops",
@@ -407,6 +416,14 @@ class Hosting:
         chain = self.stage_index.get(msg.stage, (None, 0))[0]
         if chain is None or self._disabled(chain.name):
             self.orphans.pop(msg.stage, None)
+
+    def _producer_in_sight(self, hosted: HostedStage) -> bool:
+        """Is the node that feeds ``hosted`` (its chain's source, or the previous stage's host) this
+        one or in direct sight now: alive to resend what it holds?"""
+        chain = hosted.chain
+        producer = chain.source if hosted.index == 0 else (
+            self.plan.placement.get(chain.stages[hosted.index - 1].name) if self.plan else None)
+        return producer is not None and (producer == self.node or producer in self.alive)
 
     def yield_to_newer(self, status: NodeStatus | PeerStatus) -> bool:
         """Stop an instance here that a newer one running on the peer ``status`` comes from supersedes;

@@ -385,6 +385,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.resumed = True
         self.holds.take_back(mission_key(mission))
         self._died_with_process(sources, mission)
+        self._died_in_hand(sources, saved.get("in_hand"))
         # what `advance` charges for the time we were down (the robot drew idle current, radios asleep)
         self.down = (meter.t, 0.0 if meter.mains else meter.platform.idle_w + sum(
             self.scenario.radios[m].sleep_w for m in meter.media))
@@ -423,6 +424,33 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             for seq in tail:
                 self._sink_listeners.died_with_process(name, src.run, seq)
 
+    def _died_in_hand(self, sources: dict[str, SourceStats], in_hand) -> None:
+        """Say which outputs of this robot's chains whose sink is elsewhere may have died with the
+        crashed process: those its source made from the lowest seq the process still had in hand
+        at its last save (`_lowest_in_hand`) on. Each of them was at most in this process's memory
+        and on its way: one that reached the next hop is delivered and counts as such (the replay
+        counts a seq as died only if no sink got it and no node names it in flight); one that did
+        not died with the process. A result the restarted process took back from its hold journal
+        did not die. A saved state without the record (an older file) names none."""
+        if not isinstance(in_hand, dict):
+            return
+        taken_back = {(f.chain, f.run, f.seq) for f in self.holds.held.values()}
+        for name, src in sources.items():
+            saved = in_hand.get(name)
+            chain = self.chains.get(name)
+            if chain is None or chain.source != self.node or chain.sink == self.node \
+                    or not (isinstance(saved, list) and len(saved) == 2 and all(isinstance(v, int) for v in saved)) \
+                    or saved[0] != src.run:
+                continue
+            window = [seq for seq in range(max(saved[1], 0), src.produced) if (name, src.run, seq) not in taken_back]
+            if not window:
+                continue
+            self.tally("maybe-died-with-process", len(window))
+            log.warning("%s: %s seq %d-%d were in this robot's hands only or on their way when it crashed: "
+                        "those their sink never gets died with the process", self.node, name, window[0], window[-1])
+            for seq in window:
+                self._sink_listeners.died_with_process(name, src.run, seq)
+
     def in_flight_at_stop(self) -> dict[tuple[str, int], set[int]]:
         """(chain, run) -> the seqs of the frames this node still has in hand (`autopower.node.in_flight`)."""
         names = [c.name for c in self.scenario.chains]
@@ -442,9 +470,27 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         return {"node": self.node, "mission": mission_key(self.mission), "t_virtual": meter.t,
                 "initial_j": meter.initial_j, "energy_j": dict(meter.energy_j), "cpu_busy_s": meter.cpu_busy_s,
                 "runtime_cpu_s": meter.runtime_cpu_s, "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources,
+                "in_hand": self._lowest_in_hand(),
                 # the plan we run (a subgroup round's placement included): see `saved_plan`
                 "plan": self._plan_text(),
                 "saved_unix": self.wall()}
+
+    def _lowest_in_hand(self) -> dict[str, list[int]]:
+        """Per chain sourced here whose sink is elsewhere: [run, the lowest seq of the source's run
+        this process still has in hand]. Custody keeps every frame the chain's source or a stage here
+        sent until the next hop has run it, or its sink has it (`custody`): below this seq each one
+        was in another node's hands, at or above it, and up to what the source makes next, it may
+        be in this process's memory only (`_died_with_process`)."""
+        out = {}
+        for name, runner in self.sources.items():
+            chain = self.chains.get(name)
+            if chain is None or chain.sink == self.node:
+                continue
+            low = runner.seq
+            for target in range(len(chain.stages) + 1):
+                low = min(low, self.custody.floor(name, target, runner.run, low))
+            out[name] = [runner.run, low]
+        return out
 
     def _plan_text(self) -> str | None:
         """The plan we run as the resume state keeps it: encoded once per plan (a fleet's plan is

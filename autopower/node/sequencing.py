@@ -83,6 +83,10 @@ class SequenceGate(Generic[T]):
     max_gap_s: float = GATE_MAX_GAP_S
     _gap_since: float | None = None  # since when the oldest open gap has been the oldest (wall seconds)
     catch_up_below: int | None = None  # started without state below its first input: these are recomputed
+    # the highest floor its producers' fresh frames have carried (`ChainFrame.floor`), and when the
+    # last one came: a gap at or above it is still held by a live producer, which resends it
+    producer_floor: int | None = None
+    _floor_heard: float | None = None
     resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first offered as a resend
 
     def offer(self, seq: int, item: T, floor: int | None = None, resent: bool = False,
@@ -95,6 +99,9 @@ class SequenceGate(Generic[T]):
         was only late), as at the sink (`SinkLedger.record`); otherwise it is a *duplicate*.
         """
         early: list[T] = []
+        if floor is not None and not resent:  # a resent copy carries the floor of its first sending
+            self.producer_floor = floor if self.producer_floor is None else max(floor, self.producer_floor)
+            self._floor_heard = now
         if self.next_seq is None:
             self.next_seq = seq if floor is None else min(seq, floor)
             if self.next_seq < seq:
@@ -124,16 +131,25 @@ class SequenceGate(Generic[T]):
             # that was, so what still waits is behind a younger gap, whose resend may be on its way
             self._gap_since = now
         open_s = now - self._gap_since if now is not None and self._gap_since is not None else 0.0
-        if len(self.pending) > self.max_pending or open_s > self.max_gap_s:
+        if len(self.pending) > self.max_pending or (open_s > self.max_gap_s and not self.held_upstream(now)):
             # The producers resend what is missing (custody), and a migration can hold inputs up
-            # for seconds; a gap still open after this long is lost for good (its producer
-            # died): stalling the stage forever would lose everything after it too.
+            # for seconds; a gap still open after this long that no live producer says it holds
+            # is lost for good (its producer died or gave it up): stalling the stage forever
+            # would lose everything after it too. One a producer holds waits for its resend.
             self._gap_since = None
             first = min(self.pending)
             self.skipped += first - self.next_seq
             self.next_seq = first
             ready += self.drain()
         return ready
+
+    def held_upstream(self, now: float | None) -> bool:
+        """Did a producer say, within the gate's limit, that it still holds the oldest gap (its floor
+        at or below it)? Then it is resending it (custody keeps a frame for minutes and many resends),
+        and giving the gap up would lose an input a lossy link is only slow to carry."""
+        if self.producer_floor is None or self.next_seq is None or self.producer_floor > self.next_seq:
+            return False
+        return now is None or self._floor_heard is None or now - self._floor_heard <= self.max_gap_s
 
     def _release_below(self, floor: int) -> list[T]:
         """Move to ``floor``, counting the seqs below it that are not here as consumed elsewhere and

@@ -432,7 +432,7 @@ class Recorder:
         self._guard("sink-journal", lambda: self.telemetry.scalar(sink_journal_path(chain, run), self.now(), seq))
 
     def on_died_with_process(self, chain: str, run: int, seq: int) -> None:
-        """An output of this robot's own chain that died with its crashed process (hook for
+        """An output of this robot's chains that died with its crashed process (hook for
         `SinkListener.died_with_process`, called by the restarted one): the replay counts it apart."""
         self._guard("died-with-process",
                     lambda: self.telemetry.scalar(died_with_process_path(chain, run), self.now(), seq))

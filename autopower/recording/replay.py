@@ -57,7 +57,7 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                   "held_dropped_known": bool,  # which seqs (else only counts: then "lost" includes them)
                   "superseded": int,  # a latest-only chain's results a newer one replaced in a hold
                                       # (each with a later output of its run delivered or in hand)
-                  "died_with_process": int,  # outputs of a robot's own chain that died with its crashed process
+                  "died_with_process": int,  # outputs of a robot's chains that died with its crashed process
                   "unrecorded": int,  # delivered by a sink killed before its recording was flushed
                                       # (named by the restarted sink's journal): not lost, not recorded
                   "in_flight": int,  # a node had them in hand when the team stopped (it says which)
@@ -612,7 +612,7 @@ def _apart(outputs: dict[str, Any]) -> str:
         parts.append(f"{outputs['superseded']} of latest-only chains replaced in a hold by a newer one "
                      "(delivered, or in hand at the stop)")
     if outputs.get("died_with_process"):
-        parts.append(f"{outputs['died_with_process']} of a robot's own chain that died with its crashed process, "
+        parts.append(f"{outputs['died_with_process']} of a robot's chains that died with its crashed process, "
                      "in its memory only")
     if outputs.get("in_flight"):
         parts.append(f"{outputs['in_flight']} still in flight when the team stopped (a node had them in hand)")
@@ -647,9 +647,9 @@ def _outputs(rec: Recording) -> dict[str, Any]:
       what it was let go for. Without that evidence the seq falls through to the classes below;
     - *in_flight*: a node still had it in hand when the team stopped (``.../in_flight``, logged by
       that node at its clean stop: custody, hold, a stage's gate or worker);
-    - *died_with_process*: an output of a robot's own chain (source and sink there) in its crashed
-      process's memory only (``.../died_with_process``, `NodeRuntime._died_with_process`), that
-      no node names in flight (a frame some node still held did not die);
+    - *died_with_process*: an output of a chain sourced on a robot, in its crashed process's memory
+      only (``.../died_with_process``, named by the restarted process: `NodeRuntime._died_with_process`
+      and `_died_in_hand`), that no node names in flight (a frame some node still held did not die);
     - *abandoned*: after the last output its run delivered, in a run its chain ended by starting a
       new one (a later run of the chain is recorded): what the old run still held upstream was
       obsolete from then on (docs/known-limits.md). A loss, counted apart so it is not hidden in

@@ -93,7 +93,7 @@ def render_text(summary: dict[str, Any]) -> str:
                         "hold_budget_mb`, the oldest results go)" if o.get("held_dropped") else "")
                      + (f"; {o['superseded']} of latest-only chains (`keep = \"latest\"`) replaced in a robot's "
                         "hold by a newer one (delivered, or in hand at the stop)" if o.get("superseded") else "")
-                     + (f"; {o['died_with_process']} of a robot's own chain died with its crashed process"
+                     + (f"; {o['died_with_process']} of a robot's chains died with its crashed process (its memory only)"
                         if o.get("died_with_process") else "")
                      + (f"; {o['unrecorded']} delivered by a sink killed before it flushed their recording "
                         "(named by its journal)" if o.get("unrecorded") else "")

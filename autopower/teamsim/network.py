@@ -136,6 +136,8 @@ class SimNetwork:
         # each node passed one on (its second time is the network's copy, not the team's: `transmit`)
         self._copied_bodies: set[bytes] = set()
         self._passed_on: dict[tuple[str, bytes], int] = {}
+        # (sender, payload) -> the arrivals scheduled and not yet come: what is on its way (`in_transit`)
+        self._transit: dict[tuple[str, bytes], int] = {}
 
     # ---- processes ---------------------------------------------------------------------------
     def attach(self, node: str, endpoint: Endpoint) -> None:
@@ -257,6 +259,8 @@ class SimNetwork:
                 self._copied_bodies.add(body)
             air.dup = True
         d.on_air.append(air)
+        key_ = (sender, payload)
+        self._transit[key_] = self._transit.get(key_, 0) + (2 if air.dup else 1)
         self._schedule(air)
 
     def _schedule(self, air: OnAir) -> None:
@@ -299,7 +303,19 @@ class SimNetwork:
 
     def _arrive_live(self, live: list, *arrival) -> None:
         if live[0]:
+            key = (arrival[0], arrival[3])
+            left = self._transit.get(key, 0) - 1
+            if left > 0:
+                self._transit[key] = left
+            else:
+                self._transit.pop(key, None)
             self._arrive(*arrival)
+
+    def in_transit(self, *, sender: str | None = None, but: str | None = None) -> list[bytes]:
+        """The messages on their way now, from ``sender`` only or from any sender but ``but`` (a
+        sender that dies takes what it has on the wire with it: its sessions close before it arrives)."""
+        return [payload for (frm, payload) in self._transit
+                if (sender is None or frm == sender) and (but is None or frm != but)]
 
     def _arrive(self, sender: str, receiver: str, key: str, payload: bytes, target: Endpoint,
                 copy: bool = False) -> None:

@@ -61,6 +61,8 @@ class Ledger:
         self.stops: list[tuple[str, float, float]] = []  # (chain, disabled at, enabled at)
         self.violations: list[Violation] = []
         self.duplicates: dict[str, int] = {}
+        # the outputs some kill took: the killed process had them, no other did (`teamsim.evidence`)
+        self.died_in_kills: set[Key] = set()
 
     # ---- as the run goes -----------------------------------------------------------------------
     def on_produced(self, key: Key, t: float, event: int) -> None:
@@ -84,6 +86,10 @@ class Ledger:
     def let_go(self, key: Key, reason: str) -> None:
         self.budget.setdefault(key, reason)
 
+    def killed_with(self, keys: set[Key]) -> None:
+        """A process was killed with these outputs in its hands only."""
+        self.died_in_kills |= keys
+
     def operator_stop(self, chain: str, t_off: float, t_on: float) -> None:
         self.stops.append((chain, t_off, t_on))
 
@@ -96,9 +102,11 @@ class Ledger:
 
     def verdict(self, horizon_t: float) -> dict[str, ChainCounts]:
         """Per chain counts; a lost output (the first one per chain) and each unproduced delivery
-        become violations."""
+        become violations. An output labelled died with a crashed process counts so only if a kill
+        took it (`killed_with`); otherwise it is judged as if unlabelled."""
         counts = {c: ChainCounts() for c in self.chains}
         first_lost: dict[str, tuple[Key, float, int]] = {}
+        mislabelled: dict[str, int] = {}  # chain -> lost outputs a restarted process said died with it
         newest_run: dict[str, int] = {}
         for chain, run, _ in self.produced:
             newest_run[chain] = max(newest_run.get(chain, run), run)
@@ -114,6 +122,9 @@ class Ledger:
                 c.delivered += 1
                 continue
             reason = self.budget.get(key) or ("operator-stopped" if self._stopped(key[0], t) else None)
+            labelled = reason == "died-with-process"
+            if labelled and key not in self.died_in_kills:
+                reason = None  # a label without evidence: no kill took it (what it was is decided below)
             if reason == "superseded" and key[2] > last_delivered.get(key[:2], -1):
                 reason = None  # replaced by a newer result that never arrived either: nothing did its job
             if reason is None and key[1] < newest_run[key[0]] and key[2] > last_delivered.get(key[:2], -1):
@@ -124,9 +135,13 @@ class Ledger:
                 continue
             c.lost += 1
             first_lost.setdefault(key[0], (key, t, event))
+            if labelled:
+                mislabelled[key[0]] = mislabelled.get(key[0], 0) + 1
         for chain, (key, t, event) in first_lost.items():
+            said = (f"; {mislabelled[chain]} of them labelled died with a crashed process, though no kill took "
+                    "them" if chain in mislabelled else "")
             self.violate("exactly-once", f"{chain}: {counts[chain].lost} output(s) lost, the first run {key[1]} "
-                         f"seq {key[2]} (produced at {t:.3f} s, never delivered)", t, event)
+                         f"seq {key[2]} (produced at {t:.3f} s, never delivered){said}", t, event)
         for key, (t, event) in sorted(self.delivered.items(), key=lambda kv: kv[1][1]):
             if key not in self.produced:
                 self.violate("outputs", f"{key[0]} run {key[1]} seq {key[2]} delivered, never produced", t, event)

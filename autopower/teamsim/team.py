@@ -37,6 +37,7 @@ from autopower.protocol import Keys, NodeStatus
 from autopower.protocol.access import TeamAccess
 from autopower.runtime.clock import VirtualClock
 from autopower.teamsim import components
+from autopower.teamsim.evidence import only_in
 from autopower.teamsim.faults import Fault
 from autopower.teamsim.inject import Injector
 from autopower.teamsim.network import LEASE_S, SimNetwork
@@ -186,6 +187,8 @@ class World:
 
     def crash(self, node: str) -> None:
         self.trace.note(self.scheduler.now, f"crash {node}")
+        if self.is_up(node):  # what dies with it: the evidence a "died with the process" label needs
+            self.ledger.killed_with(only_in(self, node))
         self.shells[node].crash()
 
     def restart(self, node: str) -> None:

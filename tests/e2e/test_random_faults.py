@@ -14,7 +14,7 @@ faults, one team, 420 s each.
 What a user relies on: every command is taken or refused with its reason, `up` stops cleanly, no output reaches its sink
 twice, no process raises, the metered energy agrees with the model, no result is dropped (a robot
 cut off from its sink keeps its results within its hold budget until the sink is back), and what is
-missing at the sinks is what the design lets go (outputs of a robot's own chain that died in its
+missing at the sinks is what the design lets go (outputs of a robot's chains that died in its
 memory at a SIGKILL), counted apart by the replay.
 One race is still open (docs/known-limits.md: a migration during a partition can lose outputs),
 so lost outputs are bounded (2 %), not required to be 0.

@@ -212,11 +212,6 @@ def test_gate_times_a_gap_from_when_it_became_the_oldest_not_from_the_first_gap_
     assert gate.offer(8, 8, now=26.5) == [7, 8] and gate.skipped == 1  # given up 10.5 s after it was the oldest
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "open (sweep seed 46): a gap whose producer still holds the input is given up after 10 s however many "
-    "resends a lossy link ate. Waiting on the floor alone is wrong too: a producer may hold a frame it never "
-    "resends (test_migration_losses: after a move whose state was lost, r2's source holds Blob-2's seq 21, "
-    "consumed locally by the old instance, and sends it to the restarted one never), and the stage stalled"))
 def test_gate_waits_on_a_gap_while_its_producer_says_it_still_holds_it():
     """A frame's floor is its producer's lowest unacknowledged seq: equal to the gap, the producer is
     resending it (custody), however many resends a lossy link ate; the gap is given up only without

@@ -80,3 +80,40 @@ def test_the_replay_counts_outputs_that_died_with_a_process_apart_from_lost_ones
     o = summarize(load(merge_run(run_dir)))["outputs"]
     assert (o["lost"], o["died_with_process"]) == (1, 1)
     assert (o["chains"]["Loc-1"]["lost"], o["chains"]["Loc-1"]["died_with_process"]) == (1, 1)
+
+
+def test_a_restarted_robot_names_what_its_chain_with_a_sink_elsewhere_had_in_its_hands_only():
+    """Sweep seed 634: r3's camera frames for Blob-3 (its sink: the laptop's operator) were sent into
+    a link that had just died, and r3 was killed before a report could ask for them again: they were
+    in its custody only, and the replay called them lost. Its resume state now says, per chain it
+    sources with a sink elsewhere, the lowest seq still in its hands; the restarted process names
+    every seq from there to what its source made: those their sink never gets died with it."""
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    team.run_exchanging_statuses(10.0)
+    old = team.nodes["r2"]  # Blob-2: camera on r2, blobs to the laptop's operator
+    team.cut_silently("r2", "laptop")
+    team.run_exchanging_statuses(12.0)
+    saved = old.resume_state()
+    run, lowest = saved["in_hand"]["Blob-2"]
+    produced = old.sources["Blob-2"].seq
+    assert old.custody.floor("Blob-2", 0, run, -1) == lowest and produced - lowest >= 6  # 2 s at 4 Hz, unacknowledged
+    assert set(saved["in_hand"]) == {"Blob-2"}  # Loc-2's sink is r2 itself (`_died_with_process`'s case)
+    saved["sources"]["Blob-2"]["seq"] = produced + 1  # one more noted by the source before the kill
+    rt = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-again"), keys=team.keys,
+                     make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                     wall=team.clock.wall, stores=NodeStores(resume_from=saved))
+    died = []
+    rt.listen(SinkListener(died_with_process=lambda chain, r, seq: died.append((chain, r, seq))))
+    rt.on_plan(old.plan)
+    assert [(r, seq) for chain, r, seq in died if chain == "Blob-2"] == [(run, s) for s in range(lowest, produced + 1)]
+    assert rt.counters.get("maybe-died-with-process") == len(died)
+    # an older file without the record names none of them
+    del saved["in_hand"]
+    again = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-third"), keys=team.keys,
+                        make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
+                        wall=team.clock.wall, stores=NodeStores(resume_from=saved))
+    none = []
+    again.listen(SinkListener(died_with_process=lambda chain, r, seq: none.append(seq)))
+    again.on_plan(old.plan)
+    assert none == []

@@ -311,12 +311,12 @@ def encode_frame(seq: int):
                       payload_len=len(payload), payload=payload, floor=5)
 
 
-def test_a_released_stage_runs_the_inputs_waiting_in_its_gate_before_it_stops(team):
+def test_a_released_stage_runs_the_inputs_waiting_in_its_gate_when_their_producer_is_gone(team):
     """Random faults, seed 4: the base station stopped Loc-2 on the laptop (r2 had left its reach)
-    while 97 scans waited in its gate behind one that had not come. The gate's report had counted
-    them as consumed, so r2 had dropped them from custody: 98 lost. Kept for the next instance, they
-    reached it after its gate had started above them (seeds 4, 14, 15). The released stage now
-    gives the gap up and runs them before it stops; their outputs reach the sink."""
+    while 97 scans waited in its gate behind one that had not come. Kept for the next instance, they
+    reached it after its gate had started above them (seeds 4, 14, 15). With the producer out of
+    sight (it may have died with them), the released stage gives the gap up and runs them before it
+    stops; their outputs reach the sink."""
     from autopower.protocol import Release
 
     hub, agents, _ = team
@@ -325,20 +325,43 @@ def test_a_released_stage_runs_the_inputs_waiting_in_its_gate_before_it_stops(te
     for seq in (7, 8):
         rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
     report = rt.consumed()["Loc-2#0"]
-    assert report.max_seq == 8 and (7, 8) not in report.missing  # acknowledged, though not run
+    assert report.max_seq == 8 and (7, 8) not in report.missing  # received, though not run
     runs = rt.hosted["Loc-2"].runs
     hosted = rt.hosted["Loc-2"]
+    rt.on_liveliness("r2", False)  # Loc-2's source
     rt.on_release(Release(stage="Loc-2", generation=101))
     assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.orphans
     assert hosted.runs == runs + 2 and rt.counters.get("released-inputs-run") == 2
+    rt.on_liveliness("r2", True)
     drain(hub, agents)
     sink = agents["r2"].runtime.sinks["Loc-2"]  # Loc-2's sink is r2
     assert {7, 8} <= set(sink.above) | set(range(sink.contiguous))
 
 
+def test_a_released_stage_leaves_the_inputs_behind_a_gap_to_their_producer_in_sight(team):
+    """Sweep seed 2106: r1 ran Loc-3 for a subgroup while its seq 6 was lost on the way; the base
+    station started the chain's next run elsewhere and released r1's instance, which ran seq 7 past
+    the gap: 7 was delivered and 6, still in its producer's custody, was lost for good. A producer in
+    sight whose floor says it holds the gap (and so everything after it) sends them to the stage's
+    next instance, in order: the released stage runs none of them and keeps none."""
+    from autopower.protocol import Release
+
+    hub, agents, _ = team
+    loc2_on_r1(hub, agents)
+    rt = agents["r1"].runtime
+    for seq in (7, 8):  # their floor: r2 holds 5 and above
+        rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
+    hosted = rt.hosted["Loc-2"]
+    runs = hosted.runs
+    assert hosted.gate.held_upstream(rt.wall()) and "r2" in rt.alive
+    rt.on_release(Release(stage="Loc-2", generation=101))
+    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.orphans
+    assert hosted.runs == runs and not rt.counters.get("released-inputs-run")
+
+
 def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team, monkeypatch):
-    """A stage in a worker process cannot run them before it stops (the worker goes with it): they
-    are kept, and go to the stage's next host once a plan places it."""
+    """A stage in a worker process cannot run them before it stops (the worker goes with it): with
+    their producer out of sight they are kept, and go to the stage's next host once a plan places it."""
     from autopower.node import hosting
     from autopower.protocol import Release
 
@@ -349,8 +372,10 @@ def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team
         rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
     killed = []
     monkeypatch.setattr(hosting, "worker_of", lambda component: SimpleNamespace(kill=lambda: killed.append(1)))
+    rt.on_liveliness("r2", False)  # the producer out of sight: they may be the only copies
     rt.on_release(Release(stage="Loc-2", generation=101))  # as if in a worker
     monkeypatch.undo()
+    rt.on_liveliness("r2", True)
     assert killed == [1]
     assert [f.seq for f in rt.orphans["Loc-2"]] == [7, 8]
     on_r2 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)

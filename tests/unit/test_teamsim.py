@@ -460,3 +460,44 @@ def test_on_lossy_links_a_robot_suspects_a_peer_at_most_once_as_it_learns_the_lo
                                                       quiet_s=20.0))
     assert result.ok, result.violations
     assert all(n <= 3 for n in seen["suspicions"].values()), seen  # at most the onset, once a peer
+
+
+def test_what_a_kill_takes_is_what_the_killed_process_alone_had(tmp_path):
+    """The evidence a "died with the crashed process" label needs (`teamsim.evidence`): r2's camera
+    frames sent into a cut link are in r2's custody only; those the laptop has taken in are not."""
+    from autopower.teamsim.evidence import in_hands, only_in
+    from autopower.teamsim.team import World
+
+    world = World(config(seed=3), tmp_path)
+    try:
+        for node in ("laptop", "r1", "r2", "r3"):
+            world.start(node)
+        world.scheduler.run_until(10.0)
+        world.network.set_cut("r2", "laptop", True)  # one way: r2's frames vanish, nobody is told yet
+        world.scheduler.run_until(11.0)
+        r2 = {(f.chain, f.run, f.seq) for f in world.shells["r2"].rt.custody.frames()}
+        cut_off = {key for key in r2 if key[0] == "Blob-2"} - in_hands(world, "laptop")
+        assert len(cut_off) >= 3  # 4 Hz for a second, unacknowledged and nowhere else
+        dies = only_in(world, "r2")
+        assert cut_off <= dies and not dies & in_hands(world, "laptop")
+    finally:
+        world.close()
+
+
+def test_a_died_label_counts_only_for_an_output_a_kill_took():
+    """An output a restarted process names died with it is let go only if some kill took it; one no
+    kill took is lost (or the tail of an ended run), and the violation says it was labelled."""
+    from autopower.teamsim.oracle import Ledger
+
+    ledger = Ledger(["Loc-1"])
+    for seq in range(4):
+        ledger.on_produced(("Loc-1", 0, seq), float(seq), seq)
+    ledger.on_delivered(("Loc-1", 0, 0), 0.5, 10, b"", None)
+    ledger.on_delivered(("Loc-1", 0, 3), 3.5, 13, b"", None)
+    ledger.killed_with({("Loc-1", 0, 1)})
+    for seq in (1, 2):
+        ledger.let_go(("Loc-1", 0, seq), "died-with-process")
+    counts = ledger.verdict(horizon_t=10.0)["Loc-1"]
+    assert (counts.delivered, counts.lost, counts.budget) == (2, 1, {"died-with-process": 1})
+    assert [v.invariant for v in ledger.violations] == ["exactly-once"]
+    assert "1 of them labelled died with a crashed process, though no kill took them" in ledger.violations[0].detail

@@ -1,0 +1,82 @@
+"""What the oracle checks a "died with the crashed process" label against: where a chain's frames
+were at the moment a process was killed.
+
+A restarted node names the outputs of its chains that may have died with its crashed process
+(`NodeRuntime._died_with_process`, `_died_in_hand`). The label moves an output out of "lost", so
+it needs evidence: at some kill, the killed process had the frame in hand (custody, a hold, a
+stage's gate, start-up buffer or worker, an orphan, a migration's state with its pending inputs,
+unread messages, an output its sink had not committed) or on the wire, and no other process had
+it or was about to. The simulator sees all of that at the instant of each kill (`World.crash`);
+an output labelled died that no kill took is a violation (it was lost elsewhere, not in a crash).
+The process is not checked: a frame one process's restart names may have gone to another that
+was killed with it in hand (a result its stage's host held for a sink that had crashed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from autopower.errors import ProtocolError
+from autopower.node.in_flight import stage_frames
+from autopower.protocol import ChainFrame, Packet, Relayed, StateTransfer, decode
+
+Key = tuple[str, int, int]  # (chain, run, seq)
+
+
+def frames_of(payload: bytes) -> set[Key]:
+    """The chain frames a message carries: a packet's frame, a migration's pending inputs, what a
+    relayed message carries (none for anything else, or a garbled one)."""
+    try:
+        msg = decode(payload, (Packet, Relayed, StateTransfer, ChainFrame))
+    except ProtocolError:
+        return set()
+    if isinstance(msg, Packet):
+        return frames_of(msg.body)
+    if isinstance(msg, Relayed):
+        return frames_of(msg.payload)
+    if isinstance(msg, StateTransfer):
+        return _keys(msg.pending)
+    return _keys((msg,))
+
+
+def only_in(world, node: str) -> set[Key]:
+    """The chain frames that die if ``node``'s process is killed now: those it has in hand (or sent
+    and still on the wire) that no other process has in hand or on its way. ``world``: the run's
+    `teamsim.team.World` (its shells and network)."""
+    mine = in_hands(world, node)
+    for payload in world.network.in_transit(sender=node):
+        mine |= frames_of(payload)
+    if not mine:
+        return mine
+    others: set[Key] = set()
+    for other, shell in world.shells.items():
+        if other != node and shell.up and shell.rt is not None:
+            others |= in_hands(world, other)
+    for payload in world.network.in_transit(but=node):
+        others |= frames_of(payload)
+    return mine - others
+
+
+def in_hands(world, node: str) -> set[Key]:
+    """Every chain frame ``node``'s process has in hand: in custody, a hold, a stage's gate, start-up
+    buffer or worker, an orphan, a migration's state, its unread messages (frozen), or an output its
+    sink delivered and has not committed yet."""
+    shell = world.shells[node]
+    rt = shell.rt
+    out = _keys(rt.custody.frames()) | _keys(rt.held_outputs.values()) | _keys(stage_frames(rt.hosted))
+    for orphans in rt.orphans.values():
+        out |= _keys(orphans)
+    for _, body, _ in rt.parked_transfers:
+        out |= frames_of(body)
+    for hosted in rt.hosted.values():
+        if hosted.shipped is not None:
+            out |= frames_of(hosted.shipped[2])
+    for _, *args in shell.bus.backlog:  # a frozen process's unread messages: (sender, key, payload)
+        if len(args) == 3 and isinstance(args[2], bytes):
+            out |= frames_of(args[2])
+    out |= {(chain, run, seq) for chain, run, seq, *_ in shell.pending}
+    return out
+
+
+def _keys(frames: Iterable[ChainFrame]) -> set[Key]:
+    return {(f.chain, f.run, f.seq) for f in frames}
