@@ -39,6 +39,7 @@ from autopower.protocol.messages import (
     StageFailed,
     StageReady,
     StateTransfer,
+    StatusDelta,
     SubgroupDecision,
     SubgroupMove,
     SubgroupPropose,
@@ -50,5 +51,5 @@ __all__ = [
     "Ack", "Assign", "AutoCommand", "Batch", "ChainCommand", "ChainFrame", "Keys", "LinkCommand", "LinkInfo", "OperatorSettings",
     "MigrateCommand", "MigrateOut", "MissionInfo", "NodeStatus", "OperatorReply", "Packet", "PeerStatus",
     "PlanChange", "PlanUpdate", "Prepare", "Prepared", "Relayed", "Release", "SinkStats", "Consumed", "SnapshotRequest", "SourceStats",
-    "StageFailed", "StageReady", "StateTransfer", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",
+    "StageFailed", "StageReady", "StateTransfer", "StatusDelta", "SubgroupDecision", "SubgroupMove", "SubgroupPropose", "SubgroupVote", "check_name", "decode", "encode", "message_kinds",
 ]

@@ -23,7 +23,8 @@ import msgpack
 
 from autopower.errors import ProtocolError
 
-PROTOCOL_VERSION = 3  # 2: acknowledgements left the status for `Ack` messages; 3: fields by position
+PROTOCOL_VERSION = 4  # 2: acknowledgements left the status for `Ack` messages; 3: fields by position;
+# 4: statuses as their change from a whole one (`StatusDelta`)
 MAGIC = b"AP"
 # The first bytes of every encoded message (a 4-element array, then the magic): a check cheap
 # enough for a transport thread, so that a flood of random bytes is dropped before it is queued.
@@ -131,13 +132,28 @@ def wire_data(value: Any) -> Any:
 
 def encode(msg: Any) -> bytes:
     """Encode a registered message; raises ProtocolError for anything else."""
+    return encode_fields(type(msg), wire_fields(msg))
+
+
+def wire_fields(msg: Any) -> list:
+    """A registered message's fields as the wire carries them: a list in declaration order, nested
+    structs as lists, tuples as lists (what `encode` packs). ProtocolError for anything else."""
     kind = getattr(type(msg), "KIND", None)
     if _MESSAGES.get(kind) is not type(msg):
         raise ProtocolError(f"cannot encode {type(msg).__name__}: not a registered message")
     try:
-        return msgpack.packb([MAGIC, PROTOCOL_VERSION, kind, _wire(msg)], use_bin_type=True)
+        return _wire(msg)
     except (TypeError, ValueError, OverflowError) as exc:
         raise ProtocolError(f"cannot encode {kind}: {exc}") from exc
+
+
+def encode_fields(cls: type, fields: list) -> bytes:
+    """Pack a message of class ``cls`` from its fields in wire form (`wire_fields`); not checked
+    against the class: a receiver decodes them as strictly as any message."""
+    try:
+        return msgpack.packb([MAGIC, PROTOCOL_VERSION, cls.KIND, fields], use_bin_type=True)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ProtocolError(f"cannot encode {cls.KIND}: {exc}") from exc
 
 
 # ---------------------------------------------------------------------------------------------
@@ -402,6 +418,14 @@ def _decode_fields(cls: type, fields: Any, kind: str) -> Any:
         return _build(cls, fields, kind)  # accepts it after all, or says what is wrong and where
 
 
+def decode_fields(cls: type, fields: Any) -> Any:
+    """A registered message of class ``cls`` built from its fields in wire form (as `decode` reads
+    them off the wire, with the same checks); ProtocolError for anything it would refuse."""
+    if _MESSAGES.get(getattr(cls, "KIND", None)) is not cls:
+        raise ProtocolError(f"cannot decode {cls.__name__}: not a registered message")
+    return _decode_fields(cls, fields, cls.KIND)
+
+
 def looks_like_message(data: bytes) -> bool:
     """Whether ``data`` starts like an encoded message (any version); `decode` still judges the rest."""
     return data[:len(_PREFIX)] == _PREFIX
@@ -449,5 +473,5 @@ def decode(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...]
     return _decode_fields(cls, fields, kind)
 
 
-__all__ = ["MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "decode", "encode", "looks_like_message", "message", "message_kind", "wire_data",
-           "message_kinds", "struct"]
+__all__ = ["MAX_MESSAGE_BYTES", "PROTOCOL_VERSION", "decode", "decode_fields", "encode", "encode_fields",
+           "looks_like_message", "message", "message_kind", "wire_data", "wire_fields", "message_kinds", "struct"]

@@ -8,7 +8,8 @@ and `PlanUpdate` again for a node whose status says it does not run it yet.
 Node -> coordinator (``base/inbox``, BLOCK): `Prepared`, `StageReady`, `StageFailed`, or a `Batch` of them.
 Coordinator -> everyone (``base/plan``, BLOCK): `PlanUpdate`, or a new plan as its `PlanChange`
 from the one before (`autopower.protocol.plans`).
-Telemetry (``status/<n>``, DROP): `NodeStatus`, for base stations (and each process's recording).
+Telemetry (``status/<n>``, DROP): `NodeStatus`, whole or as its `StatusDelta` from the last whole
+one, for base stations (and each process's recording).
 Between robots (``peer/<n>``, DROP): `PeerStatus`, the part of a status the robots use.
 Addressed in the sender's name (``node/<to>/from/<n>``, DROP): `Ack`, what n consumed of the
 chains ``to`` sent it; from the base station, its `PeerStatus` as robot ``to`` acts on it.
@@ -464,6 +465,28 @@ class NodeStatus:
     # slowdown, `NodeRuntime.charge_runtime`) and its component code's
     runtime_cpu_s: float = 0.0
     component_cpu_s: float = 0.0
+
+
+@message
+@dataclass(frozen=True, kw_only=True)
+class StatusDelta:
+    """A `NodeStatus` as its change from the last whole one its sender sent (the keyframe,
+    `autopower.protocol.statuses`): most of a status (stages, links, sinks' runs, counters, the
+    energy parts' names) repeats from one status to the next; its clock and meters do not.
+
+    ``changes`` maps a `NodeStatus` field's position to its new value as the wire carries it
+    (`codec.wire_fields`); a map field's value is ``[entries new or changed, keys gone]``, a key
+    the keyframe has given by its position in the keyframe's map, a new one by its name. Fields
+    absent are as in the keyframe. A receiver that holds the keyframe (its ``t_unix`` is
+    ``key_t``) builds the whole status and decodes it as strictly as one sent whole; one that
+    does not waits for the next keyframe (the delta still says the sender is there).
+    """
+
+    KIND = "status-delta"
+    node: str
+    t_unix: float
+    key_t: float  # `NodeStatus.t_unix` of the keyframe this is the change from
+    changes: dict[int, Any]
 
 
 @message
