@@ -30,7 +30,9 @@ import results
 import zenoh
 
 from autopower.errors import ProtocolError
-from autopower.protocol import Keys, NodeStatus, decode
+from autopower.protocol import Keys, NodeStatus, StatusDelta, decode
+from autopower.protocol.codec import message_kind
+from autopower.protocol.statuses import KEY_EVERY_S, StatusAssembler
 
 AUTOPOWER = str(Path(sys.executable).parent / "autopower")
 
@@ -92,6 +94,10 @@ def flood(command: list[str], env: dict[str, str], messages: int, size_mb: float
                 time.sleep(0.2)
                 alive = session.liveliness().get(keys.alive("r1"), timeout=1.0)
             time.sleep(1.0)
+            # a whole status first (`protocol.statuses`): the changes from it make the agent's last one whole
+            deadline = time.monotonic() + KEY_EVERY_S + 5.0
+            while not any(message_kind(p) == NodeStatus.KIND for p in list(statuses)) and time.monotonic() < deadline:
+                time.sleep(0.2)
             rest = rss_mb(agent.pid)
             peak = rest
             done = threading.Event()
@@ -138,7 +144,10 @@ def last_errors(statuses: list[bytes]) -> dict:
     if not statuses:
         return {}
     try:
-        return decode(statuses[-1], NodeStatus).errors
+        assembler, last = StatusAssembler(), None
+        for payload in statuses:  # the last whole one, or the last change from one
+            last = assembler.whole(decode(payload, (NodeStatus, StatusDelta))) or last
+        return last.errors if last is not None else {}
     except ProtocolError:
         return {"(status of another protocol version: counts unknown)": 0}
 

@@ -36,7 +36,19 @@ import results
 from autopower.launch.localhost import endpoint, free_ports
 from autopower.model.loading import load_scenario
 from autopower.model.network import build_network
-from autopower.protocol import ChainFrame, Keys, LinkInfo, MissionInfo, NodeStatus, Packet, PlanUpdate, decode, encode
+from autopower.protocol import (
+    ChainFrame,
+    Keys,
+    LinkInfo,
+    MissionInfo,
+    NodeStatus,
+    Packet,
+    PlanUpdate,
+    StatusDelta,
+    decode,
+    encode,
+)
+from autopower.protocol.statuses import StatusAssembler
 from autopower.runtime.bus import ZenohBus, ZenohSettings
 
 SIZES = (200, 1059, 230415)
@@ -123,8 +135,12 @@ def start_mission(bus: ZenohBus, keys: Keys, log_path: Path) -> dict:
     latest: dict = {}
     seen = threading.Event()
 
+    statuses = StatusAssembler()  # r1's statuses, whole again
+
     def on_status(key, payload):
-        status = decode(payload, NodeStatus)
+        status = statuses.whole(decode(payload, (NodeStatus, StatusDelta)))
+        if status is None:
+            return
         latest["status"] = status
         if status.plan_epoch == 1 and status.links.get("laptop"):
             seen.set()

@@ -34,6 +34,7 @@ from autopower.protocol import (
 )
 from autopower.protocol.access import TeamAccess, carries_peer_status, status_problem
 from autopower.protocol.codec import looks_like_message
+from autopower.protocol.statuses import StatusEncoder
 from autopower.runtime.bus import Bus, ZenohBus, ZenohSettings
 from autopower.runtime.cadence import (
     REPEAT_AFTER_PERIODS,
@@ -119,6 +120,7 @@ class Agent:
         self.watch = PeerWatch(WatchSettings(periods=config.silence_periods, own_period_s=config.status_period_s,
                                              lease_s=config.zenoh.lease_ms / 1000.0))
         self.cadence = StatusCadence(config.status_period_s, config.status_rest_period_s)
+        self.status_encoder = StatusEncoder()  # each status whole or as its change from the last whole one
         self._asleep_at_rest = False  # the loop sleeps past the status period (`run`)
         self.stop_reason: str | None = None
 
@@ -292,8 +294,11 @@ class Agent:
                 self.relayer.on_status(status)
                 self.statuses[status.node] = status
                 rt.on_peer_status(status)  # what it consumed: acks for our custody buffer
-                if (rt.yield_to_newer(status) or rt.take_status_asked()
-                        or self._base_came_within_reach(base_was_reachable)):
+                # a base station that began listening, or hears us again, gets our next status whole
+                heard_again = rt.take_status_asked() or self._base_came_within_reach(base_was_reachable)
+                if heard_again:
+                    self.status_encoder.refresh()
+                if rt.yield_to_newer(status) or heard_again:
                     self.publish_status()
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
@@ -398,7 +403,7 @@ class Agent:
         if status is not None:  # (held back: only counts moved, the heartbeat waits)
             # the whole status to base stations, the part robots use to the robots (each a heartbeat)
             base = self.config.scenario.basestation
-            for key, payload, dests in ((self.keys.status(self.config.robot), encode(status), [base]),
+            for key, payload, dests in ((self.keys.status(self.config.robot), self.status_encoder.encode(status), [base]),
                                         (self.keys.peer(self.config.robot), encode(PeerStatus.of(status)),
                                          sorted(rt.producers() - {base}))):
                 self._bus.publish(key, payload, reliable=False)

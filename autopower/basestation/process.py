@@ -43,11 +43,13 @@ from autopower.protocol import (
     PlanChange,
     PlanUpdate,
     SnapshotRequest,
+    StatusDelta,
     decode,
     encode,
 )
 from autopower.protocol.access import TeamAccess, status_problem
 from autopower.protocol.codec import looks_like_message
+from autopower.protocol.statuses import StatusAssembler, StatusEncoder, replaces_queued
 from autopower.runtime.bus import Bus, Request, ZenohBus, ZenohSettings
 from autopower.runtime.cadence import REPEAT_AFTER_PERIODS, REPEAT_EVERY_PERIODS, StatusCadence
 from autopower.runtime.events import (
@@ -145,6 +147,8 @@ class BaseStation:
         self._suspects: dict[str, float] = {}  # robot out of direct sight -> when
         self._status_t: dict[str, float] = {}  # node -> t_unix of its newest status seen
         self.cadence = StatusCadence(config.status_period_s, config.status_rest_period_s)
+        self.status_encoder = StatusEncoder()  # our status whole or as its change from the last whole one
+        self.statuses_in = StatusAssembler()  # the others' statuses, whole again
         self._lock_fd: int | None = None
         self._kept_incarnation: int | None = None  # what the state directory says we used last
         # operator requests whose reply waits for the decision that carries them out
@@ -164,9 +168,12 @@ class BaseStation:
         if robot not in self.relayer.direct:
             self.relayer.send(robot, key, payload, reliable=False)
 
-    def _newest_only(self, key: str) -> bool:
-        """A robot's status, or its acknowledgement to us: each says all its older ones said."""
-        return self.keys.node_of_status(key) is not None or self.keys.addressed_ends(key) is not None
+    def _newest_only(self, key: str, payload: bytes) -> bool:
+        """A robot's status as its change from a whole one, or its acknowledgement to us: each says all
+        its older ones said. A whole status is never replaced: the changes that follow it need it."""
+        if self.keys.node_of_status(key) is not None:
+            return replaces_queued(payload)
+        return self.keys.addressed_ends(key) is not None
 
     def __enter__(self) -> "BaseStation":
         if self._bus is None:
@@ -381,13 +388,16 @@ class BaseStation:
                 if event_key == keys.inbox:
                     co.on_inbox(payload)
                 elif keys.node_of_status(event_key) is not None:
-                    status = decode(payload, NodeStatus)
-                    problem = status_problem(keys, event_key, status.node, status.t_unix, time.time())
+                    msg = decode(payload, (NodeStatus, StatusDelta))
+                    problem = status_problem(keys, event_key, msg.node, msg.t_unix, time.time())
                     if problem is not None:
                         rt.count("forged", problem)
                         return
-                    if not relayed and status.node != self.node:  # before the duplicate check
-                        self.relayer.on_direct(status.node)  # (`Relayer.on_direct`: why every direct copy counts)
+                    if not relayed and msg.node != self.node:  # before the duplicate check
+                        self.relayer.on_direct(msg.node)  # (`Relayer.on_direct`: why every direct copy counts)
+                    status = self.statuses_in.whole(msg)
+                    if status is None:  # a change from a whole status we do not hold: the next whole one will do
+                        return
                     # a status can come twice (direct and relayed) and out of order: the newest counts
                     if status.t_unix <= self._status_t.get(status.node, 0.0):
                         return
@@ -553,6 +563,8 @@ class BaseStation:
                         rt.counters["status-repeats"] = self._bus.repeated
                     if self.events.superseded:  # robots' statuses (and acks) replaced by a newer one while queued
                         rt.counters["statuses-superseded"] = self.events.superseded
+                    if self.statuses_in.unapplied:  # changes from a whole status not held (missed or newer)
+                        rt.counters["status-deltas-unapplied"] = self.statuses_in.unapplied
                     if self.traffic is not None and self.traffic.due(time.monotonic()):
                         rt.charge_control(self.traffic.poll(self._bus.links()), self.traffic.packets_by_peer)  # its links' bytes, metered
                     rt.charge_runtime(time.process_time())  # its own CPU, measured (mains: reported, not charged)
@@ -578,7 +590,7 @@ class BaseStation:
                             # the whole status for a standby base station and the recording, to each robot
                             # the part it acts on (`peer_view`), relayed to those out of sight; each is a
                             # heartbeat
-                            key, payload = self.keys.status(self.node), encode(status)
+                            key, payload = self.keys.status(self.node), self.status_encoder.encode(status)
                             self._bus.publish(key, payload, reliable=False)
                             self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
                                                         REPEAT_EVERY_PERIODS * status.next_status_s)

@@ -16,7 +16,7 @@ directory's name, so nobody has to pass it around) and `merge_recordings` joins 
 What is recorded, on the mission timeline (virtual seconds; the clock comes from the first
 `PlanUpdate` seen, or from `clock=`):
 
-- own `NodeStatus` published -> ``robots/<r>/battery_j``, ``robots/<r>/power_w/<part>`` (and
+- own `NodeStatus` published (whole, or its `StatusDelta` made whole again) -> ``robots/<r>/battery_j``, ``robots/<r>/power_w/<part>`` (and
   ``total``), ``custody/<node>/resent|held|evicted`` (frames resent after a silent loss, kept
   until acknowledged, given up), ``robots/<r>/overhead_j/migration|recovery`` (cumulative energy outside the model's
   steady state, see `autopower.node.meter`), ``team/links/<a>-<b>/up`` when a neighbour's visibility changes, sink and source
@@ -75,7 +75,9 @@ from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.parts import OVERHEAD_KINDS, overhead_kind
 from autopower.node.ports import SinkListener
 from autopower.protocol.codec import decode, message_kind, wire_data
+from autopower.protocol.messages import NodeStatus, StatusDelta
 from autopower.protocol.plans import PlanAssembler
+from autopower.protocol.statuses import StatusAssembler
 from autopower.recording.telemetry import (
     EVENT_TAG,
     MESSAGES,
@@ -251,6 +253,7 @@ class Recorder:
         # own plans back, and one assembler taking the change first on the way in had nothing
         # left to apply on the way out (the decision of that epoch went unrecorded)
         self._plans = {"publish": PlanAssembler(), "receive": PlanAssembler()}
+        self._statuses = StatusAssembler()  # its own statuses, whole again (each is sent as its change from a whole one)
         self._runtime = None  # the NodeRuntime `attach` records the outputs of
         self._lock = threading.RLock()
         self.flush_every_s = flush_every_s
@@ -352,9 +355,10 @@ class Recorder:
         if keys is None:
             return
         if keys.node_of_status(key) is not None:
-            kind, fields = _peek(payload)
-            if kind == "status":
-                self._status(fields)
+            # each one it sends passes here, its keyframes first: every change applies
+            status = self._statuses.whole(decode(payload, (NodeStatus, StatusDelta)))
+            if status is not None:
+                self._status(wire_data(status))
         elif keys.node_of_peer(key) is not None:
             return  # the part of the status just logged that robots read (`PeerStatus`)
         elif keys.addressed_ends(key) is not None:

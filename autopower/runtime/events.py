@@ -83,10 +83,11 @@ class EventQueue:
     def __init__(self, bulk_keys: Iterable[str] = (), *, bulk_limit: tuple[int, int] = BULK_LIMIT,
                  urgent_limit: tuple[int, int] = URGENT_LIMIT,
                  admit: Callable[[bytes], bool] | None = None,
-                 newest_only: Callable[[str], object] | None = None) -> None:
-        """``newest_only(key)`` true: a message on that key replaces the one still queued on it
-        (a status says all its older ones said), so a loop that falls behind finds one status per
-        sender, not a backlog that crowds out the orders (counted in `superseded`)."""
+                 newest_only: Callable[[str, bytes], object] | None = None) -> None:
+        """``newest_only(key, payload)`` true: that message replaces the one still queued on its key
+        (a status's change from a whole one says all its older ones said), so a loop that falls
+        behind finds one status per sender, not a backlog that crowds out the orders (counted in
+        `superseded`). A message it is false for is queued in order, never replaced (a whole status)."""
         # Re-entrant: a signal handler may post while the loop's thread holds the lock.
         self._cond = threading.Condition(threading.RLock())
         self._urgent: deque[Event] = deque()
@@ -110,7 +111,7 @@ class EventQueue:
     def post(self, event: Event, *, bulk: bool = False) -> None:
         size = len(event.payload) if isinstance(event, Received) else 0
         newest = (not bulk and isinstance(event, Received) and self._newest_only is not None
-                  and bool(self._newest_only(event.key)))
+                  and bool(self._newest_only(event.key, event.payload)))
         with self._cond:
             if newest and event.key in self._newest:
                 self._bytes[False] += size - len(self._newest[event.key].payload)

@@ -35,10 +35,12 @@ from autopower.protocol import (
     PeerStatus,
     PlanChange,
     PlanUpdate,
+    StatusDelta,
     decode,
     encode,
 )
 from autopower.protocol.access import carries_peer_status, status_problem
+from autopower.protocol.statuses import StatusAssembler, StatusEncoder
 from autopower.runtime.cadence import StatusCadence
 from autopower.runtime.relay import Relayer
 from autopower.teamsim.bus import SimBus
@@ -65,6 +67,7 @@ class Shell:
         self.relayer: Relayer | None = None
         self.next_status = 0.0
         self.cadence: StatusCadence | None = None
+        self.status_encoder: StatusEncoder | None = None
 
     # ---- life ---------------------------------------------------------------------------------
     def start(self) -> None:
@@ -82,6 +85,7 @@ class Shell:
             # a fan-in chain's input is made by a join step: that is its production
             joined=lambda c, r, s: w.ledger.on_produced((c, r, s), w.scheduler.now, w.trace.events)))
         self.cadence = StatusCadence(w.status_period_s, w.status_rest_period_s)  # a new process's: it says all at once
+        self.status_encoder = StatusEncoder()  # a new process's: its first status goes whole
         self.build()
         self.next_status = w.scheduler.wall()
         self.turn()
@@ -282,9 +286,11 @@ class RobotShell(Shell):
                 self.relayer.on_direct(status.node)
             self.statuses[status.node] = status
             rt.on_peer_status(status)
-            # as the agent: a base station asking, or back within reach through a peer, hears us at once
-            if (rt.yield_to_newer(status) or rt.take_status_asked()
-                    or (not base_was_reachable and self.relayer.reachable(base))):
+            # as the agent: a base station asking, or back within reach through a peer, hears us at once, whole
+            heard_again = rt.take_status_asked() or (not base_was_reachable and self.relayer.reachable(base))
+            if heard_again:
+                self.status_encoder.refresh()
+            if rt.yield_to_newer(status) or heard_again:
                 self.publish_status()
             return
         order, model_w = rt.plan_order, rt.model_w
@@ -311,7 +317,7 @@ class RobotShell(Shell):
         self.commit_outputs()
         if status is not None:  # (held back: only counts moved, the heartbeat waits)
             base = w.scenario.basestation
-            for key, payload, dests in ((keys.status(self.node), encode(status), [base]),
+            for key, payload, dests in ((keys.status(self.node), self.status_encoder.encode(status), [base]),
                                         (keys.peer(self.node), encode(PeerStatus.of(status)),
                                          sorted(rt.producers() - {base}))):
                 self.bus.publish(key, payload, reliable=False)
@@ -369,6 +375,7 @@ class BaseShell(Shell):
                                    also_relay=self.relayer.send_beyond_sight, on_own_plan=self._own_plan)
         self.suspects: dict[str, float] = {}
         self.status_t: dict[str, float] = {}
+        self.statuses_in = StatusAssembler()  # the others' statuses, whole again
         for key in (keys.node_data(base), keys.node_control(base), keys.addressed_to(base), keys.plan, keys.inbox,
                     keys.status_all, keys.node_relay(base)):
             self.bus.subscribe(key, lambda k, p: self.guarded(self._received, k, p))
@@ -445,23 +452,27 @@ class BaseShell(Shell):
             if key == keys.inbox:
                 co.on_inbox(payload)
             elif keys.node_of_status(key) is not None:
-                self._status(key, decode(payload, NodeStatus), relayed)
+                self._status(key, decode(payload, (NodeStatus, StatusDelta)), relayed)
             else:
                 rt.count("unexpected-key", key)
         except ProtocolError as exc:
             rt.count("garbled", f"on {key}: {exc}")
 
-    def _status(self, key: str, status: NodeStatus, relayed: bool) -> None:
+    def _status(self, key: str, msg: NodeStatus | StatusDelta, relayed: bool) -> None:
         rt, co = self.rt, self.co
-        if status_problem(self.keys, key, status.node, status.t_unix, self.world.scheduler.wall()) is not None:
+        if status_problem(self.keys, key, msg.node, msg.t_unix, self.world.scheduler.wall()) is not None:
             rt.count("forged", key)
+            return
+        if not relayed and msg.node != self.node:  # as the base station: before the duplicate check
+            self.relayer.on_direct(msg.node)
+        status = self.statuses_in.whole(msg)
+        if status is None:  # a change from a whole status we do not hold: the next whole one will do
+            rt.counters["status-deltas-unapplied"] = self.statuses_in.unapplied
             return
         if status.t_unix <= self.status_t.get(status.node, 0.0) or status.node == self.node:
             return
         self.status_t[status.node] = status.t_unix
         self.relayer.on_status(status)
-        if not relayed:
-            self.relayer.on_direct(status.node)
         rt.on_peer_status(status)
         if status.node in co.robots and status.node not in co.present and self.relayer.reachable(status.node):
             co.on_liveliness(status.node, True)
@@ -517,7 +528,8 @@ class BaseShell(Shell):
         self.commit_outputs()
         rt.settle_held_store()
         if status is not None:  # (held back: only counts moved, the heartbeat waits)
-            self.bus.publish(self.keys.status(self.node), encode(status), reliable=False)  # standby base stations
+            self.bus.publish(self.keys.status(self.node), self.status_encoder.encode(status),
+                             reliable=False)  # standby base stations
             # each robot the part it acts on (`basestation.peer_view`)
             for robot, key, payload in self.peer_views.addressed(co, status, w.scheduler.wall(),
                                                                  status.next_status_s):

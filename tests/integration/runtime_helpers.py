@@ -10,6 +10,16 @@ from autopower.launch.summary import overhead_j
 from autopower.model.scenario import Scenario
 from autopower.node.sequencing import fold_digest
 from autopower.node.stages import chain_seed
+from autopower.protocol import NodeStatus, StatusDelta, decode
+from autopower.protocol.statuses import StatusAssembler
+
+
+def whole_statuses(payloads) -> list[NodeStatus | None]:
+    """Status payloads as one node published them (each whole, or as its change from the last whole
+    one: `protocol.statuses`) made whole, in order; None for a change whose whole status is not
+    among them."""
+    assembler = StatusAssembler()
+    return [assembler.whole(decode(p, (NodeStatus, StatusDelta))) for p in payloads]
 
 
 def sinks_of(snap: dict) -> dict[str, dict]:

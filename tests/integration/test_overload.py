@@ -16,11 +16,13 @@ offline run. Bounded: four slow frames, a few seconds.
 
 from __future__ import annotations
 
+import threading
 import time
 
 from autopower.cli.options import build_scenario
 from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint
-from autopower.protocol import Keys, NodeStatus, decode
+from autopower.protocol import Keys, NodeStatus, StatusDelta, decode
+from autopower.protocol.statuses import StatusAssembler
 from autopower.runtime.bus import ZenohBus, ZenohSettings
 from autopower.runtime.cadence import silence_limit_s
 from tests.integration.runtime_helpers import reference_digest, settled, sinks_of, wait_for
@@ -40,19 +42,32 @@ def test_a_base_station_held_up_by_a_slow_stage_stays_in_the_team(plugin_path, t
                     log_dir=tmp_path / "logs")
     with LocalTeam(spec, scenario) as team:
         team.wait_ready(60)
-        snap = wait_for(team, settled, 30, "the team to settle")
-        assert snap["placement"]["Motion-1"] == "laptop"
-        assert sinks_of(snap).get("Motion-1", {}).get("contiguous", 0) < SLOW_FRAMES.start, \
-            "the slow frames came before the team settled: nothing left to observe"
         keys = Keys(team.team)
         base = scenario.basestation
-        epoch, events_before = snap["epoch"], len(snap.get("events") or [])
         arrivals: list[tuple[float, float]] = []  # when each status came, the period it announced
         identity = team.identities.files(base) if team.identities else None
         settings = ZenohSettings(connect=(endpoint(team.ports[base], scheme=team.scheme),), tls=identity)
+        watching = threading.Event()
+        # listening from before the team settles: a whole status comes meanwhile (`protocol.statuses`),
+        # so the period each change after it announces is known
         with ZenohBus(settings) as observer:
-            observer.subscribe(keys.status(base), lambda _k, p: arrivals.append(
-                (time.monotonic(), decode(p, NodeStatus).next_status_s)))
+            statuses = StatusAssembler()
+
+            def arrived(_key: str, payload: bytes) -> None:
+                status = statuses.whole(decode(payload, (NodeStatus, StatusDelta)))
+                if not watching.is_set():
+                    return
+                # a change from a whole status not held: it came; the longest period it may have announced
+                announced = status.next_status_s if status is not None else spec.heartbeat_s
+                arrivals.append((time.monotonic(), announced))
+
+            observer.subscribe(keys.status(base), arrived)
+            snap = wait_for(team, settled, 30, "the team to settle")
+            assert snap["placement"]["Motion-1"] == "laptop"
+            assert sinks_of(snap).get("Motion-1", {}).get("contiguous", 0) < SLOW_FRAMES.start, \
+                "the slow frames came before the team settled: nothing left to observe"
+            epoch, events_before = snap["epoch"], len(snap.get("events") or [])
+            watching.set()
             watched_from = time.monotonic()
             wait_for(team, lambda s: sinks_of(s).get("Motion-1", {}).get("contiguous", 0) >= SLOW_FRAMES.stop + 20,
                      30 + len(SLOW_FRAMES) * SLOW_S * 3, "Motion-1 to get past its slow frames")

@@ -21,8 +21,10 @@ import pytest
 from autopower.cli.options import build_scenario
 from autopower.deploy.pki import TeamCA
 from autopower.launch.localhost import LocalTeam, TeamSpec, endpoint
-from autopower.protocol import Keys, MigrateOut, NodeStatus, PlanUpdate, SnapshotRequest, decode, encode
+from autopower.protocol import Keys, MigrateOut, NodeStatus, PlanUpdate, SnapshotRequest, StatusDelta, decode, encode
 from autopower.protocol.access import status_problem
+from autopower.protocol.codec import message_kind
+from autopower.protocol.statuses import KEY_EVERY_S
 from autopower.runtime.bus import TlsFiles, ZenohBus, ZenohSettings
 from tests.integration.runtime_helpers import sinks_of, sources_of, wait_for
 
@@ -131,6 +133,8 @@ class Insider:
         self.bus.subscribe(self.keys.status_all, self._keep)
 
     def _keep(self, key: str, payload: bytes) -> None:
+        if message_kind(payload) == StatusDelta.KIND:
+            return  # a status's change from its whole one: the insider copies whole ones
         with self._lock:
             self.latest[key] = payload
 
@@ -170,7 +174,7 @@ class Witness:
         self.keys = Keys(team.team)
         self.nodes = tuple(team.nodes)
         self.seen: list[tuple[str, str, bytes]] = []  # (the node attached to, key, payload)
-        self._statuses: list[tuple[str, NodeStatus]] = []  # (the node attached to, status)
+        self._statuses: list[tuple[str, NodeStatus | StatusDelta]] = []  # (the node attached to, status)
         self._lock = threading.Lock()
         self._sessions = []
         self._subscribers = []
@@ -188,13 +192,14 @@ class Witness:
             raise
 
     def _keep(self, node: str, key: str, payload: bytes) -> None:
-        status = decode(payload, NodeStatus) if self.keys.node_of_status(key) is not None else None
+        # whole or as its change from a whole one: either names its node and time
+        status = decode(payload, (NodeStatus, StatusDelta)) if self.keys.node_of_status(key) is not None else None
         with self._lock:
             self.seen.append((node, key, payload))
             if status is not None:
                 self._statuses.append((node, status))
 
-    def statuses(self, node: str) -> list[NodeStatus]:
+    def statuses(self, node: str) -> list[NodeStatus | StatusDelta]:
         with self._lock:
             return [st for n, st in self._statuses if n == node]
 
@@ -310,7 +315,7 @@ def _watched_insider(team, stack: ExitStack, key: str):
     stack.callback(insider.close)
     witness.wait_forwarding()
     insider.wait_connected()
-    return witness, insider, decode(insider.wait_for(key), NodeStatus)
+    return witness, insider, decode(insider.wait_for(key, KEY_EVERY_S + 5.0), NodeStatus)
 
 
 def test_a_robot_identity_cannot_put_a_status_on_another_robots_key(team):

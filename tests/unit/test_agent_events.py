@@ -104,7 +104,7 @@ def test_a_status_replaces_the_one_still_queued_from_its_sender_and_never_crowds
     # the base station's queue: statuses from every robot converge there; one that falls behind
     # takes each robot's newest (an older one says nothing the newest does not), orders first
     q = EventQueue(bulk_keys=["data"], urgent_limit=(3, 1_000_000),
-                   newest_only=lambda key: key.startswith("status/"))
+                   newest_only=lambda key, payload: key.startswith("status/"))
     for i in range(1000):  # a loop stalled for minutes: every robot's statuses keep coming
         for robot in ("r1", "r2"):
             q.on_message(f"status/{robot}", f"{robot}:{i}".encode())

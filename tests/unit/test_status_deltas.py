@@ -16,7 +16,8 @@ from hypothesis import given, settings, strategies as st
 from autopower.errors import ProtocolError
 from autopower.protocol import MissionInfo, NodeStatus, SinkStats, SourceStats, StatusDelta, decode, encode
 from autopower.protocol.codec import PROTOCOL_VERSION
-from autopower.protocol.statuses import KEY_EVERY_S, StatusAssembler, StatusEncoder
+from autopower.protocol.statuses import KEY_EVERY_S, StatusAssembler, StatusEncoder, replaces_queued
+from autopower.runtime.events import EventQueue
 
 PARTS = ("cpu_idle", "cpu_busy", "802.11a:send", "802.11a:receive", "802.11a:sleep", "gsm:send")
 
@@ -189,6 +190,35 @@ def test_a_garbled_delta_is_refused_and_the_view_stays_whole(changes, why):
 def test_a_delta_of_the_wrong_shape_does_not_decode(payload):
     with pytest.raises(ProtocolError):
         decode(payload, (NodeStatus, StatusDelta))
+
+
+def test_a_queued_delta_gives_way_to_a_newer_one_a_keyframe_never_does():
+    # the base station's queue (`BaseStation._newest_only`): a robot's newest change from its
+    # keyframe replaces the one still queued; a keyframe waits its turn, and the change after it finds it
+    encoder = StatusEncoder()
+    k1, d1, d2 = (encoder.encode(status(t)) for t in (0.0, 0.5, 1.0))
+    assert not replaces_queued(k1) and replaces_queued(d1)
+    q = EventQueue(newest_only=lambda key, payload: replaces_queued(payload))
+    for payload in (k1, d1, d2):
+        q.on_message("status/r1", payload)
+    assert q.superseded == 1
+    receiver = StatusAssembler()
+    got = [receiver.whole(decode(q.get(0).payload)) for _ in range(2)]
+    assert got == [status(0.0), status(1.0)] and q.get(0) is None
+
+
+def test_the_base_station_queues_statuses_by_that_rule():
+    from autopower.basestation.process import BaseStation
+    from autopower.protocol import Keys
+
+    station = BaseStation.__new__(BaseStation)
+    station.keys = Keys("t")
+    encoder = StatusEncoder()
+    k1, d1 = encoder.encode(status(0.0)), encoder.encode(status(0.5))
+    keys = station.keys
+    assert not station._newest_only(keys.status("r1"), k1) and station._newest_only(keys.status("r1"), d1)
+    assert station._newest_only(keys.addressed("laptop", "r1"), b"ack")
+    assert not station._newest_only(keys.inbox, d1)
 
 
 parts = st.sampled_from(PARTS + ("bluetooth:send", "bluetooth:receive"))

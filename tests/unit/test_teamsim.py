@@ -501,3 +501,41 @@ def test_a_died_label_counts_only_for_an_output_a_kill_took():
     assert (counts.delivered, counts.lost, counts.budget) == (2, 1, {"died-with-process": 1})
     assert [v.invariant for v in ledger.violations] == ["exactly-once"]
     assert "1 of them labelled died with a crashed process, though no kill took them" in ledger.violations[0].detail
+
+
+def test_on_a_lossy_link_the_base_stations_view_of_a_robot_is_what_it_sent_or_waits_for_its_next_keyframe(monkeypatch):
+    """r1's link to the base station loses half of what it carries for a minute: some of r1's keyframes
+    are lost, and the changes from them that follow are not applied (counted) until the next keyframe.
+    Every view the base station holds of a robot is a status that robot sent, whole: never a change
+    applied to another keyframe. (`protocol.statuses`.)"""
+    from autopower.protocol import NodeStatus, StatusDelta
+    from autopower.protocol.statuses import StatusAssembler, StatusEncoder
+
+    sent: dict[tuple[str, float], list] = {}  # (node, t_unix) -> the statuses it sent then
+    encode, whole = StatusEncoder.encode, StatusAssembler.whole
+
+    def encoding(self, status):
+        payload = encode(self, status)
+        sent.setdefault((status.node, status.t_unix), []).append(status)
+        return payload
+
+    views: list[tuple[str, NodeStatus | None]] = []  # what the base station made of each status from r1
+
+    def assembling(self, msg):
+        got = whole(self, msg)
+        if msg.node == "r1":
+            views.append((type(msg).__name__, got))
+        return got
+
+    monkeypatch.setattr(StatusEncoder, "encode", encoding)
+    monkeypatch.setattr(StatusAssembler, "whole", assembling)
+    lossy = Fault(kind="loss", t=10.0, duration=60.0, a="laptop", b="r1", p=0.5)
+    result, _ = run_watched(monkeypatch, SimConfig(scenario=SC, seed=3, faults=(lossy,), mission_s=71.0,
+                                                      quiet_s=20.0))
+    assert result.ok, result.violations
+    assert all(view in sent[("r1", view.t_unix)] for _, view in views if view is not None)
+    # a keyframe was lost: changes from it arrived and waited; a later keyframe made the view exact again
+    unapplied = [i for i, (kind, view) in enumerate(views) if view is None]
+    assert unapplied and all(views[i][0] == StatusDelta.__name__ for i in unapplied)
+    assert any(kind == NodeStatus.__name__ for kind, _ in views[unapplied[0]:])
+    assert views[-1][1] is not None and views[-1][1] in sent[("r1", views[-1][1].t_unix)]
