@@ -6,8 +6,10 @@ keep-alives, and each of those small messages is acknowledged by the other end. 
 is a rounding error; over GSM it is a third of a robot's idle power (docs/concepts/energy-model.md).
 
 Rules, per direct link u-v and per direction u -> v (the scenario's ``[control_plane]``):
-- u sends one status a heartbeat (``heartbeat_s``): the whole status (``status_bytes``) to a base
-  station, the compact one robots read of each other (``peer_status_bytes``) to a robot. A node
+- u sends one status a heartbeat (``heartbeat_s``): to a base station its status, whole
+  (``status_bytes``) once every `KEYFRAME_EVERY_S` and as its change from that one
+  (``status_change_bytes``) between (`status_mean_bytes`); to a robot the compact one robots read
+  of each other (``peer_status_bytes``). A node
   says a change (a plan, a stage's state, a link) within a status period (``status_period_s``),
   but a team runs in its steady state: counts move, nothing changes (`runtime.cadence`).
 - The transport sends a keep-alive (``keep_alive_bytes``) every lease / ``keep_alives_per_lease``
@@ -16,7 +18,7 @@ Rules, per direct link u-v and per direction u -> v (the scenario's ``[control_p
 - Each of those messages travels in a packet of its own: ``packet_overhead_bytes`` more (IP and TCP
   headers and the TLS record around it), and the other end answers with an acknowledgement of
   ``ack_bytes`` (a message a status period apart is never coalesced into a delayed ACK).
-- A robot with no direct link to the base station has its whole status relayed there along its
+- A robot with no direct link to the base station has its status relayed there along its
   route (Zenoh peers do not relay; the agents do), each copy with its route and signature
   (``relayed_extra_bytes``), acknowledged on every hop.
 - Bytes become airtime on the link's medium with the link's loss (`model.energy.airtime_s`), paid
@@ -36,16 +38,22 @@ requirement is the longest allowed (`ControlPlaneSpec.lease_for`, `heartbeat_for
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 from autopower.errors import ScenarioError
 
-# Measured on the runtime (the paper's team under `up`, its default mission, fields by position:
-# docs/concepts/energy-model.md): the status a robot sends to the base station (736-761 B encoded)
-# and the one it sends robots (111-118 B), each with Zenoh's put and key.
-DEFAULT_STATUS_BYTES = 790
+# Measured on the runtime (the paper's team under `up`, fields by position: docs/concepts/energy-model.md):
+# the status a robot sends to the base station whole (a keyframe: 754-771 B encoded) and as its change
+# from the last whole one (at rest 218 B on average, running 310-329 B), and the one it sends robots
+# (111-118 B), each with Zenoh's put and key.
+DEFAULT_STATUS_BYTES = 800
+DEFAULT_STATUS_CHANGE_BYTES = 250
 DEFAULT_PEER_STATUS_BYTES = 150
+# A node's status goes whole at least this often, as its change from the last whole one between
+# (`protocol.statuses.KEY_EVERY_S`: the model cannot import the protocol; a test checks they agree).
+KEYFRAME_EVERY_S = 10.0
 # A Zenoh keep-alive: its message and the stream's length prefix.
 DEFAULT_KEEP_ALIVE_BYTES = 8
 # IPv4 (20) + TCP with timestamps (32) + a TLS 1.3 record (22) around each small message.
@@ -67,6 +75,7 @@ class ControlPlaneSpec:
     lease_s: float = 0.5
     keep_alives_per_lease: int = 2
     status_bytes: int = DEFAULT_STATUS_BYTES
+    status_change_bytes: int = DEFAULT_STATUS_CHANGE_BYTES
     peer_status_bytes: int = DEFAULT_PEER_STATUS_BYTES
     keep_alive_bytes: int = DEFAULT_KEEP_ALIVE_BYTES
     packet_overhead_bytes: int = DEFAULT_PACKET_OVERHEAD_BYTES
@@ -113,12 +122,19 @@ class ControlPlaneSpec:
         """Messages each way on one link a second: statuses, and keep-alives where none went."""
         return max(self.keep_alives_per_lease / self.lease_s, 1.0 / self.heartbeat_s)
 
+    def status_mean_bytes(self) -> float:
+        """A status to a base station on average, one a heartbeat: whole at the first heartbeat at
+        least `KEYFRAME_EVERY_S` after the last whole one, as its change from it in between."""
+        per_keyframe = max(1, math.ceil(KEYFRAME_EVERY_S / self.heartbeat_s - 1e-9))
+        return (self.status_bytes + (per_keyframe - 1) * self.status_change_bytes) / per_keyframe
+
     def own_bytes_per_s(self, to_basestation: bool) -> float:
         """Bytes a second a node puts on its link to a neighbour of its own: its status (the whole
-        one to a base station, the short one to a robot) and keep-alives in the intervals left."""
+        one or its change to a base station, the short one to a robot) and keep-alives in the
+        intervals left."""
         status_rate = 1.0 / self.heartbeat_s
         keep_alive_rate = self.messages_per_s() - status_rate
-        status = self.status_bytes if to_basestation else self.peer_status_bytes
+        status = self.status_mean_bytes() if to_basestation else self.peer_status_bytes
         return (status_rate * (status + self.packet_overhead_bytes)
                 + keep_alive_rate * (self.keep_alive_bytes + self.packet_overhead_bytes))
 
@@ -127,8 +143,8 @@ class ControlPlaneSpec:
         not imported, the scenario holds this spec and the network module imports the scenario).
 
         Each end's own messages and its acknowledgements of the other's; and a robot with no direct
-        link to the base station has its whole status carried there hop by hop, each relayed copy
-        signed (``relayed_extra_bytes``) and acknowledged on every hop."""
+        link to the base station has its status carried there hop by hop, each relayed copy signed
+        (``relayed_extra_bytes``) and acknowledged on every hop."""
         base = network.basestation
         out: dict[tuple[str, str], float] = {}
         for link in network.links:
@@ -140,7 +156,7 @@ class ControlPlaneSpec:
             if robot == base or base in network.neighbours(robot) or not network.reachable(robot, base):
                 continue
             for u, v, _ in network.route(robot, base):
-                relayed = self.status_bytes + self.relayed_extra_bytes + self.packet_overhead_bytes
+                relayed = self.status_mean_bytes() + self.relayed_extra_bytes + self.packet_overhead_bytes
                 out[u, v] = out.get((u, v), 0.0) + status_rate * relayed
                 out[v, u] = out.get((v, u), 0.0) + status_rate * self.ack_bytes
         return out

@@ -348,7 +348,8 @@ class ScenarioParser:
         if "lease_s" in section:  # the runtime's floor: below it a busy machine looks like a dead peer
             numbers["lease_s"] = self.number(section, "lease_s", "control_plane", minimum=0.1)
         sizes = {key: int(self.number(section, key, "control_plane", minimum=0.0))
-                 for key in ("status_bytes", "peer_status_bytes", "keep_alive_bytes", "packet_overhead_bytes",
+                 for key in ("status_bytes", "status_change_bytes", "peer_status_bytes", "keep_alive_bytes",
+                             "packet_overhead_bytes",
                              "ack_bytes", "relayed_extra_bytes") if key in section}
         if "keep_alives_per_lease" in section:
             sizes["keep_alives_per_lease"] = int(self.number(section, "keep_alives_per_lease", "control_plane",

@@ -260,7 +260,10 @@ TABLES: tuple[Table, ...] = (
              "longer ones)", "none"),
         _opt("keep_alives_per_lease", "integer >= 1", "keep-alives per lease on a link that sends nothing else",
              "2"),
-        _opt("status_bytes", "integer >= 0", "a robot's status to the base station, encoded, with its key", "790"),
+        _opt("status_bytes", "integer >= 0", "a robot's whole status to the base station, encoded, with its key "
+             "(sent at least every 10 s)", "800"),
+        _opt("status_change_bytes", "integer >= 0", "a robot's status to the base station as its change from the "
+             "last whole one, encoded, with its key (sent between)", "250"),
         _opt("peer_status_bytes", "integer >= 0", "the status robots send each other, encoded, with its key", "150"),
         _opt("keep_alive_bytes", "integer >= 0", "one keep-alive message", "8"),
         _opt("packet_overhead_bytes", "integer >= 0", "IP, TCP and TLS framing around each message", "74"),

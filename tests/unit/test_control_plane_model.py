@@ -36,13 +36,15 @@ def test_a_robots_control_power_is_the_rules_worked_by_hand():
     """r1 on 802.11a with three links (laptop, r2, r3), a status every 2 s (the heartbeat of a
     steady team), a 0.5 s lease with two keep-alives per lease: per second on each link half a
     status and 3.5 keep-alives (the four quarter seconds, one in eight of which carries a status),
-    each in a packet of 74 bytes more, each answered by a 52-byte acknowledgement."""
+    each in a packet of 74 bytes more, each answered by a 52-byte acknowledgement. Its status to the
+    laptop goes whole every fifth heartbeat (10 s) and as its change between."""
     fig7 = load_scenario("paper-fig7")
     network = build_network(fig7, media={"laptop-robot": "802.11a", "robot-robot": "802.11a"})
     without = evaluate(fig7, network, ALL_LAPTOP).robots["r1"]
     with_cp = evaluate(charged(fig7), network, ALL_LAPTOP).robots["r1"]
     keep_alives = 3.5 * (8 + 74)
-    sent = (0.5 * (790 + 74) + keep_alives + 4 * 52) + 2 * (0.5 * (150 + 74) + keep_alives + 4 * 52)
+    to_laptop = (800 + 4 * 250) / 5
+    sent = (0.5 * (to_laptop + 74) + keep_alives + 4 * 52) + 2 * (0.5 * (150 + 74) + keep_alives + 4 * 52)
     received = 3 * (0.5 * (150 + 74) + keep_alives + 4 * 52)  # the laptop sends robots the short status
     radio = fig7.radios["802.11a"]
     seconds_per_byte = 8 / (radio.kbps * 1024)
@@ -65,21 +67,25 @@ def test_the_milp_and_the_exhaustive_search_agree_with_the_control_plane_charged
         plan(PlanRequest(scenario=fig7, topology=topology, method="exhaustive")).evaluation.lifetime_s, rel=1e-9)
 
 
-def test_over_gsm_the_relayed_statuses_turn_the_relay_from_best_to_worst():
+def test_over_gsm_the_relayed_statuses_cost_the_relay_most_of_its_lead():
     """The paper's GSM uplink. Without the control plane, relaying through r1 (one GSM session)
-    outlives the full mesh (three). Counted, r1 also carries r2's and r3's whole statuses to the
-    laptop over its GSM link, signed, at each heartbeat: the relay now dies first."""
+    outlives the full mesh (three) by 7 %. Counted, r1 also carries r2's and r3's statuses to the
+    laptop over its GSM link, signed, at each heartbeat: sent whole every time, they made the relay
+    die first; as their change from a whole one sent every 10 s (`protocol.statuses`), the relay
+    keeps a lead under 1 %, r1 still its bottleneck."""
     fig7 = load_scenario("paper-fig7")
     media = {"laptop-robot": "gsm", "robot-robot": "802.11a"}
 
     def best(scenario, topology):
-        return plan(PlanRequest(scenario=scenario, network=build_network(scenario, topology, media)))
+        return plan(PlanRequest(scenario=scenario, network=build_network(scenario, topology, media))).evaluation
 
-    assert best(fig7, "relay").evaluation.lifetime_s > best(fig7, "fully-connected").evaluation.lifetime_s
+    assert best(fig7, "relay").lifetime_s > 1.05 * best(fig7, "fully-connected").lifetime_s
     on = charged(fig7)
     full, relay = best(on, "fully-connected"), best(on, "relay")
-    assert full.evaluation.lifetime_s > relay.evaluation.lifetime_s
-    assert relay.evaluation.bottleneck == "r1"
+    assert full.lifetime_s < relay.lifetime_s < 1.01 * full.lifetime_s
+    assert relay.bottleneck == "r1"
+    whole = charged(fig7, status_change_bytes=on.control_plane.status_bytes)
+    assert best(whole, "fully-connected").lifetime_s > best(whole, "relay").lifetime_s
 
 
 def test_the_longest_lease_within_the_detection_requirement_is_chosen():
@@ -187,3 +193,17 @@ def test_up_runs_the_lease_keep_alives_and_status_period_the_scenario_plans_with
             ScenarioParser(with_section(section), "", "f.toml").scenario()
     with pytest.raises(ScenarioError, match="control_plane.lease_s: found 0.05"):
         ScenarioParser(with_section("lease_s = 0.05"), "", "f.toml").scenario()
+
+
+@pytest.mark.parametrize("heartbeat_s, whole_every", [(0.5, 20), (2.0, 5), (2.5, 4), (3.0, 4), (5.0, 2), (10.0, 1),
+                                                     (20.0, 1)])
+def test_a_status_to_the_base_station_goes_whole_once_a_keyframe_period_and_as_its_change_between(heartbeat_s,
+                                                                                                  whole_every):
+    """As the runtime sends them (`protocol.statuses`): whole at the first heartbeat 10 s or more
+    after the last whole one."""
+    from autopower.model.control_plane import KEYFRAME_EVERY_S, ControlPlaneSpec
+    from autopower.protocol.statuses import KEY_EVERY_S
+
+    assert KEYFRAME_EVERY_S == KEY_EVERY_S
+    spec = ControlPlaneSpec(enabled=True, heartbeat_s=heartbeat_s, status_bytes=1000, status_change_bytes=100)
+    assert spec.status_mean_bytes() == pytest.approx((1000 + (whole_every - 1) * 100) / whole_every)
