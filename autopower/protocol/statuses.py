@@ -8,7 +8,7 @@ missed a delta loses nothing, the next one carries all that changed since the ke
 
 Rules (`StatusEncoder`, one per sending process; `StatusAssembler`, one per receiving process):
 - a keyframe goes instead of a delta: the process's first status (a restarted process starts
-  anew); a status whose change would exceed `KEY_FRACTION` of it whole; `KEY_EVERY_S` after the
+  anew); a status whose change would exceed `KEY_FRACTION` of the keyframe; `KEY_EVERY_S` after the
   last keyframe (a receiver that missed one, or started listening, has the sender's whole status
   within that bound); a status whose links differ from the status before (a node came into
   sight or left it: one that was cut off missed what was sent meanwhile) or whose mission differs
@@ -39,7 +39,7 @@ from autopower.protocol.codec import decode_fields, encode, encode_fields, messa
 from autopower.protocol.messages import NodeStatus, StatusDelta
 
 KEY_EVERY_S = 10.0  # wall seconds between keyframes at the latest: 5 heartbeats at rest, 20 periods running
-KEY_FRACTION = 0.5  # a change larger than this share of the whole status goes whole
+KEY_FRACTION = 0.5  # a change larger than this share of the keyframe goes whole
 MAX_SENDERS = 4096  # senders whose keyframe a receiver holds (the earliest held goes first)
 
 _NAMES = tuple(f.name for f in dataclasses.fields(NodeStatus))
@@ -73,6 +73,7 @@ class StatusEncoder:
         self.key_fraction = key_fraction
         self._key: list | None = None  # the keyframe's fields in wire form
         self._key_t = 0.0
+        self._key_bytes = 0
         self._positions: dict[int, dict[str, int]] = {}  # map field -> its keys' positions in the keyframe
         self._last_links: dict[str, bool] | None = None
         self._asked = False
@@ -88,22 +89,23 @@ class StatusEncoder:
         links_moved = self._last_links is not None and status.links != self._last_links
         self._last_links = status.links
         key = self._key
-        whole = encode_fields(NodeStatus, fields)
         if key is None or key[_NODE] != fields[_NODE]:
-            return self._keyframe(fields, whole)
+            return self._keyframe(fields)
         may_key = status.t_unix > self._key_t  # one keyframe per t_unix: it names the keyframe
         if may_key and (self._asked or links_moved or status.t_unix - self._key_t >= self.key_every_s
                         or not _same(fields[_MISSION], key[_MISSION])):
-            return self._keyframe(fields, whole)
+            return self._keyframe(fields)
         delta = encode(StatusDelta(node=status.node, t_unix=status.t_unix, key_t=self._key_t,
                                    changes=self._changes(key, fields)))
-        if may_key and len(delta) > self.key_fraction * len(whole):
-            return self._keyframe(fields, whole)
+        # against the keyframe's size (a status's size moves little between keyframes): no second encoding
+        if may_key and len(delta) > self.key_fraction * self._key_bytes:
+            return self._keyframe(fields)
         self.deltas += 1
         return delta
 
-    def _keyframe(self, fields: list, whole: bytes) -> bytes:
-        self._key, self._key_t, self._asked = fields, fields[_T_UNIX], False
+    def _keyframe(self, fields: list) -> bytes:
+        whole = encode_fields(NodeStatus, fields)
+        self._key, self._key_t, self._key_bytes, self._asked = fields, fields[_T_UNIX], len(whole), False
         self._positions = {i: {k: p for p, k in enumerate(fields[i])} for i in _MAPS}
         self.keyframes += 1
         return whole

@@ -29,7 +29,11 @@ FOUND = (90, 118)
 # seeds that fail since the simulated robots run subgroup rounds (strict xfail, pinned in
 # test_teamsim_findings.py until fixed), under the plan they were found with
 ROUNDS_PLAN = Sweep(mission_s=30.0, n_faults=4, quiet_s=20.0, kinds=KINDS_BEFORE_RADIO)
-FOUND_WITH_ROUNDS = (46,)
+# 46 (outputs lost around a base station frozen past the lease, with cuts and frozen robots) passes
+# this plan since statuses go as their change from a whole one (fewer bytes on the links, other
+# timings): not a fix, the finding is open without a seed that shows it. Seeds 0-210 of this plan
+# all pass (2026-11-30).
+FOUND_WITH_ROUNDS: tuple[int, ...] = ()
 # seeds of this sweep that failed since it draws the radio impairments too: a link slowed below the
 # chain's data rate, and custody's resends queued behind their originals. Fixed (frames past the
 # consumer's highest seq wait while it keeps rising: `node.custody`); 16 and 110 run in the sweep
