@@ -140,15 +140,20 @@ class Acknowledging:
         """The nodes that send us frames now (a source or the previous stage's host)."""
         return set().union(*self.producers_by_chain().values())
 
+    def producer_of(self, hosted) -> str | None:
+        """The node the plan has feed a hosted stage: its chain's source, or the previous stage's host."""
+        chain, index = hosted.chain, hosted.index
+        if index == 0:
+            return chain.source
+        return self.plan.placement.get(chain.stages[index - 1].name) if self.plan else None
+
     def producers_by_chain(self) -> dict[str, set[str]]:
         """Per chain we consume, the nodes the plan has send us its frames: our acknowledgements
         (and our status) must reach them even when they are out of sight (relayed)."""
         placement = self.plan.placement if self.plan else {}
         out: dict[str, set[str]] = {}
         for hosted in self.hosted.values():
-            chain, index = hosted.chain, hosted.index
-            out.setdefault(chain.name, set()).add(
-                chain.source if index == 0 else placement.get(chain.stages[index - 1].name))
+            out.setdefault(hosted.chain.name, set()).add(self.producer_of(hosted))
         for name in self.sinks:
             chain = self.chains.get(name)
             if chain is not None and chain.stages:

@@ -17,7 +17,6 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from autopower.errors import ProtocolError
-from autopower.node.in_flight import stage_frames
 from autopower.protocol import ChainFrame, Packet, Relayed, StateTransfer, decode
 
 Key = tuple[str, int, int]  # (chain, run, seq)
@@ -63,9 +62,8 @@ def in_hands(world, node: str) -> set[Key]:
     sink delivered and has not committed yet."""
     shell = world.shells[node]
     rt = shell.rt
-    out = _keys(rt.custody.frames()) | _keys(rt.held_outputs.values()) | _keys(stage_frames(rt.hosted))
-    for orphans in rt.orphans.values():
-        out |= _keys(orphans)
+    # custody, hold, gates, buffers, workers, orphans: what the node names in flight at a clean stop
+    out = {(chain, run, seq) for (chain, run), seqs in rt.in_flight_at_stop().items() for seq in seqs}
     for _, body, _ in rt.parked_transfers:
         out |= frames_of(body)
     for hosted in rt.hosted.values():
