@@ -397,8 +397,7 @@ class Agent:
             self.save_resume()
         # what is acknowledged is kept first, every period (as the base station's): the sink's notes,
         # then their recording, so that each commit is flushed before the next (`node.sink_store`)
-        if rt.sink_store is not None:
-            rt.sink_store.commit()
+        rt.commit_sinks()
         self._bus.flush_recording()
         if status is not None:  # (held back: only counts moved, the heartbeat waits)
             # the whole status to base stations, the part robots use to the robots (each a heartbeat)

@@ -582,8 +582,7 @@ class BaseStation:
                         # moved, the heartbeat waits): the sink's notes, then the recording of those
                         # outputs, so that each commit is flushed before the next (`node.sink_store`);
                         # an operator's snapshot builds a status too but acknowledges nothing
-                        if rt.sink_store is not None:
-                            rt.sink_store.commit()
+                        rt.commit_sinks()
                         self._bus.flush_recording()
                         rt.settle_held_store()  # what the robots acknowledged leaves the held journal
                         if status is not None:

@@ -114,8 +114,10 @@ class Acknowledging:
         out.update(hosted.chain.name for hosted in self.hosted.values())
         return out
 
-    def consumed(self) -> dict[str, Consumed]:
-        """What this node's running stages and sinks have taken in, per hop."""
+    def consumed(self, *, committed_sinks: bool = False) -> dict[str, Consumed]:
+        """What this node's running stages and sinks have taken in, per hop. ``committed_sinks``: a
+        sink's hop as of its last commit when it keeps its ledger on disk (`NodeRuntime.commit_sinks`):
+        what a kill cannot take back."""
         out = {}
         for hosted in self.hosted.values():
             if hosted.lifecycle is Lifecycle.RUNNING:
@@ -123,7 +125,10 @@ class Acknowledging:
                 if report is not None:  # less the inputs still in the stage's worker (their outputs are not out)
                     out[hop_key(hosted.chain.name, hosted.index)] = self.acknowledged(hosted, report)
         for name, ledger in self.sinks.items():
-            report = ledger.report()
+            if committed_sinks and self.sink_store is not None:
+                report = self._sinks_committed.get(name)
+            else:
+                report = ledger.report()
             if report is not None and name in self.chains:
                 out[hop_key(name, len(self.chains[name].stages))] = report
         out.update(self.flows.consumed(self.hosted.values()))  # DAG flows: each fan-in stage's edge gates

@@ -117,6 +117,13 @@ class Holds:
                 if r == run and (chain, target, run, seq) not in self._journaled]
         return min(held) if held else None
 
+    def unsafe_frames(self, chain: str, target: int, run: int) -> list[ChainFrame]:
+        """The frames of a hop and run this node holds in custody in memory only, by seq (what
+        `unsafe_floor` is the lowest of)."""
+        hop = self._custody.hops.get((chain, target), {})
+        return [held.frame for (r, seq), held in sorted(hop.items())
+                if r == run and (chain, target, run, seq) not in self._journaled]
+
     def settle_store(self, mission_key: dict | None) -> None:
         """Drop from the disk the held results that are done with (acknowledged by their sink, or
         let go by a full hold): the file is rewritten with the rest once most of it is done with,

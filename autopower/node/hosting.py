@@ -7,6 +7,7 @@ instance RUNNING; Release retires one.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 from autopower.model.scenario import Chain, Stage
@@ -253,10 +254,13 @@ class Hosting:
             return
         state = refused
         pending = tuple(hosted.gate.take_pending())
+        # The outputs of inputs run here that only this node's memory holds go along: ``next_seq`` says
+        # their inputs were run, so their producer lets them go once the new host reports it.
+        outputs = tuple(self.holds.unsafe_frames(hosted.chain.name, hosted.index + 1, hosted.run))
         transfer = StateTransfer(stage=msg.stage, generation=msg.generation, chain=hosted.chain.name,
                                  run=hosted.run, state=state, next_seq=hosted.gate.next_seq, pending=pending,
                                  t_export_unix=stopped_unix, from_node=self.node,
-                                 resent=hosted.gate.recent_resends())
+                                 resent=hosted.gate.recent_resends(), outputs=outputs)
         body = encode(transfer)
         hosted.lifecycle = Lifecycle.MIGRATED
         hosted.forward_to = msg.to_node
@@ -317,6 +321,7 @@ class Hosting:
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
                              gate=SequenceGate(next_seq=msg.next_seq))
         hosted.gate.resent.extend(msg.resent)  # late originals of these are redundant here too
+        self._adopt_outputs(msg, hosted)
         self.failed.pop(msg.stage, None)
         if current is not None:
             self.retire(current.component)
@@ -326,6 +331,25 @@ class Hosting:
             resume_seq=msg.next_seq, downtime_ms=max(0.0, (self.wall() - msg.t_export_unix) * 1e3), buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
             self._admit(hosted, frame, refusable=False)
+
+    def _adopt_outputs(self, msg: StateTransfer, hosted: HostedStage) -> None:
+        """Keep in custody the outputs the old host had not had acknowledged (`StateTransfer.outputs`),
+        as sent already: resent from here only if their consumer reports them missing (the old host
+        died with them, or a restarted sink had not written them down). Marked resends: a consumer
+        that has one drops the copy as redundant."""
+        target = hosted.index + 1
+        for frame in msg.outputs:
+            if frame.chain != msg.chain or frame.target != target or frame.run != msg.run:
+                self.count("garbled", f"{msg.from_node} moved {msg.stage} with an output of {frame.chain} "
+                                      f"stage {frame.target} run {frame.run}, not of this stage")
+                continue
+            frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
+            if target == len(hosted.chain.stages):
+                self.keep_result(frame)
+            else:
+                self.custody.keep(frame, self.wall())
+        if msg.outputs:
+            self.tally("outputs-adopted", len(msg.outputs))
 
     def _exportable_state(self, hosted: HostedStage) -> bytes | tuple[str, str]:
         """The state to ship, checked to import into a fresh instance; or (what, why) it cannot move.

@@ -4,8 +4,9 @@ chain's frames it still held (docs/reference/recording.md: every output in one c
 A chain's output that never reached its sink was either in flight when the team stopped or lost.
 "In flight" is a claim the replay must be able to check, so each node, as it stops, says which
 (chain, run, seq) it still had in hand: in custody (sent, not yet acknowledged, or a result held for
-a sink out of reach), in its hold, waiting in a stage's sequence gate or start-up buffer, or kept
-for a stage with no host yet (orphans). A seq no node names is lost. And the number each source
+a sink out of reach), in its hold, waiting in a stage's sequence gate or start-up buffer, kept
+for a stage with no host yet (orphans), or in the state of a stage it moved out whose new host has
+not taken it yet (parked for a route, or shipped and not yet confirmed). A seq no node names is lost. And the number each source
 produced in each run bounds the chain's tail: without it, outputs missing after the last one a
 sink got were counted nowhere.
 """
@@ -14,8 +15,9 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
+from autopower.errors import ProtocolError
 from autopower.node.workers import worker_of
-from autopower.protocol import ChainFrame
+from autopower.protocol import ChainFrame, StateTransfer, decode
 
 RunKey = tuple[str, int]  # (chain, run)
 
@@ -60,4 +62,18 @@ def stage_frames(hosted: Mapping) -> list[ChainFrame]:
         worker = worker_of(h.component)
         if worker is not None:
             out.extend(frame for _, frame in worker.outstanding())
+    return out
+
+
+def transfer_frames(bodies: Iterable[bytes]) -> list[ChainFrame]:
+    """The frames the states of stages moving out carry (`StateTransfer`: the inputs not run, the
+    outputs not yet acknowledged), from their encoded bodies; one that does not decode carries none."""
+    out: list[ChainFrame] = []
+    for body in bodies:
+        try:
+            transfer = decode(body, StateTransfer)
+        except ProtocolError:
+            continue
+        out.extend(transfer.pending)
+        out.extend(transfer.outputs)
     return out

@@ -47,7 +47,7 @@ from autopower.node.frames import Frames
 from autopower.node.guard import ComponentHung, GuardedCalls
 from autopower.node.holds import Holds
 from autopower.node.hosting import Hosting
-from autopower.node.in_flight import frames_in_hand, stage_frames
+from autopower.node.in_flight import frames_in_hand, stage_frames, transfer_frames
 from autopower.node.joining import Flows
 from autopower.node.meter import BatteryMeter
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
@@ -65,6 +65,7 @@ from autopower.node.workers import Zygote
 from autopower.protocol import (
     Ack,
     ChainFrame,
+    Consumed,
     Keys,
     MissionInfo,
     NodeStatus,
@@ -208,6 +209,9 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self.notify_work: Callable[[], None] | None = ports.notify_work
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
         self._next_custody_check = 0.0
+        # per sink chain, what its ledger said at the last commit (`commit_sinks`): all this node's own
+        # custody may let go of, between statuses
+        self._sinks_committed: dict[str, Consumed] = {}
         self.wall: Callable[[], float] = wall or time.time
         self.perf: Callable[[], float] = perf or time.perf_counter
         # How a message for one node leaves: the process gives its `Relayer.send`, so that a node
@@ -454,8 +458,10 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
     def in_flight_at_stop(self) -> dict[tuple[str, int], set[int]]:
         """(chain, run) -> the seqs of the frames this node still has in hand (`autopower.node.in_flight`)."""
         names = [c.name for c in self.scenario.chains]
+        moving = [body for _, body, _ in self.parked_transfers]
+        moving += [h.shipped[2] for h in self.hosted.values() if h.shipped is not None and h.shipped[2]]
         return frames_in_hand(names, (self.custody.frames(), self.held_outputs.values(), stage_frames(self.hosted),
-                                      *self.orphans.values()))
+                                      transfer_frames(moving), *self.orphans.values()))
 
     def resume_state(self) -> dict | None:
         """What a restarted process needs to carry on (None before the mission starts)."""
@@ -638,6 +644,19 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
     def flush_held_outputs(self) -> None:
         self.holds.flush(self.network, self.send_frame)
 
+    def commit_sinks(self) -> None:
+        """Write down the outputs the sinks took in since the last commit (before each status).
+
+        Until then an output delivered to a sink here is not safe: a kill loses it with the notes, so
+        this node's custody keeps it (`on_timer` acknowledges to it only what is committed) and the
+        stage that made it reports its input had, not run (`Frames.acknowledged`). A status's
+        acknowledgements to other nodes leave after this commit, so they may say what it wrote.
+        """
+        if self.sink_store is not None:
+            self.sink_store.commit()
+        self._sinks_committed = {name: report for name, ledger in self.sinks.items()
+                                 if (report := ledger.report()) is not None}
+
     def close_stores(self, *, commit_sinks: bool = True) -> None:
         """Close what it keeps on disk (the held results' writer finishes first). ``commit_sinks``
         False: the sink's notes since its last commit are not written (as a killed process leaves them)."""
@@ -684,7 +703,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             self.check_stage_workers()
         wall = self.wall()
         if wall >= self._next_custody_check:
-            self._acknowledge(self.node, wall, self.consumed())  # what we consumed ourselves
+            self._acknowledge(self.node, wall, self.consumed(committed_sinks=True))  # what we consumed ourselves
             self.resend_lost(wall)
         self.join_tick()  # fan-in steps whose wait is over
         now = self.now()

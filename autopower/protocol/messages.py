@@ -234,6 +234,9 @@ class StateTransfer:
     t_export_unix: float  # when the old host stopped it (downtime measurement)
     from_node: str
     resent: tuple[int, ...] = ()  # recent seqs that first arrived as resends: their late originals are redundant
+    # the stage's outputs the old host keeps in memory only, its consumer's acknowledgement not yet in:
+    # the new host keeps them too (a crash of the old host would lose them, their inputs run)
+    outputs: tuple[ChainFrame, ...] = ()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -313,7 +313,7 @@ class RobotShell(Shell):
             return
         if save_resume:
             self.save_resume()
-        rt.sink_store.commit()
+        rt.commit_sinks()
         self.commit_outputs()
         if status is not None:  # (held back: only counts moved, the heartbeat waits)
             base = w.scenario.basestation
@@ -524,7 +524,7 @@ class BaseShell(Shell):
         if status is None and rt.idle() and co.idle() and not self.suspects:
             self._status_sent(built)
             return
-        rt.sink_store.commit()
+        rt.commit_sinks()
         self.commit_outputs()
         rt.settle_held_store()
         if status is not None:  # (held back: only counts moved, the heartbeat waits)

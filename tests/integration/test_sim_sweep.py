@@ -77,12 +77,16 @@ FIXED_SLOWED_LINKS_BEYOND_RANGE = (1008, 1411, 1550, 1647, 1664, 1989, 2524)
 # `teamsim.evidence`). Regression tests in test_teamsim_findings.py. A 4,611-seed run (0-4610) after
 # these fails only 4024 (below).
 FIXED_GAPS_AND_KILLS_BEYOND_RANGE = (634, 1065, 1626, 2106, 2171)
-# seeds beyond this range that fail (the 4,611-seed run, 2026-11-30): 4024, a stage moved from the
-# laptop to r2 0.6 s before the base station's kill: its last two outputs were delivered to the
-# laptop's sink but not yet committed, the laptop's own acknowledgement (every 0.1 s, before the
-# commit) had made them safe, so the stage's gate counted their inputs run, the move carried that on,
-# and r2 dropped the inputs: the outputs died with the laptop, and nothing named them.
-FOUND_BEYOND_RANGE = (4024,)
+# seeds beyond this range that fail (the 4,611-seed run, 2026-11-30): none since 4024 was fixed
+# (below).
+FOUND_BEYOND_RANGE: tuple[int, ...] = ()
+# 4024 (fixed 2026-11-30): a stage moved from the laptop to r2 0.1 s before the base station's kill:
+# its last two outputs were delivered to the laptop's sink but not yet committed, the laptop's own
+# acknowledgement (every 0.1 s, before the commit) had let its custody drop them, the move said their
+# inputs were run, and r2 dropped the inputs. A node now acknowledges to itself only what its sinks
+# committed (`NodeRuntime.commit_sinks`), and a moving stage takes the outputs only the old host's
+# memory holds with its state (`StateTransfer.outputs`). A regression test in test_teamsim_findings.py.
+FIXED_UNCOMMITTED_OUTPUTS = (4024,)
 # seeds whose sink counted a copy a duplicating link made on an earlier hop of a routed packet (the
 # oracle took the copy for one the team made): 53 and 270 (in this range), 382 (a regression test)
 FIXED_FORWARDED_COPIES = (53, 270, 382)

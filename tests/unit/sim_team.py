@@ -130,6 +130,8 @@ class SimTeam:
         (what it sent was consumed), except across cuts."""
         statuses = {name: rt.status(window_s) for name, rt in self.nodes.items()
                     if rt.started and name in self.subscriptions}
+        for name in statuses:  # as the processes do: the sinks write down what a status acknowledges
+            self.nodes[name].commit_sinks()
         for name, rt in self.nodes.items():
             if name not in statuses:
                 continue

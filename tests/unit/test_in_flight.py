@@ -46,3 +46,23 @@ def test_every_frame_produced_is_delivered_or_named_in_flight_by_some_node():
     # a flow's or another chain's frames never count for Loc-1
     assert all(chain in {c.name for c in SC.chains} for chain, _ in held)
 
+
+
+def test_a_moving_stages_state_names_the_frames_it_carries():
+    """A stage moved out whose state waits for a route (parked) carries inputs it had not run and
+    outputs not yet acknowledged: no other place of the node holds them, so the node names them."""
+    from autopower.protocol import ChainFrame, StateTransfer, encode
+
+    team, _ = _team()
+    laptop = team.nodes["laptop"]
+
+    def frame(seq: int, target: int) -> ChainFrame:
+        return ChainFrame(chain="Blob-2", run=3, seq=seq, target=target, t_virtual=0.0, t_unix=0.0,
+                          payload_len=1, payload=b"x")
+
+    state = StateTransfer(stage="Blob-2", generation=1, chain="Blob-2", run=3, state=b"", next_seq=9,
+                          pending=(frame(10, 0),), t_export_unix=0.0, from_node="laptop",
+                          outputs=(frame(7, 1), frame(8, 1)))
+    laptop.parked_transfers.append(("r2", encode(state), "Blob-2"))
+    laptop.parked_transfers.append(("r2", b"not a state", "Blob-2"))  # names nothing, breaks nothing
+    assert laptop.in_flight_at_stop()[("Blob-2", 3)] == {7, 8, 10}
