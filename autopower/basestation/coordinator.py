@@ -42,11 +42,11 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from autopower.basestation.decider import Decider
+from autopower.basestation.decider import AwaitDecision, Decider
 from autopower.basestation.deciding import Baseline, Deciding
 from autopower.basestation.links import LinkStates, pair_name
 from autopower.basestation.listening import TeamListening
-from autopower.basestation.operating import Operating
+from autopower.basestation.operating import OperatorControl
 from autopower.basestation.placing import Migration, Placing
 from autopower.basestation.takeover import TakingOver, instance_id
 from autopower.errors import AutoPowerError
@@ -67,6 +67,7 @@ from autopower.protocol import (
     Keys,
     MissionInfo,
     NodeStatus,
+    OperatorReply,
     PlanUpdate,
     Release,
     encode,
@@ -115,7 +116,7 @@ class CoordinatorConfig:
         _policy_from(self)  # a wrong policy name or parameter fails here, before anything starts
 
 
-class Coordinator(Deciding, Placing, Operating, TakingOver):
+class Coordinator(Deciding, Placing, TakingOver):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time,
                  leader: str | None = None, incarnation: int = 0,
@@ -158,8 +159,7 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.robots = [r.name for r in scenario.robots]
         self._robot_names = frozenset(self.robots)  # (asked for every robot at every turn of a fleet)
         self.chain_of = {s.name: c for c in scenario.chains for s in c.stages}
-        for stage, node in config.pins.items():
-            self._check_pin(stage, node)
+        self.operating = OperatorControl(self, config.pins)  # the operator's pins, disabled chains, links, radios
 
         self.mission: MissionInfo | None = None
         self.clock: VirtualClock | None = None
@@ -173,9 +173,6 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         self.migrations: dict[str, Migration] = {}
         # orders made while a reconcile runs, per node: sent as one put each when it ends (`Placing.reconcile`)
         self.control_batch: dict[str, list[bytes]] | None = None
-        self.pins: dict[str, str] = dict(config.pins)
-        self.disabled: set[str] = set()
-        self.failed_stages: dict[str, str] = {}  # stage -> "node: what: why" its component was stopped
         self.running: dict[str, int] = {}
         self.runs: dict[str, int] = {}  # chain -> current run number
         # chains of a team taken over whose source robot had not spoken: their run is the one it
@@ -194,8 +191,6 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
         # the base media the team uses (group -> medium); decisions may change them unless config.media
         self.media: dict[str, str] = dict(config.media or media_choices(scenario, self.topology)[0])
         self.plan_network: Network | None = None
-        self.radio_faults: dict[str, tuple[str | None, str | None]] = {}  # operator radio commands
-        self.operator_cuts: set[frozenset[str]] = set()  # links the operator declared down
         topology = build_network(scenario, topology=config.topology)
         self.links = LinkStates({frozenset((l.a, l.b)) for l in topology.links},
                                 down_after_s=config.link_down_after_s, heal_hold_s=config.heal_hold_s)
@@ -282,12 +277,6 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
 
     def alive_nodes(self) -> set[str]:
         return (self.present - self.departed) | {self.base}
-
-    def _check_pin(self, stage: str, node: str) -> None:
-        if stage not in self.chain_of:
-            raise AutoPowerError(f"unknown stage {stage!r}; stages: {', '.join(self.chain_of)}")
-        if node not in self.scenario.node_names():
-            raise AutoPowerError(f"unknown node {node!r}; nodes: {', '.join(self.scenario.node_names())}")
 
     def _send(self, node: str, msg) -> None:
         self.send_control(node, encode(msg))
@@ -678,6 +667,17 @@ class Coordinator(Deciding, Placing, Operating, TakingOver):
 
 
     # ---- operator ---------------------------------------------------------------------------------------------
+    def on_operator(self, cmd) -> OperatorReply | AwaitDecision:
+        """The reply to an operator's command (`OperatorControl.on_operator`)."""
+        return self.operating.on_operator(cmd)
+
+    def reply_when_decided(self, waiting: AwaitDecision) -> OperatorReply | None:
+        """The reply to a command that waited for a decision, once it is in (`OperatorControl.reply_when_decided`)."""
+        return self.operating.reply_when_decided(waiting)
+
+    def snapshot(self) -> dict[str, Any]:
+        """The team as `autopower status` shows it (`OperatorControl.snapshot`)."""
+        return self.operating.snapshot()
 
 
 

@@ -62,11 +62,11 @@ class Deciding:
         return frozenset(r for r in self.robots if r not in alive)
 
     def _cut_links(self) -> frozenset[frozenset[str]]:
-        return frozenset(self.links_down | self.operator_cuts)
+        return frozenset(self.links_down | self.operating.operator_cuts)
 
     def network_in_use(self, everyone: bool = False) -> Network:
         """The links the team uses now: the media in use, minus what is down, with the radio faults."""
-        return derive_network(self.scenario, self.topology, self.media, self._cut_links(), dict(self.radio_faults),
+        return derive_network(self.scenario, self.topology, self.media, self._cut_links(), dict(self.operating.radio_faults),
                               self._unavailable(everyone))
 
     def _current_allocation(self) -> dict[str, str]:
@@ -87,8 +87,8 @@ class Deciding:
             scenario=self.scenario, time_s=self.now(), network=self.network_in_use(everyone),
             allocation=self._current_allocation(),
             energies_j={r: e for r, e in energies.items() if r in alive},
-            disabled_chains=frozenset(self.disabled), unavailable_nodes=self._unavailable(everyone),
-            topology=self.topology, cut_links=self._cut_links(), radio_faults=dict(self.radio_faults),
+            disabled_chains=frozenset(self.operating.disabled), unavailable_nodes=self._unavailable(everyone),
+            topology=self.topology, cut_links=self._cut_links(), radio_faults=dict(self.operating.radio_faults),
             media_locked=bool(self.config.media), accounting=self.scenario.accounting,
             events=tuple(self._pending_events), migration=self.migration_costs, schedule=self.schedule)
 
@@ -261,8 +261,8 @@ class Deciding:
         """The policy keeps what runs (as the simulator does: no schedule, no revisit)."""
         self.schedule, self.revisit_at_s = (), None
         # what the policy would run without the pins (where `migrate --auto` goes back to)
-        self.chosen = {s: self.chosen.get(s, h) if s in self.pins else h for s, h in state.allocation.items()}
-        target = self._with_pins(dict(state.allocation))
+        self.chosen = {s: self.chosen.get(s, h) if s in self.operating.pins else h for s, h in state.allocation.items()}
+        target = self.operating.with_pins(dict(state.allocation), self.alive_nodes())
         changed = target != self.target or state.network != self.plan_network
         self.target, self.plan_network = target, state.network
         self.note(f"decision ({reason}): policy {self.policy.name} keeps the configuration")
@@ -282,7 +282,7 @@ class Deciding:
         if not self.config.media:
             self.media.update(base_media(decision.network))
         self.chosen = dict(decision.allocation)
-        target = self._with_pins(dict(decision.allocation))
+        target = self.operating.with_pins(dict(decision.allocation), self.alive_nodes())
         changed = {s for s in target if self.target.get(s) != target[s]} | (set(self.target) - set(target))
         network_changed = decision.network != self.plan_network
         self.target, self.plan_network = target, decision.network
@@ -302,13 +302,6 @@ class Deciding:
         self._predict()
         self.reconcile()
         self.publish_plan()
-
-    def _with_pins(self, allocation: dict[str, str]) -> dict[str, str]:
-        alive = self.alive_nodes()
-        for stage, node in self.pins.items():
-            if stage in allocation and node in alive:
-                allocation[stage] = node
-        return allocation
 
     def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float],
                   running: set[str] | None = None, levels: dict[str, str] | None = None):

@@ -1,4 +1,8 @@
 """Operating: the operator's commands (chains, pins, link and radio changes) and the team snapshot.
+
+`OperatorControl` owns what the operator decided: the pins, the disabled chains (with the stages
+whose failure stopped them), the links declared down and the radio changes. The other parts of the
+coordinator read these and change them only through its methods (`pin`, `stage_failed`, `adopt`).
 """
 
 from __future__ import annotations
@@ -23,8 +27,46 @@ from autopower.protocol import (
 from autopower.protocol.codec import wire_data
 
 
-class Operating:
-    """The coordinator's operator part: commands and the snapshot `status` shows. Mixed into `Coordinator`, whose state it uses."""
+class OperatorControl:
+    """The coordinator's operator part: commands, the settings they leave, and the snapshot `status` shows."""
+
+    def __init__(self, team, pins: dict[str, str]):
+        """``team``: the `Coordinator` whose parts carry out the commands; ``pins``: stage -> node, from its configuration."""
+        self.team = team
+        for stage, node in pins.items():
+            self.check_pin(stage, node)
+        self.pins: dict[str, str] = dict(pins)
+        self.disabled: set[str] = set()
+        self.failed_stages: dict[str, str] = {}  # stage -> "node: what: why" its component was stopped
+        self.radio_faults: dict[str, tuple[str | None, str | None]] = {}  # operator radio commands
+        self.operator_cuts: set[frozenset[str]] = set()  # links the operator declared down
+
+    def check_pin(self, stage: str, node: str) -> None:
+        team = self.team
+        if stage not in team.chain_of:
+            raise AutoPowerError(f"unknown stage {stage!r}; stages: {', '.join(team.chain_of)}")
+        if node not in team.scenario.node_names():
+            raise AutoPowerError(f"unknown node {node!r}; nodes: {', '.join(team.scenario.node_names())}")
+
+    def pin(self, stage: str, node: str) -> None:
+        """``stage`` stays on ``node`` whatever the policy chooses (until the pins are cleared)."""
+        self.pins[stage] = node
+
+    def with_pins(self, allocation: dict[str, str], alive: set[str]) -> dict[str, str]:
+        """``allocation`` with each pinned stage it places on its pinned node, where that node is alive."""
+        for stage, node in self.pins.items():
+            if stage in allocation and node in alive:
+                allocation[stage] = node
+        return allocation
+
+    def stage_failed(self, stage: str, where: str, chain: str) -> bool:
+        """A stage's component was stopped (``where``: "node: what: why"): its chain is disabled.
+        True when the chain was running until now (it was not disabled already)."""
+        self.failed_stages[stage] = where
+        if chain in self.disabled:
+            return False
+        self.disabled.add(chain)
+        return True
 
     def on_operator(self, cmd) -> OperatorReply | AwaitDecision:
         """The reply to an operator's command; `AwaitDecision` when it waits for a decision on a
@@ -32,34 +74,34 @@ class Operating:
         try:
             if isinstance(cmd, SnapshotRequest):
                 return OperatorReply(ok=True, message="snapshot", snapshot=self.snapshot())
-            if self.mission is None:
+            if self.team.mission is None:
                 # a new base station, or one restarted while the robots run: it decides once it has heard them
                 return OperatorReply(ok=False, message="no mission here yet: this base station is waiting to hear its "
                                                        "robots (it starts the mission, or takes over the running one, "
                                                        "once they speak); try again in a moment",
                                      snapshot=self.snapshot())
             if isinstance(cmd, ChainCommand):
-                self.scenario.chain(cmd.chain)
+                self.team.scenario.chain(cmd.chain)
                 if cmd.enabled == (cmd.chain not in self.disabled):
                     return OperatorReply(ok=True, message=f"{cmd.chain} already {'enabled' if cmd.enabled else 'disabled'}")
                 (self.disabled.discard if cmd.enabled else self.disabled.add)(cmd.chain)
                 if cmd.enabled:  # a fresh start for a chain stopped by a failed component
-                    for stage in self.scenario.chain(cmd.chain).stages:
+                    for stage in self.team.scenario.chain(cmd.chain).stages:
                         self.failed_stages.pop(stage.name, None)
-                self._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
+                self.team._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
                 what = "enabled" if cmd.enabled else "disabled"
                 return self._replan_for_operator(f"operator {what} {cmd.chain}")
             if isinstance(cmd, MigrateCommand):
-                self._check_pin(cmd.stage, cmd.to_node)
-                if cmd.to_node not in self.alive_nodes():
+                self.check_pin(cmd.stage, cmd.to_node)
+                if cmd.to_node not in self.team.alive_nodes():
                     return OperatorReply(ok=False, message=f"{cmd.to_node} is not in the team now")
-                if cmd.stage not in self.target:
+                if cmd.stage not in self.team.target:
                     return OperatorReply(ok=False, message=f"{cmd.stage} does not run now (chain disabled or dropped)")
-                self.pins[cmd.stage] = cmd.to_node
-                self.target[cmd.stage] = cmd.to_node
-                self._predict()
-                self.reconcile()
-                self.publish_plan()
+                self.pin(cmd.stage, cmd.to_node)
+                self.team.retarget(cmd.stage, cmd.to_node)
+                self.team._predict()
+                self.team.reconcile()
+                self.team.publish_plan()
                 return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
             if isinstance(cmd, AutoCommand):
                 self._clear_pins()
@@ -71,21 +113,21 @@ class Operating:
             return OperatorReply(ok=False, message=str(exc))
         return OperatorReply(ok=False, message=f"unsupported command {type(cmd).__name__}")
 
-    def operator_settings(self) -> OperatorSettings:
+    def settings(self) -> OperatorSettings:
         """What the operator decided, for the plans (a base station taking over keeps it)."""
         return OperatorSettings(pins=dict(self.pins), disabled=tuple(sorted(self.disabled)),
                                 cuts=tuple(sorted(tuple(sorted(pair)) for pair in self.operator_cuts)),
                                 radios=dict(self.radio_faults))
 
-    def adopt_operator_settings(self, settings: OperatorSettings) -> list[str]:
+    def adopt(self, settings: OperatorSettings) -> list[str]:
         """Take over the settings a robot's plan carried; what names no stage, chain, node or radio of
         this scenario is left out (a status is network input). Returns what was adopted, in words."""
-        nodes, chains = set(self.scenario.node_names()), {c.name for c in self.scenario.chains}
-        self.pins = {st: n for st, n in settings.pins.items() if st in self.chain_of and n in nodes}
+        nodes, chains = set(self.team.scenario.node_names()), {c.name for c in self.team.scenario.chains}
+        self.pins = {st: n for st, n in settings.pins.items() if st in self.team.chain_of and n in nodes}
         self.disabled = {c for c in settings.disabled if c in chains}
         self.operator_cuts = {frozenset(pair) for pair in settings.cuts if set(pair) <= nodes and pair[0] != pair[1]}
         self.radio_faults = {n: media for n, media in settings.radios.items()
-                             if n in nodes and all(m is None or m in self.scenario.radios for m in media)}
+                             if n in nodes and all(m is None or m in self.team.scenario.radios for m in media)}
         said = [f"pins {', '.join(f'{s}->{n}' for s, n in sorted(self.pins.items()))}" if self.pins else "",
                 f"disabled {', '.join(sorted(self.disabled))}" if self.disabled else "",
                 f"links down {', '.join('-'.join(sorted(p)) for p in self.operator_cuts)}" if self.operator_cuts else "",
@@ -95,113 +137,113 @@ class Operating:
     def _clear_pins(self) -> None:
         """Back to what the policy chose (pinned stages migrate back), then the policy is asked again."""
         self.pins.clear()
-        self.target = {s: self.chosen.get(s, h) for s, h in self.target.items()}
-        self.reconcile()
+        self.team.set_target({s: self.team.chosen.get(s, h) for s, h in self.team.target.items()})
+        self.team.reconcile()
 
     def _operator_link(self, cmd: LinkCommand) -> None:
         """An operator's link command: a link declared down (a cut link) or a radio change (a radio fault)."""
-        nodes = self.scenario.node_names()
+        nodes = self.team.scenario.node_names()
         for node in (cmd.node, cmd.down_peer):
             if node is not None and node not in nodes:
                 raise AutoPowerError(f"link command: unknown node {node!r}; nodes: {', '.join(nodes)}")
         if cmd.down_peer is not None:
             self.operator_cuts.add(frozenset((cmd.node, cmd.down_peer)))
-            self._event("link-cut", a=cmd.node, b=cmd.down_peer, note="operator")
+            self.team._event("link-cut", a=cmd.node, b=cmd.down_peer, note="operator")
             return
         for medium in (cmd.laptop_robot, cmd.robot_robot):
-            if medium is not None and medium not in self.scenario.radios:
+            if medium is not None and medium not in self.team.scenario.radios:
                 raise AutoPowerError(f"link command for {cmd.node}: unknown medium {medium!r}; radios: "
-                                     f"{', '.join(self.scenario.radios)}")
+                                     f"{', '.join(self.team.scenario.radios)}")
         if cmd.laptop_robot is None and cmd.robot_robot is None:
             raise AutoPowerError(f"link command for {cmd.node}: give a medium for its links to the base station "
                                  "and/or to the robots, or a peer whose link is down")
         before = self.radio_faults.get(cmd.node, (None, None))
         self.radio_faults[cmd.node] = (cmd.laptop_robot or before[0], cmd.robot_robot or before[1])
-        self._event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
+        self.team._event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
                     note="operator")
 
     def _replan_for_operator(self, reason: str) -> OperatorReply | AwaitDecision:
-        queued = self.decider.busy  # then the command goes with the question after the one out
-        ok = self.replan(reason)
-        if self.decider.busy:
-            return AwaitDecision(ticket=self.asked + (1 if queued else 0))
+        queued = self.team.decider.busy  # then the command goes with the question after the one out
+        ok = self.team.replan(reason)
+        if self.team.decider.busy:
+            return AwaitDecision(ticket=self.team.asked + (1 if queued else 0))
         return self._after_replan(ok)
 
     def reply_when_decided(self, waiting: AwaitDecision) -> OperatorReply | None:
         """The reply to a command once its decision is carried out, or once none is coming (the
         re-plan waits for robots); None while it is still to come."""
-        answered = self.decisions >= waiting.ticket
-        if not answered and (self.decider.busy or self.replan_due):
+        answered = self.team.decisions >= waiting.ticket
+        if not answered and (self.team.decider.busy or self.team.replan_due):
             return None
-        return self._after_replan(answered and self.plan_error is None)
+        return self._after_replan(answered and self.team.plan_error is None)
 
     def _after_replan(self, ok: bool) -> OperatorReply:
         """The reply to a command the team's plan carries out. A re-plan that waits (robots to
         report, none in reach) is no failure: the command is noted, and the re-plan that follows
         carries it out. (It was refused as "re-plan failed: no change", though it then applied.)"""
-        if not ok and self.replan_waiting is not None:
-            return OperatorReply(ok=True, message=f"noted; {self.replan_waiting}")
+        if not ok and self.team.replan_waiting is not None:
+            return OperatorReply(ok=True, message=f"noted; {self.team.replan_waiting}")
         return OperatorReply(ok=ok, message=self._summary(ok))
 
     def _summary(self, ok: bool) -> str:
         if not ok:
-            return f"re-plan failed: {self.plan_error or 'nothing feasible'}"
-        planned = self.planned_lifetime_s()
-        return (f"re-planned ({self.policy.name}): lifetime {planned} s; target "
-                + ", ".join(f"{s}->{n}" for s, n in self.target.items()))
+            return f"re-plan failed: {self.team.plan_error or 'nothing feasible'}"
+        planned = self.team.planned_lifetime_s()
+        return (f"re-planned ({self.team.policy.name}): lifetime {planned} s; target "
+                + ", ".join(f"{s}->{n}" for s, n in self.team.target.items()))
 
     def snapshot(self) -> dict[str, Any]:
         robots = {}
-        for name in self.robots:
-            st = self.statuses.get(name)
+        for name in self.team.robots:
+            st = self.team.statuses.get(name)
             robots[name] = {
-                "present": name in self.present, "departed": name in self.departed,
+                "present": name in self.team.present, "departed": name in self.team.departed,
                 "status": status_dict(st) if st else None,
-                "predicted_w": self.predicted_w.get(name),
+                "predicted_w": self.team.predicted_w.get(name),
             }
         return {
-            "scenario": self.scenario.name,
-            "accounting": self.scenario.accounting,
-            "ready": self.ready,
-            "mission": dataclasses.asdict(self.mission) if self.mission else None,
-            "t_virtual": self.now(),
-            "epoch": self.epoch,
-            "incarnation": self.incarnation,  # plans are ordered by (incarnation, epoch)
-            "leader": self.leader,
-            "takeover": dict(self.takeover) if self.takeover else None,  # how a running team was adopted
-            "placement": dict(self.placement),
-            "target": dict(self.target),
+            "scenario": self.team.scenario.name,
+            "accounting": self.team.scenario.accounting,
+            "ready": self.team.ready,
+            "mission": dataclasses.asdict(self.team.mission) if self.team.mission else None,
+            "t_virtual": self.team.now(),
+            "epoch": self.team.epoch,
+            "incarnation": self.team.incarnation,  # plans are ordered by (incarnation, epoch)
+            "leader": self.team.leader,
+            "takeover": dict(self.team.takeover) if self.team.takeover else None,  # how a running team was adopted
+            "placement": dict(self.team.placement),
+            "target": dict(self.team.target),
             "migrating": {s: {"from": m.from_node, "to": m.to_node, "phase": m.phase}
-                          for s, m in self.migrations.items()},
-            "running": dict(self.running),
+                          for s, m in self.team.migrations.items()},
+            "running": dict(self.team.running),
             "disabled": sorted(self.disabled),
             "failed_stages": dict(self.failed_stages),
             "pins": dict(self.pins),
-            "media": self.plan_network.media_by_group() if self.plan_network else None,
-            "links": [[l.a, l.b, l.medium] for l in self.plan_network.links] if self.plan_network else [],
-            "links_down": sorted(sorted(p) for p in self.links_down),
+            "media": self.team.plan_network.media_by_group() if self.team.plan_network else None,
+            "links": [[l.a, l.b, l.medium] for l in self.team.plan_network.links] if self.team.plan_network else [],
+            "links_down": sorted(sorted(p) for p in self.team.links_down),
             # a plan that runs nothing (no robot left in it) lasts for ever: not a number JSON or msgpack carry
-            "planned_lifetime_s": _finite(self.planned_lifetime_s()),
-            "predicted_lifetime_s": _finite(self.predicted_lifetime_s),
-            "reasons": dict(self.stage_reasons),  # stage -> why it runs there
-            "policy": self.policy.name,
-            "decision_reasons": list(self.decision_reasons),
+            "planned_lifetime_s": _finite(self.team.planned_lifetime_s()),
+            "predicted_lifetime_s": _finite(self.team.predicted_lifetime_s),
+            "reasons": dict(self.team.stage_reasons),  # stage -> why it runs there
+            "policy": self.team.policy.name,
+            "decision_reasons": list(self.team.decision_reasons),
             "schedule": [{"duration_s": p.duration_s, "allocation": dict(p.allocation),
-                          "media": p.network.media_by_group()} for p in self.schedule],
-            "revisit_at_s": self.revisit_at_s,
-            "plan_error": self.plan_error,
+                          "media": p.network.media_by_group()} for p in self.team.schedule],
+            "revisit_at_s": self.team.revisit_at_s,
+            "plan_error": self.team.plan_error,
             "robots": robots,
-            "migrations_done": self.migrations_done,
-            "assignments_done": self.assignments_done,
-            "aborted": self.aborted,
-            "replans": self.replans,
-            "decisions": {"count": self.decisions, "seconds": self.decide_s, "max_s": self.decide_max_s},
-            "downtime_ms": _stats(self.downtimes_ms),
-            "migration_log": list(self.migration_log),
-            "first_depletion": self.first_depletion,
-            "events": list(self.events),
-            "faults": list(self.faults),
-            "adopted": self.adopted,
+            "migrations_done": self.team.migrations_done,
+            "assignments_done": self.team.assignments_done,
+            "aborted": self.team.aborted,
+            "replans": self.team.replans,
+            "decisions": {"count": self.team.decisions, "seconds": self.team.decide_s, "max_s": self.team.decide_max_s},
+            "downtime_ms": _stats(self.team.downtimes_ms),
+            "migration_log": list(self.team.migration_log),
+            "first_depletion": self.team.first_depletion,
+            "events": list(self.team.events),
+            "faults": list(self.team.faults),
+            "adopted": self.team.adopted,
         }
 
 

@@ -51,6 +51,14 @@ class Migration:
 class Placing:
     """The coordinator's placing part: target placement -> assignments and migrations. Mixed into `Coordinator`, whose state it uses."""
 
+    def set_target(self, target: dict[str, str]) -> None:
+        """Where each stage should run (`reconcile` orders what closes the gap)."""
+        self.target = target
+
+    def retarget(self, stage: str, node: str) -> None:
+        """``stage`` should run on ``node``."""
+        self.target[stage] = node
+
     def _next_generation(self) -> int:
         self.generation += 1
         return self.generation
@@ -223,7 +231,7 @@ class Placing:
             self.aborted += 1
             if m.to_node in self.alive_nodes():
                 self._send(m.to_node, Release(stage=msg.stage, generation=self._next_generation()))
-            self.pins[msg.stage] = msg.node
+            self.operating.pin(msg.stage, msg.node)
             self.target[msg.stage] = msg.node
             self.note(f"{msg.stage}: migration {msg.node} -> {m.to_node} refused ({why}); it keeps running on "
                       f"{msg.node}, pinned there")
@@ -238,10 +246,8 @@ class Placing:
             del self.migrations[msg.stage]  # a fresh instance that failed to start
         elif self.placement.get(msg.stage) != msg.node:
             return  # about an instance that is gone already
-        self.failed_stages[msg.stage] = f"{msg.node}: {why}"
-        if chain.name in self.disabled:
+        if not self.operating.stage_failed(msg.stage, f"{msg.node}: {why}", chain.name):
             return
-        self.disabled.add(chain.name)
         self._event("chain-disable", chains=(chain.name,))
         self.note(f"{msg.stage} failed on {msg.node} ({why}); chain {chain.name} stopped (enable it to restart)")
         self.replan(f"{msg.stage} failed")
@@ -330,6 +336,6 @@ class Placing:
                             predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
                             policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels),
                             variants=dict(self.variants), incarnation=self.incarnation, leader=self.leader,
-                            operator=self.operator_settings())
+                            operator=self.operating.settings())
         return sorted_plan(update)  # one order on every node, whole plan or change (`protocol.plans`)
 

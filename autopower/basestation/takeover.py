@@ -82,7 +82,7 @@ class TakingOver:
         for node, status in reports.items():
             self.statuses[node] = status  # batteries, links: what the policy starts from
         # the operator's pins, disabled chains, links and radios, from the newest plan the robots run
-        kept = self.adopt_operator_settings(newest.plan_operator) if newest.plan_operator else []
+        kept = self.operating.adopt(newest.plan_operator) if newest.plan_operator else []
         placement, stale, waiting = _placement_of(reports, set(self.chain_of))
         self.placement = placement
         for stage, (node, generation) in waiting.items():

@@ -278,7 +278,7 @@ class World:
                 self.ledger.violate("newest-plan", f"the plan runs {stage} on {node}, which "
                                     f"{'does not host it' if hosted is None else 'hosts it ' + hosted.lifecycle.value}",
                                     now, event)
-        idle = sorted(c.name for c in self.scenario.chains if c.name not in co.disabled and c.name not in co.running)
+        idle = sorted(c.name for c in self.scenario.chains if c.name not in co.operating.disabled and c.name not in co.running)
         if idle:
             self.ledger.violate("newest-plan", f"enabled chains not running at the end: {', '.join(idle)}", now, event)
         for node, shell in sorted(self.shells.items()):

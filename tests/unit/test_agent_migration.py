@@ -14,7 +14,7 @@ from autopower.model.loading import load_scenario
 from autopower.node.ports import SinkListener
 from autopower.node.sequencing import SequenceGate, SinkLedger
 from autopower.node.stages import Lifecycle, pad
-from autopower.protocol import ChainCommand, MigrateCommand
+from autopower.protocol import ChainCommand, MigrateCommand, OperatorSettings
 from tests.unit.sim_team import SimTeam
 
 FC = {"laptop-robot": "802.11a", "robot-robot": "802.11a"}
@@ -184,7 +184,7 @@ def test_real_mcl_state_survives_migration_bit_for_bit():
 
     def run(moves):
         team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False), fake=False)
-        team.coordinator.disabled = set(off)
+        team.coordinator.operating.adopt(OperatorSettings(disabled=tuple(sorted(off))))
         outputs = collect(team)
         team.join()
         for t, node in moves:

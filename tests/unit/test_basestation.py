@@ -129,7 +129,7 @@ def test_operator_pins_and_auto(sc):
     assert co.placement["Loc-2"] == "r1" and co.migrations_done == 1
     assert co.on_operator(AutoCommand()).ok
     team.pump()
-    assert co.placement == ALL_LAPTOP and co.pins == {}
+    assert co.placement == ALL_LAPTOP and co.operating.pins == {}
 
 
 def test_radio_fault_replans_like_the_paper(sc):

@@ -120,8 +120,8 @@ def test_a_failing_component_stops_its_stage_only(bad_cls, what, text):
     assert r2.errors["stage-failed"] == 1
     # the base station heard, stopped that chain and re-planned the others
     co = team.coordinator
-    assert BAD in co.failed_stages and text in co.failed_stages[BAD]
-    assert "Blob-2" in co.disabled and BAD not in co.placement
+    assert BAD in co.operating.failed_stages and text in co.operating.failed_stages[BAD]
+    assert "Blob-2" in co.operating.disabled and BAD not in co.placement
     assert BAD not in r2.hosted  # released
     assert any("Blob-2 failed on r2" in note for note in co.events)
     # what ran before the failure reached the sink; nothing after it
@@ -145,7 +145,7 @@ def test_a_hung_component_is_abandoned_after_the_stated_limit(monkeypatch):
     assert re.fullmatch(r"hung: run\(seq 2\): no result after [\d.]+ s \(blocked; limit 0\.2 s\)",
                         r2.status(10.0).failed[BAD])
     assert r2.guard.abandoned == 1
-    assert "Blob-2" in team.coordinator.disabled
+    assert "Blob-2" in team.coordinator.operating.disabled
     assert_others_unharmed(team, outputs)  # Loc-2 on the same node ran on a fresh worker
 
 
@@ -161,11 +161,11 @@ def test_a_state_that_cannot_move_keeps_the_stage_where_it_runs(bad_cls, what):
     team.run_until(20.0)
     # the migration was abandoned; the stage runs on where it was, with its state
     assert not co.migrations and co.aborted == 1
-    assert co.placement[BAD] == "r2" and co.pins[BAD] == "r2"
+    assert co.placement[BAD] == "r2" and co.operating.pins[BAD] == "r2"
     assert team.nodes["r2"].hosted[BAD].lifecycle is Lifecycle.RUNNING
     assert BAD not in team.nodes["r3"].hosted
     assert team.nodes["r2"].errors[what] == 1 and not team.nodes["r2"].failed
-    assert "Blob-2" not in co.disabled
+    assert "Blob-2" not in co.operating.disabled
     assert any("migration r2 -> r3 refused" in note and what in note for note in co.events)
     produced = team.nodes["r2"].sources[BAD].seq
     assert sorted(outputs[BAD]) == list(range(produced))  # exactly once, the count carried on (FakeComponent)
@@ -196,7 +196,7 @@ def test_a_state_that_imports_at_home_but_not_on_the_new_host_goes_on_there_with
     counts = [msgpack.unpackb(data)[1] for _, data in sorted(outputs[BAD])]
     restart = counts.index(1, 1)  # the fresh instance counts from 1 again: nothing else changed
     assert counts == list(range(1, restart + 1)) + list(range(1, produced - restart + 1))
-    assert "Blob-2" not in co.disabled
+    assert "Blob-2" not in co.operating.disabled
 
 
 def test_a_hung_source_stops_its_chain_not_its_robot(monkeypatch):
@@ -220,7 +220,7 @@ def test_a_hung_source_stops_its_chain_not_its_robot(monkeypatch):
     assert what == "Blob-2 source"
     assert re.fullmatch(r"hung: produce\(seq 4\): no result after [\d.]+ s \(blocked; limit 0\.2 s\)", why)
     assert "Blob-2" not in r2.sources and r2.status(10.0).sources["Blob-2"].produced == 4
-    assert "Blob-2" in co.disabled and "source-hung" in co.failed_stages[BAD]
+    assert "Blob-2" in co.operating.disabled and "source-hung" in co.operating.failed_stages[BAD]
     assert sorted(outputs[BAD]) == [0, 1, 2, 3]
     assert_others_unharmed(team, outputs)  # r2's Loc-2 source and stage went on
 

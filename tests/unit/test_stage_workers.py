@@ -322,7 +322,6 @@ def test_a_team_in_workers_delivers_exactly_once_and_migrates_with_state():
         r2 = team.nodes["r2"]
         assert r2._zygote is not None and r2.hosted["Blob-2"].runs > 0  # it ran in a worker
         co = team.coordinator
-        co.pins.pop("Blob-2")
         assert co.on_operator(MigrateCommand(stage="Blob-2", to_node="r3")).ok
         team.pump()
         settle(team, lambda: co.placement["Blob-2"] == "r3" and not co.migrations)
@@ -355,7 +354,7 @@ def test_a_spinning_component_in_a_worker_is_killed_and_its_node_goes_on(monkeyp
         assert "hung: run(seq 2): no result after" in r2.failed["Blob-2"]
         assert "(still running; limit 0.2 s); its worker process was killed" in r2.failed["Blob-2"]
         assert gone(pid)
-        assert "Blob-2" in team.coordinator.disabled
+        assert "Blob-2" in team.coordinator.operating.disabled
         team.run_until(10.0)
         settle(team, lambda: idle(team) and len(outputs.get("Loc-2", [])) == r2.sources["Loc-2"].seq)
         assert sorted(seq for seq, _ in outputs["Loc-2"]) == list(range(r2.sources["Loc-2"].seq))

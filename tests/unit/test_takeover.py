@@ -94,9 +94,9 @@ def test_a_base_station_that_takes_over_keeps_what_the_operator_decided(sc):
     team.run_until(40.0)
     team.report_status()
     statuses = {r: team.nodes[r].status(10.0) for r in ROBOTS}
-    assert statuses["r1"].plan_operator == old.operator_settings()
+    assert statuses["r1"].plan_operator == old.operating.settings()
     # the robots' copies also name things this scenario does not have
-    garbled = dataclasses.replace(statuses["r1"].plan_operator, pins={**old.pins, "Nope-1": "r1", "Loc-1": "mars"},
+    garbled = dataclasses.replace(statuses["r1"].plan_operator, pins={**old.operating.pins, "Nope-1": "r1", "Loc-1": "mars"},
                                   disabled=("Blob-2", "Ghost"), cuts=(("r2", "r3"), ("r1", "r1"), ("r1", "x")),
                                   radios={"r1": ("bluetooth", None), "r2": ("carrier-pigeon", None)})
     statuses = {r: dataclasses.replace(s, plan_operator=garbled) for r, s in statuses.items()}
@@ -106,8 +106,8 @@ def test_a_base_station_that_takes_over_keeps_what_the_operator_decided(sc):
     for robot in ROBOTS:
         new.learn(statuses[robot])
     assert new.mission == old.mission
-    assert new.pins == {"Loc-2": "r2", "Blob-3": "r3"} and new.disabled == {"Blob-2"}
-    assert new.operator_cuts == {frozenset(("r2", "r3"))} and new.radio_faults == {"r1": ("bluetooth", None)}
+    assert new.operating.pins == {"Loc-2": "r2", "Blob-3": "r3"} and new.operating.disabled == {"Blob-2"}
+    assert new.operating.operator_cuts == {frozenset(("r2", "r3"))} and new.operating.radio_faults == {"r1": ("bluetooth", None)}
     assert any("kept the operator's settings" in n for n in new.events)
     team.pump()
     team.report_status()
