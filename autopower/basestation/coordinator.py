@@ -45,10 +45,9 @@ from typing import Any, Callable
 from autopower.basestation.decider import AwaitDecision, Decider
 from autopower.basestation.deciding import Baseline, Deciding
 from autopower.basestation.links import LinkStates, pair_name
-from autopower.basestation.listening import TeamListening
 from autopower.basestation.operating import OperatorControl
 from autopower.basestation.placing import Migration, Placing
-from autopower.basestation.takeover import TakingOver, instance_id
+from autopower.basestation.takeover import Takeover
 from autopower.errors import AutoPowerError
 from autopower.model.mission_events import MissionEvent
 from autopower.model.network import Network, build_network, media_choices
@@ -68,6 +67,7 @@ from autopower.protocol import (
     MissionInfo,
     NodeStatus,
     OperatorReply,
+    PlanChange,
     PlanUpdate,
     Release,
     encode,
@@ -116,7 +116,7 @@ class CoordinatorConfig:
         _policy_from(self)  # a wrong policy name or parameter fails here, before anything starts
 
 
-class Coordinator(Deciding, Placing, TakingOver):
+class Coordinator(Deciding, Placing):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time,
                  leader: str | None = None, incarnation: int = 0,
@@ -205,17 +205,10 @@ class Coordinator(Deciding, Placing, TakingOver):
         self.replan_waiting: str | None = None
         self.epoch = 0
         self.generation = 0
-        # which start of a base station this is (plans are ordered by (incarnation, epoch)): one above
-        # any the robots report when taking over; the process raises it to what its host remembers
-        self.incarnation = incarnation
-        self.leader = leader or instance_id()
-        # what it hears of the team before it runs the mission (`basestation.listening`)
-        self.listening = TeamListening(up_unix=self.wall(), learn_team_s=config.learn_team_s)
-        self.takeover: dict | None = None  # how the running team was adopted (None: we started the mission)
+        # starting the mission, or adopting the one the robots run; which base station this is
+        self.takeover = Takeover(self, leader=leader, incarnation=incarnation, up_unix=self.wall(),
+                                 learn_team_s=config.learn_team_s)
         self.mission_unix = 0.0  # when we started or adopted the mission
-        self.stepped_down: str | None = None  # why we yielded to another base station
-        self._rival_seen: str | None = None
-        self._foreign_noted = False
         self._far_generation: set[str] = set()  # robots that reported a generation too far ahead (warned)
         self.next_republish = 0.0
         self.last_republish = 0.0  # when the plan last went out (new or repeated)
@@ -267,7 +260,7 @@ class Coordinator(Deciding, Placing, TakingOver):
 
     def runs_plan(self, status: NodeStatus, epoch: int, newer: bool = False) -> bool:
         """Does the node run our plan of ``epoch`` (or, ``newer``, a later one)?"""
-        theirs, ours = (status.plan_incarnation, status.plan_epoch), (self.incarnation, epoch)
+        theirs, ours = (status.plan_incarnation, status.plan_epoch), (self.takeover.incarnation, epoch)
         return theirs >= ours if newer else theirs == ours
 
     def note(self, text: str) -> None:
@@ -354,29 +347,31 @@ class Coordinator(Deciding, Placing, TakingOver):
 
     # ---- mission start --------------------------------------------------------------------------------
     def maybe_start(self) -> None:
-        if self.mission is not None or self.stepped_down is not None:
-            return
-        listening, now, alive = self.listening, self.wall(), self.alive_nodes()
-        if listening.takeover_due(alive, self.robots, now):
-            self._adopt_team()
-            return
-        if listening.running_reports(alive) or not listening.team_known(self.present - self.departed, now):
-            return  # a running team is still to be heard, or robots in sight have not said what they run
-        everyone = set(self.robots) <= self.present
-        late = (listening.first_seen_unix is not None
-                and now - listening.first_seen_unix >= self.config.start_grace_s)
-        if not (everyone or (late and self.present)):
-            return
-        self.mission = MissionInfo(scenario=self.scenario.name, accounting=self.scenario.accounting,
-                                   epoch_unix=self.wall(), speed=self.config.speed,
-                                   energies_j=self.scenario.energies_j())
+        """Start the mission, or take over the running one, once the team has been heard (`Takeover.maybe_start`)."""
+        self.takeover.maybe_start()
+
+    def start_mission(self, mission: MissionInfo) -> None:
+        """Run ``mission`` from now on: a new one, or the one the robots run (its clock goes on)."""
+        self.mission = mission
         self.mission_unix = self.wall()
-        self.clock = VirtualClock(self.mission.epoch_unix, self.mission.speed, wall_fn=self.wall)
-        self.next_periodic_replan = self.config.replan_interval_s
-        self.note(f"policy: {self.policy.name}")
-        missing = set(self.robots) - self.present
-        self.note("mission started" + (f" without {', '.join(sorted(missing))}" if missing else ""))
-        self.replan("mission start")
+        self.clock = VirtualClock(mission.epoch_unix, mission.speed, wall_fn=self.wall)
+
+    def heard_statuses(self, reports: dict[str, NodeStatus]) -> None:
+        """The statuses a team taken over reported (batteries, links: what the policy starts from)."""
+        for node, status in reports.items():
+            self.statuses[node] = status
+
+    def learn(self, status: NodeStatus) -> None:
+        """A robot's status before this base station runs the mission (`Takeover.learn`)."""
+        self.takeover.learn(status)
+
+    def on_rival_plan(self, plan: PlanUpdate | PlanChange) -> None:
+        """A plan another base station made (`Takeover.on_rival_plan`)."""
+        self.takeover.on_rival_plan(plan)
+
+    def on_rival_status(self, status: NodeStatus) -> None:
+        """A robot runs a plan another base station made (`Takeover.on_rival_status`)."""
+        self.takeover.on_rival_status(status)
 
     # ---- deciding ---------------------------------------------------------------------------------------
 
@@ -410,7 +405,7 @@ class Coordinator(Deciding, Placing, TakingOver):
                 return
             self.present.add(node)
             self.departed.discard(node)
-            self.listening.came_into_sight(node, self.wall())
+            self.takeover.came_into_sight(node)
             self.note(f"{node} joined")
             if self.mission is None:
                 self.maybe_start()
@@ -629,7 +624,7 @@ class Coordinator(Deciding, Placing, TakingOver):
         behind = []
         for robot in sorted(self.alive_nodes() & set(self.robots)):
             status = self.statuses.get(robot)
-            if status is None or not self.runs_plan(status, self.epoch) or status.plan_leader != self.leader:
+            if status is None or not self.runs_plan(status, self.epoch) or status.plan_leader != self.takeover.leader:
                 behind.append(robot)
         return behind
 
@@ -644,10 +639,8 @@ class Coordinator(Deciding, Placing, TakingOver):
             deadlines.append(max(self.wall(), self._ready_plan_unix()))
         if self.mission is not None:
             deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
-        elif self.listening.first_seen_unix is not None:
-            deadlines.append(self.listening.first_seen_unix + self.config.start_grace_s)  # a late start
-            deadlines += self.listening.deadlines(self.alive_nodes(), self.robots, self.present - self.departed,
-                                                  self.wall())  # done listening
+        else:
+            deadlines += self.takeover.start_deadlines()
         # nothing else is timed before the first robot appears: the next event wakes us
         if self.clock is not None and self.revisit_at_s is not None:
             deadlines.append(self.clock.wall_at(self.revisit_at_s))

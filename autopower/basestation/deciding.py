@@ -45,6 +45,14 @@ class Baseline:
 class Deciding:
     """Deciding: what the policy may know, asking it, and turning its answer into the target placement. (a part of `Coordinator`)."""
 
+    def cannot_decide(self, error: str) -> None:
+        """Nothing can be decided, for this reason (a takeover of a team that runs another scenario)."""
+        self.plan_error = error
+
+    def replan_periodically_from(self, t_virtual: float) -> None:
+        """The next periodic decision is due at mission time ``t_virtual`` (then every ``replan_interval_s``)."""
+        self.next_periodic_replan = t_virtual
+
     def remaining_energies(self) -> dict[str, float]:
         out = {}
         for robot in self.robots:
@@ -156,7 +164,7 @@ class Deciding:
         is exact because a policy's answer is a function of the state it is given. Only when
         deciding on a thread (the simulator and unit tests ask only what they ask)."""
         if (self.mission is not None or self._ahead_asked or not self.decider.on_thread
-                or self.decider.busy or self.stepped_down is not None):
+                or self.decider.busy or self.takeover.stepped_down is not None):
             return
         self._ahead_asked = True
         self._asking_ahead = True
@@ -246,7 +254,7 @@ class Deciding:
             self.plan_error = str(answer.error)
             self.note(f"decision ({answer.reason}) found nothing feasible: {answer.error}")
             return False
-        if self.stepped_down is not None:
+        if self.takeover.stepped_down is not None:
             return False  # another base station leads: its plans, not ours
         self.plan_error = None
         del self._pending_events[:self._events_asked]  # those that came while it decided go with the next

@@ -208,9 +208,9 @@ class OperatorControl:
             "mission": dataclasses.asdict(self.team.mission) if self.team.mission else None,
             "t_virtual": self.team.now(),
             "epoch": self.team.epoch,
-            "incarnation": self.team.incarnation,  # plans are ordered by (incarnation, epoch)
-            "leader": self.team.leader,
-            "takeover": dict(self.team.takeover) if self.team.takeover else None,  # how a running team was adopted
+            "incarnation": self.team.takeover.incarnation,  # plans are ordered by (incarnation, epoch)
+            "leader": self.team.takeover.leader,
+            "takeover": dict(self.team.takeover.adopted_team) if self.team.takeover.adopted_team else None,  # how a running team was adopted
             "placement": dict(self.team.placement),
             "target": dict(self.team.target),
             "migrating": {s: {"from": m.from_node, "to": m.to_node, "phase": m.phase}

@@ -59,6 +59,37 @@ class Placing:
         """``stage`` should run on ``node``."""
         self.target[stage] = node
 
+    def generation_above(self, floor: int) -> None:
+        """The next generation handed out is above ``floor`` and above every one handed out so far."""
+        self.generation = max(self.generation, floor) + 1
+
+    def continue_from(self, epoch: int) -> None:
+        """The next plan is the one after ``epoch`` (a team taken over runs plans up to it)."""
+        self.epoch = epoch
+
+    def adopt_team(self, placement: dict[str, str], generation_of: dict[str, int],
+                   waiting: dict[str, tuple[str, int]], runs: dict[str, int], unknown: set[str],
+                   stale: list[tuple[str, str]]) -> None:
+        """A running team taken over: its stages run where they run (``generation_of``: the instance
+        each is), those of ``waiting`` still wait for their state, its chains go on with their
+        ``runs`` (``unknown``: those whose run a robot has still to say), and ``stale``'s (node,
+        stage) copies are released."""
+        self.placement = placement
+        for stage, (node, generation) in waiting.items():
+            # its state is on its way or lost: its StageReady completes it, else the migration
+            # timeout restarts it there without (`Coordinator.on_timer`), not a stage starting for good
+            self.migrations[stage] = Migration(stage, generation, node, None, "transferring", self.wall())
+        self.placed_generation = generation_of
+        self.target = dict(placement)
+        for chain, run in runs.items():
+            self.runs[chain] = run
+            self.run_live[chain] = True  # its sequence goes on: a new instance starts where inputs are
+        self.runs_unknown |= unknown
+        self._update_running()
+        for node, stage in stale:
+            self._send(node, Release(stage=stage, generation=self._next_generation()))
+        self.adopted += len(placement)
+
     def _next_generation(self) -> int:
         self.generation += 1
         return self.generation
@@ -270,7 +301,7 @@ class Placing:
         self.placement.pop(stage, None)
 
     def publish_plan(self, repeat: bool = False) -> None:
-        if self.mission is None or self.stepped_down is not None:
+        if self.mission is None or self.takeover.stepped_down is not None:
             return
         changed_only = False
         if repeat:
@@ -312,7 +343,7 @@ class Placing:
         """(the current plan, whole): the one published for this epoch, so that a robot given it
         applies the next change (a plan made again may differ in what changed since)."""
         if self.change_base is not None and (self.change_base[0].incarnation, self.change_base[0].epoch) == \
-                (self.incarnation, self.epoch):
+                (self.takeover.incarnation, self.epoch):
             update = self.change_base[0]
         else:
             update = self._plan_update()
@@ -320,7 +351,7 @@ class Placing:
 
     def resend_plan(self, robots: list[str]) -> None:
         """The current plan again, to ``robots`` only, on their control keys (relayed if out of sight)."""
-        if self.mission is None or self.stepped_down is not None:
+        if self.mission is None or self.takeover.stepped_down is not None:
             return
         update, payload = self._published_plan()
         self.on_own_plan(update)  # as a repeat to everyone does (the laptop's host skips what it has)
@@ -335,7 +366,7 @@ class Placing:
                             running=dict(self.running), links=links, predicted_w=self.placement_w(),
                             predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
                             policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels),
-                            variants=dict(self.variants), incarnation=self.incarnation, leader=self.leader,
+                            variants=dict(self.variants), incarnation=self.takeover.incarnation, leader=self.takeover.leader,
                             operator=self.operating.settings())
         return sorted_plan(update)  # one order on every node, whole plan or change (`protocol.plans`)
 

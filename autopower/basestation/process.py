@@ -242,17 +242,17 @@ class BaseStation:
     def _remember_incarnation(self) -> None:
         """Once it runs the mission, this host remembers the incarnation (the next start goes above)."""
         co, folder = self.coordinator, self.config.state_dir
-        if folder is None or co.mission is None or self._kept_incarnation == co.incarnation:
+        if folder is None or co.mission is None or self._kept_incarnation == co.takeover.incarnation:
             return
-        self._kept_incarnation = co.incarnation
+        self._kept_incarnation = co.takeover.incarnation
         path, tmp = Path(folder) / "basestation.json", Path(folder) / "basestation.json.tmp"
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
             with os.fdopen(fd, "w") as f:
-                json.dump({"incarnation": co.incarnation, "leader": co.leader}, f)
+                json.dump({"incarnation": co.takeover.incarnation, "leader": co.takeover.leader}, f)
             tmp.replace(path)
         except OSError as exc:
-            log.error("base station: cannot remember incarnation %d in %s: %s", co.incarnation, path, exc)
+            log.error("base station: cannot remember incarnation %d in %s: %s", co.takeover.incarnation, path, exc)
 
     def _forget_state(self) -> None:
         """A base station whose launcher owns the team (``parent_pid``: `up`, the test launcher) that
@@ -379,7 +379,7 @@ class BaseStation:
                 except ProtocolError:
                     pass  # the runtime counts it
                 else:
-                    if plan.leader != co.leader:
+                    if plan.leader != co.takeover.leader:
                         co.on_rival_plan(plan)  # another base station: the older one steps down
             if rt.on_message(key, payload):
                 return
@@ -542,8 +542,8 @@ class BaseStation:
                     self._reply_to_waiting()
                 if self._awaiting_ready:
                     self._reply_when_ready()
-                if co.stepped_down is not None:
-                    self.stop_reason = f"stepped down: {co.stepped_down}"
+                if co.takeover.stepped_down is not None:
+                    self.stop_reason = f"stepped down: {co.takeover.stepped_down}"
                     break
                 self._remember_incarnation()
                 if rt.started:

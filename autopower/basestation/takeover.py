@@ -33,9 +33,8 @@ import os
 import secrets
 import socket
 
-from autopower.basestation.placing import Migration
-from autopower.protocol import NodeStatus, PlanChange, PlanUpdate, Release
-from autopower.runtime.clock import VirtualClock
+from autopower.basestation.listening import TeamListening
+from autopower.protocol import MissionInfo, NodeStatus, PlanChange, PlanUpdate
 
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
 
@@ -45,82 +44,130 @@ def instance_id() -> str:
     return f"{socket.gethostname()}:{os.getpid()}:{secrets.token_hex(3)}"
 
 
-class TakingOver:
-    """The coordinator's takeover part. Mixed into `Coordinator`, whose state it uses."""
+class Takeover:
+    """The coordinator's part that starts the mission or takes over a running one, and yields to a newer base station.
+
+    It owns what identifies this base station's plans (``incarnation``, ``leader``), what it hears
+    of the team before the mission (``listening``), how a running team was adopted
+    (``adopted_team``) and why it stepped down (``stepped_down``)."""
+
+    def __init__(self, team, *, leader: str | None, incarnation: int, up_unix: float, learn_team_s: float):
+        """``team``: the `Coordinator` whose parts it starts or hands the adopted team to."""
+        self.team = team
+        # which start of a base station this is (plans are ordered by (incarnation, epoch)): one above
+        # any the robots report when taking over; the process raises it to what its host remembers
+        self.incarnation = incarnation
+        self.leader = leader or instance_id()
+        # what it hears of the team before it runs the mission (`basestation.listening`)
+        self.listening = TeamListening(up_unix=up_unix, learn_team_s=learn_team_s)
+        self.adopted_team: dict | None = None  # how the running team was adopted (None: we started the mission)
+        self.stepped_down: str | None = None  # why we yielded to another base station
+        self._rival_seen: str | None = None
+        self._foreign_noted = False
 
     def learn(self, status: NodeStatus) -> None:
         """A robot's status before this base station runs the mission: what the robot runs."""
-        if self.mission is not None or status.node not in self.robots:
+        team = self.team
+        if team.mission is not None or status.node not in team.robots:
             return
         self.listening.heard_from(status)
         self.maybe_start()
 
+    def came_into_sight(self, robot: str) -> None:
+        self.listening.came_into_sight(robot, self.team.wall())
+
+    def maybe_start(self) -> None:
+        """Start the mission, or adopt the one the robots run, once the team has been heard."""
+        team = self.team
+        if team.mission is not None or self.stepped_down is not None:
+            return
+        listening, now, alive = self.listening, team.wall(), team.alive_nodes()
+        if listening.takeover_due(alive, team.robots, now):
+            self._adopt_team()
+            return
+        in_sight = team.present - team.departed
+        if listening.running_reports(alive) or not listening.team_known(in_sight, now):
+            return  # a running team is still to be heard, or robots in sight have not said what they run
+        everyone = set(team.robots) <= team.present
+        late = (listening.first_seen_unix is not None
+                and now - listening.first_seen_unix >= team.config.start_grace_s)
+        if not (everyone or (late and team.present)):
+            return
+        team.start_mission(MissionInfo(scenario=team.scenario.name, accounting=team.scenario.accounting,
+                                       epoch_unix=team.wall(), speed=team.config.speed,
+                                       energies_j=team.scenario.energies_j()))
+        team.replan_periodically_from(team.config.replan_interval_s)
+        team.note(f"policy: {team.policy.name}")
+        missing = set(team.robots) - team.present
+        team.note("mission started" + (f" without {', '.join(sorted(missing))}" if missing else ""))
+        team.replan("mission start")
+
+    def start_deadlines(self) -> list[float]:
+        """When the mission may start without waiting any longer (none before the first robot appears)."""
+        team, listening = self.team, self.listening
+        if listening.first_seen_unix is None:
+            return []
+        return [listening.first_seen_unix + team.config.start_grace_s,  # a late start
+                *listening.deadlines(team.alive_nodes(), team.robots, team.present - team.departed,
+                                     team.wall())]  # done listening
+
     def _adopt_team(self) -> None:
         """Go on with the mission the robots run: its clock, their placement, epochs and generations."""
-        reports = {n: s for n, s in self.listening.running_reports(self.alive_nodes()).items()
+        team = self.team
+        reports = {n: s for n, s in self.listening.running_reports(team.alive_nodes()).items()
                    if s.mission is not None}
         newest = max(reports.values(), key=lambda s: (s.plan_incarnation, s.plan_epoch))
         mission = newest.mission
-        if mission.scenario != self.scenario.name:
-            self.plan_error = (f"the robots run scenario {mission.scenario!r}, this base station "
-                               f"{self.scenario.name!r}: start it with the team's scenario")
+        if mission.scenario != team.scenario.name:
+            error = (f"the robots run scenario {mission.scenario!r}, this base station "
+                     f"{team.scenario.name!r}: start it with the team's scenario")
+            team.cannot_decide(error)
             if not self._foreign_noted:
                 self._foreign_noted = True
-                self.note(self.plan_error)
+                team.note(error)
             return
-        self.mission = mission
-        self.mission_unix = self.wall()
-        self.clock = VirtualClock(mission.epoch_unix, mission.speed, wall_fn=self.wall)
-        if mission.speed != self.config.speed:
-            self.note(f"the team runs at speed {mission.speed:g}, not {self.config.speed:g}: going on at its speed")
+        team.start_mission(mission)
+        if mission.speed != team.config.speed:
+            team.note(f"the team runs at speed {mission.speed:g}, not {team.config.speed:g}: going on at its speed")
         heard = list(self.listening.heard.values())
         self.incarnation = max(self.incarnation, max(s.plan_incarnation for s in heard) + 1)
-        self.epoch = max(s.plan_epoch for s in heard)  # the next plan is one above anything running
+        team.continue_from(max(s.plan_epoch for s in heard))  # the next plan is one above anything running
         generations = [g for s in heard for g in s.generations.values()]
         # above every instance the robots host, and above what a subgroup hands out (wall ms)
-        self.generation = max([self.generation, int(self.wall() * 1000), *generations]) + 1
-        for node, status in reports.items():
-            self.statuses[node] = status  # batteries, links: what the policy starts from
+        team.generation_above(max([int(team.wall() * 1000), *generations]))
+        team.heard_statuses(reports)  # batteries, links: what the policy starts from
         # the operator's pins, disabled chains, links and radios, from the newest plan the robots run
-        kept = self.operating.adopt(newest.plan_operator) if newest.plan_operator else []
-        placement, stale, waiting = _placement_of(reports, set(self.chain_of))
-        self.placement = placement
-        for stage, (node, generation) in waiting.items():
-            # its state is on its way or lost: its StageReady completes it, else the migration
-            # timeout restarts it there without (`Coordinator.on_timer`), not a stage starting for good
-            self.migrations[stage] = Migration(stage, generation, node, None, "transferring", self.wall())
-        self.placed_generation = {stage: reports[node].generations.get(stage, 0) for stage, node in placement.items()}
-        self.target = dict(placement)
-        for chain in self.scenario.chains:
-            runs = [s.sources[chain.name].run for s in reports.values() if chain.name in s.sources]
-            if runs:
-                self.runs[chain.name] = max(runs)
-                self.run_live[chain.name] = True  # its sequence goes on: a new instance starts where inputs are
-            elif chain.source in self.robots and chain.source not in reports:
-                self.runs_unknown.add(chain.name)  # its source robot has not spoken: `_learn_runs`
+        kept = team.operating.adopt(newest.plan_operator) if newest.plan_operator else []
+        placement, stale, waiting = _placement_of(reports, set(team.chain_of))
+        runs, unknown = {}, set()
+        for chain in team.scenario.chains:
+            chain_runs = [s.sources[chain.name].run for s in reports.values() if chain.name in s.sources]
+            if chain_runs:
+                runs[chain.name] = max(chain_runs)  # its sequence goes on: a new instance starts where inputs are
+            elif chain.source in team.robots and chain.source not in reports:
+                unknown.add(chain.name)  # its source robot has not spoken: `Placement.learn_runs`
             elif not chain.sourced:
                 # a fan-in chain's stage names its outputs: a fresh instance in the run its sink
                 # already got outputs of would give new outputs their names. Its sink says the run
-                # (`_learn_runs`), and a stage that died starts the next one (`_run_for`).
-                self.runs_unknown.add(chain.name)
-        self._update_running()
-        for node, stage in stale:
-            self._send(node, Release(stage=stage, generation=self._next_generation()))
-        self.next_periodic_replan = self.now() + self.config.replan_interval_s
-        self.adopted += len(placement)
-        self.takeover = {"up_unix": self.listening.up_unix, "adopted_unix": self.wall(), "incarnation": self.incarnation,
-                         "from_robots": sorted(reports), "mission_t_s": self.now(), "stages": len(placement),
-                         "previous": {"incarnation": newest.plan_incarnation, "epoch": newest.plan_epoch,
-                                      "leader": newest.plan_leader}}
-        self.note(f"took over a running team after {self.wall() - self.listening.up_unix:.2f} s: mission time "
-                  f"{self.now():.1f} s (its clock goes on), {len(placement)} stage(s) running "
+                # (`Placement.learn_runs`), and a stage that died starts the next one (`Placement._run_for`).
+                unknown.add(chain.name)
+        generation_of = {stage: reports[node].generations.get(stage, 0) for stage, node in placement.items()}
+        team.adopt_team(placement, generation_of, waiting, runs, unknown, stale)
+        team.replan_periodically_from(team.now() + team.config.replan_interval_s)
+        self.adopted_team = {"up_unix": self.listening.up_unix, "adopted_unix": team.wall(),
+                             "incarnation": self.incarnation, "from_robots": sorted(reports),
+                             "mission_t_s": team.now(), "stages": len(placement),
+                             "previous": {"incarnation": newest.plan_incarnation, "epoch": newest.plan_epoch,
+                                          "leader": newest.plan_leader}}
+        team.note(f"took over a running team after {team.wall() - self.listening.up_unix:.2f} s: mission time "
+                  f"{team.now():.1f} s (its clock goes on), {len(placement)} stage(s) running "
                   f"({', '.join(f'{s}@{n}' for s, n in sorted(placement.items())) or 'none'}), "
                   f"heard {', '.join(sorted(reports))}; incarnation {self.incarnation} (after {newest.plan_leader or '?'}'s "
-                  f"{newest.plan_incarnation}), epochs from {self.epoch + 1}")
+                  f"{newest.plan_incarnation}), epochs from {team.epoch + 1}")
         if kept:
-            self.note(f"kept the operator's settings: {'; '.join(kept)}")
-        self.note(f"policy: {self.policy.name}")
-        self.replan("took over a running team")
+            team.note(f"kept the operator's settings: {'; '.join(kept)}")
+        team.note(f"policy: {team.policy.name}")
+        team.replan("took over a running team")
 
     def on_rival_plan(self, plan: PlanUpdate | PlanChange) -> None:
         """A plan on the plan key that another base station made (when the two are connected)."""
@@ -130,10 +177,10 @@ class TakingOver:
     def on_rival_status(self, status: NodeStatus) -> None:
         """A robot runs a plan we did not make: another base station reaches it (the two of us may not
         be connected: Zenoh peers do not route for each other, the robots see both)."""
-        if self.mission is None or status.plan_epoch < 0 or status.plan_leader in ("", self.leader):
+        if self.team.mission is None or status.plan_epoch < 0 or status.plan_leader in ("", self.leader):
             return
         older = (status.plan_incarnation, status.plan_leader) < (self.incarnation, self.leader)
-        if older and status.t_unix < self.mission_unix + 1.0:
+        if older and status.t_unix < self.team.mission_unix + 1.0:
             return  # made before our first plan reached it (a takeover): not a sign of anyone else
         self._rival(status.plan_incarnation, status.plan_leader, f"gives {status.node} its plans")
 
@@ -142,15 +189,15 @@ class TakingOver:
         if self.stepped_down is not None:
             return
         if (incarnation, leader) > (self.incarnation, self.leader):
-            self.stepped_down = (f"another base station runs team {self.keys.team!r}: {leader} "
+            self.stepped_down = (f"another base station runs team {self.team.keys.team!r}: {leader} "
                                  f"(incarnation {incarnation}, ours {self.incarnation}) {how}; the older one "
                                  "steps down")
-            self.note(f"stepping down: {self.stepped_down}")
+            self.team.note(f"stepping down: {self.stepped_down}")
             log.warning("base station: stepping down: %s", self.stepped_down)
         elif self._rival_seen != leader:
             self._rival_seen = leader
-            self.note(f"another base station ({leader}, incarnation {incarnation}) {how} for this team; it is "
-                      f"older than this one (incarnation {self.incarnation}) and steps down when it hears of us")
+            self.team.note(f"another base station ({leader}, incarnation {incarnation}) {how} for this team; it is "
+                           f"older than this one (incarnation {self.incarnation}) and steps down when it hears of us")
 
 
 def _placement_of(reports: dict[str, NodeStatus], stages: set[str]

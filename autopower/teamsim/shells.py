@@ -444,7 +444,7 @@ class BaseShell(Shell):
                 plan = decode(payload, (PlanUpdate, PlanChange))  # whole or a change: both name their leader
             except ProtocolError:
                 plan = None
-            if plan is not None and plan.leader != co.leader:
+            if plan is not None and plan.leader != co.takeover.leader:
                 co.on_rival_plan(plan)
         if rt.on_message(key, payload):
             return
@@ -486,11 +486,11 @@ class BaseShell(Shell):
         rt, co, w = self.rt, self.co, self.world
         self._settle_suspects()
         co.on_timer()
-        if co.stepped_down is not None:
+        if co.takeover.stepped_down is not None:
             w.stepped_down(self)
             return math.inf
-        if co.mission is not None and w.base_state.get("incarnation") != co.incarnation:
-            w.base_state["incarnation"] = co.incarnation  # the host remembers it (basestation.json)
+        if co.mission is not None and w.base_state.get("incarnation") != co.takeover.incarnation:
+            w.base_state["incarnation"] = co.takeover.incarnation  # the host remembers it (basestation.json)
         if rt.started:
             rt.on_timer()
         now = w.scheduler.wall()

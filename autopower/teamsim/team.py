@@ -210,7 +210,7 @@ class World:
         return reply
 
     def stepped_down(self, shell: BaseShell) -> None:
-        self.trace.note(self.scheduler.now, f"{shell.node} stepped down: {shell.co.stepped_down}")
+        self.trace.note(self.scheduler.now, f"{shell.node} stepped down: {shell.co.takeover.stepped_down}")
         shell.crash()
 
     def close(self) -> None:
@@ -234,7 +234,7 @@ class World:
         if rt.meter is not None and not rt.resumed and shell.node != self.scenario.basestation:
             self.idle_from[shell.node] = rt.meter.t0
         leaders = [s.node for s in self.base_shells if self.shells.get(s.node) is s
-                   and s.up and s.co.mission is not None and s.co.stepped_down is None]
+                   and s.up and s.co.mission is not None and s.co.takeover.stepped_down is None]
         if len(leaders) > 1:
             self.ledger.violate("one-leader", f"{len(leaders)} base stations lead at once", self.scheduler.now,
                                 self.trace.events)
@@ -246,7 +246,7 @@ class World:
         if not (isinstance(base, BaseShell) and base.up and base.co.mission is not None):
             return True
         co = base.co
-        since = base.plan_since.get((co.incarnation, co.epoch), -math.inf)
+        since = base.plan_since.get((co.takeover.incarnation, co.epoch), -math.inf)
         return not co.migrations and self.scheduler.now - since >= SETTLE_S
 
     def final_checks(self) -> None:
@@ -260,7 +260,7 @@ class World:
             self.ledger.violate("newest-plan", "no base station runs the mission at the end", now, event)
             return
         co = base.co
-        newest = (co.incarnation, co.epoch)
+        newest = (co.takeover.incarnation, co.epoch)
         for node, shell in sorted(self.shells.items()):
             if not shell.up:
                 self.ledger.violate("newest-plan", f"{node} is down at the end", now, event)

@@ -70,7 +70,7 @@ def test_a_waiting_base_station_sleeps_until_the_grace_period_ends(sc):
     assert co.next_deadline_unix() == float("inf")  # nobody yet: only an event can wake it
     team.join(["r1"])
     assert co.mission is None
-    assert co.next_deadline_unix() == pytest.approx(co.listening.first_seen_unix + 5.0)
+    assert co.next_deadline_unix() == pytest.approx(co.takeover.listening.first_seen_unix + 5.0)
     team.join(["r2", "r3"])
     assert co.mission is not None and co.next_deadline_unix() > team.clock.wall()
 

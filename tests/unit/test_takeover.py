@@ -61,10 +61,10 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
     assert new.mission == old.mission  # one mission clock: the team's
     assert new.now() == pytest.approx(old.now()) and new.now() >= 60.0
     assert new.placement["Loc-2"] == "r2" and new.placement["Blob-3"] == "r3"  # what runs, where it runs
-    assert new.incarnation == old.incarnation + 1 and new.epoch == old.epoch + 1
+    assert new.takeover.incarnation == old.takeover.incarnation + 1 and new.epoch == old.epoch + 1
     assert new.generation > max(generations)
-    assert new.takeover["from_robots"] == list(ROBOTS) and new.takeover["stages"] == 2
-    assert new.takeover["previous"] == {"incarnation": old.incarnation, "epoch": old.epoch, "leader": old.leader}
+    assert new.takeover.adopted_team["from_robots"] == list(ROBOTS) and new.takeover.adopted_team["stages"] == 2
+    assert new.takeover.adopted_team["previous"] == {"incarnation": old.takeover.incarnation, "epoch": old.epoch, "leader": old.takeover.leader}
     # the chains that run go on with their run; those whose stage ran only on the old base station
     # (nobody reports it: here it is cut off, in a real crash it is gone) restart as a new run
     assert new.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 1, "Loc-3": 1, "Blob-2": 1}
@@ -75,7 +75,7 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
     team.report_status()
     team.run_until(80.0)
     for name, rt in team.nodes.items():  # every node follows it, although its epoch may be lower
-        assert (rt.plan.incarnation, rt.plan.leader) == (new.incarnation, new.leader), name
+        assert (rt.plan.incarnation, rt.plan.leader) == (new.takeover.incarnation, new.takeover.leader), name
     assert new.ready
     for name, ledger in team.nodes["laptop"].sinks.items():
         assert ledger.duplicates_total == 0, name
@@ -130,24 +130,24 @@ def test_the_older_base_station_steps_down_when_it_hears_of_the_newer(sc):
         new.learn(team.nodes[robot].status(10.0))
     on_old_plan = team.nodes["r1"].status(10.0)
     new.on_rival_status(on_old_plan)  # made before our first plan reached r1: not a rival
-    assert new._rival_seen is None
+    assert new.takeover._rival_seen is None
     new.on_rival_status(dataclasses.replace(on_old_plan, t_unix=new.mission_unix + 2.0))
-    assert new._rival_seen == old.leader and new.stepped_down is None  # older: noted, it is the one to yield
+    assert new.takeover._rival_seen == old.takeover.leader and new.takeover.stepped_down is None  # older: noted, it is the one to yield
     team.pump()
     new.on_rival_status(team.nodes["r1"].status(10.0))  # its own plan: nothing to say
-    assert new.stepped_down is None
+    assert new.takeover.stepped_down is None
     old.on_rival_status(team.nodes["r1"].status(10.0))  # r1 runs the newer one's plan
-    assert old.stepped_down is not None and "incarnation 1, ours 0" in old.stepped_down
+    assert old.takeover.stepped_down is not None and "incarnation 1, ours 0" in old.takeover.stepped_down
     epoch = old.epoch
     old.publish_plan()
     assert old.epoch == epoch  # it decides and publishes nothing any more
     # equal incarnations: the leader id breaks the tie, the same way on both sides
     plan = team.nodes["r1"].plan
     for rival, yields in (("~after-every-id", True), ("!before-every-id", False)):
-        co = Coordinator(scenario=sc, bus=team.hub.bus(f"third{rival}"), keys=team.keys, config=CoordinatorConfig())
-        co.incarnation = new.incarnation
+        co = Coordinator(scenario=sc, bus=team.hub.bus(f"third{rival}"), keys=team.keys, config=CoordinatorConfig(),
+                         incarnation=new.takeover.incarnation)
         co.on_rival_plan(dataclasses.replace(plan, leader=rival))
-        assert (co.stepped_down is not None) is yields
+        assert (co.takeover.stepped_down is not None) is yields
 
 
 def test_a_fresh_team_starts_only_after_the_robots_are_heard(sc):
@@ -158,7 +158,7 @@ def test_a_fresh_team_starts_only_after_the_robots_are_heard(sc):
     assert co.mission is None  # present, but they have not said they run nothing yet
     for robot in ROBOTS:
         co.learn(team.nodes[robot].status(0.0))
-    assert co.mission is not None and co.takeover is None and co.incarnation == 0
+    assert co.mission is not None and co.takeover.adopted_team is None and co.takeover.incarnation == 0
 
 
 def test_a_robot_that_never_speaks_delays_the_start_only_for_the_listening_time(sc):
@@ -192,7 +192,7 @@ def test_a_robot_that_comes_into_sight_late_is_heard_before_a_new_mission_starts
     assert new.mission is None  # r3 is in sight and must say what it runs first
     assert new.next_deadline_unix() == pytest.approx(team.clock.wall() + 2.0)
     new.learn(team.nodes["r3"].status(10.0))
-    assert new.mission == old.mission and new.takeover["from_robots"] == ["r3"]
+    assert new.mission == old.mission and new.takeover.adopted_team["from_robots"] == ["r3"]
 
 
 def test_plans_are_ordered_by_incarnation_then_epoch(sc):
@@ -278,7 +278,7 @@ def test_one_base_station_per_team_and_host(sc, tmp_path):
                 pass
     (tmp_path / "basestation.json").write_text('{"incarnation": 6}')
     with BaseStation(config, host_factory=host, bus=hub.bus("laptop-3")) as base:  # the lock went with it
-        assert base.coordinator.incarnation == 7  # above what this host used last
+        assert base.coordinator.takeover.incarnation == 7  # above what this host used last
         base.run(max_wall_s=0.05)
     assert (tmp_path / "basestation.json").exists()  # kept for the next start (a service manager's)
 
@@ -315,7 +315,7 @@ def test_a_takeover_that_did_not_hear_a_chains_source_robot_waits_for_its_run(sc
     assert new.mission is None
     team.clock.advance(3.0)  # listened long enough
     new.learn(team.nodes["r1"].status(10.0))
-    assert new.mission is not None and new.takeover["stages"] >= 1  # Loc-3 on r1 among them
+    assert new.mission is not None and new.takeover.adopted_team["stages"] >= 1  # Loc-3 on r1 among them
     assert new.runs_unknown == {"Loc-3", "Blob-3"}  # r3's chains: only r3 knows their runs
     assert "Loc-3" not in new.running and "Blob-3" not in new.running
     new.on_timer()  # deciding and reconciling no longer fail on the unknown run
