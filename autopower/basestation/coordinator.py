@@ -47,6 +47,7 @@ from autopower.basestation.deciding import Baseline, Deciding
 from autopower.basestation.links import LinkStates, pair_name
 from autopower.basestation.operating import OperatorControl
 from autopower.basestation.placing import Migration, Placing
+from autopower.basestation.publishing import PlanPublisher
 from autopower.basestation.takeover import Takeover
 from autopower.errors import AutoPowerError
 from autopower.model.mission_events import MissionEvent
@@ -203,23 +204,13 @@ class Coordinator(Deciding, Placing):
         # why the last `replan` did not decide though nothing was wrong (robots to report, none in
         # reach): an operator's command is then noted and carried out by the re-plan that follows
         self.replan_waiting: str | None = None
-        self.epoch = 0
         self.generation = 0
         # starting the mission, or adopting the one the robots run; which base station this is
         self.takeover = Takeover(self, leader=leader, incarnation=incarnation, up_unix=self.wall(),
                                  learn_team_s=config.learn_team_s)
         self.mission_unix = 0.0  # when we started or adopted the mission
         self._far_generation: set[str] = set()  # robots that reported a generation too far ahead (warned)
-        self.next_republish = 0.0
-        self.last_republish = 0.0  # when the plan last went out (new or repeated)
-        self.last_plan_unix = 0.0  # when the last new plan went out (`CoordinatorConfig.plan_batch_s`)
-        # the last new plan as the robots decode it, and its digest: the next new plan goes out as
-        # its change from this one (`protocol.plans`)
-        self.change_base: tuple[PlanUpdate, bytes] | None = None
-        self.plan_reached: set[str] = set()  # the robots in reach when the last new plan went out
-        # a stage became ready: the plan goes out once, at the next timer, for every stage that
-        # became ready meanwhile (a fleet's start makes a plan per stage otherwise: O(stages^2))
-        self.plan_due = False
+        self.plans = PlanPublisher(self)  # the plans' epoch and when they go out
         # link changes since the last timer: one decision at the next timer for all of them (a
         # fleet under load loses several links within one batch of events, and each decision is
         # a MILP of the whole team that holds up the loop while statuses pile up)
@@ -296,7 +287,7 @@ class Coordinator(Deciding, Placing):
             return
         for fault in open_faults:
             if fault["epoch"] is None:
-                fault["epoch"] = self.epoch
+                fault["epoch"] = self.plans.epoch
         for fault in open_faults:
             acked = all(self.statuses.get(r) is not None and self.runs_plan(self.statuses[r], fault["epoch"], newer=True)
                         for r in self.alive_nodes() if r in self._robot_names)
@@ -510,7 +501,7 @@ class Coordinator(Deciding, Placing):
         if learned:
             self.note(f"learned from {status.node}: {', '.join(learned)}")
             self.reconcile()
-            self.publish_plan()
+            self.plans.publish_plan()
 
     def _adopt_actual(self, status: NodeStatus, returning: bool = True) -> bool:
         """Take the stages a returning robot runs as placed there, when its instance is the newest.
@@ -585,8 +576,7 @@ class Coordinator(Deciding, Placing):
         if self.replan_due and not self.decider.busy:
             reasons, self.replan_due = self.replan_due, []
             self.replan(", ".join(dict.fromkeys(reasons)))
-        if self.plan_due and now_wall >= self._ready_plan_unix():
-            self.publish_plan()
+        self.plans.publish_ready(now_wall)
         if self.mission is not None:
             late = [n for n, deadline in self._awaiting_actual.items() if now_wall >= deadline]
             for node in late:
@@ -599,35 +589,13 @@ class Coordinator(Deciding, Placing):
             if now_wall - m.started_unix > self.config.migration_timeout_s:
                 self._abort(stage, f"no answer in {self.config.migration_timeout_s:g} s", restart_at_target=True)
                 self.reconcile()
-                self.publish_plan()
+                self.plans.publish_plan()
         self.resend_orders()
         if self.mission is None:
             return
         if self.config.auto_replan:
             self._timed_decisions()
-        if now_wall >= self.next_republish:
-            if now_wall >= self.last_republish + self.config.plan_republish_settled_s:
-                self.publish_plan(repeat=True)  # to everyone: standby base stations, late joiners unknown here
-            elif behind := self._behind_plan():
-                self.resend_plan(behind)  # to those behind only: a plan grows with the team
-            else:
-                self.next_republish = now_wall + self.config.plan_republish_s
-
-    def _ready_plan_unix(self) -> float:
-        """When a plan announcing ready stages may go: at once when no order waits for its answer
-        (the wave is complete), else `plan_batch_s` after the last new plan (more answers are coming)."""
-        return 0.0 if not self.migrations else self.last_plan_unix + self.config.plan_batch_s
-
-    def _behind_plan(self) -> list[str]:
-        """The robots in reach whose last status does not say they run the current plan (late,
-        restarted, back in reach, or their acknowledgement lost: statuses are best effort)."""
-        behind = []
-        for robot in sorted(self.alive_nodes() & set(self.robots)):
-            status = self.statuses.get(robot)
-            if status is None or not self.runs_plan(status, self.epoch) or status.plan_leader != self.takeover.leader:
-                behind.append(robot)
-        return behind
-
+        self.plans.republish(now_wall)
 
     def next_deadline_unix(self) -> float:
         """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
@@ -635,11 +603,8 @@ class Coordinator(Deciding, Placing):
         deadlines += [self.order_resend_unix(m) for m in self.migrations.values() if m.order]
         if self.replan_due and not self.decider.busy:  # (a question out: its answer wakes the loop)
             deadlines.append(self.wall())
-        if self.plan_due:
-            deadlines.append(max(self.wall(), self._ready_plan_unix()))
-        if self.mission is not None:
-            deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
-        else:
+        deadlines += self.plans.deadlines()
+        if self.mission is None:
             deadlines += self.takeover.start_deadlines()
         # nothing else is timed before the first robot appears: the next event wakes us
         if self.clock is not None and self.revisit_at_s is not None:

@@ -140,7 +140,7 @@ class Deciding:
             self.schedule, self.revisit_at_s = (), None
             self._pending_events.clear()
             self.reconcile()
-            self.publish_plan()
+            self.plans.publish_plan()
             return False
         state = self.team_state()
         self._events_asked = len(self._pending_events)  # the events this question carries
@@ -278,7 +278,7 @@ class Deciding:
         if changed:  # e.g. a link is gone from (or back in) the routes, nothing moves
             self.replans += 1  # a new plan all the same: every node takes it up
             self.reconcile()
-            self.publish_plan()
+            self.plans.publish_plan()
 
     def _carry_out(self, decision: Decision, reason: str) -> None:
         """The decision's allocation becomes the target (operator pins win), its network the plan's."""
@@ -309,7 +309,7 @@ class Deciding:
                   + (f", next decision at t={self.revisit_at_s:.1f}s" if self.revisit_at_s is not None else ""))
         self._predict()
         self.reconcile()
-        self.publish_plan()
+        self.plans.publish_plan()
 
     def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float],
                   running: set[str] | None = None, levels: dict[str, str] | None = None):
@@ -365,7 +365,7 @@ class Deciding:
     def _check_drift(self, status: NodeStatus) -> None:
         if not self.config.auto_replan or status.battery_j is None or not self.ready:
             return
-        if not self.runs_plan(status, self.epoch) or status.node not in self.predicted_w:
+        if not self.runs_plan(status, self.plans.epoch) or status.node not in self.predicted_w:
             return
         base = self.baselines.get(status.node)
         if base is None:

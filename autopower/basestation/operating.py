@@ -101,7 +101,7 @@ class OperatorControl:
                 self.team.retarget(cmd.stage, cmd.to_node)
                 self.team._predict()
                 self.team.reconcile()
-                self.team.publish_plan()
+                self.team.plans.publish_plan()
                 return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
             if isinstance(cmd, AutoCommand):
                 self._clear_pins()
@@ -207,7 +207,7 @@ class OperatorControl:
             "ready": self.team.ready,
             "mission": dataclasses.asdict(self.team.mission) if self.team.mission else None,
             "t_virtual": self.team.now(),
-            "epoch": self.team.epoch,
+            "epoch": self.team.plans.epoch,
             "incarnation": self.team.takeover.incarnation,  # plans are ordered by (incarnation, epoch)
             "leader": self.team.takeover.leader,
             "takeover": dict(self.team.takeover.adopted_team) if self.team.takeover.adopted_team else None,  # how a running team was adopted

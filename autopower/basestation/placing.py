@@ -13,9 +13,7 @@ from dataclasses import dataclass
 from autopower.protocol import (
     INBOX_MESSAGES,
     Assign,
-    LinkInfo,
     MigrateOut,
-    PlanUpdate,
     Prepare,
     Prepared,
     Release,
@@ -25,7 +23,6 @@ from autopower.protocol import (
     encode,
     unbatch,
 )
-from autopower.protocol.plans import plan_change, published_digest, sorted_plan
 
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
 # what a node may report in `StageFailed.what` (anything else is ignored)
@@ -62,10 +59,6 @@ class Placing:
     def generation_above(self, floor: int) -> None:
         """The next generation handed out is above ``floor`` and above every one handed out so far."""
         self.generation = max(self.generation, floor) + 1
-
-    def continue_from(self, epoch: int) -> None:
-        """The next plan is the one after ``epoch`` (a team taken over runs plans up to it)."""
-        self.epoch = epoch
 
     def adopt_team(self, placement: dict[str, str], generation_of: dict[str, int],
                    waiting: dict[str, tuple[str, int]], runs: dict[str, int], unknown: set[str],
@@ -237,7 +230,7 @@ class Placing:
             log.info("coordinator: %s moved %s -> %s in %.1f ms (%d inputs held)", msg.stage, m.from_node,
                      msg.node, msg.downtime_ms, msg.buffered)
         self.reconcile()
-        self.plan_due = True  # `Coordinator.on_timer` publishes it, once for every stage ready meanwhile (plan_batch_s)
+        self.plans.mark_due()  # `Coordinator.on_timer` publishes it, once for every stage ready meanwhile (plan_batch_s)
 
     def on_stage_failed(self, msg: StageFailed) -> None:
         """A node stopped a stage's component, or refused to migrate it (see `StageFailed`).
@@ -268,7 +261,7 @@ class Placing:
                       f"{msg.node}, pinned there")
             self._predict()
             self.reconcile()
-            self.publish_plan()
+            self.plans.publish_plan()
             return
         if msg.what == "source-hung":
             if msg.node != chain.source:
@@ -299,74 +292,3 @@ class Placing:
             if node in self.alive_nodes():
                 self._send(node, Release(stage=stage, generation=gen))
         self.placement.pop(stage, None)
-
-    def publish_plan(self, repeat: bool = False) -> None:
-        if self.mission is None or self.takeover.stepped_down is not None:
-            return
-        changed_only = False
-        if repeat:
-            update, payload = self._published_plan()
-        else:
-            self.epoch += 1
-            self.last_plan_unix = self.wall()
-            update, payload, changed_only = self._new_plan()
-        self.plan_due = False
-        self.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
-        alive = self.alive_nodes()  # (a set built per call: once, not once per robot)
-        in_reach = [r for r in self.robots if r in alive]
-        self.bus.publish(self.keys.plan, payload)
-        self.also_relay(in_reach, self.keys.plan, payload)
-        if not repeat:
-            # a robot out of reach when the plan before went out (back from a cut, restarted, late)
-            # cannot apply a change from it: it is sent this plan whole at once, not a second later
-            # as one behind (its status names the plan it runs only after this one went out)
-            back = [r for r in in_reach if r not in self.plan_reached]
-            if back and changed_only:
-                self.resend_plan(back)
-            self.plan_reached = set(in_reach)
-        self.last_republish = self.wall()
-        self.next_republish = self.last_republish + self.config.plan_republish_s
-
-    def _new_plan(self) -> tuple[PlanUpdate, bytes, bool]:
-        """(the new plan as the robots will hold it, what goes out, whether that is a change):
-        its change from the plan before when this base station published that one
-        (`protocol.plans`), else whole."""
-        whole = encode(self._plan_update())
-        update, digest = published_digest(whole)
-        base, self.change_base = self.change_base, (update, digest)
-        if base is None or (base[0].leader, base[0].incarnation, base[0].epoch + 1, base[0].mission) != \
-                (update.leader, update.incarnation, update.epoch, update.mission):
-            return update, whole, False
-        return update, encode(plan_change(base[0], base[1], update, digest)), True
-
-    def _published_plan(self) -> tuple[PlanUpdate, bytes]:
-        """(the current plan, whole): the one published for this epoch, so that a robot given it
-        applies the next change (a plan made again may differ in what changed since)."""
-        if self.change_base is not None and (self.change_base[0].incarnation, self.change_base[0].epoch) == \
-                (self.takeover.incarnation, self.epoch):
-            update = self.change_base[0]
-        else:
-            update = self._plan_update()
-        return update, encode(update)
-
-    def resend_plan(self, robots: list[str]) -> None:
-        """The current plan again, to ``robots`` only, on their control keys (relayed if out of sight)."""
-        if self.mission is None or self.takeover.stepped_down is not None:
-            return
-        update, payload = self._published_plan()
-        self.on_own_plan(update)  # as a repeat to everyone does (the laptop's host skips what it has)
-        for robot in robots:
-            self.send_to(robot, self.keys.node_control(robot), payload)
-        self.next_republish = self.wall() + self.config.plan_republish_s
-
-    def _plan_update(self) -> PlanUpdate:
-        network = self.plan_network
-        links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
-        update = PlanUpdate(epoch=self.epoch, mission=self.mission, placement=dict(self.placement),
-                            running=dict(self.running), links=links, predicted_w=self.placement_w(),
-                            predicted_lifetime_s=self.predicted_lifetime_s, plan_t_virtual=self.plan_t_virtual,
-                            policy=self.policy.name, reasons=tuple(self.decision_reasons), levels=dict(self.levels),
-                            variants=dict(self.variants), incarnation=self.takeover.incarnation, leader=self.takeover.leader,
-                            operator=self.operating.settings())
-        return sorted_plan(update)  # one order on every node, whole plan or change (`protocol.plans`)
-

@@ -131,7 +131,7 @@ class Takeover:
             team.note(f"the team runs at speed {mission.speed:g}, not {team.config.speed:g}: going on at its speed")
         heard = list(self.listening.heard.values())
         self.incarnation = max(self.incarnation, max(s.plan_incarnation for s in heard) + 1)
-        team.continue_from(max(s.plan_epoch for s in heard))  # the next plan is one above anything running
+        team.plans.continue_from(max(s.plan_epoch for s in heard))  # the next plan is one above anything running
         generations = [g for s in heard for g in s.generations.values()]
         # above every instance the robots host, and above what a subgroup hands out (wall ms)
         team.generation_above(max([int(team.wall() * 1000), *generations]))
@@ -163,7 +163,7 @@ class Takeover:
                   f"{team.now():.1f} s (its clock goes on), {len(placement)} stage(s) running "
                   f"({', '.join(f'{s}@{n}' for s, n in sorted(placement.items())) or 'none'}), "
                   f"heard {', '.join(sorted(reports))}; incarnation {self.incarnation} (after {newest.plan_leader or '?'}'s "
-                  f"{newest.plan_incarnation}), epochs from {team.epoch + 1}")
+                  f"{newest.plan_incarnation}), epochs from {team.plans.epoch + 1}")
         if kept:
             team.note(f"kept the operator's settings: {'; '.join(kept)}")
         team.note(f"policy: {team.policy.name}")

@@ -246,7 +246,7 @@ class World:
         if not (isinstance(base, BaseShell) and base.up and base.co.mission is not None):
             return True
         co = base.co
-        since = base.plan_since.get((co.takeover.incarnation, co.epoch), -math.inf)
+        since = base.plan_since.get((co.takeover.incarnation, co.plans.epoch), -math.inf)
         return not co.migrations and self.scheduler.now - since >= SETTLE_S
 
     def final_checks(self) -> None:
@@ -260,7 +260,7 @@ class World:
             self.ledger.violate("newest-plan", "no base station runs the mission at the end", now, event)
             return
         co = base.co
-        newest = (co.takeover.incarnation, co.epoch)
+        newest = (co.takeover.incarnation, co.plans.epoch)
         for node, shell in sorted(self.shells.items()):
             if not shell.up:
                 self.ledger.violate("newest-plan", f"{node} is down at the end", now, event)

@@ -48,7 +48,7 @@ def test_mission_waits_for_every_robot_then_places_the_optimum(sc):
     assert co.planned_lifetime_s() == 45715.2
     assert co.decision.policy == "rebalance" and co.snapshot()["policy"] == "rebalance"  # the default
     assert set(co.running) == {c.name for c in sc.chains}
-    assert all(rt.plan is not None and rt.plan.epoch == co.epoch for rt in team.nodes.values())
+    assert all(rt.plan is not None and rt.plan.epoch == co.plans.epoch for rt in team.nodes.values())
 
 
 def test_starts_without_missing_robots_after_the_grace_period(sc):
@@ -384,7 +384,7 @@ def test_the_plan_is_repeated_while_a_robot_in_reach_does_not_say_it_runs_it(sc)
     # settled: no robot hears it again but in the rare repeat to everyone (`plan_republish_settled_s`)
     assert plans in ([], [team.keys.plan])
     plans.clear()
-    behind = dataclasses.replace(team.nodes["r2"].status(10.0), plan_epoch=co.epoch - 1)
+    behind = dataclasses.replace(team.nodes["r2"].status(10.0), plan_epoch=co.plans.epoch - 1)
     co.on_status(behind)  # r2 came back on an older plan
     tick(1.25)
     assert plans == [team.keys.node_control("r2")]  # repeated within the repeat period, to r2 alone
@@ -429,8 +429,8 @@ def test_a_fleets_start_publishes_a_plan_per_wave_of_ready_stages_not_one_per_st
     team.join()
     co = team.coordinator
     assert co.mission is not None and co.ready and len(co.placement) == 20
-    assert co.epoch <= 3 and published == list(range(1, co.epoch + 1)), published
-    assert all(rt.plan is not None and rt.plan.epoch == co.epoch for rt in team.nodes.values())
+    assert co.plans.epoch <= 3 and published == list(range(1, co.plans.epoch + 1)), published
+    assert all(rt.plan is not None and rt.plan.epoch == co.plans.epoch for rt in team.nodes.values())
 
 
 def test_stages_ready_while_orders_wait_for_answers_wait_plan_batch_s_and_share_the_next_plan(sc):
@@ -439,23 +439,23 @@ def test_stages_ready_while_orders_wait_for_answers_wait_plan_batch_s_and_share_
     team = SimTeam(sc)
     team.join()
     co = team.coordinator
-    epoch = co.epoch
-    co.plan_due = True  # what `Placing.on_stage_ready` sets: a stage became ready
+    epoch = co.plans.epoch
+    co.plans.mark_due()  # what `Placement.on_stage_ready` asks for: a stage became ready
     co.on_timer()  # no other order waits for an answer: the wave is complete, the plan goes at once
-    assert co.epoch == epoch + 1 and not co.plan_due
+    assert co.plans.epoch == epoch + 1 and not co.plans.plan_due
     host = co.placement["Loc-1"]
     assert co.on_operator(MigrateCommand(stage="Loc-1", to_node="r2" if host != "r2" else "r3")).ok
     assert co.migrations  # its orders wait for answers (the hub is not pumped: none comes)
-    epoch, sent_at = co.epoch, co.last_plan_unix
-    co.plan_due = True  # another stage became ready meanwhile
+    epoch, sent_at = co.plans.epoch, co.plans.last_plan_unix
+    co.plans.mark_due()  # another stage became ready meanwhile
     co.on_timer()
-    assert co.epoch == epoch and co.next_deadline_unix() == pytest.approx(sent_at + co.config.plan_batch_s)
+    assert co.plans.epoch == epoch and co.next_deadline_unix() == pytest.approx(sent_at + co.config.plan_batch_s)
     team.clock.set(team.clock.t + co.config.plan_batch_s / 2)
     co.on_timer()  # a second one: still the same wait
-    assert co.epoch == epoch
+    assert co.plans.epoch == epoch
     team.clock.set(team.clock.t + co.config.plan_batch_s)
     co.on_timer()
-    assert co.epoch == epoch + 1 and not co.plan_due  # one plan for both
+    assert co.plans.epoch == epoch + 1 and not co.plans.plan_due  # one plan for both
 
 
 def test_link_changes_within_one_batch_of_events_make_one_decision(sc):

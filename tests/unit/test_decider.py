@@ -177,7 +177,7 @@ def test_a_fault_is_not_handled_by_the_plan_from_before_its_decision():
     policy, team, answers = started_team()
     co = team.coordinator
     team.report_status()
-    before = co.epoch
+    before = co.plans.epoch
     team.leave("r1")
     assert co.decider.busy and co.ready  # the old plan is in force, and every robot in reach runs it
     team.report_status()
@@ -187,7 +187,7 @@ def test_a_fault_is_not_handled_by_the_plan_from_before_its_decision():
     answer_next(policy, answers, 2, team)
     team.report_status()
     co.on_timer()
-    assert co.epoch > before and fault["epoch"] > before and fault["reconfigured_unix"] is not None
+    assert co.plans.epoch > before and fault["epoch"] > before and fault["reconfigured_unix"] is not None
 
 
 def test_a_policy_that_fails_on_its_thread_fails_on_the_loop_and_the_next_question_is_asked():

@@ -61,10 +61,10 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
     assert new.mission == old.mission  # one mission clock: the team's
     assert new.now() == pytest.approx(old.now()) and new.now() >= 60.0
     assert new.placement["Loc-2"] == "r2" and new.placement["Blob-3"] == "r3"  # what runs, where it runs
-    assert new.takeover.incarnation == old.takeover.incarnation + 1 and new.epoch == old.epoch + 1
+    assert new.takeover.incarnation == old.takeover.incarnation + 1 and new.plans.epoch == old.plans.epoch + 1
     assert new.generation > max(generations)
     assert new.takeover.adopted_team["from_robots"] == list(ROBOTS) and new.takeover.adopted_team["stages"] == 2
-    assert new.takeover.adopted_team["previous"] == {"incarnation": old.takeover.incarnation, "epoch": old.epoch, "leader": old.takeover.leader}
+    assert new.takeover.adopted_team["previous"] == {"incarnation": old.takeover.incarnation, "epoch": old.plans.epoch, "leader": old.takeover.leader}
     # the chains that run go on with their run; those whose stage ran only on the old base station
     # (nobody reports it: here it is cut off, in a real crash it is gone) restart as a new run
     assert new.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 1, "Loc-3": 1, "Blob-2": 1}
@@ -138,9 +138,9 @@ def test_the_older_base_station_steps_down_when_it_hears_of_the_newer(sc):
     assert new.takeover.stepped_down is None
     old.on_rival_status(team.nodes["r1"].status(10.0))  # r1 runs the newer one's plan
     assert old.takeover.stepped_down is not None and "incarnation 1, ours 0" in old.takeover.stepped_down
-    epoch = old.epoch
-    old.publish_plan()
-    assert old.epoch == epoch  # it decides and publishes nothing any more
+    epoch = old.plans.epoch
+    old.plans.publish_plan()
+    assert old.plans.epoch == epoch  # it decides and publishes nothing any more
     # equal incarnations: the leader id breaks the tie, the same way on both sides
     plan = team.nodes["r1"].plan
     for rival, yields in (("~after-every-id", True), ("!before-every-id", False)):
