@@ -46,7 +46,7 @@ from autopower.basestation.decider import AwaitDecision, Decider
 from autopower.basestation.deciding import Baseline, Deciding
 from autopower.basestation.links import LinkStates, pair_name
 from autopower.basestation.operating import OperatorControl
-from autopower.basestation.placing import Migration, Placing
+from autopower.basestation.placing import Placement
 from autopower.basestation.publishing import PlanPublisher
 from autopower.basestation.takeover import Takeover
 from autopower.errors import AutoPowerError
@@ -70,8 +70,6 @@ from autopower.protocol import (
     OperatorReply,
     PlanChange,
     PlanUpdate,
-    Release,
-    encode,
 )
 from autopower.runtime.bus import Bus
 from autopower.runtime.clock import VirtualClock
@@ -117,7 +115,7 @@ class CoordinatorConfig:
         _policy_from(self)  # a wrong policy name or parameter fails here, before anything starts
 
 
-class Coordinator(Deciding, Placing):
+class Coordinator(Deciding):
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time,
                  leader: str | None = None, incarnation: int = 0,
@@ -167,21 +165,8 @@ class Coordinator(Deciding, Placing):
         self.present: set[str] = set()
         self.departed: set[str] = set()  # left or depleted: excluded until they come back
         self.statuses: dict[str, NodeStatus] = {}
-        self.placement: dict[str, str] = {}
-        # the generation of the instance `placement` names (what a returning robot's is compared with)
-        self.placed_generation: dict[str, int] = {}
-        self.target: dict[str, str] = {}
-        self.migrations: dict[str, Migration] = {}
-        # orders made while a reconcile runs, per node: sent as one put each when it ends (`Placing.reconcile`)
-        self.control_batch: dict[str, list[bytes]] | None = None
-        self.running: dict[str, int] = {}
-        self.runs: dict[str, int] = {}  # chain -> current run number
-        # chains of a team taken over whose source robot had not spoken: their run is the one it
-        # reports (`_learn_runs`); until then none of their stages is assigned afresh and the chain
-        # is not declared running (a run made up here could be older than the robot's, whose
-        # outputs every sink would then drop as stale)
-        self.runs_unknown: set[str] = set()
-        self.run_live: dict[str, bool] = {}  # has the current run produced anything yet
+        # the target and confirmed placements, the migrations between them, the chains' runs
+        self.placing = Placement(self)
         self.decision: Decision | None = None  # the policy's last decision (None: nothing decided yet)
         self.chosen: dict[str, str] = {}  # the policy's allocation, before operator pins
         self.stage_reasons: dict[str, str] = {}  # stage -> why it runs where it does (the planner's words)
@@ -204,12 +189,10 @@ class Coordinator(Deciding, Placing):
         # why the last `replan` did not decide though nothing was wrong (robots to report, none in
         # reach): an operator's command is then noted and carried out by the re-plan that follows
         self.replan_waiting: str | None = None
-        self.generation = 0
         # starting the mission, or adopting the one the robots run; which base station this is
         self.takeover = Takeover(self, leader=leader, incarnation=incarnation, up_unix=self.wall(),
                                  learn_team_s=config.learn_team_s)
         self.mission_unix = 0.0  # when we started or adopted the mission
-        self._far_generation: set[str] = set()  # robots that reported a generation too far ahead (warned)
         self.plans = PlanPublisher(self)  # the plans' epoch and when they go out
         # link changes since the last timer: one decision at the next timer for all of them (a
         # fleet under load loses several links within one batch of events, and each decision is
@@ -217,12 +200,6 @@ class Coordinator(Deciding, Placing):
         self.replan_due: list[str] = []
         self.next_periodic_replan: float | None = None
         self.events: deque[str] = deque(maxlen=50)
-        self.downtimes_ms: list[float] = []
-        self.migration_log: deque[dict] = deque(maxlen=200)
-        self.migrations_done = 0
-        self.assignments_done = 0
-        self.aborted = 0
-        self.order_resends = 0  # migration orders sent again for want of an answer (`Placing.resend_orders`)
         self.replans = 0
         self.asked = 0  # questions put to the policy
         self._events_asked = 0  # how many of `_pending_events` the question out carries
@@ -240,7 +217,6 @@ class Coordinator(Deciding, Placing):
         # robots back after an absence: their report of what they host (a subgroup may have
         # reallocated without us) is the starting point, not our stale placement
         self._awaiting_actual: dict[str, float] = {}
-        self.adopted = 0
         self.send_to = send_to or (lambda node, key, payload: self.bus.publish(key, payload))
         self.also_relay = also_relay or (lambda nodes, key, payload: None)
         self.on_own_plan = on_own_plan or (lambda plan: None)
@@ -262,15 +238,7 @@ class Coordinator(Deciding, Placing):
     def alive_nodes(self) -> set[str]:
         return (self.present - self.departed) | {self.base}
 
-    def _send(self, node: str, msg) -> None:
-        self.send_control(node, encode(msg))
 
-    def send_control(self, node: str, payload: bytes) -> None:
-        """An order to ``node``: at once, or with the others of the reconcile that makes it."""
-        if self.control_batch is not None:
-            self.control_batch.setdefault(node, []).append(payload)
-        else:
-            self.send_to(node, self.keys.node_control(node), payload)
 
     # ---- faults -------------------------------------------------------------------------------------
     def record_fault(self, kind: str, target: str, detected_unix: float) -> None:
@@ -333,8 +301,9 @@ class Coordinator(Deciding, Placing):
     @property
     def ready(self) -> bool:
         """The mission runs and every desired stage runs where the plan wants it."""
-        return (self.mission is not None and not self.migrations and self.plan_network is not None
-                and all(self.placement.get(s) == n for s, n in self.target.items()))
+        placing = self.placing
+        return (self.mission is not None and not placing.migrations and self.plan_network is not None
+                and all(placing.placement.get(s) == n for s, n in placing.target.items()))
 
     # ---- mission start --------------------------------------------------------------------------------
     def maybe_start(self) -> None:
@@ -410,49 +379,39 @@ class Coordinator(Deciding, Placing):
             self.present.discard(node)
             self.record_fault("node-left", node, detected_unix or self.wall())
             self.note(f"{node} left")
-            self._node_lost(node)
+            self.placing.node_lost(node)
             if self.mission is not None:
                 self._event("robot-leave", robot=node, note="left")
                 self.replan(f"{node} left")
 
-    def _node_lost(self, node: str) -> None:
-        for stage, m in list(self.migrations.items()):
-            if node in (m.to_node, m.from_node):
-                self._abort(stage, f"{node} left")
-        for stage, host in list(self.placement.items()):
-            if host == node:
-                del self.placement[stage]
-        self._update_running()
 
     def on_host_status(self, status: NodeStatus) -> None:
         """The status of the base station's own host, built in the same process (each period once
         its mission runs). It is no robot's; as the sink of a fan-in chain it says the chain's run."""
-        if self.runs_unknown:
-            self._learn_runs(status)
+        self.placing.learn_runs(status)
 
     def on_status(self, status: NodeStatus) -> None:
         if status.node not in self._robot_names:
             return
         self.statuses[status.node] = status
-        self._pass_generations(status)
-        if self.runs_unknown:
-            self._learn_runs(status)
+        self.placing.follow_generations(status)
+        self.placing.learn_runs(status)
         if status.depleted:
             if status.node not in self.departed:
                 self.departed.add(status.node)
                 if self.first_depletion is None:
                     self.first_depletion = {"robot": status.node, "t_virtual": status.t_virtual}
                 self.note(f"{status.node} ran out of energy")
-                self._node_lost(status.node)
+                self.placing.node_lost(status.node)
                 self._event("robot-leave", robot=status.node, note="depleted")
                 self.replan(f"{status.node} depleted")
             return
         if status.node in self._awaiting_actual:
             del self._awaiting_actual[status.node]
-            self._adopt_actual(status)
+            self.placing.adopt_actual(status)
             if not self._awaiting_actual:  # every robot that came back has said what it runs
                 self.replan(f"{status.node} joined (from what the robots report hosting)", after_rejoin=True)
-        elif self.mission is not None and status.node in self.present and self._adopt_actual(status, returning=False):
+        elif self.mission is not None and status.node in self.present and self.placing.adopt_actual(status, returning=False):
             # A robot that never left our sight may have run a round alone (it took us for gone on
             # a lossy link): its newer instance is adopted, ours released, and the plan says so at
             # once, or its producers would go on feeding ours the inputs it has not seen.
@@ -460,104 +419,7 @@ class Coordinator(Deciding, Placing):
         self._check_links(status)
         self._check_drift(status)
 
-    def _pass_generations(self, status: NodeStatus) -> None:
-        """Hand out generations above every instance a robot reports hosting.
 
-        Robots start instances without us (subgroup rounds, a robot restarted alone) with
-        time-based generations, far above our counter. We jumped past them only for a stage
-        adopted from a new host; one restarted on the host the plan already named kept its
-        generation above ours, and the robot then ignored every order for it as stale and its
-        producers ignored the reports of the instance we placed next. A generation more than a
-        day ahead of our clock is not taken (a robot's clock or message gone wrong).
-        """
-        top = max(status.generations.values(), default=0)
-        if top > self.generation:
-            if top <= int(self.wall() * 1000) + 86_400_000:
-                self.generation = top
-            elif status.node not in self._far_generation:
-                self._far_generation.add(status.node)  # said once: it comes with every status
-                log.warning("coordinator: %s reports a stage generation %d, more than a day ahead of this "
-                            "clock; not followed (check the robot's clock)", status.node, top)
-
-    def _learn_runs(self, status: NodeStatus) -> None:
-        """The run of each chain ``status.node`` is the source of, when a takeover did not know it.
-
-        A source robot reports the last run of every chain it ever ran (`NodeRuntime.status`); one
-        that reports none for a chain never ran it, and the chain starts a fresh run. A fan-in chain
-        has no source: its stage names its outputs, and its sink (its ``source`` node) reports the
-        last run it got, once its mission has started (its ledgers are kept across a restart).
-        """
-        learned = []
-        for name in sorted(self.runs_unknown):
-            chain = self.scenario.chain(name)
-            if chain.source != status.node or (not chain.sourced and status.mission is None):
-                continue
-            self.runs_unknown.discard(name)
-            stats = status.sources.get(name) if chain.sourced else status.sinks.get(name)
-            if stats is not None:
-                self.runs[name] = max(self.runs.get(name, -1), stats.run)
-                self.run_live[name] = True  # its sequence goes on
-            learned.append(f"{name} run {self.runs.get(name, 'new')}")
-        if learned:
-            self.note(f"learned from {status.node}: {', '.join(learned)}")
-            self.reconcile()
-            self.plans.publish_plan()
-
-    def _adopt_actual(self, status: NodeStatus, returning: bool = True) -> bool:
-        """Take the stages a returning robot runs as placed there, when its instance is the newest.
-
-        Instances are ordered by generation everywhere: a robot stops its instance when it sees a
-        newer one running on a peer (`Hosting.yield_to_newer`), and producers' custody follows the
-        newest instance's reports (`Custody.on_report`). So a returning robot's instance is adopted
-        (and our stale copy released) only when its generation is above the one running where the
-        placement says; an older one is released instead. Adopting the older one left the stage
-        running nowhere (its robot yielded to ours, which we had released) or, when the robot kept
-        it, with producers ignoring its acknowledgements for good.
-
-        A robot that never left (not ``returning``) has a stage adopted only where it runs on two
-        nodes at once: one we placed elsewhere, not one we stopped (a release still on its way).
-        True when a stage was adopted.
-        """
-        alive = self.alive_nodes()
-        adopted = False
-        for stage, state in sorted(status.hosted.items()):
-            if state != "running" or stage not in self.chain_of:
-                continue
-            theirs = status.generations.get(stage, 0)
-            m = self.migrations.get(stage)
-            if m is not None:
-                if m.to_node != status.node or theirs <= m.generation:
-                    continue
-                # the robot we were moving it to runs a newer instance already (a round it made while
-                # it took us for gone): our order is moot, and it would be refused as stale for good
-                del self.migrations[stage]
-                self.note(f"{stage}: {m.phase} to {m.to_node} overtaken by the instance it started itself")
-            previous = self.placement.get(stage)
-            if previous == status.node or (not returning and (previous is None or previous not in alive)):
-                continue
-            ours = self.placed_generation.get(stage) if previous in alive else None
-            if ours is not None and ours >= theirs:
-                if ours > theirs:
-                    self.note(f"{stage} still runs on {status.node} as an older instance (generation {theirs}, "
-                              f"{previous}'s is {ours}); released there")
-                    self._send(status.node, Release(stage=stage, generation=theirs))
-                continue
-            # generations handed out without us are time-based: jump past them
-            self.generation = max(self.generation, int(self.wall() * 1000) + 1)
-            self.placement[stage] = status.node
-            self.placed_generation[stage] = theirs
-            if stage not in self.target:
-                # its chain had stopped in the plan in force (the robot was away): it runs again, and
-                # where it runs is the target until the policy's next answer. Left out, the next
-                # reconcile released it, the policy saw it "not running" and placed it afresh in a
-                # new run, and what its old run held upstream was obsolete
-                self.target[stage] = status.node
-            self.adopted += 1
-            self.note(f"{stage} runs on {status.node} (agreed without the base station); adopted")
-            adopted = True
-            if previous is not None and previous in alive:
-                self._send(previous, Release(stage=stage, generation=self._next_generation()))
-        return adopted
 
     def _check_links(self, status: NodeStatus) -> None:
         """A robot's view of its links: what it reports down may be a cut (`LinkStates` debounces)."""
@@ -585,12 +447,8 @@ class Coordinator(Deciding, Placing):
                 self.replan(f"{', '.join(late)} joined (no report in time)", after_rejoin=True)
             self._heal_links()
             self._mark_reconfigured()
-        for stage, m in list(self.migrations.items()):
-            if now_wall - m.started_unix > self.config.migration_timeout_s:
-                self._abort(stage, f"no answer in {self.config.migration_timeout_s:g} s", restart_at_target=True)
-                self.reconcile()
-                self.plans.publish_plan()
-        self.resend_orders()
+        self.placing.time_out(now_wall)
+        self.placing.resend_orders()
         if self.mission is None:
             return
         if self.config.auto_replan:
@@ -599,8 +457,7 @@ class Coordinator(Deciding, Placing):
 
     def next_deadline_unix(self) -> float:
         """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
-        deadlines = [m.started_unix + self.config.migration_timeout_s for m in self.migrations.values()]
-        deadlines += [self.order_resend_unix(m) for m in self.migrations.values() if m.order]
+        deadlines = self.placing.deadlines()
         if self.replan_due and not self.decider.busy:  # (a question out: its answer wakes the loop)
             deadlines.append(self.wall())
         deadlines += self.plans.deadlines()
@@ -620,11 +477,15 @@ class Coordinator(Deciding, Placing):
         """The mission runs and nothing is under way that only time moves on: no migration, no
         rejoined robot whose report is awaited, no link down (its heal is timed), no fault
         waiting to be reconfigured. The loop may then sleep until an event or `next_deadline_unix`."""
-        return (self.mission is not None and not self.decider.busy and not self.migrations and not self._awaiting_actual
+        return (self.mission is not None and not self.decider.busy and not self.placing.migrations and not self._awaiting_actual
                 and not self.links.down and all(f["reconfigured_unix"] is not None for f in self.faults))
 
 
     # ---- operator ---------------------------------------------------------------------------------------------
+    def on_inbox(self, payload: bytes) -> None:
+        """An answer to an order, from the base station's inbox (`Placement.on_inbox`; raises ProtocolError for anything else)."""
+        self.placing.on_inbox(payload)
+
     def on_operator(self, cmd) -> OperatorReply | AwaitDecision:
         """The reply to an operator's command (`OperatorControl.on_operator`)."""
         return self.operating.on_operator(cmd)

@@ -80,9 +80,10 @@ class Deciding:
     def _current_allocation(self) -> dict[str, str]:
         """What runs (or is being made to run): the target, where a stage is not on its way somewhere
         else, corrected by where it is confirmed to run (e.g. adopted from a returning robot)."""
-        allocation = dict(self.target)
-        for stage, host in self.placement.items():
-            if stage in allocation and stage not in self.migrations:
+        placing = self.placing
+        allocation = dict(placing.target)
+        for stage, host in placing.placement.items():
+            if stage in allocation and stage not in placing.migrations:
                 allocation[stage] = host
         return allocation
 
@@ -136,10 +137,11 @@ class Deciding:
         if len(self._unavailable()) == len(self.robots):
             self.note(f"no robot left ({reason}); nothing to run")
             self.replan_waiting = "no robot is in reach of the base station; the re-plan waits until one is back"
-            self.target, self.chosen = {}, {}
+            self.placing.set_target({})
+            self.chosen = {}
             self.schedule, self.revisit_at_s = (), None
             self._pending_events.clear()
-            self.reconcile()
+            self.placing.reconcile()
             self.plans.publish_plan()
             return False
         state = self.team_state()
@@ -271,13 +273,14 @@ class Deciding:
         # what the policy would run without the pins (where `migrate --auto` goes back to)
         self.chosen = {s: self.chosen.get(s, h) if s in self.operating.pins else h for s, h in state.allocation.items()}
         target = self.operating.with_pins(dict(state.allocation), self.alive_nodes())
-        changed = target != self.target or state.network != self.plan_network
-        self.target, self.plan_network = target, state.network
+        changed = target != self.placing.target or state.network != self.plan_network
+        self.placing.set_target(target)
+        self.plan_network = state.network
         self.note(f"decision ({reason}): policy {self.policy.name} keeps the configuration")
         self._predict()
         if changed:  # e.g. a link is gone from (or back in) the routes, nothing moves
             self.replans += 1  # a new plan all the same: every node takes it up
-            self.reconcile()
+            self.placing.reconcile()
             self.plans.publish_plan()
 
     def _carry_out(self, decision: Decision, reason: str) -> None:
@@ -291,9 +294,11 @@ class Deciding:
             self.media.update(base_media(decision.network))
         self.chosen = dict(decision.allocation)
         target = self.operating.with_pins(dict(decision.allocation), self.alive_nodes())
-        changed = {s for s in target if self.target.get(s) != target[s]} | (set(self.target) - set(target))
+        before = self.placing.target
+        changed = {s for s in target if before.get(s) != target[s]} | (set(before) - set(target))
         network_changed = decision.network != self.plan_network
-        self.target, self.plan_network = target, decision.network
+        self.placing.set_target(target)
+        self.plan_network = decision.network
         self.stage_reasons = {s: why for s, why in {**self.stage_reasons, **decision.stage_reasons}.items()
                               if s in target}
         if changed or network_changed:
@@ -308,7 +313,7 @@ class Deciding:
                   + (f", dropped {', '.join(decision.dropped)}" if decision.dropped else "")
                   + (f", next decision at t={self.revisit_at_s:.1f}s" if self.revisit_at_s is not None else ""))
         self._predict()
-        self.reconcile()
+        self.placing.reconcile()
         self.plans.publish_plan()
 
     def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float],
@@ -329,7 +334,7 @@ class Deciding:
             return None
 
     def _predict(self) -> None:
-        ev = self._evaluate(self.target, self.plan_network, self.remaining_energies())
+        ev = self._evaluate(self.placing.target, self.plan_network, self.remaining_energies())
         ev = self._at_levels(ev)
         self.predicted_w = {r: p.steady_w for r, p in ev.robots.items()} if ev else {}
         self.predicted_lifetime_s = ev.lifetime_s if ev else None
@@ -342,11 +347,11 @@ class Deciding:
         prediction, and a robot running a stage until its migration lands is drawing for it: the
         plan tells each robot this figure, and the robot's status carries it to the recording
         (replay checks the meter against it). {} when it cannot be evaluated."""
-        if self.placement == self.target and set(self.running) == {c.name for c in self.scenario.chains
-                                                                    if any(s.name in self.target for s in c.stages)}:
+        placement, target, running = self.placing.placement, self.placing.target, set(self.placing.runs.running)
+        if placement == target and running == {c.name for c in self.scenario.chains
+                                                if any(s.name in target for s in c.stages)}:
             return dict(self.predicted_w)  # settled: the target's prediction is the placement's
-        running = set(self.running)
-        allocation = {s: n for s, n in self.placement.items() if self.chain_of[s].name in running}
+        allocation = {s: n for s, n in placement.items() if self.chain_of[s].name in running}
         ev = self._evaluate(allocation, self.plan_network, {}, running=running, levels=self.levels)
         return {r: p.steady_w for r, p in ev.robots.items()} if ev else {}
 
@@ -357,7 +362,7 @@ class Deciding:
         self.levels = best_levels(self.scenario, ev.utilisation) if ev is not None and has_levels(self.scenario) else {}
         if not self.levels:
             return ev
-        return self._evaluate(self.target, self.plan_network, self.remaining_energies(), levels=self.levels)
+        return self._evaluate(self.placing.target, self.plan_network, self.remaining_energies(), levels=self.levels)
 
     def _reset_baselines(self) -> None:
         self.baselines.clear()  # re-anchored from the next status that reflects the settled plan

@@ -95,12 +95,12 @@ class OperatorControl:
                 self.check_pin(cmd.stage, cmd.to_node)
                 if cmd.to_node not in self.team.alive_nodes():
                     return OperatorReply(ok=False, message=f"{cmd.to_node} is not in the team now")
-                if cmd.stage not in self.team.target:
+                if cmd.stage not in self.team.placing.target:
                     return OperatorReply(ok=False, message=f"{cmd.stage} does not run now (chain disabled or dropped)")
                 self.pin(cmd.stage, cmd.to_node)
-                self.team.retarget(cmd.stage, cmd.to_node)
+                self.team.placing.retarget(cmd.stage, cmd.to_node)
                 self.team._predict()
-                self.team.reconcile()
+                self.team.placing.reconcile()
                 self.team.plans.publish_plan()
                 return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
             if isinstance(cmd, AutoCommand):
@@ -137,8 +137,8 @@ class OperatorControl:
     def _clear_pins(self) -> None:
         """Back to what the policy chose (pinned stages migrate back), then the policy is asked again."""
         self.pins.clear()
-        self.team.set_target({s: self.team.chosen.get(s, h) for s, h in self.team.target.items()})
-        self.team.reconcile()
+        self.team.placing.set_target({s: self.team.chosen.get(s, h) for s, h in self.team.placing.target.items()})
+        self.team.placing.reconcile()
 
     def _operator_link(self, cmd: LinkCommand) -> None:
         """An operator's link command: a link declared down (a cut link) or a radio change (a radio fault)."""
@@ -190,9 +190,10 @@ class OperatorControl:
             return f"re-plan failed: {self.team.plan_error or 'nothing feasible'}"
         planned = self.team.planned_lifetime_s()
         return (f"re-planned ({self.team.policy.name}): lifetime {planned} s; target "
-                + ", ".join(f"{s}->{n}" for s, n in self.team.target.items()))
+                + ", ".join(f"{s}->{n}" for s, n in self.team.placing.target.items()))
 
     def snapshot(self) -> dict[str, Any]:
+        placing = self.team.placing
         robots = {}
         for name in self.team.robots:
             st = self.team.statuses.get(name)
@@ -211,11 +212,11 @@ class OperatorControl:
             "incarnation": self.team.takeover.incarnation,  # plans are ordered by (incarnation, epoch)
             "leader": self.team.takeover.leader,
             "takeover": dict(self.team.takeover.adopted_team) if self.team.takeover.adopted_team else None,  # how a running team was adopted
-            "placement": dict(self.team.placement),
-            "target": dict(self.team.target),
+            "placement": dict(placing.placement),
+            "target": dict(placing.target),
             "migrating": {s: {"from": m.from_node, "to": m.to_node, "phase": m.phase}
-                          for s, m in self.team.migrations.items()},
-            "running": dict(self.team.running),
+                          for s, m in placing.migrations.items()},
+            "running": dict(placing.runs.running),
             "disabled": sorted(self.disabled),
             "failed_stages": dict(self.failed_stages),
             "pins": dict(self.pins),
@@ -233,17 +234,17 @@ class OperatorControl:
             "revisit_at_s": self.team.revisit_at_s,
             "plan_error": self.team.plan_error,
             "robots": robots,
-            "migrations_done": self.team.migrations_done,
-            "assignments_done": self.team.assignments_done,
-            "aborted": self.team.aborted,
+            "migrations_done": placing.migrations_done,
+            "assignments_done": placing.assignments_done,
+            "aborted": placing.aborted,
             "replans": self.team.replans,
             "decisions": {"count": self.team.decisions, "seconds": self.team.decide_s, "max_s": self.team.decide_max_s},
-            "downtime_ms": _stats(self.team.downtimes_ms),
-            "migration_log": list(self.team.migration_log),
+            "downtime_ms": _stats(placing.downtimes_ms),
+            "migration_log": list(placing.migration_log),
             "first_depletion": self.team.first_depletion,
             "events": list(self.team.events),
             "faults": list(self.team.faults),
-            "adopted": self.team.adopted,
+            "adopted": placing.adopted,
         }
 
 

@@ -51,7 +51,7 @@ class PeerViews:
         listening = (encode(self.listening(self._node, t_unix, alive - {self._node}, next_status_s))
                      if status is None else None)
         whole = PeerStatus.of(status) if status is not None else None
-        placed = self._placed_chains((co.placement, co.target)) if status is not None else {}
+        placed = self._placed_chains((co.placing.placement, co.placing.target)) if status is not None else {}
         for robot in co.robots:
             if robot not in alive:
                 continue

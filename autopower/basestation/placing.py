@@ -1,19 +1,28 @@
 """Placing: closing the gap between the target placement and what nodes confirm, one stage at a time.
 
 Assign a stage with no live host; Prepare -> MigrateOut -> StageReady for a stage that moves;
-abort a migration whose ends vanish. Every confirmed change is published as a PlanUpdate.
+abort a migration whose ends vanish. Every confirmed change is published as a PlanUpdate
+(`publishing.PlanPublisher`).
+
+`Placement` owns the *desired* placement (``target``: the policy's allocation with the operator's
+pins, set by the deciding part through `set_target`) and the *confirmed* one (``placement``: what
+nodes acknowledged), the migrations under way, the generations it hands out, the chains' runs
+(`runs.ChainRuns`) and the counts of what it did.
 """
 
 from __future__ import annotations
 
 import logging
+from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+from autopower.basestation.runs import ChainRuns
 from autopower.protocol import (
     INBOX_MESSAGES,
     Assign,
     MigrateOut,
+    NodeStatus,
     Prepare,
     Prepared,
     Release,
@@ -45,8 +54,29 @@ class Migration:
     resends: int = 0
 
 
-class Placing:
-    """The coordinator's placing part: target placement -> assignments and migrations. Mixed into `Coordinator`, whose state it uses."""
+class Placement:
+    """The coordinator's placing part: target placement -> assignments and migrations, and what nodes confirm."""
+
+    def __init__(self, team):
+        """``team``: the `Coordinator` that says who is alive and sends the orders (``send_to``)."""
+        self.team = team
+        self.placement: dict[str, str] = {}
+        # the generation of the instance `placement` names (what a returning robot's is compared with)
+        self.placed_generation: dict[str, int] = {}
+        self.target: dict[str, str] = {}
+        self.migrations: dict[str, Migration] = {}
+        # orders made while a reconcile runs, per node: sent as one put each when it ends (`reconcile`)
+        self.control_batch: dict[str, list[bytes]] | None = None
+        self.generation = 0
+        self.runs = ChainRuns()  # the chains' runs, and which chains run
+        self._far_generation: set[str] = set()  # robots that reported a generation too far ahead (warned)
+        self.downtimes_ms: list[float] = []
+        self.migration_log: deque[dict] = deque(maxlen=200)
+        self.migrations_done = 0
+        self.assignments_done = 0
+        self.aborted = 0
+        self.order_resends = 0  # migration orders sent again for want of an answer (`resend_orders`)
+        self.adopted = 0  # stages taken as placed where a robot runs them (a takeover, a returning robot)
 
     def set_target(self, target: dict[str, str]) -> None:
         """Where each stage should run (`reconcile` orders what closes the gap)."""
@@ -60,6 +90,24 @@ class Placing:
         """The next generation handed out is above ``floor`` and above every one handed out so far."""
         self.generation = max(self.generation, floor) + 1
 
+    def follow_generations(self, status: NodeStatus) -> None:
+        """Hand out generations above every instance a robot reports hosting.
+
+        Robots start instances without us (subgroup rounds, a robot restarted alone) with
+        time-based generations, far above our counter; an instance restarted on the host the plan
+        already names keeps its generation, and a robot ignores every order below it as stale (and
+        its producers the reports of an instance placed below it). A generation more than a day
+        ahead of our clock is not taken (a robot's clock or message gone wrong).
+        """
+        top = max(status.generations.values(), default=0)
+        if top > self.generation:
+            if top <= int(self.team.wall() * 1000) + 86_400_000:
+                self.generation = top
+            elif status.node not in self._far_generation:
+                self._far_generation.add(status.node)  # said once: it comes with every status
+                log.warning("coordinator: %s reports a stage generation %d, more than a day ahead of this "
+                            "clock; not followed (check the robot's clock)", status.node, top)
+
     def adopt_team(self, placement: dict[str, str], generation_of: dict[str, int],
                    waiting: dict[str, tuple[str, int]], runs: dict[str, int], unknown: set[str],
                    stale: list[tuple[str, str]]) -> None:
@@ -70,18 +118,92 @@ class Placing:
         self.placement = placement
         for stage, (node, generation) in waiting.items():
             # its state is on its way or lost: its StageReady completes it, else the migration
-            # timeout restarts it there without (`Coordinator.on_timer`), not a stage starting for good
-            self.migrations[stage] = Migration(stage, generation, node, None, "transferring", self.wall())
+            # timeout restarts it there without (`time_out`), not a stage starting for good
+            self.migrations[stage] = Migration(stage, generation, node, None, "transferring", self.team.wall())
         self.placed_generation = generation_of
         self.target = dict(placement)
-        for chain, run in runs.items():
-            self.runs[chain] = run
-            self.run_live[chain] = True  # its sequence goes on: a new instance starts where inputs are
-        self.runs_unknown |= unknown
+        self.runs.adopt(runs, unknown)
         self._update_running()
         for node, stage in stale:
-            self._send(node, Release(stage=stage, generation=self._next_generation()))
+            self.send(node, Release(stage=stage, generation=self._next_generation()))
         self.adopted += len(placement)
+
+    def learn_runs(self, status: NodeStatus) -> None:
+        """The runs a takeover did not know, from a status of their source (or a fan-in chain's sink):
+        the stages waiting for them are assigned, and the plan says so."""
+        if not self.runs.runs_unknown:
+            return
+        learned = self.runs.learn(status, self.team.scenario.chain)
+        if learned:
+            self.team.note(f"learned from {status.node}: {', '.join(learned)}")
+            self.reconcile()
+            self.team.plans.publish_plan()
+
+    def adopt_actual(self, status: NodeStatus, returning: bool = True) -> bool:
+        """Take the stages a returning robot runs as placed there, when its instance is the newest.
+
+        Instances are ordered by generation everywhere: a robot stops its instance when it sees a
+        newer one running on a peer (`Hosting.yield_to_newer`), and producers' custody follows the
+        newest instance's reports (`Custody.on_report`). So a returning robot's instance is adopted
+        (and our stale copy released) only when its generation is above the one running where the
+        placement says; an older one is released instead. Adopting the older one left the stage
+        running nowhere (its robot yielded to ours, which we had released) or, when the robot kept
+        it, with producers ignoring its acknowledgements for good.
+
+        A robot that never left (not ``returning``) has a stage adopted only where it runs on two
+        nodes at once: one we placed elsewhere, not one we stopped (a release still on its way).
+        True when a stage was adopted.
+        """
+        alive = self.team.alive_nodes()
+        adopted = False
+        for stage, state in sorted(status.hosted.items()):
+            if state != "running" or stage not in self.team.chain_of:
+                continue
+            theirs = status.generations.get(stage, 0)
+            m = self.migrations.get(stage)
+            if m is not None:
+                if m.to_node != status.node or theirs <= m.generation:
+                    continue
+                # the robot we were moving it to runs a newer instance already (a round it made while
+                # it took us for gone): our order is moot, and it would be refused as stale for good
+                del self.migrations[stage]
+                self.team.note(f"{stage}: {m.phase} to {m.to_node} overtaken by the instance it started itself")
+            previous = self.placement.get(stage)
+            if previous == status.node or (not returning and (previous is None or previous not in alive)):
+                continue
+            ours = self.placed_generation.get(stage) if previous in alive else None
+            if ours is not None and ours >= theirs:
+                if ours > theirs:
+                    self.team.note(f"{stage} still runs on {status.node} as an older instance (generation {theirs}, "
+                              f"{previous}'s is {ours}); released there")
+                    self.send(status.node, Release(stage=stage, generation=theirs))
+                continue
+            # generations handed out without us are time-based: jump past them
+            self.generation = max(self.generation, int(self.team.wall() * 1000) + 1)
+            self.placement[stage] = status.node
+            self.placed_generation[stage] = theirs
+            if stage not in self.target:
+                # its chain had stopped in the plan in force (the robot was away): it runs again, and
+                # where it runs is the target until the policy's next answer. Left out, the next
+                # reconcile released it, the policy saw it "not running" and placed it afresh in a
+                # new run, and what its old run held upstream was obsolete
+                self.target[stage] = status.node
+            self.adopted += 1
+            self.team.note(f"{stage} runs on {status.node} (agreed without the base station); adopted")
+            adopted = True
+            if previous is not None and previous in alive:
+                self.send(previous, Release(stage=stage, generation=self._next_generation()))
+        return adopted
+
+    def send(self, node: str, msg) -> None:
+        self.send_control(node, encode(msg))
+
+    def send_control(self, node: str, payload: bytes) -> None:
+        """An order to ``node``: at once, or with the others of the reconcile that makes it."""
+        if self.control_batch is not None:
+            self.control_batch.setdefault(node, []).append(payload)
+        else:
+            self.team.send_to(node, self.team.keys.node_control(node), payload)
 
     def _next_generation(self) -> int:
         self.generation += 1
@@ -100,7 +222,7 @@ class Placing:
         finally:
             batch, self.control_batch = self.control_batch, None
             for node, payloads in batch.items():
-                self.send_to(node, self.keys.node_control(node), batched(payloads))
+                self.team.send_to(node, self.team.keys.node_control(node), batched(payloads))
 
     def reconcile(self) -> None:
         """Order what closes the gap between the target and the placement."""
@@ -108,58 +230,35 @@ class Placing:
             self._reconcile()
 
     def _reconcile(self) -> None:
-        alive = self.alive_nodes()
+        alive = self.team.alive_nodes()
         for stage in list(self.placement):
             if stage not in self.target and stage not in self.migrations:
                 node = self.placement.pop(stage)
                 if node in alive:
-                    self._send(node, Release(stage=stage, generation=self._next_generation()))
+                    self.send(node, Release(stage=stage, generation=self._next_generation()))
         for stage, want in self.target.items():
             if stage in self.migrations or self.placement.get(stage) == want or want not in alive:
                 continue
             have = self.placement.get(stage)
-            chain = self.chain_of[stage]
-            if (have is None or have not in alive) and chain.name in self.runs_unknown:
+            chain = self.team.chain_of[stage]
+            if (have is None or have not in alive) and chain.name in self.runs.runs_unknown:
                 continue  # a fresh instance needs its chain's run: assigned once the source robot says it
             gen = self._next_generation()
             if have is None or have not in alive:
                 self.placement.pop(stage, None)
-                run, resume = self._run_for(chain, stage, want)
-                m = self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.wall())
+                busy = any(s.name in self.placement or s.name in self.migrations for s in chain.stages)
+                run, resume, restarted = self.runs.run_for(chain, busy)
+                if restarted:  # a new run is said: what the old one still holds upstream is obsolete (docs/known-limits.md)
+                    self.team.note(f"{chain.name} starts run {run} with {stage} on {want} (the chain had stopped)")
+                m = self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.team.wall())
                 self._order(m, want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))
             else:
-                m = self.migrations[stage] = Migration(stage, gen, want, have, "preparing", self.wall())
+                m = self.migrations[stage] = Migration(stage, gen, want, have, "preparing", self.team.wall())
                 self._order(m, want, Prepare(stage=stage, generation=gen, from_node=have))
         self._update_running()
 
-    def _run_for(self, chain, stage: str, node: str) -> tuple[int, int | None]:
-        """The run a fresh instance of ``stage`` (on ``node``) joins, and the seq it starts at.
-
-        A chain that had stopped entirely (disabled, or its only host died) starts a new run at
-        seq 0; a stage replacing a dead host in a chain that keeps running continues the run
-        from the first input it sees. A new run is said: what the old one still holds upstream
-        is obsolete from then on (docs/known-limits.md).
-        """
-        names = {s.name for s in chain.stages}
-        busy = any(s in self.placement or s in self.migrations for s in names)
-        if not busy and chain.name not in self.running:
-            self.runs[chain.name] = self.runs.get(chain.name, -1) + 1
-            self.run_live[chain.name] = False
-            if self.runs[chain.name] > 0:  # a restart (its first run is the mission's start)
-                self.note(f"{chain.name} starts run {self.runs[chain.name]} with {stage} on {node} (the chain had "
-                          f"stopped)")
-        return self.runs[chain.name], (None if self.run_live.get(chain.name) else 0)
-
     def _update_running(self) -> None:
-        running = {}
-        for chain in self.scenario.chains:
-            names = [s.name for s in chain.stages]
-            if chain.name in self.runs_unknown:
-                continue  # not declared running before its run is known (`Coordinator._learn_runs`)
-            if names and all(s in self.target and s in self.placement for s in names):
-                running[chain.name] = self.runs[chain.name]
-                self.run_live[chain.name] = True
-        self.running = running
+        self.runs.update(self.team.scenario.chains, self.target, self.placement)
 
     def on_inbox(self, payload: bytes) -> None:
         """An answer to an order, as it arrives on the base station's inbox (raises ProtocolError
@@ -181,7 +280,7 @@ class Placing:
         self._order(m, m.from_node, MigrateOut(stage=msg.stage, generation=m.generation, to_node=m.to_node))
 
     def _order(self, m: Migration, node: str, msg) -> None:
-        m.order, m.order_to, m.sent_unix = encode(msg), node, self.wall()
+        m.order, m.order_to, m.sent_unix = encode(msg), node, self.team.wall()
         self._send_order(m)
 
     def _send_order(self, m: Migration) -> None:
@@ -190,7 +289,7 @@ class Placing:
     def order_resend_unix(self, m: Migration) -> float:
         """When an unanswered order goes again: after ``migration_resend_s``, then twice as long
         each time (a slow state transfer is not flooded with requests to send it again)."""
-        return m.sent_unix + self.config.migration_resend_s * 2 ** min(m.resends, 4)
+        return m.sent_unix + self.team.config.migration_resend_s * 2 ** min(m.resends, 4)
 
     def resend_orders(self) -> None:
         """Send again each order still unanswered after its wait.
@@ -201,10 +300,10 @@ class Placing:
         answer or a lost state costs a resend, not the stage's state and the inputs it held
         (which is what abandoning the migration after ``migration_timeout_s`` costs).
         """
-        now = self.wall()
+        now = self.team.wall()
         with self.orders_batched():
             for m in self.migrations.values():
-                if m.order and now >= self.order_resend_unix(m) and m.order_to in self.alive_nodes():
+                if m.order and now >= self.order_resend_unix(m) and m.order_to in self.team.alive_nodes():
                     m.resends += 1
                     self.order_resends += 1
                     m.sent_unix = now
@@ -226,11 +325,11 @@ class Placing:
             self.downtimes_ms.append(msg.downtime_ms)
             self.migration_log.append({"stage": msg.stage, "from": m.from_node, "to": msg.node,
                                        "downtime_ms": msg.downtime_ms, "held_inputs": msg.buffered,
-                                       "total_ms": (self.wall() - m.started_unix) * 1e3})
+                                       "total_ms": (self.team.wall() - m.started_unix) * 1e3})
             log.info("coordinator: %s moved %s -> %s in %.1f ms (%d inputs held)", msg.stage, m.from_node,
                      msg.node, msg.downtime_ms, msg.buffered)
         self.reconcile()
-        self.plans.mark_due()  # `Coordinator.on_timer` publishes it, once for every stage ready meanwhile (plan_batch_s)
+        self.team.plans.mark_due()  # the next timer publishes it, once for every stage ready meanwhile (plan_batch_s)
 
     def on_stage_failed(self, msg: StageFailed) -> None:
         """A node stopped a stage's component, or refused to migrate it (see `StageFailed`).
@@ -241,7 +340,7 @@ class Placing:
         rest; enabling the chain again restarts it with a fresh instance. A state that imported on
         its old host but not on the new one: the new host runs it without, `StageReady` follows.
         """
-        chain = self.chain_of.get(msg.stage)
+        chain = self.team.chain_of.get(msg.stage)
         if chain is None or msg.what not in STAGE_FAILURES:
             return
         m = self.migrations.get(msg.stage)
@@ -249,19 +348,19 @@ class Placing:
         why = f"{msg.what}: {msg.detail[:300]}"  # a network message: bounded before it is kept
         if msg.running:
             if not current or msg.node != m.from_node:  # the new host runs it without its state
-                self.note(f"{msg.stage} on {msg.node}: {why}")
+                self.team.note(f"{msg.stage} on {msg.node}: {why}")
                 return
             del self.migrations[msg.stage]
             self.aborted += 1
-            if m.to_node in self.alive_nodes():
-                self._send(m.to_node, Release(stage=msg.stage, generation=self._next_generation()))
-            self.operating.pin(msg.stage, msg.node)
+            if m.to_node in self.team.alive_nodes():
+                self.send(m.to_node, Release(stage=msg.stage, generation=self._next_generation()))
+            self.team.operating.pin(msg.stage, msg.node)
             self.target[msg.stage] = msg.node
-            self.note(f"{msg.stage}: migration {msg.node} -> {m.to_node} refused ({why}); it keeps running on "
+            self.team.note(f"{msg.stage}: migration {msg.node} -> {m.to_node} refused ({why}); it keeps running on "
                       f"{msg.node}, pinned there")
-            self._predict()
+            self.team._predict()
             self.reconcile()
-            self.plans.publish_plan()
+            self.team.plans.publish_plan()
             return
         if msg.what == "source-hung":
             if msg.node != chain.source:
@@ -270,13 +369,13 @@ class Placing:
             del self.migrations[msg.stage]  # a fresh instance that failed to start
         elif self.placement.get(msg.stage) != msg.node:
             return  # about an instance that is gone already
-        if not self.operating.stage_failed(msg.stage, f"{msg.node}: {why}", chain.name):
+        if not self.team.operating.stage_failed(msg.stage, f"{msg.node}: {why}", chain.name):
             return
-        self._event("chain-disable", chains=(chain.name,))
-        self.note(f"{msg.stage} failed on {msg.node} ({why}); chain {chain.name} stopped (enable it to restart)")
-        self.replan(f"{msg.stage} failed")
+        self.team._event("chain-disable", chains=(chain.name,))
+        self.team.note(f"{msg.stage} failed on {msg.node} ({why}); chain {chain.name} stopped (enable it to restart)")
+        self.team.replan(f"{msg.stage} failed")
 
-    def _abort(self, stage: str, why: str, *, restart_at_target: bool = False) -> None:
+    def abort(self, stage: str, why: str, *, restart_at_target: bool = False) -> None:
         """Give a migration up: its ends release the stage, which restarts without its state.
 
         ``restart_at_target``: the caller reconciles at once and the target is still the new
@@ -285,10 +384,35 @@ class Placing:
         """
         m = self.migrations.pop(stage)
         self.aborted += 1
-        self.note(f"{stage}: {m.phase} to {m.to_node} abandoned ({why}); restarting it without state")
+        self.team.note(f"{stage}: {m.phase} to {m.to_node} abandoned ({why}); restarting it without state")
         gen = self._next_generation()
         keep = m.to_node if restart_at_target and self.target.get(stage) == m.to_node else None
         for node in sorted({m.to_node, m.from_node} - {None, keep}):
-            if node in self.alive_nodes():
-                self._send(node, Release(stage=stage, generation=gen))
+            if node in self.team.alive_nodes():
+                self.send(node, Release(stage=stage, generation=gen))
         self.placement.pop(stage, None)
+
+    def node_lost(self, node: str) -> None:
+        """``node`` left or ran out: what moved to or from it is given up, and nothing runs there."""
+        for stage, m in list(self.migrations.items()):
+            if node in (m.to_node, m.from_node):
+                self.abort(stage, f"{node} left")
+        for stage, host in list(self.placement.items()):
+            if host == node:
+                del self.placement[stage]
+        self._update_running()
+
+    def time_out(self, now_wall: float) -> None:
+        """Abandon each migration with no answer within ``migration_timeout_s``: it restarts, without its state."""
+        timeout = self.team.config.migration_timeout_s
+        for stage, m in list(self.migrations.items()):
+            if now_wall - m.started_unix > timeout:
+                self.abort(stage, f"no answer in {timeout:g} s", restart_at_target=True)
+                self.reconcile()
+                self.team.plans.publish_plan()
+
+    def deadlines(self) -> list[float]:
+        """When a migration times out, and when an unanswered order goes again."""
+        deadlines = [m.started_unix + self.team.config.migration_timeout_s for m in self.migrations.values()]
+        deadlines += [self.order_resend_unix(m) for m in self.migrations.values() if m.order]
+        return deadlines

@@ -40,7 +40,7 @@ class PlanPublisher:
     def ready_plan_unix(self) -> float:
         """When a plan announcing ready stages may go: at once when no order waits for its answer
         (the wave is complete), else `plan_batch_s` after the last new plan (more answers are coming)."""
-        return 0.0 if not self.team.migrations else self.last_plan_unix + self.team.config.plan_batch_s
+        return 0.0 if not self.team.placing.migrations else self.last_plan_unix + self.team.config.plan_batch_s
 
     def publish_ready(self, now_wall: float) -> None:
         """The plan announcing the stages that became ready, once it is due."""
@@ -140,8 +140,8 @@ class PlanPublisher:
     def _plan_update(self) -> PlanUpdate:
         network = self.team.plan_network
         links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
-        update = PlanUpdate(epoch=self.epoch, mission=self.team.mission, placement=dict(self.team.placement),
-                            running=dict(self.team.running), links=links, predicted_w=self.team.placement_w(),
+        update = PlanUpdate(epoch=self.epoch, mission=self.team.mission, placement=dict(self.team.placing.placement),
+                            running=dict(self.team.placing.runs.running), links=links, predicted_w=self.team.placement_w(),
                             predicted_lifetime_s=self.team.predicted_lifetime_s, plan_t_virtual=self.team.plan_t_virtual,
                             policy=self.team.policy.name, reasons=tuple(self.team.decision_reasons), levels=dict(self.team.levels),
                             variants=dict(self.team.variants), incarnation=self.team.takeover.incarnation, leader=self.team.takeover.leader,

@@ -11,7 +11,7 @@ as it sees the base station's liveliness token and then every status period). On
 of the scenario has spoken, or ``CoordinatorConfig.learn_team_s`` has passed since this base
 station came up (one or two status periods plus a lease: what a robot that is still running
 needs to reconnect and speak), it either starts a new mission (nobody runs one) or adopts the
-running one (`_adopt_team`): the team's mission clock and starting energies (not a new zero),
+running one (`Takeover._adopt_team`): the team's mission clock and starting energies (not a new zero),
 the running stages where they run (the newest generation wins; stale copies are released),
 the chains' run numbers, the batteries; the epoch goes on from the newest one reported and the
 incarnation is one above any reported (and any this host remembers), so that every agent
@@ -134,7 +134,7 @@ class Takeover:
         team.plans.continue_from(max(s.plan_epoch for s in heard))  # the next plan is one above anything running
         generations = [g for s in heard for g in s.generations.values()]
         # above every instance the robots host, and above what a subgroup hands out (wall ms)
-        team.generation_above(max([int(team.wall() * 1000), *generations]))
+        team.placing.generation_above(max([int(team.wall() * 1000), *generations]))
         team.heard_statuses(reports)  # batteries, links: what the policy starts from
         # the operator's pins, disabled chains, links and radios, from the newest plan the robots run
         kept = team.operating.adopt(newest.plan_operator) if newest.plan_operator else []
@@ -152,7 +152,7 @@ class Takeover:
                 # (`Placement.learn_runs`), and a stage that died starts the next one (`Placement._run_for`).
                 unknown.add(chain.name)
         generation_of = {stage: reports[node].generations.get(stage, 0) for stage, node in placement.items()}
-        team.adopt_team(placement, generation_of, waiting, runs, unknown, stale)
+        team.placing.adopt_team(placement, generation_of, waiting, runs, unknown, stale)
         team.replan_periodically_from(team.now() + team.config.replan_interval_s)
         self.adopted_team = {"up_unix": self.listening.up_unix, "adopted_unix": team.wall(),
                              "incarnation": self.incarnation, "from_robots": sorted(reports),

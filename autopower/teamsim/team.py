@@ -247,7 +247,7 @@ class World:
             return True
         co = base.co
         since = base.plan_since.get((co.takeover.incarnation, co.plans.epoch), -math.inf)
-        return not co.migrations and self.scheduler.now - since >= SETTLE_S
+        return not co.placing.migrations and self.scheduler.now - since >= SETTLE_S
 
     def final_checks(self) -> None:
         now, event = self.scheduler.now, self.trace.events
@@ -268,17 +268,17 @@ class World:
                 self.ledger.violate("newest-plan", f"{node} runs plan {shell.rt.plan_order}, the base station's "
                                     f"newest is {newest}", now, event)
         if not co.ready:
-            waiting = {s: (co.placement.get(s), n) for s, n in sorted(co.target.items()) if co.placement.get(s) != n}
+            waiting = {s: (co.placing.placement.get(s), n) for s, n in sorted(co.placing.target.items()) if co.placing.placement.get(s) != n}
             self.ledger.violate("newest-plan", f"not every stage runs where the plan wants it (stage: (runs, wanted) "
-                                f"{waiting}; migrating {sorted(co.migrations)})", now, event)
-        for stage, node in sorted(co.placement.items()):
+                                f"{waiting}; migrating {sorted(co.placing.migrations)})", now, event)
+        for stage, node in sorted(co.placing.placement.items()):
             shell = self.shells.get(node)
             hosted = shell.rt.hosted.get(stage) if shell is not None and shell.up else None
             if hosted is None or hosted.lifecycle is not Lifecycle.RUNNING:
                 self.ledger.violate("newest-plan", f"the plan runs {stage} on {node}, which "
                                     f"{'does not host it' if hosted is None else 'hosts it ' + hosted.lifecycle.value}",
                                     now, event)
-        idle = sorted(c.name for c in self.scenario.chains if c.name not in co.operating.disabled and c.name not in co.running)
+        idle = sorted(c.name for c in self.scenario.chains if c.name not in co.operating.disabled and c.name not in co.placing.runs.running)
         if idle:
             self.ledger.violate("newest-plan", f"enabled chains not running at the end: {', '.join(idle)}", now, event)
         for node, shell in sorted(self.shells.items()):

@@ -90,7 +90,7 @@ def test_metered_power_matches_the_model(accounting, topology, media, allocation
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, topology=topology, media=media, pins=allocation,
                                                 auto_replan=False))
     team.join()
-    assert team.coordinator.ready and team.coordinator.placement == allocation
+    assert team.coordinator.ready and team.coordinator.placing.placement == allocation
     network = team.coordinator.plan_network
     assert network.media_by_group() == media
     ev = evaluate(sc, network, allocation, accounting=accounting)

@@ -154,8 +154,8 @@ def test_hundreds_of_random_migrations_lose_and_duplicate_nothing(order, topolog
             team.pump()  # let them land before time moves on
         t += rng.choice([0.05, 0.1, 0.25, 0.5])
     team.run_until(t + 10)
-    assert team.coordinator.migrations_done > 150
-    assert not team.coordinator.migrations
+    assert team.coordinator.placing.migrations_done > 150
+    assert not team.coordinator.placing.migrations
     check_exactly_once(team, outputs)
 
 
@@ -173,7 +173,7 @@ def test_frames_arriving_during_a_move_are_buffered_not_dropped():
     team.clock.set(5.25)
     team.nodes["r2"].on_timer()  # r2 still hosts it: runs this one itself
     team.run_until(20.0)
-    assert team.coordinator.placement["Blob-2"] == "laptop"
+    assert team.coordinator.placing.placement["Blob-2"] == "laptop"
     check_exactly_once(team, outputs)
 
 
@@ -195,9 +195,9 @@ def test_real_mcl_state_survives_migration_bit_for_bit():
 
     ref_team, reference = run([])
     team, moved = run([(6.0, "r1"), (12.0, "r2"), (18.0, "r3"), (26.0, "laptop")])
-    assert team.coordinator.migrations_done == 4
+    assert team.coordinator.placing.migrations_done == 4
     assert len(reference) >= 19 and moved == reference
-    assert ref_team.coordinator.placement["Loc-2"] != "r3"
+    assert ref_team.coordinator.placing.placement["Loc-2"] != "r3"
 
 
 def test_disable_and_enable_start_a_new_run():
@@ -208,14 +208,14 @@ def test_disable_and_enable_start_a_new_run():
     team.run_until(5.0)
     assert team.coordinator.on_operator(ChainCommand(chain="Blob-2", enabled=False)).ok
     team.run_until(8.0)
-    assert "Blob-2" not in team.coordinator.running and "Blob-2" not in team.coordinator.placement
+    assert "Blob-2" not in team.coordinator.placing.runs.running and "Blob-2" not in team.coordinator.placing.placement
     assert "Blob-2" not in team.nodes["r2"].sources
     before = team.nodes["r2"].feeds.totals["Blob-2"]
     produced_before = before.produced_total
     team.nodes["r2"].feeds.totals["Blob-2"] = replace(before, missed=3)  # as if it had run late
     assert team.coordinator.on_operator(ChainCommand(chain="Blob-2", enabled=True)).ok
     team.run_until(12.0)
-    assert team.coordinator.running["Blob-2"] == 1
+    assert team.coordinator.placing.runs.running["Blob-2"] == 1
     # said, once: what the old run still held upstream is obsolete from here (the first runs are not)
     said = [e for e in team.coordinator.events if " starts run " in e]
     assert len(said) == 1 and said[0].endswith("Blob-2 starts run 1 with Blob-2 on laptop (the chain had stopped)"), said

@@ -44,10 +44,10 @@ def test_mission_waits_for_every_robot_then_places_the_optimum(sc):
     team.join(["r3"])
     co = team.coordinator
     assert co.mission is not None and co.ready
-    assert co.placement == ALL_LAPTOP  # Fig. 7's best: everything on the laptop over 802.11a
+    assert co.placing.placement == ALL_LAPTOP  # Fig. 7's best: everything on the laptop over 802.11a
     assert co.planned_lifetime_s() == 45715.2
     assert co.decision.policy == "rebalance" and co.snapshot()["policy"] == "rebalance"  # the default
-    assert set(co.running) == {c.name for c in sc.chains}
+    assert set(co.placing.runs.running) == {c.name for c in sc.chains}
     assert all(rt.plan is not None and rt.plan.epoch == co.plans.epoch for rt in team.nodes.values())
 
 
@@ -60,7 +60,7 @@ def test_starts_without_missing_robots_after_the_grace_period(sc):
     team.pump()
     co = team.coordinator
     assert co.mission is not None
-    assert set(co.target) == {"Loc-1"}  # r2's and r3's chains cannot run without them
+    assert set(co.placing.target) == {"Loc-1"}  # r2's and r3's chains cannot run without them
 
 
 def test_a_waiting_base_station_sleeps_until_the_grace_period_ends(sc):
@@ -79,11 +79,11 @@ def test_a_robot_leaving_drops_its_chains_and_rehosts_what_it_ran(sc):
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, pins={"Loc-1": "r2"}))
     team.join()
     co = team.coordinator
-    assert co.placement["Loc-1"] == "r2"
+    assert co.placing.placement["Loc-1"] == "r2"
     team.run_until(4.0)
     team.leave("r2")
-    assert "Loc-2" not in co.target and "Blob-2" not in co.target
-    assert co.placement["Loc-1"] != "r2" and co.ready  # the pin to a departed robot is ignored
+    assert "Loc-2" not in co.placing.target and "Blob-2" not in co.placing.target
+    assert co.placing.placement["Loc-1"] != "r2" and co.ready  # the pin to a departed robot is ignored
     team.run_until(10.0)
     assert team.nodes["r1"].sinks["Loc-1"].received > 0
     assert co.replans >= 2
@@ -93,7 +93,7 @@ def test_rejoining_robot_is_planned_again(sc):
     team = SimTeam(sc)
     team.join()
     team.leave("r3")
-    assert "Loc-3" not in team.coordinator.target
+    assert "Loc-3" not in team.coordinator.placing.target
     # the agent comes back (a new process would resubscribe; reuse the runtime's bus here)
     rt = team.nodes["r3"]
     keys = team.keys
@@ -101,7 +101,7 @@ def test_rejoining_robot_is_planned_again(sc):
                                 for k in (keys.node_data("r3"), keys.node_control("r3"), keys.plan)]
     team.join(["r3"])
     team.report_status()  # a returning robot is planned from what it reports hosting
-    assert team.coordinator.placement == ALL_LAPTOP
+    assert team.coordinator.placing.placement == ALL_LAPTOP
 
 
 def test_chain_disable_releases_and_stops_the_source(sc):
@@ -126,10 +126,10 @@ def test_operator_pins_and_auto(sc):
         assert not reply.ok and "unknown" in reply.message
     assert co.on_operator(MigrateCommand(stage="Loc-2", to_node="r1")).ok
     team.pump()
-    assert co.placement["Loc-2"] == "r1" and co.migrations_done == 1
+    assert co.placing.placement["Loc-2"] == "r1" and co.placing.migrations_done == 1
     assert co.on_operator(AutoCommand()).ok
     team.pump()
-    assert co.placement == ALL_LAPTOP and co.operating.pins == {}
+    assert co.placing.placement == ALL_LAPTOP and co.operating.pins == {}
 
 
 def test_radio_fault_replans_like_the_paper(sc):
@@ -140,7 +140,7 @@ def test_radio_fault_replans_like_the_paper(sc):
     assert reply.ok
     team.run_until(4.0)
     co = team.coordinator
-    assert co.placement == {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "r1", "Blob-2": "laptop", "Blob-3": "r3"}
+    assert co.placing.placement == {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "r1", "Blob-2": "laptop", "Blob-3": "r3"}
     assert co.plan_network.medium_between("r3", "laptop") == "gsm"
     assert team.nodes["r3"].meter.media == frozenset({"gsm", "bluetooth"})
 
@@ -187,7 +187,7 @@ def test_periodic_replan_with_uneven_batteries_moves_work_off_the_weak_robot():
     media = {"laptop-robot": "gsm", "robot-robot": "bluetooth"}
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=media, replan_interval_s=20.0))
     team.join()
-    first = dict(team.coordinator.target)
+    first = dict(team.coordinator.placing.target)
     team.run_until(10.0)
     team.nodes["r2"].meter._add("cpu_idle", 40000.0)  # r2 has lost most of its battery
     team.report_status()
@@ -195,7 +195,7 @@ def test_periodic_replan_with_uneven_batteries_moves_work_off_the_weak_robot():
     team.coordinator.on_timer()
     team.pump()
     co = team.coordinator
-    assert co.target != first and co.ready
+    assert co.placing.target != first and co.ready
     # The coordinator no longer has its own 1 % threshold: it moved because the policy's hysteresis
     # (rebalance: gain > 0.1 % + 10 s, migrations paid) says the move is worth it.
     decision = co.decision
@@ -212,7 +212,7 @@ def test_depleted_robot_leaves_the_plan(sc):
     team.report_status()
     co = team.coordinator
     assert "r1" in co.departed and co.first_depletion["robot"] == "r1"
-    assert "Loc-1" not in co.target
+    assert "Loc-1" not in co.placing.target
 
 
 def test_stuck_migration_is_abandoned_and_restarted(sc):
@@ -223,11 +223,11 @@ def test_stuck_migration_is_abandoned_and_restarted(sc):
         handle.close()
     co.on_operator(MigrateCommand(stage="Loc-2", to_node="r1"))
     team.pump()
-    assert "Loc-2" in co.migrations
+    assert "Loc-2" in co.placing.migrations
     team.clock.advance(4.0)
     co.on_timer()
     team.pump()
-    assert co.aborted == 1
+    assert co.placing.aborted == 1
     assert any("abandoned" in e for e in co.events)
 
 
@@ -289,7 +289,7 @@ def test_cut_base_link_replans_at_once_and_heals_with_hysteresis(sc):
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0))
     team.join()
     co = team.coordinator
-    placement = dict(co.placement)
+    placement = dict(co.placing.placement)
     co.link_lost("laptop", "r1", detected_unix=team.clock.wall())
     co.on_timer()  # the loop's next timer decides, once for every link change of the batch
     assert co.links_down == {frozenset({"laptop", "r1"})}
@@ -312,7 +312,7 @@ def test_cut_base_link_replans_at_once_and_heals_with_hysteresis(sc):
     assert not co.links_down and co.plan_network.medium_between("r1", "laptop") is not None
     # nothing moved either way: the relayed plan stays (the policy's hysteresis, no longer a
     # coordinator threshold, found no move worth it) and the link is simply back in the routes
-    assert co.placement == placement and co.migrations_done == 0
+    assert co.placing.placement == placement and co.placing.migrations_done == 0
 
 
 def test_a_returning_robot_is_planned_from_what_it_actually_runs(sc):
@@ -332,11 +332,11 @@ def test_a_returning_robot_is_planned_from_what_it_actually_runs(sc):
     team.join(["r1"])
     assert co._awaiting_actual  # no plan until it has reported
     team.report_status()
-    assert co.adopted >= 1
-    assert co.generation > gen  # later orders win over the generation handed out without us
+    assert co.placing.adopted >= 1
+    assert co.placing.generation > gen  # later orders win over the generation handed out without us
     team.run_until(co.now() + 3.0)
-    assert co.placement["Loc-1"] == "laptop"  # and the planner moved it back, with its state
-    assert co.migrations_done >= 1
+    assert co.placing.placement["Loc-1"] == "laptop"  # and the planner moved it back, with its state
+    assert co.placing.migrations_done >= 1
 
 
 def test_a_robot_back_from_a_freeze_gets_a_grace_before_its_link_reports_count(sc):
@@ -413,8 +413,8 @@ def test_a_command_while_no_robot_is_in_reach_is_noted_and_carried_out_when_they
         co.on_liveliness(robot, True)
     team.report_status()
     team.run_until(co.now() + 6.0)
-    assert "Blob-2" not in co.target
-    assert co.placement["Loc-3"] == "r1" and co.plan_network.medium_between("r3", "laptop") == "gsm"
+    assert "Blob-2" not in co.placing.target
+    assert co.placing.placement["Loc-3"] == "r1" and co.plan_network.medium_between("r3", "laptop") == "gsm"
 
 
 def test_a_fleets_start_publishes_a_plan_per_wave_of_ready_stages_not_one_per_stage():
@@ -428,7 +428,7 @@ def test_a_fleets_start_publishes_a_plan_per_wave_of_ready_stages_not_one_per_st
     team.coordinator.bus.subscribe(team.keys.plan, lambda key, payload: published.append(decode(payload).epoch))
     team.join()
     co = team.coordinator
-    assert co.mission is not None and co.ready and len(co.placement) == 20
+    assert co.mission is not None and co.ready and len(co.placing.placement) == 20
     assert co.plans.epoch <= 3 and published == list(range(1, co.plans.epoch + 1)), published
     assert all(rt.plan is not None and rt.plan.epoch == co.plans.epoch for rt in team.nodes.values())
 
@@ -443,9 +443,9 @@ def test_stages_ready_while_orders_wait_for_answers_wait_plan_batch_s_and_share_
     co.plans.mark_due()  # what `Placement.on_stage_ready` asks for: a stage became ready
     co.on_timer()  # no other order waits for an answer: the wave is complete, the plan goes at once
     assert co.plans.epoch == epoch + 1 and not co.plans.plan_due
-    host = co.placement["Loc-1"]
+    host = co.placing.placement["Loc-1"]
     assert co.on_operator(MigrateCommand(stage="Loc-1", to_node="r2" if host != "r2" else "r3")).ok
-    assert co.migrations  # its orders wait for answers (the hub is not pumped: none comes)
+    assert co.placing.migrations  # its orders wait for answers (the hub is not pumped: none comes)
     epoch, sent_at = co.plans.epoch, co.plans.last_plan_unix
     co.plans.mark_due()  # another stage became ready meanwhile
     co.on_timer()
@@ -519,8 +519,8 @@ def test_a_stage_adopted_before_the_next_decision_is_neither_released_nor_restar
     team.run_until(3.0)
     team.leave("r2")
     team.leave("r3")
-    assert "Blob-2" not in co.target and "Blob-2" not in co.running  # its source is away: stopped
-    run = co.runs["Blob-2"]
+    assert "Blob-2" not in co.placing.target and "Blob-2" not in co.placing.runs.running  # its source is away: stopped
+    run = co.placing.runs.runs["Blob-2"]
     # while away, r2 ran Blob-2 itself (a subgroup agreed it), in the chain's run
     gen = int(team.clock.wall() * 1000) - 5
     team.nodes["r2"].on_assign(Assign(stage="Blob-2", generation=gen, chain="Blob-2", run=run, resume_seq=None))
@@ -529,12 +529,12 @@ def test_a_stage_adopted_before_the_next_decision_is_neither_released_nor_restar
     team.join(["r2", "r3"])
     co.on_status(team.nodes["r2"].status(10.0))  # r2 reports; r3 has not yet: no decision before it does
     team.pump()
-    assert co.placement["Blob-2"] == "r2" and set(co._awaiting_actual) == {"r3"}
-    co.reconcile()
+    assert co.placing.placement["Blob-2"] == "r2" and set(co._awaiting_actual) == {"r3"}
+    co.placing.reconcile()
     team.pump()
-    assert co.placement.get("Blob-2") == "r2" and "Blob-2" in team.nodes["r2"].hosted
+    assert co.placing.placement.get("Blob-2") == "r2" and "Blob-2" in team.nodes["r2"].hosted
     co.on_status(team.nodes["r3"].status(10.0))
     team.pump()
     team.run_until(co.now() + 3.0)
-    assert co.runs["Blob-2"] == run and co.running.get("Blob-2") == run  # the same run goes on
+    assert co.placing.runs.runs["Blob-2"] == run and co.placing.runs.running.get("Blob-2") == run  # the same run goes on
     assert not [e for e in co.events if "Blob-2 starts run" in e], co.events

@@ -90,9 +90,9 @@ def test_a_fleet_start_is_one_put_per_node_each_way():
     team.join()
     team.run_until(10.0)
     stages = len(scenario.stage_names())
-    assert len(co.placement) == stages == 20 and not co.migrations
+    assert len(co.placing.placement) == stages == 20 and not co.placing.migrations
     orders = sum(n for _, n in puts)
-    assert orders == stages and co.order_resends == 0
+    assert orders == stages and co.placing.order_resends == 0
     nodes = {node for node, _ in puts}
     assert sorted(puts) == [("laptop", 16), ("r1", 2), ("r2", 1), ("r3", 1)]  # one put per node
     assert sum(answers) == stages and len(answers) == len(nodes)

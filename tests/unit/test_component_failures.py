@@ -121,14 +121,14 @@ def test_a_failing_component_stops_its_stage_only(bad_cls, what, text):
     # the base station heard, stopped that chain and re-planned the others
     co = team.coordinator
     assert BAD in co.operating.failed_stages and text in co.operating.failed_stages[BAD]
-    assert "Blob-2" in co.operating.disabled and BAD not in co.placement
+    assert "Blob-2" in co.operating.disabled and BAD not in co.placing.placement
     assert BAD not in r2.hosted  # released
     assert any("Blob-2 failed on r2" in note for note in co.events)
     # what ran before the failure reached the sink; nothing after it
     assert sorted(outputs.get(BAD, [])) == list(range(len(outputs.get(BAD, []))))
     assert len(outputs.get(BAD, [])) <= 3
     # r2 goes on: its Loc-2 and everyone else's chains, exactly once
-    assert team.coordinator.placement["Loc-2"] == "r2"
+    assert team.coordinator.placing.placement["Loc-2"] == "r2"
     assert_others_unharmed(team, outputs)
 
 
@@ -160,8 +160,8 @@ def test_a_state_that_cannot_move_keeps_the_stage_where_it_runs(bad_cls, what):
     team.pump()
     team.run_until(20.0)
     # the migration was abandoned; the stage runs on where it was, with its state
-    assert not co.migrations and co.aborted == 1
-    assert co.placement[BAD] == "r2" and co.operating.pins[BAD] == "r2"
+    assert not co.placing.migrations and co.placing.aborted == 1
+    assert co.placing.placement[BAD] == "r2" and co.operating.pins[BAD] == "r2"
     assert team.nodes["r2"].hosted[BAD].lifecycle is Lifecycle.RUNNING
     assert BAD not in team.nodes["r3"].hosted
     assert team.nodes["r2"].errors[what] == 1 and not team.nodes["r2"].failed
@@ -186,7 +186,7 @@ def test_a_state_that_imports_at_home_but_not_on_the_new_host_goes_on_there_with
     co = team.coordinator
     assert co.on_operator(MigrateCommand(stage=BAD, to_node="r3")).ok
     team.pump()
-    assert co.placement[BAD] == "r3" and co.migrations_done == 1 and not co.aborted
+    assert co.placing.placement[BAD] == "r3" and co.placing.migrations_done == 1 and not co.placing.aborted
     assert team.nodes["r3"].errors["import-failed"] == 1
     assert any("r3: import-failed: state from r2 did not import, started without it: import_state: ValueError"
                in note for note in co.events)

@@ -87,14 +87,14 @@ def test_operator_radio_fault_gives_the_simulators_and_the_papers_reallocation(n
     assert state.time_s == pytest.approx(3600.0) and state.allocation == ALL_LAPTOP
     # the coordinator carried out exactly what the policy decided for that state
     assert decision.forced and dict(decision.allocation) == PAPER_VC
-    assert co.target == dict(decision.allocation) and co.plan_network == decision.network
-    assert co.placement == PAPER_VC and co.ready
+    assert co.placing.target == dict(decision.allocation) and co.plan_network == decision.network
+    assert co.placing.placement == PAPER_VC and co.ready
     again = make_policy(name).decide(state)  # a pure function of the state
     assert dict(again.allocation) == dict(decision.allocation) and again.network == decision.network
 
     simulated = simulate(FIG7, load_events("paper-vc-fault", FIG7), policy=name)
     at_fault = next(d for d in simulated.decisions if d.time_s == 3600.0)
-    assert dict(at_fault.allocation) == co.placement
+    assert dict(at_fault.allocation) == co.placing.placement
     assert dict(at_fault.media) == co.snapshot()["media"]
     assert team.nodes["r3"].meter.media == frozenset({"gsm", "bluetooth"})
     assert any("r3 radio:gsm utilisation" in line for line in co.snapshot()["decision_reasons"])
@@ -140,7 +140,7 @@ def test_rebalance_follows_the_schedule_and_switches_phase_at_the_revisit_time()
     team = team_with("rebalance", topology="relay", replan_interval_s=NEVER)
     co = team.coordinator
     first = co.decision
-    assert co.placement == ALL_LAPTOP and len(first.schedule) == 1  # Fig. 7, relay: two phases
+    assert co.placing.placement == ALL_LAPTOP and len(first.schedule) == 1  # Fig. 7, relay: two phases
     assert co.revisit_at_s == pytest.approx(first.revisit_at_s) == pytest.approx(32737.9, abs=1.0)
     snap = co.snapshot()
     assert snap["policy"] == "rebalance" and snap["revisit_at_s"] == co.revisit_at_s
@@ -151,7 +151,7 @@ def test_rebalance_follows_the_schedule_and_switches_phase_at_the_revisit_time()
     jump_to(team, co.revisit_at_s - 60.0)
     co.on_timer()
     team.pump()
-    assert co.placement == ALL_LAPTOP and co.migrations_done == 0  # not yet
+    assert co.placing.placement == ALL_LAPTOP and co.placing.migrations_done == 0  # not yet
 
     jump_to(team, first.revisit_at_s + 0.5)
     co.on_timer()
@@ -161,8 +161,8 @@ def test_rebalance_follows_the_schedule_and_switches_phase_at_the_revisit_time()
     assert dict(decision.allocation) == dict(next_phase.allocation) != ALL_LAPTOP
     assert decision.network == next_phase.network and co.plan_network.medium_between("r1", "r2") == "bluetooth"
     moved = {s for s in ALL_LAPTOP if next_phase.allocation[s] != "laptop"}
-    assert co.placement == dict(next_phase.allocation) and co.migrations_done == len(moved) > 0
-    assert {m["stage"] for m in co.migration_log} == moved
+    assert co.placing.placement == dict(next_phase.allocation) and co.placing.migrations_done == len(moved) > 0
+    assert {m["stage"] for m in co.placing.migration_log} == moved
     assert co.revisit_at_s is None  # the last phase runs until the end
     assert any("revisit" in e for e in co.events)
 
@@ -174,7 +174,7 @@ def test_no_replan_means_no_schedule_driven_moves():
     jump_to(team, co.decision.revisit_at_s + 1.0)
     co.on_timer()
     team.pump()
-    assert co.placement == ALL_LAPTOP and co.migrations_done == 0
+    assert co.placing.placement == ALL_LAPTOP and co.placing.migrations_done == 0
 
 
 # ---- (c) static never moves by choice; rebalance does --------------------------------------------------------
@@ -184,7 +184,7 @@ def test_no_replan_means_no_schedule_driven_moves():
 def test_static_never_moves_by_choice_while_rebalance_does(name, moves):
     team = team_with(name, media={"laptop-robot": "gsm", "robot-robot": "bluetooth"}, replan_interval_s=20.0)
     co = team.coordinator
-    start = dict(co.placement)
+    start = dict(co.placing.placement)
     team.run_until(10.0)
     team.nodes["r2"].meter._add("cpu_idle", 40000.0)  # r2 has lost most of its battery
     team.report_status()
@@ -194,10 +194,10 @@ def test_static_never_moves_by_choice_while_rebalance_does(name, moves):
         team.pump()
     assert co.ready
     if moves:
-        assert co.placement != start and co.migrations_done > 0
+        assert co.placing.placement != start and co.placing.migrations_done > 0
         assert co.decision.policy == "rebalance" and not co.decision.forced
     else:
-        assert co.placement == start and co.migrations_done == 0
+        assert co.placing.placement == start and co.placing.migrations_done == 0
         assert co.decision.time_s == 0.0  # only the start decided anything
         assert any("policy static keeps the configuration" in e for e in co.events)
 
@@ -216,7 +216,7 @@ def cut_and_heal(team: SimTeam) -> tuple:
     co.on_timer()  # (the base station's loop calls it all the time; SimTeam only when messages flow)
     team.pump()
     assert co.ready
-    during = (dict(co.placement), co.migrations_done + co.aborted + co.assignments_done)
+    during = (dict(co.placing.placement), co.placing.migrations_done + co.placing.aborted + co.placing.assignments_done)
     team.run_until(co.now() + 1.0)
     co.link_seen("laptop", "r1")
     co.on_timer()
@@ -234,7 +234,7 @@ def test_after_a_heal_components_move_back_only_past_the_policys_gain_threshold(
     co = team.coordinator
     (during, migrated) = cut_and_heal(team)
     assert during != ALL_LAPTOP and migrated > 0
-    assert co.placement == during and co.migrations_done + co.aborted + co.assignments_done == migrated
+    assert co.placing.placement == during and co.placing.migrations_done + co.placing.aborted + co.placing.assignments_done == migrated
     assert co.plan_network.medium_between("laptop", "r1") is not None  # the link is in the routes again
     assert any("links back" in e and "keeps the configuration" in e for e in co.events)
 
@@ -249,14 +249,14 @@ def test_after_a_heal_the_default_threshold_moves_back_once_and_does_not_flap():
     assert decision is not None and decision.moves and not decision.forced
     stay = decision.predicted_lifetime_s - decision.predicted_gain_s
     assert decision.predicted_gain_s > stay * 0.001 + 10.0  # rebalance's min_gain, min_gain_s
-    assert co.placement != during and co.ready
-    settled, moved = dict(co.placement), co.migrations_done
+    assert co.placing.placement != during and co.ready
+    settled, moved = dict(co.placing.placement), co.placing.migrations_done
     for t in (co.now() + 10.0, co.now() + 20.0, co.now() + 30.0):  # asked again with nothing new: no move
         team.run_until(t)
         co.on_timer()
         team.pump()
     assert len(policy.calls) >= 5
-    assert co.placement == settled and co.migrations_done == moved
+    assert co.placing.placement == settled and co.placing.migrations_done == moved
 
 
 # ---- (e) configuration errors ------------------------------------------------------------------------------

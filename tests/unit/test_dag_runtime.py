@@ -120,7 +120,7 @@ def test_a_lost_input_never_stalls_the_join():
     got = maps(outputs)
     assert [m["step"] for m in got] == list(range(len(got))) and len(got) >= 19
     assert all(m["robots"]["r2"]["age_steps"] == 0 and m["robots"]["r3"]["age_steps"] == 0 for m in got)
-    assert not got[-1]["missing"] and "Loc-1" not in team.coordinator.running
+    assert not got[-1]["missing"] and "Loc-1" not in team.coordinator.placing.runs.running
     stats = team.nodes["laptop"].join_stats()["TeamMap"]
     assert stats["late"] == 0 and stats["missing"] >= len(cut_steps)
 
@@ -139,7 +139,7 @@ def test_the_fan_in_stage_migrates_with_its_state_bit_for_bit():
 
     _, reference = run([])
     team, moved = run([(7.0, "r2"), (15.0, "r3"), (23.1, "laptop")])
-    assert team.coordinator.migrations_done == 3
+    assert team.coordinator.placing.migrations_done == 3
     assert len(reference) >= 19 and moved == reference
     for rt in team.nodes.values():
         assert not rt.errors, (rt.node, rt.errors)

@@ -91,13 +91,13 @@ def test_the_coordinator_goes_on_while_the_policy_decides_and_carries_the_answer
     team.join()
     # the mission started and the question is out: nothing is decided, nothing placed, and the loop goes on
     assert co.mission is not None and co.decider.busy and co.asked == 1 and co.decisions == 0
-    assert co.target == {} and not co.ready
+    assert co.placing.target == {} and not co.ready
     team.report_status()  # statuses are taken while the policy decides
     assert all(robot in co.statuses for robot in co.robots)
     assert not co.idle()  # a loop at rest would not wake for the answer's timers
 
     answer_next(policy, answers, 1, team)  # the loop's timer carries the answer out
-    assert co.decisions == 1 and not co.decider.busy and co.target and co.ready
+    assert co.decisions == 1 and not co.decider.busy and co.placing.target and co.ready
     assert policy.threads == {"autopower-decide"}  # decided off the caller's thread
 
 
@@ -105,7 +105,7 @@ def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_
     policy, team, answers = started_team()
     co = team.coordinator
     assert co.ready and co.asked == 1
-    ready_target = dict(co.target)
+    ready_target = dict(co.placing.target)
 
     # an operator's radio change: the reply waits for the decision that carries it out
     waiting = co.on_operator(LinkCommand(node="r3", laptop_robot="gsm", robot_robot="bluetooth"))
@@ -119,7 +119,7 @@ def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_
     answer_next(policy, answers, 2, team)  # answer 2 is about a team that still ran Blob-2: set aside, question 2 asked again
     asked_about = policy.states[1]
     assert [e.kind for e in asked_about.events] == ["radio-fault"] and "Blob-2" not in asked_about.disabled_chains
-    assert co.asked == 2 and co.decisions == 1 and co.decider.busy and co.target == ready_target
+    assert co.asked == 2 and co.decisions == 1 and co.decider.busy and co.placing.target == ready_target
     assert co.reply_when_decided(waiting) is None
     assert any("asked again: the chains that run changed" in line for line in co.events)
 
@@ -128,7 +128,7 @@ def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_
     assert [e.kind for e in again.events] == ["radio-fault", "chain-disable"] and "Blob-2" in again.disabled_chains
     reply = co.reply_when_decided(waiting)
     assert reply is not None and reply.ok, reply
-    assert not any(s.startswith("Blob-2") for s in co.target)
+    assert not any(s.startswith("Blob-2") for s in co.placing.target)
     assert co.asked == 3 and co.decider.busy and co.reply_when_decided(later) is None
 
     answer_next(policy, answers, 4, team)
@@ -165,7 +165,7 @@ def test_a_question_asked_again_after_every_robot_left_is_not_put_to_the_policy(
     team.leave("r3")
     answer_next(policy, answers, 2, team)
     assert len(policy.states) == 2  # set aside, and not asked again: no robot is left to plan
-    assert co.target == {} and any("no robot left" in line for line in co.events)
+    assert co.placing.target == {} and any("no robot left" in line for line in co.events)
     reply = co.on_operator(SnapshotRequest())
     encode(reply)  # the snapshot an operator asks for still travels
     assert reply.snapshot["predicted_lifetime_s"] is None or math.isfinite(reply.snapshot["predicted_lifetime_s"])
@@ -197,7 +197,7 @@ def test_a_policy_that_fails_on_its_thread_fails_on_the_loop_and_the_next_questi
     with pytest.raises(ValueError, match="a bug in the policy"):  # as an inline decision would raise
         team.join()
         answer_next(policy, answers, 1, team)
-    assert co.decisions == 1 and not co.decider.busy and co.target == {}
+    assert co.decisions == 1 and not co.decider.busy and co.placing.target == {}
     policy.fail_with = None
     co.replan("again")
     answer_next(policy, answers, 2, team)
@@ -225,10 +225,10 @@ def test_the_mission_start_asked_ahead_is_carried_out_at_once_when_the_team_is_a
     policy.gate.release()
     answers.wait_for(1)
     co.on_timer()
-    assert co.decisions == 0 and co.target == {}  # kept, not carried out: there is no mission
+    assert co.decisions == 0 and co.placing.target == {}  # kept, not carried out: there is no mission
     team.join()  # every robot, every battery full: the question asked ahead
     assert len(policy.states) == 1  # the policy was not asked again
-    assert co.decisions == co.asked == 1 and co.target and co.ready
+    assert co.decisions == co.asked == 1 and co.placing.target and co.ready
     assert any("made ahead" in line for line in co.events)
     assert policy.states[0].time_s == 0.0 and policy.states[0].unavailable_nodes == frozenset()
 
@@ -247,7 +247,7 @@ def test_a_start_unlike_the_one_asked_ahead_is_asked_again():
     assert co.mission is not None and co.decider.busy and co.asked == 1
     answer_next(policy, answers, 2, team)
     assert [s.unavailable_nodes for s in policy.states] == [frozenset(), frozenset({"r3"})]
-    assert co.decisions == 1 and "r3" not in co.target.values() and co.ready
+    assert co.decisions == 1 and "r3" not in co.placing.target.values() and co.ready
 
 
 def test_a_mission_that_starts_while_its_question_is_asked_ahead_takes_its_answer_and_asks_nothing_more():
@@ -321,13 +321,13 @@ def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_poli
             wait_until(lambda: noted(co, "asked again: the chains that run changed"), "the start asked again")
             policy.gate.release()  # the start, asked again with Blob-2 off; then the command's question
             wait_until(lambda: co.decisions == 1 and co.asked == 2, "the command's question asked")
-            assert co.target and first.replies == []
+            assert co.placing.target and first.replies == []
             policy.gate.release()
             wait_until(lambda: first.closed, "the reply to the command")
             assert len(first.replies) == 1 and co.decisions == 2
             reply = decode(first.replies[0], OperatorReply)
             assert reply.ok and reply.message.startswith("re-planned"), reply.message
-            assert co.target and not any(stage.startswith("Blob-2") for stage in co.target)
+            assert co.placing.target and not any(stage.startswith("Blob-2") for stage in co.placing.target)
             assert [s.disabled_chains for s in policy.states] == [frozenset()] + [frozenset({"Blob-2"})] * 2
 
             second = FakeRequest(keys.operator, encode(ChainCommand(chain="Blob-2", enabled=True)))

@@ -254,7 +254,7 @@ def test_a_team_on_lossy_links_meters_what_the_model_says():
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, topology="relay", media=WIFI, pins=LAPTOP,
                                                 auto_replan=False))
     team.join()
-    assert team.coordinator.placement == LAPTOP
+    assert team.coordinator.placing.placement == LAPTOP
     network = team.coordinator.plan_network
     ev, clean = evaluate(sc, network, LAPTOP), evaluate(FIG7, network, LAPTOP)
     t0, t1 = 10.0, 110.0

@@ -90,9 +90,9 @@ def test_a_move_whose_message_is_lost_completes_with_its_state(lost):
     assert co.on_operator(MigrateCommand(stage="Loc-2", to_node="laptop")).ok
     team.run_until(9.0)  # the order goes again after 1 s of silence (wall = virtual here)
     assert lossy.dropped == [lost]
-    assert co.placement["Loc-2"] == "laptop" and not co.migrations
-    assert co.aborted == 0 and co.order_resends >= 1 and co.migrations_done == 1
-    ready = co.migration_log[-1]
+    assert co.placing.placement["Loc-2"] == "laptop" and not co.placing.migrations
+    assert co.placing.aborted == 0 and co.placing.order_resends >= 1 and co.placing.migrations_done == 1
+    ready = co.placing.migration_log[-1]
     assert ready["stage"] == "Loc-2" and ready["to"] == "laptop"
     team.run_until(20.0)
     check_exactly_once(team, outputs)  # its state carried: the fake component's count goes on
@@ -115,7 +115,7 @@ def _random_moves(team: SimTeam, rng: random.Random, n: int, steps: list[float],
     while moves < n:
         team.run_until(t)
         stage, node = rng.choice(stages), rng.choice(nodes)
-        if stage not in co.migrations:
+        if stage not in co.placing.migrations:
             assert co.on_operator(MigrateCommand(stage=stage, to_node=node)).ok
             moves += 1
         between()
@@ -131,8 +131,8 @@ def test_hundreds_of_moves_with_half_their_messages_lost_once_lose_and_repeat_no
     co = team.coordinator
     team.run_until(_random_moves(team, rng, 150, [0.5, 1.0, 2.0, 4.0]) + 30)
     assert len(lossy.dropped) > 100 and {"MigrateOut", "StateTransfer", "Prepared"} <= set(lossy.dropped)
-    assert co.aborted == 0, [e for e in co.events if "abandoned" in e]
-    assert not co.migrations and co.migrations_done > 60 and co.order_resends >= len(lossy.dropped) // 2
+    assert co.placing.aborted == 0, [e for e in co.events if "abandoned" in e]
+    assert not co.placing.migrations and co.placing.migrations_done > 60 and co.placing.order_resends >= len(lossy.dropped) // 2
     check_exactly_once(team, outputs)
 
 
@@ -151,7 +151,7 @@ def test_a_move_that_never_gets_its_state_restarts_where_its_inputs_wait():
     co = team.coordinator
     assert co.on_operator(MigrateCommand(stage="Blob-2", to_node="laptop")).ok
     team.run_exchanging_statuses(12.0)
-    assert co.aborted == 1 and co.placement["Blob-2"] == "laptop" and lossy.dropped.count("StateTransfer") >= 3
+    assert co.placing.aborted == 1 and co.placing.placement["Blob-2"] == "laptop" and lossy.dropped.count("StateTransfer") >= 3
     assert any("Blob-2: transferring to laptop abandoned" in e for e in co.events)
     team.run_exchanging_statuses(25.0)
     chain = next(c for c in sc.chains if c.name == "Blob-2")
@@ -208,7 +208,7 @@ def test_late_second_copies_of_every_order_answer_and_state_change_nothing(topol
     late.release(rng)
     team.run_until(t + 20)
     assert released > 600
-    assert co.aborted == 0 and not co.migrations and co.migrations_done > 100
+    assert co.placing.aborted == 0 and not co.placing.migrations and co.placing.migrations_done > 100
     check_exactly_once(team, outputs)  # and no node counted an error
     repeats = sum(rt.counters.get(k, 0) for rt in team.nodes.values()
                   for k in ("repeated-order", "stale-order", "stale-state", "state-resent"))

@@ -53,7 +53,7 @@ def team():
 
 def test_a_plan_predicts_the_placement_in_force_while_a_stage_moves(team):
     coord, r1 = team.coordinator, team.nodes["r1"]
-    assert coord.placement["Loc-1"] == "laptop"  # the paper's optimum: every stage on the laptop
+    assert coord.placing.placement["Loc-1"] == "laptop"  # the paper's optimum: every stage on the laptop
     settled = dict(r1.plan.predicted_w)
     assert r1.status(1.0).model_w == pytest.approx(settled["r1"])
     seen = len(team.plans)

@@ -52,7 +52,7 @@ def test_each_robot_in_reach_gets_its_view_on_its_own_key_and_before_the_mission
     views = PeerViews(fleet, keys)
     r2_reported = SimpleNamespace(hosted={"Blob-3": "running"})
     co = SimpleNamespace(robots=["r1", "r2", "r3"], alive_nodes=lambda: {"laptop", "r1", "r2"},
-                         statuses={"r2": r2_reported}, placement={"Loc-1": "r1"}, target={})
+                         statuses={"r2": r2_reported}, placing=SimpleNamespace(placement={"Loc-1": "r1"}, target={}))
     status = base_status(3)
     sent = list(views.addressed(co, status, 5.0, 2.0))
     assert [(robot, key) for robot, key, _ in sent] == [("r1", keys.addressed("r1", "laptop")),

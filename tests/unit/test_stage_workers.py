@@ -324,11 +324,11 @@ def test_a_team_in_workers_delivers_exactly_once_and_migrates_with_state():
         co = team.coordinator
         assert co.on_operator(MigrateCommand(stage="Blob-2", to_node="r3")).ok
         team.pump()
-        settle(team, lambda: co.placement["Blob-2"] == "r3" and not co.migrations)
+        settle(team, lambda: co.placing.placement["Blob-2"] == "r3" and not co.placing.migrations)
         team.run_until(15.0)
         settle(team, lambda: idle(team) and all(
             len(outputs.get(c.name, [])) == team.nodes[c.source].sources[c.name].seq for c in team.scenario.chains))
-        assert co.migrations_done == 1 and not co.aborted
+        assert co.placing.migrations_done == 1 and not co.placing.aborted
         for chain in team.scenario.chains:
             produced = team.nodes[chain.source].sources[chain.name].seq
             assert sorted(seq for seq, _ in outputs[chain.name]) == list(range(produced)), chain.name

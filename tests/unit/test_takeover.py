@@ -60,14 +60,14 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
 
     assert new.mission == old.mission  # one mission clock: the team's
     assert new.now() == pytest.approx(old.now()) and new.now() >= 60.0
-    assert new.placement["Loc-2"] == "r2" and new.placement["Blob-3"] == "r3"  # what runs, where it runs
+    assert new.placing.placement["Loc-2"] == "r2" and new.placing.placement["Blob-3"] == "r3"  # what runs, where it runs
     assert new.takeover.incarnation == old.takeover.incarnation + 1 and new.plans.epoch == old.plans.epoch + 1
-    assert new.generation > max(generations)
+    assert new.placing.generation > max(generations)
     assert new.takeover.adopted_team["from_robots"] == list(ROBOTS) and new.takeover.adopted_team["stages"] == 2
     assert new.takeover.adopted_team["previous"] == {"incarnation": old.takeover.incarnation, "epoch": old.plans.epoch, "leader": old.takeover.leader}
     # the chains that run go on with their run; those whose stage ran only on the old base station
     # (nobody reports it: here it is cut off, in a real crash it is gone) restart as a new run
-    assert new.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 1, "Loc-3": 1, "Blob-2": 1}
+    assert new.placing.runs.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 1, "Loc-3": 1, "Blob-2": 1}
     for robot in ROBOTS:  # the policy starts from the batteries as measured, not the scenario's
         assert new.remaining_energies()[robot] == pytest.approx(team.nodes[robot].meter.battery_j)
         assert new.remaining_energies()[robot] < sc.robot(robot).energy_j
@@ -112,13 +112,13 @@ def test_a_base_station_that_takes_over_keeps_what_the_operator_decided(sc):
     team.pump()
     team.report_status()
     team.run_until(60.0)
-    assert "Blob-2" not in new.running and "Blob-2" not in team.nodes["r2"].sources  # still off
-    assert new.placement["Loc-2"] == "r2" and new.placement["Blob-3"] == "r3"  # still pinned
+    assert "Blob-2" not in new.placing.runs.running and "Blob-2" not in team.nodes["r2"].sources  # still off
+    assert new.placing.placement["Loc-2"] == "r2" and new.placing.placement["Blob-3"] == "r3"  # still pinned
     # and the operator can change them as before
     assert new.on_operator(ChainCommand(chain="Blob-2", enabled=True)).ok
     team.pump()
     team.run_until(70.0)
-    assert "Blob-2" in new.running and new.runs["Blob-2"] == old.runs["Blob-2"] + 1
+    assert "Blob-2" in new.placing.runs.running and new.placing.runs.runs["Blob-2"] == old.placing.runs.runs["Blob-2"] + 1
 
 
 def test_the_older_base_station_steps_down_when_it_hears_of_the_newer(sc):
@@ -316,19 +316,19 @@ def test_a_takeover_that_did_not_hear_a_chains_source_robot_waits_for_its_run(sc
     team.clock.advance(3.0)  # listened long enough
     new.learn(team.nodes["r1"].status(10.0))
     assert new.mission is not None and new.takeover.adopted_team["stages"] >= 1  # Loc-3 on r1 among them
-    assert new.runs_unknown == {"Loc-3", "Blob-3"}  # r3's chains: only r3 knows their runs
-    assert "Loc-3" not in new.running and "Blob-3" not in new.running
+    assert new.placing.runs.runs_unknown == {"Loc-3", "Blob-3"}  # r3's chains: only r3 knows their runs
+    assert "Loc-3" not in new.placing.runs.running and "Blob-3" not in new.placing.runs.running
     new.on_timer()  # deciding and reconciling no longer fail on the unknown run
-    assert not any(m for s, m in new.migrations.items() if new.chain_of[s].name == "Loc-3" and m.phase == "assigning")
+    assert not any(m for s, m in new.placing.migrations.items() if new.chain_of[s].name == "Loc-3" and m.phase == "assigning")
     new.on_liveliness("r3", True)
     new.on_status(team.nodes["r3"].status(10.0))
     # learned: a run made up here would have been 0, r3's own, and its restart could not be told apart
-    assert not new.runs_unknown and new.runs["Loc-3"] >= r3_run
+    assert not new.placing.runs.runs_unknown and new.placing.runs.runs["Loc-3"] >= r3_run
     team.pump()
     team.report_status()
     team.run_until(team.clock.t + 20.0)
     team.report_status()
-    run = new.running["Loc-3"]
+    run = new.placing.runs.running["Loc-3"]
     assert run > r3_run  # its host was released, so the chain starts anew: a run above the one r3 ran
     assert team.nodes["r3"].status(10.0).sources["Loc-3"].run == run  # r3's source follows the plan
     assert team.nodes["r3"].sinks["Loc-3"].run == run and team.nodes["r3"].sinks["Loc-3"].received > 0
@@ -347,17 +347,17 @@ def test_orders_go_above_a_generation_a_robot_started_without_the_base_station()
     team.join()
     team.run_until(10.0)
     co, r2 = team.coordinator, team.nodes["r2"]
-    assert co.placement["Loc-2"] == "r2"
+    assert co.placing.placement["Loc-2"] == "r2"
     restarted = int(team.clock.wall() * 1000)  # what `AgentProcess._resume_alone` hands out (wall ms)
     r2.on_assign(Assign(stage="Loc-2", generation=restarted, chain="Loc-2", run=r2.plan.running["Loc-2"],
                         resume_seq=None))
     team.report_status()
-    assert co.generation >= restarted
+    assert co.placing.generation >= restarted
     reply = co.on_operator(MigrateCommand(stage="Loc-2", to_node="laptop"))
     assert reply.ok, reply.message
     team.pump()
     team.run_until(20.0)
-    assert co.placement["Loc-2"] == "laptop" and "Loc-2" in team.nodes["laptop"].hosted
+    assert co.placing.placement["Loc-2"] == "laptop" and "Loc-2" in team.nodes["laptop"].hosted
     assert team.nodes["laptop"].hosted["Loc-2"].generation > restarted
     assert r2.counters.get("stale-order", 0) == 0
 

@@ -62,7 +62,7 @@ def test_a_team_runs_the_chosen_variants_at_the_planned_levels_and_meters_them()
                    fake=False)
     team.join()
     coord = team.coordinator
-    assert coord.ready and coord.placement == LOCAL
+    assert coord.ready and coord.placing.placement == LOCAL
     assert {k: coord.variants[k] for k in chosen} == chosen
     # r1 hosts only Loc-1 at 300 particles: 0.29 / 2 = 14.5 % at 400 MHz, 58 % at 100 MHz
     assert coord.levels["r1"] == "100MHz"
