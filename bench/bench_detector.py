@@ -88,7 +88,7 @@ def in_team(p: float, minutes: float, seed: int) -> dict:
     def counting(world) -> None:  # what each robot counted, read before the run is judged
         seen["suspicions"] = sum(s.rt.counters.get("silent-peers", 0) for n, s in world.shells.items()
                                  if n != scenario.basestation and s.up)
-        seen["replans"] = world.shells[scenario.basestation].co.replans
+        seen["replans"] = world.shells[scenario.basestation].co.deciding.replans
         checks(world)
 
     logging.disable(logging.CRITICAL)  # the cores' logs: thousands of lines, for no one

@@ -42,25 +42,22 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from autopower.basestation.decider import AwaitDecision, Decider
-from autopower.basestation.deciding import Baseline, Deciding
+from autopower.basestation.decider import AwaitDecision
+from autopower.basestation.deciding import Deciding
 from autopower.basestation.links import LinkStates, pair_name
 from autopower.basestation.operating import OperatorControl
 from autopower.basestation.placing import Placement
+from autopower.basestation.prediction import Prediction
 from autopower.basestation.publishing import PlanPublisher
 from autopower.basestation.takeover import Takeover
 from autopower.errors import AutoPowerError
-from autopower.model.mission_events import MissionEvent
-from autopower.model.network import Network, build_network, media_choices
+from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
 from autopower.model.variants import apply_variants
 from autopower.planner.plan_choices import mission_variants
 from autopower.policies import (
     POLICY_NAMES,
-    Decision,
-    MigrationCosts,
     Policy,
-    SchedulePhase,
     make_policy,
 )
 from autopower.protocol import (
@@ -115,7 +112,7 @@ class CoordinatorConfig:
         _policy_from(self)  # a wrong policy name or parameter fails here, before anything starts
 
 
-class Coordinator(Deciding):
+class Coordinator:
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time,
                  leader: str | None = None, incarnation: int = 0,
@@ -149,15 +146,13 @@ class Coordinator(Deciding):
         self.keys = keys
         self.config = config
         self.policy: Policy = policy if policy is not None else _policy_from(config)
-        self.decider = Decider(self.policy, perf_fn=perf_fn, on_answer=on_decision_answer)
         self.wall = wall_fn
-        self.perf = perf_fn
-        self.topology = config.topology or scenario.network_spec.topology
-        self.migration_costs = MigrationCosts.from_scenario(scenario)
         self.base = scenario.basestation
         self.robots = [r.name for r in scenario.robots]
         self._robot_names = frozenset(self.robots)  # (asked for every robot at every turn of a fleet)
         self.chain_of = {s.name: c for c in scenario.chains for s in c.stages}
+        # what the policy is asked and when, its answers, the plan's network
+        self.deciding = Deciding(self, policy=self.policy, perf_fn=perf_fn, on_decision_answer=on_decision_answer)
         self.operating = OperatorControl(self, config.pins)  # the operator's pins, disabled chains, links, radios
 
         self.mission: MissionInfo | None = None
@@ -167,50 +162,16 @@ class Coordinator(Deciding):
         self.statuses: dict[str, NodeStatus] = {}
         # the target and confirmed placements, the migrations between them, the chains' runs
         self.placing = Placement(self)
-        self.decision: Decision | None = None  # the policy's last decision (None: nothing decided yet)
-        self.chosen: dict[str, str] = {}  # the policy's allocation, before operator pins
-        self.stage_reasons: dict[str, str] = {}  # stage -> why it runs where it does (the planner's words)
-        self.decision_reasons: tuple[str, ...] = ()  # the newest decision that gave reasons (quiet ones do not)
-        self.schedule: tuple[SchedulePhase, ...] = ()  # the phases the last decision planned after its own
-        self.revisit_at_s: float | None = None  # virtual time the last decision asked to be asked again
-        self._pending_events: list[MissionEvent] = []  # what happened since the policy was last asked
-        # the base media the team uses (group -> medium); decisions may change them unless config.media
-        self.media: dict[str, str] = dict(config.media or media_choices(scenario, self.topology)[0])
-        self.plan_network: Network | None = None
         topology = build_network(scenario, topology=config.topology)
         self.links = LinkStates({frozenset((l.a, l.b)) for l in topology.links},
                                 down_after_s=config.link_down_after_s, heal_hold_s=config.heal_hold_s)
-        self.predicted_w: dict[str, float] = {}
-        self.levels: dict[str, str] = {}  # robot -> DVFS level of the current plan (deciding._at_levels)
-        self.predicted_lifetime_s: float | None = None
-        self.plan_t_virtual = 0.0
-        self.baselines: dict[str, Baseline] = {}
-        self.plan_error: str | None = None
-        # why the last `replan` did not decide though nothing was wrong (robots to report, none in
-        # reach): an operator's command is then noted and carried out by the re-plan that follows
-        self.replan_waiting: str | None = None
+        self.prediction = Prediction(self)  # what the plan in force draws, by the model; battery baselines
         # starting the mission, or adopting the one the robots run; which base station this is
         self.takeover = Takeover(self, leader=leader, incarnation=incarnation, up_unix=self.wall(),
                                  learn_team_s=config.learn_team_s)
         self.mission_unix = 0.0  # when we started or adopted the mission
         self.plans = PlanPublisher(self)  # the plans' epoch and when they go out
-        # link changes since the last timer: one decision at the next timer for all of them (a
-        # fleet under load loses several links within one batch of events, and each decision is
-        # a MILP of the whole team that holds up the loop while statuses pile up)
-        self.replan_due: list[str] = []
-        self.next_periodic_replan: float | None = None
         self.events: deque[str] = deque(maxlen=50)
-        self.replans = 0
-        self.asked = 0  # questions put to the policy
-        self._events_asked = 0  # how many of `_pending_events` the question out carries
-        self._ahead_asked = False  # the mission start was asked about ahead (`Deciding.ask_ahead`)
-        self._asking_ahead = False  # ... and its answer is still out
-        self._ahead_state = None  # the question asked ahead (until the mission start's is asked)
-        self._ahead = None  # ... and its answer, kept for the mission start
-        self._stale_answers = 0  # answers set aside in a row: the team changed while the policy decided
-        self.decisions = 0  # the policy answered (a re-plan that decided, whatever it chose)
-        self.decide_s = 0.0  # wall seconds the policy took over them (`perf_fn`)
-        self.decide_max_s = 0.0
         self.first_depletion: dict[str, float] | None = None
         # faults as the base station saw them: detection and when the team ran its new plan
         self.faults: deque[dict] = deque(maxlen=100)
@@ -238,7 +199,16 @@ class Coordinator(Deciding):
     def alive_nodes(self) -> set[str]:
         return (self.present - self.departed) | {self.base}
 
+    def awaiting_reports(self) -> list[str]:
+        """The robots back after an absence that have not said yet what they run (sorted)."""
+        return sorted(self._awaiting_actual)
 
+    @property
+    def ready(self) -> bool:
+        """The mission runs and every desired stage runs where the plan wants it."""
+        placing = self.placing
+        return (self.mission is not None and not placing.migrations and self.deciding.plan_network is not None
+                and all(placing.placement.get(s) == n for s, n in placing.target.items()))
 
     # ---- faults -------------------------------------------------------------------------------------
     def record_fault(self, kind: str, target: str, detected_unix: float) -> None:
@@ -247,11 +217,17 @@ class Coordinator(Deciding):
         self.faults.append({"kind": kind, "target": target, "detected_unix": detected_unix,
                             "decide_s": 0.0, "epoch": None, "reconfigured_unix": None})
 
+    def faults_decided(self, took_s: float) -> None:
+        """The policy took ``took_s`` over a decision: charged to every fault still waiting to be handled."""
+        for fault in self.faults:
+            if fault["reconfigured_unix"] is None:
+                fault["decide_s"] += took_s
+
     def _mark_reconfigured(self) -> None:
         """A fault is handled once its new plan runs: placed, and every robot in reach runs its epoch.
         Not while its decision is out or due: the plan in force then is the one from before it."""
         open_faults = [f for f in self.faults if f["reconfigured_unix"] is None]
-        if not open_faults or not self.ready or self.decider.busy or self.replan_due:
+        if not open_faults or not self.ready or self.deciding.decision_pending():
             return
         for fault in open_faults:
             if fault["epoch"] is None:
@@ -273,7 +249,7 @@ class Coordinator(Deciding):
         """A link an end of which is this base station (seen by its own liveliness) went down."""
         if self.links.lost(a, b, detected_unix or self.wall()):
             self._link_down(frozenset((a, b)), detected_unix or self.wall())
-            self.replan_soon("link change")
+            self.deciding.replan_soon("link change")
 
     def link_seen(self, a: str, b: str) -> None:
         """Evidence that a link works (its ends see each other)."""
@@ -287,29 +263,26 @@ class Coordinator(Deciding):
         dampened = (f" (it flaps: penalty {downs:.1f}, halving every {self.links.flap_half_life_s:g} s; back in "
                     f"plans after {self.links.hold_s(pair, now):g} s up without a break)") if downs > 1.5 else ""
         self.note(f"link {a}-{b} is down{dampened}")
-        self._event("link-cut", a=a, b=b)
+        self.deciding.event("link-cut", a=a, b=b)
 
     def _heal_links(self) -> None:
         healed = self.links.healed(self.wall())
         for pair in healed:
             self.note(f"link {pair_name(pair)} is back (up for {self.links.hold_s(pair, self.wall()):g} s)")
             a, b = sorted(pair)
-            self._event("link-heal", a=a, b=b)
+            self.deciding.event("link-heal", a=a, b=b)
         if healed:  # whether moving back is worth it is the policy's hysteresis
-            self.replan("links back")
+            self.deciding.replan("links back")
 
-    @property
-    def ready(self) -> bool:
-        """The mission runs and every desired stage runs where the plan wants it."""
-        placing = self.placing
-        return (self.mission is not None and not placing.migrations and self.plan_network is not None
-                and all(placing.placement.get(s) == n for s, n in placing.target.items()))
+    def _check_links(self, status: NodeStatus) -> None:
+        """A robot's view of its links: what it reports down may be a cut (`LinkStates` debounces)."""
+        gone = self.links.reported(status.node, status.links, self.alive_nodes(), self.wall())
+        for pair, since in gone:
+            self._link_down(pair, since)
+        if gone:
+            self.deciding.replan_soon("link change")
 
     # ---- mission start --------------------------------------------------------------------------------
-    def maybe_start(self) -> None:
-        """Start the mission, or take over the running one, once the team has been heard (`Takeover.maybe_start`)."""
-        self.takeover.maybe_start()
-
     def start_mission(self, mission: MissionInfo) -> None:
         """Run ``mission`` from now on: a new one, or the one the robots run (its clock goes on)."""
         self.mission = mission
@@ -333,29 +306,6 @@ class Coordinator(Deciding):
         """A robot runs a plan another base station made (`Takeover.on_rival_status`)."""
         self.takeover.on_rival_status(status)
 
-    # ---- deciding ---------------------------------------------------------------------------------------
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-    # ---- placement -------------------------------------------------------------------------------------
-
-
-
-
-
-
-
     # ---- events --------------------------------------------------------------------------------------------
     def on_liveliness(self, node: str, alive: bool, detected_unix: float | None = None) -> None:
         if node == self.base or node not in self._robot_names:
@@ -368,10 +318,10 @@ class Coordinator(Deciding):
             self.takeover.came_into_sight(node)
             self.note(f"{node} joined")
             if self.mission is None:
-                self.maybe_start()
+                self.takeover.maybe_start()
             else:
                 self.links.rejoined(node, self.wall())
-                self._event("robot-join", robot=node)
+                self.deciding.event("robot-join", robot=node)
                 self._awaiting_actual[node] = self.wall() + 1.0  # decide once it says what it hosts
         else:
             if node not in self.present:
@@ -381,9 +331,8 @@ class Coordinator(Deciding):
             self.note(f"{node} left")
             self.placing.node_lost(node)
             if self.mission is not None:
-                self._event("robot-leave", robot=node, note="left")
-                self.replan(f"{node} left")
-
+                self.deciding.event("robot-leave", robot=node, note="left")
+                self.deciding.replan(f"{node} left")
 
     def on_host_status(self, status: NodeStatus) -> None:
         """The status of the base station's own host, built in the same process (each period once
@@ -403,48 +352,36 @@ class Coordinator(Deciding):
                     self.first_depletion = {"robot": status.node, "t_virtual": status.t_virtual}
                 self.note(f"{status.node} ran out of energy")
                 self.placing.node_lost(status.node)
-                self._event("robot-leave", robot=status.node, note="depleted")
-                self.replan(f"{status.node} depleted")
+                self.deciding.event("robot-leave", robot=status.node, note="depleted")
+                self.deciding.replan(f"{status.node} depleted")
             return
         if status.node in self._awaiting_actual:
             del self._awaiting_actual[status.node]
             self.placing.adopt_actual(status)
             if not self._awaiting_actual:  # every robot that came back has said what it runs
-                self.replan(f"{status.node} joined (from what the robots report hosting)", after_rejoin=True)
+                self.deciding.replan(f"{status.node} joined (from what the robots report hosting)", after_rejoin=True)
         elif self.mission is not None and status.node in self.present and self.placing.adopt_actual(status, returning=False):
             # A robot that never left our sight may have run a round alone (it took us for gone on
             # a lossy link): its newer instance is adopted, ours released, and the plan says so at
             # once, or its producers would go on feeding ours the inputs it has not seen.
-            self.replan(f"{status.node} runs stages it agreed on without the base station")
+            self.deciding.replan(f"{status.node} runs stages it agreed on without the base station")
         self._check_links(status)
-        self._check_drift(status)
-
-
-
-    def _check_links(self, status: NodeStatus) -> None:
-        """A robot's view of its links: what it reports down may be a cut (`LinkStates` debounces)."""
-        gone = self.links.reported(status.node, status.links, self.alive_nodes(), self.wall())
-        for pair, since in gone:
-            self._link_down(pair, since)
-        if gone:
-            self.replan_soon("link change")
-
+        self.deciding.check_drift(status)
 
     def on_timer(self) -> None:
         now_wall = self.wall()
-        self.take_answer()  # before anything new is asked: one question at a time
-        self.maybe_start()
-        self.ask_ahead()
-        if self.replan_due and not self.decider.busy:
-            reasons, self.replan_due = self.replan_due, []
-            self.replan(", ".join(dict.fromkeys(reasons)))
+        deciding = self.deciding
+        deciding.take_answer()  # before anything new is asked: one question at a time
+        self.takeover.maybe_start()
+        deciding.ask_ahead()
+        deciding.ask_due()
         self.plans.publish_ready(now_wall)
         if self.mission is not None:
             late = [n for n, deadline in self._awaiting_actual.items() if now_wall >= deadline]
             for node in late:
                 del self._awaiting_actual[node]
             if late and not self._awaiting_actual:
-                self.replan(f"{', '.join(late)} joined (no report in time)", after_rejoin=True)
+                deciding.replan(f"{', '.join(late)} joined (no report in time)", after_rejoin=True)
             self._heal_links()
             self._mark_reconfigured()
         self.placing.time_out(now_wall)
@@ -452,24 +389,16 @@ class Coordinator(Deciding):
         if self.mission is None:
             return
         if self.config.auto_replan:
-            self._timed_decisions()
+            deciding.timed_decisions()
         self.plans.republish(now_wall)
 
     def next_deadline_unix(self) -> float:
         """When `on_timer` next has something to do (a base station waiting for robots sleeps)."""
-        deadlines = self.placing.deadlines()
-        if self.replan_due and not self.decider.busy:  # (a question out: its answer wakes the loop)
-            deadlines.append(self.wall())
-        deadlines += self.plans.deadlines()
+        deadlines = self.placing.deadlines() + self.deciding.deadlines() + self.plans.deadlines()
         if self.mission is None:
             deadlines += self.takeover.start_deadlines()
-        # nothing else is timed before the first robot appears: the next event wakes us
-        if self.clock is not None and self.revisit_at_s is not None:
-            deadlines.append(self.clock.wall_at(self.revisit_at_s))
-        # the periodic decision and a rejoined robot's report time are due by the clock too (a loop
-        # at rest no longer wakes every status period to look)
-        if self.mission is not None and self.config.auto_replan and self.next_periodic_replan is not None:
-            deadlines.append(self.clock.wall_at(self.next_periodic_replan))
+        # nothing else is timed before the first robot appears: the next event wakes us;
+        # a rejoined robot's report time is due by the clock too
         deadlines += self._awaiting_actual.values()
         return min(deadlines, default=math.inf)
 
@@ -477,11 +406,11 @@ class Coordinator(Deciding):
         """The mission runs and nothing is under way that only time moves on: no migration, no
         rejoined robot whose report is awaited, no link down (its heal is timed), no fault
         waiting to be reconfigured. The loop may then sleep until an event or `next_deadline_unix`."""
-        return (self.mission is not None and not self.decider.busy and not self.placing.migrations and not self._awaiting_actual
-                and not self.links.down and all(f["reconfigured_unix"] is not None for f in self.faults))
+        return (self.mission is not None and not self.deciding.decider.busy and not self.placing.migrations
+                and not self._awaiting_actual and not self.links.down
+                and all(f["reconfigured_unix"] is not None for f in self.faults))
 
-
-    # ---- operator ---------------------------------------------------------------------------------------------
+    # ---- the other parts' entry points ---------------------------------------------------------------------
     def on_inbox(self, payload: bytes) -> None:
         """An answer to an order, from the base station's inbox (`Placement.on_inbox`; raises ProtocolError for anything else)."""
         self.placing.on_inbox(payload)
@@ -497,11 +426,6 @@ class Coordinator(Deciding):
     def snapshot(self) -> dict[str, Any]:
         """The team as `autopower status` shows it (`OperatorControl.snapshot`)."""
         return self.operating.snapshot()
-
-
-
-
-
 
 
 def _policy_from(config: CoordinatorConfig) -> Policy:

@@ -1,27 +1,32 @@
 """Deciding: what the policy may know, asking it, and turning its answer into the target placement.
+
+`Deciding` owns the decisions: the policy's question and answer (through `decider.Decider`, inline
+or on a thread, and the mission start's question asked ahead), what happened since the last one
+(events), when to ask next (revisits, the periodic decision, reasons due at the next timer), the
+policy's last decision and allocation, the media and network of the plan in force, and the counts
+of questions and answers. The target it derives goes to the placing part (`Placement.set_target`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import dataclass
+from typing import Callable
 
-from autopower.basestation.decider import Answer
-from autopower.errors import AutoPowerError
-from autopower.model.dvfs import apply_levels, best_levels, has_levels
-from autopower.model.energy import evaluate, round_lifetime
+from autopower.basestation.decider import Answer, Decider
+from autopower.model.energy import round_lifetime
 from autopower.model.mission_events import MissionEvent
-from autopower.model.network import Network, describe_media
+from autopower.model.network import Network, describe_media, media_choices
 from autopower.policies import (
     Decision,
+    MigrationCosts,
+    Policy,
+    SchedulePhase,
     TeamState,
     base_media,
     derive_network,
 )
-from autopower.protocol import (
-    NodeStatus,
-)
+from autopower.protocol import NodeStatus
 
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
 
@@ -33,17 +38,71 @@ AHEAD_SLACK_S = 1.0
 STALE_ANSWERS_MAX = 3
 
 
-@dataclass
-class Baseline:
-    """The coordinator's deciding part: team view -> policy -> target placement. Mixed into `Coordinator`, whose state it uses."""
-
-    t_virtual: float
-    battery_j: float
-    predicted_w: float
-
-
 class Deciding:
-    """Deciding: what the policy may know, asking it, and turning its answer into the target placement. (a part of `Coordinator`)."""
+    """The coordinator's deciding part: team view -> policy -> target placement."""
+
+    def __init__(self, team, *, policy: Policy, perf_fn: Callable[[], float],
+                 on_decision_answer: Callable[[], object] | None):
+        """``team``: the `Coordinator` whose view of the team the policy is asked about; the rest as
+        `Coordinator` takes them."""
+        self.team = team
+        scenario, config = team.scenario, team.config
+        self.decider = Decider(policy, perf_fn=perf_fn, on_answer=on_decision_answer)
+        self.topology = config.topology or scenario.network_spec.topology
+        self.migration_costs = MigrationCosts.from_scenario(scenario)
+        self.decision: Decision | None = None  # the policy's last decision (None: nothing decided yet)
+        self.chosen: dict[str, str] = {}  # the policy's allocation, before operator pins
+        self.stage_reasons: dict[str, str] = {}  # stage -> why it runs where it does (the planner's words)
+        self.decision_reasons: tuple[str, ...] = ()  # the newest decision that gave reasons (quiet ones do not)
+        self.schedule: tuple[SchedulePhase, ...] = ()  # the phases the last decision planned after its own
+        self.revisit_at_s: float | None = None  # virtual time the last decision asked to be asked again
+        self._pending_events: list[MissionEvent] = []  # what happened since the policy was last asked
+        # the base media the team uses (group -> medium); decisions may change them unless config.media
+        self.media: dict[str, str] = dict(config.media or media_choices(scenario, self.topology)[0])
+        self.plan_network: Network | None = None
+        self.plan_error: str | None = None
+        # why the last `replan` did not decide though nothing was wrong (robots to report, none in
+        # reach): an operator's command is then noted and carried out by the re-plan that follows
+        self.replan_waiting: str | None = None
+        # link changes since the last timer: one decision at the next timer for all of them (a
+        # fleet under load loses several links within one batch of events, and each decision is
+        # a MILP of the whole team that holds up the loop while statuses pile up)
+        self.replan_due: list[str] = []
+        self.next_periodic_replan: float | None = None
+        self.replans = 0
+        self.asked = 0  # questions put to the policy
+        self._events_asked = 0  # how many of `_pending_events` the question out carries
+        self._ahead_asked = False  # the mission start was asked about ahead (`ask_ahead`)
+        self._asking_ahead = False  # ... and its answer is still out
+        self._ahead_state = None  # the question asked ahead (until the mission start's is asked)
+        self._ahead = None  # ... and its answer, kept for the mission start
+        self._stale_answers = 0  # answers set aside in a row: the team changed while the policy decided
+        self.decisions = 0  # the policy answered (a re-plan that decided, whatever it chose)
+        self.decide_s = 0.0  # wall seconds the policy took over them (`perf_fn`)
+        self.decide_max_s = 0.0
+
+    def decision_pending(self) -> bool:
+        """A question is out, or due at the next timer: the plan in force is not the last word."""
+        return self.decider.busy or bool(self.replan_due)
+
+    def ask_due(self) -> None:
+        """Ask, once for all the reasons given since the last timer, unless a question is out."""
+        if self.replan_due and not self.decider.busy:
+            reasons, self.replan_due = self.replan_due, []
+            self.replan(", ".join(dict.fromkeys(reasons)))
+
+    def deadlines(self) -> list[float]:
+        """When the next question is due: reasons waiting, a revisit asked for, the periodic one."""
+        team = self.team
+        deadlines = []
+        if self.replan_due and not self.decider.busy:  # (a question out: its answer wakes the loop)
+            deadlines.append(team.wall())
+        if team.clock is not None and self.revisit_at_s is not None:
+            deadlines.append(team.clock.wall_at(self.revisit_at_s))
+        # the periodic decision is due by the clock too (a loop at rest does not wake every status period to look)
+        if team.mission is not None and team.config.auto_replan and self.next_periodic_replan is not None:
+            deadlines.append(team.clock.wall_at(self.next_periodic_replan))
+        return deadlines
 
     def cannot_decide(self, error: str) -> None:
         """Nothing can be decided, for this reason (a takeover of a team that runs another scenario)."""
@@ -55,32 +114,32 @@ class Deciding:
 
     def remaining_energies(self) -> dict[str, float]:
         out = {}
-        for robot in self.robots:
-            status = self.statuses.get(robot)
+        for robot in self.team.robots:
+            status = self.team.statuses.get(robot)
             if status is not None and status.battery_j is not None:
                 out[robot] = max(status.battery_j, 1e-6)
             else:
-                out[robot] = self.scenario.robot(robot).energy_j
+                out[robot] = self.team.scenario.robot(robot).energy_j
         return out
 
-    def _unavailable(self, everyone: bool = False) -> frozenset[str]:
+    def unavailable(self, everyone: bool = False) -> frozenset[str]:
         if everyone:
             return frozenset()
-        alive = self.alive_nodes()  # (a set built per call: once, not once per robot)
-        return frozenset(r for r in self.robots if r not in alive)
+        alive = self.team.alive_nodes()  # (a set built per call: once, not once per robot)
+        return frozenset(r for r in self.team.robots if r not in alive)
 
     def _cut_links(self) -> frozenset[frozenset[str]]:
-        return frozenset(self.links_down | self.operating.operator_cuts)
+        return frozenset(self.team.links_down | self.team.operating.operator_cuts)
 
     def network_in_use(self, everyone: bool = False) -> Network:
         """The links the team uses now: the media in use, minus what is down, with the radio faults."""
-        return derive_network(self.scenario, self.topology, self.media, self._cut_links(), dict(self.operating.radio_faults),
-                              self._unavailable(everyone))
+        return derive_network(self.team.scenario, self.topology, self.media, self._cut_links(), dict(self.team.operating.radio_faults),
+                              self.unavailable(everyone))
 
     def _current_allocation(self) -> dict[str, str]:
         """What runs (or is being made to run): the target, where a stage is not on its way somewhere
         else, corrected by where it is confirmed to run (e.g. adopted from a returning robot)."""
-        placing = self.placing
+        placing = self.team.placing
         allocation = dict(placing.target)
         for stage, host in placing.placement.items():
             if stage in allocation and stage not in placing.migrations:
@@ -90,20 +149,20 @@ class Deciding:
     def team_state(self, *, everyone: bool = False) -> TeamState:
         """What the policy may know, from the coordinator's view of the team (see the module docstring).
         ``everyone``: as if every robot of the scenario were in reach (`_ask_ahead`)."""
-        alive = set(self.robots) | {self.base} if everyone else self.alive_nodes()
+        alive = set(self.team.robots) | {self.team.base} if everyone else self.team.alive_nodes()
         energies = self.remaining_energies()
         return TeamState(
-            scenario=self.scenario, time_s=self.now(), network=self.network_in_use(everyone),
+            scenario=self.team.scenario, time_s=self.team.now(), network=self.network_in_use(everyone),
             allocation=self._current_allocation(),
             energies_j={r: e for r, e in energies.items() if r in alive},
-            disabled_chains=frozenset(self.operating.disabled), unavailable_nodes=self._unavailable(everyone),
-            topology=self.topology, cut_links=self._cut_links(), radio_faults=dict(self.operating.radio_faults),
-            media_locked=bool(self.config.media), accounting=self.scenario.accounting,
+            disabled_chains=frozenset(self.team.operating.disabled), unavailable_nodes=self.unavailable(everyone),
+            topology=self.topology, cut_links=self._cut_links(), radio_faults=dict(self.team.operating.radio_faults),
+            media_locked=bool(self.team.config.media), accounting=self.team.scenario.accounting,
             events=tuple(self._pending_events), migration=self.migration_costs, schedule=self.schedule)
 
-    def _event(self, kind: str, **fields) -> None:
+    def event(self, kind: str, **fields) -> None:
         """Something the next decision should hear about (`TeamState.events`)."""
-        self._pending_events.append(MissionEvent(at_s=self.now(), kind=kind, **fields))
+        self._pending_events.append(MissionEvent(at_s=self.team.now(), kind=kind, **fields))
 
     def replan_soon(self, reason: str) -> None:
         """Decide at the next timer (`Coordinator.on_timer`), once for every reason given until then."""
@@ -122,27 +181,28 @@ class Deciding:
         it is now: the same question for the operators waiting for it (`asked` stays).
         """
         self.replan_waiting = None
-        if self.mission is None:
+        if self.team.mission is None:
             return False
         if self.decider.busy:
             if not (self._asking_ahead and self._take_up_ahead_question(reason)):
                 self.replan_due.append(reason)  # `on_timer` asks once the answer out is carried out
             return True
-        if self._awaiting_actual and not after_rejoin:
+        awaiting = self.team.awaiting_reports()
+        if awaiting and not after_rejoin:
             # robots are back and have not said what they run yet: decide once they have
-            waiting = ", ".join(sorted(self._awaiting_actual))
-            self.note(f"decision ({reason}) deferred until {waiting} report")
+            waiting = ", ".join(awaiting)
+            self.team.note(f"decision ({reason}) deferred until {waiting} report")
             self.replan_waiting = f"the re-plan waits until {waiting} report what they run"
             return False
-        if len(self._unavailable()) == len(self.robots):
-            self.note(f"no robot left ({reason}); nothing to run")
+        if len(self.unavailable()) == len(self.team.robots):
+            self.team.note(f"no robot left ({reason}); nothing to run")
             self.replan_waiting = "no robot is in reach of the base station; the re-plan waits until one is back"
-            self.placing.set_target({})
+            self.team.placing.set_target({})
             self.chosen = {}
             self.schedule, self.revisit_at_s = (), None
             self._pending_events.clear()
-            self.placing.reconcile()
-            self.plans.publish_plan()
+            self.team.placing.reconcile()
+            self.team.plans.publish_plan()
             return False
         state = self.team_state()
         self._events_asked = len(self._pending_events)  # the events this question carries
@@ -150,7 +210,7 @@ class Deciding:
             self.asked += 1
         ahead = self._answered_ahead(state)
         if ahead is not None:
-            self.note(f"decision ({reason}) made ahead, before the robots were heard "
+            self.team.note(f"decision ({reason}) made ahead, before the robots were heard "
                       f"({ahead.took_s:.2f} s of policy time off the path to ready)")
             return self._carry_out_answer(dataclasses.replace(ahead, reason=reason))
         self.decider.ask(state, reason)
@@ -165,8 +225,8 @@ class Deciding:
         difference, a robot missing or a battery not full, and the policy is asked again), which
         is exact because a policy's answer is a function of the state it is given. Only when
         deciding on a thread (the simulator and unit tests ask only what they ask)."""
-        if (self.mission is not None or self._ahead_asked or not self.decider.on_thread
-                or self.decider.busy or self.takeover.stepped_down is not None):
+        if (self.team.mission is not None or self._ahead_asked or not self.decider.on_thread
+                or self.decider.busy or self.team.takeover.stepped_down is not None):
             return
         self._ahead_asked = True
         self._asking_ahead = True
@@ -189,7 +249,7 @@ class Deciding:
         self._asking_ahead, self._ahead_state = False, None
         self._events_asked = len(self._pending_events)
         self.asked += 1
-        self.note(f"decision ({reason}) asked ahead, before the robots were heard: its answer is on its way")
+        self.team.note(f"decision ({reason}) asked ahead, before the robots were heard: its answer is on its way")
         return True
 
     def _answered_ahead(self, state: TeamState) -> Answer | None:
@@ -226,7 +286,7 @@ class Deciding:
         if changed is not None and self._stale_answers < STALE_ANSWERS_MAX:
             self._stale_answers += 1
             self.decide_s += answer.took_s  # the policy's time all the same (the question is not answered yet)
-            self.note(f"decision ({answer.reason}) asked again: {changed} changed while the policy decided")
+            self.team.note(f"decision ({answer.reason}) asked again: {changed} changed while the policy decided")
             self.replan(answer.reason, again=True)  # through its checks: e.g. no robot may be left
             return False
         self._stale_answers = 0
@@ -247,16 +307,14 @@ class Deciding:
         self.decisions += 1
         self.decide_s += answer.took_s
         self.decide_max_s = max(self.decide_max_s, answer.took_s)
-        for fault in self.faults:
-            if fault["reconfigured_unix"] is None:
-                fault["decide_s"] += answer.took_s
+        self.team.faults_decided(answer.took_s)
         if answer.failure is not None:
             raise answer.failure  # the policy's bug, raised on the loop as an inline decision would
         if answer.error is not None:
             self.plan_error = str(answer.error)
-            self.note(f"decision ({answer.reason}) found nothing feasible: {answer.error}")
+            self.team.note(f"decision ({answer.reason}) found nothing feasible: {answer.error}")
             return False
-        if self.takeover.stepped_down is not None:
+        if self.team.takeover.stepped_down is not None:
             return False  # another base station leads: its plans, not ours
         self.plan_error = None
         del self._pending_events[:self._events_asked]  # those that came while it decided go with the next
@@ -271,17 +329,17 @@ class Deciding:
         """The policy keeps what runs (as the simulator does: no schedule, no revisit)."""
         self.schedule, self.revisit_at_s = (), None
         # what the policy would run without the pins (where `migrate --auto` goes back to)
-        self.chosen = {s: self.chosen.get(s, h) if s in self.operating.pins else h for s, h in state.allocation.items()}
-        target = self.operating.with_pins(dict(state.allocation), self.alive_nodes())
-        changed = target != self.placing.target or state.network != self.plan_network
-        self.placing.set_target(target)
+        self.chosen = {s: self.chosen.get(s, h) if s in self.team.operating.pins else h for s, h in state.allocation.items()}
+        target = self.team.operating.with_pins(dict(state.allocation), self.team.alive_nodes())
+        changed = target != self.team.placing.target or state.network != self.plan_network
+        self.team.placing.set_target(target)
         self.plan_network = state.network
-        self.note(f"decision ({reason}): policy {self.policy.name} keeps the configuration")
-        self._predict()
+        self.team.note(f"decision ({reason}): policy {self.team.policy.name} keeps the configuration")
+        self.team.prediction.predict()
         if changed:  # e.g. a link is gone from (or back in) the routes, nothing moves
             self.replans += 1  # a new plan all the same: every node takes it up
-            self.placing.reconcile()
-            self.plans.publish_plan()
+            self.team.placing.reconcile()
+            self.team.plans.publish_plan()
 
     def _carry_out(self, decision: Decision, reason: str) -> None:
         """The decision's allocation becomes the target (operator pins win), its network the plan's."""
@@ -289,15 +347,15 @@ class Deciding:
         self.schedule = tuple(decision.schedule)
         at = decision.revisit_at_s
         # without auto_replan nothing is decided by the clock: no revisit (the schedule still travels)
-        self.revisit_at_s = at if self.config.auto_replan and at is not None and at > self.now() + 1e-6 else None
-        if not self.config.media:
+        self.revisit_at_s = at if self.team.config.auto_replan and at is not None and at > self.team.now() + 1e-6 else None
+        if not self.team.config.media:
             self.media.update(base_media(decision.network))
         self.chosen = dict(decision.allocation)
-        target = self.operating.with_pins(dict(decision.allocation), self.alive_nodes())
-        before = self.placing.target
+        target = self.team.operating.with_pins(dict(decision.allocation), self.team.alive_nodes())
+        before = self.team.placing.target
         changed = {s for s in target if before.get(s) != target[s]} | (set(before) - set(target))
         network_changed = decision.network != self.plan_network
-        self.placing.set_target(target)
+        self.team.placing.set_target(target)
         self.plan_network = decision.network
         self.stage_reasons = {s: why for s, why in {**self.stage_reasons, **decision.stage_reasons}.items()
                               if s in target}
@@ -306,103 +364,47 @@ class Deciding:
         if decision.reasons:
             self.decision_reasons = tuple(decision.reasons)
         for line in decision.reasons:
-            self.note(f"decision ({reason}): {line}")
-        planned = round_lifetime(decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
-        self.note(f"plan ({reason}, policy {decision.policy}): predicted lifetime {planned} s, media "
+            self.team.note(f"decision ({reason}): {line}")
+        planned = round_lifetime(decision.predicted_lifetime_s, self.team.scenario.lifetime_rounding_s)
+        self.team.note(f"plan ({reason}, policy {decision.policy}): predicted lifetime {planned} s, media "
                   f"{describe_media(decision.network.media_by_group())}, {len(changed)} stage(s) to place"
                   + (f", dropped {', '.join(decision.dropped)}" if decision.dropped else "")
                   + (f", next decision at t={self.revisit_at_s:.1f}s" if self.revisit_at_s is not None else ""))
-        self._predict()
-        self.placing.reconcile()
-        self.plans.publish_plan()
+        self.team.prediction.predict()
+        self.team.placing.reconcile()
+        self.team.plans.publish_plan()
 
-    def _evaluate(self, allocation: dict[str, str], network: Network | None, energies: dict[str, float],
-                  running: set[str] | None = None, levels: dict[str, str] | None = None):
-        """The model for an allocation on the network of the nodes alive; None if it has no answer.
-
-        ``running``: the chains that run (default: those with a stage in the allocation; given, an
-        empty allocation is a team whose chains are stopped). ``levels``: DVFS levels to price at."""
-        if network is None or (not allocation and running is None):
-            return None
-        active = running if running is not None else {self.chain_of[s].name for s in allocation}
-        scenario = apply_levels(self.scenario, levels) if levels else self.scenario
-        disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
-        try:
-            return evaluate(scenario, network.without_nodes(set(self._unavailable())), allocation,
-                            energies_j=energies, disabled_chains=disabled)
-        except AutoPowerError:
-            return None
-
-    def _predict(self) -> None:
-        ev = self._evaluate(self.placing.target, self.plan_network, self.remaining_energies())
-        ev = self._at_levels(ev)
-        self.predicted_w = {r: p.steady_w for r, p in ev.robots.items()} if ev else {}
-        self.predicted_lifetime_s = ev.lifetime_s if ev else None
-        self.plan_t_virtual = self.now()
-        self._reset_baselines()
-
-    def placement_w(self) -> dict[str, float]:
-        """The model's power per robot for what runs now: the confirmed placement of the chains
-        that run, at the plan's DVFS levels. While stages move this is not the target's
-        prediction, and a robot running a stage until its migration lands is drawing for it: the
-        plan tells each robot this figure, and the robot's status carries it to the recording
-        (replay checks the meter against it). {} when it cannot be evaluated."""
-        placement, target, running = self.placing.placement, self.placing.target, set(self.placing.runs.running)
-        if placement == target and running == {c.name for c in self.scenario.chains
-                                                if any(s.name in target for s in c.stages)}:
-            return dict(self.predicted_w)  # settled: the target's prediction is the placement's
-        allocation = {s: n for s, n in placement.items() if self.chain_of[s].name in running}
-        ev = self._evaluate(allocation, self.plan_network, {}, running=running, levels=self.levels)
-        return {r: p.steady_w for r, p in ev.robots.items()} if ev else {}
-
-    def _at_levels(self, ev):
-        """DVFS: every robot at the cheapest frequency level at which its placement fits (a robot's
-        level changes only its own power, so this is optimal for any policy's placement); the plan
-        carries the levels to the agents and the prediction is made at them."""
-        self.levels = best_levels(self.scenario, ev.utilisation) if ev is not None and has_levels(self.scenario) else {}
-        if not self.levels:
-            return ev
-        return self._evaluate(self.placing.target, self.plan_network, self.remaining_energies(), levels=self.levels)
-
-    def _reset_baselines(self) -> None:
-        self.baselines.clear()  # re-anchored from the next status that reflects the settled plan
-
-    def _check_drift(self, status: NodeStatus) -> None:
-        if not self.config.auto_replan or status.battery_j is None or not self.ready:
+    def check_drift(self, status: NodeStatus) -> None:
+        """A robot's battery off the prediction asks the policy again (`Prediction.drift`)."""
+        team = self.team
+        if not team.config.auto_replan or status.battery_j is None or not team.ready:
             return
-        if not self.runs_plan(status, self.plans.epoch) or status.node not in self.predicted_w:
+        if not team.runs_plan(status, team.plans.epoch):
             return
-        base = self.baselines.get(status.node)
-        if base is None:
-            self.baselines[status.node] = Baseline(status.t_virtual, status.battery_j, self.predicted_w[status.node])
+        drift = team.prediction.drift(status, team.config.drift_min_window_s, team.config.drift_tolerance)
+        if drift is None:
             return
-        elapsed = status.t_virtual - base.t_virtual
-        if elapsed < self.config.drift_min_window_s:
-            return
-        predicted = base.predicted_w * elapsed
-        measured = base.battery_j - status.battery_j
-        if predicted > 0 and abs(measured - predicted) > self.config.drift_tolerance * predicted:
-            self.note(f"{status.node} drew {measured / elapsed:.3f} W, plan said {base.predicted_w:.3f} W")
-            # the battery is off the prediction by this much (negative: emptier than predicted)
-            self._event("energy-offset", robot=status.node, delta_j=predicted - measured)
-            if not self.replan(f"{status.node} battery drift"):
-                self._reset_baselines()
+        team.note(f"{status.node} drew {drift.measured_j / drift.elapsed_s:.3f} W, plan said {drift.predicted_w:.3f} W")
+        # the battery is off the prediction by this much (negative: emptier than predicted)
+        self.event("energy-offset", robot=status.node, delta_j=drift.predicted_j - drift.measured_j)
+        if not self.replan(f"{status.node} battery drift"):
+            team.prediction.reset_baselines()
 
-    def _timed_decisions(self) -> None:
+    def timed_decisions(self) -> None:
         """The decision a schedule asked for at its phase's end, and the periodic one (no events)."""
-        now = self.now()
+        now = self.team.now()
         due_periodic = self.next_periodic_replan is not None and now >= self.next_periodic_replan
         if self.revisit_at_s is not None and now >= self.revisit_at_s:
             self.revisit_at_s = None
-            self.next_periodic_replan = now + self.config.replan_interval_s  # this one counts as it
+            self.next_periodic_replan = now + self.team.config.replan_interval_s  # this one counts as it
             self.replan(f"revisit at t={now:.1f}s, as the last decision asked")
         elif due_periodic:
-            self.next_periodic_replan = now + self.config.replan_interval_s
+            self.next_periodic_replan = now + self.team.config.replan_interval_s
             self.replan("periodic, remaining energies")
 
     def planned_lifetime_s(self) -> float | None:
         """The last decision's predicted lifetime from its time on (rounded as the scenario says)."""
         if self.decision is None:
             return None
-        return round_lifetime(self.decision.predicted_lifetime_s, self.scenario.lifetime_rounding_s)
+        return round_lifetime(self.decision.predicted_lifetime_s, self.team.scenario.lifetime_rounding_s)
 

@@ -88,7 +88,7 @@ class OperatorControl:
                 if cmd.enabled:  # a fresh start for a chain stopped by a failed component
                     for stage in self.team.scenario.chain(cmd.chain).stages:
                         self.failed_stages.pop(stage.name, None)
-                self.team._event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
+                self.team.deciding.event("chain-enable" if cmd.enabled else "chain-disable", chains=(cmd.chain,))
                 what = "enabled" if cmd.enabled else "disabled"
                 return self._replan_for_operator(f"operator {what} {cmd.chain}")
             if isinstance(cmd, MigrateCommand):
@@ -99,7 +99,7 @@ class OperatorControl:
                     return OperatorReply(ok=False, message=f"{cmd.stage} does not run now (chain disabled or dropped)")
                 self.pin(cmd.stage, cmd.to_node)
                 self.team.placing.retarget(cmd.stage, cmd.to_node)
-                self.team._predict()
+                self.team.prediction.predict()
                 self.team.placing.reconcile()
                 self.team.plans.publish_plan()
                 return OperatorReply(ok=True, message=f"{cmd.stage} pinned to {cmd.to_node}")
@@ -137,7 +137,7 @@ class OperatorControl:
     def _clear_pins(self) -> None:
         """Back to what the policy chose (pinned stages migrate back), then the policy is asked again."""
         self.pins.clear()
-        self.team.placing.set_target({s: self.team.chosen.get(s, h) for s, h in self.team.placing.target.items()})
+        self.team.placing.set_target({s: self.team.deciding.chosen.get(s, h) for s, h in self.team.placing.target.items()})
         self.team.placing.reconcile()
 
     def _operator_link(self, cmd: LinkCommand) -> None:
@@ -148,7 +148,7 @@ class OperatorControl:
                 raise AutoPowerError(f"link command: unknown node {node!r}; nodes: {', '.join(nodes)}")
         if cmd.down_peer is not None:
             self.operator_cuts.add(frozenset((cmd.node, cmd.down_peer)))
-            self.team._event("link-cut", a=cmd.node, b=cmd.down_peer, note="operator")
+            self.team.deciding.event("link-cut", a=cmd.node, b=cmd.down_peer, note="operator")
             return
         for medium in (cmd.laptop_robot, cmd.robot_robot):
             if medium is not None and medium not in self.team.scenario.radios:
@@ -159,36 +159,36 @@ class OperatorControl:
                                  "and/or to the robots, or a peer whose link is down")
         before = self.radio_faults.get(cmd.node, (None, None))
         self.radio_faults[cmd.node] = (cmd.laptop_robot or before[0], cmd.robot_robot or before[1])
-        self.team._event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
+        self.team.deciding.event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
                     note="operator")
 
     def _replan_for_operator(self, reason: str) -> OperatorReply | AwaitDecision:
-        queued = self.team.decider.busy  # then the command goes with the question after the one out
-        ok = self.team.replan(reason)
-        if self.team.decider.busy:
-            return AwaitDecision(ticket=self.team.asked + (1 if queued else 0))
+        queued = self.team.deciding.decider.busy  # then the command goes with the question after the one out
+        ok = self.team.deciding.replan(reason)
+        if self.team.deciding.decider.busy:
+            return AwaitDecision(ticket=self.team.deciding.asked + (1 if queued else 0))
         return self._after_replan(ok)
 
     def reply_when_decided(self, waiting: AwaitDecision) -> OperatorReply | None:
         """The reply to a command once its decision is carried out, or once none is coming (the
         re-plan waits for robots); None while it is still to come."""
-        answered = self.team.decisions >= waiting.ticket
-        if not answered and (self.team.decider.busy or self.team.replan_due):
+        answered = self.team.deciding.decisions >= waiting.ticket
+        if not answered and self.team.deciding.decision_pending():
             return None
-        return self._after_replan(answered and self.team.plan_error is None)
+        return self._after_replan(answered and self.team.deciding.plan_error is None)
 
     def _after_replan(self, ok: bool) -> OperatorReply:
         """The reply to a command the team's plan carries out. A re-plan that waits (robots to
         report, none in reach) is no failure: the command is noted, and the re-plan that follows
         carries it out. (It was refused as "re-plan failed: no change", though it then applied.)"""
-        if not ok and self.team.replan_waiting is not None:
-            return OperatorReply(ok=True, message=f"noted; {self.team.replan_waiting}")
+        if not ok and self.team.deciding.replan_waiting is not None:
+            return OperatorReply(ok=True, message=f"noted; {self.team.deciding.replan_waiting}")
         return OperatorReply(ok=ok, message=self._summary(ok))
 
     def _summary(self, ok: bool) -> str:
         if not ok:
-            return f"re-plan failed: {self.team.plan_error or 'nothing feasible'}"
-        planned = self.team.planned_lifetime_s()
+            return f"re-plan failed: {self.team.deciding.plan_error or 'nothing feasible'}"
+        planned = self.team.deciding.planned_lifetime_s()
         return (f"re-planned ({self.team.policy.name}): lifetime {planned} s; target "
                 + ", ".join(f"{s}->{n}" for s, n in self.team.placing.target.items()))
 
@@ -200,7 +200,7 @@ class OperatorControl:
             robots[name] = {
                 "present": name in self.team.present, "departed": name in self.team.departed,
                 "status": status_dict(st) if st else None,
-                "predicted_w": self.team.predicted_w.get(name),
+                "predicted_w": self.team.prediction.predicted_w.get(name),
             }
         return {
             "scenario": self.team.scenario.name,
@@ -220,25 +220,25 @@ class OperatorControl:
             "disabled": sorted(self.disabled),
             "failed_stages": dict(self.failed_stages),
             "pins": dict(self.pins),
-            "media": self.team.plan_network.media_by_group() if self.team.plan_network else None,
-            "links": [[l.a, l.b, l.medium] for l in self.team.plan_network.links] if self.team.plan_network else [],
+            "media": self.team.deciding.plan_network.media_by_group() if self.team.deciding.plan_network else None,
+            "links": [[l.a, l.b, l.medium] for l in self.team.deciding.plan_network.links] if self.team.deciding.plan_network else [],
             "links_down": sorted(sorted(p) for p in self.team.links_down),
             # a plan that runs nothing (no robot left in it) lasts for ever: not a number JSON or msgpack carry
-            "planned_lifetime_s": _finite(self.team.planned_lifetime_s()),
-            "predicted_lifetime_s": _finite(self.team.predicted_lifetime_s),
-            "reasons": dict(self.team.stage_reasons),  # stage -> why it runs there
+            "planned_lifetime_s": _finite(self.team.deciding.planned_lifetime_s()),
+            "predicted_lifetime_s": _finite(self.team.prediction.predicted_lifetime_s),
+            "reasons": dict(self.team.deciding.stage_reasons),  # stage -> why it runs there
             "policy": self.team.policy.name,
-            "decision_reasons": list(self.team.decision_reasons),
+            "decision_reasons": list(self.team.deciding.decision_reasons),
             "schedule": [{"duration_s": p.duration_s, "allocation": dict(p.allocation),
-                          "media": p.network.media_by_group()} for p in self.team.schedule],
-            "revisit_at_s": self.team.revisit_at_s,
-            "plan_error": self.team.plan_error,
+                          "media": p.network.media_by_group()} for p in self.team.deciding.schedule],
+            "revisit_at_s": self.team.deciding.revisit_at_s,
+            "plan_error": self.team.deciding.plan_error,
             "robots": robots,
             "migrations_done": placing.migrations_done,
             "assignments_done": placing.assignments_done,
             "aborted": placing.aborted,
-            "replans": self.team.replans,
-            "decisions": {"count": self.team.decisions, "seconds": self.team.decide_s, "max_s": self.team.decide_max_s},
+            "replans": self.team.deciding.replans,
+            "decisions": {"count": self.team.deciding.decisions, "seconds": self.team.deciding.decide_s, "max_s": self.team.deciding.decide_max_s},
             "downtime_ms": _stats(placing.downtimes_ms),
             "migration_log": list(placing.migration_log),
             "first_depletion": self.team.first_depletion,

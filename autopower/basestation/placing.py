@@ -358,7 +358,7 @@ class Placement:
             self.target[msg.stage] = msg.node
             self.team.note(f"{msg.stage}: migration {msg.node} -> {m.to_node} refused ({why}); it keeps running on "
                       f"{msg.node}, pinned there")
-            self.team._predict()
+            self.team.prediction.predict()
             self.reconcile()
             self.team.plans.publish_plan()
             return
@@ -371,9 +371,9 @@ class Placement:
             return  # about an instance that is gone already
         if not self.team.operating.stage_failed(msg.stage, f"{msg.node}: {why}", chain.name):
             return
-        self.team._event("chain-disable", chains=(chain.name,))
+        self.team.deciding.event("chain-disable", chains=(chain.name,))
         self.team.note(f"{msg.stage} failed on {msg.node} ({why}); chain {chain.name} stopped (enable it to restart)")
-        self.team.replan(f"{msg.stage} failed")
+        self.team.deciding.replan(f"{msg.stage} failed")
 
     def abort(self, stage: str, why: str, *, restart_at_target: bool = False) -> None:
         """Give a migration up: its ends release the stage, which restarts without its state.

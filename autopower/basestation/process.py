@@ -282,7 +282,7 @@ class BaseStation:
         for request in self._awaiting_ready.take_all():
             self._reply_snapshot(request)
         steps.lap("replies")
-        if self.coordinator is not None and not self.coordinator.decider.close(DECISION_CLOSE_WAIT_S):
+        if self.coordinator is not None and not self.coordinator.deciding.decider.close(DECISION_CLOSE_WAIT_S):
             log.warning("base station: stopping while the policy still decides (over %.0f s)", DECISION_CLOSE_WAIT_S)
         steps.lap("decision")
         close_workers = getattr(self.runtime, "close_workers", None)  # the host's stage worker processes

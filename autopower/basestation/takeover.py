@@ -96,11 +96,11 @@ class Takeover:
         team.start_mission(MissionInfo(scenario=team.scenario.name, accounting=team.scenario.accounting,
                                        epoch_unix=team.wall(), speed=team.config.speed,
                                        energies_j=team.scenario.energies_j()))
-        team.replan_periodically_from(team.config.replan_interval_s)
+        team.deciding.replan_periodically_from(team.config.replan_interval_s)
         team.note(f"policy: {team.policy.name}")
         missing = set(team.robots) - team.present
         team.note("mission started" + (f" without {', '.join(sorted(missing))}" if missing else ""))
-        team.replan("mission start")
+        team.deciding.replan("mission start")
 
     def start_deadlines(self) -> list[float]:
         """When the mission may start without waiting any longer (none before the first robot appears)."""
@@ -121,7 +121,7 @@ class Takeover:
         if mission.scenario != team.scenario.name:
             error = (f"the robots run scenario {mission.scenario!r}, this base station "
                      f"{team.scenario.name!r}: start it with the team's scenario")
-            team.cannot_decide(error)
+            team.deciding.cannot_decide(error)
             if not self._foreign_noted:
                 self._foreign_noted = True
                 team.note(error)
@@ -153,7 +153,7 @@ class Takeover:
                 unknown.add(chain.name)
         generation_of = {stage: reports[node].generations.get(stage, 0) for stage, node in placement.items()}
         team.placing.adopt_team(placement, generation_of, waiting, runs, unknown, stale)
-        team.replan_periodically_from(team.now() + team.config.replan_interval_s)
+        team.deciding.replan_periodically_from(team.now() + team.config.replan_interval_s)
         self.adopted_team = {"up_unix": self.listening.up_unix, "adopted_unix": team.wall(),
                              "incarnation": self.incarnation, "from_robots": sorted(reports),
                              "mission_t_s": team.now(), "stages": len(placement),
@@ -167,7 +167,7 @@ class Takeover:
         if kept:
             team.note(f"kept the operator's settings: {'; '.join(kept)}")
         team.note(f"policy: {team.policy.name}")
-        team.replan("took over a running team")
+        team.deciding.replan("took over a running team")
 
     def on_rival_plan(self, plan: PlanUpdate | PlanChange) -> None:
         """A plan on the plan key that another base station made (when the two are connected)."""

@@ -156,10 +156,10 @@ class World:
     def decisions(self) -> dict:
         """How often the base station's policy decided, over all its starts, and the wall time it took."""
         cos = [shell.co for shell in self.base_shells if shell.co is not None]
-        gaps = [co.decider.unproven_max_gap for co in cos if co.decider.unproven_max_gap is not None]
-        return {"count": sum(co.decisions for co in cos), "seconds": round(sum(co.decide_s for co in cos), 4),
-                "max_s": round(max((co.decide_max_s for co in cos), default=0.0), 4),
-                "not_proven": sum(co.decider.unproven for co in cos),
+        gaps = [co.deciding.decider.unproven_max_gap for co in cos if co.deciding.decider.unproven_max_gap is not None]
+        return {"count": sum(co.deciding.decisions for co in cos), "seconds": round(sum(co.deciding.decide_s for co in cos), 4),
+                "max_s": round(max((co.deciding.decide_max_s for co in cos), default=0.0), 4),
+                "not_proven": sum(co.deciding.decider.unproven for co in cos),
                 "not_proven_max_gap": round(max(gaps), 6) if gaps else None}
 
     def clock_for(self, mission) -> VirtualClock:

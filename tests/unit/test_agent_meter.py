@@ -91,7 +91,7 @@ def test_metered_power_matches_the_model(accounting, topology, media, allocation
                                                 auto_replan=False))
     team.join()
     assert team.coordinator.ready and team.coordinator.placing.placement == allocation
-    network = team.coordinator.plan_network
+    network = team.coordinator.deciding.plan_network
     assert network.media_by_group() == media
     ev = evaluate(sc, network, allocation, accounting=accounting)
     assert ev.feasible, ev.violations
@@ -113,7 +113,7 @@ def test_meter_parts_match_the_model_breakdown():
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, topology="relay", media=media, pins=MIXED,
                                                 auto_replan=False))
     team.join()
-    ev = evaluate(sc, team.coordinator.plan_network, MIXED)
+    ev = evaluate(sc, team.coordinator.deciding.plan_network, MIXED)
     assert ev.feasible
     team.run_exchanging_statuses(20.0)
     before = {r: (team.energy(r), dict(team.nodes[r].meter.energy_j))[1] for r in ("r1", "r2", "r3")}

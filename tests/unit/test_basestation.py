@@ -45,8 +45,8 @@ def test_mission_waits_for_every_robot_then_places_the_optimum(sc):
     co = team.coordinator
     assert co.mission is not None and co.ready
     assert co.placing.placement == ALL_LAPTOP  # Fig. 7's best: everything on the laptop over 802.11a
-    assert co.planned_lifetime_s() == 45715.2
-    assert co.decision.policy == "rebalance" and co.snapshot()["policy"] == "rebalance"  # the default
+    assert co.deciding.planned_lifetime_s() == 45715.2
+    assert co.deciding.decision.policy == "rebalance" and co.snapshot()["policy"] == "rebalance"  # the default
     assert set(co.placing.runs.running) == {c.name for c in sc.chains}
     assert all(rt.plan is not None and rt.plan.epoch == co.plans.epoch for rt in team.nodes.values())
 
@@ -86,7 +86,7 @@ def test_a_robot_leaving_drops_its_chains_and_rehosts_what_it_ran(sc):
     assert co.placing.placement["Loc-1"] != "r2" and co.ready  # the pin to a departed robot is ignored
     team.run_until(10.0)
     assert team.nodes["r1"].sinks["Loc-1"].received > 0
-    assert co.replans >= 2
+    assert co.deciding.replans >= 2
 
 
 def test_rejoining_robot_is_planned_again(sc):
@@ -141,7 +141,7 @@ def test_radio_fault_replans_like_the_paper(sc):
     team.run_until(4.0)
     co = team.coordinator
     assert co.placing.placement == {"Loc-1": "laptop", "Loc-2": "laptop", "Loc-3": "r1", "Blob-2": "laptop", "Blob-3": "r3"}
-    assert co.plan_network.medium_between("r3", "laptop") == "gsm"
+    assert co.deciding.plan_network.medium_between("r3", "laptop") == "gsm"
     assert team.nodes["r3"].meter.media == frozenset({"gsm", "bluetooth"})
 
 
@@ -156,7 +156,7 @@ def test_reported_link_down_replans_around_it(sc):
     team.report_status()
     co = team.coordinator
     assert co.links_down == {frozenset({"r2", "laptop"})}
-    assert not co.plan_network.reachable("r2", "laptop") or co.plan_network.medium_between("r2", "laptop") is None
+    assert not co.deciding.plan_network.reachable("r2", "laptop") or co.deciding.plan_network.medium_between("r2", "laptop") is None
     team.run_until(co.now() + 4.0)
     assert team.nodes["laptop"].sinks["Blob-2"].received > 0  # now relayed by another robot
     assert team.nodes["r1"].counters.get("forwarded", 0) + team.nodes["r3"].counters.get("forwarded", 0) > 0
@@ -175,7 +175,7 @@ def test_battery_drift_triggers_a_replan(sc):
     team.join()
     team.run_until(2.0)
     team.report_status()
-    assert team.coordinator.baselines
+    assert team.coordinator.prediction.baselines
     team.run_until(20.0)
     team.nodes["r1"].meter._add("cpu_idle", 50.0)  # r1 burns far more than planned
     team.report_status()
@@ -198,9 +198,9 @@ def test_periodic_replan_with_uneven_batteries_moves_work_off_the_weak_robot():
     assert co.placing.target != first and co.ready
     # The coordinator no longer has its own 1 % threshold: it moved because the policy's hysteresis
     # (rebalance: gain > 0.1 % + 10 s, migrations paid) says the move is worth it.
-    decision = co.decision
+    decision = co.deciding.decision
     assert decision.time_s >= 20.0 and not decision.forced and decision.moves
-    kept = evaluate(sc, co.plan_network, first, energies_j=co.remaining_energies())
+    kept = evaluate(sc, co.deciding.plan_network, first, energies_j=co.deciding.remaining_energies())
     assert decision.predicted_lifetime_s > kept.lifetime_s * 1.001 + 10.0
     assert any("periodic" in e for e in co.events)
 
@@ -293,23 +293,23 @@ def test_cut_base_link_replans_at_once_and_heals_with_hysteresis(sc):
     co.link_lost("laptop", "r1", detected_unix=team.clock.wall())
     co.on_timer()  # the loop's next timer decides, once for every link change of the batch
     assert co.links_down == {frozenset({"laptop", "r1"})}
-    assert co.plan_network.medium_between("r1", "laptop") is None
+    assert co.deciding.plan_network.medium_between("r1", "laptop") is None
     assert co.faults[-1]["kind"] == "link-down" and co.faults[-1]["target"] == "laptop-r1"
     team.pump()  # the new plan reaches the robots
     team.report_status()  # ...which run it
     co.on_timer()
     assert co.faults[-1]["reconfigured_unix"] is not None
     # the policy's time for the decision that handled it, apart from the rest of the handling
-    assert co.faults[-1]["decide_s"] > 0 and co.faults[-1]["decide_s"] <= co.decide_s
+    assert co.faults[-1]["decide_s"] > 0 and co.faults[-1]["decide_s"] <= co.deciding.decide_s
     decided = co.faults[-1]["decide_s"]
-    co.replan("periodic, remaining energies")  # after the fault was handled: not its time
+    co.deciding.replan("periodic, remaining energies")  # after the fault was handled: not its time
     assert co.faults[-1]["decide_s"] == decided
     co.link_seen("laptop", "r1")
     co.on_timer()
     assert co.links_down  # not yet: the link must stay up for heal_hold_s
     team.clock.advance(co.config.heal_hold_s + 0.1)
     co.on_timer()
-    assert not co.links_down and co.plan_network.medium_between("r1", "laptop") is not None
+    assert not co.links_down and co.deciding.plan_network.medium_between("r1", "laptop") is not None
     # nothing moved either way: the relayed plan stays (the policy's hysteresis, no longer a
     # coordinator threshold, found no move worth it) and the link is simply back in the routes
     assert co.placing.placement == placement and co.placing.migrations_done == 0
@@ -414,7 +414,7 @@ def test_a_command_while_no_robot_is_in_reach_is_noted_and_carried_out_when_they
     team.report_status()
     team.run_until(co.now() + 6.0)
     assert "Blob-2" not in co.placing.target
-    assert co.placing.placement["Loc-3"] == "r1" and co.plan_network.medium_between("r3", "laptop") == "gsm"
+    assert co.placing.placement["Loc-3"] == "r1" and co.deciding.plan_network.medium_between("r3", "laptop") == "gsm"
 
 
 def test_a_fleets_start_publishes_a_plan_per_wave_of_ready_stages_not_one_per_stage():
@@ -472,7 +472,7 @@ def test_link_changes_within_one_batch_of_events_make_one_decision(sc):
     co.on_timer()
     cut = {frozenset({"laptop", r}) for r in ("r1", "r2", "r3")}
     assert len(asked) == 1 and asked[0].cut_links == cut
-    assert co.links_down == cut and all(co.plan_network.medium_between(r, "laptop") is None for r in ("r1", "r2", "r3"))
+    assert co.links_down == cut and all(co.deciding.plan_network.medium_between(r, "laptop") is None for r in ("r1", "r2", "r3"))
 
 
 def test_a_snapshot_shows_each_status_as_a_round_trip_through_the_wire_would(sc):

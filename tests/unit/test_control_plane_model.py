@@ -148,7 +148,7 @@ def test_a_team_whose_scenario_charges_it_plans_with_it_and_meters_against_the_r
     team.join()
     team.run_exchanging_statuses(10.0)
     coordinator = team.coordinator
-    assert coordinator.predicted_lifetime_s == pytest.approx(expected.lifetime_s, rel=1e-9)
+    assert coordinator.prediction.predicted_lifetime_s == pytest.approx(expected.lifetime_s, rel=1e-9)
     for robot, rp in expected.robots.items():
         told = team.nodes[robot].plan.predicted_w[robot]
         assert rp.control_w > 0 and told == pytest.approx(rp.steady_w, rel=1e-9)

@@ -61,7 +61,7 @@ def jump_to(team: SimTeam, t: float) -> None:
     for robot in co.robots:
         meter = team.nodes[robot].meter
         meter.advance(t)  # idle CPU and sleeping radios; the runs the model counts are topped up
-        meter._add("cpu_idle", used[robot] + co.predicted_w[robot] * elapsed - meter.consumed_j)
+        meter._add("cpu_idle", used[robot] + co.prediction.predicted_w[robot] * elapsed - meter.consumed_j)
     team.report_status()
 
 
@@ -87,7 +87,7 @@ def test_operator_radio_fault_gives_the_simulators_and_the_papers_reallocation(n
     assert state.time_s == pytest.approx(3600.0) and state.allocation == ALL_LAPTOP
     # the coordinator carried out exactly what the policy decided for that state
     assert decision.forced and dict(decision.allocation) == PAPER_VC
-    assert co.placing.target == dict(decision.allocation) and co.plan_network == decision.network
+    assert co.placing.target == dict(decision.allocation) and co.deciding.plan_network == decision.network
     assert co.placing.placement == PAPER_VC and co.ready
     again = make_policy(name).decide(state)  # a pure function of the state
     assert dict(again.allocation) == dict(decision.allocation) and again.network == decision.network
@@ -121,7 +121,7 @@ def test_battery_drift_reaches_the_policy_as_an_energy_offset():
     co = team.coordinator
     team.run_until(2.0)
     team.report_status()  # anchors the prediction
-    anchor = {r: co.baselines[r] for r in co.robots}
+    anchor = {r: co.prediction.baselines[r] for r in co.robots}
     team.run_until(20.0)
     team.nodes["r1"].meter._add("cpu_idle", 50.0)  # r1 burns far more than planned
     team.report_status()
@@ -139,16 +139,16 @@ def test_battery_drift_reaches_the_policy_as_an_energy_offset():
 def test_rebalance_follows_the_schedule_and_switches_phase_at_the_revisit_time():
     team = team_with("rebalance", topology="relay", replan_interval_s=NEVER)
     co = team.coordinator
-    first = co.decision
+    first = co.deciding.decision
     assert co.placing.placement == ALL_LAPTOP and len(first.schedule) == 1  # Fig. 7, relay: two phases
-    assert co.revisit_at_s == pytest.approx(first.revisit_at_s) == pytest.approx(32737.9, abs=1.0)
+    assert co.deciding.revisit_at_s == pytest.approx(first.revisit_at_s) == pytest.approx(32737.9, abs=1.0)
     snap = co.snapshot()
-    assert snap["policy"] == "rebalance" and snap["revisit_at_s"] == co.revisit_at_s
+    assert snap["policy"] == "rebalance" and snap["revisit_at_s"] == co.deciding.revisit_at_s
     assert snap["schedule"][0]["allocation"] == dict(first.schedule[0].allocation)
-    assert co.next_deadline_unix() <= team.clock.wall_at(co.revisit_at_s)
+    assert co.next_deadline_unix() <= team.clock.wall_at(co.deciding.revisit_at_s)
     next_phase = first.schedule[0]
 
-    jump_to(team, co.revisit_at_s - 60.0)
+    jump_to(team, co.deciding.revisit_at_s - 60.0)
     co.on_timer()
     team.pump()
     assert co.placing.placement == ALL_LAPTOP and co.placing.migrations_done == 0  # not yet
@@ -156,22 +156,22 @@ def test_rebalance_follows_the_schedule_and_switches_phase_at_the_revisit_time()
     jump_to(team, first.revisit_at_s + 0.5)
     co.on_timer()
     team.pump()
-    decision = co.decision
+    decision = co.deciding.decision
     assert decision.time_s == pytest.approx(first.revisit_at_s + 0.5)
     assert dict(decision.allocation) == dict(next_phase.allocation) != ALL_LAPTOP
-    assert decision.network == next_phase.network and co.plan_network.medium_between("r1", "r2") == "bluetooth"
+    assert decision.network == next_phase.network and co.deciding.plan_network.medium_between("r1", "r2") == "bluetooth"
     moved = {s for s in ALL_LAPTOP if next_phase.allocation[s] != "laptop"}
     assert co.placing.placement == dict(next_phase.allocation) and co.placing.migrations_done == len(moved) > 0
     assert {m["stage"] for m in co.placing.migration_log} == moved
-    assert co.revisit_at_s is None  # the last phase runs until the end
+    assert co.deciding.revisit_at_s is None  # the last phase runs until the end
     assert any("revisit" in e for e in co.events)
 
 
 def test_no_replan_means_no_schedule_driven_moves():
     team = team_with("rebalance", topology="relay", auto_replan=False)
     co = team.coordinator
-    assert len(co.schedule) == 1 and co.revisit_at_s is None  # planned, but the clock decides nothing
-    jump_to(team, co.decision.revisit_at_s + 1.0)
+    assert len(co.deciding.schedule) == 1 and co.deciding.revisit_at_s is None  # planned, but the clock decides nothing
+    jump_to(team, co.deciding.decision.revisit_at_s + 1.0)
     co.on_timer()
     team.pump()
     assert co.placing.placement == ALL_LAPTOP and co.placing.migrations_done == 0
@@ -195,10 +195,10 @@ def test_static_never_moves_by_choice_while_rebalance_does(name, moves):
     assert co.ready
     if moves:
         assert co.placing.placement != start and co.placing.migrations_done > 0
-        assert co.decision.policy == "rebalance" and not co.decision.forced
+        assert co.deciding.decision.policy == "rebalance" and not co.deciding.decision.forced
     else:
         assert co.placing.placement == start and co.placing.migrations_done == 0
-        assert co.decision.time_s == 0.0  # only the start decided anything
+        assert co.deciding.decision.time_s == 0.0  # only the start decided anything
         assert any("policy static keeps the configuration" in e for e in co.events)
 
 
@@ -235,7 +235,7 @@ def test_after_a_heal_components_move_back_only_past_the_policys_gain_threshold(
     (during, migrated) = cut_and_heal(team)
     assert during != ALL_LAPTOP and migrated > 0
     assert co.placing.placement == during and co.placing.migrations_done + co.placing.aborted + co.placing.assignments_done == migrated
-    assert co.plan_network.medium_between("laptop", "r1") is not None  # the link is in the routes again
+    assert co.deciding.plan_network.medium_between("laptop", "r1") is not None  # the link is in the routes again
     assert any("links back" in e and "keeps the configuration" in e for e in co.events)
 
 

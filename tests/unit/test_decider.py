@@ -90,21 +90,21 @@ def test_the_coordinator_goes_on_while_the_policy_decides_and_carries_the_answer
     co = team.coordinator
     team.join()
     # the mission started and the question is out: nothing is decided, nothing placed, and the loop goes on
-    assert co.mission is not None and co.decider.busy and co.asked == 1 and co.decisions == 0
+    assert co.mission is not None and co.deciding.decider.busy and co.deciding.asked == 1 and co.deciding.decisions == 0
     assert co.placing.target == {} and not co.ready
     team.report_status()  # statuses are taken while the policy decides
     assert all(robot in co.statuses for robot in co.robots)
     assert not co.idle()  # a loop at rest would not wake for the answer's timers
 
     answer_next(policy, answers, 1, team)  # the loop's timer carries the answer out
-    assert co.decisions == 1 and not co.decider.busy and co.placing.target and co.ready
+    assert co.deciding.decisions == 1 and not co.deciding.decider.busy and co.placing.target and co.ready
     assert policy.threads == {"autopower-decide"}  # decided off the caller's thread
 
 
 def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_is_set_aside():
     policy, team, answers = started_team()
     co = team.coordinator
-    assert co.ready and co.asked == 1
+    assert co.ready and co.deciding.asked == 1
     ready_target = dict(co.placing.target)
 
     # an operator's radio change: the reply waits for the decision that carries it out
@@ -114,12 +114,12 @@ def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_
     # while that question is out, the operator disables a chain: it waits for the question after
     later = co.on_operator(ChainCommand(chain="Blob-2", enabled=False))
     assert isinstance(later, AwaitDecision) and later.ticket == 3
-    assert co.asked == 2 and co.replan_due  # queued, not asked: one question at a time
+    assert co.deciding.asked == 2 and co.deciding.replan_due  # queued, not asked: one question at a time
 
     answer_next(policy, answers, 2, team)  # answer 2 is about a team that still ran Blob-2: set aside, question 2 asked again
     asked_about = policy.states[1]
     assert [e.kind for e in asked_about.events] == ["radio-fault"] and "Blob-2" not in asked_about.disabled_chains
-    assert co.asked == 2 and co.decisions == 1 and co.decider.busy and co.placing.target == ready_target
+    assert co.deciding.asked == 2 and co.deciding.decisions == 1 and co.deciding.decider.busy and co.placing.target == ready_target
     assert co.reply_when_decided(waiting) is None
     assert any("asked again: the chains that run changed" in line for line in co.events)
 
@@ -129,13 +129,13 @@ def test_what_happens_while_it_decides_is_asked_about_and_an_answer_it_outdates_
     reply = co.reply_when_decided(waiting)
     assert reply is not None and reply.ok, reply
     assert not any(s.startswith("Blob-2") for s in co.placing.target)
-    assert co.asked == 3 and co.decider.busy and co.reply_when_decided(later) is None
+    assert co.deciding.asked == 3 and co.deciding.decider.busy and co.reply_when_decided(later) is None
 
     answer_next(policy, answers, 4, team)
     reply = co.reply_when_decided(later)
     assert reply is not None and reply.ok, reply
     assert policy.states[3].events == ()  # each event told once
-    assert co.ready and not co.decider.busy and co.asked == co.decisions == 3
+    assert co.ready and not co.deciding.decider.busy and co.deciding.asked == co.deciding.decisions == 3
 
 
 def test_a_team_that_changes_faster_than_the_policy_decides_still_gets_a_plan():
@@ -143,14 +143,14 @@ def test_a_team_that_changes_faster_than_the_policy_decides_still_gets_a_plan():
 
     policy, team, answers = started_team()
     co = team.coordinator
-    co.replan("test")
+    co.deciding.replan("test")
     for i in range(STALE_ANSWERS_MAX + 1):
         # each answer's team is gone before it is in: Blob-2 switched while the policy decides
         co.on_operator(ChainCommand(chain="Blob-2", enabled=i % 2 == 1))
         answer_next(policy, answers, 2 + i, team)
     set_aside = [line for line in co.events if "asked again" in line]
     assert len(set_aside) == STALE_ANSWERS_MAX  # then the answer is carried out all the same
-    assert co.decisions >= 2 and co.plan_error is None
+    assert co.deciding.decisions >= 2 and co.deciding.plan_error is None
 
 
 def test_a_question_asked_again_after_every_robot_left_is_not_put_to_the_policy():
@@ -160,7 +160,7 @@ def test_a_question_asked_again_after_every_robot_left_is_not_put_to_the_policy(
     policy, team, answers = started_team()
     co = team.coordinator
     team.leave("r1")  # asked about
-    assert co.decider.busy and co.asked == 2
+    assert co.deciding.decider.busy and co.deciding.asked == 2
     team.leave("r2")
     team.leave("r3")
     answer_next(policy, answers, 2, team)
@@ -179,7 +179,7 @@ def test_a_fault_is_not_handled_by_the_plan_from_before_its_decision():
     team.report_status()
     before = co.plans.epoch
     team.leave("r1")
-    assert co.decider.busy and co.ready  # the old plan is in force, and every robot in reach runs it
+    assert co.deciding.decider.busy and co.ready  # the old plan is in force, and every robot in reach runs it
     team.report_status()
     co.on_timer()
     fault = co.faults[-1]
@@ -197,9 +197,9 @@ def test_a_policy_that_fails_on_its_thread_fails_on_the_loop_and_the_next_questi
     with pytest.raises(ValueError, match="a bug in the policy"):  # as an inline decision would raise
         team.join()
         answer_next(policy, answers, 1, team)
-    assert co.decisions == 1 and not co.decider.busy and co.placing.target == {}
+    assert co.deciding.decisions == 1 and not co.deciding.decider.busy and co.placing.target == {}
     policy.fail_with = None
-    co.replan("again")
+    co.deciding.replan("again")
     answer_next(policy, answers, 2, team)
     assert co.ready
 
@@ -208,9 +208,9 @@ def test_inline_decisions_are_carried_out_before_replan_returns():
     team = SimTeam(FIG7, config=CoordinatorConfig(speed=1.0, policy="rebalance", replan_interval_s=1e12))
     co = team.coordinator
     team.join()
-    assert co.ready and co.asked == co.decisions == 1 and not co.decider.on_thread
+    assert co.ready and co.deciding.asked == co.deciding.decisions == 1 and not co.deciding.decider.on_thread
     reply = co.on_operator(ChainCommand(chain="Blob-2", enabled=False))
-    assert not isinstance(reply, AwaitDecision) and reply.ok and co.decisions == 2
+    assert not isinstance(reply, AwaitDecision) and reply.ok and co.deciding.decisions == 2
 
 
 # ---- the mission start, asked ahead ----------------------------------------------------------------------
@@ -221,14 +221,14 @@ def test_the_mission_start_asked_ahead_is_carried_out_at_once_when_the_team_is_a
     team, answers = threaded_team(policy)
     co = team.coordinator
     co.on_timer()  # the base station is up; no robot seen yet
-    assert co.decider.busy and co.mission is None and co.asked == 0
+    assert co.deciding.decider.busy and co.mission is None and co.deciding.asked == 0
     policy.gate.release()
     answers.wait_for(1)
     co.on_timer()
-    assert co.decisions == 0 and co.placing.target == {}  # kept, not carried out: there is no mission
+    assert co.deciding.decisions == 0 and co.placing.target == {}  # kept, not carried out: there is no mission
     team.join()  # every robot, every battery full: the question asked ahead
     assert len(policy.states) == 1  # the policy was not asked again
-    assert co.decisions == co.asked == 1 and co.placing.target and co.ready
+    assert co.deciding.decisions == co.deciding.asked == 1 and co.placing.target and co.ready
     assert any("made ahead" in line for line in co.events)
     assert policy.states[0].time_s == 0.0 and policy.states[0].unavailable_nodes == frozenset()
 
@@ -244,10 +244,10 @@ def test_a_start_unlike_the_one_asked_ahead_is_asked_again():
     policy.gate.release()
     answers.wait_for(1)
     team.join(["r1", "r2"])  # r3 never comes: the mission starts without it
-    assert co.mission is not None and co.decider.busy and co.asked == 1
+    assert co.mission is not None and co.deciding.decider.busy and co.deciding.asked == 1
     answer_next(policy, answers, 2, team)
     assert [s.unavailable_nodes for s in policy.states] == [frozenset(), frozenset({"r3"})]
-    assert co.decisions == 1 and "r3" not in co.placing.target.values() and co.ready
+    assert co.deciding.decisions == 1 and "r3" not in co.placing.target.values() and co.ready
 
 
 def test_a_mission_that_starts_while_its_question_is_asked_ahead_takes_its_answer_and_asks_nothing_more():
@@ -256,9 +256,9 @@ def test_a_mission_that_starts_while_its_question_is_asked_ahead_takes_its_answe
     co = team.coordinator
     co.on_timer()
     team.join()  # the start's question is the one asked ahead: its answer will be the start's
-    assert co.mission is not None and co.asked == 1 and co.replan_due == [] and co.decider.busy
+    assert co.mission is not None and co.deciding.asked == 1 and co.deciding.replan_due == [] and co.deciding.decider.busy
     answer_next(policy, answers, 1, team)
-    assert len(policy.states) == 1 and co.decisions == co.asked == 1 and co.ready
+    assert len(policy.states) == 1 and co.deciding.decisions == co.deciding.asked == 1 and co.ready
 
 
 # ---- the base station's process: its loop goes on while the policy decides ----------------------------
@@ -301,13 +301,13 @@ def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_poli
         loop.start()
         try:
             co = base.coordinator
-            wait_until(lambda: co.decider.busy, "the mission start asked ahead")  # before any robot is seen
+            wait_until(lambda: co.deciding.decider.busy, "the mission start asked ahead")  # before any robot is seen
             assert co.mission is None
             for name, rt in robots.items():
                 hub.bus(name).declare_token(keys.alive(name))
                 hub.bus(name).publish(keys.status(name), encode(rt.status(0.0)))
             wait_until(lambda: co.mission is not None, "the mission started")
-            assert co.decider.busy and co.asked == 1  # its question is the one asked ahead
+            assert co.deciding.decider.busy and co.deciding.asked == 1  # its question is the one asked ahead
 
             before = len(heartbeats)
             time.sleep(3 * config.status_period_s)  # the policy is held: the loop is not
@@ -320,11 +320,11 @@ def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_poli
             policy.gate.release()  # the start's answer: about a team with Blob-2, set aside, asked again
             wait_until(lambda: noted(co, "asked again: the chains that run changed"), "the start asked again")
             policy.gate.release()  # the start, asked again with Blob-2 off; then the command's question
-            wait_until(lambda: co.decisions == 1 and co.asked == 2, "the command's question asked")
+            wait_until(lambda: co.deciding.decisions == 1 and co.deciding.asked == 2, "the command's question asked")
             assert co.placing.target and first.replies == []
             policy.gate.release()
             wait_until(lambda: first.closed, "the reply to the command")
-            assert len(first.replies) == 1 and co.decisions == 2
+            assert len(first.replies) == 1 and co.deciding.decisions == 2
             reply = decode(first.replies[0], OperatorReply)
             assert reply.ok and reply.message.startswith("re-planned"), reply.message
             assert co.placing.target and not any(stage.startswith("Blob-2") for stage in co.placing.target)
@@ -332,7 +332,7 @@ def test_the_base_station_keeps_its_heartbeat_and_its_queue_going_while_the_poli
 
             second = FakeRequest(keys.operator, encode(ChainCommand(chain="Blob-2", enabled=True)))
             base.events.on_request(second)
-            wait_until(lambda: co.asked == 3, "the second command's question asked")
+            wait_until(lambda: co.deciding.asked == 3, "the second command's question asked")
         finally:
             base.request_stop("test")
             loop.join(WAIT_S)

@@ -91,13 +91,13 @@ def test_levels_follow_the_placement_at_run_time():
     team.run_until(10.0)
     assert coord.placing.placement["Loc-1"] == "r1"
     # Loc-1 is 42.5 % of r1 at 400 MHz: 200 MHz (85 %) fits, 100 MHz (170 %) does not
-    assert coord.levels["r1"] == "200MHz" and r1.meter.level == "200MHz" and r1.meter.latency_factor == 2.0
-    assert coord.plan_network is not None and team.nodes["r2"].meter.level == "100MHz"
+    assert coord.prediction.levels["r1"] == "200MHz" and r1.meter.level == "200MHz" and r1.meter.latency_factor == 2.0
+    assert coord.deciding.plan_network is not None and team.nodes["r2"].meter.level == "100MHz"
     t0 = 20.0
     team.run_until(t0)
     e0 = team.energy("r1")
     team.run_until(t0 + 60.0)
-    ev = evaluate(apply_levels(DVFS, coord.levels), coord.plan_network, coord.placing.placement)
+    ev = evaluate(apply_levels(DVFS, coord.prediction.levels), coord.deciding.plan_network, coord.placing.placement)
     assert (team.energy("r1") - e0) / 60.0 == pytest.approx(ev.robots["r1"].total_w, rel=2e-3)
 
 

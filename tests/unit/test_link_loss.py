@@ -255,7 +255,7 @@ def test_a_team_on_lossy_links_meters_what_the_model_says():
                                                 auto_replan=False))
     team.join()
     assert team.coordinator.placing.placement == LAPTOP
-    network = team.coordinator.plan_network
+    network = team.coordinator.deciding.plan_network
     ev, clean = evaluate(sc, network, LAPTOP), evaluate(FIG7, network, LAPTOP)
     t0, t1 = 10.0, 110.0
     team.run_exchanging_statuses(t0)  # with the acknowledgements that free each robot's custody

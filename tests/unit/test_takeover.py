@@ -69,8 +69,8 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
     # (nobody reports it: here it is cut off, in a real crash it is gone) restart as a new run
     assert new.placing.runs.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 1, "Loc-3": 1, "Blob-2": 1}
     for robot in ROBOTS:  # the policy starts from the batteries as measured, not the scenario's
-        assert new.remaining_energies()[robot] == pytest.approx(team.nodes[robot].meter.battery_j)
-        assert new.remaining_energies()[robot] < sc.robot(robot).energy_j
+        assert new.deciding.remaining_energies()[robot] == pytest.approx(team.nodes[robot].meter.battery_j)
+        assert new.deciding.remaining_energies()[robot] < sc.robot(robot).energy_j
     team.pump()
     team.report_status()
     team.run_until(80.0)

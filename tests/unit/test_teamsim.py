@@ -422,7 +422,7 @@ def run_watched(monkeypatch, cfg: SimConfig) -> tuple:
     checks = sim_team.World.final_checks
 
     def counting(world) -> None:
-        seen["replans"] = world.shells[SC.basestation].co.replans
+        seen["replans"] = world.shells[SC.basestation].co.deciding.replans
         seen["suspicions"] = {n: s.rt.counters.get("silent-peers", 0) for n, s in world.shells.items()
                               if n != SC.basestation}
         seen["tokens_lost"] = {n: s.rt.counters.get("tokens-lost", 0) for n, s in world.shells.items()

@@ -65,15 +65,15 @@ def test_a_team_runs_the_chosen_variants_at_the_planned_levels_and_meters_them()
     assert coord.ready and coord.placing.placement == LOCAL
     assert {k: coord.variants[k] for k in chosen} == chosen
     # r1 hosts only Loc-1 at 300 particles: 0.29 / 2 = 14.5 % at 400 MHz, 58 % at 100 MHz
-    assert coord.levels["r1"] == "100MHz"
+    assert coord.prediction.levels["r1"] == "100MHz"
     r1, r2 = team.nodes["r1"], team.nodes["r2"]
     team.run_until(10.0)
     assert r1.meter.level == "100MHz" and r1.meter.latency_factor == 4.0
     assert r1.hosted["Loc-1"].component.n_particles == 300
     assert r2.sources["Blob-2"].chain.period_s == 0.5
     assert r2.sources["Blob-2"].source.every_nth == 2
-    applied = apply_levels(apply_variants(sc, coord.variants), coord.levels)
-    ev = evaluate(applied, coord.plan_network, LOCAL)
+    applied = apply_levels(apply_variants(sc, coord.variants), coord.prediction.levels)
+    ev = evaluate(applied, coord.deciding.plan_network, LOCAL)
     assert ev.feasible
     start = {r: team.energy(r) for r in ("r1", "r2", "r3")}
     team.run_until(70.0)
