@@ -44,14 +44,13 @@ from typing import Any, Callable
 
 from autopower.basestation.decider import AwaitDecision
 from autopower.basestation.deciding import Deciding
-from autopower.basestation.links import LinkStates, pair_name
+from autopower.basestation.faults import TeamFaults
 from autopower.basestation.operating import OperatorControl
 from autopower.basestation.placing import Placement
 from autopower.basestation.prediction import Prediction
 from autopower.basestation.publishing import PlanPublisher
 from autopower.basestation.takeover import Takeover
 from autopower.errors import AutoPowerError
-from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
 from autopower.model.variants import apply_variants
 from autopower.planner.plan_choices import mission_variants
@@ -149,7 +148,7 @@ class Coordinator:
         self.wall = wall_fn
         self.base = scenario.basestation
         self.robots = [r.name for r in scenario.robots]
-        self._robot_names = frozenset(self.robots)  # (asked for every robot at every turn of a fleet)
+        self.robot_names = frozenset(self.robots)  # (asked for every robot at every turn of a fleet)
         self.chain_of = {s.name: c for c in scenario.chains for s in c.stages}
         # what the policy is asked and when, its answers, the plan's network
         self.deciding = Deciding(self, policy=self.policy, perf_fn=perf_fn, on_decision_answer=on_decision_answer)
@@ -162,9 +161,7 @@ class Coordinator:
         self.statuses: dict[str, NodeStatus] = {}
         # the target and confirmed placements, the migrations between them, the chains' runs
         self.placing = Placement(self)
-        topology = build_network(scenario, topology=config.topology)
-        self.links = LinkStates({frozenset((l.a, l.b)) for l in topology.links},
-                                down_after_s=config.link_down_after_s, heal_hold_s=config.heal_hold_s)
+        self.faults = TeamFaults(self)  # the links' states, and the faults until a plan handles them
         self.prediction = Prediction(self)  # what the plan in force draws, by the model; battery baselines
         # starting the mission, or adopting the one the robots run; which base station this is
         self.takeover = Takeover(self, leader=leader, incarnation=incarnation, up_unix=self.wall(),
@@ -173,8 +170,6 @@ class Coordinator:
         self.plans = PlanPublisher(self)  # the plans' epoch and when they go out
         self.events: deque[str] = deque(maxlen=50)
         self.first_depletion: dict[str, float] | None = None
-        # faults as the base station saw them: detection and when the team ran its new plan
-        self.faults: deque[dict] = deque(maxlen=100)
         # robots back after an absence: their report of what they host (a subgroup may have
         # reallocated without us) is the starting point, not our stale placement
         self._awaiting_actual: dict[str, float] = {}
@@ -210,78 +205,6 @@ class Coordinator:
         return (self.mission is not None and not placing.migrations and self.deciding.plan_network is not None
                 and all(placing.placement.get(s) == n for s, n in placing.target.items()))
 
-    # ---- faults -------------------------------------------------------------------------------------
-    def record_fault(self, kind: str, target: str, detected_unix: float) -> None:
-        # decide_s: the policy's wall time in the decisions made while the fault waited to be handled
-        # (the base station's loop waits for it: at 20 robots, on a loaded machine, most of the time)
-        self.faults.append({"kind": kind, "target": target, "detected_unix": detected_unix,
-                            "decide_s": 0.0, "epoch": None, "reconfigured_unix": None})
-
-    def faults_decided(self, took_s: float) -> None:
-        """The policy took ``took_s`` over a decision: charged to every fault still waiting to be handled."""
-        for fault in self.faults:
-            if fault["reconfigured_unix"] is None:
-                fault["decide_s"] += took_s
-
-    def _mark_reconfigured(self) -> None:
-        """A fault is handled once its new plan runs: placed, and every robot in reach runs its epoch.
-        Not while its decision is out or due: the plan in force then is the one from before it."""
-        open_faults = [f for f in self.faults if f["reconfigured_unix"] is None]
-        if not open_faults or not self.ready or self.deciding.decision_pending():
-            return
-        for fault in open_faults:
-            if fault["epoch"] is None:
-                fault["epoch"] = self.plans.epoch
-        for fault in open_faults:
-            acked = all(self.statuses.get(r) is not None and self.runs_plan(self.statuses[r], fault["epoch"], newer=True)
-                        for r in self.alive_nodes() if r in self._robot_names)
-            if acked:
-                fault["reconfigured_unix"] = self.wall()
-                self.note(f"{fault['kind']} {fault['target']}: reconfigured "
-                          f"{fault['reconfigured_unix'] - fault['detected_unix']:.3f} s after detection")
-
-    @property
-    def links_down(self) -> set[frozenset[str]]:
-        """Links known down now (see `LinkStates`)."""
-        return self.links.down
-
-    def link_lost(self, a: str, b: str, detected_unix: float | None = None) -> None:
-        """A link an end of which is this base station (seen by its own liveliness) went down."""
-        if self.links.lost(a, b, detected_unix or self.wall()):
-            self._link_down(frozenset((a, b)), detected_unix or self.wall())
-            self.deciding.replan_soon("link change")
-
-    def link_seen(self, a: str, b: str) -> None:
-        """Evidence that a link works (its ends see each other)."""
-        self.links.seen(a, b, self.wall())
-
-    def _link_down(self, pair: frozenset[str], since: float) -> None:
-        a, b = sorted(pair)
-        self.record_fault("link-down", pair_name(pair), since)
-        now = self.wall()
-        downs = self.links.flap_penalty(pair, now)
-        dampened = (f" (it flaps: penalty {downs:.1f}, halving every {self.links.flap_half_life_s:g} s; back in "
-                    f"plans after {self.links.hold_s(pair, now):g} s up without a break)") if downs > 1.5 else ""
-        self.note(f"link {a}-{b} is down{dampened}")
-        self.deciding.event("link-cut", a=a, b=b)
-
-    def _heal_links(self) -> None:
-        healed = self.links.healed(self.wall())
-        for pair in healed:
-            self.note(f"link {pair_name(pair)} is back (up for {self.links.hold_s(pair, self.wall()):g} s)")
-            a, b = sorted(pair)
-            self.deciding.event("link-heal", a=a, b=b)
-        if healed:  # whether moving back is worth it is the policy's hysteresis
-            self.deciding.replan("links back")
-
-    def _check_links(self, status: NodeStatus) -> None:
-        """A robot's view of its links: what it reports down may be a cut (`LinkStates` debounces)."""
-        gone = self.links.reported(status.node, status.links, self.alive_nodes(), self.wall())
-        for pair, since in gone:
-            self._link_down(pair, since)
-        if gone:
-            self.deciding.replan_soon("link change")
-
     # ---- mission start --------------------------------------------------------------------------------
     def start_mission(self, mission: MissionInfo) -> None:
         """Run ``mission`` from now on: a new one, or the one the robots run (its clock goes on)."""
@@ -308,7 +231,7 @@ class Coordinator:
 
     # ---- events --------------------------------------------------------------------------------------------
     def on_liveliness(self, node: str, alive: bool, detected_unix: float | None = None) -> None:
-        if node == self.base or node not in self._robot_names:
+        if node == self.base or node not in self.robot_names:
             return
         if alive:
             if node in self.present and node not in self.departed:
@@ -320,14 +243,14 @@ class Coordinator:
             if self.mission is None:
                 self.takeover.maybe_start()
             else:
-                self.links.rejoined(node, self.wall())
+                self.faults.rejoined(node)
                 self.deciding.event("robot-join", robot=node)
                 self._awaiting_actual[node] = self.wall() + 1.0  # decide once it says what it hosts
         else:
             if node not in self.present:
                 return
             self.present.discard(node)
-            self.record_fault("node-left", node, detected_unix or self.wall())
+            self.faults.record("node-left", node, detected_unix or self.wall())
             self.note(f"{node} left")
             self.placing.node_lost(node)
             if self.mission is not None:
@@ -340,7 +263,7 @@ class Coordinator:
         self.placing.learn_runs(status)
 
     def on_status(self, status: NodeStatus) -> None:
-        if status.node not in self._robot_names:
+        if status.node not in self.robot_names:
             return
         self.statuses[status.node] = status
         self.placing.follow_generations(status)
@@ -365,8 +288,16 @@ class Coordinator:
             # a lossy link): its newer instance is adopted, ours released, and the plan says so at
             # once, or its producers would go on feeding ours the inputs it has not seen.
             self.deciding.replan(f"{status.node} runs stages it agreed on without the base station")
-        self._check_links(status)
+        self.faults.check_links(status)
         self.deciding.check_drift(status)
+
+    def link_lost(self, a: str, b: str, detected_unix: float | None = None) -> None:
+        """A link an end of which is this base station (seen by its own liveliness) went down (`TeamFaults.link_lost`)."""
+        self.faults.link_lost(a, b, detected_unix)
+
+    def link_seen(self, a: str, b: str) -> None:
+        """Evidence that a link works (its ends see each other)."""
+        self.faults.link_seen(a, b)
 
     def on_timer(self) -> None:
         now_wall = self.wall()
@@ -382,8 +313,8 @@ class Coordinator:
                 del self._awaiting_actual[node]
             if late and not self._awaiting_actual:
                 deciding.replan(f"{', '.join(late)} joined (no report in time)", after_rejoin=True)
-            self._heal_links()
-            self._mark_reconfigured()
+            self.faults.heal_links()
+            self.faults.mark_reconfigured()
         self.placing.time_out(now_wall)
         self.placing.resend_orders()
         if self.mission is None:
@@ -407,8 +338,7 @@ class Coordinator:
         rejoined robot whose report is awaited, no link down (its heal is timed), no fault
         waiting to be reconfigured. The loop may then sleep until an event or `next_deadline_unix`."""
         return (self.mission is not None and not self.deciding.decider.busy and not self.placing.migrations
-                and not self._awaiting_actual and not self.links.down
-                and all(f["reconfigured_unix"] is not None for f in self.faults))
+                and not self._awaiting_actual and self.faults.settled())
 
     # ---- the other parts' entry points ---------------------------------------------------------------------
     def on_inbox(self, payload: bytes) -> None:

@@ -129,7 +129,7 @@ class Deciding:
         return frozenset(r for r in self.team.robots if r not in alive)
 
     def _cut_links(self) -> frozenset[frozenset[str]]:
-        return frozenset(self.team.links_down | self.team.operating.operator_cuts)
+        return frozenset(self.team.faults.links_down | self.team.operating.operator_cuts)
 
     def network_in_use(self, everyone: bool = False) -> Network:
         """The links the team uses now: the media in use, minus what is down, with the radio faults."""
@@ -307,7 +307,7 @@ class Deciding:
         self.decisions += 1
         self.decide_s += answer.took_s
         self.decide_max_s = max(self.decide_max_s, answer.took_s)
-        self.team.faults_decided(answer.took_s)
+        self.team.faults.decided(answer.took_s)
         if answer.failure is not None:
             raise answer.failure  # the policy's bug, raised on the loop as an inline decision would
         if answer.error is not None:

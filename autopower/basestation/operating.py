@@ -222,7 +222,7 @@ class OperatorControl:
             "pins": dict(self.pins),
             "media": self.team.deciding.plan_network.media_by_group() if self.team.deciding.plan_network else None,
             "links": [[l.a, l.b, l.medium] for l in self.team.deciding.plan_network.links] if self.team.deciding.plan_network else [],
-            "links_down": sorted(sorted(p) for p in self.team.links_down),
+            "links_down": sorted(sorted(p) for p in self.team.faults.links_down),
             # a plan that runs nothing (no robot left in it) lasts for ever: not a number JSON or msgpack carry
             "planned_lifetime_s": _finite(self.team.deciding.planned_lifetime_s()),
             "predicted_lifetime_s": _finite(self.team.prediction.predicted_lifetime_s),
@@ -243,7 +243,7 @@ class OperatorControl:
             "migration_log": list(placing.migration_log),
             "first_depletion": self.team.first_depletion,
             "events": list(self.team.events),
-            "faults": list(self.team.faults),
+            "faults": list(self.team.faults.faults),
             "adopted": placing.adopted,
         }
 

@@ -151,23 +151,23 @@ def test_reported_link_down_replans_around_it(sc):
     team.nodes["r2"].alive.discard("laptop")  # r2 no longer sees the laptop (nor it r2)
     team.nodes["laptop"].alive.discard("r2")
     team.report_status()
-    assert not team.coordinator.links_down
+    assert not team.coordinator.faults.links_down
     team.clock.advance(2.5)  # wall time = virtual / speed 1
     team.report_status()
     co = team.coordinator
-    assert co.links_down == {frozenset({"r2", "laptop"})}
+    assert co.faults.links_down == {frozenset({"r2", "laptop"})}
     assert not co.deciding.plan_network.reachable("r2", "laptop") or co.deciding.plan_network.medium_between("r2", "laptop") is None
     team.run_until(co.now() + 4.0)
     assert team.nodes["laptop"].sinks["Blob-2"].received > 0  # now relayed by another robot
     assert team.nodes["r1"].counters.get("forwarded", 0) + team.nodes["r3"].counters.get("forwarded", 0) > 0
     team.nodes["r2"].alive.add("laptop")
     team.report_status()
-    assert co.links_down  # hysteresis: a link must stay up for heal_hold_s before plans use it
+    assert co.faults.links_down  # hysteresis: a link must stay up for heal_hold_s before plans use it
     team.clock.advance(co.config.heal_hold_s + 0.5)
     team.report_status()
     co.on_timer()
-    assert not co.links_down
-    assert [f["kind"] for f in co.faults] == ["link-down"]
+    assert not co.faults.links_down
+    assert [f["kind"] for f in co.faults.faults] == ["link-down"]
 
 
 def test_battery_drift_triggers_a_replan(sc):
@@ -292,24 +292,24 @@ def test_cut_base_link_replans_at_once_and_heals_with_hysteresis(sc):
     placement = dict(co.placing.placement)
     co.link_lost("laptop", "r1", detected_unix=team.clock.wall())
     co.on_timer()  # the loop's next timer decides, once for every link change of the batch
-    assert co.links_down == {frozenset({"laptop", "r1"})}
+    assert co.faults.links_down == {frozenset({"laptop", "r1"})}
     assert co.deciding.plan_network.medium_between("r1", "laptop") is None
-    assert co.faults[-1]["kind"] == "link-down" and co.faults[-1]["target"] == "laptop-r1"
+    assert co.faults.faults[-1]["kind"] == "link-down" and co.faults.faults[-1]["target"] == "laptop-r1"
     team.pump()  # the new plan reaches the robots
     team.report_status()  # ...which run it
     co.on_timer()
-    assert co.faults[-1]["reconfigured_unix"] is not None
+    assert co.faults.faults[-1]["reconfigured_unix"] is not None
     # the policy's time for the decision that handled it, apart from the rest of the handling
-    assert co.faults[-1]["decide_s"] > 0 and co.faults[-1]["decide_s"] <= co.deciding.decide_s
-    decided = co.faults[-1]["decide_s"]
+    assert co.faults.faults[-1]["decide_s"] > 0 and co.faults.faults[-1]["decide_s"] <= co.deciding.decide_s
+    decided = co.faults.faults[-1]["decide_s"]
     co.deciding.replan("periodic, remaining energies")  # after the fault was handled: not its time
-    assert co.faults[-1]["decide_s"] == decided
+    assert co.faults.faults[-1]["decide_s"] == decided
     co.link_seen("laptop", "r1")
     co.on_timer()
-    assert co.links_down  # not yet: the link must stay up for heal_hold_s
+    assert co.faults.links_down  # not yet: the link must stay up for heal_hold_s
     team.clock.advance(co.config.heal_hold_s + 0.1)
     co.on_timer()
-    assert not co.links_down and co.deciding.plan_network.medium_between("r1", "laptop") is not None
+    assert not co.faults.links_down and co.deciding.plan_network.medium_between("r1", "laptop") is not None
     # nothing moved either way: the relayed plan stays (the policy's hysteresis, no longer a
     # coordinator threshold, found no move worth it) and the link is simply back in the routes
     assert co.placing.placement == placement and co.placing.migrations_done == 0
@@ -350,10 +350,10 @@ def test_a_robot_back_from_a_freeze_gets_a_grace_before_its_link_reports_count(s
     co.on_liveliness("r3", True)  # thawed
     team.nodes["r3"].alive.discard("r1")  # its session to r1 is still reconnecting
     team.report_status()
-    assert frozenset({"r1", "r3"}) not in co.links_down
+    assert frozenset({"r1", "r3"}) not in co.faults.links_down
     team.clock.advance(2.5)  # still reported down after the grace: a real cut
     team.report_status()
-    assert frozenset({"r1", "r3"}) in co.links_down
+    assert frozenset({"r1", "r3"}) in co.faults.links_down
 
 
 def test_the_plan_is_repeated_while_a_robot_in_reach_does_not_say_it_runs_it(sc):
@@ -472,7 +472,7 @@ def test_link_changes_within_one_batch_of_events_make_one_decision(sc):
     co.on_timer()
     cut = {frozenset({"laptop", r}) for r in ("r1", "r2", "r3")}
     assert len(asked) == 1 and asked[0].cut_links == cut
-    assert co.links_down == cut and all(co.deciding.plan_network.medium_between(r, "laptop") is None for r in ("r1", "r2", "r3"))
+    assert co.faults.links_down == cut and all(co.deciding.plan_network.medium_between(r, "laptop") is None for r in ("r1", "r2", "r3"))
 
 
 def test_a_snapshot_shows_each_status_as_a_round_trip_through_the_wire_would(sc):

@@ -220,11 +220,11 @@ def cut_and_heal(team: SimTeam) -> tuple:
     team.run_until(co.now() + 1.0)
     co.link_seen("laptop", "r1")
     co.on_timer()
-    assert co.links_down  # back only after heal_hold_s
+    assert co.faults.links_down  # back only after heal_hold_s
     team.clock.advance(co.config.heal_hold_s + 0.1)
     co.on_timer()
     team.pump()
-    assert not co.links_down
+    assert not co.faults.links_down
     return during
 
 

@@ -14,11 +14,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2] / "autopower"
 NODE_CORE = sorted((ROOT / "node").glob("*.py"))
 COORDINATOR_CORE = [ROOT / "basestation" / f"{name}.py"
-                    for name in ("coordinator", "deciding", "prediction", "placing", "runs", "publishing", "operating",
-                                 "takeover", "listening")]
+                    for name in ("coordinator", "faults", "deciding", "prediction", "placing", "runs", "publishing",
+                                 "operating", "takeover", "listening")]
 CORE_CLASSES = {"TeamListening", "NodeRuntime", "Frames", "Hosting", "Acknowledging", "ArrivalRelay", "Flows", "Holds", "Sources",
-                "Coordinator", "Deciding", "Prediction", "Placement", "ChainRuns", "PlanPublisher", "OperatorControl",
-                "Takeover"}
+                "Coordinator", "TeamFaults", "Deciding", "Prediction", "Placement", "ChainRuns", "PlanPublisher",
+                "OperatorControl", "Takeover"}
 # the packages that build and drive core objects (the layers above `node`: test_layering.py)
 SHELLS = ("agent", "basestation", "recording", "deploy", "launch", "teamsim", "cli")
 

@@ -182,7 +182,7 @@ def test_a_fault_is_not_handled_by_the_plan_from_before_its_decision():
     assert co.deciding.decider.busy and co.ready  # the old plan is in force, and every robot in reach runs it
     team.report_status()
     co.on_timer()
-    fault = co.faults[-1]
+    fault = co.faults.faults[-1]
     assert fault["kind"] == "node-left" and fault["reconfigured_unix"] is None
     answer_next(policy, answers, 2, team)
     team.report_status()
