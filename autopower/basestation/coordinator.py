@@ -266,7 +266,7 @@ class Coordinator:
         if status.node not in self.robot_names:
             return
         self.statuses[status.node] = status
-        self.placing.follow_generations(status)
+        self.placing.generations.follow(status)
         self.placing.learn_runs(status)
         if status.depleted:
             if status.node not in self.departed:

@@ -31,11 +31,55 @@ from autopower.protocol import NodeStatus
 log = logging.getLogger("autopower.basestation.coordinator")  # one logger for the coordinator's parts
 
 # How far (virtual seconds) the mission start's question may be from the time the answer asked
-# ahead was for (`Deciding._answered_ahead`)
+# ahead was for (`AheadQuestion.answered`)
 AHEAD_SLACK_S = 1.0
 # How many answers in a row may be set aside because the team changed while the policy decided
 # (`Deciding.take_answer`): a team that changes faster than the policy decides still gets a plan
 STALE_ANSWERS_MAX = 3
+
+
+class AheadQuestion:
+    """The mission start's question, asked before the robots are heard (`Deciding.ask_ahead`), and its answer."""
+
+    def __init__(self):
+        self.asked = False  # the mission start was asked about ahead
+        self.out = False  # ... and its answer is still out
+        self._state: TeamState | None = None  # the question asked ahead (until the mission start's is asked)
+        self._answer: Answer | None = None  # ... and its answer, kept for the mission start
+
+    def ask(self, state: TeamState) -> None:
+        self.asked, self.out, self._state = True, True, state
+
+    def came(self, answer: Answer, *, keep: bool) -> None:
+        """Its answer is in; ``keep``: for the mission start (nothing decided yet)."""
+        self.out = False
+        if keep:
+            self._answer = answer
+
+    def same_as(self, state: TeamState) -> bool:
+        """Whether ``state`` is the question asked ahead. Its time is the mission's start; a
+        question within `AHEAD_SLACK_S` of it counts as asked then (no policy's answer turns on
+        its first second: revisits and schedules are minutes and hours)."""
+        ahead = self._state
+        return (ahead is not None and abs(state.time_s - ahead.time_s) <= AHEAD_SLACK_S
+                and dataclasses.replace(state, time_s=ahead.time_s) == ahead)
+
+    def take_up(self, state: TeamState) -> bool:
+        """The mission starts while the question is out: True if ``state`` is that question (its
+        answer, when it comes, is then the mission start's, as any answer)."""
+        if not self.same_as(state):
+            return False
+        self.out, self._state = False, None
+        return True
+
+    def answered(self, state: TeamState) -> Answer | None:
+        """The answer asked ahead, if it was about ``state`` (asked once, used at most once)."""
+        ahead, self._answer = self._answer, None
+        same = self.same_as(state)
+        self._state = None
+        if ahead is None or ahead.decision is None or ahead.error is not None or ahead.failure is not None:
+            return None
+        return ahead if same else None
 
 
 class Deciding:
@@ -72,10 +116,7 @@ class Deciding:
         self.replans = 0
         self.asked = 0  # questions put to the policy
         self._events_asked = 0  # how many of `_pending_events` the question out carries
-        self._ahead_asked = False  # the mission start was asked about ahead (`ask_ahead`)
-        self._asking_ahead = False  # ... and its answer is still out
-        self._ahead_state = None  # the question asked ahead (until the mission start's is asked)
-        self._ahead = None  # ... and its answer, kept for the mission start
+        self.ahead = AheadQuestion()  # the mission start's question, asked before the robots are heard (`ask_ahead`)
         self._stale_answers = 0  # answers set aside in a row: the team changed while the policy decided
         self.decisions = 0  # the policy answered (a re-plan that decided, whatever it chose)
         self.decide_s = 0.0  # wall seconds the policy took over them (`perf_fn`)
@@ -148,7 +189,7 @@ class Deciding:
 
     def team_state(self, *, everyone: bool = False) -> TeamState:
         """What the policy may know, from the coordinator's view of the team (see the module docstring).
-        ``everyone``: as if every robot of the scenario were in reach (`_ask_ahead`)."""
+        ``everyone``: as if every robot of the scenario were in reach (`ask_ahead`)."""
         alive = set(self.team.robots) | {self.team.base} if everyone else self.team.alive_nodes()
         energies = self.remaining_energies()
         return TeamState(
@@ -184,7 +225,7 @@ class Deciding:
         if self.team.mission is None:
             return False
         if self.decider.busy:
-            if not (self._asking_ahead and self._take_up_ahead_question(reason)):
+            if not (self.ahead.out and self._take_up_ahead_question(reason)):
                 self.replan_due.append(reason)  # `on_timer` asks once the answer out is carried out
             return True
         awaiting = self.team.awaiting_reports()
@@ -208,7 +249,7 @@ class Deciding:
         self._events_asked = len(self._pending_events)  # the events this question carries
         if not again:
             self.asked += 1
-        ahead = self._answered_ahead(state)
+        ahead = self.ahead.answered(state)
         if ahead is not None:
             self.team.note(f"decision ({reason}) made ahead, before the robots were heard "
                       f"({ahead.took_s:.2f} s of policy time off the path to ready)")
@@ -225,41 +266,22 @@ class Deciding:
         difference, a robot missing or a battery not full, and the policy is asked again), which
         is exact because a policy's answer is a function of the state it is given. Only when
         deciding on a thread (the simulator and unit tests ask only what they ask)."""
-        if (self.team.mission is not None or self._ahead_asked or not self.decider.on_thread
+        if (self.team.mission is not None or self.ahead.asked or not self.decider.on_thread
                 or self.decider.busy or self.team.takeover.stepped_down is not None):
             return
-        self._ahead_asked = True
-        self._asking_ahead = True
-        self._ahead_state = self.team_state(everyone=True)
-        self.decider.ask(self._ahead_state, "mission start")
-
-    def _same_as_ahead(self, state: TeamState) -> bool:
-        """Whether ``state`` is the question asked ahead. Its time is the mission's start; a
-        question within `AHEAD_SLACK_S` of it counts as asked then (no policy's answer turns on
-        its first second: revisits and schedules are minutes and hours)."""
-        ahead = self._ahead_state
-        return (ahead is not None and abs(state.time_s - ahead.time_s) <= AHEAD_SLACK_S
-                and dataclasses.replace(state, time_s=ahead.time_s) == ahead)
+        state = self.team_state(everyone=True)
+        self.ahead.ask(state)
+        self.decider.ask(state, "mission start")
 
     def _take_up_ahead_question(self, reason: str) -> bool:
         """The mission starts while the question asked ahead is out: if it is this question, its
         answer is this question's (carried out when it comes, as any answer), not asked twice."""
-        if not self._same_as_ahead(self.team_state()):
+        if not self.ahead.take_up(self.team_state()):
             return False
-        self._asking_ahead, self._ahead_state = False, None
         self._events_asked = len(self._pending_events)
         self.asked += 1
         self.team.note(f"decision ({reason}) asked ahead, before the robots were heard: its answer is on its way")
         return True
-
-    def _answered_ahead(self, state: TeamState) -> Answer | None:
-        """The answer asked ahead, if it was about this state."""
-        ahead, self._ahead = self._ahead, None  # asked once, used at most once
-        same = self._same_as_ahead(state)
-        self._ahead_state = None
-        if ahead is None or ahead.decision is None or ahead.error is not None or ahead.failure is not None:
-            return None
-        return ahead if same else None
 
     def take_answer(self) -> bool:
         """Carry out the policy's answer, if one is in. True when it answered (a new configuration,
@@ -274,10 +296,8 @@ class Deciding:
         answer = self.decider.take()
         if answer is None:
             return False
-        if self._asking_ahead:
-            self._asking_ahead = False
-            if self.decisions == 0:
-                self._ahead = answer  # kept for the mission start (`_answered_ahead` checks it is for it)
+        if self.ahead.out:
+            self.ahead.came(answer, keep=self.decisions == 0)  # kept for the mission start (`AheadQuestion.answered`)
             if answer.failure is not None:
                 raise answer.failure
             return False

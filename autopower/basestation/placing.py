@@ -16,6 +16,7 @@ import logging
 from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Callable
 
 from autopower.basestation.runs import ChainRuns
 from autopower.protocol import (
@@ -54,6 +55,45 @@ class Migration:
     resends: int = 0
 
 
+class Generations:
+    """The generations the base station hands out to stage instances (every order names one; a node
+    ignores an order below the instance it runs as stale)."""
+
+    def __init__(self, wall: Callable[[], float]):
+        self._wall = wall
+        self.last = 0  # the newest handed out or followed
+        self._far: set[str] = set()  # robots that reported a generation too far ahead (warned)
+
+    def next(self) -> int:
+        self.last += 1
+        return self.last
+
+    def above(self, floor: int) -> None:
+        """The next generation handed out is above ``floor`` and above every one handed out so far."""
+        self.last = max(self.last, floor) + 1
+
+    def at_least(self, floor: int) -> None:
+        self.last = max(self.last, floor)
+
+    def follow(self, status: NodeStatus) -> None:
+        """Hand out generations above every instance a robot reports hosting.
+
+        Robots start instances without us (subgroup rounds, a robot restarted alone) with
+        time-based generations, far above our counter; an instance restarted on the host the plan
+        already names keeps its generation, and a robot ignores every order below it as stale (and
+        its producers the reports of an instance placed below it). A generation more than a day
+        ahead of our clock is not taken (a robot's clock or message gone wrong).
+        """
+        top = max(status.generations.values(), default=0)
+        if top > self.last:
+            if top <= int(self._wall() * 1000) + 86_400_000:
+                self.last = top
+            elif status.node not in self._far:
+                self._far.add(status.node)  # said once: it comes with every status
+                log.warning("coordinator: %s reports a stage generation %d, more than a day ahead of this "
+                            "clock; not followed (check the robot's clock)", status.node, top)
+
+
 class Placement:
     """The coordinator's placing part: target placement -> assignments and migrations, and what nodes confirm."""
 
@@ -67,9 +107,8 @@ class Placement:
         self.migrations: dict[str, Migration] = {}
         # orders made while a reconcile runs, per node: sent as one put each when it ends (`reconcile`)
         self.control_batch: dict[str, list[bytes]] | None = None
-        self.generation = 0
+        self.generations = Generations(team.wall)  # the generations handed out to stage instances
         self.runs = ChainRuns()  # the chains' runs, and which chains run
-        self._far_generation: set[str] = set()  # robots that reported a generation too far ahead (warned)
         self.downtimes_ms: list[float] = []
         self.migration_log: deque[dict] = deque(maxlen=200)
         self.migrations_done = 0
@@ -85,28 +124,6 @@ class Placement:
     def retarget(self, stage: str, node: str) -> None:
         """``stage`` should run on ``node``."""
         self.target[stage] = node
-
-    def generation_above(self, floor: int) -> None:
-        """The next generation handed out is above ``floor`` and above every one handed out so far."""
-        self.generation = max(self.generation, floor) + 1
-
-    def follow_generations(self, status: NodeStatus) -> None:
-        """Hand out generations above every instance a robot reports hosting.
-
-        Robots start instances without us (subgroup rounds, a robot restarted alone) with
-        time-based generations, far above our counter; an instance restarted on the host the plan
-        already names keeps its generation, and a robot ignores every order below it as stale (and
-        its producers the reports of an instance placed below it). A generation more than a day
-        ahead of our clock is not taken (a robot's clock or message gone wrong).
-        """
-        top = max(status.generations.values(), default=0)
-        if top > self.generation:
-            if top <= int(self.team.wall() * 1000) + 86_400_000:
-                self.generation = top
-            elif status.node not in self._far_generation:
-                self._far_generation.add(status.node)  # said once: it comes with every status
-                log.warning("coordinator: %s reports a stage generation %d, more than a day ahead of this "
-                            "clock; not followed (check the robot's clock)", status.node, top)
 
     def adopt_team(self, placement: dict[str, str], generation_of: dict[str, int],
                    waiting: dict[str, tuple[str, int]], runs: dict[str, int], unknown: set[str],
@@ -125,7 +142,7 @@ class Placement:
         self.runs.adopt(runs, unknown)
         self._update_running()
         for node, stage in stale:
-            self.send(node, Release(stage=stage, generation=self._next_generation()))
+            self.send(node, Release(stage=stage, generation=self.generations.next()))
         self.adopted += len(placement)
 
     def learn_runs(self, status: NodeStatus) -> None:
@@ -179,7 +196,7 @@ class Placement:
                     self.send(status.node, Release(stage=stage, generation=theirs))
                 continue
             # generations handed out without us are time-based: jump past them
-            self.generation = max(self.generation, int(self.team.wall() * 1000) + 1)
+            self.generations.at_least(int(self.team.wall() * 1000) + 1)
             self.placement[stage] = status.node
             self.placed_generation[stage] = theirs
             if stage not in self.target:
@@ -192,7 +209,7 @@ class Placement:
             self.team.note(f"{stage} runs on {status.node} (agreed without the base station); adopted")
             adopted = True
             if previous is not None and previous in alive:
-                self.send(previous, Release(stage=stage, generation=self._next_generation()))
+                self.send(previous, Release(stage=stage, generation=self.generations.next()))
         return adopted
 
     def send(self, node: str, msg) -> None:
@@ -204,10 +221,6 @@ class Placement:
             self.control_batch.setdefault(node, []).append(payload)
         else:
             self.team.send_to(node, self.team.keys.node_control(node), payload)
-
-    def _next_generation(self) -> int:
-        self.generation += 1
-        return self.generation
 
     @contextmanager
     def orders_batched(self):
@@ -235,7 +248,7 @@ class Placement:
             if stage not in self.target and stage not in self.migrations:
                 node = self.placement.pop(stage)
                 if node in alive:
-                    self.send(node, Release(stage=stage, generation=self._next_generation()))
+                    self.send(node, Release(stage=stage, generation=self.generations.next()))
         for stage, want in self.target.items():
             if stage in self.migrations or self.placement.get(stage) == want or want not in alive:
                 continue
@@ -243,7 +256,7 @@ class Placement:
             chain = self.team.chain_of[stage]
             if (have is None or have not in alive) and chain.name in self.runs.runs_unknown:
                 continue  # a fresh instance needs its chain's run: assigned once the source robot says it
-            gen = self._next_generation()
+            gen = self.generations.next()
             if have is None or have not in alive:
                 self.placement.pop(stage, None)
                 busy = any(s.name in self.placement or s.name in self.migrations for s in chain.stages)
@@ -353,7 +366,7 @@ class Placement:
             del self.migrations[msg.stage]
             self.aborted += 1
             if m.to_node in self.team.alive_nodes():
-                self.send(m.to_node, Release(stage=msg.stage, generation=self._next_generation()))
+                self.send(m.to_node, Release(stage=msg.stage, generation=self.generations.next()))
             self.team.operating.pin(msg.stage, msg.node)
             self.target[msg.stage] = msg.node
             self.team.note(f"{msg.stage}: migration {msg.node} -> {m.to_node} refused ({why}); it keeps running on "
@@ -385,7 +398,7 @@ class Placement:
         m = self.migrations.pop(stage)
         self.aborted += 1
         self.team.note(f"{stage}: {m.phase} to {m.to_node} abandoned ({why}); restarting it without state")
-        gen = self._next_generation()
+        gen = self.generations.next()
         keep = m.to_node if restart_at_target and self.target.get(stage) == m.to_node else None
         for node in sorted({m.to_node, m.from_node} - {None, keep}):
             if node in self.team.alive_nodes():

@@ -134,7 +134,7 @@ class Takeover:
         team.plans.continue_from(max(s.plan_epoch for s in heard))  # the next plan is one above anything running
         generations = [g for s in heard for g in s.generations.values()]
         # above every instance the robots host, and above what a subgroup hands out (wall ms)
-        team.placing.generation_above(max([int(team.wall() * 1000), *generations]))
+        team.placing.generations.above(max([int(team.wall() * 1000), *generations]))
         team.heard_statuses(reports)  # batteries, links: what the policy starts from
         # the operator's pins, disabled chains, links and radios, from the newest plan the robots run
         kept = team.operating.adopt(newest.plan_operator) if newest.plan_operator else []

@@ -17,8 +17,8 @@ COORDINATOR_CORE = [ROOT / "basestation" / f"{name}.py"
                     for name in ("coordinator", "faults", "deciding", "prediction", "placing", "runs", "publishing",
                                  "operating", "takeover", "listening")]
 CORE_CLASSES = {"TeamListening", "NodeRuntime", "Frames", "Hosting", "Acknowledging", "ArrivalRelay", "Flows", "Holds", "Sources",
-                "Coordinator", "TeamFaults", "Deciding", "Prediction", "Placement", "ChainRuns", "PlanPublisher",
-                "OperatorControl", "Takeover"}
+                "Coordinator", "TeamFaults", "Deciding", "AheadQuestion", "Prediction", "Placement", "Generations",
+                "ChainRuns", "PlanPublisher", "OperatorControl", "Takeover"}
 # the packages that build and drive core objects (the layers above `node`: test_layering.py)
 SHELLS = ("agent", "basestation", "recording", "deploy", "launch", "teamsim", "cli")
 

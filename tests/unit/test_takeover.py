@@ -62,7 +62,7 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
     assert new.now() == pytest.approx(old.now()) and new.now() >= 60.0
     assert new.placing.placement["Loc-2"] == "r2" and new.placing.placement["Blob-3"] == "r3"  # what runs, where it runs
     assert new.takeover.incarnation == old.takeover.incarnation + 1 and new.plans.epoch == old.plans.epoch + 1
-    assert new.placing.generation > max(generations)
+    assert new.placing.generations.last > max(generations)
     assert new.takeover.adopted_team["from_robots"] == list(ROBOTS) and new.takeover.adopted_team["stages"] == 2
     assert new.takeover.adopted_team["previous"] == {"incarnation": old.takeover.incarnation, "epoch": old.plans.epoch, "leader": old.takeover.leader}
     # the chains that run go on with their run; those whose stage ran only on the old base station
@@ -352,7 +352,7 @@ def test_orders_go_above_a_generation_a_robot_started_without_the_base_station()
     r2.on_assign(Assign(stage="Loc-2", generation=restarted, chain="Loc-2", run=r2.plan.running["Loc-2"],
                         resume_seq=None))
     team.report_status()
-    assert co.placing.generation >= restarted
+    assert co.placing.generations.last >= restarted
     reply = co.on_operator(MigrateCommand(stage="Loc-2", to_node="laptop"))
     assert reply.ok, reply.message
     team.pump()
