@@ -1,6 +1,6 @@
 """The base station's coordinator: tracks the team, asks the policy, and moves components.
 
-It owns the *desired* placement (the policy's allocation, overridden by operator pins) and
+It keeps the *desired* placement (the policy's allocation, overridden by operator pins) and
 the *confirmed* one (what nodes have acknowledged), and closes the gap one stage at a time:
 
 - a stage with no live host gets `Assign` (a fresh instance);
@@ -27,10 +27,23 @@ counts as down after ``link_down_after_s`` and as back after ``heal_hold_s``.
 Before deciding anything it listens to the team (`takeover.py`): robots that already run a mission
 (this base station was restarted) are adopted with their clock, placement, epochs and generations.
 
-This module holds the state and the event handlers; the class is assembled from four parts that
-use that state: `deciding.py` (team view -> policy -> target), `placing.py` (target -> assignments
-and migrations, plan updates), `operating.py` (operator commands, the snapshot) and `takeover.py`
-(learning a running team, a rival base station).
+`Coordinator` is the façade the process and the simulator drive (events in: liveliness, statuses,
+answers, operator commands, the timer); it owns the team view (who is present, departed or awaited,
+the robots' statuses, the mission and its clock, the notes) and the ways out (``send_to``,
+``also_relay``, ``on_own_plan``). The rest is in collaborators, each owning its state, that the
+façade and each other call through methods:
+
+- ``deciding`` (`deciding.Deciding`): team view -> policy -> target; the decider, the decisions,
+  what to ask next, the plan's network and media;
+- ``prediction`` (`prediction.Prediction`): the model's power and lifetime for the plan, DVFS levels,
+  battery baselines;
+- ``placing`` (`placing.Placement`): target and confirmed placement, migrations, generations and the
+  chains' runs (`runs.ChainRuns`);
+- ``plans`` (`publishing.PlanPublisher`): the plans' epoch and when they go out;
+- ``operating`` (`operating.OperatorControl`): the operator's commands and settings, the snapshot;
+- ``takeover`` (`takeover.Takeover`): starting the mission or adopting a running team, the
+  incarnation and leader id, a rival base station;
+- ``faults`` (`faults.TeamFaults`): link states and the faults until a plan handles them.
 """
 
 from __future__ import annotations
@@ -112,6 +125,8 @@ class CoordinatorConfig:
 
 
 class Coordinator:
+    """The façade: the team view, the events the process and the simulator bring, and the parts that act on them."""
+
     def __init__(self, *, scenario: Scenario, bus: Bus, keys: Keys, config: CoordinatorConfig,
                  policy: Policy | None = None, wall_fn: Callable[[], float] = time.time,
                  leader: str | None = None, incarnation: int = 0,
@@ -134,7 +149,7 @@ class Coordinator:
         the mission would drop them).
 
         ``on_decision_answer``: None asks the policy inline (the simulator, tests: a decision is
-        carried out before `replan` returns); given, the policy decides on a thread and this is
+        carried out before `Deciding.replan` returns); given, the policy decides on a thread and this is
         called from it when an answer is in: the process then wakes its loop, whose `on_timer`
         carries the answer out (`decider.Decider`)."""
         # quality variants are fixed for the mission: the policies place the chains as they run them
@@ -150,32 +165,32 @@ class Coordinator:
         self.robots = [r.name for r in scenario.robots]
         self.robot_names = frozenset(self.robots)  # (asked for every robot at every turn of a fleet)
         self.chain_of = {s.name: c for c in scenario.chains for s in c.stages}
-        # what the policy is asked and when, its answers, the plan's network
-        self.deciding = Deciding(self, policy=self.policy, perf_fn=perf_fn, on_decision_answer=on_decision_answer)
-        self.operating = OperatorControl(self, config.pins)  # the operator's pins, disabled chains, links, radios
-
-        self.mission: MissionInfo | None = None
-        self.clock: VirtualClock | None = None
-        self.present: set[str] = set()
-        self.departed: set[str] = set()  # left or depleted: excluded until they come back
-        self.statuses: dict[str, NodeStatus] = {}
-        # the target and confirmed placements, the migrations between them, the chains' runs
-        self.placing = Placement(self)
-        self.faults = TeamFaults(self)  # the links' states, and the faults until a plan handles them
-        self.prediction = Prediction(self)  # what the plan in force draws, by the model; battery baselines
-        # starting the mission, or adopting the one the robots run; which base station this is
-        self.takeover = Takeover(self, leader=leader, incarnation=incarnation, up_unix=self.wall(),
-                                 learn_team_s=config.learn_team_s)
-        self.mission_unix = 0.0  # when we started or adopted the mission
-        self.plans = PlanPublisher(self)  # the plans' epoch and when they go out
-        self.events: deque[str] = deque(maxlen=50)
-        self.first_depletion: dict[str, float] | None = None
-        # robots back after an absence: their report of what they host (a subgroup may have
-        # reallocated without us) is the starting point, not our stale placement
-        self._awaiting_actual: dict[str, float] = {}
         self.send_to = send_to or (lambda node, key, payload: self.bus.publish(key, payload))
         self.also_relay = also_relay or (lambda nodes, key, payload: None)
         self.on_own_plan = on_own_plan or (lambda plan: None)
+
+        # the team view
+        self.mission: MissionInfo | None = None
+        self.clock: VirtualClock | None = None
+        self.mission_unix = 0.0  # when we started or adopted the mission
+        self.present: set[str] = set()
+        self.departed: set[str] = set()  # left or depleted: excluded until they come back
+        self.statuses: dict[str, NodeStatus] = {}
+        # robots back after an absence: their report of what they host (a subgroup may have
+        # reallocated without us) is the starting point, not our stale placement
+        self._awaiting_actual: dict[str, float] = {}
+        self.first_depletion: dict[str, float] | None = None
+        self.events: deque[str] = deque(maxlen=50)
+
+        # the collaborators, each owning its state (the module docstring)
+        self.deciding = Deciding(self, policy=self.policy, perf_fn=perf_fn, on_decision_answer=on_decision_answer)
+        self.prediction = Prediction(self)
+        self.operating = OperatorControl(self, config.pins)
+        self.placing = Placement(self)
+        self.plans = PlanPublisher(self)
+        self.takeover = Takeover(self, leader=leader, incarnation=incarnation, up_unix=self.wall(),
+                                 learn_team_s=config.learn_team_s)
+        self.faults = TeamFaults(self)
 
     # ---- helpers ----------------------------------------------------------------------------------
     def now(self) -> float:
@@ -283,7 +298,8 @@ class Coordinator:
             self.placing.adopt_actual(status)
             if not self._awaiting_actual:  # every robot that came back has said what it runs
                 self.deciding.replan(f"{status.node} joined (from what the robots report hosting)", after_rejoin=True)
-        elif self.mission is not None and status.node in self.present and self.placing.adopt_actual(status, returning=False):
+        elif (self.mission is not None and status.node in self.present
+              and self.placing.adopt_actual(status, returning=False)):
             # A robot that never left our sight may have run a round alone (it took us for gone on
             # a lossy link): its newer instance is adopted, ours released, and the plan says so at
             # once, or its producers would go on feeding ours the inputs it has not seen.
@@ -292,7 +308,8 @@ class Coordinator:
         self.deciding.check_drift(status)
 
     def link_lost(self, a: str, b: str, detected_unix: float | None = None) -> None:
-        """A link an end of which is this base station (seen by its own liveliness) went down (`TeamFaults.link_lost`)."""
+        """A link an end of which is this base station (seen by its own liveliness) went down
+        (`TeamFaults.link_lost`)."""
         self.faults.link_lost(a, b, detected_unix)
 
     def link_seen(self, a: str, b: str) -> None:
@@ -342,7 +359,8 @@ class Coordinator:
 
     # ---- the other parts' entry points ---------------------------------------------------------------------
     def on_inbox(self, payload: bytes) -> None:
-        """An answer to an order, from the base station's inbox (`Placement.on_inbox`; raises ProtocolError for anything else)."""
+        """An answer to an order, from the base station's inbox (`Placement.on_inbox`; raises
+        ProtocolError for anything else: the caller counts it)."""
         self.placing.on_inbox(payload)
 
     def on_operator(self, cmd) -> OperatorReply | AwaitDecision:

@@ -13,7 +13,7 @@ is the same run every time.
 
 One question at a time: the policy keeps state between decisions (the rebalance policy's last
 option) and is not shared between threads. What happens while a question is out waits for the
-next one (`Coordinator.replan` queues its reason).
+next one (`Deciding.replan` queues its reason).
 """
 
 from __future__ import annotations

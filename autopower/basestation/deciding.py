@@ -174,7 +174,8 @@ class Deciding:
 
     def network_in_use(self, everyone: bool = False) -> Network:
         """The links the team uses now: the media in use, minus what is down, with the radio faults."""
-        return derive_network(self.team.scenario, self.topology, self.media, self._cut_links(), dict(self.team.operating.radio_faults),
+        return derive_network(self.team.scenario, self.topology, self.media, self._cut_links(),
+                              dict(self.team.operating.radio_faults),
                               self.unavailable(everyone))
 
     def _current_allocation(self) -> dict[str, str]:
@@ -349,7 +350,8 @@ class Deciding:
         """The policy keeps what runs (as the simulator does: no schedule, no revisit)."""
         self.schedule, self.revisit_at_s = (), None
         # what the policy would run without the pins (where `migrate --auto` goes back to)
-        self.chosen = {s: self.chosen.get(s, h) if s in self.team.operating.pins else h for s, h in state.allocation.items()}
+        pins = self.team.operating.pins
+        self.chosen = {s: self.chosen.get(s, h) if s in pins else h for s, h in state.allocation.items()}
         target = self.team.operating.with_pins(dict(state.allocation), self.team.alive_nodes())
         changed = target != self.team.placing.target or state.network != self.plan_network
         self.team.placing.set_target(target)
@@ -367,7 +369,8 @@ class Deciding:
         self.schedule = tuple(decision.schedule)
         at = decision.revisit_at_s
         # without auto_replan nothing is decided by the clock: no revisit (the schedule still travels)
-        self.revisit_at_s = at if self.team.config.auto_replan and at is not None and at > self.team.now() + 1e-6 else None
+        revisit = self.team.config.auto_replan and at is not None and at > self.team.now() + 1e-6
+        self.revisit_at_s = at if revisit else None
         if not self.team.config.media:
             self.media.update(base_media(decision.network))
         self.chosen = dict(decision.allocation)

@@ -49,7 +49,8 @@ class TeamFaults:
             if fault["epoch"] is None:
                 fault["epoch"] = team.plans.epoch
         for fault in open_faults:
-            acked = all(team.statuses.get(r) is not None and team.runs_plan(team.statuses[r], fault["epoch"], newer=True)
+            acked = all(team.statuses.get(r) is not None
+                        and team.runs_plan(team.statuses[r], fault["epoch"], newer=True)
                         for r in team.alive_nodes() if r in team.robot_names)
             if acked:
                 fault["reconfigured_unix"] = team.wall()

@@ -31,7 +31,8 @@ class OperatorControl:
     """The coordinator's operator part: commands, the settings they leave, and the snapshot `status` shows."""
 
     def __init__(self, team, pins: dict[str, str]):
-        """``team``: the `Coordinator` whose parts carry out the commands; ``pins``: stage -> node, from its configuration."""
+        """``team``: the `Coordinator` whose parts carry out the commands; ``pins``: stage -> node, from
+        its configuration."""
         self.team = team
         for stage, node in pins.items():
             self.check_pin(stage, node)
@@ -137,7 +138,8 @@ class OperatorControl:
     def _clear_pins(self) -> None:
         """Back to what the policy chose (pinned stages migrate back), then the policy is asked again."""
         self.pins.clear()
-        self.team.placing.set_target({s: self.team.deciding.chosen.get(s, h) for s, h in self.team.placing.target.items()})
+        chosen, placing = self.team.deciding.chosen, self.team.placing
+        placing.set_target({s: chosen.get(s, h) for s, h in placing.target.items()})
         self.team.placing.reconcile()
 
     def _operator_link(self, cmd: LinkCommand) -> None:
@@ -159,7 +161,8 @@ class OperatorControl:
                                  "and/or to the robots, or a peer whose link is down")
         before = self.radio_faults.get(cmd.node, (None, None))
         self.radio_faults[cmd.node] = (cmd.laptop_robot or before[0], cmd.robot_robot or before[1])
-        self.team.deciding.event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot, robot_robot=cmd.robot_robot,
+        self.team.deciding.event("radio-fault", robot=cmd.node, laptop_robot=cmd.laptop_robot,
+                                 robot_robot=cmd.robot_robot,
                     note="operator")
 
     def _replan_for_operator(self, reason: str) -> OperatorReply | AwaitDecision:
@@ -193,25 +196,28 @@ class OperatorControl:
                 + ", ".join(f"{s}->{n}" for s, n in self.team.placing.target.items()))
 
     def snapshot(self) -> dict[str, Any]:
-        placing = self.team.placing
+        team = self.team
+        placing, deciding, prediction, takeover = team.placing, team.deciding, team.prediction, team.takeover
+        network = deciding.plan_network
         robots = {}
-        for name in self.team.robots:
-            st = self.team.statuses.get(name)
+        for name in team.robots:
+            st = team.statuses.get(name)
             robots[name] = {
-                "present": name in self.team.present, "departed": name in self.team.departed,
+                "present": name in team.present, "departed": name in team.departed,
                 "status": status_dict(st) if st else None,
-                "predicted_w": self.team.prediction.predicted_w.get(name),
+                "predicted_w": prediction.predicted_w.get(name),
             }
         return {
-            "scenario": self.team.scenario.name,
-            "accounting": self.team.scenario.accounting,
-            "ready": self.team.ready,
-            "mission": dataclasses.asdict(self.team.mission) if self.team.mission else None,
-            "t_virtual": self.team.now(),
-            "epoch": self.team.plans.epoch,
-            "incarnation": self.team.takeover.incarnation,  # plans are ordered by (incarnation, epoch)
-            "leader": self.team.takeover.leader,
-            "takeover": dict(self.team.takeover.adopted_team) if self.team.takeover.adopted_team else None,  # how a running team was adopted
+            "scenario": team.scenario.name,
+            "accounting": team.scenario.accounting,
+            "ready": team.ready,
+            "mission": dataclasses.asdict(team.mission) if team.mission else None,
+            "t_virtual": team.now(),
+            "epoch": team.plans.epoch,
+            "incarnation": takeover.incarnation,  # plans are ordered by (incarnation, epoch)
+            "leader": takeover.leader,
+            # how a running team was adopted
+            "takeover": dict(takeover.adopted_team) if takeover.adopted_team else None,
             "placement": dict(placing.placement),
             "target": dict(placing.target),
             "migrating": {s: {"from": m.from_node, "to": m.to_node, "phase": m.phase}
@@ -220,30 +226,30 @@ class OperatorControl:
             "disabled": sorted(self.disabled),
             "failed_stages": dict(self.failed_stages),
             "pins": dict(self.pins),
-            "media": self.team.deciding.plan_network.media_by_group() if self.team.deciding.plan_network else None,
-            "links": [[l.a, l.b, l.medium] for l in self.team.deciding.plan_network.links] if self.team.deciding.plan_network else [],
-            "links_down": sorted(sorted(p) for p in self.team.faults.links_down),
+            "media": network.media_by_group() if network else None,
+            "links": [[l.a, l.b, l.medium] for l in network.links] if network else [],
+            "links_down": sorted(sorted(p) for p in team.faults.links_down),
             # a plan that runs nothing (no robot left in it) lasts for ever: not a number JSON or msgpack carry
-            "planned_lifetime_s": _finite(self.team.deciding.planned_lifetime_s()),
-            "predicted_lifetime_s": _finite(self.team.prediction.predicted_lifetime_s),
-            "reasons": dict(self.team.deciding.stage_reasons),  # stage -> why it runs there
-            "policy": self.team.policy.name,
-            "decision_reasons": list(self.team.deciding.decision_reasons),
+            "planned_lifetime_s": _finite(deciding.planned_lifetime_s()),
+            "predicted_lifetime_s": _finite(prediction.predicted_lifetime_s),
+            "reasons": dict(deciding.stage_reasons),  # stage -> why it runs there
+            "policy": team.policy.name,
+            "decision_reasons": list(deciding.decision_reasons),
             "schedule": [{"duration_s": p.duration_s, "allocation": dict(p.allocation),
-                          "media": p.network.media_by_group()} for p in self.team.deciding.schedule],
-            "revisit_at_s": self.team.deciding.revisit_at_s,
-            "plan_error": self.team.deciding.plan_error,
+                          "media": p.network.media_by_group()} for p in deciding.schedule],
+            "revisit_at_s": deciding.revisit_at_s,
+            "plan_error": deciding.plan_error,
             "robots": robots,
             "migrations_done": placing.migrations_done,
             "assignments_done": placing.assignments_done,
             "aborted": placing.aborted,
-            "replans": self.team.deciding.replans,
-            "decisions": {"count": self.team.deciding.decisions, "seconds": self.team.deciding.decide_s, "max_s": self.team.deciding.decide_max_s},
+            "replans": deciding.replans,
+            "decisions": {"count": deciding.decisions, "seconds": deciding.decide_s, "max_s": deciding.decide_max_s},
             "downtime_ms": _stats(placing.downtimes_ms),
             "migration_log": list(placing.migration_log),
-            "first_depletion": self.team.first_depletion,
-            "events": list(self.team.events),
-            "faults": list(self.team.faults.faults),
+            "first_depletion": team.first_depletion,
+            "events": list(team.events),
+            "faults": list(team.faults.faults),
             "adopted": placing.adopted,
         }
 

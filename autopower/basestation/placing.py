@@ -261,7 +261,8 @@ class Placement:
                 self.placement.pop(stage, None)
                 busy = any(s.name in self.placement or s.name in self.migrations for s in chain.stages)
                 run, resume, restarted = self.runs.run_for(chain, busy)
-                if restarted:  # a new run is said: what the old one still holds upstream is obsolete (docs/known-limits.md)
+                # a new run is said: what the old one still holds upstream is obsolete (docs/known-limits.md)
+                if restarted:
                     self.team.note(f"{chain.name} starts run {run} with {stage} on {want} (the chain had stopped)")
                 m = self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.team.wall())
                 self._order(m, want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))

@@ -138,13 +138,15 @@ class PlanPublisher:
         self.next_republish = self.team.wall() + self.team.config.plan_republish_s
 
     def _plan_update(self) -> PlanUpdate:
-        network = self.team.deciding.plan_network
+        team = self.team
+        deciding, prediction, takeover = team.deciding, team.prediction, team.takeover
+        network = deciding.plan_network
         links = tuple(LinkInfo(a=l.a, b=l.b, medium=l.medium) for l in network.links) if network else ()
-        update = PlanUpdate(epoch=self.epoch, mission=self.team.mission, placement=dict(self.team.placing.placement),
-                            running=dict(self.team.placing.runs.running), links=links, predicted_w=self.team.prediction.placement_w(),
-                            predicted_lifetime_s=self.team.prediction.predicted_lifetime_s, plan_t_virtual=self.team.prediction.plan_t_virtual,
-                            policy=self.team.policy.name, reasons=tuple(self.team.deciding.decision_reasons), levels=dict(self.team.prediction.levels),
-                            variants=dict(self.team.variants), incarnation=self.team.takeover.incarnation, leader=self.team.takeover.leader,
-                            operator=self.team.operating.settings())
+        update = PlanUpdate(epoch=self.epoch, mission=team.mission, placement=dict(team.placing.placement),
+                            running=dict(team.placing.runs.running), links=links, predicted_w=prediction.placement_w(),
+                            predicted_lifetime_s=prediction.predicted_lifetime_s, plan_t_virtual=prediction.plan_t_virtual,
+                            policy=team.policy.name, reasons=tuple(deciding.decision_reasons), levels=dict(prediction.levels),
+                            variants=dict(team.variants), incarnation=takeover.incarnation, leader=takeover.leader,
+                            operator=team.operating.settings())
         return sorted_plan(update)  # one order on every node, whole plan or change (`protocol.plans`)
 

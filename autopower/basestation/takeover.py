@@ -11,11 +11,14 @@ as it sees the base station's liveliness token and then every status period). On
 of the scenario has spoken, or ``CoordinatorConfig.learn_team_s`` has passed since this base
 station came up (one or two status periods plus a lease: what a robot that is still running
 needs to reconnect and speak), it either starts a new mission (nobody runs one) or adopts the
-running one (`Takeover._adopt_team`): the team's mission clock and starting energies (not a new zero),
-the running stages where they run (the newest generation wins; stale copies are released),
+running one (`Takeover._adopt_team`): the team's mission clock and starting energies (not a new
+zero), the running stages where they run (the newest generation wins; stale copies are released),
 the chains' run numbers, the batteries; the epoch goes on from the newest one reported and the
 incarnation is one above any reported (and any this host remembers), so that every agent
-accepts its plans: plans are ordered by (incarnation, epoch).
+accepts its plans: plans are ordered by (incarnation, epoch). What it learned goes to the part
+that owns it, by a call: the mission to the coordinator (`start_mission`), the epoch to the
+publisher (`continue_from`), the placement, generations and runs to the placing part
+(`adopt_team`), the operator's settings to the operator's part (`adopt`).
 
 Two base stations at once (one restarted while the old one was only cut off, or started twice)
 learn of each other from the plans on the plan key (when they are connected) or from the robots'
@@ -149,7 +152,7 @@ class Takeover:
             elif not chain.sourced:
                 # a fan-in chain's stage names its outputs: a fresh instance in the run its sink
                 # already got outputs of would give new outputs their names. Its sink says the run
-                # (`Placement.learn_runs`), and a stage that died starts the next one (`Placement._run_for`).
+                # (`Placement.learn_runs`), and a stage that died starts the next one (`ChainRuns.run_for`).
                 unknown.add(chain.name)
         generation_of = {stage: reports[node].generations.get(stage, 0) for stage, node in placement.items()}
         team.placing.adopt_team(placement, generation_of, waiting, runs, unknown, stale)

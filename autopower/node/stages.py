@@ -74,7 +74,7 @@ class HostedStage:
     # a MIGRATED one the state it shipped (the migration's generation, its new host, the encoded
     # StateTransfer; the body dropped, b"", once the plan shows the stage landed): sent again as
     # they were if the base station repeats the order, which it does when the order or its answer
-    # was lost (`basestation.placing.Placing.resend_orders`).
+    # was lost (`basestation.placing.Placement.resend_orders`).
     answer: bytes = b""
     shipped: tuple[int, str, bytes] | None = None
 

@@ -155,11 +155,11 @@ class World:
 
     def decisions(self) -> dict:
         """How often the base station's policy decided, over all its starts, and the wall time it took."""
-        cos = [shell.co for shell in self.base_shells if shell.co is not None]
-        gaps = [co.deciding.decider.unproven_max_gap for co in cos if co.deciding.decider.unproven_max_gap is not None]
-        return {"count": sum(co.deciding.decisions for co in cos), "seconds": round(sum(co.deciding.decide_s for co in cos), 4),
-                "max_s": round(max((co.deciding.decide_max_s for co in cos), default=0.0), 4),
-                "not_proven": sum(co.deciding.decider.unproven for co in cos),
+        parts = [shell.co.deciding for shell in self.base_shells if shell.co is not None]
+        gaps = [d.decider.unproven_max_gap for d in parts if d.decider.unproven_max_gap is not None]
+        return {"count": sum(d.decisions for d in parts), "seconds": round(sum(d.decide_s for d in parts), 4),
+                "max_s": round(max((d.decide_max_s for d in parts), default=0.0), 4),
+                "not_proven": sum(d.decider.unproven for d in parts),
                 "not_proven_max_gap": round(max(gaps), 6) if gaps else None}
 
     def clock_for(self, mission) -> VirtualClock:
@@ -268,7 +268,8 @@ class World:
                 self.ledger.violate("newest-plan", f"{node} runs plan {shell.rt.plan_order}, the base station's "
                                     f"newest is {newest}", now, event)
         if not co.ready:
-            waiting = {s: (co.placing.placement.get(s), n) for s, n in sorted(co.placing.target.items()) if co.placing.placement.get(s) != n}
+            placement = co.placing.placement
+            waiting = {s: (placement.get(s), n) for s, n in sorted(co.placing.target.items()) if placement.get(s) != n}
             self.ledger.violate("newest-plan", f"not every stage runs where the plan wants it (stage: (runs, wanted) "
                                 f"{waiting}; migrating {sorted(co.placing.migrations)})", now, event)
         for stage, node in sorted(co.placing.placement.items()):
@@ -278,7 +279,8 @@ class World:
                 self.ledger.violate("newest-plan", f"the plan runs {stage} on {node}, which "
                                     f"{'does not host it' if hosted is None else 'hosts it ' + hosted.lifecycle.value}",
                                     now, event)
-        idle = sorted(c.name for c in self.scenario.chains if c.name not in co.operating.disabled and c.name not in co.placing.runs.running)
+        disabled, running = co.operating.disabled, co.placing.runs.running
+        idle = sorted(c.name for c in self.scenario.chains if c.name not in disabled and c.name not in running)
         if idle:
             self.ledger.violate("newest-plan", f"enabled chains not running at the end: {', '.join(idle)}", now, event)
         for node, shell in sorted(self.shells.items()):
