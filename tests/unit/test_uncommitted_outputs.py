@@ -58,7 +58,7 @@ def test_a_moving_stage_takes_the_outputs_only_its_old_hosts_memory_holds(tmp_pa
     assert uncommitted
     team.coordinator.on_operator(MigrateCommand(stage=CHAIN, to_node="r2"))
     team.pump()
-    assert team.coordinator.placement[CHAIN] == "r2"
+    assert team.coordinator.placing.placement[CHAIN] == "r2"
     assert team.nodes["r2"].counters.get("outputs-adopted") == len(uncommitted)
     # kept on r2 as resends (a sink that has one drops the copy as redundant), not sent again yet
     adopted = results_held(team, "r2")
