@@ -19,6 +19,7 @@ Operator -> coordinator (query on ``base/operator``): `ChainCommand`, `MigrateCo
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -515,6 +516,16 @@ class PeerStatus:
     down: tuple[float, float] | None = None  # see `NodeStatus.down`
     next_status_s: float = 0.0  # see `NodeStatus.next_status_s`
     zid: str = ""  # see `NodeStatus.zid`
+    # None: ``links`` lists the nodes in sight. A tuple: the sender sees every member of the team but
+    # itself and these, and ``links`` is empty (a base station sees most of its team: its view to a
+    # robot names the few out of sight, not the whole team, `basestation.peer_view`). `sees` reads both.
+    unseen: tuple[str, ...] | None = None
+
+    def sees(self, team: Iterable[str]) -> set[str]:
+        """The nodes the sender has in sight; ``team``: every member's name (the ``unseen`` form)."""
+        if self.unseen is None:
+            return {n for n, up in self.links.items() if up}
+        return set(team) - set(self.unseen) - {self.node}
 
     @classmethod
     def of(cls, status: NodeStatus) -> "PeerStatus":

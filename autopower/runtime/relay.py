@@ -33,12 +33,16 @@ class Relayer:
     """Send to a node directly when it is in sight, else through the nodes that reach it."""
 
     def __init__(self, *, node: str, bus: Bus, keys: Keys, count: Callable[[str, str], None] | None = None,
-                 access: TeamAccess | None = None, signing: Signing | None = None):
+                 access: TeamAccess | None = None, signing: Signing | None = None,
+                 team: tuple[str, ...] | None = None):
         """With ``access``, a relayed message is delivered only if its origin may put on its key;
         with ``signing``, what we originate is signed and what reaches us must be signed by its
-        claimed origin (a robot on the way cannot write in another node's name)."""
+        claimed origin (a robot on the way cannot write in another node's name). ``team``: its
+        members (default: ``access``'s), what a status naming the nodes out of sight is read against
+        (`PeerStatus.sees`)."""
         self.node = node
         self.access = access
+        self.team = team if team is not None else access.members if access is not None else ()
         self.signing = signing
         self.bus = bus
         self.keys = keys
@@ -79,7 +83,8 @@ class Relayer:
 
     def on_status(self, status: NodeStatus | PeerStatus) -> None:
         if status.node != self.node:
-            self.views[status.node] = {n for n, up in status.links.items() if up}
+            self.views[status.node] = (status.sees(self.team) if isinstance(status, PeerStatus)
+                                       else {n for n, up in status.links.items() if up})
             if status.node in self.shunned and self.node in self.views[status.node]:
                 # it sees us again by its own report (our token reaches it): the cut is over
                 self.shunned.discard(status.node)

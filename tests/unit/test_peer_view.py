@@ -33,10 +33,26 @@ def test_a_robot_hears_its_own_chains_and_whom_the_base_station_sees():
     assert view.hosted == {"Blob-2": "running", "Blob-5": "running"}  # Blob-5 here is newer: r2's stops
     assert view.generations == {"Blob-2": 7, "Blob-5": 7}
     assert view.acks_wanted == ("Blob-2", "Map>Join")  # a flow names no chain: kept
-    assert view.links == status.links and view.plan_epoch == 3 and view.node == "laptop"
-    # what a robot hears no longer grows with the fleet, but for whom the base station sees
-    whole = dataclasses.replace(view, hosted=status.hosted, generations=status.generations)
-    assert len(encode(view)) < len(encode(whole)) / 2
+    # it sees every robot: the view names none of them, and reads as the status says
+    assert view.links == {} and view.unseen == () and view.plan_epoch == 3 and view.node == "laptop"
+    team = fleet.node_names()
+    assert view.sees(team) == set(status.links)
+    # what a robot hears does not grow with the fleet
+    whole = dataclasses.replace(view, hosted=status.hosted, generations=status.generations, links=status.links,
+                                unseen=None)
+    assert len(encode(view)) < len(encode(whole)) / 4
+
+
+def test_whom_the_base_station_sees_goes_in_the_shorter_form_and_reads_the_same():
+    _, fleet = paper_fleet(ROBOTS)
+    views, team = PeerViews(fleet, Keys("team")), fleet.node_names()
+    for seen in (set(), {"r1"}, {f"r{i}" for i in range(1, 21)}, {f"r{i}" for i in range(2, ROBOTS + 1)}):
+        status = dataclasses.replace(base_status(ROBOTS), links={f"r{i}": f"r{i}" in seen
+                                                                 for i in range(1, ROBOTS + 1)})
+        view = decode(encode(views.view(status, set())), PeerStatus)
+        assert view.sees(team) == seen
+        assert (view.unseen is not None) == (len(seen) > ROBOTS / 2)
+        assert len(view.links) + len(view.unseen or ()) <= ROBOTS / 2
 
 
 def test_a_robot_the_plan_does_not_name_still_hears_its_own_chains():
@@ -60,4 +76,6 @@ def test_each_robot_in_reach_gets_its_view_on_its_own_key_and_before_the_mission
     r2 = decode(sent[1][2], PeerStatus)
     assert set(r2.hosted) == {"Blob-2", "Blob-3"} and r2.plan_epoch == 3
     before = [decode(payload, PeerStatus) for _, _, payload in views.addressed(co, None, 5.0, 2.0)]
-    assert [(v.plan_epoch, v.hosted, v.t_unix, sorted(v.links)) for v in before] == [(-1, {}, 5.0, ["r1", "r2"])] * 2
+    assert [(v.plan_epoch, v.hosted, v.t_unix, sorted(v.sees(fleet.node_names()))) for v in before] == \
+        [(-1, {}, 5.0, ["r1", "r2"])] * 2
+    assert before[0].unseen == ("r3",)  # the one out of sight, shorter than the two in it

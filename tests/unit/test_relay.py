@@ -130,3 +130,23 @@ def test_a_relayed_message_from_a_node_that_sees_us_does_not_shun_it_and_a_shun_
     assert "r20" in laptop.direct and "r20" not in laptop.shunned  # not taken for a cut
     assert laptop.send("r20", KEYS.node_control("r20"), b"order")
     assert hub.published[-1][0] == KEYS.node_control("r20")  # directly
+
+
+def test_a_view_naming_the_nodes_out_of_sight_routes_as_one_naming_those_in_sight():
+    """The base station's view to a robot names whom it does not see when they are fewer
+    (`PeerStatus.unseen`): read against the team, the robot routes through it as before."""
+    from autopower.protocol import PeerStatus
+
+    hub = InMemoryHub(record=True)
+    team = ("laptop", "r1", "r2", "r3", "r4")
+    r1 = Relayer(node="r1", bus=hub.bus("r1"), keys=KEYS, team=team)
+    r1.on_liveliness("laptop", True)
+    view = PeerStatus(node="laptop", t_unix=0.0, plan_epoch=1, battery_j=None, hosted={}, generations={},
+                      links={}, unseen=("r4",))
+    r1.on_status(view)
+    assert r1.views["laptop"] == {"r1", "r2", "r3"}
+    assert r1.path_to("r3") == ["r1", "laptop", "r3"] and r1.path_to("r4") is None
+    assert not r1._shuns("laptop")  # it sees us: a message it relays to us cuts nothing
+    r1.on_status(PeerStatus(node="laptop", t_unix=1.0, plan_epoch=1, battery_j=None, hosted={}, generations={},
+                            links={}, unseen=("r1", "r4")))
+    assert r1._shuns("laptop")
