@@ -404,7 +404,7 @@ class Agent:
             base = self.config.scenario.basestation
             for key, payload, dests in ((self.keys.status(self.config.robot), self.status_encoder.encode(status), [base]),
                                         (self.keys.peer(self.config.robot), encode(PeerStatus.of(status)),
-                                         sorted(rt.producers() - {base}))):
+                                         sorted(rt.acknowledging.producers() - {base}))):
                 self._bus.publish(key, payload, reliable=False)
                 self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
                                             REPEAT_EVERY_PERIODS * status.next_status_s)

@@ -15,12 +15,11 @@ import zlib
 from autopower.errors import ProtocolError
 from autopower.model.scenario import Chain
 from autopower.node.guard import ComponentHung
-from autopower.node.sequencing import MAX_MISSING, SinkLedger, ranges_of
+from autopower.node.sequencing import SinkLedger
 from autopower.node.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
 from autopower.node.workers import NotBytes, type_name, worker_of
 from autopower.protocol import (
     ChainFrame,
-    Consumed,
     Packet,
     StateTransfer,
     decode,
@@ -262,50 +261,6 @@ class Frames:
         log.debug("%s: %s refused seq %d (its worker is full); its producer resends it", self.node,
                   hosted.stage.name, frame.seq)
         return True
-
-    def acknowledged(self, hosted: HostedStage, report: Consumed) -> Consumed:
-        """What a stage acknowledges to its producers: its gate's report less the inputs whose
-        outputs are not safe yet (`_less_worker_held`, `_less_unsafe_outputs`)."""
-        return self._less_unsafe_outputs(hosted, self._less_worker_held(hosted, report))
-
-    def _less_unsafe_outputs(self, hosted: HostedStage, report: Consumed) -> Consumed:
-        """An input whose output waits in this node's memory for its consumer's acknowledgement is
-        reported had, not run (below ``max_seq``, not missing; ``next_seq`` lowered to it): its
-        producer keeps it, and does not resend it while this instance reports it (`custody.is_run`).
-        A crash of this node then takes the output but not the input: the stage's next instance,
-        which reports it missing, gets it again and computes the output again (marked a resend:
-        a sink that has it drops the copy). Outputs journaled to disk (results held for a sink out of
-        reach, `hold_output`) are safe. While this node lives a lost output is still resent from its
-        custody, never recomputed."""
-        low = self.unsafe_output_floor(hosted.chain.name, hosted.index + 1, report.run)
-        if low is None or low >= report.next_seq:
-            return report
-        return dataclasses.replace(report, next_seq=low)
-
-    def _less_worker_held(self, hosted: HostedStage, report: Consumed) -> Consumed:
-        """The gate's report less the inputs still in the stage's worker.
-
-        In-process, a stage emits an input's output (into this node's custody) in the same step as
-        its gate takes the input. In a worker the output comes later; until then the input stays
-        unacknowledged, in its producer's custody: a node killed meanwhile loses none of them (its
-        producer resends them to the stage's next instance) and the stage's sink sees each output
-        once. A resend of one that is only slow is dropped by the gate (redundant)."""
-        worker = worker_of(hosted.component)
-        if worker is None:
-            return report
-        held = sorted({frame.seq for owner, frame in worker.outstanding()
-                       if owner is hosted and frame.run == report.run and frame.seq < report.next_seq})
-        if not held:
-            return report
-        # every held seq is below the gate's next_seq, every missing one at or above it: still sorted
-        missing = list(ranges_of(held))
-        if report.missing and report.missing[0][0] == missing[-1][1] + 1:  # adjacent: one range
-            missing[-1] = (missing[-1][0], report.missing[0][1])
-            missing += report.missing[1:]
-        else:
-            missing += report.missing
-        return dataclasses.replace(report, next_seq=held[0], max_seq=max(report.max_seq, held[-1]),
-                                   missing=tuple(missing[:MAX_MISSING]))
 
     def collect_stage_results(self) -> None:
         """Finish the runs whose results came back from their workers (the loop, on a nudge or a tick)."""

@@ -444,7 +444,7 @@ class Hosting:
     def _producer_in_sight(self, hosted: HostedStage) -> bool:
         """Is the node that feeds ``hosted`` (its chain's source, or the previous stage's host) this
         one or in direct sight now: alive to resend what it holds?"""
-        producer = self.producer_of(hosted)
+        producer = self.acknowledging.producer_of(hosted)
         return producer is not None and (producer == self.node or producer in self.alive)
 
     def yield_to_newer(self, status: NodeStatus | PeerStatus) -> bool:

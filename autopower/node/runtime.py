@@ -40,7 +40,7 @@ from autopower.model.energy import flow_weight
 from autopower.model.network import Link, Network, build_network
 from autopower.model.scenario import Chain, Scenario
 from autopower.model.variants import apply_variants, runtime_component
-from autopower.node.acknowledging import Acknowledging, AckWants
+from autopower.node.acknowledging import Acknowledging
 from autopower.node.control_meter import ControlPlaneMeter
 from autopower.node.custody import Custody
 from autopower.node.frames import Frames
@@ -65,7 +65,6 @@ from autopower.node.workers import Zygote
 from autopower.protocol import (
     Ack,
     ChainFrame,
-    Consumed,
     Keys,
     MissionInfo,
     NodeStatus,
@@ -77,7 +76,6 @@ from autopower.protocol import (
     decode,
     encode,
 )
-from autopower.protocol.access import addressed_problem
 from autopower.protocol.codec import message_kind
 from autopower.protocol.plans import PlanAssembler
 from autopower.runtime.bus import Bus
@@ -98,7 +96,7 @@ DIED_WITH_PROCESS_S = 2.0
 RESUME_ALONE_MAX_AGE_S = 300.0
 
 
-class NodeRuntime(Frames, Hosting, Acknowledging):
+class NodeRuntime(Frames, Hosting):
     """Chain data handling for one node; see the module docstring."""
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
@@ -185,7 +183,8 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         self._on_produced = stores.on_produced
         self.custody = Custody(hold_budget_bytes=scenario.hold_budget_bytes)
         self.control_plane = ControlPlaneMeter()  # the bytes on its links beyond the chain packets
-        self.ack_wants = AckWants()  # which peers want the acknowledgements of which chains
+        # custody's acknowledgements: those this node sends, those it hears, and resends
+        self.acknowledging = Acknowledging(self)
         # where this node's sink ledgers are kept across a restart (the base station's, in its team
         # state directory): an output delivered before a crash is not delivered again after it
         self.sink_store: SinkStore | None = stores.sink_store
@@ -208,10 +207,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         # results are collected at the next timer tick
         self.notify_work: Callable[[], None] | None = ports.notify_work
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
-        self._next_custody_check = 0.0
-        # per sink chain, what its ledger said at the last commit (`commit_sinks`): all this node's own
-        # custody may let go of, between statuses
-        self._sinks_committed: dict[str, Consumed] = {}
         self.wall: Callable[[], float] = wall or time.time
         self.perf: Callable[[], float] = perf or time.perf_counter
         # How a message for one node leaves: the process gives its `Relayer.send`, so that a node
@@ -649,13 +644,13 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
 
         Until then an output delivered to a sink here is not safe: a kill loses it with the notes, so
         this node's custody keeps it (`on_timer` acknowledges to it only what is committed) and the
-        stage that made it reports its input had, not run (`Frames.acknowledged`). A status's
+        stage that made it reports its input had, not run (`Acknowledging.acknowledged`). A status's
         acknowledgements to other nodes leave after this commit, so they may say what it wrote.
         """
         if self.sink_store is not None:
             self.sink_store.commit()
-        self._sinks_committed = {name: report for name, ledger in self.sinks.items()
-                                 if (report := ledger.report()) is not None}
+        self.acknowledging.sinks_committed({name: report for name, ledger in self.sinks.items()
+                                            if (report := ledger.report()) is not None})
 
     def close_stores(self, *, commit_sinks: bool = True) -> None:
         """Close what it keeps on disk (the held results' writer finishes first). ``commit_sinks``
@@ -702,9 +697,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             self.collect_stage_results()
             self.check_stage_workers()
         wall = self.wall()
-        if wall >= self._next_custody_check:
-            self._acknowledge(self.node, wall, self.consumed(committed_sinks=True))  # what we consumed ourselves
-            self.resend_lost(wall)
+        self.acknowledging.tick(wall)  # what we consumed ourselves; resends of what our consumers lack
         self.join_tick()  # fan-in steps whose wait is over
         now = self.now()
         away_s = wall - self._last_turn_wall if self._last_turn_wall is not None else 0.0
@@ -759,7 +752,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
     def on_peer_status(self, status: NodeStatus | PeerStatus) -> None:
         """Another node's status: the acknowledgements it wants (`Acknowledging`), and whether the
         base station runs the plan this node runs (else this node's statuses carry the mission)."""
-        super().on_peer_status(status)
+        self.acknowledging.note_wants(status)
         if status.zid and status.node != self.node and not self.control_plane.learn_zid(status.node, status.zid):
             self.count("zid-refused", f"{status.node} announced session {status.zid[:40]!r}: not a Zenoh id, "
                                       "or another node's")
@@ -830,7 +823,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             queue_depth=queue_depth, errors=dict(self.errors),
             counters={**self.counters, "held-outputs": len(self.held_outputs), **self.custody.stats()},
             depleted=bool(self.meter and self.meter.depleted),
-            acks_wanted=tuple(sorted(self.ack_interest())),
+            acks_wanted=tuple(sorted(self.acknowledging.ack_interest())),
             failed=dict(self.failed),
             plan_incarnation=self.plan.incarnation if self.plan else 0,
             plan_leader=self.plan.leader if self.plan else "",
@@ -887,6 +880,19 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             (medium,) = self.meter.media
         return medium
 
+    # ---- acknowledgements (`autopower.node.acknowledging`) ---------------------------------------------
+    def on_ack(self, ack: Ack) -> None:
+        """Another node's acknowledgement (`Acknowledging.on_ack`)."""
+        self.acknowledging.on_ack(ack)
+
+    def acks(self, queue_wait_s: float = 0.0) -> dict[str, Ack]:
+        """What this node consumed, as one `Ack` per node that sent it frames (`Acknowledging.acks`)."""
+        return self.acknowledging.acks(queue_wait_s)
+
+    def send_acks(self, reachable: Callable[[str], bool], queue_wait_s: float = 0.0) -> int:
+        """Send this node's acknowledgements with its status (`Acknowledging.send`); how many were sent."""
+        return self.acknowledging.send(reachable, queue_wait_s)
+
     # ---- dispatch -----------------------------------------------------------------------------------------
     def on_message(self, key: str, payload: bytes) -> bool:
         """Handle a message on one of this node's keys; False if the key is not ours.
@@ -899,7 +905,7 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
             elif key == self.keys.node_control(self.node) and message_kind(payload) != PlanUpdate.KIND:
                 self.on_control(payload)  # a plan resent to this node alone comes whole
             elif (ends := self.keys.addressed_ends(key)) is not None and ends[0] == self.node:
-                self._on_ack_message(key, payload)
+                self.acknowledging.on_ack_message(key, payload)
             elif key in (self.keys.plan, self.keys.node_control(self.node)):
                 # the base station repeats its plan (to robots not yet running it, on their control
                 # keys, `Coordinator.resend_plan`; to everyone now and then): the bytes handled
@@ -919,25 +925,6 @@ class NodeRuntime(Frames, Hosting, Acknowledging):
         return True
 
 
-    def _on_ack_message(self, key: str, payload: bytes) -> None:
-        ack = decode(payload, Ack)
-        problem = addressed_problem(self.keys, key, ack.node, ack.t_unix, self.wall())
-        if problem is not None:
-            self.count("forged", problem)
-            return
-        self.on_ack(ack)
-
-    def send_acks(self, reachable: Callable[[str], bool], queue_wait_s: float = 0.0) -> int:
-        """Send what this node consumed to the nodes that sent it (`acks`) and that ``reachable``
-        (directly or relayed): the consumer's half of custody, sent with each status. Unreliable
-        like the status (a saturated radio drops it rather than hold the loop up): the next
-        status's acknowledgements say it again. Returns how many were sent."""
-        sent = 0
-        for dest, ack in self.acks(queue_wait_s).items():
-            if reachable(dest):
-                self.send_to(dest, self.keys.addressed(dest, self.node), encode(ack), reliable=False)
-                sent += 1
-        return sent
 
 
 def _unroutable(scenario, network, placement: dict[str, str]) -> set[str]:

@@ -319,7 +319,7 @@ class RobotShell(Shell):
             base = w.scenario.basestation
             for key, payload, dests in ((keys.status(self.node), self.status_encoder.encode(status), [base]),
                                         (keys.peer(self.node), encode(PeerStatus.of(status)),
-                                         sorted(rt.producers() - {base}))):
+                                         sorted(rt.acknowledging.producers() - {base}))):
                 self.bus.publish(key, payload, reliable=False)
                 self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
         rt.send_acks(self.relayer.reachable, built.queue_wait_s)

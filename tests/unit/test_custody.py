@@ -618,9 +618,9 @@ def test_a_node_knows_whose_frames_it_consumes_so_its_acks_reach_them():
     team.join()
     team.run_until(3.0)
     # r1's scans come to r2's Loc-1; r2's own poses come back from the laptop's Loc-2
-    assert team.nodes["r2"].producers() == {"r1", "laptop"}
-    assert team.nodes["r1"].producers() == {"r2"}  # r1 is Loc-1's sink: its poses come from r2
-    assert "r3" in team.nodes["laptop"].producers()  # r3's camera frames to the laptop's Blob-3
+    assert team.nodes["r2"].acknowledging.producers() == {"r1", "laptop"}
+    assert team.nodes["r1"].acknowledging.producers() == {"r2"}  # r1 is Loc-1's sink: its poses come from r2
+    assert "r3" in team.nodes["laptop"].acknowledging.producers()  # r3's camera frames to the laptop's Blob-3
 
 
 def test_a_gate_tells_redundant_resends_from_real_duplicates():

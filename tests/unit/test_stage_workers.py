@@ -398,7 +398,7 @@ def test_inputs_in_a_worker_stay_in_their_producers_custody_and_a_crash_of_their
         done = r1.hosted["Blob-2"].runs
         assert len(held) >= 3 and held[0] == done, (held, done)
         assert r1.hosted["Blob-2"].gate.next_seq == done + len(held)  # the gate took them all ...
-        report = r1.consumed()["Blob-2#0"]
+        report = r1.acknowledging.consumed()["Blob-2#0"]
         assert report.next_seq == done and all(in_ranges(report.missing, s) for s in held)  # ... it acknowledges only what ran
         # so r2 still holds every one of those; what else it holds ran, its output not yet acknowledged
         # by the laptop's sink when r1 reported (in r1's memory only: a crash of r1 would take it)

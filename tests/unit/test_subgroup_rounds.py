@@ -324,7 +324,7 @@ def test_a_released_stage_runs_the_inputs_waiting_in_its_gate_when_their_produce
     rt = agents["r1"].runtime
     for seq in (7, 8):
         rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
-    report = rt.consumed()["Loc-2#0"]
+    report = rt.acknowledging.consumed()["Loc-2#0"]
     assert report.max_seq == 8 and (7, 8) not in report.missing  # received, though not run
     runs = rt.hosted["Loc-2"].runs
     hosted = rt.hosted["Loc-2"]
