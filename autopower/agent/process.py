@@ -181,7 +181,7 @@ class Agent:
 
     def __exit__(self, *exc) -> None:
         if self.runtime is not None:
-            self.runtime.close_workers()
+            self.runtime.components.close()
         if self.resume is not None:
             self.resume.close()
         if self.runtime is not None:
@@ -230,7 +230,7 @@ class Agent:
                 if change is not None:
                     self._sight(node, change)
         elif isinstance(event, WorkDone):
-            self.runtime.collect_stage_results()
+            self.runtime.components.collect_results()
         elif isinstance(event, OperatorRequest):
             event.request.close()
 

@@ -285,9 +285,8 @@ class BaseStation:
         if self.coordinator is not None and not self.coordinator.deciding.decider.close(DECISION_CLOSE_WAIT_S):
             log.warning("base station: stopping while the policy still decides (over %.0f s)", DECISION_CLOSE_WAIT_S)
         steps.lap("decision")
-        close_workers = getattr(self.runtime, "close_workers", None)  # the host's stage worker processes
-        if close_workers is not None:
-            close_workers()
+        if self.runtime is not None:  # the host's stage worker processes
+            self.runtime.components.close()
         steps.lap("stage workers")
         if self.runtime is not None:
             # the held results' writer thread finishes first: nothing is written after the state is
@@ -349,7 +348,7 @@ class BaseStation:
         elif isinstance(event, OperatorRequest):
             self._operator(event.request)
         elif isinstance(event, WorkDone):
-            rt.collect_stage_results()
+            rt.components.collect_results()
         # DecisionAnswered only wakes the loop: `Coordinator.on_timer` carries the answer out
 
     def _settle_suspects(self) -> None:

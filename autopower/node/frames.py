@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 import zlib
 
 from autopower.errors import ProtocolError
@@ -17,7 +16,7 @@ from autopower.model.scenario import Chain
 from autopower.node.guard import ComponentHung
 from autopower.node.sequencing import SinkLedger
 from autopower.node.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
-from autopower.node.workers import NotBytes, type_name, worker_of
+from autopower.node.workers import type_name, worker_of
 from autopower.protocol import (
     ChainFrame,
     Packet,
@@ -191,13 +190,13 @@ class Frames:
         if hosted.lifecycle is Lifecycle.FAILED:
             return  # inputs already admitted in this batch when it failed
         worker = worker_of(hosted.component)
-        if worker is not None:  # in its own process: handed over; `collect_stage_results` finishes it
+        if worker is not None:  # in its own process: handed over; `Components.collect_results` finishes it
             worker.submit((hosted, frame), frame.data())
             return
         started = self.perf()
         # The component is code we do not control: whatever it does wrong stops this stage only.
         try:
-            output = self.guard.call(hosted.component.run, frame.data(), timeout_s=self.hang_limit_s(chain))
+            output = self.guard.call(hosted.component.run, frame.data(), timeout_s=self.components.hang_limit_s(chain))
         except ComponentHung as exc:
             self.fail_stage(hosted, "hung", f"run(seq {frame.seq}): {exc}")
             return
@@ -261,61 +260,6 @@ class Frames:
         log.debug("%s: %s refused seq %d (its worker is full); its producer resends it", self.node,
                   hosted.stage.name, frame.seq)
         return True
-
-    def collect_stage_results(self) -> None:
-        """Finish the runs whose results came back from their workers (the loop, on a nudge or a tick)."""
-        for hosted in list(self.hosted.values()):
-            worker = worker_of(hosted.component)
-            while worker is not None and worker is worker_of(hosted.component):
-                done = worker.poll()
-                if done is None:
-                    break
-                (owner, frame), reply = done
-                self._finish_remote(owner, frame, reply, worker)
-
-    def _finish_remote(self, hosted: HostedStage, frame: ChainFrame, reply: list | None, worker) -> None:
-        if hosted.lifecycle is Lifecycle.FAILED or worker is not worker_of(hosted.component):
-            return  # stopped or replaced meanwhile: its result is no longer anyone's
-        if reply is None:
-            self.fail_stage(hosted, "crashed", f"run(seq {frame.seq}): its worker process ended "
-                            f"({worker.exit_text()})")
-        elif reply[0] == "err":
-            self.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {reply[1]}: {reply[2] if len(reply) > 2 else ''}")
-        elif reply[0] == "ok" and len(reply) == 3 and isinstance(reply[1], float):  # ["ok", compute s, output]
-            self._ran(hosted, frame, reply[2], reply[1])
-        else:  # ["bad", type name]: not bytes
-            self._ran(hosted, frame, NotBytes(reply[-1]) if reply[0] == "bad" else reply, 0.0)
-
-    def check_stage_workers(self) -> None:
-        """Kill the worker of a run that hung (`guard.py`'s rule); its stage has failed."""
-        now = time.monotonic()
-        for hosted in list(self.hosted.values()):
-            worker = worker_of(hosted.component)
-            if worker is None or worker.inflight is None:
-                continue
-            verdict = worker.run_hung(self.hang_limit_s(hosted.chain), now)
-            if verdict is not None:
-                seq = worker.inflight[0][1].seq
-                worker.kill()
-                self.fail_stage(hosted, "hung", f"run(seq {seq}): {verdict}; its worker process was killed")
-
-    def drain_stage(self, hosted: HostedStage) -> bool:
-        """Wait (on the loop) until a stage's worker has run every input handed to it; False if the
-        stage failed meanwhile."""
-        worker = worker_of(hosted.component)
-        limit = self.hang_limit_s(hosted.chain)
-        while worker is not None and worker.inflight is not None:
-            done = worker.poll(0.05)
-            if done is not None:
-                (owner, frame), reply = done
-                self._finish_remote(owner, frame, reply, worker)
-                continue
-            verdict = worker.run_hung(limit, time.monotonic())
-            if verdict is not None:
-                seq = worker.inflight[0][1].seq
-                worker.kill()
-                self.fail_stage(hosted, "hung", f"run(seq {seq}): {verdict}; its worker process was killed")
-        return hosted.lifecycle is not Lifecycle.FAILED
 
     def _sink(self, chain: Chain, frame: ChainFrame) -> None:
         if chain.sink != self.node:

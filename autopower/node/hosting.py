@@ -10,12 +10,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 
-from autopower.model.scenario import Chain, Stage
-from autopower.model.variants import runtime_component
-from autopower.node.guard import hang_limit_s
 from autopower.node.sequencing import SequenceGate
-from autopower.node.stages import HostedStage, Lifecycle, chain_seed
-from autopower.node.workers import StageWorker, WorkerComponent, WorkerCrashed, Zygote, recipe_for, worker_of
+from autopower.node.stages import HostedStage, Lifecycle
+from autopower.node.workers import worker_of
 from autopower.protocol import (
     Assign,
     MigrateOut,
@@ -77,49 +74,6 @@ class Hosting:
         elif isinstance(msg, Release):
             self.on_release(msg)
 
-    def _new_component(self, chain: Chain, stage: Stage):
-        return self.flows.wrap(self._component_instance(chain, stage), stage.name,
-                               self.wall)  # a fan-in stage's join travels with its state
-
-    def _component_instance(self, chain: Chain, stage: Stage):
-        """A new instance of the stage's component: in a worker process of its own with
-        ``stage_workers`` (`agent.workers`), when the worker can build it; else in this process."""
-        seed = chain_seed(self.scenario, chain)
-        if self.stage_workers:
-            kind, parameters = runtime_component(self.scenario, stage.component)
-            recipe = recipe_for(self._make_component, kind, chain.source, seed, parameters)
-            if recipe is None:
-                self.tally("stage-in-process")  # a factory a worker cannot import: runs here as before
-            else:
-                if self._zygote is None:
-                    self._zygote = Zygote()
-                try:
-                    worker = StageWorker(self._zygote, self.notify_work)
-                except (OSError, WorkerCrashed) as exc:  # no worker to be had: the stage still runs, here
-                    self.count("stage-worker-unavailable", f"{stage.name}: {exc}", logging.ERROR)
-                else:
-                    try:
-                        return WorkerComponent(worker, recipe, self.hang_limit_s(chain))
-                    except BaseException:
-                        worker.kill()
-                        raise
-        return self._build(self._make_component, stage.component, chain.source, seed)
-
-    @staticmethod
-    def retire(component) -> None:
-        """An instance this node gives up: its worker process (if any) is killed at once."""
-        worker = worker_of(component)
-        if worker is not None:
-            worker.kill()
-
-    def close_workers(self) -> None:
-        """Kill every stage worker and the zygote (the node is stopping)."""
-        for hosted in self.hosted.values():
-            self.retire(hosted.component)
-        if self._zygote is not None:
-            self._zygote.close()
-            self._zygote = None
-
     def _reply(self, msg) -> bytes:
         payload = encode(msg)
         self._to_basestation(payload)
@@ -142,7 +96,7 @@ class Hosting:
     def _construct(self, msg, chain, stage):
         """A new instance of the stage's component, or None when its constructor raised (reported)."""
         try:
-            return self._new_component(chain, stage)
+            return self.components.new_component(chain, stage)
         except Exception as exc:
             self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
             self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="raised",
@@ -167,7 +121,7 @@ class Hosting:
             component = self._construct(order, hosted.chain, hosted.stage)
             if component is None:
                 continue
-            self.retire(hosted.component)
+            self.components.retire(hosted.component)
             self.tally("stage-new-run")  # not an error: counted with what happens
             log.info("%s: %s runs in run %d, the plan's chain in run %d: started afresh in it", self.node, name,
                      hosted.run, run)
@@ -187,7 +141,7 @@ class Hosting:
             return
         self.failed.pop(msg.stage, None)
         if current is not None:
-            self.retire(current.component)
+            self.components.retire(current.component)
         hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
                              gate=SequenceGate(next_seq=msg.resume_seq))
@@ -242,9 +196,9 @@ class Hosting:
         stopped_unix = self.wall()  # downtime counts from here: checking the state is part of it
         # In-process runs are synchronous in this loop: the current one has finished. A stage in a
         # worker finishes its queued inputs first (their outputs go out as usual).
-        if not self.drain_stage(hosted):
+        if not self.components.drain(hosted):
             return  # it failed while draining: stopped here, the base station told (StageFailed)
-        refused = self._exportable_state(hosted)
+        refused = self.components.exportable_state(hosted)
         if isinstance(refused, tuple):  # the stage keeps running here; the base station is told
             what, detail = refused
             hosted.lifecycle = Lifecycle.RUNNING
@@ -265,7 +219,7 @@ class Hosting:
         hosted.lifecycle = Lifecycle.MIGRATED
         hosted.forward_to = msg.to_node
         hosted.shipped = (msg.generation, msg.to_node, body)
-        self.retire(hosted.component)
+        self.components.retire(hosted.component)
         hosted.component = None
         if self.plan is not None and self.plan.predicted_w:  # it runs there from now on, not here
             self.model_override = self.predict_power({**self.plan.placement, msg.stage: msg.to_node})
@@ -299,10 +253,10 @@ class Hosting:
         imported = True
         component = None
         try:
-            component = self._new_component(chain, stage)
-            self._import(component, msg.state, chain)
+            component = self.components.new_component(chain, stage)
+            self.components.import_state(component, msg.state, chain)
         except Exception as exc:
-            self.retire(component)
+            self.components.retire(component)
             # It imported on the old host (checked before it was shipped), so this host runs other
             # code. The old instance is gone: go on here without the state, from where it stopped.
             self.count("import-failed", f"{msg.stage}: {exc}", logging.ERROR)
@@ -324,7 +278,7 @@ class Hosting:
         self._adopt_outputs(msg, hosted)
         self.failed.pop(msg.stage, None)
         if current is not None:
-            self.retire(current.component)
+            self.components.retire(current.component)
         self.hosted[msg.stage] = hosted
         hosted.answer = self._reply(StageReady(
             stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
@@ -351,41 +305,6 @@ class Hosting:
         if msg.outputs:
             self.tally("outputs-adopted", len(msg.outputs))
 
-    def _exportable_state(self, hosted: HostedStage) -> bytes | tuple[str, str]:
-        """The state to ship, checked to import into a fresh instance; or (what, why) it cannot move.
-
-        The check runs here, before this node gives its instance up: a state that does not import
-        (a bug in ``import_state``, a format change) refuses the migration and the stage keeps
-        running where it was. The new host runs the same code, so it imports there too; if it
-        still fails there (different code installed), that host starts it without the state from
-        where it stopped (no input lost or repeated) and says so.
-        """
-        component, chain, limit = hosted.component, hosted.chain, self.hang_limit_s(hosted.chain)
-        if not callable(getattr(component, "export_state", None)):
-            return b""  # a stateless component: restarted fresh on its new host
-        try:
-            state = self.guard.call(component.export_state, timeout_s=limit)
-        except Exception as exc:
-            return "export-failed", f"export_state: {type(exc).__name__}: {exc}"
-        if not isinstance(state, bytes):
-            return "export-failed", f"export_state returned {type(state).__name__}, not bytes"
-        probe = None
-        try:
-            probe = self._new_component(chain, hosted.stage)
-            self.guard.call(probe.import_state, state, timeout_s=limit)
-        except Exception as exc:
-            return "import-failed", f"import_state: {type(exc).__name__}: {exc}"
-        finally:
-            self.retire(probe)
-        return state
-
-    def _import(self, component, state: bytes, chain: Chain) -> None:
-        if state or callable(getattr(component, "import_state", None)):
-            self.guard.call(component.import_state, state, timeout_s=self.hang_limit_s(chain))
-
-    def hang_limit_s(self, chain: Chain) -> float:
-        return hang_limit_s(chain.period_s, self.mission.speed if self.mission else 1.0)
-
     def fail_stage(self, hosted: HostedStage, what: str, detail: str) -> None:
         """Stop a stage whose component misbehaved; the node and its other stages go on.
 
@@ -395,7 +314,7 @@ class Hosting:
         """
         name = hosted.stage.name
         text = _bounded(f"{what}: {detail}")
-        self.retire(hosted.component)
+        self.components.retire(hosted.component)
         hosted.lifecycle, hosted.failure, hosted.component = Lifecycle.FAILED, text, None
         self.failed[name] = text
         self.count("stage-failed", f"{name}: {text}", logging.ERROR)
@@ -435,7 +354,7 @@ class Hosting:
                     self.orphans.setdefault(msg.stage, []).extend(waiting)
                     log.info("%s: %s released with %d input(s) waiting; kept for its next instance", self.node,
                              msg.stage, len(waiting))
-            self.retire(hosted.component)
+            self.components.retire(hosted.component)
             self.hosted.pop(msg.stage, None)  # a failing run may have dropped it already
         chain = self.stage_index.get(msg.stage, (None, 0))[0]
         if chain is None or self._disabled(chain.name):
@@ -487,7 +406,7 @@ class Hosting:
             started = self.perf()
             try:
                 output = self.guard.call(hosted.component.run, frame.data(),
-                                         timeout_s=self.hang_limit_s(hosted.chain))
+                                         timeout_s=self.components.hang_limit_s(hosted.chain))
             except Exception as exc:  # noqa: BLE001 - code we do not control; ComponentHung included
                 self.count("released-inputs-lost", f"{hosted.stage.name}: run(seq {frame.seq}) at release: "
                            f"{type(exc).__name__}: {exc}; {len(frames) - done} input(s) not run")

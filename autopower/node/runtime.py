@@ -39,8 +39,9 @@ from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
 from autopower.model.network import Link, Network, build_network
 from autopower.model.scenario import Chain, Scenario
-from autopower.model.variants import apply_variants, runtime_component
+from autopower.model.variants import apply_variants
 from autopower.node.acknowledging import Acknowledging
+from autopower.node.components import Components
 from autopower.node.control_meter import ControlPlaneMeter
 from autopower.node.custody import Custody
 from autopower.node.frames import Frames
@@ -61,7 +62,6 @@ from autopower.node.stages import (
     chain_seed,
     pad,
 )
-from autopower.node.workers import Zygote
 from autopower.protocol import (
     Ack,
     ChainFrame,
@@ -123,8 +123,6 @@ class NodeRuntime(Frames, Hosting):
         self.bus = bus
         self.keys = keys
         self.platform = scenario.platform_of(node)
-        self._make_component = make_component
-        self._make_source = make_source
         self._clock_factory = clock_factory or (lambda m: VirtualClock(m.epoch_unix, m.speed))
         self.chains = {c.name: c for c in scenario.chains}
         self.stage_index = {s.name: (c, i) for c in scenario.chains for i, s in enumerate(c.stages)}
@@ -132,6 +130,9 @@ class NodeRuntime(Frames, Hosting):
         self.flows = Flows(scenario, count=self.count, tally=self.tally,
                            joined=lambda chain, run, seq: self._sink_listeners.joined(chain, run, seq))
         self.chains.update(self.flows.chains)
+        # the stages' components, in this process or each in a worker process of its own (`agent.workers`)
+        self.components = Components(self, make_component=make_component, make_source=make_source,
+                                     stage_workers=stage_workers, notify_work=ports.notify_work)
 
         self.mission: MissionInfo | None = None
         self.clock: Clock | None = None
@@ -148,7 +149,7 @@ class NodeRuntime(Frames, Hosting):
         self.orphans: dict[str, list[ChainFrame]] = {}
         # the chains this node feeds from its own sensors (`autopower.node.sources`)
         self.feeds = Sources(node=node, key_of=self._source_key,
-                             build=lambda key: self._build(self._make_source, *key),
+                             build=lambda key: self.components.build_source(*key),
                              count=self.count, tally=self.tally)
         self._last_turn_wall: float | None = None  # `on_timer`'s last turn (a node away a second was stopped)
         self.sinks: dict[str, SinkLedger] = {}
@@ -197,15 +198,6 @@ class NodeRuntime(Frames, Hosting):
         # since the mission started in this process, on the computer running it (`charge_runtime`):
         self.runtime_cpu_s = 0.0  # the runtime's CPU
         self.component_cpu_s = 0.0  # the component code's (runs, sources, state, constructors)
-        # each stage's component in a worker process of its own, called asynchronously (`agent.workers`)
-        self.stage_workers = stage_workers
-        self._zygote = None
-        if stage_workers:  # started now, off the loop (`Zygote.prestart`)
-            self._zygote = Zygote()
-            self._zygote.prestart()
-        # how a worker's result wakes the owning process's loop (it posts an event); without it
-        # results are collected at the next timer tick
-        self.notify_work: Callable[[], None] | None = ports.notify_work
         self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
         self.wall: Callable[[], float] = wall or time.time
         self.perf: Callable[[], float] = perf or time.perf_counter
@@ -355,12 +347,6 @@ class NodeRuntime(Frames, Hosting):
             return
         self.chains = {c.name: c for c in self.scenario.chains}
         self.stage_index = {s.name: (c, i) for c in self.scenario.chains for i, s in enumerate(c.stages)}
-
-    def _build(self, factory, component: str, robot: str, seed: int):
-        """A component or source of a stage's component (a variant's: with its parameters)."""
-        kind, parameters = runtime_component(self.scenario, component)
-        args = (kind, robot, seed, parameters) if parameters else (kind, robot, seed)
-        return self.guard.counted(factory, *args)
 
     def _resume(self, mission: MissionInfo) -> None:
         """Carry on from a crashed process's saved state if it belongs to this very mission."""
@@ -693,9 +679,9 @@ class NodeRuntime(Frames, Hosting):
 
     def on_timer(self) -> None:
         self.settle_relayed()
-        if self._zygote is not None:  # stages in worker processes: results in, hung runs killed
-            self.collect_stage_results()
-            self.check_stage_workers()
+        if self.components.has_workers:  # stages in worker processes: results in, hung runs killed
+            self.components.collect_results()
+            self.components.check_workers()
         wall = self.wall()
         self.acknowledging.tick(wall)  # what we consumed ourselves; resends of what our consumers lack
         self.join_tick()  # fan-in steps whose wait is over
@@ -718,7 +704,7 @@ class NodeRuntime(Frames, Hosting):
                             self.custody.held_for(chain.name, 0), self.counters["missed-periods-backlog"])
             return
         try:
-            data = self.guard.call(runner.source.produce, runner.seq, timeout_s=self.hang_limit_s(chain))
+            data = self.guard.call(runner.source.produce, runner.seq, timeout_s=self.components.hang_limit_s(chain))
             payload = pad(data, chain.message_bytes[0], f"{chain.name} source")
         except ComponentHung as exc:
             self._source_hung(runner, f"produce(seq {runner.seq}): {exc}")

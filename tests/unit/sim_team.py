@@ -73,8 +73,10 @@ class FakeRequest:
 class SimTeam:
     def __init__(self, scenario, *, config: CoordinatorConfig | None = None, policy=None, fake=True,
                  rng: random.Random | None = None, speed: float = 1.0, relay_on_arrival: bool = True,
-                 on_decision_answer=None, stores: dict[str, NodeStores] | None = None):
-        """``stores``: node -> what its process keeps on disk (none for the others)."""
+                 on_decision_answer=None, stores: dict[str, NodeStores] | None = None,
+                 node_kwargs: dict[str, dict] | None = None):
+        """``stores``: node -> what its process keeps on disk (none for the others). ``node_kwargs``:
+        node -> arguments of its `NodeRuntime` over the team's (its factories, ``stage_workers``)."""
         self.scenario = scenario
         self.clock = ManualClock(speed=speed, epoch_unix=1_000_000.0)
         self.hub = InMemoryHub(synchronous=False)
@@ -96,7 +98,8 @@ class SimTeam:
             rt = NodeRuntime(node=node, scenario=scenario, bus=bus, keys=self.keys,
                              clock_factory=lambda mission: self.clock,
                              wall=self.clock.wall,  # custody ages frames on the test's clock
-                             ports=ports, stores=(stores or {}).get(node), **kwargs)
+                             ports=ports, stores=(stores or {}).get(node),
+                             **{**kwargs, **(node_kwargs or {}).get(node, {})})
             self.nodes[node] = rt
             self.subscriptions[node] = [
                 bus.subscribe(k, lambda key, payload, rt=rt: rt.on_message(key, payload))

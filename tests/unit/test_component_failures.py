@@ -66,7 +66,8 @@ class ExportFails(FakeComponent):
         raise RuntimeError("camera handle cannot be serialised")
 
 
-def team_with(bad_cls, *, speed: float = 1.0, pins=None) -> SimTeam:
+def team_with(bad_cls, *, speed: float = 1.0, pins=None, node_kwargs=None) -> SimTeam:
+    """``node_kwargs``: node -> its runtime's factories over this team's (`SimTeam`)."""
     def make_component(component_type, robot, seed):
         cls = bad_cls if (component_type, robot) == ("Blob", "r2") else FakeComponent
         return cls(component_type, robot, seed)
@@ -74,9 +75,9 @@ def team_with(bad_cls, *, speed: float = 1.0, pins=None) -> SimTeam:
     team = SimTeam(load_scenario("paper-fig7"),
                    config=CoordinatorConfig(speed=speed, media=FC, auto_replan=False,
                                             pins=pins or {BAD: "r2", "Loc-2": "r2"}),
-                   fake=True, speed=speed)
-    for rt in team.nodes.values():
-        rt._make_component = make_component
+                   fake=True, speed=speed,
+                   node_kwargs={node: {"make_component": make_component, **(node_kwargs or {}).get(node, {})}
+                                for node in load_scenario("paper-fig7").node_names()})
     return team
 
 
@@ -175,9 +176,9 @@ def test_a_state_that_cannot_move_keeps_the_stage_where_it_runs(bad_cls, what):
 def test_a_state_that_imports_at_home_but_not_on_the_new_host_goes_on_there_without_it():
     """Different code on the new host (the check on the old one passed): it starts there without the
     state, from the seq where the old host stopped: no input lost or run twice."""
-    team = team_with(FakeComponent, pins={BAD: "r2"})
-    team.nodes["r3"]._make_component = lambda kind, robot, seed: (StateDoesNotImport if kind == "Blob" else
-                                                                   FakeComponent)(kind, robot, seed)
+    r3_makes = lambda kind, robot, seed: (StateDoesNotImport if kind == "Blob" else  # noqa: E731
+                                          FakeComponent)(kind, robot, seed)
+    team = team_with(FakeComponent, pins={BAD: "r2"}, node_kwargs={"r3": {"make_component": r3_makes}})
     outputs: dict[str, list[tuple[int, bytes]]] = {}
     for rt in team.nodes.values():
         rt.listen(SinkListener(output=lambda chain, run, seq, data: outputs.setdefault(chain, []).append((seq, data))))
@@ -209,9 +210,9 @@ def test_a_hung_source_stops_its_chain_not_its_robot(monkeypatch):
                 RELEASE.wait(60)
             return super().produce(seq)
 
-    team = team_with(FakeComponent, speed=10.0)
-    team.nodes["r2"]._make_source = lambda kind, robot, seed: (HungCamera if kind == "Blob" else FakeSource)(
+    r2_sources = lambda kind, robot, seed: (HungCamera if kind == "Blob" else FakeSource)(  # noqa: E731
         kind, robot, seed)
+    team = team_with(FakeComponent, speed=10.0, node_kwargs={"r2": {"make_source": r2_sources}})
     outputs = outputs_of(team)
     team.join()
     team.run_until(20.0)

@@ -32,6 +32,7 @@ from autopower.node.workers import (
     WorkerCrashed,
     Zygote,
     recipe_for,
+    worker_of,
 )
 from autopower.protocol import MigrateCommand
 from tests.unit.sim_team import FakeComponent, FakeSource, SimTeam
@@ -270,11 +271,9 @@ def test_a_factory_a_worker_cannot_import_runs_in_process():
 def team_in_workers(factory, *, speed=1.0, pins=None) -> SimTeam:
     team = SimTeam(load_scenario("paper-fig7"),
                    config=CoordinatorConfig(speed=speed, media=FC, auto_replan=False, pins=pins or {}),
-                   fake=True, speed=speed)
-    for rt in team.nodes.values():
-        rt._make_component = factory
-        rt._make_source = FakeSource
-        rt.stage_workers = True
+                   fake=True, speed=speed,
+                   node_kwargs={node: {"make_component": factory, "make_source": FakeSource, "stage_workers": True}
+                                for node in load_scenario("paper-fig7").node_names()})
     return team
 
 
@@ -283,9 +282,9 @@ def settle(team: SimTeam, until, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         for rt in team.nodes.values():
-            if rt._zygote is not None:
-                rt.collect_stage_results()
-                rt.check_stage_workers()
+            if rt.components.has_workers:
+                rt.components.collect_results()
+                rt.components.check_workers()
         team.pump()
         if until():
             return
@@ -294,15 +293,13 @@ def settle(team: SimTeam, until, timeout_s: float = 30.0) -> None:
 
 
 def idle(team: SimTeam) -> bool:
-    from autopower.node.workers import worker_of
-
     return all(getattr(worker_of(h.component), "inflight", None) is None
                for rt in team.nodes.values() for h in rt.hosted.values())
 
 
 def close(team: SimTeam) -> None:
     for rt in team.nodes.values():
-        rt.close_workers()
+        rt.components.close()
 
 
 def outputs_of(team: SimTeam) -> dict[str, list[tuple[int, bytes]]]:
@@ -320,7 +317,7 @@ def test_a_team_in_workers_delivers_exactly_once_and_migrates_with_state():
         team.run_until(5.0)
         settle(team, lambda: idle(team))
         r2 = team.nodes["r2"]
-        assert r2._zygote is not None and r2.hosted["Blob-2"].runs > 0  # it ran in a worker
+        assert worker_of(r2.hosted["Blob-2"].component) is not None and r2.hosted["Blob-2"].runs > 0  # it ran in a worker
         co = team.coordinator
         assert co.on_operator(MigrateCommand(stage="Blob-2", to_node="r3")).ok
         team.pump()
@@ -407,7 +404,7 @@ def test_inputs_in_a_worker_stay_in_their_producers_custody_and_a_crash_of_their
         assert sorted(seq for seq, _ in outputs["Blob-2"]) == list(range(done))
 
         # r1 dies (SIGKILL: its worker with it, nothing more from it); Blob-2 starts on r3 without state
-        r1.close_workers()
+        r1.components.close()
         for handle in team.subscriptions.pop("r1"):
             handle.close()
         for other in ("r2", "r3", "laptop"):
