@@ -298,7 +298,7 @@ class Agent:
                 heard_again = rt.take_status_asked() or self._base_came_within_reach(base_was_reachable)
                 if heard_again:
                     self.status_encoder.refresh()
-                if rt.yield_to_newer(status) or heard_again:
+                if rt.hosting.yield_to_newer(status) or heard_again:
                     self.publish_status()
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
@@ -353,7 +353,7 @@ class Agent:
         for stage, host in sorted(rt.plan.placement.items()):
             chain, _ = rt.stage_index.get(stage, (None, 0))
             if host == me and chain is not None and chain.name in rt.plan.running and stage not in elsewhere:
-                rt.on_assign(Assign(stage=stage, generation=generation, chain=chain.name,
+                rt.hosting.on_assign(Assign(stage=stage, generation=generation, chain=chain.name,
                                     run=rt.plan.running[chain.name], resume_seq=None))
                 restarted.append(stage)
         log.warning("agent %s: restarted with the base station out of reach: going on with the plan it ran "

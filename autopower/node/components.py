@@ -150,10 +150,10 @@ class Components:
         if hosted.lifecycle is Lifecycle.FAILED or worker is not worker_of(hosted.component):
             return  # stopped or replaced meanwhile: its result is no longer anyone's
         if reply is None:
-            self.rt.fail_stage(hosted, "crashed", f"run(seq {frame.seq}): its worker process ended "
+            self.rt.hosting.fail_stage(hosted, "crashed", f"run(seq {frame.seq}): its worker process ended "
                             f"({worker.exit_text()})")
         elif reply[0] == "err":
-            self.rt.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {reply[1]}: {reply[2] if len(reply) > 2 else ''}")
+            self.rt.hosting.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {reply[1]}: {reply[2] if len(reply) > 2 else ''}")
         elif reply[0] == "ok" and len(reply) == 3 and isinstance(reply[1], float):  # ["ok", compute s, output]
             self.rt._ran(hosted, frame, reply[2], reply[1])
         else:  # ["bad", type name]: not bytes
@@ -170,7 +170,7 @@ class Components:
             if verdict is not None:
                 seq = worker.inflight[0][1].seq
                 worker.kill()
-                self.rt.fail_stage(hosted, "hung", f"run(seq {seq}): {verdict}; its worker process was killed")
+                self.rt.hosting.fail_stage(hosted, "hung", f"run(seq {seq}): {verdict}; its worker process was killed")
 
     def drain(self, hosted: HostedStage) -> bool:
         """Wait (on the loop) until a stage's worker has run every input handed to it; False if the
@@ -187,7 +187,7 @@ class Components:
             if verdict is not None:
                 seq = worker.inflight[0][1].seq
                 worker.kill()
-                self.rt.fail_stage(hosted, "hung", f"run(seq {seq}): {verdict}; its worker process was killed")
+                self.rt.hosting.fail_stage(hosted, "hung", f"run(seq {seq}): {verdict}; its worker process was killed")
         return hosted.lifecycle is not Lifecycle.FAILED
 
     def close(self) -> None:

@@ -15,7 +15,7 @@ from autopower.errors import ProtocolError
 from autopower.model.scenario import Chain
 from autopower.node.guard import ComponentHung
 from autopower.node.sequencing import SinkLedger
-from autopower.node.stages import MAX_FORWARDS, ORPHAN_LIMIT, HostedStage, Lifecycle, pad
+from autopower.node.stages import MAX_FORWARDS, HostedStage, Lifecycle, pad
 from autopower.node.workers import type_name, worker_of
 from autopower.protocol import (
     ChainFrame,
@@ -53,9 +53,7 @@ class Frames:
         path = self.network.path(self.node, dest) if self.network else None
         if path is None:
             if purpose == "migration":
-                self.parked_transfers.append((dest, body, chain))
-                log.info("%s: no route to %s yet for %s's state; parked until a plan routes it", self.node, dest,
-                         chain)
+                self.hosting.park(dest, body, chain)
                 return False
             if purpose == "chain" and chain in self.chains and dest == self.chains[chain].sink:
                 try:
@@ -104,7 +102,7 @@ class Frames:
             return
         body = decode(packet.body, (ChainFrame, StateTransfer))
         if isinstance(body, StateTransfer):
-            self.on_state(body)
+            self.hosting.on_state(body)
         else:
             self.deliver_frame(body)
 
@@ -127,7 +125,7 @@ class Frames:
                 self.count("inactive-chain", f"{frame.chain} seq {frame.seq} arrived after its chain stopped",
                            logging.INFO)
             else:
-                self.hold_orphan(stage.name, frame)
+                self.hosting.hold_orphan(stage.name, frame)
             return
         if hosted.lifecycle is Lifecycle.FAILED:
             self.count("failed-stage-input", f"{stage.name} seq {frame.seq}: its component has failed here",
@@ -138,20 +136,12 @@ class Frames:
             if forwards >= MAX_FORWARDS or not self.routable(hosted.forward_to):
                 # no route to its new host (yet): held here as an orphan, which the plan that
                 # routes it there sends on (`on_plan`); its producer keeps it until a gate runs it
-                self.hold_orphan(stage.name, frame)
+                self.hosting.hold_orphan(stage.name, frame)
                 return
             self.tally("pointer-forwarded")
             self.send_frame(frame, hosted.forward_to, forwards + 1)
         else:
             self._admit(hosted, frame)
-
-    def hold_orphan(self, stage: str, frame: ChainFrame) -> None:
-        """Keep an input for ``stage`` that has nowhere to go from here yet (bounded)."""
-        held = self.orphans.setdefault(stage, [])
-        if len(held) >= ORPHAN_LIMIT:
-            self.count("orphan-overflow", f"{stage}: dropped seq {frame.seq}", logging.ERROR)
-            return
-        held.append(frame)
 
     def routable(self, dest: str) -> bool:
         """Whether the plan's network has a route from here to ``dest`` (this node always)."""
@@ -198,10 +188,10 @@ class Frames:
         try:
             output = self.guard.call(hosted.component.run, frame.data(), timeout_s=self.components.hang_limit_s(chain))
         except ComponentHung as exc:
-            self.fail_stage(hosted, "hung", f"run(seq {frame.seq}): {exc}")
+            self.hosting.fail_stage(hosted, "hung", f"run(seq {frame.seq}): {exc}")
             return
         except Exception as exc:
-            self.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {type(exc).__name__}: {exc}")
+            self.hosting.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {type(exc).__name__}: {exc}")
             return
         self._ran(hosted, frame, output, self.perf() - started)
 
@@ -210,10 +200,10 @@ class Frames:
         chain, index = hosted.chain, hosted.index
         target = index + 1
         if not isinstance(output, bytes):
-            self.fail_stage(hosted, "not-bytes", f"run(seq {frame.seq}) returned {type_name(output)}, not bytes")
+            self.hosting.fail_stage(hosted, "not-bytes", f"run(seq {frame.seq}) returned {type_name(output)}, not bytes")
             return
         if len(output) > chain.message_bytes[target]:
-            self.fail_stage(hosted, "oversize", f"run(seq {frame.seq}) returned {len(output)} B; the chain declares "
+            self.hosting.fail_stage(hosted, "oversize", f"run(seq {frame.seq}) returned {len(output)} B; the chain declares "
                             f"message_bytes {chain.message_bytes[target]} for this hop (raise it in the scenario)")
             return
         hosted.compute_s += compute_s
@@ -293,3 +283,19 @@ class Frames:
         if self._sink_listeners:
             self._sink_listeners.output(chain.name, frame.run, frame.seq, frame.data())
 
+    def run_before_release(self, hosted: HostedStage, frames: list) -> None:
+        """Run a released stage's waiting inputs, in order; their outputs go out as any does.
+
+        A run that raises or hangs ends this (logged and counted: the stage is going anyway, and a
+        failure reported now would stop its chain); what is left is lost, as before."""
+        for done, frame in enumerate(frames):
+            started = self.perf()
+            try:
+                output = self.guard.call(hosted.component.run, frame.data(),
+                                         timeout_s=self.components.hang_limit_s(hosted.chain))
+            except Exception as exc:  # noqa: BLE001 - code we do not control; ComponentHung included
+                self.count("released-inputs-lost", f"{hosted.stage.name}: run(seq {frame.seq}) at release: "
+                           f"{type(exc).__name__}: {exc}; {len(frames) - done} input(s) not run")
+                return
+            self._ran(hosted, frame, output, self.perf() - started)
+            self.tally("released-inputs-run")

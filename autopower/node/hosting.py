@@ -3,6 +3,12 @@
 Assign starts a fresh instance; Prepare readies an incoming one (inputs are buffered); MigrateOut
 drains a running one and ships its state along the data path; the state arriving makes the new
 instance RUNNING; Release retires one.
+
+`Hosting` is a collaborator of `NodeRuntime`. It owns the stages hosted here (`HostedStage`), the
+inputs held for a stage that has nowhere to go yet (orphans), the stages and sources that failed
+here, the migration states parked for want of a route, the orders that came before the mission's
+plan and the answers to a batch of orders. Components are built and retired by `Components`;
+inputs are run along the data path (`Frames`).
 """
 
 from __future__ import annotations
@@ -10,11 +16,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+from autopower.model.scenario import Chain
 from autopower.node.sequencing import SequenceGate
-from autopower.node.stages import HostedStage, Lifecycle
+from autopower.node.stages import ORPHAN_LIMIT, HostedStage, Lifecycle
 from autopower.node.workers import worker_of
 from autopower.protocol import (
     Assign,
+    ChainFrame,
     MigrateOut,
     NodeStatus,
     PeerStatus,
@@ -35,13 +43,26 @@ log = logging.getLogger("autopower.node.runtime")
 
 
 class Hosting:
-    """The node's stage lifecycle. Mixed into `NodeRuntime`, whose state it uses."""
+    """The node's stage lifecycle: the stages hosted here and what waits for them."""
+
+    def __init__(self, rt):
+        """``rt``: the `NodeRuntime` these stages run on (its plan, components and data path)."""
+        self.rt = rt
+        self.hosted: dict[str, HostedStage] = {}
+        # inputs for a stage that has nowhere to go from here yet (bounded): sent on once a plan places it
+        self.orphans: dict[str, list[ChainFrame]] = {}
+        self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
+        # migration state with no route yet (an order overtook the plan that brings the route
+        # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
+        self.parked_transfers: list[tuple[str, bytes, str]] = []
+        self._early_control: list[bytes] = []  # orders that came before the plan that starts the mission
+        self._answer_batch: list[bytes] | None = None  # answers to a `Batch` of orders, sent as one (`on_control`)
 
     def on_control(self, payload: bytes) -> None:
         """An order, or a `Batch` of them (every item checked before any is carried out): the
         answers to one batch go back in one put."""
         orders = unbatch(payload, CONTROL_MESSAGES)
-        if not self.started:
+        if not self.rt.started:
             # The plan that starts the mission may arrive after the first orders (other key).
             if len(self._early_control) < 1000:
                 self._early_control.append(payload)
@@ -62,8 +83,8 @@ class Hosting:
                 self._to_basestation(batched(answers))
 
     def _on_order(self, msg) -> None:
-        if msg.stage not in self.stage_index:
-            self.count("unknown-stage", msg.stage)
+        if msg.stage not in self.rt.stage_index:
+            self.rt.count("unknown-stage", msg.stage)
             return
         if isinstance(msg, Assign):
             self.on_assign(msg)
@@ -83,12 +104,12 @@ class Hosting:
         if self._answer_batch is not None:  # answering a batch of orders: the answers go together
             self._answer_batch.append(payload)
         else:
-            self.send_to(self.scenario.basestation, self.keys.inbox, payload)
+            self.rt.send_to(self.rt.scenario.basestation, self.rt.keys.inbox, payload)
 
     def _answer_again(self, hosted: HostedStage, order: str) -> None:
         """A repeated order this node has carried out already: its answer goes again, nothing is redone."""
-        self.tally("repeated-order")
-        log.info("%s: %s for %s again (generation %d): answered again", self.node, order, hosted.stage.name,
+        self.rt.tally("repeated-order")
+        log.info("%s: %s for %s again (generation %d): answered again", self.rt.node, order, hosted.stage.name,
                  hosted.generation)
         if hosted.answer:
             self._to_basestation(hosted.answer)
@@ -96,14 +117,75 @@ class Hosting:
     def _construct(self, msg, chain, stage):
         """A new instance of the stage's component, or None when its constructor raised (reported)."""
         try:
-            return self.components.new_component(chain, stage)
+            return self.rt.components.new_component(chain, stage)
         except Exception as exc:
-            self.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
-            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="raised",
+            self.rt.count("component-failed", f"{msg.stage}: {exc}", logging.ERROR)
+            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.rt.node, what="raised",
                                     detail=_bounded(f"constructor: {type(exc).__name__}: {exc}"), running=False))
             return None
 
-    def follow_plan_runs(self, plan) -> None:
+    def follow_plan(self, plan) -> None:
+        """A new plan: stages whose chain it runs in a newer run start afresh in it, a shipped state
+        that has landed is known for it, and the inputs held for stages that landed elsewhere go there
+        (those of a chain the operator stopped will never be consumed)."""
+        self._follow_runs(plan)
+        for hosted in self.hosted.values():
+            if hosted.shipped and hosted.shipped[2] and plan.placement.get(hosted.stage.name) not in (None, self.rt.node):
+                # it has landed (there, or on beyond): nobody will ask for its state again, and a
+                # late copy of the order is known for one
+                hosted.shipped = (*hosted.shipped[:2], b"")
+        for stage, frames in list(self.orphans.items()):
+            host = plan.placement.get(stage)
+            chain = self.rt.stage_index.get(stage, (None, 0))[0]
+            if chain is None or chain.name in plan.operator.disabled:
+                del self.orphans[stage]
+            elif host is not None and host != self.rt.node and self.rt.routable(host):
+                del self.orphans[stage]
+                for frame in frames:
+                    self.rt.send_frame(frame, host)
+
+    def placement_overridden(self, placement: dict[str, str]) -> None:
+        """A placement agreed without the base station: the inputs held for a stage it puts elsewhere go there."""
+        for stage, frames in list(self.orphans.items()):
+            host = placement.get(stage)
+            if host is not None and host != self.rt.node:
+                del self.orphans[stage]
+                for frame in frames:
+                    self.rt.send_frame(frame, host)
+
+    def hold_orphan(self, stage: str, frame: ChainFrame) -> None:
+        """Keep an input for ``stage`` that has nowhere to go from here yet (bounded)."""
+        held = self.orphans.setdefault(stage, [])
+        if len(held) >= ORPHAN_LIMIT:
+            self.rt.count("orphan-overflow", f"{stage}: dropped seq {frame.seq}", logging.ERROR)
+            return
+        held.append(frame)
+
+    def park(self, dest: str, body: bytes, chain: str) -> None:
+        """A stage's state with no route to its new host yet: kept until a plan routes it (`send_parked`)."""
+        self.parked_transfers.append((dest, body, chain))
+        log.info("%s: no route to %s yet for %s's state; parked until a plan routes it", self.rt.node, dest, chain)
+
+    def send_parked(self) -> None:
+        """Send the parked states again (a new plan: those still without a route park again)."""
+        parked, self.parked_transfers = self.parked_transfers, []
+        for dest, body, chain in parked:
+            self.rt.send_routed(dest, body, len(body), 1.0, "migration", chain)
+
+    def replay_early(self) -> None:
+        """Carry out the orders that came before the plan that started the mission."""
+        early, self._early_control = self._early_control, []
+        for payload in early:
+            self.on_control(payload)
+
+    def source_failed(self, chain: Chain, detail: str) -> None:
+        """A source here hung and was stopped: in every status from now on, and the base station is told."""
+        self.failed[f"{chain.name} source"] = f"hung: {detail}"
+        self.rt.count("source-failed", f"{chain.name}: hung: {detail}", logging.ERROR)
+        self._reply(StageFailed(stage=chain.stages[0].name, generation=-1, node=self.rt.node, what="source-hung",
+                                detail=detail, running=False))
+
+    def _follow_runs(self, plan) -> None:
         """Start afresh, in the plan's run, a stage here whose chain the plan runs in a newer run.
 
         A chain restarted without state gets a new run (the base station's). An instance the base
@@ -115,20 +197,20 @@ class Hosting:
         for name, hosted in list(self.hosted.items()):
             run = plan.running.get(hosted.chain.name)
             if (run is None or run <= hosted.run or hosted.lifecycle is not Lifecycle.RUNNING
-                    or plan.placement.get(name) != self.node):
+                    or plan.placement.get(name) != self.rt.node):
                 continue
             order = Assign(stage=name, generation=hosted.generation, chain=hosted.chain.name, run=run, resume_seq=None)
             component = self._construct(order, hosted.chain, hosted.stage)
             if component is None:
                 continue
-            self.components.retire(hosted.component)
-            self.tally("stage-new-run")  # not an error: counted with what happens
-            log.info("%s: %s runs in run %d, the plan's chain in run %d: started afresh in it", self.node, name,
+            self.rt.components.retire(hosted.component)
+            self.rt.tally("stage-new-run")  # not an error: counted with what happens
+            log.info("%s: %s runs in run %d, the plan's chain in run %d: started afresh in it", self.rt.node, name,
                      hosted.run, run)
             hosted.component, hosted.run, hosted.gate = component, run, SequenceGate()
 
     def on_assign(self, msg: Assign) -> None:
-        chain, index = self.stage_index[msg.stage]
+        chain, index = self.rt.stage_index[msg.stage]
         stage = chain.stages[index]
         current = self.hosted.get(msg.stage)
         if current and current.generation > msg.generation:
@@ -141,29 +223,29 @@ class Hosting:
             return
         self.failed.pop(msg.stage, None)
         if current is not None:
-            self.components.retire(current.component)
+            self.rt.components.retire(current.component)
         hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
                              gate=SequenceGate(next_seq=msg.resume_seq))
         held = (current.buffer if current else []) + self.orphans.pop(msg.stage, [])
         self.hosted[msg.stage] = hosted
-        hosted.answer = self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.node,
+        hosted.answer = self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.rt.node,
                                                imported_state=False, resume_seq=msg.resume_seq, downtime_ms=0.0,
                                                buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
-            self._admit(hosted, frame, refusable=False)
+            self.rt._admit(hosted, frame, refusable=False)
 
     def on_prepare(self, msg: Prepare) -> None:
-        chain, index = self.stage_index[msg.stage]
+        chain, index = self.rt.stage_index[msg.stage]
         current = self.hosted.get(msg.stage)
         if current is not None and current.generation > msg.generation:
-            self.tally("stale-order")  # a repeat that arrives after a newer order: it must change nothing
+            self.rt.tally("stale-order")  # a repeat that arrives after a newer order: it must change nothing
             return
         if current is not None and current.generation == msg.generation:
             self._answer_again(current, "Prepare")  # waiting for the state, or running with it already
             return
         if current is not None and current.lifecycle in (Lifecycle.RUNNING, Lifecycle.DRAINING):
-            self.count("prepare-while-running", msg.stage, logging.ERROR)
+            self.rt.count("prepare-while-running", msg.stage, logging.ERROR)
             return
         hosted = HostedStage(stage=chain.stages[index], chain=chain, index=index, generation=msg.generation,
                              lifecycle=Lifecycle.STARTING)
@@ -171,96 +253,95 @@ class Hosting:
         if current is not None and current.lifecycle is Lifecycle.STARTING:
             hosted.buffer = current.buffer + hosted.buffer
         self.hosted[msg.stage] = hosted
-        hosted.answer = self._reply(Prepared(stage=msg.stage, generation=msg.generation, node=self.node))
+        hosted.answer = self._reply(Prepared(stage=msg.stage, generation=msg.generation, node=self.rt.node))
 
     def on_migrate_out(self, msg: MigrateOut) -> None:
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.shipped is not None and hosted.shipped[:2] == (msg.generation, msg.to_node):
             if not hosted.shipped[2]:  # it has landed there (the plan says so): a late copy of the order
-                self.tally("stale-order")
+                self.rt.tally("stale-order")
                 return
             # shipped already: the state (or the new host's answer) was lost on the way; it goes again
             # as it was, and the new host imports it once
-            self.tally("state-resent")
-            log.info("%s: MigrateOut of %s to %s again: its state sent again", self.node, msg.stage, msg.to_node)
+            self.rt.tally("state-resent")
+            log.info("%s: MigrateOut of %s to %s again: its state sent again", self.rt.node, msg.stage, msg.to_node)
             self._ship(msg.to_node, hosted.shipped[2], hosted.chain.name)
             return
         if hosted is not None and hosted.generation > msg.generation:
-            self.tally("stale-order")  # a repeat that arrives after a newer order: it must change nothing
+            self.rt.tally("stale-order")  # a repeat that arrives after a newer order: it must change nothing
             return
         if hosted is None or hosted.lifecycle is not Lifecycle.RUNNING:
-            self.count("migrate-not-running", f"{msg.stage} is {hosted.lifecycle.value if hosted else 'absent'}",
+            self.rt.count("migrate-not-running", f"{msg.stage} is {hosted.lifecycle.value if hosted else 'absent'}",
                        logging.ERROR)
             return
         hosted.lifecycle = Lifecycle.DRAINING
-        stopped_unix = self.wall()  # downtime counts from here: checking the state is part of it
+        stopped_unix = self.rt.wall()  # downtime counts from here: checking the state is part of it
         # In-process runs are synchronous in this loop: the current one has finished. A stage in a
         # worker finishes its queued inputs first (their outputs go out as usual).
-        if not self.components.drain(hosted):
+        if not self.rt.components.drain(hosted):
             return  # it failed while draining: stopped here, the base station told (StageFailed)
-        refused = self.components.exportable_state(hosted)
+        refused = self.rt.components.exportable_state(hosted)
         if isinstance(refused, tuple):  # the stage keeps running here; the base station is told
             what, detail = refused
             hosted.lifecycle = Lifecycle.RUNNING
-            self.count(what, f"{msg.stage}: {detail}", logging.ERROR)
-            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what=what,
+            self.rt.count(what, f"{msg.stage}: {detail}", logging.ERROR)
+            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.rt.node, what=what,
                                     detail=_bounded(f"migration to {msg.to_node} refused: {detail}"), running=True))
             return
         state = refused
         pending = tuple(hosted.gate.take_pending())
         # The outputs of inputs run here that only this node's memory holds go along: ``next_seq`` says
         # their inputs were run, so their producer lets them go once the new host reports it.
-        outputs = tuple(self.holds.unsafe_frames(hosted.chain.name, hosted.index + 1, hosted.run))
+        outputs = tuple(self.rt.holds.unsafe_frames(hosted.chain.name, hosted.index + 1, hosted.run))
         transfer = StateTransfer(stage=msg.stage, generation=msg.generation, chain=hosted.chain.name,
                                  run=hosted.run, state=state, next_seq=hosted.gate.next_seq, pending=pending,
-                                 t_export_unix=stopped_unix, from_node=self.node,
+                                 t_export_unix=stopped_unix, from_node=self.rt.node,
                                  resent=hosted.gate.recent_resends(), outputs=outputs)
         body = encode(transfer)
         hosted.lifecycle = Lifecycle.MIGRATED
         hosted.forward_to = msg.to_node
         hosted.shipped = (msg.generation, msg.to_node, body)
-        self.components.retire(hosted.component)
+        self.rt.components.retire(hosted.component)
         hosted.component = None
-        if self.plan is not None and self.plan.predicted_w:  # it runs there from now on, not here
-            self.model_override = self.predict_power({**self.plan.placement, msg.stage: msg.to_node})
+        self.rt.stage_left(msg.stage, msg.to_node)  # it runs there from now on, not here
         self._ship(msg.to_node, body, hosted.chain.name)
 
     def _ship(self, to_node: str, body: bytes, chain: str) -> None:
         # The state crosses the network like any message: routed, forwarded, charged (real bytes).
-        if to_node == self.node:
+        if to_node == self.rt.node:
             self.on_state(decode(body, StateTransfer))
         else:
-            self.send_routed(to_node, body, len(body), 1.0, "migration", chain)
+            self.rt.send_routed(to_node, body, len(body), 1.0, "migration", chain)
 
     def on_state(self, msg: StateTransfer) -> None:
-        if msg.stage not in self.stage_index:
-            self.count("unknown-stage", msg.stage)
+        if msg.stage not in self.rt.stage_index:
+            self.rt.count("unknown-stage", msg.stage)
             return
-        chain, index = self.stage_index[msg.stage]
+        chain, index = self.rt.stage_index[msg.stage]
         stage = chain.stages[index]
         current = self.hosted.get(msg.stage)
         if current is not None and current.generation > msg.generation:
             # a second copy of a state (its sender was asked again) arriving after a newer order
-            self.tally("stale-state")
+            self.rt.tally("stale-state")
             return
         if current is not None and current.generation == msg.generation and current.lifecycle is not Lifecycle.STARTING:
             # imported already (its sender was asked again): importing it twice would run inputs twice
             if current.lifecycle is Lifecycle.RUNNING:
                 self._answer_again(current, "StateTransfer")
             else:
-                self.tally("repeated-order")
+                self.rt.tally("repeated-order")
             return
         imported = True
         component = None
         try:
-            component = self.components.new_component(chain, stage)
-            self.components.import_state(component, msg.state, chain)
+            component = self.rt.components.new_component(chain, stage)
+            self.rt.components.import_state(component, msg.state, chain)
         except Exception as exc:
-            self.components.retire(component)
+            self.rt.components.retire(component)
             # It imported on the old host (checked before it was shipped), so this host runs other
             # code. The old instance is gone: go on here without the state, from where it stopped.
-            self.count("import-failed", f"{msg.stage}: {exc}", logging.ERROR)
-            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.node, what="import-failed",
+            self.rt.count("import-failed", f"{msg.stage}: {exc}", logging.ERROR)
+            self._reply(StageFailed(stage=msg.stage, generation=msg.generation, node=self.rt.node, what="import-failed",
                                     detail=_bounded(f"state from {msg.from_node} did not import, started without "
                                                     f"it: import_state: {type(exc).__name__}: {exc}"), running=True))
             imported = False
@@ -278,13 +359,13 @@ class Hosting:
         self._adopt_outputs(msg, hosted)
         self.failed.pop(msg.stage, None)
         if current is not None:
-            self.components.retire(current.component)
+            self.rt.components.retire(current.component)
         self.hosted[msg.stage] = hosted
         hosted.answer = self._reply(StageReady(
-            stage=msg.stage, generation=msg.generation, node=self.node, imported_state=imported,
-            resume_seq=msg.next_seq, downtime_ms=max(0.0, (self.wall() - msg.t_export_unix) * 1e3), buffered=len(held)))
+            stage=msg.stage, generation=msg.generation, node=self.rt.node, imported_state=imported,
+            resume_seq=msg.next_seq, downtime_ms=max(0.0, (self.rt.wall() - msg.t_export_unix) * 1e3), buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
-            self._admit(hosted, frame, refusable=False)
+            self.rt._admit(hosted, frame, refusable=False)
 
     def _adopt_outputs(self, msg: StateTransfer, hosted: HostedStage) -> None:
         """Keep in custody the outputs the old host had not had acknowledged (`StateTransfer.outputs`),
@@ -294,16 +375,16 @@ class Hosting:
         target = hosted.index + 1
         for frame in msg.outputs:
             if frame.chain != msg.chain or frame.target != target or frame.run != msg.run:
-                self.count("garbled", f"{msg.from_node} moved {msg.stage} with an output of {frame.chain} "
+                self.rt.count("garbled", f"{msg.from_node} moved {msg.stage} with an output of {frame.chain} "
                                       f"stage {frame.target} run {frame.run}, not of this stage")
                 continue
             frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
             if target == len(hosted.chain.stages):
-                self.keep_result(frame)
+                self.rt.keep_result(frame)
             else:
-                self.custody.keep(frame, self.wall())
+                self.rt.custody.keep(frame, self.rt.wall())
         if msg.outputs:
-            self.tally("outputs-adopted", len(msg.outputs))
+            self.rt.tally("outputs-adopted", len(msg.outputs))
 
     def fail_stage(self, hosted: HostedStage, what: str, detail: str) -> None:
         """Stop a stage whose component misbehaved; the node and its other stages go on.
@@ -314,11 +395,11 @@ class Hosting:
         """
         name = hosted.stage.name
         text = _bounded(f"{what}: {detail}")
-        self.components.retire(hosted.component)
+        self.rt.components.retire(hosted.component)
         hosted.lifecycle, hosted.failure, hosted.component = Lifecycle.FAILED, text, None
         self.failed[name] = text
-        self.count("stage-failed", f"{name}: {text}", logging.ERROR)
-        self._reply(StageFailed(stage=name, generation=hosted.generation, node=self.node, what=what,
+        self.rt.count("stage-failed", f"{name}: {text}", logging.ERROR)
+        self._reply(StageFailed(stage=name, generation=hosted.generation, node=self.rt.node, what=what,
                                 detail=_bounded(detail), running=False))
 
     def on_release(self, msg: Release) -> None:
@@ -337,34 +418,34 @@ class Hosting:
         """
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:
-            held_upstream = hosted.gate.held_upstream(self.wall()) and self._producer_in_sight(hosted)
+            held_upstream = hosted.gate.held_upstream(self.rt.wall()) and self._producer_in_sight(hosted)
             waiting = hosted.gate.take_pending()
             if waiting and held_upstream:
                 # their producer holds the gap and everything after it until a gate runs them
                 # (custody): it sends them to the stage's next instance, in order
                 log.info("%s: %s released with %d input(s) waiting behind a gap its producer holds; left to it",
-                         self.node, msg.stage, len(waiting))
+                         self.rt.node, msg.stage, len(waiting))
             elif waiting and not self._disabled(hosted.chain.name):
                 if worker_of(hosted.component) is None and hosted.lifecycle is Lifecycle.RUNNING:
                     hosted.gate.skipped += waiting[0].seq - (hosted.gate.next_seq or waiting[0].seq)
                     log.info("%s: %s released with %d input(s) waiting behind a gap; run before it stops",
-                             self.node, msg.stage, len(waiting))
-                    self._run_before_release(hosted, waiting)
+                             self.rt.node, msg.stage, len(waiting))
+                    self.rt.run_before_release(hosted, waiting)
                 else:
                     self.orphans.setdefault(msg.stage, []).extend(waiting)
-                    log.info("%s: %s released with %d input(s) waiting; kept for its next instance", self.node,
+                    log.info("%s: %s released with %d input(s) waiting; kept for its next instance", self.rt.node,
                              msg.stage, len(waiting))
-            self.components.retire(hosted.component)
+            self.rt.components.retire(hosted.component)
             self.hosted.pop(msg.stage, None)  # a failing run may have dropped it already
-        chain = self.stage_index.get(msg.stage, (None, 0))[0]
+        chain = self.rt.stage_index.get(msg.stage, (None, 0))[0]
         if chain is None or self._disabled(chain.name):
             self.orphans.pop(msg.stage, None)
 
     def _producer_in_sight(self, hosted: HostedStage) -> bool:
         """Is the node that feeds ``hosted`` (its chain's source, or the previous stage's host) this
         one or in direct sight now: alive to resend what it holds?"""
-        producer = self.acknowledging.producer_of(hosted)
-        return producer is not None and (producer == self.node or producer in self.alive)
+        producer = self.rt.acknowledging.producer_of(hosted)
+        return producer is not None and (producer == self.rt.node or producer in self.rt.alive)
 
     def yield_to_newer(self, status: NodeStatus | PeerStatus) -> bool:
         """Stop an instance here that a newer one running on the peer ``status`` comes from supersedes;
@@ -387,36 +468,19 @@ class Hosting:
                 continue
             waiting = mine.gate.take_pending()
             log.warning("%s: %s runs on %s as a newer instance (generation %d, this one %d): stopped here%s",
-                        self.node, stage, status.node, theirs, mine.generation,
+                        self.rt.node, stage, status.node, theirs, mine.generation,
                         f"; its {len(waiting)} waiting input(s) go there" if waiting else "")
-            self.tally("superseded-instances")
+            self.rt.tally("superseded-instances")
             self.on_release(Release(stage=stage, generation=mine.generation))
-            self.override_placement({stage: status.node}, set())
+            self.rt.override_placement({stage: status.node}, set())
             for frame in waiting:
-                self.send_frame(frame, status.node)
+                self.rt.send_frame(frame, status.node)
             stopped = True
         return stopped
 
-    def _run_before_release(self, hosted: HostedStage, frames: list) -> None:
-        """Run a released stage's waiting inputs, in order; their outputs go out as any does.
-
-        A run that raises or hangs ends this (logged and counted: the stage is going anyway, and a
-        failure reported now would stop its chain); what is left is lost, as before."""
-        for done, frame in enumerate(frames):
-            started = self.perf()
-            try:
-                output = self.guard.call(hosted.component.run, frame.data(),
-                                         timeout_s=self.components.hang_limit_s(hosted.chain))
-            except Exception as exc:  # noqa: BLE001 - code we do not control; ComponentHung included
-                self.count("released-inputs-lost", f"{hosted.stage.name}: run(seq {frame.seq}) at release: "
-                           f"{type(exc).__name__}: {exc}; {len(frames) - done} input(s) not run")
-                return
-            self._ran(hosted, frame, output, self.perf() - started)
-            self.tally("released-inputs-run")
-
     def _disabled(self, chain: str) -> bool:
         """The operator stopped the chain (or its component failed): nobody will consume its inputs."""
-        return self.plan is None or chain in self.plan.operator.disabled
+        return self.rt.plan is None or chain in self.rt.plan.operator.disabled
 
 
 def _bounded(text: str, limit: int = 300) -> str:

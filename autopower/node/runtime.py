@@ -72,7 +72,6 @@ from autopower.protocol import (
     PlanUpdate,
     SinkStats,
     SourceStats,
-    StageFailed,
     decode,
     encode,
 )
@@ -96,7 +95,7 @@ DIED_WITH_PROCESS_S = 2.0
 RESUME_ALONE_MAX_AGE_S = 300.0
 
 
-class NodeRuntime(Frames, Hosting):
+class NodeRuntime(Frames):
     """Chain data handling for one node; see the module docstring."""
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
@@ -145,8 +144,6 @@ class NodeRuntime(Frames, Hosting):
         # nodes this one does not reach while it decides without the base station (`set_out_of_reach`):
         # the model's power leaves out what cannot reach them
         self.out_of_reach: frozenset[str] = frozenset()
-        self.hosted: dict[str, HostedStage] = {}
-        self.orphans: dict[str, list[ChainFrame]] = {}
         # the chains this node feeds from its own sensors (`autopower.node.sources`)
         self.feeds = Sources(node=node, key_of=self._source_key,
                              build=lambda key: self.components.build_source(*key),
@@ -165,11 +162,6 @@ class NodeRuntime(Frames, Hosting):
         self.errors: dict[str, int] = {}  # things that should not happen (garbage, lost frames)
         self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
         self.weights: dict[str, float] = {}
-        self._early_control: list[bytes] = []
-        self._answer_batch: list[bytes] | None = None  # answers to a `Batch` of orders, sent as one (`on_control`)
-        # migration state with no route yet (an order overtook the plan that brings the route
-        # back): sent as soon as a plan routes it; never dropped, or the stage would be lost
-        self.parked_transfers: list[tuple[str, bytes, str]] = []
         # who hears of the sink's outputs, and of the results let go or lost in a crash (`listen`):
         # the recording tells these outputs from lost ones (`autopower.recording.replay`)
         self._sink_listeners = SinkListeners()
@@ -179,9 +171,11 @@ class NodeRuntime(Frames, Hosting):
         self.resumed: bool = False
         self.down: tuple[float, float] | None = None  # see NodeStatus.down
         # the model's power per robot once a stage has left us and before the plan says where it
-        # landed (`Hosting.on_migrate_out`): we no longer run it; None: the plan's prediction holds
+        # landed (`stage_left`): we no longer run it; None: the plan's prediction holds
         self.model_override: dict[str, float] | None = None
         self._on_produced = stores.on_produced
+        # the stages hosted here: the orders that start, move and stop them, and the frames held for them
+        self.hosting = Hosting(self)
         self.custody = Custody(hold_budget_bytes=scenario.hold_budget_bytes)
         self.control_plane = ControlPlaneMeter()  # the bytes on its links beyond the chain packets
         # custody's acknowledgements: those this node sends, those it hears, and resends
@@ -198,7 +192,6 @@ class NodeRuntime(Frames, Hosting):
         # since the mission started in this process, on the computer running it (`charge_runtime`):
         self.runtime_cpu_s = 0.0  # the runtime's CPU
         self.component_cpu_s = 0.0  # the component code's (runs, sources, state, constructors)
-        self.failed: dict[str, str] = {}  # stage -> why its component was stopped here (in every status)
         self.wall: Callable[[], float] = wall or time.time
         self.perf: Callable[[], float] = perf or time.perf_counter
         # How a message for one node leaves: the process gives its `Relayer.send`, so that a node
@@ -240,6 +233,11 @@ class NodeRuntime(Frames, Hosting):
         """Tell ``listener`` of every output reaching this node as its chain's sink, and of every
         result let go or lost in a crash here (`autopower.node.ports.SinkListener`)."""
         self._sink_listeners.add(listener)
+
+    @property
+    def hosted(self) -> dict[str, HostedStage]:
+        """The stages hosted here, by name (read only: `Hosting` owns them)."""
+        return self.hosting.hosted
 
     # ---- small helpers -----------------------------------------------------------------------
     def now(self) -> float:
@@ -298,23 +296,7 @@ class NodeRuntime(Frames, Hosting):
                 # lost with this process is held nowhere else
                 self.holds.take_back(mission_key(plan.mission))
         self._set_plan(plan)
-        self.follow_plan_runs(plan)
-        for hosted in self.hosted.values():
-            if hosted.shipped and hosted.shipped[2] and plan.placement.get(hosted.stage.name) not in (None, self.node):
-                # it has landed (there, or on beyond): nobody will ask for its state again, and a
-                # late copy of the order is known for one
-                hosted.shipped = (*hosted.shipped[:2], b"")
-        # stages that have landed elsewhere: frames held here for them can go now (and those of a
-        # chain the operator stopped will never be consumed)
-        for stage, frames in list(self.orphans.items()):
-            host = plan.placement.get(stage)
-            chain = self.stage_index.get(stage, (None, 0))[0]
-            if chain is None or chain.name in plan.operator.disabled:
-                del self.orphans[stage]
-            elif host is not None and host != self.node and self.routable(host):
-                del self.orphans[stage]
-                for frame in frames:
-                    self.send_frame(frame, host)
+        self.hosting.follow_plan(plan)
         self.feeds.sync(plan.running, self.chains, self.now())
         for chain in ({hop[0] for hop in self.custody.hops} - set(plan.running) - self.flows.running(plan)) \
                 & set(plan.operator.disabled):
@@ -326,13 +308,9 @@ class NodeRuntime(Frames, Hosting):
             stopped = self.chains.get(chain)
             results = len(stopped.stages) if stopped is not None and stopped.sink else None
             self.custody.forget_chain(chain, keep_target=results)
-        parked, self.parked_transfers = self.parked_transfers, []
-        for dest, body, chain in parked:
-            self.send_routed(dest, body, len(body), 1.0, "migration", chain)
+        self.hosting.send_parked()
         self.flush_held_outputs()
-        early, self._early_control = self._early_control, []
-        for payload in early:
-            self.on_control(payload)
+        self.hosting.replay_early()
 
     def _use_variants(self, variants: dict[str, str]) -> None:
         """The mission's quality variants (fixed at its start): each chain's period, message sizes
@@ -439,10 +417,11 @@ class NodeRuntime(Frames, Hosting):
     def in_flight_at_stop(self) -> dict[tuple[str, int], set[int]]:
         """(chain, run) -> the seqs of the frames this node still has in hand (`autopower.node.in_flight`)."""
         names = [c.name for c in self.scenario.chains]
-        moving = [body for _, body, _ in self.parked_transfers]
-        moving += [h.shipped[2] for h in self.hosted.values() if h.shipped is not None and h.shipped[2]]
-        return frames_in_hand(names, (self.custody.frames(), self.held_outputs.values(), stage_frames(self.hosted),
-                                      transfer_frames(moving), *self.orphans.values()))
+        hosting = self.hosting
+        moving = [body for _, body, _ in hosting.parked_transfers]
+        moving += [h.shipped[2] for h in hosting.hosted.values() if h.shipped is not None and h.shipped[2]]
+        return frames_in_hand(names, (self.custody.frames(), self.held_outputs.values(), stage_frames(hosting.hosted),
+                                      transfer_frames(moving), *hosting.orphans.values()))
 
     def resume_state(self) -> dict | None:
         """What a restarted process needs to carry on (None before the mission starts)."""
@@ -542,13 +521,14 @@ class NodeRuntime(Frames, Hosting):
         self._set_plan(dataclasses.replace(self.plan, placement={**self.plan.placement, **placement}, links=links))
         # the base station's prediction was for its placement: say the model's for this one
         self.plan = dataclasses.replace(self.plan, predicted_w=self.predict_power())
-        for stage, frames in list(self.orphans.items()):
-            host = self.plan.placement.get(stage)
-            if host is not None and host != self.node:
-                del self.orphans[stage]
-                for frame in frames:
-                    self.send_frame(frame, host)
+        self.hosting.placement_overridden(self.plan.placement)
         self.flush_held_outputs()  # a round's placement may route a held result's sink again
+
+    def stage_left(self, stage: str, to_node: str) -> None:
+        """``stage`` has left this node for ``to_node``: the model's power is priced with it there until
+        the plan says where it landed."""
+        if self.plan is not None and self.plan.predicted_w:
+            self.model_override = self.predict_power({**self.plan.placement, stage: to_node})
 
     @property
     def model_w(self) -> float | None:
@@ -674,8 +654,9 @@ class NodeRuntime(Frames, Hosting):
         The loop of an idle node may sleep until an event or its next status (`StatusCadence.next_build`)
         instead of calling `on_timer` every status period.
         """
-        return not (self.feeds or self.hosted or self.custody or self.orphans or self.held_outputs
-                    or self.parked_transfers)
+        hosting = self.hosting
+        return not (self.feeds or hosting.hosted or self.custody or hosting.orphans or self.held_outputs
+                    or hosting.parked_transfers)
 
     def on_timer(self) -> None:
         self.settle_relayed()
@@ -729,10 +710,7 @@ class NodeRuntime(Frames, Hosting):
         """A source that hangs is stopped (one that raises only loses that frame, counted)."""
         chain = runner.chain
         self.feeds.hang(runner)  # not restarted in this run
-        self.failed[f"{chain.name} source"] = f"hung: {detail}"
-        self.count("source-failed", f"{chain.name}: hung: {detail}", logging.ERROR)
-        self._reply(StageFailed(stage=chain.stages[0].name, generation=-1, node=self.node, what="source-hung",
-                                detail=detail, running=False))
+        self.hosting.source_failed(chain, detail)
 
     # ---- peers ----------------------------------------------------------------------------------------
     def on_peer_status(self, status: NodeStatus | PeerStatus) -> None:
@@ -810,7 +788,7 @@ class NodeRuntime(Frames, Hosting):
             counters={**self.counters, "held-outputs": len(self.held_outputs), **self.custody.stats()},
             depleted=bool(self.meter and self.meter.depleted),
             acks_wanted=tuple(sorted(self.acknowledging.ack_interest())),
-            failed=dict(self.failed),
+            failed=dict(self.hosting.failed),
             plan_incarnation=self.plan.incarnation if self.plan else 0,
             plan_leader=self.plan.leader if self.plan else "",
             # for a base station that does not run our plan (one that restarted takes over the mission
@@ -889,7 +867,7 @@ class NodeRuntime(Frames, Hosting):
             if key == self.keys.node_data(self.node):
                 self.on_data(payload)
             elif key == self.keys.node_control(self.node) and message_kind(payload) != PlanUpdate.KIND:
-                self.on_control(payload)  # a plan resent to this node alone comes whole
+                self.hosting.on_control(payload)  # a plan resent to this node alone comes whole
             elif (ends := self.keys.addressed_ends(key)) is not None and ends[0] == self.node:
                 self.acknowledging.on_ack_message(key, payload)
             elif key in (self.keys.plan, self.keys.node_control(self.node)):

@@ -251,12 +251,12 @@ class SubgroupRounds:
         for move in proposal.moves:
             chain, _ = rt.stage_index[move.stage]
             if move.from_node == me and move.to_node != me:
-                rt.on_migrate_out(MigrateOut(stage=move.stage, generation=proposal.generation, to_node=move.to_node))
+                rt.hosting.on_migrate_out(MigrateOut(stage=move.stage, generation=proposal.generation, to_node=move.to_node))
             elif move.from_node is None and move.to_node == me and self._runs_here(move.stage):
                 rt.tally("subgroup-restart-kept")  # it runs here already: a restart would redo its inputs
             elif move.from_node is None and move.to_node == me:
                 run = rt.plan.running.get(chain.name, 0)
-                rt.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
+                rt.hosting.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
                                     resume_seq=None))
         rt.override_placement(dict(proposal.placement), {self.scenario.basestation})
         # the moved stages are placed now: a member restarted before this round started what the

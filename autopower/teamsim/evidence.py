@@ -64,7 +64,7 @@ def in_hands(world, node: str) -> set[Key]:
     rt = shell.rt
     # custody, hold, gates, buffers, workers, orphans: what the node names in flight at a clean stop
     out = {(chain, run, seq) for (chain, run), seqs in rt.in_flight_at_stop().items() for seq in seqs}
-    for _, body, _ in rt.parked_transfers:
+    for _, body, _ in rt.hosting.parked_transfers:
         out |= frames_of(body)
     for hosted in rt.hosted.values():
         if hosted.shipped is not None:

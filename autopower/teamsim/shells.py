@@ -290,7 +290,7 @@ class RobotShell(Shell):
             heard_again = rt.take_status_asked() or (not base_was_reachable and self.relayer.reachable(base))
             if heard_again:
                 self.status_encoder.refresh()
-            if rt.yield_to_newer(status) or heard_again:
+            if rt.hosting.yield_to_newer(status) or heard_again:
                 self.publish_status()
             return
         order, model_w = rt.plan_order, rt.model_w

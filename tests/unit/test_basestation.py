@@ -325,7 +325,7 @@ def test_a_returning_robot_is_planned_from_what_it_actually_runs(sc):
     from autopower.protocol import Assign
 
     gen = int(team.clock.wall() * 1000) - 5  # subgroups hand out time-based generations
-    rt.on_assign(Assign(stage="Loc-1", generation=gen, chain="Loc-1", run=0, resume_seq=None))
+    rt.hosting.on_assign(Assign(stage="Loc-1", generation=gen, chain="Loc-1", run=0, resume_seq=None))
     keys = team.keys
     team.subscriptions["r1"] = [rt.bus.subscribe(k, lambda key, p, rt=rt: rt.on_message(key, p))
                                 for k in (keys.node_data("r1"), keys.node_control("r1"), keys.plan)]
@@ -523,7 +523,7 @@ def test_a_stage_adopted_before_the_next_decision_is_neither_released_nor_restar
     run = co.placing.runs.runs["Blob-2"]
     # while away, r2 ran Blob-2 itself (a subgroup agreed it), in the chain's run
     gen = int(team.clock.wall() * 1000) - 5
-    team.nodes["r2"].on_assign(Assign(stage="Blob-2", generation=gen, chain="Blob-2", run=run, resume_seq=None))
+    team.nodes["r2"].hosting.on_assign(Assign(stage="Blob-2", generation=gen, chain="Blob-2", run=run, resume_seq=None))
     for robot in ("r2", "r3"):
         _back(team, robot)
     team.join(["r2", "r3"])

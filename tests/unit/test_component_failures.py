@@ -165,7 +165,7 @@ def test_a_state_that_cannot_move_keeps_the_stage_where_it_runs(bad_cls, what):
     assert co.placing.placement[BAD] == "r2" and co.operating.pins[BAD] == "r2"
     assert team.nodes["r2"].hosted[BAD].lifecycle is Lifecycle.RUNNING
     assert BAD not in team.nodes["r3"].hosted
-    assert team.nodes["r2"].errors[what] == 1 and not team.nodes["r2"].failed
+    assert team.nodes["r2"].errors[what] == 1 and not team.nodes["r2"].hosting.failed
     assert "Blob-2" not in co.operating.disabled
     assert any("migration r2 -> r3 refused" in note and what in note for note in co.events)
     produced = team.nodes["r2"].sources[BAD].seq

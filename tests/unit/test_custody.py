@@ -554,7 +554,7 @@ def test_a_stage_restarted_without_state_catches_up_on_what_never_reached_its_ol
     team.run_until(11.0, on_tick=tick)
     lost_scan = r2.sources["Loc-2"].seq - 1  # the t = 10 scan never reached the laptop
     assert team.nodes["laptop"].hosted["Loc-2"].gate.next_seq == lost_scan
-    r2.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
+    r2.hosting.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
                         resume_seq=None))
     r2.override_placement({"Loc-2": "r2"}, set())
     team.run_until(30.0, on_tick=tick)
@@ -589,7 +589,7 @@ def test_a_stage_restarted_cold_recomputes_what_its_dead_host_delivered_without_
     delivered = {seq for _, seq, _ in outputs["Loc-2"]}
     assert held and held <= delivered  # delivered, not acknowledged: the window this is about
     team.cut_silently("laptop", "r2")  # the base station is gone
-    r2.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
+    r2.hosting.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
                         resume_seq=None))
     r2.override_placement({"Loc-2": "r2"}, set())
     # The resends reach the new instance before any new scan (as live, where custody sent them on
@@ -892,8 +892,8 @@ def test_a_late_input_for_a_stage_moved_out_of_reach_waits_as_an_orphan_until_a_
     late = ChainFrame(chain=hosted.chain.name, run=hosted.run, seq=10_000, target=hosted.index, t_virtual=0.0,
                       t_unix=0.0, payload_len=0, payload=b"")
     laptop.deliver_frame(late)
-    assert [f.seq for f in laptop.orphans[name]] == [10_000] and "unroutable" not in laptop.errors
+    assert [f.seq for f in laptop.hosting.orphans[name]] == [10_000] and "unroutable" not in laptop.errors
     sent = []
     laptop.send_frame = lambda frame, dest, *args, **kwargs: sent.append((frame.seq, dest))
     laptop.on_plan(dataclasses.replace(cut, epoch=cut.epoch + 1, links=plan.links))  # r2 in reach again
-    assert sent == [(10_000, "r2")] and name not in laptop.orphans
+    assert sent == [(10_000, "r2")] and name not in laptop.hosting.orphans

@@ -63,6 +63,6 @@ def test_a_moving_stages_state_names_the_frames_it_carries():
     state = StateTransfer(stage="Blob-2", generation=1, chain="Blob-2", run=3, state=b"", next_seq=9,
                           pending=(frame(10, 0),), t_export_unix=0.0, from_node="laptop",
                           outputs=(frame(7, 1), frame(8, 1)))
-    laptop.parked_transfers.append(("r2", encode(state), "Blob-2"))
-    laptop.parked_transfers.append(("r2", b"not a state", "Blob-2"))  # names nothing, breaks nothing
+    laptop.hosting.park("r2", encode(state), "Blob-2")
+    laptop.hosting.park("r2", b"not a state", "Blob-2")  # names nothing, breaks nothing
     assert laptop.in_flight_at_stop()[("Blob-2", 3)] == {7, 8, 10}

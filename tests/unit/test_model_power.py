@@ -74,7 +74,7 @@ def test_a_plan_predicts_the_placement_in_force_while_a_stage_moves(team):
     assert r1.status(1.0).model_w == pytest.approx(landed[-1].predicted_w["r1"])
     # told to hand Loc-1 back: from the moment its state leaves, r1 no longer runs it, although the
     # plan says r1 until the laptop reports it running
-    r1.on_migrate_out(MigrateOut(stage="Loc-1", generation=99, to_node="laptop"))
+    r1.hosting.on_migrate_out(MigrateOut(stage="Loc-1", generation=99, to_node="laptop"))
     assert r1.plan.placement["Loc-1"] == "r1"
     assert r1.status(1.0).model_w == pytest.approx(settled["r1"])
 

@@ -331,7 +331,7 @@ def test_a_team_in_workers_delivers_exactly_once_and_migrates_with_state():
             assert sorted(seq for seq, _ in outputs[chain.name]) == list(range(produced)), chain.name
         counts = [msgpack.unpackb(data)[1] for _, data in sorted(outputs["Blob-2"])]
         assert counts == list(range(1, len(counts) + 1))  # the count went on across the move: the state moved
-        assert not any(rt.failed for rt in team.nodes.values())
+        assert not any(rt.hosting.failed for rt in team.nodes.values())
     finally:
         close(team)
 
@@ -347,9 +347,9 @@ def test_a_spinning_component_in_a_worker_is_killed_and_its_node_goes_on(monkeyp
         team.run_until(3.0)
         r2 = team.nodes["r2"]
         pid = r2.hosted["Blob-2"].component.worker.pid
-        settle(team, lambda: "Blob-2" in r2.failed, timeout_s=20.0)
-        assert "hung: run(seq 2): no result after" in r2.failed["Blob-2"]
-        assert "(still running; limit 0.2 s); its worker process was killed" in r2.failed["Blob-2"]
+        settle(team, lambda: "Blob-2" in r2.hosting.failed, timeout_s=20.0)
+        assert "hung: run(seq 2): no result after" in r2.hosting.failed["Blob-2"]
+        assert "(still running; limit 0.2 s); its worker process was killed" in r2.hosting.failed["Blob-2"]
         assert gone(pid)
         assert "Blob-2" in team.coordinator.operating.disabled
         team.run_until(10.0)
@@ -409,7 +409,7 @@ def test_inputs_in_a_worker_stay_in_their_producers_custody_and_a_crash_of_their
             handle.close()
         for other in ("r2", "r3", "laptop"):
             team.cut_silently("r1", other)
-        r3.on_assign(Assign(stage="Blob-2", generation=10**9, chain="Blob-2", run=r2.plan.running["Blob-2"],
+        r3.hosting.on_assign(Assign(stage="Blob-2", generation=10**9, chain="Blob-2", run=r2.plan.running["Blob-2"],
                             resume_seq=None))
         for rt in (r2, r3, laptop):
             rt.override_placement({"Blob-2": "r3"}, set())
@@ -419,7 +419,7 @@ def test_inputs_in_a_worker_stay_in_their_producers_custody_and_a_crash_of_their
         assert sorted(seq for seq, _ in outputs["Blob-2"]) == list(range(produced))  # none lost, none twice
         assert laptop.sinks["Blob-2"].duplicates_total == 0
         assert r3.hosted["Blob-2"].gate.catch_up_below is not None and r2.custody.resent >= len(held)
-        assert "Blob-2" not in r3.failed
+        assert "Blob-2" not in r3.hosting.failed
     finally:
         close(team)
 
@@ -455,7 +455,7 @@ def test_an_input_a_full_worker_cannot_take_is_refused_before_its_gate_and_resen
         assert sorted(seq for seq, _ in outputs["Blob-2"]) == list(range(produced))
         assert [msgpack.unpackb(d)[1] for _, d in sorted(outputs["Blob-2"])] == list(range(1, produced + 1))
         assert r2.custody.resent >= refused and r2.custody.evicted == 0
-        assert laptop.sinks["Blob-2"].duplicates_total == 0 and not laptop.failed
+        assert laptop.sinks["Blob-2"].duplicates_total == 0 and not laptop.hosting.failed
         assert sum(1 for _ in hosted.component.worker.outstanding()) == 0
     finally:
         close(team)

@@ -329,8 +329,8 @@ def test_a_released_stage_runs_the_inputs_waiting_in_its_gate_when_their_produce
     runs = rt.hosted["Loc-2"].runs
     hosted = rt.hosted["Loc-2"]
     rt.on_liveliness("r2", False)  # Loc-2's source
-    rt.on_release(Release(stage="Loc-2", generation=101))
-    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.orphans
+    rt.hosting.on_release(Release(stage="Loc-2", generation=101))
+    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.hosting.orphans
     assert hosted.runs == runs + 2 and rt.counters.get("released-inputs-run") == 2
     rt.on_liveliness("r2", True)
     drain(hub, agents)
@@ -354,15 +354,15 @@ def test_a_released_stage_leaves_the_inputs_behind_a_gap_to_their_producer_in_si
     hosted = rt.hosted["Loc-2"]
     runs = hosted.runs
     assert hosted.gate.held_upstream(rt.wall()) and "r2" in rt.alive
-    rt.on_release(Release(stage="Loc-2", generation=101))
-    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.orphans
+    rt.hosting.on_release(Release(stage="Loc-2", generation=101))
+    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.hosting.orphans
     assert hosted.runs == runs and not rt.counters.get("released-inputs-run")
 
 
 def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team, monkeypatch):
     """A stage in a worker process cannot run them before it stops (the worker goes with it): with
     their producer out of sight they are kept, and go to the stage's next host once a plan places it."""
-    from autopower.node import hosting
+    from autopower.node import components, hosting
     from autopower.protocol import Release
 
     hub, agents, _ = team
@@ -371,17 +371,19 @@ def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team
     for seq in (7, 8):
         rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
     killed = []
-    monkeypatch.setattr(hosting, "worker_of", lambda component: SimpleNamespace(kill=lambda: killed.append(1)))
+    in_worker = lambda component: SimpleNamespace(kill=lambda: killed.append(1))  # noqa: E731
+    monkeypatch.setattr(hosting, "worker_of", in_worker)
+    monkeypatch.setattr(components, "worker_of", in_worker)  # the instance is retired there
     rt.on_liveliness("r2", False)  # the producer out of sight: they may be the only copies
-    rt.on_release(Release(stage="Loc-2", generation=101))  # as if in a worker
+    rt.hosting.on_release(Release(stage="Loc-2", generation=101))  # as if in a worker
     monkeypatch.undo()
     rt.on_liveliness("r2", True)
     assert killed == [1]
-    assert [f.seq for f in rt.orphans["Loc-2"]] == [7, 8]
+    assert [f.seq for f in rt.hosting.orphans["Loc-2"]] == [7, 8]
     on_r2 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
     assert agents["r2"].rounds.agreement.propose(ROBOTS, {"Loc-2": "r2"}, on_r2, 200, "on r2")
     drain(hub, agents)
-    assert "Loc-2" not in rt.orphans
+    assert "Loc-2" not in rt.hosting.orphans
     assert {7, 8} <= set(agents["r2"].runtime.hosted["Loc-2"].gate.pending)
 
 
@@ -395,8 +397,8 @@ def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team):
     loc2_on_r1(hub, agents)
     rt._admit(rt.hosted["Loc-2"], encode_frame(7))
     rt.plan = dataclasses.replace(rt.plan, operator=dataclasses.replace(rt.plan.operator, disabled=("Loc-2",)))
-    rt.on_release(Release(stage="Loc-2", generation=101))
-    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.orphans
+    rt.hosting.on_release(Release(stage="Loc-2", generation=101))
+    assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.hosting.orphans
 
 
 def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarted_by_the_next_round(team):
@@ -413,7 +415,7 @@ def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarte
     drain(hub, agents)
     assert running(agents) == {"Blob-2": ["r2"]}
     # r2 killed and back with the plan before the round: nothing of Blob-2 runs on it
-    r2.runtime.on_release(Release(stage="Blob-2", generation=100))
+    r2.runtime.hosting.on_release(Release(stage="Blob-2", generation=100))
     r2.runtime.override_placement({"Blob-2": "laptop"}, set())
     r2.publish_status()
     drain(hub, agents)

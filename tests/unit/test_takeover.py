@@ -349,7 +349,7 @@ def test_orders_go_above_a_generation_a_robot_started_without_the_base_station()
     co, r2 = team.coordinator, team.nodes["r2"]
     assert co.placing.placement["Loc-2"] == "r2"
     restarted = int(team.clock.wall() * 1000)  # what `AgentProcess._resume_alone` hands out (wall ms)
-    r2.on_assign(Assign(stage="Loc-2", generation=restarted, chain="Loc-2", run=r2.plan.running["Loc-2"],
+    r2.hosting.on_assign(Assign(stage="Loc-2", generation=restarted, chain="Loc-2", run=r2.plan.running["Loc-2"],
                         resume_seq=None))
     team.report_status()
     assert co.placing.generations.last >= restarted
