@@ -127,7 +127,7 @@ class Acknowledging:
     def older_consumed(self) -> dict[str, tuple[Consumed, ...]]:
         """Per sink hop, what the sink got of the older runs it remembers (`SinkLedger.older_reports`)."""
         out = {}
-        for name, ledger in self.rt.sinks.items():
+        for name, ledger in self.rt.sinking.ledgers.items():
             reports = ledger.older_reports()
             if reports and name in self.rt.chains:
                 out[hop_key(name, len(self.rt.chains[name].stages))] = reports
@@ -156,8 +156,8 @@ class Acknowledging:
                 report = hosted.gate.report(hosted.run, hosted.generation)
                 if report is not None:  # less the inputs still in the stage's worker (their outputs are not out)
                     out[hop_key(hosted.chain.name, hosted.index)] = self.acknowledged(hosted, report)
-        for name, ledger in self.rt.sinks.items():
-            if committed_sinks and self.rt.sink_store is not None:
+        for name, ledger in self.rt.sinking.ledgers.items():
+            if committed_sinks and self.rt.sinking.store is not None:
                 report = self._sinks_committed.get(name)
             else:
                 report = ledger.report()
@@ -191,7 +191,7 @@ class Acknowledging:
         out: dict[str, set[str]] = {}
         for hosted in self.rt.hosted.values():
             out.setdefault(hosted.chain.name, set()).add(self.producer_of(hosted))
-        for name in self.rt.sinks:
+        for name in self.rt.sinking.ledgers:
             chain = self.rt.chains.get(name)
             if chain is not None and chain.stages:
                 out.setdefault(name, set()).add(placement.get(chain.stages[-1].name))

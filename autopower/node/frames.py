@@ -9,12 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import zlib
 
 from autopower.errors import ProtocolError
-from autopower.model.scenario import Chain
 from autopower.node.guard import ComponentHung
-from autopower.node.sequencing import SinkLedger
 from autopower.node.stages import MAX_FORWARDS, HostedStage, Lifecycle, pad
 from autopower.node.workers import type_name, worker_of
 from autopower.protocol import (
@@ -112,7 +109,7 @@ class Frames:
             self.count("unknown-chain", f"{frame.chain} target {frame.target}")
             return
         if frame.target == len(chain.stages):
-            self._sink(chain, frame)
+            self.sinking.take(chain, frame)
             return
         stage = chain.stages[frame.target]
         hosted = self.hosted.get(stage.name)
@@ -250,38 +247,6 @@ class Frames:
         log.debug("%s: %s refused seq %d (its worker is full); its producer resends it", self.node,
                   hosted.stage.name, frame.seq)
         return True
-
-    def _sink(self, chain: Chain, frame: ChainFrame) -> None:
-        if chain.sink != self.node:
-            self.count("wrong-sink", f"{chain.name} output reached {self.node}")
-            return
-        ledger = self.sinks.setdefault(chain.name, SinkLedger())
-        latency_ms = (self.wall() - frame.t_unix) * 1000.0
-        redundant, duplicates = ledger.redundant_total, ledger.duplicates_total
-        new = ledger.record(frame.run, frame.seq, latency_ms, frame.data(), frame.attempt)
-        if new and self.sink_store is not None and self.mission is not None:
-            # noted now, written out with the status that acknowledges it (`SinkStore.commit`)
-            self.sink_store.keep(self.mission.epoch_unix, self.sinks, chain.name, frame.run, frame.seq,
-                                 zlib.crc32(frame.data()))
-        if not new:
-            if ledger.redundant_total != redundant:
-                self.tally("redundant-output")  # a resent copy of what arrived late: dropped, as designed
-                return
-            if ledger.duplicates_total != duplicates or frame.run >= ledger.run:
-                # The operator gets each output once: any other second copy means it was produced
-                # (or carried) twice. Counted (the ledger's `duplicates_total` goes with the status
-                # into the recording and the replay's invariants), never handed on. This holds for
-                # the last runs before the current one too (`SinkLedger.older`).
-                self.count("duplicate-output", f"{chain.name} run {frame.run} seq {frame.seq}", logging.ERROR)
-                return
-            # an older run's output, late or resent after its chain started over, is no error (its
-            # run is over at this sink): handed on once, the recording shows it
-            self.count("stale-output", f"{chain.name} run {frame.run} seq {frame.seq}", logging.INFO)
-        elif frame.attempt:
-            self.tally("recovered-outputs")  # lost in flight, delivered by a resend
-        self.last_output[chain.name] = frame.data()
-        if self._sink_listeners:
-            self._sink_listeners.output(chain.name, frame.run, frame.seq, frame.data())
 
     def run_before_release(self, hosted: HostedStage, frames: list) -> None:
         """Run a released stage's waiting inputs, in order; their outputs go out as any does.

@@ -54,7 +54,7 @@ from autopower.node.meter import BatteryMeter
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
 from autopower.node.relaying import ArrivalRelay
 from autopower.node.sequencing import SinkLedger
-from autopower.node.sink_store import SinkStore
+from autopower.node.sinks import Sinks
 from autopower.node.sources import Sources
 from autopower.node.stages import (
     HostedStage,
@@ -70,7 +70,6 @@ from autopower.protocol import (
     NodeStatus,
     PeerStatus,
     PlanUpdate,
-    SinkStats,
     SourceStats,
     decode,
     encode,
@@ -149,8 +148,6 @@ class NodeRuntime(Frames):
                              build=lambda key: self.components.build_source(*key),
                              count=self.count, tally=self.tally)
         self._last_turn_wall: float | None = None  # `on_timer`'s last turn (a node away a second was stopped)
-        self.sinks: dict[str, SinkLedger] = {}
-        self.last_output: dict[str, bytes] = {}
         self.alive: set[str] = set()
         self._ever_alive: set[str] = set()  # every node whose token this one has seen (status `links`)
         # wall: until when a base station's status said it runs our plan, and one said it does not
@@ -176,13 +173,13 @@ class NodeRuntime(Frames):
         self._on_produced = stores.on_produced
         # the stages hosted here: the orders that start, move and stop them, and the frames held for them
         self.hosting = Hosting(self)
+        # the outputs reaching this node as their chain's sink: counted once, handed on once, and kept
+        # across a restart when the process gives a `SinkStore`
+        self.sinking = Sinks(self, stores.sink_store, self._sink_listeners)
         self.custody = Custody(hold_budget_bytes=scenario.hold_budget_bytes)
         self.control_plane = ControlPlaneMeter()  # the bytes on its links beyond the chain packets
         # custody's acknowledgements: those this node sends, those it hears, and resends
         self.acknowledging = Acknowledging(self)
-        # where this node's sink ledgers are kept across a restart (the base station's, in its team
-        # state directory): an output delivered before a crash is not delivered again after it
-        self.sink_store: SinkStore | None = stores.sink_store
         # results whose sink has no route from here (the plan's links): kept in order, within the
         # hold budget with the results in custody, on disk when the process gives a `HeldStore`
         self.holds = Holds(node=node, custody=self.custody, store=stores.held_store, chain=lambda name: self.chains.get(name),
@@ -239,6 +236,11 @@ class NodeRuntime(Frames):
         """The stages hosted here, by name (read only: `Hosting` owns them)."""
         return self.hosting.hosted
 
+    @property
+    def sinks(self) -> dict[str, SinkLedger]:
+        """The ledgers of the chains whose sink is this node (read only: `Sinks` owns them)."""
+        return self.sinking.ledgers
+
     # ---- small helpers -----------------------------------------------------------------------
     def now(self) -> float:
         return self.clock.now() if self.clock else 0.0
@@ -273,12 +275,9 @@ class NodeRuntime(Frames):
             return
         if self.mission is None:
             self.mission = plan.mission
-            if self.sink_store is not None:  # a restarted sink goes on from what it had delivered
-                self.sinks.update(self.sink_store.load(plan.mission.epoch_unix))
+            self.sinking.load(plan.mission.epoch_unix)  # a restarted sink goes on from what it had delivered
             self.clock = self._clock_factory(plan.mission)
-            if self.sink_store is not None:  # at mission time
-                for chain, run, seq in self.sink_store.last_batch:
-                    self._sink_listeners.sink_journal(chain, run, seq)
+            self.sinking.replay_journal()  # at mission time
             if not self.platform.mains and self.node not in plan.mission.energies_j:
                 raise AutoPowerError(f"the mission gives no starting energy for {self.node}")
             self._use_variants(plan.variants)
@@ -613,18 +612,14 @@ class NodeRuntime(Frames):
         stage that made it reports its input had, not run (`Acknowledging.acknowledged`). A status's
         acknowledgements to other nodes leave after this commit, so they may say what it wrote.
         """
-        if self.sink_store is not None:
-            self.sink_store.commit()
-        self.acknowledging.sinks_committed({name: report for name, ledger in self.sinks.items()
-                                            if (report := ledger.report()) is not None})
+        self.acknowledging.sinks_committed(self.sinking.commit())
 
     def close_stores(self, *, commit_sinks: bool = True) -> None:
         """Close what it keeps on disk (the held results' writer finishes first). ``commit_sinks``
         False: the sink's notes since its last commit are not written (as a killed process leaves them)."""
         if self.holds.store is not None:
             self.holds.store.close()
-        if self.sink_store is not None:
-            self.sink_store.close(commit=commit_sinks)
+        self.sinking.close(commit=commit_sinks)
 
     # ---- sources (`autopower.node.sources`) ---------------------------------------------------------
     @property
@@ -775,12 +770,7 @@ class NodeRuntime(Frames):
             power_w=power, cpu_utilisation=utilisation,
             hosted={n: h.lifecycle.value for n, h in self.hosted.items()},
             sources=sources,
-            sinks={n: SinkStats(run=l.run, received=l.received, duplicates=l.duplicates, contiguous=l.contiguous,
-                                max_seq=l.max_seq, stale=l.stale, latency_ms_p50=l.latency_ms_p50,
-                                latency_ms_max=l.latency_ms_max, received_total=l.received_total,
-                                duplicates_total=l.duplicates_total, digest=l.digest,
-                                redundant_total=l.redundant_total, given_up_total=l.given_up_total)
-                   for n, l in self.sinks.items()},
+            sinks=self.sinking.stats(),
             links={n: n in self.alive for n in others},
             runs={n: h.runs for n, h in self.hosted.items() if h.runs},
             compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},

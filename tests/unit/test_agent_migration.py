@@ -248,10 +248,10 @@ def test_a_sink_hands_an_older_runs_output_on_once():
 
     r1.sinks.pop("Loc-1", None)
     for seq in (0, 1):
-        r1._sink(chain, frame(0, seq))
-    r1._sink(chain, frame(1, 0))
-    r1._sink(chain, frame(0, 5))
-    r1._sink(chain, frame(0, 5))
+        r1.sinking.take(chain, frame(0, seq))
+    r1.sinking.take(chain, frame(1, 0))
+    r1.sinking.take(chain, frame(0, 5))
+    r1.sinking.take(chain, frame(0, 5))
     assert got == [("Loc-1", 0, 0), ("Loc-1", 0, 1), ("Loc-1", 1, 0), ("Loc-1", 0, 5)]
     assert r1.errors.get("duplicate-output") == 1 and r1.counters.get("stale-output", 0) + \
         r1.errors.get("stale-output", 0) == 1

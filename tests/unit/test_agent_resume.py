@@ -268,7 +268,7 @@ def test_a_restarted_robot_sink_does_not_take_a_resent_result_for_a_new_one(tmp_
     team.run_until(30.0)
     ledger = old.sinks["Loc-3"]
     assert ledger.received > 3
-    old.sink_store.commit()  # what `AgentProcess.publish_status` does before each status
+    old.sinking.store.commit()  # what `AgentProcess.publish_status` does before each status
     saved = old.resume_state()
     rt = NodeRuntime(node="r3", scenario=team.scenario, bus=team.hub.bus("r3-again"), keys=team.keys,
                      make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,

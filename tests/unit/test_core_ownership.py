@@ -16,7 +16,7 @@ NODE_CORE = sorted((ROOT / "node").glob("*.py"))
 COORDINATOR_CORE = [ROOT / "basestation" / f"{name}.py"
                     for name in ("coordinator", "faults", "deciding", "prediction", "placing", "runs", "publishing",
                                  "operating", "takeover", "listening")]
-CORE_CLASSES = {"TeamListening", "NodeRuntime", "Frames", "Hosting", "Acknowledging", "Components", "ArrivalRelay", "Flows", "Holds", "Sources",
+CORE_CLASSES = {"TeamListening", "NodeRuntime", "Frames", "Hosting", "Acknowledging", "Components", "Sinks", "ArrivalRelay", "Flows", "Holds", "Sources",
                 "Coordinator", "TeamFaults", "Deciding", "AheadQuestion", "Prediction", "Placement", "Generations",
                 "ChainRuns", "PlanPublisher", "OperatorControl", "Takeover"}
 # the packages that build and drive core objects (the layers above `node`: test_layering.py)
@@ -54,7 +54,7 @@ def assignments_from_outside(path: Path, names: set[str]) -> list[str]:
 def test_the_core_attributes_are_known():
     names = core_attributes()
     # the ways out a shell used to assign, now constructor arguments (`NodePorts`, `NodeStores`)
-    assert {"send_to", "_notify_work", "sink_store", "resume_from", "store", "held"} <= names
+    assert {"send_to", "_notify_work", "resume_from", "store", "held"} <= names
     assert {"incarnation", "placement"} <= names
 
 

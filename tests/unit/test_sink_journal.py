@@ -68,10 +68,10 @@ def test_a_restarted_sink_says_what_its_last_commit_delivered(tmp_path):
     team.join()
     old = team.nodes["laptop"]
     team.run_until(20.0)
-    old.sink_store.commit()
+    old.sinking.store.commit()
     team.run_until(22.0)
     delivered = {c: (l.run, l.contiguous) for c, l in old.sinks.items()}
-    old.sink_store.commit()  # the last status before the kill; then killed before the flush
+    old.sinking.store.commit()  # the last status before the kill; then killed before the flush
     rt = NodeRuntime(node="laptop", scenario=team.scenario, bus=team.hub.bus("laptop-again"), keys=team.keys,
                      make_component=FakeComponent, make_source=FakeSource, clock_factory=lambda m: team.clock,
                      stores=NodeStores(sink_store=SinkStore(tmp_path / "sinks.json")))

@@ -108,7 +108,7 @@ def test_a_held_back_status_records_what_its_sink_committed_before_anything_ackn
         def commit(self) -> None:
             order.append("commit")
 
-    monkeypatch.setattr(r2.runtime, "sink_store", Notes())
+    monkeypatch.setattr(r2.runtime.sinking, "store", Notes())
     monkeypatch.setattr(r2._bus, "flush_recording", lambda: order.append("flush"))
     monkeypatch.setattr(r2.runtime, "send_acks", lambda reachable, wait=0.0: order.append("acks") or 0)
     monkeypatch.setattr(r2.runtime, "idle", lambda: False)  # a chain runs through it
