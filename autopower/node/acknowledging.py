@@ -219,14 +219,14 @@ class Acknowledging:
         for node, held in self.rt.custody.due(now):
             if node != self._consumer_of(held.frame):
                 continue  # the stage is moving: wait for its new host's report (it stays due)
-            if not self.rt.routable(node):
+            if not self.rt.frames.routable(node):
                 continue  # no route yet: it stays due
             frame = self.rt.custody.resend(held, now)
             self.rt.tally("resent-frames")
             if frame.attempt == 1:
                 log.info("%s: %s seq %d to stage %d was lost on the way to %s; resending", self.rt.node, frame.chain,
                          frame.seq, frame.target, node)
-            self.rt.send_frame(frame, node, purpose="recovery")  # metered apart: not the plan's steady traffic
+            self.rt.frames.send_frame(frame, node, purpose="recovery")  # metered apart: not the plan's steady traffic
 
     def acknowledged(self, hosted: HostedStage, report: Consumed) -> Consumed:
         """What a stage acknowledges to its producers: its gate's report less the inputs whose

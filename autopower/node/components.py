@@ -155,9 +155,9 @@ class Components:
         elif reply[0] == "err":
             self.rt.hosting.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {reply[1]}: {reply[2] if len(reply) > 2 else ''}")
         elif reply[0] == "ok" and len(reply) == 3 and isinstance(reply[1], float):  # ["ok", compute s, output]
-            self.rt._ran(hosted, frame, reply[2], reply[1])
+            self.rt.frames.ran(hosted, frame, reply[2], reply[1])
         else:  # ["bad", type name]: not bytes
-            self.rt._ran(hosted, frame, NotBytes(reply[-1]) if reply[0] == "bad" else reply, 0.0)
+            self.rt.frames.ran(hosted, frame, NotBytes(reply[-1]) if reply[0] == "bad" else reply, 0.0)
 
     def check_workers(self) -> None:
         """Kill the worker of a run that hung (`guard.py`'s rule); its stage has failed."""

@@ -2,7 +2,12 @@
 
 A sender takes the shortest-hop route of the current network and puts it in the frame's header;
 every node on the way forwards it and is charged for it. A stage runs each input once, in order
-(its sequence gate); a sink counts each output once (its ledger).
+(its sequence gate); a sink counts each output once (its ledger, `autopower.node.sinks`).
+
+`Frames` is a collaborator of `NodeRuntime`. It owns the chains' weights under the mission's
+accounting; the routes are the plan's network, the frames kept for their consumers are custody's and
+holds', and the stages are `Hosting`'s: it reads them through the runtime and leaves what it cannot
+route to their owners (`Hosting.hold_orphan`, `Hosting.park`, `NodeRuntime.hold_output`).
 """
 
 from __future__ import annotations
@@ -26,106 +31,123 @@ log = logging.getLogger("autopower.node.runtime")  # one logger for the node's p
 
 
 class Frames:
-    """The node's data plane. Mixed into `NodeRuntime`, whose state it uses."""
+    """The node's data plane: frames sent, forwarded and received, and the stages' inputs run."""
+
+    def __init__(self, rt):
+        """``rt``: the `NodeRuntime` whose data this is (its plan's routes, stages, custody and meter)."""
+        self.rt = rt
+        self.weights: dict[str, float] = {}  # per chain: the share of its bytes charged (`flow_weight`)
+
+    def start(self, weights: dict[str, float]) -> None:
+        """The mission starts: each chain's (and DAG flow's) weight under its accounting."""
+        self.weights = weights
+
+    def join_tick(self) -> None:
+        """Run the fan-in steps whose wait is over (from the node's timer)."""
+        speed, wall = self.rt.mission.speed if self.rt.mission else 1.0, self.rt.wall()
+        for hosted in list(self.rt.hosted.values()):
+            for frame in self.rt.flows.ready(hosted, self.rt.plan, speed, wall):
+                self._run(hosted, frame)
+
 
     def emit(self, frame: ChainFrame, dest: str) -> None:
         """Send a frame this node produced, keeping it until its consumer acknowledges it."""
-        frame = dataclasses.replace(frame, floor=self.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
-        if frame.target == len(self.chains[frame.chain].stages):
-            self.keep_result(frame)  # kept until its sink has it, within the hold budget
+        frame = dataclasses.replace(frame, floor=self.rt.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
+        if frame.target == len(self.rt.chains[frame.chain].stages):
+            self.rt.keep_result(frame)  # kept until its sink has it, within the hold budget
         else:
-            self.custody.keep(frame, self.wall())
+            self.rt.custody.keep(frame, self.rt.wall())
         self.send_frame(frame, dest)
 
     def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0, purpose: str = "chain") -> None:
-        if dest == self.node:
+        if dest == self.rt.node:
             self.deliver_frame(frame, forwards)
             return
-        chain = self.chains[frame.chain]
+        chain = self.rt.chains[frame.chain]
         self.send_routed(dest, encode(frame), chain.message_bytes[frame.target], self.weights[chain.name],
                          purpose, chain.name)
 
     def send_routed(self, dest: str, body: bytes, charge_bytes: int, weight: float, purpose: str,
                     chain: str) -> bool:
-        path = self.network.path(self.node, dest) if self.network else None
+        path = self.rt.network.path(self.rt.node, dest) if self.rt.network else None
         if path is None:
             if purpose == "migration":
-                self.hosting.park(dest, body, chain)
+                self.rt.hosting.park(dest, body, chain)
                 return False
-            if purpose == "chain" and chain in self.chains and dest == self.chains[chain].sink:
+            if purpose == "chain" and chain in self.rt.chains and dest == self.rt.chains[chain].sink:
                 try:
                     frame = decode(body, ChainFrame)
                 except ProtocolError:
                     frame = None
-                if frame is not None and frame.target == len(self.chains[chain].stages):
-                    self.hold_output(frame)
+                if frame is not None and frame.target == len(self.rt.chains[chain].stages):
+                    self.rt.hold_output(frame)
                     return False
-            self.count("unroutable", f"no route from {self.node} to {dest}")
+            self.rt.count("unroutable", f"no route from {self.rt.node} to {dest}")
             return False
-        media = tuple(self.network.medium_between(u, v) for u, v in zip(path, path[1:], strict=False))
+        media = tuple(self.rt.network.medium_between(u, v) for u, v in zip(path, path[1:], strict=False))
         packet = Packet(path=tuple(path), media=media, hop=1, charge_bytes=charge_bytes, weight=weight,
                         purpose=purpose, chain=chain, body=body)
-        self.meter.charge_radio("send", media[0], charge_bytes, weight, self.now(), purpose, peer=path[1])
+        self.rt.meter.charge_radio("send", media[0], charge_bytes, weight, self.rt.now(), purpose, peer=path[1])
         wire = encode(packet)
-        self.control_plane.note_data(path[1], "send", len(wire))
-        self.send_to(path[1], self.keys.node_data(path[1]), wire)
+        self.rt.control_plane.note_data(path[1], "send", len(wire))
+        self.rt.send_to(path[1], self.rt.keys.node_data(path[1]), wire)
         return True
 
     def on_data(self, payload: bytes) -> None:
         packet = decode(payload, Packet)
-        if not self.started:
-            self.count("data-before-mission")
+        if not self.rt.started:
+            self.rt.count("data-before-mission")
             return
-        if packet.path[packet.hop] != self.node:
-            self.count("misaddressed", f"packet for {packet.path[packet.hop]}")
+        if packet.path[packet.hop] != self.rt.node:
+            self.rt.count("misaddressed", f"packet for {packet.path[packet.hop]}")
             return
         for medium in packet.media:
-            if medium not in self.scenario.radios:
+            if medium not in self.rt.scenario.radios:
                 raise ProtocolError(f"packet names unknown medium {medium!r}")
-        now = self.now()
-        self.meter.charge_radio("receive", packet.media[packet.hop - 1], packet.charge_bytes, packet.weight, now,
+        now = self.rt.now()
+        self.rt.meter.charge_radio("receive", packet.media[packet.hop - 1], packet.charge_bytes, packet.weight, now,
                                 packet.purpose, peer=packet.path[packet.hop - 1])
-        self.control_plane.note_data(packet.path[packet.hop - 1], "receive", len(payload))
+        self.rt.control_plane.note_data(packet.path[packet.hop - 1], "receive", len(payload))
         if packet.hop < len(packet.path) - 1:  # a relay: pass it on, untouched
             nxt = Packet(path=packet.path, media=packet.media, hop=packet.hop + 1,
                          charge_bytes=packet.charge_bytes, weight=packet.weight, purpose=packet.purpose,
                          chain=packet.chain, body=packet.body)
-            self.meter.charge_radio("send", packet.media[packet.hop], packet.charge_bytes, packet.weight, now,
+            self.rt.meter.charge_radio("send", packet.media[packet.hop], packet.charge_bytes, packet.weight, now,
                                     packet.purpose, peer=packet.path[packet.hop + 1])
             wire = encode(nxt)
-            self.control_plane.note_data(packet.path[packet.hop + 1], "send", len(wire))
-            self.send_to(packet.path[packet.hop + 1], self.keys.node_data(packet.path[packet.hop + 1]), wire)
-            self.tally("forwarded")
+            self.rt.control_plane.note_data(packet.path[packet.hop + 1], "send", len(wire))
+            self.rt.send_to(packet.path[packet.hop + 1], self.rt.keys.node_data(packet.path[packet.hop + 1]), wire)
+            self.rt.tally("forwarded")
             return
         body = decode(packet.body, (ChainFrame, StateTransfer))
         if isinstance(body, StateTransfer):
-            self.hosting.on_state(body)
+            self.rt.hosting.on_state(body)
         else:
             self.deliver_frame(body)
 
     def deliver_frame(self, frame: ChainFrame, forwards: int = 0) -> None:
-        chain = self.chains.get(frame.chain)
+        chain = self.rt.chains.get(frame.chain)
         if chain is None or frame.target > len(chain.stages):
-            self.count("unknown-chain", f"{frame.chain} target {frame.target}")
+            self.rt.count("unknown-chain", f"{frame.chain} target {frame.target}")
             return
         if frame.target == len(chain.stages):
-            self.sinking.take(chain, frame)
+            self.rt.sinking.take(chain, frame)
             return
         stage = chain.stages[frame.target]
-        hosted = self.hosted.get(stage.name)
+        hosted = self.rt.hosted.get(stage.name)
         if hosted is None:
-            host = self.plan.placement.get(stage.name) if self.plan else None
-            if host is not None and host != self.node and forwards < MAX_FORWARDS and self.routable(host):
-                self.tally("rerouted")
+            host = self.rt.plan.placement.get(stage.name) if self.rt.plan else None
+            if host is not None and host != self.rt.node and forwards < MAX_FORWARDS and self.routable(host):
+                self.rt.tally("rerouted")
                 self.send_frame(frame, host, forwards + 1)
-            elif host is None and (self.plan is None or frame.chain not in self.plan.running):
-                self.count("inactive-chain", f"{frame.chain} seq {frame.seq} arrived after its chain stopped",
+            elif host is None and (self.rt.plan is None or frame.chain not in self.rt.plan.running):
+                self.rt.count("inactive-chain", f"{frame.chain} seq {frame.seq} arrived after its chain stopped",
                            logging.INFO)
             else:
-                self.hosting.hold_orphan(stage.name, frame)
+                self.rt.hosting.hold_orphan(stage.name, frame)
             return
         if hosted.lifecycle is Lifecycle.FAILED:
-            self.count("failed-stage-input", f"{stage.name} seq {frame.seq}: its component has failed here",
+            self.rt.count("failed-stage-input", f"{stage.name} seq {frame.seq}: its component has failed here",
                        logging.INFO)
         elif hosted.lifecycle is Lifecycle.STARTING:
             hosted.buffer.append(frame)
@@ -133,43 +155,43 @@ class Frames:
             if forwards >= MAX_FORWARDS or not self.routable(hosted.forward_to):
                 # no route to its new host (yet): held here as an orphan, which the plan that
                 # routes it there sends on (`on_plan`); its producer keeps it until a gate runs it
-                self.hosting.hold_orphan(stage.name, frame)
+                self.rt.hosting.hold_orphan(stage.name, frame)
                 return
-            self.tally("pointer-forwarded")
+            self.rt.tally("pointer-forwarded")
             self.send_frame(frame, hosted.forward_to, forwards + 1)
         else:
-            self._admit(hosted, frame)
+            self.admit(hosted, frame)
 
     def routable(self, dest: str) -> bool:
         """Whether the plan's network has a route from here to ``dest`` (this node always)."""
-        return dest == self.node or (self.network is not None and self.network.path(self.node, dest) is not None)
+        return dest == self.rt.node or (self.rt.network is not None and self.rt.network.path(self.rt.node, dest) is not None)
 
-    def _admit(self, hosted: HostedStage, frame: ChainFrame, refusable: bool = True) -> None:
+    def admit(self, hosted: HostedStage, frame: ChainFrame, refusable: bool = True) -> None:
         """Offer an input to its stage's gate and run what it releases.
 
         ``refusable``: False for an input the stage's previous instance had already acknowledged
         (one of the inputs a migration carries): its producer no longer holds it, so it is taken
         even when the stage's worker is full."""
         if frame.chain != hosted.chain.name:  # a DAG flow into this stage: joined by step
-            speed = self.mission.speed if self.mission else 1.0
-            for ready in self.flows.admit(hosted, frame, self.plan, speed, self.wall()):
+            speed = self.rt.mission.speed if self.rt.mission else 1.0
+            for ready in self.rt.flows.admit(hosted, frame, self.rt.plan, speed, self.rt.wall()):
                 self._run(hosted, ready)
             return
         if frame.run != hosted.run:
-            self.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
+            self.rt.count("stale-run", f"{hosted.stage.name}: frame of run {frame.run}, stage runs {hosted.run}",
                        logging.INFO)
             return
         if refusable and self._no_room(hosted, frame):
             return
         before, redundant, skipped = hosted.gate.duplicates, hosted.gate.redundant, hosted.gate.skipped
-        for ready in hosted.gate.offer(frame.seq, frame, frame.floor, resent=frame.attempt > 0, now=self.wall()):
+        for ready in hosted.gate.offer(frame.seq, frame, frame.floor, resent=frame.attempt > 0, now=self.rt.wall()):
             self._run(hosted, ready)
         if hosted.gate.duplicates != before:
-            self.count("duplicate-input", f"{hosted.stage.name} seq {frame.seq}", logging.INFO)
+            self.rt.count("duplicate-input", f"{hosted.stage.name} seq {frame.seq}", logging.INFO)
         if hosted.gate.redundant != redundant:
-            self.tally("redundant-input")  # a resent copy of an input that was only late: dropped, as designed
+            self.rt.tally("redundant-input")  # a resent copy of an input that was only late: dropped, as designed
         if hosted.gate.skipped != skipped:
-            self.count("inputs-given-up", f"{hosted.stage.name}: {hosted.gate.skipped - skipped} input(s) before "
+            self.rt.count("inputs-given-up", f"{hosted.stage.name}: {hosted.gate.skipped - skipped} input(s) before "
                        f"seq {hosted.gate.next_seq} never arrived", logging.ERROR)
 
     def _run(self, hosted: HostedStage, frame: ChainFrame) -> None:
@@ -180,27 +202,27 @@ class Frames:
         if worker is not None:  # in its own process: handed over; `Components.collect_results` finishes it
             worker.submit((hosted, frame), frame.data())
             return
-        started = self.perf()
+        started = self.rt.perf()
         # The component is code we do not control: whatever it does wrong stops this stage only.
         try:
-            output = self.guard.call(hosted.component.run, frame.data(), timeout_s=self.components.hang_limit_s(chain))
+            output = self.rt.guard.call(hosted.component.run, frame.data(), timeout_s=self.rt.components.hang_limit_s(chain))
         except ComponentHung as exc:
-            self.hosting.fail_stage(hosted, "hung", f"run(seq {frame.seq}): {exc}")
+            self.rt.hosting.fail_stage(hosted, "hung", f"run(seq {frame.seq}): {exc}")
             return
         except Exception as exc:
-            self.hosting.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {type(exc).__name__}: {exc}")
+            self.rt.hosting.fail_stage(hosted, "raised", f"run(seq {frame.seq}): {type(exc).__name__}: {exc}")
             return
-        self._ran(hosted, frame, output, self.perf() - started)
+        self.ran(hosted, frame, output, self.rt.perf() - started)
 
-    def _ran(self, hosted: HostedStage, frame: ChainFrame, output, compute_s: float) -> None:
+    def ran(self, hosted: HostedStage, frame: ChainFrame, output, compute_s: float) -> None:
         """A run's output (in-process or from its worker): checked, metered, emitted."""
         chain, index = hosted.chain, hosted.index
         target = index + 1
         if not isinstance(output, bytes):
-            self.hosting.fail_stage(hosted, "not-bytes", f"run(seq {frame.seq}) returned {type_name(output)}, not bytes")
+            self.rt.hosting.fail_stage(hosted, "not-bytes", f"run(seq {frame.seq}) returned {type_name(output)}, not bytes")
             return
         if len(output) > chain.message_bytes[target]:
-            self.hosting.fail_stage(hosted, "oversize", f"run(seq {frame.seq}) returned {len(output)} B; the chain declares "
+            self.rt.hosting.fail_stage(hosted, "oversize", f"run(seq {frame.seq}) returned {len(output)} B; the chain declares "
                             f"message_bytes {chain.message_bytes[target]} for this hop (raise it in the scenario)")
             return
         hosted.compute_s += compute_s
@@ -208,8 +230,8 @@ class Frames:
         # a stage started without state recomputes what its lost predecessor may have sent already:
         # an overhead of the failover, not the plan's steady work
         recomputed = hosted.gate.catch_up_below is not None and frame.seq < hosted.gate.catch_up_below
-        latency = self.scenario.components[hosted.stage.component].latency_s[self.platform.name]
-        self.meter.charge_run(latency, self.now(), "recovery" if recomputed else "chain")
+        latency = self.rt.scenario.components[hosted.stage.component].latency_s[self.rt.platform.name]
+        self.rt.meter.charge_run(latency, self.rt.now(), "recovery" if recomputed else "chain")
         payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
         # An input that came as a resend was resent because its acknowledgement had not come: the
         # instance it first went to may have run it and sent its output before it died or moved on.
@@ -218,11 +240,11 @@ class Frames:
         again = recomputed or frame.attempt > 0
         out = ChainFrame(chain=chain.name, run=frame.run, seq=frame.seq, target=target, t_virtual=frame.t_virtual,
                          t_unix=frame.t_unix, payload_len=len(output), payload=payload, attempt=int(again))
-        for flow_frame, flow_dest in self.flows.fan_out(hosted, frame, output, self.plan):
+        for flow_frame, flow_dest in self.rt.flows.fan_out(hosted, frame, output, self.rt.plan):
             self.emit(flow_frame, flow_dest)  # DAG fan-out: the same output along each flow it feeds
-        dest = chain.sink if target == len(chain.stages) else self.plan.placement.get(chain.stages[target].name)
+        dest = chain.sink if target == len(chain.stages) else self.rt.plan.placement.get(chain.stages[target].name)
         if dest is None:
-            self.count("unplaced-stage", f"{chain.stages[target].name} has no host")
+            self.rt.count("unplaced-stage", f"{chain.stages[target].name} has no host")
             return
         self.emit(out, dest)
 
@@ -243,8 +265,8 @@ class Frames:
             return False
         if worker.room() > 0:
             return False
-        self.tally("stage-queue-full")  # a refusal, not a loss: counted with what happens, not with errors
-        log.debug("%s: %s refused seq %d (its worker is full); its producer resends it", self.node,
+        self.rt.tally("stage-queue-full")  # a refusal, not a loss: counted with what happens, not with errors
+        log.debug("%s: %s refused seq %d (its worker is full); its producer resends it", self.rt.node,
                   hosted.stage.name, frame.seq)
         return True
 
@@ -254,13 +276,13 @@ class Frames:
         A run that raises or hangs ends this (logged and counted: the stage is going anyway, and a
         failure reported now would stop its chain); what is left is lost, as before."""
         for done, frame in enumerate(frames):
-            started = self.perf()
+            started = self.rt.perf()
             try:
-                output = self.guard.call(hosted.component.run, frame.data(),
-                                         timeout_s=self.components.hang_limit_s(hosted.chain))
+                output = self.rt.guard.call(hosted.component.run, frame.data(),
+                                         timeout_s=self.rt.components.hang_limit_s(hosted.chain))
             except Exception as exc:  # noqa: BLE001 - code we do not control; ComponentHung included
-                self.count("released-inputs-lost", f"{hosted.stage.name}: run(seq {frame.seq}) at release: "
+                self.rt.count("released-inputs-lost", f"{hosted.stage.name}: run(seq {frame.seq}) at release: "
                            f"{type(exc).__name__}: {exc}; {len(frames) - done} input(s) not run")
                 return
-            self._ran(hosted, frame, output, self.perf() - started)
-            self.tally("released-inputs-run")
+            self.ran(hosted, frame, output, self.rt.perf() - started)
+            self.rt.tally("released-inputs-run")

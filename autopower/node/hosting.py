@@ -139,10 +139,10 @@ class Hosting:
             chain = self.rt.stage_index.get(stage, (None, 0))[0]
             if chain is None or chain.name in plan.operator.disabled:
                 del self.orphans[stage]
-            elif host is not None and host != self.rt.node and self.rt.routable(host):
+            elif host is not None and host != self.rt.node and self.rt.frames.routable(host):
                 del self.orphans[stage]
                 for frame in frames:
-                    self.rt.send_frame(frame, host)
+                    self.rt.frames.send_frame(frame, host)
 
     def placement_overridden(self, placement: dict[str, str]) -> None:
         """A placement agreed without the base station: the inputs held for a stage it puts elsewhere go there."""
@@ -151,7 +151,7 @@ class Hosting:
             if host is not None and host != self.rt.node:
                 del self.orphans[stage]
                 for frame in frames:
-                    self.rt.send_frame(frame, host)
+                    self.rt.frames.send_frame(frame, host)
 
     def hold_orphan(self, stage: str, frame: ChainFrame) -> None:
         """Keep an input for ``stage`` that has nowhere to go from here yet (bounded)."""
@@ -170,7 +170,7 @@ class Hosting:
         """Send the parked states again (a new plan: those still without a route park again)."""
         parked, self.parked_transfers = self.parked_transfers, []
         for dest, body, chain in parked:
-            self.rt.send_routed(dest, body, len(body), 1.0, "migration", chain)
+            self.rt.frames.send_routed(dest, body, len(body), 1.0, "migration", chain)
 
     def replay_early(self) -> None:
         """Carry out the orders that came before the plan that started the mission."""
@@ -233,7 +233,7 @@ class Hosting:
                                                imported_state=False, resume_seq=msg.resume_seq, downtime_ms=0.0,
                                                buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
-            self.rt._admit(hosted, frame, refusable=False)
+            self.rt.frames.admit(hosted, frame, refusable=False)
 
     def on_prepare(self, msg: Prepare) -> None:
         chain, index = self.rt.stage_index[msg.stage]
@@ -311,7 +311,7 @@ class Hosting:
         if to_node == self.rt.node:
             self.on_state(decode(body, StateTransfer))
         else:
-            self.rt.send_routed(to_node, body, len(body), 1.0, "migration", chain)
+            self.rt.frames.send_routed(to_node, body, len(body), 1.0, "migration", chain)
 
     def on_state(self, msg: StateTransfer) -> None:
         if msg.stage not in self.rt.stage_index:
@@ -365,7 +365,7 @@ class Hosting:
             stage=msg.stage, generation=msg.generation, node=self.rt.node, imported_state=imported,
             resume_seq=msg.next_seq, downtime_ms=max(0.0, (self.rt.wall() - msg.t_export_unix) * 1e3), buffered=len(held)))
         for frame in sorted(held, key=lambda f: f.seq):  # held here (some acknowledged already): never refused
-            self.rt._admit(hosted, frame, refusable=False)
+            self.rt.frames.admit(hosted, frame, refusable=False)
 
     def _adopt_outputs(self, msg: StateTransfer, hosted: HostedStage) -> None:
         """Keep in custody the outputs the old host had not had acknowledged (`StateTransfer.outputs`),
@@ -430,7 +430,7 @@ class Hosting:
                     hosted.gate.skipped += waiting[0].seq - (hosted.gate.next_seq or waiting[0].seq)
                     log.info("%s: %s released with %d input(s) waiting behind a gap; run before it stops",
                              self.rt.node, msg.stage, len(waiting))
-                    self.rt.run_before_release(hosted, waiting)
+                    self.rt.frames.run_before_release(hosted, waiting)
                 else:
                     self.orphans.setdefault(msg.stage, []).extend(waiting)
                     log.info("%s: %s released with %d input(s) waiting; kept for its next instance", self.rt.node,
@@ -474,7 +474,7 @@ class Hosting:
             self.on_release(Release(stage=stage, generation=mine.generation))
             self.rt.override_placement({stage: status.node}, set())
             for frame in waiting:
-                self.rt.send_frame(frame, status.node)
+                self.rt.frames.send_frame(frame, status.node)
             stopped = True
         return stopped
 

@@ -94,7 +94,7 @@ DIED_WITH_PROCESS_S = 2.0
 RESUME_ALONE_MAX_AGE_S = 300.0
 
 
-class NodeRuntime(Frames):
+class NodeRuntime:
     """Chain data handling for one node; see the module docstring."""
 
     def __init__(self, *, node: str, scenario: Scenario, bus: Bus, keys: Keys,
@@ -158,7 +158,6 @@ class NodeRuntime(Frames):
         self._team = frozenset(scenario.node_names())
         self.errors: dict[str, int] = {}  # things that should not happen (garbage, lost frames)
         self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
-        self.weights: dict[str, float] = {}
         # who hears of the sink's outputs, and of the results let go or lost in a crash (`listen`):
         # the recording tells these outputs from lost ones (`autopower.recording.replay`)
         self._sink_listeners = SinkListeners()
@@ -171,6 +170,8 @@ class NodeRuntime(Frames):
         # landed (`stage_left`): we no longer run it; None: the plan's prediction holds
         self.model_override: dict[str, float] | None = None
         self._on_produced = stores.on_produced
+        # the data path: frames sent, forwarded, received, run by the stages here
+        self.frames = Frames(self)
         # the stages hosted here: the orders that start, move and stop them, and the frames held for them
         self.hosting = Hosting(self)
         # the outputs reaching this node as their chain's sink: counted once, handed on once, and kept
@@ -214,13 +215,6 @@ class NodeRuntime(Frames):
             self.tally("forwarded-on-arrival", n)
         if slow:
             self.tally("relay-congested", slow)
-
-    def join_tick(self) -> None:
-        """Run the fan-in steps whose wait is over (from the node's timer)."""
-        speed, wall = self.mission.speed if self.mission else 1.0, self.wall()
-        for hosted in list(self.hosted.values()):
-            for frame in self.flows.ready(hosted, self.plan, speed, wall):
-                self._run(hosted, frame)
 
     def join_stats(self) -> dict[str, dict[str, int]]:
         """Per fan-in stage hosted here: steps joined, inputs late, missing, empty steps."""
@@ -286,8 +280,8 @@ class NodeRuntime(Frames):
                                       t0=max(0.0, self.clock.now()),
                                       loss={peer: loss for peer in self.scenario.node_names()
                                             if (loss := self.scenario.link_loss(self.node, peer))})
-            self.weights = {c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains}
-            self.weights.update(self.flows.weights(plan.mission.accounting))
+            self.frames.start({**{c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains},
+                               **self.flows.weights(plan.mission.accounting)})
             self._resume(plan.mission)
             if not self.resumed and self.holds.store is not None:
                 # a process without a resume state (the base station's host) keeps its held results
@@ -602,7 +596,7 @@ class NodeRuntime(Frames):
         return mission_key(self.mission) if self.mission is not None else None
 
     def flush_held_outputs(self) -> None:
-        self.holds.flush(self.network, self.send_frame)
+        self.holds.flush(self.network, self.frames.send_frame)
 
     def commit_sinks(self) -> None:
         """Write down the outputs the sinks took in since the last commit (before each status).
@@ -660,7 +654,7 @@ class NodeRuntime(Frames):
             self.components.check_workers()
         wall = self.wall()
         self.acknowledging.tick(wall)  # what we consumed ourselves; resends of what our consumers lack
-        self.join_tick()  # fan-in steps whose wait is over
+        self.frames.join_tick()  # fan-in steps whose wait is over
         now = self.now()
         away_s = wall - self._last_turn_wall if self._last_turn_wall is not None else 0.0
         self._last_turn_wall = wall
@@ -699,7 +693,7 @@ class NodeRuntime(Frames):
         self.feeds.produced(runner)
         if self._on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq
             self._on_produced(runner)
-        self.emit(frame, host)
+        self.frames.emit(frame, host)
 
     def _source_hung(self, runner: SourceRunner, detail: str) -> None:
         """A source that hangs is stopped (one that raises only loses that frame, counted)."""
@@ -855,7 +849,7 @@ class NodeRuntime(Frames):
         """
         try:
             if key == self.keys.node_data(self.node):
-                self.on_data(payload)
+                self.frames.on_data(payload)
             elif key == self.keys.node_control(self.node) and message_kind(payload) != PlanUpdate.KIND:
                 self.hosting.on_control(payload)  # a plan resent to this node alone comes whole
             elif (ends := self.keys.addressed_ends(key)) is not None and ends[0] == self.node:

@@ -278,7 +278,7 @@ def test_a_restarted_robot_sink_does_not_take_a_resent_result_for_a_new_one(tmp_
     rt.listen(SinkListener(output=lambda chain, run, seq, data: outputs.append(seq)))
     resent = ChainFrame(chain="Loc-3", run=ledger.run, seq=ledger.contiguous - 1, target=1, t_virtual=0.0,
                         t_unix=0.0, payload_len=0, payload=b"", attempt=1)
-    rt.deliver_frame(resent, 0)
+    rt.frames.deliver_frame(resent, 0)
     assert outputs == [] and rt.sinks["Loc-3"].redundant_total == 1
 
 

@@ -597,7 +597,7 @@ def test_a_stage_restarted_cold_recomputes_what_its_dead_host_delivered_without_
     for (chain, _), frames in list(r2.custody.hops.items()):
         if chain == "Loc-2":
             for h in sorted(frames.values(), key=lambda h: h.frame.seq):
-                r2.send_frame(r2.custody.resend(h, r2.wall()), "r2", purpose="recovery")
+                r2.frames.send_frame(r2.custody.resend(h, r2.wall()), "r2", purpose="recovery")
     team.pump()
     assert r2.hosted["Loc-2"].gate.catch_up_below is None
     team.run_until(30.0)
@@ -665,12 +665,12 @@ def test_a_migrated_stage_still_knows_which_inputs_came_as_resends():
     data = msgpack.packb(["r2", seq])
     resend = ChainFrame(chain="Blob-2", run=r2.sources["Blob-2"].run, seq=seq, target=0, t_virtual=0.0,
                         t_unix=0.0, payload_len=len(data), payload=pad(data, chain.message_bytes[0], "x"), attempt=1)
-    laptop.deliver_frame(resend)  # the resend got there first
+    laptop.frames.deliver_frame(resend)  # the resend got there first
     assert team.coordinator.on_operator(MigrateCommand(stage="Blob-2", to_node="r3")).ok
     team.pump()
     r3 = team.nodes["r3"]
     assert r3.hosted["Blob-2"].gate.next_seq == seq + 1
-    r3.deliver_frame(dataclasses.replace(resend, attempt=0))  # the late original, at the new host
+    r3.frames.deliver_frame(dataclasses.replace(resend, attempt=0))  # the late original, at the new host
     assert r3.hosted["Blob-2"].gate.redundant == 1 and r3.hosted["Blob-2"].gate.duplicates == 0
     assert "duplicate-input" not in r3.errors
 
@@ -873,7 +873,7 @@ def test_a_stopped_chains_results_stay_in_custody_until_its_sink_has_them():
     assert (0, 50_000) not in r2.custody.hops.get(("Blob-2", 0), {})
 
 
-def test_a_late_input_for_a_stage_moved_out_of_reach_waits_as_an_orphan_until_a_plan_routes_it():
+def test_a_late_input_for_a_stage_moved_out_of_reach_waits_as_an_orphan_until_a_plan_routes_it(monkeypatch):
     """A 20-robot fleet's start in CI: r16's links flapped while its process started, the plan moved
     Loc-16 and Blob-16 to r16 (out of reach), and the laptop's moved-out instances forwarded their
     late inputs into no route, counted as errors. They wait here as orphans instead (their producer
@@ -891,9 +891,9 @@ def test_a_late_input_for_a_stage_moved_out_of_reach_waits_as_an_orphan_until_a_
     laptop.on_plan(cut)
     late = ChainFrame(chain=hosted.chain.name, run=hosted.run, seq=10_000, target=hosted.index, t_virtual=0.0,
                       t_unix=0.0, payload_len=0, payload=b"")
-    laptop.deliver_frame(late)
+    laptop.frames.deliver_frame(late)
     assert [f.seq for f in laptop.hosting.orphans[name]] == [10_000] and "unroutable" not in laptop.errors
     sent = []
-    laptop.send_frame = lambda frame, dest, *args, **kwargs: sent.append((frame.seq, dest))
+    monkeypatch.setattr(laptop.frames, "send_frame", lambda frame, dest, *args, **kwargs: sent.append((frame.seq, dest)))
     laptop.on_plan(dataclasses.replace(cut, epoch=cut.epoch + 1, links=plan.links))  # r2 in reach again
     assert sent == [(10_000, "r2")] and name not in laptop.hosting.orphans

@@ -177,7 +177,7 @@ def test_a_held_result_that_reaches_its_sink_late_is_redundant_where_another_ins
     r2.keep_result(frame, sent=False)
     r2.hold_output(frame)  # its sink out of reach
     # the stage's next instance ran the resent input: its copy reaches the sink first
-    laptop.deliver_frame(dataclasses.replace(frame, attempt=1), 0)
+    laptop.frames.deliver_frame(dataclasses.replace(frame, attempt=1), 0)
     sink = laptop.sinks["Blob-2"]
     assert 300_000 in sink.above
     laptop.sinks["Blob-2"] = sink = SinkLedger.from_state(sink.state())  # the sink restarted since

@@ -68,7 +68,7 @@ def test_forwarded_on_arrival_exactly_as_the_loop_forwards():
     for i, payload in enumerate(sent):
         clock.set(5.0 + i)
         assert fast.relay_now(payload)
-        loop.on_data(payload)
+        loop.frames.on_data(payload)
     assert fast_out[:len(sent) - 1] == loop_out[:len(sent) - 1]
     assert listen(fast_hub, KEYS.node_data("r2")) == []  # (subscribed late: nothing replayed)
     clock.set(30.0)
@@ -163,7 +163,7 @@ def test_forwards_from_several_transport_threads_are_all_charged():
     loop_thread.join()
     rt.settle_relayed()
     for payload in payloads * 4:
-        loop.on_data(payload)
+        loop.frames.on_data(payload)
     assert rt.counters["forwarded"] == 1600
     for part, joules in loop.meter.energy_j.items():
         assert rt.meter.energy_j[part] == pytest.approx(joules, rel=1e-9), part

@@ -282,7 +282,7 @@ def test_an_instance_a_newer_one_supersedes_stops_when_its_peer_says_it_runs_tha
     waiting = [encode_frame(seq) for seq in (7, 8)]  # a gap below them: they wait in r1's gate
     hosted = r1.runtime.hosted["Loc-2"]
     for frame in waiting:
-        r1.runtime._admit(hosted, frame)
+        r1.runtime.frames.admit(hosted, frame)
     assert sorted(hosted.gate.pending) == [7, 8]
     # r1 frozen: r2 and r3 restart Loc-2 on r2 without it (a newer generation)
     for robot in ("r2", "r3"):
@@ -323,7 +323,7 @@ def test_a_released_stage_runs_the_inputs_waiting_in_its_gate_when_their_produce
     loc2_on_r1(hub, agents)
     rt = agents["r1"].runtime
     for seq in (7, 8):
-        rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
+        rt.frames.admit(rt.hosted["Loc-2"], encode_frame(seq))
     report = rt.acknowledging.consumed()["Loc-2#0"]
     assert report.max_seq == 8 and (7, 8) not in report.missing  # received, though not run
     runs = rt.hosted["Loc-2"].runs
@@ -350,7 +350,7 @@ def test_a_released_stage_leaves_the_inputs_behind_a_gap_to_their_producer_in_si
     loc2_on_r1(hub, agents)
     rt = agents["r1"].runtime
     for seq in (7, 8):  # their floor: r2 holds 5 and above
-        rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
+        rt.frames.admit(rt.hosted["Loc-2"], encode_frame(seq))
     hosted = rt.hosted["Loc-2"]
     runs = hosted.runs
     assert hosted.gate.held_upstream(rt.wall()) and "r2" in rt.alive
@@ -369,7 +369,7 @@ def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team
     loc2_on_r1(hub, agents)
     rt = agents["r1"].runtime
     for seq in (7, 8):
-        rt._admit(rt.hosted["Loc-2"], encode_frame(seq))
+        rt.frames.admit(rt.hosted["Loc-2"], encode_frame(seq))
     killed = []
     in_worker = lambda component: SimpleNamespace(kill=lambda: killed.append(1))  # noqa: E731
     monkeypatch.setattr(hosting, "worker_of", in_worker)
@@ -395,7 +395,7 @@ def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team):
     hub, agents, _ = team
     rt = agents["r1"].runtime
     loc2_on_r1(hub, agents)
-    rt._admit(rt.hosted["Loc-2"], encode_frame(7))
+    rt.frames.admit(rt.hosted["Loc-2"], encode_frame(7))
     rt.plan = dataclasses.replace(rt.plan, operator=dataclasses.replace(rt.plan.operator, disabled=("Loc-2",)))
     rt.hosting.on_release(Release(stage="Loc-2", generation=101))
     assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.hosting.orphans
