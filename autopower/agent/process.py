@@ -303,12 +303,12 @@ class Agent:
             except ProtocolError as exc:
                 rt.count("garbled", f"on {key}: {exc}")
             return
-        order, model_w = rt.plan_order, rt.model_w
+        order, model_w = rt.plan_view.order, rt.plan_view.model_w
         if not rt.on_message(key, payload):
             rt.count("unexpected-key", key)
-        elif rt.plan_order != order:
+        elif rt.plan_view.order != order:
             self.publish_status()  # acknowledges the new plan at once (reconfiguration is timed on it)
-        elif rt.model_w != model_w:
+        elif rt.plan_view.model_w != model_w:
             self.publish_status()  # a stage left: the recording's model steps down when it did
 
     def _base_came_within_reach(self, was_reachable: bool) -> bool:
@@ -347,7 +347,7 @@ class Agent:
         # restarted it either: our sources' frames piled up here for a stage nobody ran.
         elsewhere = {stage: peer for peer in self.statuses if peer != me for stage in self.rounds.running_on(peer)}
         if elsewhere:
-            rt.override_placement(elsewhere, set())
+            rt.plan_view.override_placement(elsewhere, set())
         generation = int(time.time() * 1000)  # above the crashed instances' (a base station's or a round's)
         restarted = []
         for stage, host in sorted(rt.plan.placement.items()):

@@ -213,7 +213,7 @@ class Acknowledging:
 
     def resend_lost(self, now: float) -> None:
         """Resend what a consumer reported missing well after it was sent (throttled)."""
-        if now < self._next_check or self.rt.network is None:
+        if now < self._next_check or self.rt.plan_view.network is None:
             return
         self._next_check = now + 0.1
         for node, held in self.rt.custody.due(now):

@@ -69,7 +69,7 @@ class Frames:
 
     def send_routed(self, dest: str, body: bytes, charge_bytes: int, weight: float, purpose: str,
                     chain: str) -> bool:
-        path = self.rt.network.path(self.rt.node, dest) if self.rt.network else None
+        path = self.rt.plan_view.network.path(self.rt.node, dest) if self.rt.plan_view.network else None
         if path is None:
             if purpose == "migration":
                 self.rt.hosting.park(dest, body, chain)
@@ -84,7 +84,7 @@ class Frames:
                     return False
             self.rt.count("unroutable", f"no route from {self.rt.node} to {dest}")
             return False
-        media = tuple(self.rt.network.medium_between(u, v) for u, v in zip(path, path[1:], strict=False))
+        media = tuple(self.rt.plan_view.network.medium_between(u, v) for u, v in zip(path, path[1:], strict=False))
         packet = Packet(path=tuple(path), media=media, hop=1, charge_bytes=charge_bytes, weight=weight,
                         purpose=purpose, chain=chain, body=body)
         self.rt.meter.charge_radio("send", media[0], charge_bytes, weight, self.rt.now(), purpose, peer=path[1])
@@ -164,7 +164,7 @@ class Frames:
 
     def routable(self, dest: str) -> bool:
         """Whether the plan's network has a route from here to ``dest`` (this node always)."""
-        return dest == self.rt.node or (self.rt.network is not None and self.rt.network.path(self.rt.node, dest) is not None)
+        return dest == self.rt.node or (self.rt.plan_view.network is not None and self.rt.plan_view.network.path(self.rt.node, dest) is not None)
 
     def admit(self, hosted: HostedStage, frame: ChainFrame, refusable: bool = True) -> None:
         """Offer an input to its stage's gate and run what it releases.

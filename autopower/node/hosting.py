@@ -303,7 +303,7 @@ class Hosting:
         hosted.shipped = (msg.generation, msg.to_node, body)
         self.rt.components.retire(hosted.component)
         hosted.component = None
-        self.rt.stage_left(msg.stage, msg.to_node)  # it runs there from now on, not here
+        self.rt.plan_view.stage_left(msg.stage, msg.to_node)  # it runs there from now on, not here
         self._ship(msg.to_node, body, hosted.chain.name)
 
     def _ship(self, to_node: str, body: bytes, chain: str) -> None:
@@ -472,7 +472,7 @@ class Hosting:
                         f"; its {len(waiting)} waiting input(s) go there" if waiting else "")
             self.rt.tally("superseded-instances")
             self.on_release(Release(stage=stage, generation=mine.generation))
-            self.rt.override_placement({stage: status.node}, set())
+            self.rt.plan_view.override_placement({stage: status.node}, set())
             for frame in waiting:
                 self.rt.frames.send_frame(frame, status.node)
             stopped = True

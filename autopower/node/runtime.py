@@ -30,14 +30,13 @@ from __future__ import annotations
 
 import base64
 import copy
-import dataclasses
 import logging
 import time
 from typing import Callable
 
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
-from autopower.model.network import Link, Network, build_network
+from autopower.model.network import build_network
 from autopower.model.scenario import Chain, Scenario
 from autopower.model.variants import apply_variants
 from autopower.node.acknowledging import Acknowledging
@@ -51,6 +50,7 @@ from autopower.node.hosting import Hosting
 from autopower.node.in_flight import frames_in_hand, stage_frames, transfer_frames
 from autopower.node.joining import Flows
 from autopower.node.meter import BatteryMeter
+from autopower.node.plan_view import PlanView
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
 from autopower.node.relaying import ArrivalRelay
 from autopower.node.sequencing import SinkLedger
@@ -72,10 +72,8 @@ from autopower.protocol import (
     PlanUpdate,
     SourceStats,
     decode,
-    encode,
 )
 from autopower.protocol.codec import message_kind
-from autopower.protocol.plans import PlanAssembler
 from autopower.runtime.bus import Bus
 from autopower.runtime.clock import Clock, VirtualClock
 
@@ -135,14 +133,8 @@ class NodeRuntime:
         self.mission: MissionInfo | None = None
         self.clock: Clock | None = None
         self.meter: BatteryMeter | None = None
-        self.plan: PlanUpdate | None = None
-        self._plan_payload: bytes | None = None  # the last plan message handled (a repeat of it is skipped)
-        self._plans = PlanAssembler()  # plans sent as their change from the one before (`protocol.plans`)
-        self._plan_text_of: tuple[PlanUpdate, str] | None = None  # (plan, its resume-state text): `_plan_text`
-        self.network: Network | None = None
-        # nodes this one does not reach while it decides without the base station (`set_out_of_reach`):
-        # the model's power leaves out what cannot reach them
-        self.out_of_reach: frozenset[str] = frozenset()
+        # the plan this node runs, its network and the model's power for it
+        self.plan_view = PlanView(self)
         # the chains this node feeds from its own sensors (`autopower.node.sources`)
         self.feeds = Sources(node=node, key_of=self._source_key,
                              build=lambda key: self.components.build_source(*key),
@@ -166,9 +158,6 @@ class NodeRuntime:
         self.resume_from: dict | None = stores.resume_from
         self.resumed: bool = False
         self.down: tuple[float, float] | None = None  # see NodeStatus.down
-        # the model's power per robot once a stage has left us and before the plan says where it
-        # landed (`stage_left`): we no longer run it; None: the plan's prediction holds
-        self.model_override: dict[str, float] | None = None
         self._on_produced = stores.on_produced
         # the data path: frames sent, forwarded, received, run by the stages here
         self.frames = Frames(self)
@@ -231,6 +220,11 @@ class NodeRuntime:
         return self.hosting.hosted
 
     @property
+    def plan(self) -> PlanUpdate | None:
+        """The plan this node runs (read only: `PlanView` owns it)."""
+        return self.plan_view.plan
+
+    @property
     def sinks(self) -> dict[str, SinkLedger]:
         """The ledgers of the chains whose sink is this node (read only: `Sinks` owns them)."""
         return self.sinking.ledgers
@@ -253,16 +247,11 @@ class NodeRuntime:
         return self.mission is not None
 
     # ---- plan --------------------------------------------------------------------------------
-    @property
-    def plan_order(self) -> tuple[int, int]:
-        """(incarnation, epoch) of the plan this node runs; (-1, -1) before the first."""
-        return (self.plan.incarnation, self.plan.epoch) if self.plan else (-1, -1)
-
     def on_plan(self, plan: PlanUpdate) -> None:
         # plans are ordered by (incarnation, epoch): a base station that took over the team
         # (a higher incarnation) is followed even if its epoch is lower than what runs
-        self._plans.remember(plan)  # the base of the next change (the base station's host, a saved plan)
-        if (plan.incarnation, plan.epoch) <= self.plan_order:
+        self.plan_view.remember(plan)  # the base of the next change (the base station's host, a saved plan)
+        if (plan.incarnation, plan.epoch) <= self.plan_view.order:
             return  # old or repeated
         if plan.mission.scenario != self.scenario.name:
             self.count("foreign-plan", f"plan for scenario {plan.mission.scenario!r}")
@@ -288,7 +277,7 @@ class NodeRuntime:
                 # on disk all the same: their producers have had the acknowledgement, so a held result
                 # lost with this process is held nowhere else
                 self.holds.take_back(mission_key(plan.mission))
-        self._set_plan(plan)
+        self.plan_view.set_plan(plan)
         self.hosting.follow_plan(plan)
         self.feeds.sync(plan.running, self.chains, self.now())
         for chain in ({hop[0] for hop in self.custody.hops} - set(plan.running) - self.flows.running(plan)) \
@@ -431,7 +420,7 @@ class NodeRuntime:
                 "runtime_cpu_s": meter.runtime_cpu_s, "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources,
                 "in_hand": self._lowest_in_hand(),
                 # the plan we run (a subgroup round's placement included): see `saved_plan`
-                "plan": self._plan_text(),
+                "plan": self.plan_view.text(),
                 "saved_unix": self.wall()}
 
     def _lowest_in_hand(self) -> dict[str, list[int]]:
@@ -451,15 +440,6 @@ class NodeRuntime:
             out[name] = [runner.run, low]
         return out
 
-    def _plan_text(self) -> str | None:
-        """The plan we run as the resume state keeps it: encoded once per plan (a fleet's plan is
-        large, and the state is saved with every status)."""
-        if self.plan is None:
-            return None
-        if self._plan_text_of is None or self._plan_text_of[0] is not self.plan:
-            self._plan_text_of = (self.plan, base64.b64encode(encode(self.plan)).decode("ascii"))
-        return self._plan_text_of[1]
-
     def saved_plan(self, max_age_s: float = RESUME_ALONE_MAX_AGE_S) -> PlanUpdate | None:
         """The plan a crashed process of this node ran, from its resume state, if it was saved less
         than ``max_age_s`` ago and is whole (None otherwise: a stale file must not restart an old
@@ -478,101 +458,6 @@ class NodeRuntime:
         if not 0.0 <= age <= max_age_s or mission_key(plan.mission) != saved.get("mission"):
             return None
         return plan
-
-    def _set_plan(self, plan: PlanUpdate) -> None:
-        same_links = self.plan is not None and self.network is not None and plan.links == self.plan.links
-        self.plan = plan
-        self.model_override = None
-        if not same_links:  # most new plans move stages, not links: the routes stay (O(links) to build)
-            nodes = self.scenario.node_names()
-            known = frozenset(nodes)
-            links = [Link(a=l.a, b=l.b, medium=l.medium, group="runtime") for l in plan.links
-                     if l.a in known and l.b in known and l.medium in self.scenario.radios]
-            self.network = Network(nodes, self.scenario.basestation, links, "runtime")
-        self.meter.set_media(self.network.media_of(self.node), self.now())
-        self.meter.set_level(self._level(plan.levels.get(self.node)), self.now())
-
-    def _level(self, name: str | None):
-        """The DVFS level the plan names for this node (None: nominal; an unknown name is refused)."""
-        if name is None or self.platform.mains:
-            return None
-        level = next((lv for lv in self.platform.levels if lv.name == name), None)
-        if level is None:
-            self.count("unknown-level", f"plan names level {name[:40]!r}, the platform has "
-                       f"{', '.join(lv.name for lv in self.platform.levels) or 'none'}")
-        return level
-
-    def override_placement(self, placement: dict[str, str], unreachable: set[str]) -> None:
-        """A placement agreed without the base station (a subgroup commit): same epoch, our view.
-
-        Links to ``unreachable`` nodes leave the routing; the next plan from the base station
-        (a higher epoch) replaces all of it.
-        """
-        if self.plan is None:
-            return
-        links = tuple(l for l in self.plan.links if l.a not in unreachable and l.b not in unreachable)
-        self._set_plan(dataclasses.replace(self.plan, placement={**self.plan.placement, **placement}, links=links))
-        # the base station's prediction was for its placement: say the model's for this one
-        self.plan = dataclasses.replace(self.plan, predicted_w=self.predict_power())
-        self.hosting.placement_overridden(self.plan.placement)
-        self.flush_held_outputs()  # a round's placement may route a held result's sink again
-
-    def stage_left(self, stage: str, to_node: str) -> None:
-        """``stage`` has left this node for ``to_node``: the model's power is priced with it there until
-        the plan says where it landed."""
-        if self.plan is not None and self.plan.predicted_w:
-            self.model_override = self.predict_power({**self.plan.placement, stage: to_node})
-
-    @property
-    def model_w(self) -> float | None:
-        """The model's power for what this node runs now (`NodeStatus.model_w`)."""
-        if self.plan is None:
-            return None
-        return (self.model_override if self.model_override is not None else self.plan.predicted_w).get(self.node)
-
-    def set_out_of_reach(self, nodes: frozenset[str]) -> None:
-        """The nodes this one does not reach now, while the base station is out of its reach (empty
-        once it is back: its plans account for the links it knows). The model's power is priced again
-        without them: a robot cut off from the source of a chain a round had put on it does not run
-        that chain, and the model must not count it."""
-        if nodes == self.out_of_reach:
-            return
-        self.out_of_reach = nodes
-        if self.plan is not None and self.network is not None:
-            self.plan = dataclasses.replace(self.plan, predicted_w=self.predict_power())
-
-    def predict_power(self, placement: dict[str, str] | None = None) -> dict[str, float]:
-        """The model's power per robot for the plan this node runs (its placement, or the one
-        given, routing and DVFS levels; a chain whose sink is out of reach buffers at its source).
-
-        A chain with a stage out of reach of the node before it is left out: it cannot run as
-        placed here (another partition's placement, seen from this one, after a subgroup round
-        moved only what this one reaches). Left in, it would make the whole prediction fail, and the
-        recording would keep the old plan's power for this robot while it runs its chains itself.
-        {} if the model cannot price it (telemetry: never worth stopping for)."""
-        from autopower.model.dvfs import apply_levels
-        from autopower.model.energy import evaluate
-        from autopower.policies import effective_scenario
-
-        plan, network = self.plan, self.network
-        if self.out_of_reach:
-            network = Network(network.nodes, network.basestation,
-                              [l for l in network.links if l.a not in self.out_of_reach and l.b not in self.out_of_reach],
-                              network.topology)
-        try:
-            scenario = apply_levels(self.scenario, dict(plan.levels)) if plan.levels else self.scenario
-            scenario, _ = effective_scenario(scenario, network)
-            placement = {s: n for s, n in (plan.placement if placement is None else placement).items() if s in self.stage_index}
-            active = ({self.stage_index[s][0].name for s in placement} & set(plan.running)) \
-                - _unroutable(scenario, network, placement)
-            placement = {s: n for s, n in placement.items() if self.stage_index[s][0].name in active}
-            disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
-            ev = evaluate(scenario, network, placement, accounting=plan.mission.accounting,
-                          disabled_chains=disabled)
-        except (AutoPowerError, KeyError, ValueError) as exc:
-            log.info("%s: no model prediction for the placement %s: %s", self.node, dict(plan.placement), exc)
-            return {}
-        return {r: p.steady_w for r, p in ev.robots.items()}
 
     # ---- held results (`autopower.node.holds`) --------------------------------------------------
     @property
@@ -596,7 +481,7 @@ class NodeRuntime:
         return mission_key(self.mission) if self.mission is not None else None
 
     def flush_held_outputs(self) -> None:
-        self.holds.flush(self.network, self.frames.send_frame)
+        self.holds.flush(self.plan_view.network, self.frames.send_frame)
 
     def commit_sinks(self) -> None:
         """Write down the outputs the sinks took in since the last commit (before each status).
@@ -781,7 +666,7 @@ class NodeRuntime:
             mission=self.mission if self._mission_wanted() else None,
             generations={n: h.generation for n, h in self.hosted.items()},
             plan_operator=self.plan.operator if self.plan else None,
-            model_w=self.model_w,
+            model_w=self.plan_view.model_w,
             down=self.down,
             queue_wait_s=queue_wait_s,
             zid=self.bus.zid,
@@ -823,7 +708,8 @@ class NodeRuntime:
 
     def _medium_to(self, peer: str) -> str | None:
         """The radio this node talks to ``peer`` on: its plan's link, else its only radio."""
-        medium = self.network.medium_between(self.node, peer) if self.network is not None else None
+        network = self.plan_view.network
+        medium = network.medium_between(self.node, peer) if network is not None else None
         if medium is None and self.meter is not None and len(self.meter.media) == 1:
             (medium,) = self.meter.media
         return medium
@@ -859,30 +745,11 @@ class NodeRuntime:
                 # keys, `Coordinator.resend_plan`; to everyone now and then): the bytes handled
                 # last need no decoding again (plans only move forward: what was applied or ignored
                 # once would be ignored now)
-                if payload != self._plan_payload:
-                    self._plan_payload = payload
-                    plan = self._plans.whole(payload)
-                    if plan is None:  # a change from a plan we do not hold: the base station resends it whole
-                        self.tally("plan-changes-skipped")
-                    else:
-                        self.on_plan(plan)
+                plan = self.plan_view.take(payload)
+                if plan is not None:
+                    self.on_plan(plan)
             else:
                 return False
         except ProtocolError as exc:
             self.count("garbled", f"on {key}: {exc}")
         return True
-
-
-
-
-def _unroutable(scenario, network, placement: dict[str, str]) -> set[str]:
-    """Chains with a hop (source, each stage's host, sink) whose ends do not reach each other."""
-    out = set()
-    for chain in scenario.chains:
-        hosts = [placement.get(stage.name) for stage in chain.stages]
-        if None in hosts:
-            continue
-        path = [chain.source, *hosts, chain.sink]
-        if any(a != b and not network.reachable(a, b) for a, b in zip(path, path[1:], strict=False)):
-            out.add(chain.name)
-    return out

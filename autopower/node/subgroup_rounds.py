@@ -124,7 +124,7 @@ class SubgroupRounds:
         # the epoch) may have moved a stage out of this subgroup since ours, to a robot cut off
         # since. Keyed on members and plan alone, that stage would never be restarted. Where the
         # stages run is part of what a round handled.
-        key = (members, rt.plan_order, tuple(sorted(running.items())))
+        key = (members, rt.plan_view.order, tuple(sorted(running.items())))
         if self._done == key:
             return
         self._done = key
@@ -135,7 +135,7 @@ class SubgroupRounds:
 
         rt, base = self.rt, self.scenario.basestation
         robots = [r.name for r in self.scenario.robots]
-        network = rt.network
+        network = rt.plan_view.network
         for r in robots:
             network = network.without_link(r, base) if network.medium_between(r, base) else network
         # a robot out of reach is cut off from every member (it would be a member through one that
@@ -173,9 +173,9 @@ class SubgroupRounds:
     def _model_out_of_reach(self, nodes: frozenset[str]) -> None:
         """Price the model without the nodes out of reach; a changed figure goes out at once."""
         rt = self.rt
-        model_w = rt.model_w
-        rt.set_out_of_reach(nodes)
-        if rt.model_w != model_w:
+        model_w = rt.plan_view.model_w
+        rt.plan_view.set_out_of_reach(nodes)
+        if rt.plan_view.model_w != model_w:
             self.publish_status()
 
     def _running_placement(self, members: tuple[str, ...]) -> dict[str, str]:
@@ -258,7 +258,7 @@ class SubgroupRounds:
                 run = rt.plan.running.get(chain.name, 0)
                 rt.hosting.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
                                     resume_seq=None))
-        rt.override_placement(dict(proposal.placement), {self.scenario.basestation})
+        rt.plan_view.override_placement(dict(proposal.placement), {self.scenario.basestation})
         # the moved stages are placed now: a member restarted before this round started what the
         # round put on it (`_lost_on`)
         now = rt.now()
@@ -282,7 +282,7 @@ class SubgroupRounds:
 
         Published as a `PlanUpdate` with the current epoch: agents ignore it (not newer than
         what they run), recorders log it as a decision. Each member's own status carries its
-        share (`NodeRuntime.predict_power`, at the commit).
+        share (`PlanView.predict_power`, at the commit).
         """
         rt = self.rt
         if not rt.plan.predicted_w:

@@ -293,10 +293,10 @@ class RobotShell(Shell):
             if rt.hosting.yield_to_newer(status) or heard_again:
                 self.publish_status()
             return
-        order, model_w = rt.plan_order, rt.model_w
+        order, model_w = rt.plan_view.order, rt.plan_view.model_w
         if not rt.on_message(key, payload):
             rt.count("unexpected-key", key)
-        elif rt.plan_order != order or rt.model_w != model_w:
+        elif rt.plan_view.order != order or rt.plan_view.model_w != model_w:
             self.publish_status()  # a new plan acknowledged at once; a stage that left, said at once
 
     def publish_status(self, save_resume: bool = False, urgent: bool = True) -> None:

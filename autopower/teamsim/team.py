@@ -264,8 +264,8 @@ class World:
         for node, shell in sorted(self.shells.items()):
             if not shell.up:
                 self.ledger.violate("newest-plan", f"{node} is down at the end", now, event)
-            elif shell.rt.plan_order != newest:
-                self.ledger.violate("newest-plan", f"{node} runs plan {shell.rt.plan_order}, the base station's "
+            elif shell.rt.plan_view.order != newest:
+                self.ledger.violate("newest-plan", f"{node} runs plan {shell.rt.plan_view.order}, the base station's "
                                     f"newest is {newest}", now, event)
         if not co.ready:
             placement = co.placing.placement

@@ -196,7 +196,7 @@ def test_a_restarted_robot_can_go_on_with_the_plan_it_ran_subgroup_rounds_includ
 
     team = _team_at(40.0)
     old = team.nodes["r2"]
-    old.override_placement({"Loc-2": "r2", "Blob-2": "r2"}, {"laptop"})  # a subgroup round, base out of reach
+    old.plan_view.override_placement({"Loc-2": "r2", "Blob-2": "r2"}, {"laptop"})  # a subgroup round, base out of reach
     store = ResumeFile(tmp_path / "r2.json")
     store.save(old.resume_state())
     saved = json.loads(json.dumps(store.load()))

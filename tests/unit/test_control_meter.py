@@ -127,7 +127,7 @@ def test_a_robot_pays_its_control_bytes_on_the_radio_of_each_link_apart_from_the
     team.run_until(5.0)
     r1 = team.nodes["r1"]
     r1.on_peer_status(dataclasses.replace(team.nodes["laptop"].status(1.0), zid=ZID_LAPTOP))  # its session
-    medium = r1.network.medium_between("r1", "laptop")
+    medium = r1.plan_view.network.medium_between("r1", "laptop")
     sent_data = r1.control_plane.data.get(("laptop", "send"), 0)
     received_data = r1.control_plane.data.get(("laptop", "receive"), 0)
     r1.meter.advance(r1.now())

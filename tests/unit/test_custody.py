@@ -556,7 +556,7 @@ def test_a_stage_restarted_without_state_catches_up_on_what_never_reached_its_ol
     assert team.nodes["laptop"].hosted["Loc-2"].gate.next_seq == lost_scan
     r2.hosting.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
                         resume_seq=None))
-    r2.override_placement({"Loc-2": "r2"}, set())
+    r2.plan_view.override_placement({"Loc-2": "r2"}, set())
     team.run_until(30.0, on_tick=tick)
     for _ in range(6):
         team.clock.advance(0.5)
@@ -591,7 +591,7 @@ def test_a_stage_restarted_cold_recomputes_what_its_dead_host_delivered_without_
     team.cut_silently("laptop", "r2")  # the base station is gone
     r2.hosting.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
                         resume_seq=None))
-    r2.override_placement({"Loc-2": "r2"}, set())
+    r2.plan_view.override_placement({"Loc-2": "r2"}, set())
     # The resends reach the new instance before any new scan (as live, where custody sent them on
     # at once): its first input is a resend, so nothing marks a catch-up range below a new one.
     for (chain, _), frames in list(r2.custody.hops.items()):

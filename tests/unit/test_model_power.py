@@ -29,8 +29,8 @@ def _model_for(team: SimTeam, rt, plan: PlanUpdate) -> dict[str, float]:
     chain_of = {s.name: c.name for c in sc.chains for s in c.stages}
     placement = {s: n for s, n in plan.placement.items() if chain_of[s] in plan.running}
     disabled = frozenset(c.name for c in sc.chains if c.name not in plan.running)
-    scenario, _ = effective_scenario(sc, rt.network)
-    ev = evaluate(scenario, rt.network, placement, disabled_chains=disabled)
+    scenario, _ = effective_scenario(sc, rt.plan_view.network)
+    ev = evaluate(scenario, rt.plan_view.network, placement, disabled_chains=disabled)
     return {r: p.total_w for r, p in ev.robots.items()}
 
 
@@ -83,7 +83,7 @@ def test_a_subgroup_commit_predicts_its_own_placement(team):
     r2 = team.nodes["r2"]
     before = r2.plan.predicted_w["r2"]
     # the base station is out of reach: every chain comes home (as a subgroup round commits them)
-    r2.override_placement({"Loc-1": "r1", "Loc-2": "r2", "Blob-2": "r2", "Loc-3": "r3", "Blob-3": "r3"}, {"laptop"})
+    r2.plan_view.override_placement({"Loc-1": "r1", "Loc-2": "r2", "Blob-2": "r2", "Loc-3": "r3", "Blob-3": "r3"}, {"laptop"})
     after = r2.status(1.0).model_w
     assert after == pytest.approx(r2.plan.predicted_w["r2"])
     assert after == pytest.approx(_model_for(team, r2, r2.plan)["r2"])
@@ -97,23 +97,23 @@ def test_a_chain_that_cannot_run_as_placed_is_left_out_of_the_prediction(team):
     robot reported no figure, and the recording kept the old plan's 1.35 W for r1 while it ran two
     stages itself at 1.75 W (+11 % metered over the model)."""
     r1 = team.nodes["r1"]
-    r1.override_placement({"Loc-1": "r1", "Loc-2": "r1", "Blob-2": "r2"}, {"laptop"})
+    r1.plan_view.override_placement({"Loc-1": "r1", "Loc-2": "r1", "Blob-2": "r2"}, {"laptop"})
     assert r1.plan.placement["Loc-3"] == "laptop" and r1.plan.placement["Blob-3"] == "laptop"
     without = dict(r1.plan.placement)
     del without["Loc-3"], without["Blob-3"]
     sc = team.scenario
-    scenario, _ = effective_scenario(sc, r1.network)
-    expected = evaluate(scenario, r1.network, without, disabled_chains=frozenset({"Loc-3", "Blob-3"}))
+    scenario, _ = effective_scenario(sc, r1.plan_view.network)
+    expected = evaluate(scenario, r1.plan_view.network, without, disabled_chains=frozenset({"Loc-3", "Blob-3"}))
     assert r1.status(1.0).model_w == pytest.approx(expected.robots["r1"].total_w)
     assert r1.status(1.0).model_w > team.nodes["r2"].plan.predicted_w["r1"] + 0.05  # two stages here now
     # the chain's own source robot: frames for a stage it cannot reach are kept, not sent or run
     r3 = team.nodes["r3"]
-    r3.override_placement({"Blob-3": "r3"}, {"laptop"})
+    r3.plan_view.override_placement({"Blob-3": "r3"}, {"laptop"})
     assert r3.plan.placement["Loc-3"] == "laptop"
     placed = {s: n for s, n in r3.plan.placement.items() if s != "Loc-3" and n != "laptop"}
-    scenario, _ = effective_scenario(sc, r3.network)
+    scenario, _ = effective_scenario(sc, r3.plan_view.network)
     running = {c.name for c in sc.chains if all(s.name in placed for s in c.stages)}
-    expected = evaluate(scenario, r3.network, placed,
+    expected = evaluate(scenario, r3.plan_view.network, placed,
                         disabled_chains=frozenset(c.name for c in sc.chains if c.name not in running))
     assert r3.status(1.0).model_w == pytest.approx(expected.robots["r3"].total_w)
 

@@ -139,8 +139,8 @@ def test_a_robot_back_in_reach_is_sent_the_new_plan_whole_and_the_team_its_chang
     co.plans.publish_plan()
     team.pump()
     assert heard["plan"] and set(heard["plan"]) == {"plan-change"}  # the team follows by changes
-    assert team.nodes["r2"].plan_order == (co.takeover.incarnation, co.plans.epoch)
-    away = team.nodes["r1"].plan_order
+    assert team.nodes["r2"].plan_view.order == (co.takeover.incarnation, co.plans.epoch)
+    away = team.nodes["r1"].plan_view.order
     assert away < (co.takeover.incarnation, co.plans.epoch)
     team.subscriptions["r1"] = [observer.subscribe(k, lambda key, payload: team.nodes["r1"].on_message(key, payload))
                                 for k in (team.keys.node_control("r1"), team.keys.plan)]
@@ -149,5 +149,5 @@ def test_a_robot_back_in_reach_is_sent_the_new_plan_whole_and_the_team_its_chang
     co.plans.publish_plan()
     team.pump()
     assert "plan" in heard["r1"] and "plan" not in heard["r2"]  # whole to the one back, at once
-    assert team.nodes["r1"].plan_order == team.nodes["r2"].plan_order == (co.takeover.incarnation, co.plans.epoch)
+    assert team.nodes["r1"].plan_view.order == team.nodes["r2"].plan_view.order == (co.takeover.incarnation, co.plans.epoch)
     assert team.nodes["r1"].plan == team.nodes["r2"].plan  # the same plan, whichever way it came

@@ -412,7 +412,7 @@ def test_inputs_in_a_worker_stay_in_their_producers_custody_and_a_crash_of_their
         r3.hosting.on_assign(Assign(stage="Blob-2", generation=10**9, chain="Blob-2", run=r2.plan.running["Blob-2"],
                             resume_seq=None))
         for rt in (r2, r3, laptop):
-            rt.override_placement({"Blob-2": "r3"}, set())
+            rt.plan_view.override_placement({"Blob-2": "r3"}, set())
         team.run_until(6.0)
         drain_with_statuses(team, lambda: idle(team) and len(outputs.get("Blob-2", [])) == r2.sources["Blob-2"].seq)
         produced = r2.sources["Blob-2"].seq

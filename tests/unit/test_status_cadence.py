@@ -219,13 +219,13 @@ def test_a_repeated_plan_is_not_decoded_again_and_an_older_one_is_still_ignored(
     real = plans_module.decode
     monkeypatch.setattr(plans_module, "decode", lambda payload, kind: decoded.append(kind) or real(payload, kind))
     current = encode(rt.plan)  # the very bytes the fixture's base station sent
-    assert rt.on_message(rt.keys.plan, current) and rt.plan_order == (0, 1)
+    assert rt.on_message(rt.keys.plan, current) and rt.plan_view.order == (0, 1)
     assert decoded == []  # its repeat: not decoded again
     newer = encode(dataclasses.replace(rt.plan, epoch=2))
-    assert rt.on_message(rt.keys.plan, newer) and rt.plan_order == (0, 2) and len(decoded) == 1
-    assert rt.on_message(rt.keys.plan, current) and rt.plan_order == (0, 2)  # an older one: decoded, ignored
+    assert rt.on_message(rt.keys.plan, newer) and rt.plan_view.order == (0, 2) and len(decoded) == 1
+    assert rt.on_message(rt.keys.plan, current) and rt.plan_view.order == (0, 2)  # an older one: decoded, ignored
     assert len(decoded) == 2
-    assert rt.on_message(rt.keys.plan, current) and len(decoded) == 2 and rt.plan_order == (0, 2)
+    assert rt.on_message(rt.keys.plan, current) and len(decoded) == 2 and rt.plan_view.order == (0, 2)
 
 
 def test_a_robot_speaks_at_once_to_a_base_station_that_listens_for_the_team(team, monkeypatch):  # noqa: F811

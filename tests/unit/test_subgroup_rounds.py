@@ -255,12 +255,12 @@ def test_a_leader_runs_a_new_round_when_a_stage_moved_out_of_its_subgroup_since_
     drain(hub, agents)
     # r1's model no longer counts Loc-2: its scans cannot reach it (they go to r2's own instance)
     r1._subgroup_tick()
-    assert r1.runtime.out_of_reach == {"laptop", "r2", "r3"}
+    assert r1.runtime.plan_view.out_of_reach == {"laptop", "r2", "r3"}
     assert r1.runtime.plan.placement["Loc-2"] == "r1"
-    without = r1.runtime.predict_power({**r1.runtime.plan.placement, "Loc-2": "r2"})["r1"]
-    assert r1.runtime.model_w == pytest.approx(without)
-    r1.runtime.out_of_reach = frozenset({"laptop"})  # had r2 been in reach, Loc-2 would count
-    assert r1.runtime.predict_power()["r1"] > without + 0.1
+    without = r1.runtime.plan_view.predict_power({**r1.runtime.plan.placement, "Loc-2": "r2"})["r1"]
+    assert r1.runtime.plan_view.model_w == pytest.approx(without)
+    r1.runtime.plan_view.set_out_of_reach(frozenset({"laptop"}))  # had r2 been in reach, Loc-2 would count
+    assert r1.runtime.plan_view.predict_power()["r1"] > without + 0.1
     assert not r2.relayer.reachable("r1")
     r2._subgroup_tick()
     assert r2.rounds.agreement.counter == 2, "r2 took the situation for the one its first round handled"
@@ -387,7 +387,7 @@ def test_a_stage_in_a_worker_keeps_its_waiting_inputs_for_its_next_instance(team
     assert {7, 8} <= set(agents["r2"].runtime.hosted["Loc-2"].gate.pending)
 
 
-def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team):
+def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team, monkeypatch):
     import dataclasses
 
     from autopower.protocol import Release
@@ -396,7 +396,8 @@ def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team):
     rt = agents["r1"].runtime
     loc2_on_r1(hub, agents)
     rt.frames.admit(rt.hosted["Loc-2"], encode_frame(7))
-    rt.plan = dataclasses.replace(rt.plan, operator=dataclasses.replace(rt.plan.operator, disabled=("Loc-2",)))
+    monkeypatch.setattr(rt.plan_view, "plan", dataclasses.replace(rt.plan, operator=dataclasses.replace(
+        rt.plan.operator, disabled=("Loc-2",))))
     rt.hosting.on_release(Release(stage="Loc-2", generation=101))
     assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.hosting.orphans
 
@@ -416,7 +417,7 @@ def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarte
     assert running(agents) == {"Blob-2": ["r2"]}
     # r2 killed and back with the plan before the round: nothing of Blob-2 runs on it
     r2.runtime.hosting.on_release(Release(stage="Blob-2", generation=100))
-    r2.runtime.override_placement({"Blob-2": "laptop"}, set())
+    r2.runtime.plan_view.override_placement({"Blob-2": "laptop"}, set())
     r2.publish_status()
     drain(hub, agents)
     assert "Blob-2" not in running(agents) and r1.runtime.plan.placement["Blob-2"] == "r2"
