@@ -336,7 +336,7 @@ class Agent:
                 or time.time() - self._started_unix < RESUME_ALONE_AFTER_S):
             return
         self._resumed_alone = True  # once: a file without a usable plan is not read again every tick
-        plan = rt.saved_plan()
+        plan = rt.resuming.saved_plan()
         if plan is None:
             return
         me = self.config.robot
@@ -437,7 +437,7 @@ class Agent:
         if rt.started and (t := rt.next_deadline()) is not None:
             wake.append(rt.clock.wall_at(t))
         wake += self.rounds.wake_times(now)
-        if not rt.started and not self._resumed_alone and rt.resume_from and self.config.subgroup:
+        if not rt.started and not self._resumed_alone and rt.resuming.resume_from and self.config.subgroup:
             alone_at = self._started_unix + RESUME_ALONE_AFTER_S  # `_resume_alone` looks then
             if alone_at > now:
                 wake.append(alone_at)

@@ -67,7 +67,7 @@ class SinkListener:
       budget full) or "superseded" (a newer result of a latest-only chain);
     - ``died_with_process(chain, run, seq)``: an output of a chain sourced here died with the
       crashed process (in its memory only) if its sink never gets it: said by the restarted process
-      for the seqs it may have had alone (`NodeRuntime._died_with_process`, `_died_in_hand`);
+      for the seqs it may have had alone (`Resuming._died_with_process`, `_died_in_hand`);
     - ``sink_journal(chain, run, seq)``: an output the crashed sink here had delivered in its last
       commit, named by the restarted one (its recording may have died with the process);
     - ``joined(chain, run, seq)``: a fan-in stage here made its chain's input seq from one join

@@ -28,8 +28,6 @@ What a node hosts is described in `stages.py`.
 
 from __future__ import annotations
 
-import base64
-import copy
 import logging
 import time
 from typing import Callable
@@ -53,6 +51,7 @@ from autopower.node.meter import BatteryMeter
 from autopower.node.plan_view import PlanView
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
 from autopower.node.relaying import ArrivalRelay
+from autopower.node.resuming import Resuming, mission_key
 from autopower.node.sequencing import SinkLedger
 from autopower.node.sinks import Sinks
 from autopower.node.sources import Sources
@@ -70,8 +69,6 @@ from autopower.protocol import (
     NodeStatus,
     PeerStatus,
     PlanUpdate,
-    SourceStats,
-    decode,
 )
 from autopower.protocol.codec import message_kind
 from autopower.runtime.bus import Bus
@@ -80,16 +77,6 @@ from autopower.runtime.clock import Clock, VirtualClock
 log = logging.getLogger(__name__)
 
 
-def mission_key(mission) -> dict:
-    """What identifies one mission (a `MissionInfo`): a restarted process resumes only the same one."""
-    return {"scenario": mission.scenario, "epoch_unix": mission.epoch_unix, "speed": mission.speed}
-# the wall time a crash can take frames with it: a status period (the sink's commit) and its delay
-DIED_WITH_PROCESS_S = 2.0
-
-# A restarted agent goes on alone with the plan it ran (`NodeRuntime.saved_plan`) only if that was
-# saved this recently: a crash is restarted within seconds (up's supervisor, systemd's RestartSec);
-# an older file is another run's.
-RESUME_ALONE_MAX_AGE_S = 300.0
 
 
 class NodeRuntime:
@@ -154,10 +141,8 @@ class NodeRuntime:
         # the recording tells these outputs from lost ones (`autopower.recording.replay`)
         self._sink_listeners = SinkListeners()
         # where a restarted process carries on (`autopower.agent.resume`): its saved state, applied
-        # at the first plan of the same mission; and who to tell when a source advanced
-        self.resume_from: dict | None = stores.resume_from
-        self.resumed: bool = False
-        self.down: tuple[float, float] | None = None  # see NodeStatus.down
+        # at the first plan of the same mission
+        self.resuming = Resuming(self, stores.resume_from, self._sink_listeners)
         self._on_produced = stores.on_produced
         # the data path: frames sent, forwarded, received, run by the stages here
         self.frames = Frames(self)
@@ -271,8 +256,8 @@ class NodeRuntime:
                                             if (loss := self.scenario.link_loss(self.node, peer))})
             self.frames.start({**{c.name: flow_weight(c, plan.mission.accounting) for c in self.scenario.chains},
                                **self.flows.weights(plan.mission.accounting)})
-            self._resume(plan.mission)
-            if not self.resumed and self.holds.store is not None:
+            self.meter = self.resuming.resume(plan.mission, self.meter)
+            if not self.resuming.resumed and self.holds.store is not None:
                 # a process without a resume state (the base station's host) keeps its held results
                 # on disk all the same: their producers have had the acknowledgement, so a held result
                 # lost with this process is held nowhere else
@@ -308,93 +293,9 @@ class NodeRuntime:
         self.chains = {c.name: c for c in self.scenario.chains}
         self.stage_index = {s.name: (c, i) for c in self.scenario.chains for i, s in enumerate(c.stages)}
 
-    def _resume(self, mission: MissionInfo) -> None:
-        """Carry on from a crashed process's saved state if it belongs to this very mission."""
-
-        saved, self.resume_from = self.resume_from, None
-        if not saved or saved.get("mission") != mission_key(mission) or saved.get("node") != self.node:
-            return
-        fresh = copy.copy(self.meter)
-        try:
-            sources = {name: SourceStats(run=int(src["run"]), produced=int(src["seq"]),
-                                         missed=int(src.get("missed", 0)), produced_total=int(src["produced_total"]),
-                                         missed_stopped=int(src.get("missed_stopped", 0)))
-                       for name, src in saved.get("sources", {}).items() if name in self.chains}
-            self.meter.restore(saved)
-        except (AttributeError, KeyError, TypeError, ValueError) as exc:  # a damaged file must not crash-loop us
-            self.meter = fresh
-            log.warning("%s: resume state unusable (%s); starting from the mission's energies", self.node, exc)
-            return
-        meter = self.meter
-        self.feeds.resume(sources)
-        self.resumed = True
-        self.holds.take_back(mission_key(mission))
-        self._died_with_process(sources, mission)
-        self._died_in_hand(sources, saved.get("in_hand"))
-        # what `advance` charges for the time we were down (the robot drew idle current, radios asleep)
-        self.down = (meter.t, 0.0 if meter.mains else meter.platform.idle_w + sum(
-            self.scenario.radios[m].sleep_w for m in meter.media))
-        log.warning("%s: resumed after a restart: battery %.1f J (consumed %.1f J up to t=%.1f s), sources %s",
-                    self.node, meter.battery_j if not meter.mains else float("nan"), meter.consumed_j, meter.t,
-                    {n: s["seq"] for n, s in saved.get("sources", {}).items()} or "none")
-
-    def _died_with_process(self, sources: dict[str, SourceStats], mission: MissionInfo) -> None:
-        """Say which outputs of this robot's own chains (source and sink here) died with the crashed process.
-
-        A source notes each seq on disk before its frame leaves (`ResumeFile.note_source`), and the
-        sink notes what it delivered with each status (`SinkStore.commit`). A frame between the two
-        at the kill (in a stage's queue here, or its output delivered since the last status) existed
-        only in the process's memory: the restarted source goes on after it, and the sink never gets
-        it. They are logged apart (as a full hold's drops are), so the replay tells what a crash
-        costs from what the team lost. Only the
-        tail after the last output the sink had committed counts, and only if it is short (a crash
-        explains a few periods, not an older gap: longer tails are left to count as lost).
-        """
-        for name, src in sources.items():
-            chain, ledger = self.chains.get(name), self.sinks.get(name)
-            if chain is None or chain.source != self.node or chain.sink != self.node or ledger is None \
-                    or ledger.run != src.run:
-                continue
-            first = max(ledger.contiguous, max(ledger.above, default=-1) + 1)
-            tail = range(first, src.produced)
-            if not tail:
-                continue
-            if len(tail) > DIED_WITH_PROCESS_S * mission.speed / chain.period_s + 2:
-                log.warning("%s: %s seq %d-%d never reached this sink before the restart; more than a crash "
-                            "explains: counted as lost", self.node, name, tail[0], tail[-1])
-                continue
-            self.tally("died-with-process", len(tail))
-            log.warning("%s: %s seq %d-%d died with the crashed process (in its memory only)", self.node, name,
-                        tail[0], tail[-1])
-            for seq in tail:
-                self._sink_listeners.died_with_process(name, src.run, seq)
-
-    def _died_in_hand(self, sources: dict[str, SourceStats], in_hand) -> None:
-        """Say which outputs of this robot's chains whose sink is elsewhere may have died with the
-        crashed process: those its source made from the lowest seq the process still had in hand
-        at its last save (`_lowest_in_hand`) on. Each of them was at most in this process's memory
-        and on its way: one that reached the next hop is delivered and counts as such (the replay
-        counts a seq as died only if no sink got it and no node names it in flight); one that did
-        not died with the process. A result the restarted process took back from its hold journal
-        did not die. A saved state without the record (an older file) names none."""
-        if not isinstance(in_hand, dict):
-            return
-        taken_back = {(f.chain, f.run, f.seq) for f in self.holds.held.values()}
-        for name, src in sources.items():
-            saved = in_hand.get(name)
-            chain = self.chains.get(name)
-            if chain is None or chain.source != self.node or chain.sink == self.node \
-                    or not (isinstance(saved, list) and len(saved) == 2 and all(isinstance(v, int) for v in saved)) \
-                    or saved[0] != src.run:
-                continue
-            window = [seq for seq in range(max(saved[1], 0), src.produced) if (name, src.run, seq) not in taken_back]
-            if not window:
-                continue
-            self.tally("maybe-died-with-process", len(window))
-            log.warning("%s: %s seq %d-%d were in this robot's hands only or on their way when it crashed: "
-                        "those their sink never gets died with the process", self.node, name, window[0], window[-1])
-            for seq in window:
-                self._sink_listeners.died_with_process(name, src.run, seq)
+    def resume_state(self) -> dict | None:
+        """What a restarted process needs to carry on (None before the mission starts; `Resuming.state`)."""
+        return self.resuming.state()
 
     def in_flight_at_stop(self) -> dict[tuple[str, int], set[int]]:
         """(chain, run) -> the seqs of the frames this node still has in hand (`autopower.node.in_flight`)."""
@@ -404,60 +305,6 @@ class NodeRuntime:
         moving += [h.shipped[2] for h in hosting.hosted.values() if h.shipped is not None and h.shipped[2]]
         return frames_in_hand(names, (self.custody.frames(), self.held_outputs.values(), stage_frames(hosting.hosted),
                                       transfer_frames(moving), *hosting.orphans.values()))
-
-    def resume_state(self) -> dict | None:
-        """What a restarted process needs to carry on (None before the mission starts)."""
-        if self.mission is None or self.meter is None:
-            return None
-        self.settle_relayed()
-
-        meter = self.meter
-        sources = {n: {"run": s.run, "seq": s.produced, "missed": s.missed, "produced_total": s.produced_total,
-                       "missed_stopped": s.missed_stopped}
-                   for n, s in self.feeds.stats().items()}
-        return {"node": self.node, "mission": mission_key(self.mission), "t_virtual": meter.t,
-                "initial_j": meter.initial_j, "energy_j": dict(meter.energy_j), "cpu_busy_s": meter.cpu_busy_s,
-                "runtime_cpu_s": meter.runtime_cpu_s, "airtime_s": dict(meter.airtime_s), "media": sorted(meter.media), "sources": sources,
-                "in_hand": self._lowest_in_hand(),
-                # the plan we run (a subgroup round's placement included): see `saved_plan`
-                "plan": self.plan_view.text(),
-                "saved_unix": self.wall()}
-
-    def _lowest_in_hand(self) -> dict[str, list[int]]:
-        """Per chain sourced here whose sink is elsewhere: [run, the lowest seq of the source's run
-        this process still has in hand]. Custody keeps every frame the chain's source or a stage here
-        sent until the next hop has run it, or its sink has it (`custody`): below this seq each one
-        was in another node's hands, at or above it, and up to what the source makes next, it may
-        be in this process's memory only (`_died_with_process`)."""
-        out = {}
-        for name, runner in self.sources.items():
-            chain = self.chains.get(name)
-            if chain is None or chain.sink == self.node:
-                continue
-            low = runner.seq
-            for target in range(len(chain.stages) + 1):
-                low = min(low, self.custody.floor(name, target, runner.run, low))
-            out[name] = [runner.run, low]
-        return out
-
-    def saved_plan(self, max_age_s: float = RESUME_ALONE_MAX_AGE_S) -> PlanUpdate | None:
-        """The plan a crashed process of this node ran, from its resume state, if it was saved less
-        than ``max_age_s`` ago and is whole (None otherwise: a stale file must not restart an old
-        mission). A robot restarted while the base station is out of reach goes on with it
-        (`AgentProcess._resume_alone`) instead of idling until the base station returns."""
-
-        saved = self.resume_from
-        if not saved or saved.get("node") != self.node or not isinstance(saved.get("plan"), str):
-            return None
-        try:
-            age = self.wall() - float(saved["saved_unix"])
-            plan = decode(base64.b64decode(saved["plan"], validate=True), PlanUpdate)
-        except (KeyError, TypeError, ValueError, ProtocolError) as exc:  # binascii.Error is a ValueError
-            log.warning("%s: the saved plan is unusable (%s); waiting for the base station", self.node, exc)
-            return None
-        if not 0.0 <= age <= max_age_s or mission_key(plan.mission) != saved.get("mission"):
-            return None
-        return plan
 
     # ---- held results (`autopower.node.holds`) --------------------------------------------------
     @property
@@ -667,7 +514,7 @@ class NodeRuntime:
             generations={n: h.generation for n, h in self.hosted.items()},
             plan_operator=self.plan.operator if self.plan else None,
             model_w=self.plan_view.model_w,
-            down=self.down,
+            down=self.resuming.down,
             queue_wait_s=queue_wait_s,
             zid=self.bus.zid,
             link_bytes=self.control_plane.link_bytes(),

@@ -648,7 +648,7 @@ def _outputs(rec: Recording) -> dict[str, Any]:
     - *in_flight*: a node still had it in hand when the team stopped (``.../in_flight``, logged by
       that node at its clean stop: custody, hold, a stage's gate or worker);
     - *died_with_process*: an output of a chain sourced on a robot, in its crashed process's memory
-      only (``.../died_with_process``, named by the restarted process: `NodeRuntime._died_with_process`
+      only (``.../died_with_process``, named by the restarted process: `Resuming._died_with_process`
       and `_died_in_hand`), that no node names in flight (a frame some node still held did not die);
     - *abandoned*: after the last output its run delivered, in a run its chain ended by starting a
       new one (a later run of the chain is recorded): what the old run still held upstream was

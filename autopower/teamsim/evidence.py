@@ -2,7 +2,7 @@
 were at the moment a process was killed.
 
 A restarted node names the outputs of its chains that may have died with its crashed process
-(`NodeRuntime._died_with_process`, `_died_in_hand`). The label moves an output out of "lost", so
+(`Resuming._died_with_process`, `_died_in_hand`). The label moves an output out of "lost", so
 it needs evidence: at some kill, the killed process had the frame in hand (custody, a hold, a
 stage's gate, start-up buffer or worker, an orphan, a migration's state with its pending inputs,
 unread messages, an output its sink had not committed) or on the wire, and no other process had

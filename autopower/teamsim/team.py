@@ -231,7 +231,7 @@ class World:
                 self.ledger.violate("sequencing", f"{stage} stopped on {shell.node}: {why}", self.scheduler.now,
                                     self.trace.events)
         rt = shell.rt
-        if rt.meter is not None and not rt.resumed and shell.node != self.scenario.basestation:
+        if rt.meter is not None and not rt.resuming.resumed and shell.node != self.scenario.basestation:
             self.idle_from[shell.node] = rt.meter.t0
         leaders = [s.node for s in self.base_shells if self.shells.get(s.node) is s
                    and s.up and s.co.mission is not None and s.co.takeover.stepped_down is None]

@@ -50,7 +50,7 @@ def test_a_restart_continues_the_battery_and_the_sources():
     assert sources and all(seq > 0 for seq in sources.values())
     team.clock.set(50.0)  # the process was down for 10 s of mission time
     rt = _restarted(team, "r2", saved)
-    assert rt.resumed
+    assert rt.resuming.resumed
     rt.meter.advance(50.0)
     idle_w = team.scenario.platform_of("r2").idle_w
     # what it had consumed, plus at least the idle CPU of the 10 s it was down: not a full battery
@@ -64,7 +64,7 @@ def test_the_state_of_another_mission_is_ignored():
     saved = team.nodes["r2"].resume_state()
     saved["mission"] = {**saved["mission"], "epoch_unix": saved["mission"]["epoch_unix"] + 1.0}
     rt = _restarted(team, "r2", saved)
-    assert not rt.resumed
+    assert not rt.resuming.resumed
     assert rt.meter.battery_j == pytest.approx(team.scenario.robot("r2").energy_j)
     assert all(runner.seq == 0 for runner in rt.sources.values())
 
@@ -75,7 +75,7 @@ def test_a_damaged_resume_state_is_ignored_not_a_crash_loop(damage):
     team = _team_at(20.0)
     saved = {**team.nodes["r2"].resume_state(), **damage}
     rt = _restarted(team, "r2", saved)
-    assert not rt.resumed
+    assert not rt.resuming.resumed
     assert rt.meter.battery_j == pytest.approx(team.scenario.robot("r2").energy_j)
 
 
@@ -201,11 +201,11 @@ def test_a_restarted_robot_can_go_on_with_the_plan_it_ran_subgroup_rounds_includ
     store.save(old.resume_state())
     saved = json.loads(json.dumps(store.load()))
     rt = _fresh(team, "r2", saved)
-    plan = rt.saved_plan()
+    plan = rt.resuming.saved_plan()
     assert plan == old.plan and plan.placement["Blob-2"] == "r2"
     consumed = old.meter.consumed_j
     rt.on_plan(plan)  # what `AgentProcess._resume_alone` does
-    assert rt.resumed and rt.meter.consumed_j >= consumed  # battery goes on, not from the mission's energies
+    assert rt.resuming.resumed and rt.meter.consumed_j >= consumed  # battery goes on, not from the mission's energies
     assert set(rt.sources) == set(old.sources) and all(rt.sources[n].seq >= old.sources[n].seq for n in rt.sources)
     status = rt.status(1.0)  # what its peers' next subgroup round starts from: the mission, and nothing hosted
     assert status.mission == old.mission and status.plan_epoch == old.plan.epoch and not status.hosted
@@ -214,14 +214,14 @@ def test_a_restarted_robot_can_go_on_with_the_plan_it_ran_subgroup_rounds_includ
 def test_a_stale_or_damaged_saved_plan_is_not_gone_on_with(caplog):
     team = _team_at(40.0)
     saved = team.nodes["r2"].resume_state()
-    assert _fresh(team, "r2", dict(saved)).saved_plan() is not None
-    assert _fresh(team, "r2", {**saved, "saved_unix": saved["saved_unix"] - 301.0}).saved_plan() is None  # stale
-    assert _fresh(team, "r1", dict(saved)).saved_plan() is None  # another robot's file
-    assert _fresh(team, "r2", {**saved, "plan": "bm90IGEgcGxhbg=="}).saved_plan() is None  # "not a plan"
-    assert _fresh(team, "r2", {**saved, "plan": "%%%"}).saved_plan() is None
+    assert _fresh(team, "r2", dict(saved)).resuming.saved_plan() is not None
+    assert _fresh(team, "r2", {**saved, "saved_unix": saved["saved_unix"] - 301.0}).resuming.saved_plan() is None  # stale
+    assert _fresh(team, "r1", dict(saved)).resuming.saved_plan() is None  # another robot's file
+    assert _fresh(team, "r2", {**saved, "plan": "bm90IGEgcGxhbg=="}).resuming.saved_plan() is None  # "not a plan"
+    assert _fresh(team, "r2", {**saved, "plan": "%%%"}).resuming.saved_plan() is None
     assert "the saved plan is unusable" in caplog.text
-    assert _fresh(team, "r2", {**saved, "mission": {"scenario": "x"}}).saved_plan() is None
-    assert _fresh(team, "r2", {k: v for k, v in saved.items() if k != "plan"}).saved_plan() is None  # an older file
+    assert _fresh(team, "r2", {**saved, "mission": {"scenario": "x"}}).resuming.saved_plan() is None
+    assert _fresh(team, "r2", {k: v for k, v in saved.items() if k != "plan"}).resuming.saved_plan() is None  # an older file
 
 
 def test_a_stage_follows_the_plans_newer_run_of_its_chain():

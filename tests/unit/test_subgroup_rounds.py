@@ -402,7 +402,7 @@ def test_a_stage_of_a_chain_the_operator_stopped_drops_its_waiting_inputs(team, 
     assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.hosting.orphans
 
 
-def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarted_by_the_next_round(team):
+def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarted_by_the_next_round(team, monkeypatch):
     """CI 2026-11-25: r2 was killed between a round's commit and saving it. It came back with the
     plan before the round (Blob-2 on the laptop, out of reach) and did not restart Blob-2; r1 and
     r3, whose plans put it on r2, did not either, so Blob-2 ran nowhere until the base station
@@ -427,7 +427,7 @@ def test_a_stage_a_member_runs_nowhere_though_the_plan_puts_it_there_is_restarte
     # hosted nowhere, but no restart said: it may be a migration's stage on its way to r2
     assert "Blob-2" not in running(agents)
     rounds = r1.rounds.agreement.counter
-    r2.runtime.down = (r2.runtime.now(), 0.0)  # what the restarted process's statuses say
+    monkeypatch.setattr(r2.runtime.resuming, "down", (r2.runtime.now(), 0.0))  # what the restarted process's statuses say
     r2.publish_status()
     drain(hub, agents)
     r1._subgroup_tick()

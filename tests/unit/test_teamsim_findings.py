@@ -199,7 +199,7 @@ def test_sweep_seeds_where_a_gap_was_given_up_or_frames_died_unnamed(seed):
     `SequenceGate.held_upstream`); 2106, a released stage ran the input waiting behind a gap its producer,
     in sight, still held, and the gap's output was lost (left to the producer now, `Hosting.on_release`);
     634 and 1065, a robot killed with camera frames or results in its hands only (named by the restarted
-    robot, `NodeRuntime._died_in_hand`, and taken by the oracle only because the kill took them)."""
+    robot, `Resuming._died_in_hand`, and taken by the oracle only because the kill took them)."""
     verdict = run_seed(PLAN, seed)
     assert verdict.ok, verdict.first
 
@@ -232,7 +232,7 @@ def test_sweep_seed_where_a_robot_was_killed_with_frames_in_its_hands_only():
     """Found by the simulator (fixed, seed 634 shrunk): r3 thawed and sent nine camera frames for
     Blob-3 into links that had died while it was frozen, then was killed 1.6 s later, before a
     report could ask for them again. They had been in its custody only, and the oracle counted them
-    lost. The restarted r3 names them (`NodeRuntime._died_in_hand`), and the oracle takes the label
+    lost. The restarted r3 names them (`Resuming._died_in_hand`), and the oracle takes the label
     because r3's kill took them: no other process had them then (`teamsim.evidence`)."""
     result = run(SimConfig(scenario=SC, seed=634, faults=R3_FROZEN_THEN_KILLED, mission_s=30.0, quiet_s=20.0))
     assert result.ok, [v.to_json() for v in result.violations]
