@@ -362,7 +362,7 @@ class Agent:
         self.publish_status()
 
     def save_resume(self, *, wait_s: float = 0.0) -> None:
-        self.runtime.settle_held_store()
+        self.runtime.holds.settle_store()
         state = self.runtime.resume_state() if self.resume is not None else None
         if state is not None:
             self.resume.save(state, wait_s=wait_s)

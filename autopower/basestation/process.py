@@ -583,7 +583,7 @@ class BaseStation:
                         # an operator's snapshot builds a status too but acknowledges nothing
                         rt.commit_sinks()
                         self._bus.flush_recording()
-                        rt.settle_held_store()  # what the robots acknowledged leaves the held journal
+                        rt.holds.settle_store()  # what the robots acknowledged leaves the held journal
                         if status is not None:
                             # the whole status for a standby base station and the recording, to each robot
                             # the part it acts on (`peer_view`), relayed to those out of sight; each is a

@@ -85,7 +85,7 @@ class Chain:
     inputs: tuple[Flow, ...] = ()
     sourced: bool = True
     # what a node cut off from the sink holds of its results: "all" (within the hold budget) or
-    # "latest" (the newest only; the older ones are superseded: `NodeRuntime.hold_output`)
+    # "latest" (the newest only; the older ones are superseded: `Holds.hold`)
     keep: str = "all"
 
 

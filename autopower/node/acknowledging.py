@@ -240,9 +240,9 @@ class Acknowledging:
         A crash of this node then takes the output but not the input: the stage's next instance,
         which reports it missing, gets it again and computes the output again (marked a resend:
         a sink that has it drops the copy). Outputs journaled to disk (results held for a sink out of
-        reach, `hold_output`) are safe. While this node lives a lost output is still resent from its
+        reach, `Holds.hold`) are safe. While this node lives a lost output is still resent from its
         custody, never recomputed."""
-        low = self.rt.unsafe_output_floor(hosted.chain.name, hosted.index + 1, report.run)
+        low = self.rt.holds.unsafe_floor(hosted.chain.name, hosted.index + 1, report.run)
         if low is None or low >= report.next_seq:
             return report
         return dataclasses.replace(report, next_seq=low)

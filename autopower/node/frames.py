@@ -7,7 +7,7 @@ every node on the way forwards it and is charged for it. A stage runs each input
 `Frames` is a collaborator of `NodeRuntime`. It owns the chains' weights under the mission's
 accounting; the routes are the plan's network, the frames kept for their consumers are custody's and
 holds', and the stages are `Hosting`'s: it reads them through the runtime and leaves what it cannot
-route to their owners (`Hosting.hold_orphan`, `Hosting.park`, `NodeRuntime.hold_output`).
+route to their owners (`Hosting.hold_orphan`, `Hosting.park`, `Holds.hold`).
 """
 
 from __future__ import annotations
@@ -42,6 +42,10 @@ class Frames:
         """The mission starts: each chain's (and DAG flow's) weight under its accounting."""
         self.weights = weights
 
+    def flush_held(self) -> None:
+        """Send the held results whose sink the plan's network routes again (`Holds.flush`)."""
+        self.rt.holds.flush(self.rt.plan_view.network, self.send_frame)
+
     def join_tick(self) -> None:
         """Run the fan-in steps whose wait is over (from the node's timer)."""
         speed, wall = self.rt.mission.speed if self.rt.mission else 1.0, self.rt.wall()
@@ -54,7 +58,7 @@ class Frames:
         """Send a frame this node produced, keeping it until its consumer acknowledges it."""
         frame = dataclasses.replace(frame, floor=self.rt.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
         if frame.target == len(self.rt.chains[frame.chain].stages):
-            self.rt.keep_result(frame)  # kept until its sink has it, within the hold budget
+            self.rt.holds.keep(frame)  # kept until its sink has it, within the hold budget
         else:
             self.rt.custody.keep(frame, self.rt.wall())
         self.send_frame(frame, dest)
@@ -80,7 +84,7 @@ class Frames:
                 except ProtocolError:
                     frame = None
                 if frame is not None and frame.target == len(self.rt.chains[chain].stages):
-                    self.rt.hold_output(frame)
+                    self.rt.holds.hold(frame)
                     return False
             self.rt.count("unroutable", f"no route from {self.rt.node} to {dest}")
             return False

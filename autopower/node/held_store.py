@@ -1,6 +1,6 @@
 """Results a robot holds for a sink out of its reach, kept on disk so a crash does not lose them.
 
-A robot cut off from a chain's sink holds the chain's results (`NodeRuntime.hold_output`, within
+A robot cut off from a chain's sink holds the chain's results (`Holds.hold`, within
 the hold budget, scenario `[delivery] hold_budget_mb`) until the sink is back. Held only in memory, they would
 all be lost with a robot killed while cut off. So each held result is appended here as it is
 held, and a restarted process of the same mission takes them back (`load`), holds them again

@@ -36,10 +36,12 @@ class Holds:
     """The node's held results. It owns them (in the order they were held), how many were let go
     and why, and which are on disk; it shares the node's `Custody`, which keeps every result until
     its sink acknowledges it. ``chain`` names a chain of the node's (None: not one), ``wall`` is the
-    node's wall clock and ``tally`` its event counter; ``listeners`` hear of each result let go."""
+    node's wall clock and ``tally`` its event counter; ``listeners`` hear of each result let go;
+    ``mission_key`` says the running mission's key, which the journal names."""
 
     def __init__(self, *, node: str, custody: Custody, store: HeldStore | None, chain: Callable[[str], Chain | None],
-                 listeners: SinkListeners, tally: Callable[..., None], wall: Callable[[], float]):
+                 listeners: SinkListeners, tally: Callable[..., None], wall: Callable[[], float],
+                 mission_key: Callable[[], dict | None]):
         self._node = node
         self._custody = custody
         self.store = store  # the journal on disk (None: a crash loses what is held)
@@ -47,6 +49,7 @@ class Holds:
         self._listeners = listeners
         self._tally = tally
         self._wall = wall
+        self._mission_key = mission_key  # the running mission's key (`resuming.mission_key`; None before it)
         self.held: OrderedDict[HeldKey, ChainFrame] = OrderedDict()
         self.dropped = 0  # results let go, the hold budget full (counted apart from lost ones)
         self.superseded = 0  # results of a latest-only chain replaced in the hold by a newer one
@@ -55,8 +58,8 @@ class Holds:
     def __len__(self) -> int:
         return len(self.held)
 
-    def hold(self, frame: ChainFrame, mission_key: dict | None) -> None:
-        """Hold a result whose sink is out of reach (journaled under ``mission_key`` when it is known)."""
+    def hold(self, frame: ChainFrame) -> None:
+        """Hold a result whose sink is out of reach (journaled under the mission's key once it is known)."""
         # Sent late, as a retransmission: the sink may have had this output meanwhile from another
         # instance (a released stage runs the inputs waiting in its gate, while their producer, its
         # acknowledgement cut off, resends them to the stage's next instance). A restarted sink does
@@ -67,7 +70,7 @@ class Holds:
         self._supersede(frame)
         self.keep(frame, sent=False)  # in custody already when produced here (`emit`)
         self._custody.mark(frame, None)  # not on the wire: no resend is due until it is
-        self._journal(frame, mission_key)
+        self._journal(frame, self._mission_key())
         if len(self.held) == 1:
             log.info("%s: the sink of %s is out of reach; holding its results here (within %.0f MB, oldest "
                      "dropped beyond) until a plan routes them", self._node, frame.chain,
@@ -124,10 +127,11 @@ class Holds:
         return [held.frame for (r, seq), held in sorted(hop.items())
                 if r == run and (chain, target, run, seq) not in self._journaled]
 
-    def settle_store(self, mission_key: dict | None) -> None:
+    def settle_store(self) -> None:
         """Drop from the disk the held results that are done with (acknowledged by their sink, or
         let go by a full hold): the file is rewritten with the rest once most of it is done with,
         emptied once all of it is (`autopower.node.held_store`). At each status tick."""
+        mission_key = self._mission_key()
         if self.store is None or mission_key is None or not self._journaled:
             return
         at_risk = {key: frame for key, frame in self._journaled.items()

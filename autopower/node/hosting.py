@@ -380,7 +380,7 @@ class Hosting:
                 continue
             frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
             if target == len(hosted.chain.stages):
-                self.rt.keep_result(frame)
+                self.rt.holds.keep(frame)
             else:
                 self.rt.custody.keep(frame, self.rt.wall())
         if msg.outputs:

@@ -97,7 +97,7 @@ class PlanView:
         # the base station's prediction was for its placement: say the model's for this one
         self.plan = dataclasses.replace(self.plan, predicted_w=self.predict_power())
         self.rt.hosting.placement_overridden(self.plan.placement)
-        self.rt.flush_held_outputs()  # a round's placement may route a held result's sink again
+        self.rt.frames.flush_held()  # a round's placement may route a held result's sink again
 
     def stage_left(self, stage: str, to_node: str) -> None:
         """``stage`` has left this node for ``to_node``: the model's power is priced with it there until

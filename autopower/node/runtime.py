@@ -158,7 +158,8 @@ class NodeRuntime:
         # results whose sink has no route from here (the plan's links): kept in order, within the
         # hold budget with the results in custody, on disk when the process gives a `HeldStore`
         self.holds = Holds(node=node, custody=self.custody, store=stores.held_store, chain=lambda name: self.chains.get(name),
-                           listeners=self._sink_listeners, tally=self.tally, wall=lambda: self.wall())
+                           listeners=self._sink_listeners, tally=self.tally, wall=lambda: self.wall(),
+                           mission_key=lambda: mission_key(self.mission) if self.mission is not None else None)
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
         self._cpu_at: tuple[float, float] | None = None  # (process, component) CPU at the last `charge_runtime`
         # since the mission started in this process, on the computer running it (`charge_runtime`):
@@ -276,7 +277,7 @@ class NodeRuntime:
             results = len(stopped.stages) if stopped is not None and stopped.sink else None
             self.custody.forget_chain(chain, keep_target=results)
         self.hosting.send_parked()
-        self.flush_held_outputs()
+        self.frames.flush_held()
         self.hosting.replay_early()
 
     def _use_variants(self, variants: dict[str, str]) -> None:
@@ -303,33 +304,10 @@ class NodeRuntime:
         hosting = self.hosting
         moving = [body for _, body, _ in hosting.parked_transfers]
         moving += [h.shipped[2] for h in hosting.hosted.values() if h.shipped is not None and h.shipped[2]]
-        return frames_in_hand(names, (self.custody.frames(), self.held_outputs.values(), stage_frames(hosting.hosted),
+        return frames_in_hand(names, (self.custody.frames(), self.holds.held.values(), stage_frames(hosting.hosted),
                                       transfer_frames(moving), *hosting.orphans.values()))
 
     # ---- held results (`autopower.node.holds`) --------------------------------------------------
-    @property
-    def held_outputs(self):
-        """The results held for a sink out of reach, in order (read only: `Holds` owns them)."""
-        return self.holds.held
-
-    def hold_output(self, frame: ChainFrame) -> None:
-        self.holds.hold(frame, self._mission_key())
-
-    def keep_result(self, frame: ChainFrame, sent: bool = True) -> None:
-        self.holds.keep(frame, sent)
-
-    def unsafe_output_floor(self, chain: str, target: int, run: int) -> int | None:
-        return self.holds.unsafe_floor(chain, target, run)
-
-    def settle_held_store(self) -> None:
-        self.holds.settle_store(self._mission_key())
-
-    def _mission_key(self) -> dict | None:
-        return mission_key(self.mission) if self.mission is not None else None
-
-    def flush_held_outputs(self) -> None:
-        self.holds.flush(self.plan_view.network, self.frames.send_frame)
-
     def commit_sinks(self) -> None:
         """Write down the outputs the sinks took in since the last commit (before each status).
 
@@ -376,7 +354,7 @@ class NodeRuntime:
         instead of calling `on_timer` every status period.
         """
         hosting = self.hosting
-        return not (self.feeds or hosting.hosted or self.custody or hosting.orphans or self.held_outputs
+        return not (self.feeds or hosting.hosted or self.custody or hosting.orphans or self.holds.held
                     or hosting.parked_transfers)
 
     def on_timer(self) -> None:
@@ -501,7 +479,7 @@ class NodeRuntime:
             runs={n: h.runs for n, h in self.hosted.items() if h.runs},
             compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},
             queue_depth=queue_depth, errors=dict(self.errors),
-            counters={**self.counters, "held-outputs": len(self.held_outputs), **self.custody.stats()},
+            counters={**self.counters, "held-outputs": len(self.holds), **self.custody.stats()},
             depleted=bool(self.meter and self.meter.depleted),
             acks_wanted=tuple(sorted(self.acknowledging.ack_interest())),
             failed=dict(self.hosting.failed),

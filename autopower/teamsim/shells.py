@@ -106,7 +106,7 @@ class Shell:
         superseded, only if its chain keeps the latest and the node holds a newer result of the run."""
         w, custody = self.world, self.rt.custody
         if why == "superseded":
-            newer = any(f.chain == chain and f.run == run and f.seq > seq for f in self.rt.held_outputs.values())
+            newer = any(f.chain == chain and f.run == run and f.seq > seq for f in self.rt.holds.held.values())
             if w.scenario.chain(chain).keep != "latest" or not newer:
                 w.ledger.violate("exactly-once", f"{self.node} let {chain} run {run} seq {seq} go as superseded "
                                  f"(keep = {w.scenario.chain(chain).keep!r}, a newer one held: {newer})",
@@ -327,7 +327,7 @@ class RobotShell(Shell):
 
     def save_resume(self) -> None:
         rt = self.rt
-        rt.settle_held_store()
+        rt.holds.settle_store()
         state = rt.resume_state()
         if state is not None:
             self.resume.save(state)
@@ -526,7 +526,7 @@ class BaseShell(Shell):
             return
         rt.commit_sinks()
         self.commit_outputs()
-        rt.settle_held_store()
+        rt.holds.settle_store()
         if status is not None:  # (held back: only counts moved, the heartbeat waits)
             self.bus.publish(self.keys.status(self.node), self.status_encoder.encode(status),
                              reliable=False)  # standby base stations

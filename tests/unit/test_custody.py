@@ -292,7 +292,7 @@ def test_acknowledgements_reach_the_producers_and_no_one_else():
     assert taken.max_seq == produced - 1 and taken.missing == ()  # every frame had ...
     # ... and run, up to the first whose result the laptop holds in memory only (its sink's own
     # acknowledgement comes with its next status)
-    unsafe = team.nodes["laptop"].unsafe_output_floor("Blob-2", 1, taken.run)
+    unsafe = team.nodes["laptop"].holds.unsafe_floor("Blob-2", 1, taken.run)
     assert taken.next_seq == (produced if unsafe is None else unsafe)
     assert acks["r2"].consumed[hop_key("Blob-2", 1)].next_seq == produced
     placement = team.nodes["laptop"].plan.placement
@@ -781,9 +781,9 @@ def test_results_beyond_the_hold_budget_are_dropped_oldest_first_and_leave_custo
     told = []
     r2.listen(SinkListener(held_dropped=lambda chain, run, seq, why: told.append((chain, run, seq, why))))  # as the recorder listens
     for frame in frames:
-        r2.keep_result(frame, sent=False)  # as `Frames.emit` does for a result
-        r2.hold_output(frame)  # as `send_routed` does with no route to the sink
-    assert len(r2.held_outputs) == 5 and r2.holds.dropped == 3
+        r2.holds.keep(frame, sent=False)  # as `Frames.emit` does for a result
+        r2.holds.hold(frame)  # as `send_routed` does with no route to the sink
+    assert len(r2.holds.held) == 5 and r2.holds.dropped == 3
     assert told == [("Blob-2", 0, 10_000, "budget"), ("Blob-2", 0, 10_001, "budget"), ("Blob-2", 0, 10_002, "budget")]
     assert len(r2.custody) == before + 5  # the three dropped ones are not held any more
     assert r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
@@ -818,11 +818,11 @@ def test_a_latest_only_chain_holds_its_newest_result_and_lets_the_older_ones_go_
                                                                       result("Loc-2", 0, 9_000, 1),
                                                                       result("Loc-2", 0, 9_001, 1)]
     for frame in frames:
-        r2.keep_result(frame, sent=False)
-        r2.hold_output(frame)
+        r2.holds.keep(frame, sent=False)
+        r2.holds.hold(frame)
     assert told == [("Blob-2", 0, 10_000 + i, "superseded") for i in range(3)]
     assert r2.holds.superseded == 3 and r2.holds.dropped == 0
-    held = {(f.chain, f.run, f.seq) for f in r2.held_outputs.values()}
+    held = {(f.chain, f.run, f.seq) for f in r2.holds.held.values()}
     assert held == {("Blob-2", 0, 10_003), ("Blob-2", 1, 5), ("Loc-2", 0, 9_000), ("Loc-2", 0, 9_001)}
     assert len(r2.custody) == before + 4 and r2.custody.floor("Blob-2", 1, 0, -1) == 10_003
     assert r2.status(1.0).counters["held-outputs-superseded"] == 3

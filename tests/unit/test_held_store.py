@@ -101,8 +101,8 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     old = team.nodes["r2"]  # what it lets go is logged into a recording batch the kill loses
     results = [_result(100_000 + i) for i in range(HOLD + 4)]
     for frame in results:  # as `Frames.emit` and `send_routed` do with the sink out of reach
-        old.keep_result(frame, sent=False)
-        old.hold_output(frame)
+        old.holds.keep(frame, sent=False)
+        old.holds.hold(frame)
     saved = old.resume_state()
     assert len(HeldStore(tmp_path / "r2.held").load(mission_key(old.mission))) == len(results)
     old.holds.store.close()
@@ -121,10 +121,10 @@ def test_a_restarted_robot_takes_back_what_it_held_and_delivers_it_once_the_sink
     delivered = {f.seq for f in results if f.seq < sink.contiguous or f.seq in sink.above}
     # the four beyond the budget are dropped, counted; every other one reached the sink
     assert delivered == {f.seq for f in results[4:]}
-    assert not rt.held_outputs
+    assert not rt.holds.held
     # acknowledged: the journal is emptied at the next status tick
     rt.on_ack(team.nodes["laptop"].acks()["r2"])
-    rt.settle_held_store()
+    rt.holds.settle_store()
     assert HeldStore(tmp_path / "r2.held").load(mission_key(rt.mission)) == []
 
 
@@ -140,9 +140,9 @@ def test_held_results_the_sink_already_had_are_dropped_there_as_redundant_not_co
     sink_node = team.nodes["laptop"]
     results = [_result(200_000 + i) for i in range(6)]
     for frame in results:
-        old.keep_result(frame, sent=False)
-        old.hold_output(frame)
-    old.flush_held_outputs()  # the sink is in reach: delivered
+        old.holds.keep(frame, sent=False)
+        old.holds.hold(frame)
+    old.frames.flush_held()  # the sink is in reach: delivered
     team.pump()
     sink = sink_node.sinks["Blob-2"]
     had = {f.seq for f in results if f.seq < sink.contiguous or f.seq in sink.above}
@@ -174,8 +174,8 @@ def test_a_held_result_that_reaches_its_sink_late_is_redundant_where_another_ins
     team.run_until(20.0)
     r2, laptop = team.nodes["r2"], team.nodes["laptop"]
     frame = _result(300_000)
-    r2.keep_result(frame, sent=False)
-    r2.hold_output(frame)  # its sink out of reach
+    r2.holds.keep(frame, sent=False)
+    r2.holds.hold(frame)  # its sink out of reach
     # the stage's next instance ran the resent input: its copy reaches the sink first
     laptop.frames.deliver_frame(dataclasses.replace(frame, attempt=1), 0)
     sink = laptop.sinks["Blob-2"]
@@ -183,7 +183,7 @@ def test_a_held_result_that_reaches_its_sink_late_is_redundant_where_another_ins
     laptop.sinks["Blob-2"] = sink = SinkLedger.from_state(sink.state())  # the sink restarted since
     handed_on = []
     laptop.listen(SinkListener(output=lambda chain, run, seq, data: handed_on.append(seq)))
-    r2.flush_held_outputs()  # back in reach: the held copy goes
+    r2.frames.flush_held()  # back in reach: the held copy goes
     team.pump()
     assert handed_on == [] and sink.duplicates_total == 0 and sink.redundant_total == 1
 
@@ -200,8 +200,8 @@ def test_the_base_stations_host_takes_back_what_it_held_after_a_restart(tmp_path
     results = [ChainFrame(chain="Loc-1", run=0, seq=400_000 + i, target=1, t_virtual=0.0, t_unix=0.0,
                           payload_len=3, payload=b"abc") for i in range(3)]
     for frame in results:
-        old.keep_result(frame, sent=False)
-        old.hold_output(frame)
+        old.holds.keep(frame, sent=False)
+        old.holds.hold(frame)
     old.holds.store.close()
     # killed; the restarted base station's host gets the plan of the same mission (no resume state)
     rt = NodeRuntime(node="laptop", scenario=team.scenario, bus=team.hub.bus("laptop-again"), keys=team.keys,
@@ -211,7 +211,7 @@ def test_the_base_stations_host_takes_back_what_it_held_after_a_restart(tmp_path
     team.pump()
     sink = team.nodes["r1"].sinks["Loc-1"]
     assert all(f.seq in sink.above for f in results), sorted(sink.above)  # r1 in reach: delivered
-    assert sink.duplicates_total == 0 and not rt.held_outputs
+    assert sink.duplicates_total == 0 and not rt.holds.held
 
 
 def test_a_writer_stuck_at_a_new_mission_is_waited_for_once_and_then_never_again(tmp_path, monkeypatch):
