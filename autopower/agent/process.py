@@ -148,7 +148,7 @@ class Agent:
                                    timeout_s=cfg.subgroup_timeout_s, status_period_s=cfg.status_period_s),
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=self._started_unix,
             signing=self.signing)
-        self.runtime.prepare_sources()  # before anyone sees us: a camera's scene takes a while to render
+        self.runtime.production.prepare()  # before anyone sees us: a camera's scene takes a while to render
         # what is for this robot (data, control, relayed control, what others address to it) on one
         # subscription (`Keys.node_all`); the peers' statuses as robots need them (`PeerStatus`):
         # whole statuses go to base stations

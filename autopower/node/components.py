@@ -55,6 +55,10 @@ class Components:
         """Whether stages may run in worker processes here (their results are collected at each tick)."""
         return self._zygote is not None
 
+    def source_key(self, chain: Chain) -> tuple[str, str, int]:
+        """What builds ``chain``'s source: its first stage's component, the robot and the chain's seed."""
+        return chain.stages[0].component, chain.source, chain_seed(self.rt.scenario, chain)
+
     def build_source(self, component: str, robot: str, seed: int):
         """A new source of a chain (`autopower.node.sources`)."""
         return self.build(self._make_source, component, robot, seed)

@@ -35,14 +35,14 @@ from typing import Callable
 from autopower.errors import AutoPowerError, ProtocolError
 from autopower.model.energy import flow_weight
 from autopower.model.network import build_network
-from autopower.model.scenario import Chain, Scenario
+from autopower.model.scenario import Scenario
 from autopower.model.variants import apply_variants
 from autopower.node.acknowledging import Acknowledging
 from autopower.node.components import Components
 from autopower.node.control_meter import ControlPlaneMeter
 from autopower.node.custody import Custody
 from autopower.node.frames import Frames
-from autopower.node.guard import ComponentHung, GuardedCalls
+from autopower.node.guard import GuardedCalls
 from autopower.node.holds import Holds
 from autopower.node.hosting import Hosting
 from autopower.node.in_flight import frames_in_hand, stage_frames, transfer_frames
@@ -50,6 +50,7 @@ from autopower.node.joining import Flows
 from autopower.node.meter import BatteryMeter
 from autopower.node.plan_view import PlanView
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
+from autopower.node.production import Production
 from autopower.node.relaying import ArrivalRelay
 from autopower.node.resuming import Resuming, mission_key
 from autopower.node.sequencing import SinkLedger
@@ -58,12 +59,9 @@ from autopower.node.sources import Sources
 from autopower.node.stages import (
     HostedStage,
     SourceRunner,
-    chain_seed,
-    pad,
 )
 from autopower.protocol import (
     Ack,
-    ChainFrame,
     Keys,
     MissionInfo,
     NodeStatus,
@@ -123,10 +121,9 @@ class NodeRuntime:
         # the plan this node runs, its network and the model's power for it
         self.plan_view = PlanView(self)
         # the chains this node feeds from its own sensors (`autopower.node.sources`)
-        self.feeds = Sources(node=node, key_of=self._source_key,
+        self.feeds = Sources(node=node, key_of=lambda chain: self.components.source_key(chain),
                              build=lambda key: self.components.build_source(*key),
                              count=self.count, tally=self.tally)
-        self._last_turn_wall: float | None = None  # `on_timer`'s last turn (a node away a second was stopped)
         self.alive: set[str] = set()
         self._ever_alive: set[str] = set()  # every node whose token this one has seen (status `links`)
         # wall: until when a base station's status said it runs our plan, and one said it does not
@@ -143,7 +140,8 @@ class NodeRuntime:
         # where a restarted process carries on (`autopower.agent.resume`): its saved state, applied
         # at the first plan of the same mission
         self.resuming = Resuming(self, stores.resume_from, self._sink_listeners)
-        self._on_produced = stores.on_produced
+        # what the sources capture, sent on to the first stage (and who is told when a source advanced)
+        self.production = Production(self, stores.on_produced)
         # the data path: frames sent, forwarded, received, run by the stages here
         self.frames = Frames(self)
         # the stages hosted here: the orders that start, move and stop them, and the frames held for them
@@ -331,17 +329,6 @@ class NodeRuntime:
         """The sources running here, by chain (read only: `Sources` owns them)."""
         return self.feeds.runners
 
-    @property
-    def produced_by_run(self):
-        return self.feeds.produced_by_run
-
-    def prepare_sources(self) -> None:
-        """Build this node's sources before it joins (`Sources.prepare`)."""
-        self.feeds.prepare(self.chains.values())
-
-    def _source_key(self, chain: Chain) -> tuple[str, str, int]:
-        return chain.stages[0].component, chain.source, chain_seed(self.scenario, chain)
-
     # ---- timers --------------------------------------------------------------------------------
     def next_deadline(self) -> float | None:
         """Virtual time of the next source tick (None: nothing scheduled)."""
@@ -365,51 +352,7 @@ class NodeRuntime:
         wall = self.wall()
         self.acknowledging.tick(wall)  # what we consumed ourselves; resends of what our consumers lack
         self.frames.join_tick()  # fan-in steps whose wait is over
-        now = self.now()
-        away_s = wall - self._last_turn_wall if self._last_turn_wall is not None else 0.0
-        self._last_turn_wall = wall
-        for runner, t_tick in self.feeds.due(now, away_s):
-            self._produce(runner, t_tick)
-
-    def _produce(self, runner: SourceRunner, t_tick: float) -> None:
-        chain = runner.chain
-        if not self.custody.has_room(chain.name, 0, chain.message_bytes[0], self.wall(), sharers=len(self.feeds)):
-            # back-pressure: the first stage has not run what this node holds for it (`Custody.has_room`)
-            runner.missed += 1
-            self.tally("missed-periods")
-            self.tally("missed-periods-backlog")
-            if self.counters["missed-periods-backlog"] == 1 or self.counters["missed-periods-backlog"] % 100 == 0:
-                log.warning("%s: source %s skipped a capture: its consumer has not run the %d frame(s) held for it "
-                            "(custody full; %d skipped so far)", self.node, chain.name,
-                            self.custody.held_for(chain.name, 0), self.counters["missed-periods-backlog"])
-            return
-        try:
-            data = self.guard.call(runner.source.produce, runner.seq, timeout_s=self.components.hang_limit_s(chain))
-            payload = pad(data, chain.message_bytes[0], f"{chain.name} source")
-        except ComponentHung as exc:
-            self._source_hung(runner, f"produce(seq {runner.seq}): {exc}")
-            return
-        except Exception as exc:
-            self.count("source-error", f"{chain.name}: {exc}", logging.ERROR)
-            return
-        host = self.plan.placement.get(chain.stages[0].name)
-        if host is None:
-            self.count("unplaced-stage", f"{chain.stages[0].name} has no host")
-            return
-        # latency counts from the capture (a frame taken from the sensor's queue waited there)
-        waited_s = max(0.0, self.clock.wall() - self.clock.wall_at(t_tick))
-        frame = ChainFrame(chain=chain.name, run=runner.run, seq=runner.seq, target=0, t_virtual=t_tick,
-                           t_unix=self.wall() - waited_s, payload_len=len(data), payload=payload)
-        self.feeds.produced(runner)
-        if self._on_produced is not None:  # noted before it leaves: a crash after this never reuses the seq
-            self._on_produced(runner)
-        self.frames.emit(frame, host)
-
-    def _source_hung(self, runner: SourceRunner, detail: str) -> None:
-        """A source that hangs is stopped (one that raises only loses that frame, counted)."""
-        chain = runner.chain
-        self.feeds.hang(runner)  # not restarted in this run
-        self.hosting.source_failed(chain, detail)
+        self.production.tick(wall)  # the sources whose period is due
 
     # ---- peers ----------------------------------------------------------------------------------------
     def on_peer_status(self, status: NodeStatus | PeerStatus) -> None:

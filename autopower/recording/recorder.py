@@ -449,7 +449,7 @@ class Recorder:
 
     def _stop(self, runtime) -> None:
         t = self.now()
-        for (chain, run), produced in sorted(runtime.produced_by_run.counts().items()):
+        for (chain, run), produced in sorted(runtime.feeds.produced_by_run.counts().items()):
             self.telemetry.scalar(produced_path(chain, run), t, produced)
         for (chain, run), seqs in sorted(runtime.in_flight_at_stop().items()):
             path = in_flight_path(chain, run)

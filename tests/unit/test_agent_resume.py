@@ -293,7 +293,7 @@ def test_sources_built_before_the_mission_are_the_ones_its_first_plan_runs():
 
     rt = NodeRuntime(node="r2", scenario=team.scenario, bus=team.hub.bus("r2-prepared"), keys=team.keys,
                      make_component=FakeComponent, make_source=make_source, clock_factory=lambda m: team.clock)
-    rt.prepare_sources()
+    rt.production.prepare()
     own = [c.name for c in team.scenario.chains if c.source == "r2" and c.sourced]
     assert own and len(built) == len(own)
     prepared = set(map(id, rt.feeds._prepared.values()))

@@ -32,7 +32,7 @@ def test_every_frame_produced_is_delivered_or_named_in_flight_by_some_node():
     team.run_exchanging_statuses(16.0)
     r1 = team.nodes["r1"]
     runner = r1.sources["Loc-1"]
-    assert r1.produced_by_run.counts()[("Loc-1", runner.run)] == runner.seq  # seqs 0 .. seq-1
+    assert r1.feeds.produced_by_run.counts()[("Loc-1", runner.run)] == runner.seq  # seqs 0 .. seq-1
     held: dict = {}
     for rt in team.nodes.values():
         for key, seqs in rt.in_flight_at_stop().items():
