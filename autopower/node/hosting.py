@@ -445,7 +445,7 @@ class Hosting:
         """Is the node that feeds ``hosted`` (its chain's source, or the previous stage's host) this
         one or in direct sight now: alive to resend what it holds?"""
         producer = self.rt.acknowledging.producer_of(hosted)
-        return producer is not None and (producer == self.rt.node or producer in self.rt.alive)
+        return producer is not None and (producer == self.rt.node or producer in self.rt.sight.alive)
 
     def yield_to_newer(self, status: NodeStatus | PeerStatus) -> bool:
         """Stop an instance here that a newer one running on the peer ``status`` comes from supersedes;

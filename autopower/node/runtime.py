@@ -54,6 +54,7 @@ from autopower.node.production import Production
 from autopower.node.relaying import ArrivalRelay
 from autopower.node.resuming import Resuming, mission_key
 from autopower.node.sequencing import SinkLedger
+from autopower.node.sight import Sight
 from autopower.node.sinks import Sinks
 from autopower.node.sources import Sources
 from autopower.node.stages import (
@@ -124,14 +125,8 @@ class NodeRuntime:
         self.feeds = Sources(node=node, key_of=lambda chain: self.components.source_key(chain),
                              build=lambda key: self.components.build_source(*key),
                              count=self.count, tally=self.tally)
-        self.alive: set[str] = set()
-        self._ever_alive: set[str] = set()  # every node whose token this one has seen (status `links`)
-        # wall: until when a base station's status said it runs our plan, and one said it does not
-        self._base_runs_our_plan_until = 0.0
-        self._mission_wanted_until = 0.0
-        self._status_asked = False  # a base station listening for the team asked: `take_status_asked`
-        self._link_ends = build_network(scenario).neighbours(node)  # the scenario's links of this node
-        self._team = frozenset(scenario.node_names())
+        # the nodes in sight, and what this node heard of the base station
+        self.sight = Sight(self, link_ends=build_network(scenario).neighbours(node), team=frozenset(scenario.node_names()))
         self.errors: dict[str, int] = {}  # things that should not happen (garbage, lost frames)
         self.counters: dict[str, int] = {}  # things that happen (forwarded, missed periods)
         # who hears of the sink's outputs, and of the results let go or lost in a crash (`listen`):
@@ -363,51 +358,18 @@ class NodeRuntime:
             self.count("zid-refused", f"{status.node} announced session {status.zid[:40]!r}: not a Zenoh id, "
                                       "or another node's")
         if status.node == self.scenario.basestation:
-            # for three periods it announced: one that stops talking may have restarted, and one that
-            # runs another plan (or none: `PeerViews.listening`) may be a second base station beside
-            # the first, which takes over only once a robot names the mission
-            until = self.wall() + 3 * max(status.next_status_s, 0.5)
-            if self.plan is not None and status.plan_epoch == self.plan.epoch:
-                self._base_runs_our_plan_until = until
-            else:
-                if status.plan_epoch < 0 and self.wall() >= self._mission_wanted_until:
-                    self._status_asked = True  # a base station that runs nothing yet, newly heard
-                self._mission_wanted_until = until
-
-    def take_status_asked(self) -> bool:
-        """Whether a base station that runs no plan yet (`PeerViews.listening`: one taking over the
-        team, or a second one) began listening since last asked. It learns the team from the
-        statuses it hears within its listening window (`CoordinatorConfig.learn_team_s`), shorter
-        than the heartbeat a robot with nothing new keeps: the process then sends one at once, or
-        the takeover would go on without that robot's stages."""
-        asked, self._status_asked = self._status_asked, False
-        return asked
-
-    def _mission_wanted(self) -> bool:
-        """Whether this node's status names its mission (`on_peer_status`)."""
-        now = self.wall()
-        return now < self._mission_wanted_until or now >= self._base_runs_our_plan_until
+            self.sight.heard_basestation(status)
 
     # ---- liveliness ----------------------------------------------------------------------------------
     def on_liveliness(self, node: str, alive: bool) -> None:
-        if node == self.scenario.basestation:
-            self._base_runs_our_plan_until = 0.0  # gone, or a new process: the mission in our statuses
-        if alive:
-            self.alive.add(node)
-            if node in self._team:  # a name from the network only grows this set if it is a member
-                self._ever_alive.add(node)
-        else:
-            self.alive.discard(node)
+        """``node`` came into this node's sight or left it (`Sight.on_liveliness`)."""
+        self.sight.on_liveliness(node, alive)
 
     # ---- status ----------------------------------------------------------------------------------------
     def status(self, window_s: float, queue_depth: int = 0, queue_wait_s: float = 0.0) -> NodeStatus:
         self.settle_relayed()
         now = self.now()
         power, utilisation = self.meter.window(now, window_s) if self.meter else ({}, 0.0)
-        # The nodes this one has a link with in the scenario, and every node it has seen: a link
-        # that went down must be seen coming back, one that never came up must be reported down.
-        # Not every node of the team: a robot's status grew with the team (1.4 of its 2.5 kB at 100).
-        others = sorted((self._link_ends | self._ever_alive) - {self.node})
         sources = self.feeds.stats()
         return NodeStatus(
             node=self.node, t_virtual=now, t_unix=self.wall(), plan_epoch=self.plan.epoch if self.plan else -1,
@@ -418,7 +380,7 @@ class NodeRuntime:
             hosted={n: h.lifecycle.value for n, h in self.hosted.items()},
             sources=sources,
             sinks=self.sinking.stats(),
-            links={n: n in self.alive for n in others},
+            links=self.sight.links(),
             runs={n: h.runs for n, h in self.hosted.items() if h.runs},
             compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},
             queue_depth=queue_depth, errors=dict(self.errors),
@@ -431,7 +393,7 @@ class NodeRuntime:
             # for a base station that does not run our plan (one that restarted takes over the mission
             # with it, `basestation.takeover`); not in every status: it grows with the team (its
             # starting energies: 1.4 of a robot's 2.1 kB at 100 robots)
-            mission=self.mission if self._mission_wanted() else None,
+            mission=self.mission if self.sight.mission_wanted() else None,
             generations={n: h.generation for n, h in self.hosted.items()},
             plan_operator=self.plan.operator if self.plan else None,
             model_w=self.plan_view.model_w,

@@ -287,7 +287,7 @@ class RobotShell(Shell):
             self.statuses[status.node] = status
             rt.on_peer_status(status)
             # as the agent: a base station asking, or back within reach through a peer, hears us at once, whole
-            heard_again = rt.take_status_asked() or (not base_was_reachable and self.relayer.reachable(base))
+            heard_again = rt.sight.take_status_asked() or (not base_was_reachable and self.relayer.reachable(base))
             if heard_again:
                 self.status_encoder.refresh()
             if rt.hosting.yield_to_newer(status) or heard_again:

@@ -148,8 +148,8 @@ def test_radio_fault_replans_like_the_paper(sc):
 def test_reported_link_down_replans_around_it(sc):
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, link_down_after_s=2.0))
     team.join()
-    team.nodes["r2"].alive.discard("laptop")  # r2 no longer sees the laptop (nor it r2)
-    team.nodes["laptop"].alive.discard("r2")
+    team.nodes["r2"].sight.alive.discard("laptop")  # r2 no longer sees the laptop (nor it r2)
+    team.nodes["laptop"].sight.alive.discard("r2")
     team.report_status()
     assert not team.coordinator.faults.links_down
     team.clock.advance(2.5)  # wall time = virtual / speed 1
@@ -160,7 +160,7 @@ def test_reported_link_down_replans_around_it(sc):
     team.run_until(co.now() + 4.0)
     assert team.nodes["laptop"].sinks["Blob-2"].received > 0  # now relayed by another robot
     assert team.nodes["r1"].counters.get("forwarded", 0) + team.nodes["r3"].counters.get("forwarded", 0) > 0
-    team.nodes["r2"].alive.add("laptop")
+    team.nodes["r2"].sight.alive.add("laptop")
     team.report_status()
     assert co.faults.links_down  # hysteresis: a link must stay up for heal_hold_s before plans use it
     team.clock.advance(co.config.heal_hold_s + 0.5)
@@ -344,11 +344,11 @@ def test_a_robot_back_from_a_freeze_gets_a_grace_before_its_link_reports_count(s
     team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, link_down_after_s=2.0))
     team.join()
     co = team.coordinator
-    team.nodes["r1"].alive.add("r3")
+    team.nodes["r1"].sight.alive.add("r3")
     team.report_status()  # r1-r3 seen up: from now on a report of it down would count at once
     co.on_liveliness("r3", False)  # frozen: its lease expired
     co.on_liveliness("r3", True)  # thawed
-    team.nodes["r3"].alive.discard("r1")  # its session to r1 is still reconnecting
+    team.nodes["r3"].sight.alive.discard("r1")  # its session to r1 is still reconnecting
     team.report_status()
     assert frozenset({"r1", "r3"}) not in co.faults.links_down
     team.clock.advance(2.5)  # still reported down after the grace: a real cut

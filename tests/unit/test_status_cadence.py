@@ -157,7 +157,7 @@ def test_a_resting_peer_is_not_declared_silent_between_its_statuses_and_is_when_
     r1._check_silence(heard + 4.2)  # two of its periods without a word: out of sight
     assert "r2" in r1.watch.silent and "r2" not in r1.relayer.direct
     # it has something to say again (a count alone is not: see above): back in sight, the normal cadence
-    r2.runtime.alive ^= {"r3"}  # a link seen or lost
+    r2.runtime.sight.alive.symmetric_difference_update({"r3"})  # a link seen or lost
     assert r2.publish_status(urgent=False)
     drain(hub, agents)
     heard = r1.watch.heard_at("r2")

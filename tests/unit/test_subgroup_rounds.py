@@ -353,7 +353,7 @@ def test_a_released_stage_leaves_the_inputs_behind_a_gap_to_their_producer_in_si
         rt.frames.admit(rt.hosted["Loc-2"], encode_frame(seq))
     hosted = rt.hosted["Loc-2"]
     runs = hosted.runs
-    assert hosted.gate.held_upstream(rt.wall()) and "r2" in rt.alive
+    assert hosted.gate.held_upstream(rt.wall()) and "r2" in rt.sight.alive
     rt.hosting.on_release(Release(stage="Loc-2", generation=101))
     assert "Loc-2" not in rt.hosted and "Loc-2" not in rt.hosting.orphans
     assert hosted.runs == runs and not rt.counters.get("released-inputs-run")
