@@ -383,8 +383,8 @@ class Agent:
         window = self.config.status_window_s * rt.clock.speed if rt.started else 0.0
         rt.errors.update(self.events.counts())  # dropped before the loop saw them (absolute counts)
         if self.traffic is not None and self.traffic.due(time.monotonic()):
-            rt.charge_control(self.traffic.poll(self._bus.links()), self.traffic.packets_by_peer)  # the control plane's bytes, metered
-        rt.charge_runtime(time.process_time())  # the runtime's own CPU (all but component code), metered
+            rt.metering.charge_control(self.traffic.poll(self._bus.links()), self.traffic.packets_by_peer)  # the control plane's bytes, metered
+        rt.metering.charge_runtime(time.process_time())  # the runtime's own CPU (all but component code), metered
         if self._bus.repeated:  # statuses put again while the loop was held up
             rt.counters["status-repeats"] = self._bus.repeated
         if self.watch.tokens_lost:  # peers a token that went took out of sight (`PeerWatch` counts them)

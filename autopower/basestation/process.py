@@ -565,8 +565,8 @@ class BaseStation:
                     if self.statuses_in.unapplied:  # changes from a whole status not held (missed or newer)
                         rt.counters["status-deltas-unapplied"] = self.statuses_in.unapplied
                     if self.traffic is not None and self.traffic.due(time.monotonic()):
-                        rt.charge_control(self.traffic.poll(self._bus.links()), self.traffic.packets_by_peer)  # its links' bytes, metered
-                    rt.charge_runtime(time.process_time())  # its own CPU, measured (mains: reported, not charged)
+                        rt.metering.charge_control(self.traffic.poll(self._bus.links()), self.traffic.packets_by_peer)  # its links' bytes, metered
+                    rt.metering.charge_runtime(time.process_time())  # its own CPU, measured (mains: reported, not charged)
                     built = None
                     if rt.started:  # held back when nothing in it is new but what drifts or counts
                         built = rt.status(self.config.status_window_s * rt.clock.speed, self.events.depth(),

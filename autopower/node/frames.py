@@ -46,6 +46,10 @@ class Frames:
         """Send the held results whose sink the plan's network routes again (`Holds.flush`)."""
         self.rt.holds.flush(self.rt.plan_view.network, self.send_frame)
 
+    def join_stats(self) -> dict[str, dict[str, int]]:
+        """Per fan-in stage hosted here: steps joined, inputs late, missing, empty steps."""
+        return self.rt.flows.stats(self.rt.hosted)
+
     def join_tick(self) -> None:
         """Run the fan-in steps whose wait is over (from the node's timer)."""
         speed, wall = self.rt.mission.speed if self.rt.mission else 1.0, self.rt.wall()

@@ -30,7 +30,7 @@ component that might spin belongs in a stage worker process (``--stage-workers o
 hung call's process is killed.
 
 The CPU time each call takes in its thread is added up (`component_cpu_s`): what a node's process
-spends beyond it is the runtime's own (`NodeRuntime.charge_runtime`). A hung call's CPU is counted
+spends beyond it is the runtime's own (`Metering.charge_runtime`). A hung call's CPU is counted
 up to the verdict; an abandoned thread that spins on is then the runtime's, which overstates it.
 """
 

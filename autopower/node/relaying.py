@@ -17,7 +17,7 @@ Everything else goes to the loop exactly as before: the last hop (this node cons
 next node out of sight (the loop's `Relayer` routes around it), before the mission, garbage.
 
 The loop's state is never touched from here. Each forward is noted (its header and virtual time)
-in a deque, and the loop charges them (`NodeRuntime.settle_relayed`, before every timer turn,
+in a deque, and the loop charges them (`Metering.settle_relayed`, before every timer turn,
 status and saved state): the radios' energy, receive on the incoming hop's medium and send on the outgoing one, as
 `on_data` charges it, and the "forwarded" count; so the battery, the status and the recording see
 the same energy as if the loop had forwarded each packet itself.

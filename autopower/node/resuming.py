@@ -140,7 +140,7 @@ class Resuming:
         """What a restarted process needs to carry on (None before the mission starts)."""
         if self.rt.mission is None or self.rt.meter is None:
             return None
-        self.rt.settle_relayed()
+        self.rt.metering.settle_relayed()
 
         meter = self.rt.meter
         sources = {n: {"run": s.run, "seq": s.produced, "missed": s.missed, "produced_total": s.produced_total,

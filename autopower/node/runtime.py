@@ -48,6 +48,7 @@ from autopower.node.hosting import Hosting
 from autopower.node.in_flight import frames_in_hand, stage_frames, transfer_frames
 from autopower.node.joining import Flows
 from autopower.node.meter import BatteryMeter
+from autopower.node.metering import Metering
 from autopower.node.plan_view import PlanView
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
 from autopower.node.production import Production
@@ -61,6 +62,7 @@ from autopower.node.stages import (
     HostedStage,
     SourceRunner,
 )
+from autopower.node.status import node_status
 from autopower.protocol import (
     Ack,
     Keys,
@@ -154,10 +156,9 @@ class NodeRuntime:
                            listeners=self._sink_listeners, tally=self.tally, wall=lambda: self.wall(),
                            mission_key=lambda: mission_key(self.mission) if self.mission is not None else None)
         self.guard = GuardedCalls(node)  # component calls: off this thread, with a time limit
-        self._cpu_at: tuple[float, float] | None = None  # (process, component) CPU at the last `charge_runtime`
-        # since the mission started in this process, on the computer running it (`charge_runtime`):
-        self.runtime_cpu_s = 0.0  # the runtime's CPU
-        self.component_cpu_s = 0.0  # the component code's (runs, sources, state, constructors)
+        # what the meter is charged beyond the chain's own work: forwarding on arrival, the control
+        # plane's bytes, the runtime's CPU
+        self.metering = Metering(self)
         self.wall: Callable[[], float] = wall or time.time
         self.perf: Callable[[], float] = perf or time.perf_counter
         # How a message for one node leaves: the process gives its `Relayer.send`, so that a node
@@ -172,21 +173,6 @@ class NodeRuntime:
         """On the transport's thread: forward ``payload`` if it only crosses this node (True), or
         leave it to the loop (`on_data`). See `autopower.node.relaying`."""
         return self.arrivals.relay_now(payload)
-
-    def settle_relayed(self) -> None:
-        """On the loop: charge the meter and count what was forwarded on arrival since last time."""
-        if self.meter is None:
-            return  # (forwarded before the mission's meter exists: charged at the next call)
-        n, slow = self.arrivals.settle(self.meter, self.control_plane)
-        if n:
-            self.tally("forwarded", n)
-            self.tally("forwarded-on-arrival", n)
-        if slow:
-            self.tally("relay-congested", slow)
-
-    def join_stats(self) -> dict[str, dict[str, int]]:
-        """Per fan-in stage hosted here: steps joined, inputs late, missing, empty steps."""
-        return self.flows.stats(self.hosted)
 
     def listen(self, listener: SinkListener) -> None:
         """Tell ``listener`` of every output reaching this node as its chain's sink, and of every
@@ -340,7 +326,7 @@ class NodeRuntime:
                     or hosting.parked_transfers)
 
     def on_timer(self) -> None:
-        self.settle_relayed()
+        self.metering.settle_relayed()
         if self.components.has_workers:  # stages in worker processes: results in, hung runs killed
             self.components.collect_results()
             self.components.check_workers()
@@ -366,85 +352,11 @@ class NodeRuntime:
         self.sight.on_liveliness(node, alive)
 
     # ---- status ----------------------------------------------------------------------------------------
-    def status(self, window_s: float, queue_depth: int = 0, queue_wait_s: float = 0.0) -> NodeStatus:
-        self.settle_relayed()
-        now = self.now()
-        power, utilisation = self.meter.window(now, window_s) if self.meter else ({}, 0.0)
-        sources = self.feeds.stats()
-        return NodeStatus(
-            node=self.node, t_virtual=now, t_unix=self.wall(), plan_epoch=self.plan.epoch if self.plan else -1,
-            initial_j=self.meter.initial_j if self.meter else None,
-            battery_j=self.meter.battery_j if self.meter else None,
-            energy_j=dict(self.meter.energy_j) if self.meter else {},
-            power_w=power, cpu_utilisation=utilisation,
-            hosted={n: h.lifecycle.value for n, h in self.hosted.items()},
-            sources=sources,
-            sinks=self.sinking.stats(),
-            links=self.sight.links(),
-            runs={n: h.runs for n, h in self.hosted.items() if h.runs},
-            compute_ms={n: h.compute_s / h.runs * 1e3 for n, h in self.hosted.items() if h.runs},
-            queue_depth=queue_depth, errors=dict(self.errors),
-            counters={**self.counters, "held-outputs": len(self.holds), **self.custody.stats()},
-            depleted=bool(self.meter and self.meter.depleted),
-            acks_wanted=tuple(sorted(self.acknowledging.ack_interest())),
-            failed=dict(self.hosting.failed),
-            plan_incarnation=self.plan.incarnation if self.plan else 0,
-            plan_leader=self.plan.leader if self.plan else "",
-            # for a base station that does not run our plan (one that restarted takes over the mission
-            # with it, `basestation.takeover`); not in every status: it grows with the team (its
-            # starting energies: 1.4 of a robot's 2.1 kB at 100 robots)
-            mission=self.mission if self.sight.mission_wanted() else None,
-            generations={n: h.generation for n, h in self.hosted.items()},
-            plan_operator=self.plan.operator if self.plan else None,
-            model_w=self.plan_view.model_w,
-            down=self.resuming.down,
-            queue_wait_s=queue_wait_s,
-            zid=self.bus.zid,
-            link_bytes=self.control_plane.link_bytes(),
-            link_packets=self.control_plane.link_packets(),
-            control_bytes=self.control_plane.control_bytes(),
-            runtime_cpu_s=self.runtime_cpu_s,
-            component_cpu_s=self.component_cpu_s,
-        )
-
-    def charge_control(self, by_zid: dict[str, tuple[int, int]],
-                       packets_by_zid: dict[str, tuple[int, int]] | None = None) -> None:
-        """The bytes each peer session exchanged with this node's so far (`LinkTraffic.poll`): what
-        was not chain packets is charged to the radio of its link as the control plane's. Counted
-        from the mission's start: before it, the totals only set where counting starts. And the
-        packets (`LinkTraffic.packets_by_peer`), reported in the status (`link_packets`)."""
-        if self.meter is None:
-            self.control_plane.start_from(by_zid, packets_by_zid)
-            return
-        self.control_plane.count_packets(packets_by_zid or {})
-        unpriced = self.control_plane.charge(by_zid, self.meter, self._medium_to, self.now())
-        if unpriced:
-            self.tally("control-bytes-unpriced", unpriced)
-
-    def charge_runtime(self, process_cpu_s: float) -> None:
-        """The CPU this node's process has used so far (``time.process_time``, every thread: the loop,
-        Zenoh's, the guard's): what its component code did not use (`GuardedCalls.component_cpu_s`)
-        is the runtime's, charged through the platform's ``slowdown`` (`BatteryMeter.charge_runtime`).
-        Counted from the mission's start: before it, the readings only set where counting starts."""
-        reading = (process_cpu_s, self.guard.component_cpu_s)
-        last, self._cpu_at = self._cpu_at, reading
-        if self.meter is None or last is None:
-            return
-        components = max(0.0, reading[1] - last[1])
-        runtime = max(0.0, (reading[0] - last[0]) - components)  # a call's CPU counted late can make it dip
-        self.component_cpu_s += components
-        self.runtime_cpu_s += runtime
-        self.meter.charge_runtime(runtime, self.now())
-
-    def _medium_to(self, peer: str) -> str | None:
-        """The radio this node talks to ``peer`` on: its plan's link, else its only radio."""
-        network = self.plan_view.network
-        medium = network.medium_between(self.node, peer) if network is not None else None
-        if medium is None and self.meter is not None and len(self.meter.media) == 1:
-            (medium,) = self.meter.media
-        return medium
-
     # ---- acknowledgements (`autopower.node.acknowledging`) ---------------------------------------------
+    def status(self, window_s: float, queue_depth: int = 0, queue_wait_s: float = 0.0) -> NodeStatus:
+        """This node's status (`autopower.node.status`)."""
+        return node_status(self, window_s, queue_depth, queue_wait_s)
+
     def on_ack(self, ack: Ack) -> None:
         """Another node's acknowledgement (`Acknowledging.on_ack`)."""
         self.acknowledging.on_ack(ack)

@@ -466,7 +466,7 @@ class NodeStatus:
     link_packets: tuple[int, int] = (0, 0)
     # CPU seconds on the computer running the node since the mission started in this process: the
     # runtime's own (all but component code; charged as `cpu_runtime` through its platform's
-    # slowdown, `NodeRuntime.charge_runtime`) and its component code's
+    # slowdown, `Metering.charge_runtime`) and its component code's
     runtime_cpu_s: float = 0.0
     component_cpu_s: float = 0.0
 

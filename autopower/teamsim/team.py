@@ -304,7 +304,7 @@ class World:
 
     def _energy(self, robot: str, shell: Shell) -> None:
         rt = shell.rt
-        rt.settle_relayed()
+        rt.metering.settle_relayed()
         meter = rt.meter
         meter.advance(rt.now())
         now, event = self.scheduler.now, self.trace.events

@@ -213,7 +213,7 @@ class SimTeam:
             self.exchange_statuses()
 
     def energy(self, robot: str) -> float:
-        self.nodes[robot].settle_relayed()  # what it forwarded on arrival since its last timer
+        self.nodes[robot].metering.settle_relayed()  # what it forwarded on arrival since its last timer
         meter = self.nodes[robot].meter
         meter.advance(self.clock.t)
         return meter.consumed_j

@@ -132,7 +132,7 @@ def test_a_robot_pays_its_control_bytes_on_the_radio_of_each_link_apart_from_the
     received_data = r1.control_plane.data.get(("laptop", "receive"), 0)
     r1.meter.advance(r1.now())
     before = dict(r1.meter.energy_j)
-    r1.charge_control({ZID_LAPTOP: (sent_data + 20_000, received_data + 8_000)})
+    r1.metering.charge_control({ZID_LAPTOP: (sent_data + 20_000, received_data + 8_000)})
     radio = SC.radios[medium]
     part = r1.meter.energy_j[f"{medium}:control"]
     assert part == pytest.approx(radio.send_w * airtime_s(20_000, radio) + radio.receive_w * airtime_s(8_000, radio))
@@ -150,10 +150,10 @@ def test_before_the_mission_the_bytes_only_set_where_counting_starts():
     team = SimTeam(SC, config=CoordinatorConfig(speed=1.0, auto_replan=False))
     r1 = team.nodes["r1"]
     r1.control_plane.learn_zid("laptop", ZID_LAPTOP)
-    r1.charge_control({ZID_LAPTOP: (5_000, 5_000)})  # joining: no meter yet
+    r1.metering.charge_control({ZID_LAPTOP: (5_000, 5_000)})  # joining: no meter yet
     team.join()
     team.run_until(2.0)
-    r1.charge_control({ZID_LAPTOP: (5_000 + r1.control_plane.data.get(("laptop", "send"), 0) + 100,
+    r1.metering.charge_control({ZID_LAPTOP: (5_000 + r1.control_plane.data.get(("laptop", "send"), 0) + 100,
                                     5_000 + r1.control_plane.data.get(("laptop", "receive"), 0))})
     assert r1.control_plane.control_bytes() == (100, 0)
     assert r1.control_plane.link_bytes()[0] == r1.control_plane.data[("laptop", "send")] + 100
@@ -167,10 +167,10 @@ def test_a_node_reports_the_packets_its_links_carried_since_the_mission_started(
     team = SimTeam(SC, config=CoordinatorConfig(speed=1.0, auto_replan=False))
     r1 = team.nodes["r1"]
     r1.control_plane.learn_zid("laptop", ZID_LAPTOP)
-    r1.charge_control({ZID_LAPTOP: (5_000, 5_000)}, {ZID_LAPTOP: (40, 30), "c3" * 16: (7, 7)})  # joining
+    r1.metering.charge_control({ZID_LAPTOP: (5_000, 5_000)}, {ZID_LAPTOP: (40, 30), "c3" * 16: (7, 7)})  # joining
     team.join()
     team.run_until(2.0)
-    r1.charge_control({ZID_LAPTOP: (6_000, 6_000)}, {ZID_LAPTOP: (52, 33), "c3" * 16: (9, 9)})
+    r1.metering.charge_control({ZID_LAPTOP: (6_000, 6_000)}, {ZID_LAPTOP: (52, 33), "c3" * 16: (9, 9)})
     status = r1.status(1.0)
     assert status.link_packets == (12, 3)  # since the mission started; a session no one named is not counted
     links = link_totals(dataclasses.asdict(status))

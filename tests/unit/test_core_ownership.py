@@ -16,7 +16,7 @@ NODE_CORE = sorted((ROOT / "node").glob("*.py"))
 COORDINATOR_CORE = [ROOT / "basestation" / f"{name}.py"
                     for name in ("coordinator", "faults", "deciding", "prediction", "placing", "runs", "publishing",
                                  "operating", "takeover", "listening")]
-CORE_CLASSES = {"TeamListening", "NodeRuntime", "Frames", "Hosting", "Acknowledging", "Components", "Sinks", "PlanView", "Resuming", "Production", "Sight", "ArrivalRelay", "Flows", "Holds", "Sources",
+CORE_CLASSES = {"TeamListening", "NodeRuntime", "Frames", "Hosting", "Acknowledging", "Components", "Sinks", "PlanView", "Resuming", "Production", "Sight", "Metering", "ArrivalRelay", "Flows", "Holds", "Sources",
                 "Coordinator", "TeamFaults", "Deciding", "AheadQuestion", "Prediction", "Placement", "Generations",
                 "ChainRuns", "PlanPublisher", "OperatorControl", "Takeover"}
 # the packages that build and drive core objects (the layers above `node`: test_layering.py)

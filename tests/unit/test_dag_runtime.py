@@ -80,7 +80,7 @@ def test_a_late_input_runs_its_step_without_it_then_is_dropped_once():
     assert without == [6, 7, 8]
     assert all("r1" not in m["robots"] or m["robots"]["r1"]["age_steps"] > 0 for m in got if m["missing"])
     laptop = team.nodes["laptop"]
-    stats = laptop.join_stats()["TeamMap"]
+    stats = laptop.frames.join_stats()["TeamMap"]
     assert stats["late"] == len(without) and stats["missing"] == len(without)  # each came once, late
     assert laptop.errors.get("join-late") == len(without)
     assert laptop.errors.get("duplicate-input") is None
@@ -98,7 +98,7 @@ def test_a_resent_input_within_the_bound_joins_its_step():
     assert team.lost_in_cuts >= 8 and team.nodes["r1"].counters["resent-frames"] >= 8
     got = maps(outputs)
     assert [m["step"] for m in got] == list(range(len(got))) and all(not m["missing"] for m in got)
-    assert team.nodes["laptop"].join_stats()["TeamMap"]["late"] == 0
+    assert team.nodes["laptop"].frames.join_stats()["TeamMap"]["late"] == 0
 
 
 def test_a_lost_input_never_stalls_the_join():
@@ -121,7 +121,7 @@ def test_a_lost_input_never_stalls_the_join():
     assert [m["step"] for m in got] == list(range(len(got))) and len(got) >= 19
     assert all(m["robots"]["r2"]["age_steps"] == 0 and m["robots"]["r3"]["age_steps"] == 0 for m in got)
     assert not got[-1]["missing"] and "Loc-1" not in team.coordinator.placing.runs.running
-    stats = team.nodes["laptop"].join_stats()["TeamMap"]
+    stats = team.nodes["laptop"].frames.join_stats()["TeamMap"]
     assert stats["late"] == 0 and stats["missing"] >= len(cut_steps)
 
 

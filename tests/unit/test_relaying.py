@@ -103,7 +103,7 @@ def test_what_only_the_loop_may_judge_is_left_to_it(case, payload):
     hub.published.clear()
     assert not rt.relay_now(payload), case
     assert hub.published == []
-    rt.settle_relayed()
+    rt.metering.settle_relayed()
     assert "forwarded" not in rt.counters
 
 
@@ -150,7 +150,7 @@ def test_forwards_from_several_transport_threads_are_all_charged():
 
     def settling():  # the loop, charging meanwhile
         while not done.is_set():
-            rt.settle_relayed()
+            rt.metering.settle_relayed()
 
     threads = [threading.Thread(target=transport) for _ in range(4)]
     loop_thread = threading.Thread(target=settling)
@@ -161,7 +161,7 @@ def test_forwards_from_several_transport_threads_are_all_charged():
         t.join()
     done.set()
     loop_thread.join()
-    rt.settle_relayed()
+    rt.metering.settle_relayed()
     for payload in payloads * 4:
         loop.frames.on_data(payload)
     assert rt.counters["forwarded"] == 1600
@@ -187,7 +187,7 @@ def test_an_agent_forwards_on_arrival_only_when_no_data_waits_for_its_loop():
         assert agent.events.bulk_depth() == 0 and len(hub.published) == 3
         assert [p for _, p, _ in hub.published] == [
             encode(dataclasses.replace(Packet(**_fields(packet(i))), hop=2)) for i in range(3)]
-        agent.runtime.settle_relayed()
+        agent.runtime.metering.settle_relayed()
         assert agent.runtime.counters["forwarded"] == 3 and agent.runtime.counters["forwarded-on-arrival"] == 1
 
 

@@ -1,6 +1,6 @@
 """The runtime's own CPU: what a node's process spends beyond its component code, measured on the
 computer running it and charged to a robot's battery through its platform's ``slowdown`` as
-``cpu_runtime`` (autopower.node.guard, BatteryMeter.charge_runtime, NodeRuntime.charge_runtime)."""
+``cpu_runtime`` (autopower.node.guard, BatteryMeter.charge_runtime, Metering.charge_runtime)."""
 
 from __future__ import annotations
 
@@ -100,20 +100,20 @@ def test_no_slowdown_or_mains_power_pays_nothing():
 def test_a_node_charges_its_process_cpu_beyond_its_component_code_from_the_missions_start():
     team = SimTeam(SC, config=CoordinatorConfig(speed=1.0, auto_replan=False))
     r1 = team.nodes["r1"]
-    r1.charge_runtime(100.0)  # joining: no meter yet, the reading only sets where counting starts
+    r1.metering.charge_runtime(100.0)  # joining: no meter yet, the reading only sets where counting starts
     components_before = r1.guard.component_cpu_s
     team.join()
     team.run_until(2.0)  # builds its sources and runs its stages: component code
-    r1.charge_runtime(101.0)  # 1 s of process CPU since the mission started here...
+    r1.metering.charge_runtime(101.0)  # 1 s of process CPU since the mission started here...
     components = r1.guard.component_cpu_s - components_before
     assert 0 < components < 1.0
-    assert r1.component_cpu_s == pytest.approx(components)
-    assert r1.runtime_cpu_s == pytest.approx(1.0 - components)  # ...of which the components' is not the runtime's
+    assert r1.metering.component_cpu_s == pytest.approx(components)
+    assert r1.metering.runtime_cpu_s == pytest.approx(1.0 - components)  # ...of which the components' is not the runtime's
     assert r1.meter.energy_j[CPU_RUNTIME] == pytest.approx((SITSANG.busy_w - SITSANG.idle_w) * (1.0 - components) * 50)
     r1.guard.component_cpu_s += 0.3  # a long run counted after the process reading: never negative
-    r1.charge_runtime(101.1)
-    assert r1.runtime_cpu_s == pytest.approx(1.0 - components)
+    r1.metering.charge_runtime(101.1)
+    assert r1.metering.runtime_cpu_s == pytest.approx(1.0 - components)
     status = r1.status(1.0)
-    assert status.runtime_cpu_s == pytest.approx(r1.runtime_cpu_s)
+    assert status.runtime_cpu_s == pytest.approx(r1.metering.runtime_cpu_s)
     assert status.component_cpu_s == pytest.approx(components + 0.3)
     assert status.energy_j[CPU_RUNTIME] == pytest.approx(r1.meter.energy_j[CPU_RUNTIME])
