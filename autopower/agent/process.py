@@ -411,7 +411,7 @@ class Agent:
                 # out of sight: through a robot that still sees them, to the base station and to the
                 # robots whose frames we consume (they route by what we see)
                 self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
-        rt.send_acks(self.relayer.reachable, built.queue_wait_s)  # to the nodes that sent us frames
+        rt.acknowledging.send(self.relayer.reachable, built.queue_wait_s)  # to the nodes that sent us frames
         return status is not None
 
     def _quiet(self) -> bool:

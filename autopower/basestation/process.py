@@ -595,7 +595,7 @@ class BaseStation:
                             for robot, key, payload in self.peer_views.addressed(co, status, now,
                                                                                  status.next_status_s):
                                 self._send_view(robot, key, payload, status.next_status_s)
-                        rt.send_acks(self.relayer.reachable, built.queue_wait_s)  # to the nodes that sent us frames
+                        rt.acknowledging.send(self.relayer.reachable, built.queue_wait_s)  # to the nodes that sent us frames
                     if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:
                         self.stop_reason = "parent exited"
                         break

@@ -184,6 +184,12 @@ class Acknowledging:
             return chain.source
         return self.rt.plan.placement.get(chain.stages[index - 1].name) if self.rt.plan else None
 
+    def producer_in_sight(self, hosted: HostedStage) -> bool:
+        """Is the node that feeds ``hosted`` (its chain's source, or the previous stage's host) this
+        one or in direct sight now: alive to resend what it holds?"""
+        producer = self.producer_of(hosted)
+        return producer is not None and (producer == self.rt.node or producer in self.rt.sight.alive)
+
     def producers_by_chain(self) -> dict[str, set[str]]:
         """Per chain we consume, the nodes the plan has send us its frames: our acknowledgements
         (and our status) must reach them even when they are out of sight (relayed)."""

@@ -418,7 +418,7 @@ class Hosting:
         """
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:
-            held_upstream = hosted.gate.held_upstream(self.rt.wall()) and self._producer_in_sight(hosted)
+            held_upstream = hosted.gate.held_upstream(self.rt.wall()) and self.rt.acknowledging.producer_in_sight(hosted)
             waiting = hosted.gate.take_pending()
             if waiting and held_upstream:
                 # their producer holds the gap and everything after it until a gate runs them
@@ -440,12 +440,6 @@ class Hosting:
         chain = self.rt.stage_index.get(msg.stage, (None, 0))[0]
         if chain is None or self._disabled(chain.name):
             self.orphans.pop(msg.stage, None)
-
-    def _producer_in_sight(self, hosted: HostedStage) -> bool:
-        """Is the node that feeds ``hosted`` (its chain's source, or the previous stage's host) this
-        one or in direct sight now: alive to resend what it holds?"""
-        producer = self.rt.acknowledging.producer_of(hosted)
-        return producer is not None and (producer == self.rt.node or producer in self.rt.sight.alive)
 
     def yield_to_newer(self, status: NodeStatus | PeerStatus) -> bool:
         """Stop an instance here that a newer one running on the peer ``status`` comes from supersedes;

@@ -228,7 +228,11 @@ class NodeRuntime:
             self.sinking.replay_journal()  # at mission time
             if not self.platform.mains and self.node not in plan.mission.energies_j:
                 raise AutoPowerError(f"the mission gives no starting energy for {self.node}")
-            self._use_variants(plan.variants)
+            scenario = with_variants(self.scenario, plan.variants, self.count)
+            if scenario is not None:
+                self.scenario = scenario
+                self.chains = {c.name: c for c in scenario.chains}
+                self.stage_index = {s.name: (c, i) for c in scenario.chains for i, s in enumerate(c.stages)}
             self.meter = BatteryMeter(platform=self.platform, radios=self.scenario.radios,
                                       initial_j=plan.mission.energies_j.get(self.node),
                                       t0=max(0.0, self.clock.now()),
@@ -258,20 +262,6 @@ class NodeRuntime:
         self.hosting.send_parked()
         self.frames.flush_held()
         self.hosting.replay_early()
-
-    def _use_variants(self, variants: dict[str, str]) -> None:
-        """The mission's quality variants (fixed at its start): each chain's period, message sizes
-        and modelled latency become its variant's, and its component and source are built with the
-        variant's parameters (`model.variants`, `chains.variants`)."""
-        if not variants:
-            return
-        try:
-            self.scenario = apply_variants(self.scenario, variants)
-        except AutoPowerError as exc:  # a plan naming variants this scenario lacks: run as declared
-            self.count("unknown-variant", str(exc)[:200])
-            return
-        self.chains = {c.name: c for c in self.scenario.chains}
-        self.stage_index = {s.name: (c, i) for c in self.scenario.chains for i, s in enumerate(c.stages)}
 
     def resume_state(self) -> dict | None:
         """What a restarted process needs to carry on (None before the mission starts; `Resuming.state`)."""
@@ -365,10 +355,6 @@ class NodeRuntime:
         """What this node consumed, as one `Ack` per node that sent it frames (`Acknowledging.acks`)."""
         return self.acknowledging.acks(queue_wait_s)
 
-    def send_acks(self, reachable: Callable[[str], bool], queue_wait_s: float = 0.0) -> int:
-        """Send this node's acknowledgements with its status (`Acknowledging.send`); how many were sent."""
-        return self.acknowledging.send(reachable, queue_wait_s)
-
     # ---- dispatch -----------------------------------------------------------------------------------------
     def on_message(self, key: str, payload: bytes) -> bool:
         """Handle a message on one of this node's keys; False if the key is not ours.
@@ -395,3 +381,17 @@ class NodeRuntime:
         except ProtocolError as exc:
             self.count("garbled", f"on {key}: {exc}")
         return True
+
+
+def with_variants(scenario: Scenario, variants: dict[str, str], count: Callable[..., None]) -> Scenario | None:
+    """The mission's quality variants (fixed at its start): each chain's period, message sizes and
+    modelled latency become its variant's, and its component and source are built with the variant's
+    parameters (`model.variants`, `chains.variants`). None when the plan names none, or names variants
+    the scenario lacks (counted with ``count``: it runs as declared)."""
+    if not variants:
+        return None
+    try:
+        return apply_variants(scenario, variants)
+    except AutoPowerError as exc:
+        count("unknown-variant", str(exc)[:200])
+        return None

@@ -10,7 +10,7 @@ it produced); the counts are for the recording and the live table, which see the
 A running robot's status to the base station was most of the team's control bytes, sent every
 period because a count had moved: over GSM that alone kept the radio busy a third of the time.
 
-What flowed is still acknowledged every period (`NodeRuntime.send_acks`): custody, not the
+What flowed is still acknowledged every period (`Acknowledging.send`): custody, not the
 status, needs that, and a producer's frames must not wait for the next heartbeat to be let go.
 
 Every status announces when the next one is due (``NodeStatus.next_status_s``): a receiver's

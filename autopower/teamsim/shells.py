@@ -322,7 +322,7 @@ class RobotShell(Shell):
                                          sorted(rt.acknowledging.producers() - {base}))):
                 self.bus.publish(key, payload, reliable=False)
                 self.relayer.send_beyond_sight(dests, key, payload, reliable=False)
-        rt.send_acks(self.relayer.reachable, built.queue_wait_s)
+        rt.acknowledging.send(self.relayer.reachable, built.queue_wait_s)
         self._status_sent(built)
 
     def save_resume(self) -> None:
@@ -534,5 +534,5 @@ class BaseShell(Shell):
             for robot, key, payload in self.peer_views.addressed(co, status, w.scheduler.wall(),
                                                                  status.next_status_s):
                 self._send_view(robot, key, payload)
-        rt.send_acks(self.relayer.reachable, built.queue_wait_s)
+        rt.acknowledging.send(self.relayer.reachable, built.queue_wait_s)
         self._status_sent(built)

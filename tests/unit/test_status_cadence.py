@@ -82,7 +82,7 @@ def test_a_held_back_status_still_acknowledges_what_flowed(team, monkeypatch):  
     hub, agents, _ = team
     r2 = agents["r2"]
     acks = []
-    monkeypatch.setattr(r2.runtime, "send_acks", lambda reachable, wait=0.0: acks.append(wait) or 0)
+    monkeypatch.setattr(r2.runtime.acknowledging, "send", lambda reachable, wait=0.0: acks.append(wait) or 0)
     monkeypatch.setattr(r2.runtime, "idle", lambda: False)  # a chain runs through it
     assert r2.publish_status()
     assert r2.publish_status(urgent=False)  # nothing new: it says the next comes after the heartbeat
@@ -110,7 +110,7 @@ def test_a_held_back_status_records_what_its_sink_committed_before_anything_ackn
 
     monkeypatch.setattr(r2.runtime.sinking, "store", Notes())
     monkeypatch.setattr(r2._bus, "flush_recording", lambda: order.append("flush"))
-    monkeypatch.setattr(r2.runtime, "send_acks", lambda reachable, wait=0.0: order.append("acks") or 0)
+    monkeypatch.setattr(r2.runtime.acknowledging, "send", lambda reachable, wait=0.0: order.append("acks") or 0)
     monkeypatch.setattr(r2.runtime, "idle", lambda: False)  # a chain runs through it
     assert r2.publish_status() and r2.publish_status(urgent=False)
     order.clear()
