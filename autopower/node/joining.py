@@ -16,7 +16,7 @@ that edge had delivered an input for an earlier step, "join-not-started" (a coun
 not (sources start a period or two apart when a team starts). A producer whose first output (seq
 0 of its run) came for a later step is not waited for at all: its input for this step never comes. An input that arrives
 after its step ran is *late*: consumed (acknowledged, never run twice), dropped and counted
-("join-late"). A step none of whose inputs came is skipped (`join_stats`: empty_steps).
+("join-late"). A step none of whose inputs came is skipped (`Frames.join_stats`: empty_steps).
 The bound is above the custody resend time (about 1 s), so a lost frame that a resend recovers in
 time still joins its own step.
 

@@ -17,13 +17,33 @@ Every frame a node produces (a source's input, a stage's output) stays in its cu
 still lacks it a while after it was sent gets it resent. That is what makes each output reach
 its sink exactly once even when a link is cut silently with frames in flight.
 
-This module holds the node's state, plan, sources, timers and status; the class is assembled from
-parts that use that state: `frames.py` (the data plane), `hosting.py` (the control messages
-that start, move and stop stages) and `acknowledging.py` (custody acknowledgements and resends).
-Collaborators that own their state: `Flows` (`joining.py`, the DAG flows' fan-out and fan-in),
-`ArrivalRelay` (`relaying.py`, forwarding packets that only cross this node on the transport's
-thread), `Custody`, the gates and ledgers (`sequencing.py`) and the meters.
-What a node hosts is described in `stages.py`.
+`NodeRuntime` is the façade the processes, the simulator and the tests drive (events in: messages,
+the timer, acknowledgements, peers' statuses, liveliness; the status, acknowledgements, resume state
+and what it has in hand out). It owns the node's context (its name, scenario, chains, keys and ways
+out), the mission with its clock and battery meter, and the counts of what happened. The rest is in
+collaborators, each owning its state, that the façade and each other call through methods; a
+collaborator holds the runtime and never assigns another's attributes:
+
+- ``plan_view`` (`plan_view.PlanView`): the plan run, its network, the model's power for it;
+- ``frames`` (`frames.Frames`): the data path: sending, forwarding, receiving, running a stage's
+  inputs (the chains' weights);
+- ``hosting`` (`hosting.Hosting`): the orders that start, move and stop stages; the stages hosted, the
+  inputs held for them, what failed, parked migration states;
+- ``components`` (`components.Components`): building the stages' components, in this process or in
+  worker processes;
+- ``acknowledging`` (`acknowledging.Acknowledging`): custody's acknowledgements and resends;
+- ``sinking`` (`sinks.Sinks`): the sink ledgers and their store;
+- ``production`` (`production.Production`): the sources' captures (the sources themselves are
+  ``feeds``, `sources.Sources`);
+- ``resuming`` (`resuming.Resuming`): carrying on from a crashed process's saved state;
+- ``sight`` (`sight.Sight`): the nodes in sight and what the base station said;
+- ``metering`` (`metering.Metering`): forwarding on arrival, control-plane bytes, the runtime's CPU.
+
+Collaborators built with what they use rather than the runtime: `Flows` (``flows``, `joining.py`, the
+DAG flows), `ArrivalRelay` (``arrivals``, `relaying.py`, forwarding packets that only cross this node
+on the transport's thread), `Holds` (``holds``, results held for a sink out of reach), `Custody`,
+the gates and ledgers (`sequencing.py`) and the meters. The status is built in `status.py`; what a
+node hosts is described in `stages.py`.
 """
 
 from __future__ import annotations

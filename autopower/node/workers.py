@@ -8,7 +8,7 @@ input and goes on; the result comes back as an event and the loop emits it as it
 in the order it was given them (up to `WINDOW` ahead: it never waits for the loop between runs),
 which keeps each stage's order; different stages run on different cores. An input handed to a
 worker is acknowledged to its producer only once its output has gone out (`outstanding`, used by
-`Frames.acknowledged`), and a node whose worker has `WINDOW` + `STAGE_QUEUE` inputs refuses the
+`Acknowledging.acknowledged`), and a node whose worker has `WINDOW` + `STAGE_QUEUE` inputs refuses the
 next one before its gate takes it (`room`): either way the producer keeps it in custody.
 
 How: a *zygote* (`stage_worker.py`) is started once per node with an explicit environment (no
@@ -250,7 +250,7 @@ class StageWorker:
     def room(self) -> int:
         """How many more inputs it takes (`WINDOW` handed over + `STAGE_QUEUE` waiting, at most).
 
-        The node asks before its stage's gate takes an input (`Frames._admit`): an input it
+        The node asks before its stage's gate takes an input (`Frames.admit`): an input it
         refuses stays in its producer's custody and is resent, where one dropped after the gate
         would be lost (the gate counts it consumed)."""
         return WINDOW + STAGE_QUEUE - len(self.sent) - len(self.waiting)
