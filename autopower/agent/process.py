@@ -151,9 +151,10 @@ class Agent:
         self.runtime.production.prepare()  # before anyone sees us: a camera's scene takes a while to render
         # what is for this robot (data, control, relayed control, what others address to it) on one
         # subscription (`Keys.node_all`); the peers' statuses as robots need them (`PeerStatus`):
-        # whole statuses go to base stations
+        # whole statuses go to base stations; its plans come on its control key (`PlanDelivery`:
+        # the plan key carries every plan to base stations and recorders)
         self._handles.append(bus.subscribe(keys.node_all(robot), self._on_own_key))
-        for key in (keys.plan, keys.peer_all, keys.subgroup):
+        for key in (keys.peer_all, keys.subgroup):
             self._handles.append(bus.subscribe(key, self.events.on_message))
         self._handles.append(bus.watch_liveliness(keys.alive_all, self.events.on_liveliness))
         # Presence last: once the base station sees us, everything we need is declared.

@@ -30,7 +30,7 @@ Before deciding anything it listens to the team (`takeover.py`): robots that alr
 `Coordinator` is the façade the process and the simulator drive (events in: liveliness, statuses,
 answers, operator commands, the timer); it owns the team view (who is present, departed or awaited,
 the robots' statuses, the mission and its clock, the notes) and the ways out (``send_to``,
-``also_relay``, ``on_own_plan``). The rest is in collaborators, each owning its state, that the
+``on_own_plan``). The rest is in collaborators, each owning its state, that the
 façade and each other call through methods:
 
 - ``deciding`` (`deciding.Deciding`): team view -> policy -> target; the decider, the decisions,
@@ -39,7 +39,8 @@ façade and each other call through methods:
   battery baselines;
 - ``placing`` (`placing.Placement`): target and confirmed placement, migrations, generations and the
   chains' runs (`runs.ChainRuns`);
-- ``plans`` (`publishing.PlanPublisher`): the plans' epoch and when they go out;
+- ``plans`` (`publishing.PlanPublisher`): the plans' epoch and when they go out; its ``delivery``
+  (`delivery.PlanDelivery`): which robot gets which plan when, and the plan each robot holds;
 - ``operating`` (`operating.OperatorControl`): the operator's commands and settings, the snapshot;
 - ``takeover`` (`takeover.Takeover`): starting the mission or adopting a running team, the
   incarnation and leader id, a rival base station;
@@ -113,6 +114,9 @@ class CoordinatorConfig:
     # stage) makes one plan, not one each: every new plan costs each robot a decode and a status
     # acknowledging it to each of its peers
     plan_batch_s: float = 0.1
+    # wall seconds a robot may hold a plan older than the newest when the newer ones change nothing it
+    # acts on (`PlanDelivery`): it gets them all in one change then, or once no order waits
+    plan_catch_up_s: float = 1.0
     link_down_after_s: float = 3.0  # wall seconds a never-seen-up link must be reported down before it counts
     heal_hold_s: float = 2.0  # wall seconds a link must be back before plans may use it again (no flapping)
     variants: dict[str, str] = field(default_factory=dict)  # chain -> quality variant, fixed by the operator
@@ -132,7 +136,6 @@ class Coordinator:
                  leader: str | None = None, incarnation: int = 0,
                  perf_fn: Callable[[], float] = time.perf_counter,
                  send_to: Callable[[str, str, bytes], object] | None = None,
-                 also_relay: Callable[[list[str], str, bytes], object] | None = None,
                  on_own_plan: Callable[[PlanUpdate], object] | None = None,
                  on_decision_answer: Callable[[], object] | None = None):
         """``policy`` replaces the one named by ``config.policy`` (tests inject one to watch it).
@@ -141,9 +144,8 @@ class Coordinator:
         ``incarnation`` is the lowest it starts at (what its host remembers, plus one).
 
         How messages leave, from the process: ``send_to(node, key, payload)`` sends to one node
-        (its `Relayer` reaches robots out of sight through other agents; default: publish),
-        ``also_relay(nodes, key, payload)`` relays what was published to those of ``nodes`` out
-        of sight (default: nobody), and ``on_own_plan(plan)`` hands each plan to the base
+        (its `Relayer` reaches robots out of sight through other agents; default: publish: each
+        robot's plans go so, `PlanDelivery`), and ``on_own_plan(plan)`` hands each plan to the base
         station's own host before it is published (not after a trip through Zenoh's loopback:
         after a takeover the robots' held results follow the plan at once, and a host without
         the mission would drop them).
@@ -166,7 +168,6 @@ class Coordinator:
         self.robot_names = frozenset(self.robots)  # (asked for every robot at every turn of a fleet)
         self.chain_of = {s.name: c for c in scenario.chains for s in c.stages}
         self.send_to = send_to or (lambda node, key, payload: self.bus.publish(key, payload))
-        self.also_relay = also_relay or (lambda nodes, key, payload: None)
         self.on_own_plan = on_own_plan or (lambda plan: None)
 
         # the team view

@@ -402,7 +402,7 @@ class Deciding:
         team = self.team
         if not team.config.auto_replan or status.battery_j is None or not team.ready:
             return
-        if not team.runs_plan(status, team.plans.epoch):
+        if not team.plans.holds_plan(status):
             return
         drift = team.prediction.drift(status, team.config.drift_min_window_s, team.config.drift_tolerance)
         if drift is None:

@@ -39,7 +39,8 @@ class TeamFaults:
                 fault["decide_s"] += took_s
 
     def mark_reconfigured(self) -> None:
-        """A fault is handled once its new plan runs: placed, and every robot in reach runs its epoch.
+        """A fault is handled once its new plan runs: placed, and every robot in reach runs its epoch
+        as far as it concerns it (`PlanPublisher.holds_plan`).
         Not while its decision is out or due: the plan in force then is the one from before it."""
         team = self.team
         open_faults = [f for f in self.faults if f["reconfigured_unix"] is None]
@@ -50,7 +51,7 @@ class TeamFaults:
                 fault["epoch"] = team.plans.epoch
         for fault in open_faults:
             acked = all(team.statuses.get(r) is not None
-                        and team.runs_plan(team.statuses[r], fault["epoch"], newer=True)
+                        and team.plans.holds_plan(team.statuses[r], fault["epoch"])
                         for r in team.alive_nodes() if r in team.robot_names)
             if acked:
                 fault["reconfigured_unix"] = team.wall()

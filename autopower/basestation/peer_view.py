@@ -12,6 +12,9 @@ view, addressed to it (``node/<robot>/from/<base>``), with those entries kept:
   one must stop);
 - every DAG flow (a flow names no chain of its own; they are few).
 
+The plan epoch is the one last sent to that robot (a robot gets a new plan that changes nothing it
+acts on later, `delivery.PlanDelivery`): a robot whose plan is the base station's says so.
+
 Whom the base station sees stays whole (a robot routes through it to any other), in the shorter
 of two forms: the nodes it sees, or, when it sees most of the team, the members out of its sight
 (`PeerStatus.unseen`): a base station in sight of a 100-robot fleet named all 100 (494 B of each
@@ -64,7 +67,12 @@ class PeerViews:
             else:
                 reported = co.statuses.get(robot)
                 chains = self._touched(robot, placed.get(robot, ()), reported.hosted if reported else ())
-                payload = encode(self._view(whole, chains))
+                view = self._view(whole, chains)
+                sent = co.plans.delivery.sent.get(robot)
+                if sent is not None and (sent[0], status.plan_epoch) == (co.takeover.incarnation, co.plans.epoch) != sent:
+                    # it holds the last plan sent to it: the newest as far as it concerns it (`PlanDelivery`)
+                    view = dataclasses.replace(view, plan_epoch=sent[1])
+                payload = encode(view)
             yield robot, self._keys.addressed(robot, self._node), payload
 
     def chains_of(self, robot: str, placements: Iterable[Mapping[str, str]], hosted: Iterable[str]) -> set[str]:

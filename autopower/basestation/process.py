@@ -193,7 +193,7 @@ class BaseStation:
         self.coordinator = Coordinator(scenario=self.config.scenario, bus=bus, keys=keys,
                                        config=self.config.coordinator, policy=self._policy,
                                        incarnation=0 if kept is None else kept + 1,
-                                       send_to=self.relayer.send, also_relay=self.relayer.send_beyond_sight,
+                                       send_to=self.relayer.send,
                                        on_own_plan=self._own_plan,
                                        on_decision_answer=lambda: self.events.post(DecisionAnswered()))
         self.peer_views = PeerViews(scenario, self.keys)

@@ -1,18 +1,22 @@
 """Publishing plans: every change of the confirmed placement goes out as a `PlanUpdate`, and is repeated.
 
-A new plan goes out as its change from the plan before (`protocol.plans`) to the robots that had
-that one, whole to those that did not; the current plan is repeated to the robots whose status
-says they do not run it, and to everyone now and then (late joiners, standby base stations).
+A new plan goes out on the plan key (base stations, recorders) as its change from the plan before
+(`protocol.plans`), and to each robot on its own control key, at once or later, as its change from
+the plan that robot holds (`delivery.PlanDelivery`); the current plan is repeated whole to the
+robots whose status says they do not run it as far as it concerns them, and on the plan key now
+and then (standby base stations, recorders joining late).
 """
 
 from __future__ import annotations
 
-from autopower.protocol import LinkInfo, PlanUpdate, encode
+from autopower.basestation.delivery import PlanDelivery
+from autopower.protocol import LinkInfo, NodeStatus, PlanChange, PlanUpdate, encode
 from autopower.protocol.plans import plan_change, published_digest, sorted_plan
 
 
 class PlanPublisher:
-    """The coordinator's part that publishes its plans: it owns their epoch and when they go out."""
+    """The coordinator's part that publishes its plans: it owns their epoch and when they go out
+    (to each robot: its `delivery`)."""
 
     def __init__(self, team):
         """``team``: the `Coordinator` whose mission, placement, decision and settings a plan carries."""
@@ -24,7 +28,7 @@ class PlanPublisher:
         # the last new plan as the robots decode it, and its digest: the next new plan goes out as
         # its change from this one (`protocol.plans`)
         self.change_base: tuple[PlanUpdate, bytes] | None = None
-        self.plan_reached: set[str] = set()  # the robots in reach when the last new plan went out
+        self.delivery = PlanDelivery(team)  # which robot gets which plan when, and what each holds
         # a stage became ready: the plan goes out once, at the next timer, for every stage that
         # became ready meanwhile (a fleet's start makes a plan per stage otherwise: O(stages^2))
         self.plan_due = False
@@ -48,24 +52,36 @@ class PlanPublisher:
             self.publish_plan()
 
     def republish(self, now_wall: float) -> None:
-        """The current plan again, when it is due: to everyone now and then, else to the robots behind it."""
+        """The newest plan to the robots that wait for it (`PlanDelivery.catch_up`), and the current plan
+        again when it is due: on the plan key now and then, and to the robots behind it."""
         team = self.team
+        if self.delivery.catch_up_due(now_wall):
+            self.delivery.catch_up(team.takeover.incarnation, self.epoch)
+            # their statuses say they run it within the time a new plan's do (`behind_plan` waits as long)
+            self.next_republish = max(self.next_republish, now_wall + team.config.plan_republish_s)
         if now_wall >= self.next_republish:
-            if now_wall >= self.last_republish + team.config.plan_republish_settled_s:
-                self.publish_plan(repeat=True)  # to everyone: standby base stations, late joiners unknown here
-            elif behind := self.behind_plan():
+            settled = now_wall >= self.last_republish + team.config.plan_republish_settled_s
+            if settled:
+                self.publish_plan(repeat=True)  # on the plan key: standby base stations, recorders joining late
+            if behind := self.behind_plan():
                 self.resend_plan(behind)  # to those behind only: a plan grows with the team
-            else:
+            elif not settled:
                 self.next_republish = now_wall + team.config.plan_republish_s
 
+    def holds_plan(self, status: NodeStatus, epoch: int | None = None) -> bool:
+        """Does the node run our plan of ``epoch`` (default: the newest) as far as it concerns it
+        (`PlanDelivery.holds`: the last one sent to it up to ``epoch``)?"""
+        return self.delivery.holds(status, self.epoch if epoch is None else epoch)
+
     def behind_plan(self) -> list[str]:
-        """The robots in reach whose last status does not say they run the current plan (late,
-        restarted, back in reach, or their acknowledgement lost: statuses are best effort)."""
+        """The robots in reach whose last status does not say they run the current plan as far as it
+        concerns them (`holds_plan`: late, restarted, back in reach, or their acknowledgement lost:
+        statuses are best effort)."""
         team = self.team
         behind = []
         for robot in sorted(team.alive_nodes() & set(team.robots)):
             status = team.statuses.get(robot)
-            if status is None or not team.runs_plan(status, self.epoch) or status.plan_leader != team.takeover.leader:
+            if status is None or not self.holds_plan(status) or status.plan_leader != team.takeover.leader:
                 behind.append(robot)
         return behind
 
@@ -76,46 +92,48 @@ class PlanPublisher:
             deadlines.append(max(self.team.wall(), self.ready_plan_unix()))
         if self.team.mission is not None:
             deadlines.append(self.next_republish)  # 0.0 until the first plan: only meaningful once started
+            if self.delivery.catch_up_unix is not None:
+                deadlines.append(self.delivery.catch_up_unix)
         return deadlines
 
+    def _publishing(self) -> bool:
+        """This base station runs a mission and leads the team."""
+        return self.team.mission is not None and self.team.takeover.stepped_down is None
+
     def publish_plan(self, repeat: bool = False) -> None:
-        if self.team.mission is None or self.team.takeover.stepped_down is not None:
+        """The current plan out: a new one (its epoch: on the plan key, and to each robot by
+        `PlanDelivery.deliver`'s rules) or, ``repeat``, the current one again on the plan key."""
+        if not self._publishing():
             return
-        changed_only = False
+        change = None
         if repeat:
             update, payload = self._published_plan()
         else:
             self.epoch += 1
             self.last_plan_unix = self.team.wall()
-            update, payload, changed_only = self._new_plan()
+            update, payload, change = self._new_plan()
         self.plan_due = False
         self.team.on_own_plan(update)  # the laptop's host first: results may follow the plan at once
-        alive = self.team.alive_nodes()  # (a set built per call: once, not once per robot)
-        in_reach = [r for r in self.team.robots if r in alive]
         self.team.bus.publish(self.team.keys.plan, payload)
-        self.team.also_relay(in_reach, self.team.keys.plan, payload)
         if not repeat:
-            # a robot out of reach when the plan before went out (back from a cut, restarted, late)
-            # cannot apply a change from it: it is sent this plan whole at once, not a second later
-            # as one behind (its status names the plan it runs only after this one went out)
-            back = [r for r in in_reach if r not in self.plan_reached]
-            if back and changed_only:
-                self.resend_plan(back)
-            self.plan_reached = set(in_reach)
+            self.delivery.deliver(update, payload, change)
         self.last_republish = self.team.wall()
         self.next_republish = self.last_republish + self.team.config.plan_republish_s
 
-    def _new_plan(self) -> tuple[PlanUpdate, bytes, bool]:
-        """(the new plan as the robots will hold it, what goes out, whether that is a change):
-        its change from the plan before when this base station published that one
-        (`protocol.plans`), else whole."""
+    def _new_plan(self) -> tuple[PlanUpdate, bytes, PlanChange | None]:
+        """(the new plan as the robots will hold it, what goes out, the change it is): its change
+        from the plan before when this base station published that one (`protocol.plans`), else
+        whole (None)."""
         whole = encode(self._plan_update())
         update, digest = published_digest(whole)
         base, self.change_base = self.change_base, (update, digest)
-        if base is None or (base[0].leader, base[0].incarnation, base[0].epoch + 1, base[0].mission) != \
-                (update.leader, update.incarnation, update.epoch, update.mission):
-            return update, whole, False
-        return update, encode(plan_change(base[0], base[1], update, digest)), True
+        continues = base is not None and (base[0].leader, base[0].incarnation, base[0].epoch + 1, base[0].mission) == \
+            (update.leader, update.incarnation, update.epoch, update.mission)
+        self.delivery.remember(update, digest, continues)
+        if not continues:
+            return update, whole, None
+        change = plan_change(base[0], base[1], update, digest)
+        return update, encode(change), change
 
     def _published_plan(self) -> tuple[PlanUpdate, bytes]:
         """(the current plan, whole): the one published for this epoch, so that a robot given it
@@ -129,12 +147,11 @@ class PlanPublisher:
 
     def resend_plan(self, robots: list[str]) -> None:
         """The current plan again, to ``robots`` only, on their control keys (relayed if out of sight)."""
-        if self.team.mission is None or self.team.takeover.stepped_down is not None:
+        if not self._publishing():
             return
         update, payload = self._published_plan()
         self.team.on_own_plan(update)  # as a repeat to everyone does (the laptop's host skips what it has)
-        for robot in robots:
-            self.team.send_to(robot, self.team.keys.node_control(robot), payload)
+        self.delivery.resend(robots, update, payload)
         self.next_republish = self.team.wall() + self.team.config.plan_republish_s
 
     def _plan_update(self) -> PlanUpdate:

@@ -89,6 +89,7 @@ from autopower.protocol import (
     MissionInfo,
     NodeStatus,
     PeerStatus,
+    PlanChange,
     PlanUpdate,
 )
 from autopower.protocol.codec import message_kind
@@ -98,6 +99,7 @@ from autopower.runtime.clock import Clock, VirtualClock
 log = logging.getLogger(__name__)
 
 
+_PLAN_KINDS = frozenset({PlanUpdate.KIND, PlanChange.KIND})  # what a control key carries of plans
 
 
 class NodeRuntime:
@@ -384,13 +386,13 @@ class NodeRuntime:
         try:
             if key == self.keys.node_data(self.node):
                 self.frames.on_data(payload)
-            elif key == self.keys.node_control(self.node) and message_kind(payload) != PlanUpdate.KIND:
-                self.hosting.on_control(payload)  # a plan resent to this node alone comes whole
+            elif key == self.keys.node_control(self.node) and message_kind(payload) not in _PLAN_KINDS:
+                self.hosting.on_control(payload)  # a robot's plans come on its control key, whole or as changes
             elif (ends := self.keys.addressed_ends(key)) is not None and ends[0] == self.node:
                 self.acknowledging.on_ack_message(key, payload)
             elif key in (self.keys.plan, self.keys.node_control(self.node)):
-                # the base station repeats its plan (to robots not yet running it, on their control
-                # keys, `Coordinator.resend_plan`; to everyone now and then): the bytes handled
+                # a robot's plans come on its control key (`PlanDelivery`; the plan key carries
+                # them to base stations and recorders, and a subgroup's prediction): the bytes handled
                 # last need no decoding again (plans only move forward: what was applied or ignored
                 # once would be ignored now)
                 plan = self.plan_view.take(payload)

@@ -185,8 +185,8 @@ class Keys:
 
     def all_keys_of(self, node: str, basestation: bool) -> list[str]:
         """The keys a node subscribes to (used by the garbage-survival tests)."""
-        keys = [self.node_data(node), self.node_control(node), self.addressed_to(node), self.plan,
+        keys = [self.node_data(node), self.node_control(node), self.addressed_to(node),
                 self.status_all if basestation else self.peer_all]
         if basestation:
-            keys += [self.inbox, self.operator]
+            keys += [self.plan, self.inbox, self.operator]  # a robot's plans come on its control key
         return keys

@@ -4,10 +4,11 @@ Data plane (``node/<n>/data``, CongestionControl.BLOCK): `Packet`, carrying an e
 `ChainFrame` or `StateTransfer` hop by hop along a source route.
 Coordinator -> node (``node/<n>/control``, BLOCK): `Assign`, `Prepare`, `MigrateOut`, `Release`, or a
 `Batch` of them;
-and `PlanUpdate` again for a node whose status says it does not run it yet.
+and a robot's plans: `PlanUpdate`, or a new plan as its `PlanChange` from the one that robot holds
+(`autopower.basestation.delivery`).
 Node -> coordinator (``base/inbox``, BLOCK): `Prepared`, `StageReady`, `StageFailed`, or a `Batch` of them.
-Coordinator -> everyone (``base/plan``, BLOCK): `PlanUpdate`, or a new plan as its `PlanChange`
-from the one before (`autopower.protocol.plans`).
+Coordinator -> base stations and recorders (``base/plan``, BLOCK): `PlanUpdate`, or a new plan as
+its `PlanChange` from the one before (`autopower.protocol.plans`).
 Telemetry (``status/<n>``, DROP): `NodeStatus`, whole or as its `StatusDelta` from the last whole
 one, for base stations (and each process's recording).
 Between robots (``peer/<n>``, DROP): `PeerStatus`, the part of a status the robots use.

@@ -381,7 +381,7 @@ class Recorder:
 
     def on_receive(self, key: str, payload: bytes) -> None:
         """What this process receives: only plans matter (the mission clock, this node's predicted
-        power), on the plan key or resent whole to this node alone on its control key."""
+        power), on the plan key or on this node's control key (a robot's plans, whole or as changes)."""
         if not (key.endswith("/base/plan") or key.endswith(f"/node/{self.node}/control")):
             return
         self._guard("receive", self._received_plan, key, payload)

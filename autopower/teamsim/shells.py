@@ -221,7 +221,8 @@ class RobotShell(Shell):
             settings=RoundSettings(enabled=w.subgroup, status_period_s=w.status_period_s),
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=w.scheduler.wall())
         self.bus.subscribe(keys.node_data(robot), lambda k, p: self.guarded(self._received, k, p))
-        for key in (keys.node_control(robot), keys.addressed_to(robot), keys.plan, keys.node_relay(robot), keys.peer_all,
+        # (not the plan key: each robot gets its plans on its control key, `PlanDelivery`)
+        for key in (keys.node_control(robot), keys.addressed_to(robot), keys.node_relay(robot), keys.peer_all,
                     keys.subgroup):
             self.bus.subscribe(key, lambda k, p: self.guarded(self._received, k, p))
         self.bus.watch_liveliness(keys.alive_all, lambda k, alive: self.guarded(self._liveliness, k, alive))
@@ -372,7 +373,7 @@ class BaseShell(Shell):
         self.co = Coordinator(scenario=w.scenario, bus=self.bus, keys=keys, config=w.coordinator_config,
                                    wall_fn=w.scheduler.wall, leader=f"{base}:sim:{self.number}",
                                    incarnation=0 if kept is None else kept + 1, send_to=self.relayer.send,
-                                   also_relay=self.relayer.send_beyond_sight, on_own_plan=self._own_plan)
+                                   on_own_plan=self._own_plan)
         self.suspects: dict[str, float] = {}
         self.status_t: dict[str, float] = {}
         self.statuses_in = StatusAssembler()  # the others' statuses, whole again

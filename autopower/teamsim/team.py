@@ -241,13 +241,14 @@ class World:
 
     # ---- after the run ----------------------------------------------------------------------------------
     def settled(self) -> bool:
-        """No plan is on its way and nothing migrates (the team may be judged on its newest plan)."""
+        """No plan is on its way (none waits for a robot it changes nothing for, `PlanDelivery`)
+        and nothing migrates (the team may be judged on its newest plan)."""
         base = self.shells.get(self.scenario.basestation)
         if not (isinstance(base, BaseShell) and base.up and base.co.mission is not None):
             return True
         co = base.co
         since = base.plan_since.get((co.takeover.incarnation, co.plans.epoch), -math.inf)
-        return not co.placing.migrations and self.scheduler.now - since >= SETTLE_S
+        return not co.placing.migrations and not co.plans.delivery.lagging and self.scheduler.now - since >= SETTLE_S
 
     def final_checks(self) -> None:
         now, event = self.scheduler.now, self.trace.events

@@ -103,7 +103,8 @@ class SimTeam:
             self.nodes[node] = rt
             self.subscriptions[node] = [
                 bus.subscribe(k, lambda key, payload, rt=rt: rt.on_message(key, payload))
-                for k in (self.keys.node_control(node), self.keys.plan)]
+                for k in ((self.keys.node_control(node), self.keys.plan) if node == scenario.basestation
+                          else (self.keys.node_control(node),))]  # a robot's plans come on its control key
             self.subscriptions[node].append(bus.subscribe(
                 self.keys.node_data(node), lambda key, payload, rt=rt: rt.relay_now(payload) or rt.on_message(key, payload)))
         self.coordinator.bus.subscribe(self.keys.inbox, self._inbox)

@@ -433,6 +433,53 @@ def test_a_fleets_start_publishes_a_plan_per_wave_of_ready_stages_not_one_per_st
     assert all(rt.plan is not None and rt.plan.epoch == co.plans.epoch for rt in team.nodes.values())
 
 
+def test_a_new_plan_goes_at_once_to_the_robots_it_concerns_and_to_the_others_once_the_wave_is_over():
+    """A robot gets a new plan at once only when it changes what the robot acts on; the others get
+    the newest in one change when no order waits for its answer, or `plan_catch_up_s` later: a robot's
+    plans follow its own chains, not the team's moves (`PlanDelivery`). None is resent whole,
+    and every robot ends on the newest plan."""
+    from autopower.basestation.placing import Migration
+    from autopower.simulation.synthetic import paper_fleet
+
+    _, fleet = paper_fleet(10, topology="neighbours")
+    team = SimTeam(fleet)
+    team.join()
+    co = team.coordinator
+    team.clock.advance(co.config.plan_catch_up_s)
+    team.pump()
+    assert all(rt.plan.epoch == co.plans.epoch for rt in team.nodes.values())
+    team.report_status()
+    got: dict[str, list[str]] = {r: [] for r in co.robots}
+    listener = team.hub.bus("listener")
+    for robot in co.robots:
+        listener.subscribe(team.keys.node_control(robot), lambda key, payload, robot=robot:
+                           got[robot].append(message_kind(payload)) if message_kind(payload) in ("plan", "plan-change")
+                           else None)
+    # Loc-4 moves between r4 and the laptop while another order waits for its answer (a wave under way)
+    moved_to = "r4" if co.placing.placement["Loc-4"] == "laptop" else "laptop"
+    co.placing.placement["Loc-4"] = co.placing.target["Loc-4"] = moved_to
+    co.placing.migrations["Blob-9"] = Migration(stage="Blob-9", generation=99, to_node="r9", from_node=None,
+                                        phase="assigning", started_unix=team.clock.wall())
+    co.plans.publish_plan()
+    team.hub.pump()
+    concerned = {r for r, kinds in got.items() if kinds}
+    assert "r4" in concerned and len(concerned) < len(co.robots) / 2, got
+    assert all(kinds == ["plan-change"] for kinds in got.values() if kinds)
+    lagging = set(co.robots) - concerned
+    assert co.plans.delivery.lagging == lagging, (co.plans.delivery.lagging, lagging)
+    assert all(team.nodes[r].plan.epoch == co.plans.epoch - 1 for r in lagging), ({r: team.nodes[r].plan.epoch for r in lagging}, co.plans.epoch)
+    # the robot that holds the older plan runs the newest as far as it concerns it: not behind
+    team.report_status()
+    assert co.plans.behind_plan() == []
+    # the wave is over: every other robot gets the newest as one change, none of them whole
+    del co.placing.migrations["Blob-9"]
+    team.clock.advance(co.config.plan_catch_up_s)
+    team.pump()
+    assert all(got[r] == ["plan-change"] for r in lagging), got
+    assert not co.plans.delivery.lagging
+    assert all(rt.plan.epoch == co.plans.epoch and rt.plan.placement["Loc-4"] == moved_to for rt in team.nodes.values())
+
+
 def test_stages_ready_while_orders_wait_for_answers_wait_plan_batch_s_and_share_the_next_plan(sc):
     # the simulator delivers every answer as its own event: a 30-robot fleet's start made 59 plans in
     # 10 ms, each decoded by every robot and acknowledged with a status to its peers

@@ -69,8 +69,8 @@ class LossyMigrations:
         """[(bytes, message)] of the migration protocol's messages in a put (none: not one of them)."""
         if key == self.keys.inbox:
             return unbatch(payload, INBOX_MESSAGES)
-        if key.endswith("/control"):  # orders, or the plan again for a robot behind it (not lost here)
-            return unbatch(payload, CONTROL_MESSAGES) if message_kind(payload) != "plan" else []
+        if key.endswith("/control"):  # orders, or a robot's plans (not lost here)
+            return unbatch(payload, CONTROL_MESSAGES) if message_kind(payload) not in ("plan", "plan-change") else []
         if "/node/" in key and key.endswith("/data"):
             packet = decode(payload, Packet)
             if packet.purpose == "migration" and packet.hop == 1:

@@ -68,13 +68,17 @@ def test_each_robot_in_reach_gets_its_view_on_its_own_key_and_before_the_mission
     views = PeerViews(fleet, keys)
     r2_reported = SimpleNamespace(hosted={"Blob-3": "running"})
     co = SimpleNamespace(robots=["r1", "r2", "r3"], alive_nodes=lambda: {"laptop", "r1", "r2"},
-                         statuses={"r2": r2_reported}, placing=SimpleNamespace(placement={"Loc-1": "r1"}, target={}))
+                         statuses={"r2": r2_reported}, placing=SimpleNamespace(placement={"Loc-1": "r1"}, target={}),
+                         takeover=SimpleNamespace(incarnation=0),
+                         plans=SimpleNamespace(epoch=3, delivery=SimpleNamespace(sent={"r1": (0, 2), "r2": (0, 3)})))
     status = base_status(3)
     sent = list(views.addressed(co, status, 5.0, 2.0))
     assert [(robot, key) for robot, key, _ in sent] == [("r1", keys.addressed("r1", "laptop")),
                                                         ("r2", keys.addressed("r2", "laptop"))]  # r3 is gone
     r2 = decode(sent[1][2], PeerStatus)
     assert set(r2.hosted) == {"Blob-2", "Blob-3"} and r2.plan_epoch == 3
+    # r1 was not sent plan 3 (it changes nothing r1 acts on, `PlanDelivery`): plan 2 is the newest for it
+    assert decode(sent[0][2], PeerStatus).plan_epoch == 2
     before = [decode(payload, PeerStatus) for _, _, payload in views.addressed(co, None, 5.0, 2.0)]
     assert [(v.plan_epoch, v.hosted, v.t_unix, sorted(v.sees(fleet.node_names()))) for v in before] == \
         [(-1, {}, 5.0, ["r1", "r2"])] * 2

@@ -56,7 +56,8 @@ def team():
     plan = PlanUpdate(epoch=1, mission=mission, placement={s: scenario.basestation for s in stages},
                       running={c.name: 0 for c in scenario.chains}, links=links, predicted_w={},
                       predicted_lifetime_s=None, plan_t_virtual=0.0)
-    hub.bus("laptop").publish(agents["r1"].keys.plan, encode(plan))
+    for robot, agent in agents.items():  # each robot's plans come on its control key
+        hub.bus("laptop").publish(agent.keys.node_control(robot), encode(plan))
     drain(hub, agents)
     yield hub, agents, stages
     for agent in agents.values():
