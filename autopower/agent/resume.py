@@ -108,8 +108,8 @@ class ResumeFile:
 
     def note_source(self, chain: str, run: int, seq: int, missed: int, produced_total: int,
                     missed_stopped: int = 0) -> None:
-        """A source moved on (its next seq): one append, before the frame leaves. Before the first
-        snapshot (before the mission) there is nothing to resume from anyway."""
+        """A source moved on (its next seq): one append, before the frame leaves (a restarted process
+        appends before its first snapshot too: the next restart reads it after its predecessor's)."""
         self._files.append((json.dumps([chain, run, seq, missed, produced_total, missed_stopped]) + "\n").encode())
 
     def _warn(self, exc: OSError) -> None:

@@ -134,9 +134,24 @@ class SnapshotJournal:
         return True
 
     def append(self, record: bytes) -> bool:
-        """One ``write`` to the current generation; False before the first snapshot or if it failed."""
+        """One ``write`` to the current generation; False if it failed.
+
+        Before this process's first snapshot the record goes to a new generation after every one on
+        disk: a restarted process appends before it snapshots, and the snapshot its predecessor left
+        reads every generation from the one it names on (`journals_since`), so nothing appended is
+        lost to a second crash."""
         if self._journal is None:
-            return False
+            with self._cond:
+                if self._thread is not None:  # the writer creates the next generation as it starts
+                    self._cond.wait_for(lambda: self._spare is not None or self._closing, timeout=1.0)
+                if self._journal is None and not self._closing:
+                    # the spare, or one made here: either way after every generation on disk, and
+                    # before the one the first snapshot opens (journals are read in order)
+                    opened, self._spare = (self._spare or self._open_next()), None
+                    if opened is not None:
+                        self._generation, self._journal = opened
+            if self._journal is None:
+                return False
         try:
             _write_all(self._journal, record)
             return True
@@ -182,6 +197,7 @@ class SnapshotJournal:
         spare = self._open_next()  # ahead of the first snapshot, which must not create it on the loop
         with self._cond:
             self._spare = spare
+            self._cond.notify_all()
         while True:
             with self._cond:
                 while self._pending is None and not self._closing:

@@ -91,7 +91,7 @@ def test_the_files_of_a_dead_team_go_with_its_resume_files(tmp_path, monkeypatch
 
 def test_source_positions_after_the_snapshot_come_from_the_journal(tmp_path):
     store = ResumeFile(tmp_path / "r2.json")
-    store.note_source("Blob-2", 1, 5, 0, 5)  # before any snapshot: nothing to resume from, not noted
+    store.note_source("Blob-2", 1, 5, 0, 5)  # before any snapshot: the first snapshot supersedes it
     store.save({"node": "r2", "sources": {"Blob-2": {"run": 1, "seq": 7, "missed": 0, "produced_total": 7}}})
     assert stat.S_IMODE(store.current_journal.stat().st_mode) == 0o600
     for seq in (8, 9, 10):
@@ -105,6 +105,31 @@ def test_source_positions_after_the_snapshot_come_from_the_journal(tmp_path):
     assert not first.exists() and store.current_journal.stat().st_size == 0
     assert store.load()["sources"]["Blob-2"]["seq"] == 12
     store.close()
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_a_restarted_process_notes_its_sources_before_its_first_snapshot(tmp_path, background):
+    """A robot killed twice: the process restarted after the first kill produced frames before it
+    wrote its first snapshot. Those notes must survive the second kill, or the next restart reuses
+    their seqs: two frames under one name (found by the simulator, seed 1031, with a change that lets
+    a chain stopped by a fault go on in its run, where the reused seqs are no longer in an old run)."""
+    first = ResumeFile(tmp_path / "r2.json", background=background)
+    first.save({"node": "r2", "sources": {"Blob-2": {"run": 0, "seq": 40, "missed": 0, "produced_total": 40}}},
+               wait_s=5.0)
+    for seq in (41, 42, 43, 44):
+        first.note_source("Blob-2", 0, seq, 0, seq)
+    first.close()  # killed
+    second = ResumeFile(tmp_path / "r2.json", background=background)
+    assert second.load()["sources"]["Blob-2"]["seq"] == 44
+    second.note_source("Blob-2", 0, 45, 0, 45)  # produced before its first snapshot
+    second.close()  # killed again
+    third = ResumeFile(tmp_path / "r2.json", background=background)
+    assert third.load()["sources"]["Blob-2"]["seq"] == 45
+    third.save({"node": "r2", "sources": {"Blob-2": {"run": 0, "seq": 45, "missed": 0, "produced_total": 45}}},
+               wait_s=5.0)
+    third.note_source("Blob-2", 0, 46, 0, 46)
+    assert third.written(5.0) and third.load()["sources"]["Blob-2"]["seq"] == 46  # read in order, newest last
+    third.close()
 
 
 def test_the_journal_keeps_periods_missed_while_stopped_and_reads_an_older_one(tmp_path):
