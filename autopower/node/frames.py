@@ -61,11 +61,16 @@ class Frames:
     def emit(self, frame: ChainFrame, dest: str) -> None:
         """Send a frame this node produced, keeping it until its consumer acknowledges it."""
         frame = dataclasses.replace(frame, floor=self.rt.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
+        self.keep(frame)
+        self.send_frame(frame, dest)
+
+    def keep(self, frame: ChainFrame) -> None:
+        """Keep a frame this node is answerable for until its consumer acknowledges it: a chain's
+        result within the hold budget until its sink has it, any other frame within custody's bounds."""
         if frame.target == len(self.rt.chains[frame.chain].stages):
-            self.rt.holds.keep(frame)  # kept until its sink has it, within the hold budget
+            self.rt.holds.keep(frame)
         else:
             self.rt.custody.keep(frame, self.rt.wall())
-        self.send_frame(frame, dest)
 
     def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0, purpose: str = "chain") -> None:
         if dest == self.rt.node:

@@ -116,9 +116,8 @@ class Holds:
             return None
         if (chain, target, run, low) not in self._journaled:
             return low
-        held = [seq for (r, seq) in self._custody.hops.get((chain, target), {})
-                if r == run and (chain, target, run, seq) not in self._journaled]
-        return min(held) if held else None
+        held = self.unsafe_frames(chain, target, run)
+        return held[0].seq if held else None
 
     def unsafe_frames(self, chain: str, target: int, run: int) -> list[ChainFrame]:
         """The frames of a hop and run this node holds in custody in memory only, by seq (what

@@ -378,11 +378,7 @@ class Hosting:
                 self.rt.count("garbled", f"{msg.from_node} moved {msg.stage} with an output of {frame.chain} "
                                       f"stage {frame.target} run {frame.run}, not of this stage")
                 continue
-            frame = dataclasses.replace(frame, attempt=max(frame.attempt, 1))
-            if target == len(hosted.chain.stages):
-                self.rt.holds.keep(frame)
-            else:
-                self.rt.custody.keep(frame, self.rt.wall())
+            self.rt.frames.keep(dataclasses.replace(frame, attempt=max(frame.attempt, 1)))
         if msg.outputs:
             self.rt.tally("outputs-adopted", len(msg.outputs))
 
