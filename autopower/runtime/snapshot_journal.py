@@ -179,19 +179,31 @@ class SnapshotJournal:
 
     # ---- the writer ----------------------------------------------------------------------------
     def _open_next(self) -> tuple[int, int] | None:
-        generation = max(self._known_generations() + [self._generation], default=0) + 1  # after any left on disk
+        """A new generation after every one on disk and the current one, created here.
+
+        Rule: a generation number is chosen and its file created in one step under the lock, and the
+        file is created exclusively. The loop's first append and the writer thread may both open the
+        next generation (the loop when the writer is slow to make its spare): with a number chosen
+        by each and the file truncated on open, the second would erase what the first appended."""
         try:
             self.path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-            return generation, self._create(generation)
+            with self._on_disk_lock:
+                if self._on_disk is None:
+                    self._on_disk = set(self.generations())
+                generation = max([*self._on_disk, self._generation], default=0) + 1
+                while True:
+                    try:
+                        fd = os.open(self.generation_path(generation),
+                                     os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o600)
+                    except FileExistsError:  # made since the folder was listed: it is someone's
+                        self._on_disk.add(generation)
+                        generation += 1
+                        continue
+                    self._on_disk.add(generation)
+                    return generation, fd
         except OSError as exc:
             self._error(exc)
             return None
-
-    def _create(self, generation: int) -> int:
-        self._known_generations()  # (listed before the new one exists)
-        fd = os.open(self.generation_path(generation), os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_APPEND, 0o600)
-        self._known(generation, True)
-        return fd
 
     def _run(self) -> None:
         spare = self._open_next()  # ahead of the first snapshot, which must not create it on the loop
@@ -225,7 +237,7 @@ class SnapshotJournal:
             supersedes, self._supersedes = self._supersedes, ()
             for path in supersedes:
                 path.unlink(missing_ok=True)
-            spare = (generation + 1, self._create(generation + 1))
+            spare = self._open_next()  # the next snapshot's generation (`snapshot` names it)
         except OSError as exc:
             self._error(exc)
         finally:

@@ -44,3 +44,23 @@ def test_a_failing_disk_is_reported_once_and_never_raises(tmp_path):
     assert not store.snapshot(lambda generation: b"y")
     assert not store.append(b"note")
     assert len(errors) == 1
+
+
+def test_a_generation_made_since_the_folder_was_listed_is_never_truncated(tmp_path, monkeypatch):
+    """The loop's first append and the writer thread may both open the next generation (the loop when
+    the writer is slow): the one that comes second must take the number after, not erase the first's
+    records by opening the same file again."""
+    store = SnapshotJournal(tmp_path / "state")
+    # its listing of the folder was taken before the other opener made generation 1
+    monkeypatch.setattr(store, "generations", lambda: [])
+    fd = os.open(tmp_path / "state.journal.1", os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    os.write(fd, b"theirs\n")
+    os.close(fd)
+    assert store.append(b"mine\n")
+    monkeypatch.undo()
+    assert (tmp_path / "state.journal.1").read_bytes() == b"theirs\n"
+    assert (tmp_path / "state.journal.2").read_bytes() == b"mine\n"
+    assert oct((tmp_path / "state.journal.2").stat().st_mode & 0o777) == "0o600"
+    assert store.snapshot(lambda generation: b"s %d\n" % generation)  # after both
+    assert (tmp_path / "state").read_bytes() == b"s 3\n"
+    store.close()
