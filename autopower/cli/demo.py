@@ -95,7 +95,10 @@ def human_summary(result: dict) -> str:
                                                                   ("the runtime's own CPU", "runtime_j"),
                                                                   ("the control plane", "control_j"))
                  if result.get(key)]
+        steady, shifted = result.get("energy_steady_error_pct"), result.get("transition_j")
         lines.append(f"  energy: metered within {abs(error):.1f} % of the model"
+                     + (f", {abs(steady):.1f} % outside reconfigurations (they shifted {shifted:+.1f} J)"
+                        if steady is not None and shifted is not None else "")
                      + (f" (set apart: {', '.join(apart)})" if apart else ""))
     dry = result.get("first_dry")
     if dry:

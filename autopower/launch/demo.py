@@ -423,6 +423,9 @@ def story_from_replay(replay: dict) -> dict:
         "duplicated_outputs": replay["duplicated_outputs"],
         "outputs": sum(c["outputs"] for c in replay["outputs"]["chains"].values()),
         "energy_model_error_pct": replay["energy_model_error_pct"],
+        # the same outside the reconfigurations, and what they shifted (`recording.transitions`)
+        "energy_steady_error_pct": replay["energy_steady_error_pct"],
+        "transition_j": replay["energy"]["transitions"]["transition_j"],
         "recovery_j": replay["energy"]["overhead_j"].get("recovery"),
         # the control plane: what each robot's links carried beyond its chain packets (measured), and
         # the energy its radios paid for it, apart from the model

@@ -48,7 +48,14 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                                                          "link_sent": int, "link_received": int},  # plane's, of the links'
                                        # CPU seconds on the computer that ran it: the runtime's own
                                        # (charged as overhead "runtime") and its component code's
-                                       "cpu_s": {"runtime": float, "component": float}}}},
+                                       "cpu_s": {"runtime": float, "component": float},
+                                       # outside reconfigurations, and what they shifted (below)
+                                       "steady_error_pct": float | null, "transition_j": float | null}},
+                 # metered less overheads against the model within reconfiguration windows (from each
+                 # change of a robot's model power and each fault, for two status periods of wall
+                 # time: recording.transitions) and outside them
+                 "transitions": {"window_s": float, "windows": [[float, float]], "covered_s": float,
+                                 "transition_j": float | null, "steady_error_pct": float | null}},
       "outputs": {"recorded": bool,
                   "produced": int,  # what the sources produced (per run: `produced`, else up to the last delivered)
                   "lost": int,  # produced, not delivered, and in no other class below
@@ -83,7 +90,8 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                                                     # (blob recall, localisation error; see chains.variants)
       "invariants": [{"name": str, "ok": bool | null, "detail": str}],   # null: not checkable here
       "ok": bool,                                   # every checkable invariant holds
-      "lost_outputs": int, "duplicated_outputs": int, "energy_model_error_pct": float | null
+      "lost_outputs": int, "duplicated_outputs": int, "energy_model_error_pct": float | null,
+      "energy_steady_error_pct": float | null    # energy.transitions.steady_error_pct
     }
 
 Times are mission seconds (timeline ``mission_time``) unless a key says ``wall``. Energy "model" is the model's power for
@@ -106,6 +114,7 @@ from typing import Any
 
 from autopower.errors import RecordingError
 from autopower.model.parts import OVERHEAD_KINDS
+from autopower.recording import transitions
 from autopower.recording.recorder import parse_event
 from autopower.recording.telemetry import ALLOCATION, DECISIONS, FAULTS, MESSAGES, MIGRATIONS, Recording, read_recording
 
@@ -219,6 +228,14 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
                     if p is None and ("battery" in text or "energy" in text)}
 
     # ---- robots and energy
+    # the reconfiguration windows (`transitions`): from every change of a robot's model power and
+    # every fault injected or healed, for the time the runtime takes to carry a change out
+    model_series = {r: rec.series(f"robots/{r}/model_w") for r in robots}
+    window_s = transitions.reaction_s(mission_clock(rec)[0])
+    reconfigurations = transitions.windows(
+        [t for mt, _ in model_series.values() for t in mt[1:]] + [t for t, _, _ in faults_raw], window_s)
+    steady_sum = {"residual_j": 0.0, "model_j": 0.0}
+    transition_sum = 0.0
     robot_out: dict[str, Any] = {}
     per_robot_energy: dict[str, Any] = {}
     increases: list[str] = []
@@ -245,7 +262,7 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
             life, projected = None, True
         robot_out[r] = {"initial_j": bs[0], "final_j": bs[-1], "used_j": used, "min_j": min(bs),
                         "power_w": power, "ran_dry_at_s": dry, "lifetime_s": life, "_projected": projected}
-        mt, mv = rec.series(f"robots/{r}/model_w")
+        mt, mv = model_series[r]
         if not mt:
             mt, mv = rec.series(f"robots/{r}/power_w/total")
         model = _integrate_hold(mt, mv, t0, dry if dry is not None else t1) if mt else None
@@ -253,7 +270,16 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         # reported beside it, and the model is checked against the rest
         overhead = {what: _growth(rec, f"robots/{r}/overhead_j/{what}", t0, t1) for what in OVERHEAD_KINDS}
         steady = used - sum(overhead.values())
+        shifted, steady_pct = None, None
+        if model is not None:
+            shifted, model_in = _in_windows(rec, r, ts, bs, mt, mv,
+                                            transitions.clip(reconfigurations, t0, dry if dry is not None else t1))
+            steady_pct = _pct(steady - shifted - model_in, model - model_in)
+            steady_sum["residual_j"] += steady - model - shifted
+            steady_sum["model_j"] += model - model_in
+            transition_sum += shifted
         per_robot_energy[r] = {"metered_j": used, "model_j": model, "error_pct": _pct(steady, model),
+                               "steady_error_pct": steady_pct, "transition_j": shifted,
                                "overhead_j": overhead,
                                "control_bytes": {f"{what}_{way}".removeprefix("control_"):
                                                  _counted(rec, f"robots/{r}/bytes/{what}_{way}", t0, t1)
@@ -275,6 +301,8 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
     for v in robot_out.values():
         v.pop("_projected")
     error = _pct(metered_sum - sum(overhead_sum.values()), model_sum) if model_known and robots else None
+    steady_error = _pct(steady_sum["model_j"] + steady_sum["residual_j"], steady_sum["model_j"]) \
+        if model_known and robots else None
 
     # ---- decisions, migrations, faults
     decision_times, n_decisions = _decisions(rec)
@@ -321,7 +349,11 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         "decisions": n_decisions,
         "faults": faults,
         "energy": {"metered_j": metered_sum, "model_j": model_sum if model_known else None, "error_pct": error,
-                   "overhead_j": overhead_sum, "per_robot": per_robot_energy},
+                   "overhead_j": overhead_sum, "per_robot": per_robot_energy,
+                   "transitions": {"window_s": window_s, "windows": [list(w) for w in reconfigurations],
+                                   "covered_s": sum(b - a for a, b in transitions.clip(reconfigurations, start, end)),
+                                   "transition_j": transition_sum if model_known and robots else None,
+                                   "steady_error_pct": steady_error}},
         "outputs": outputs,
         "quality": _quality(rec),
         "invariants": invariants,
@@ -329,8 +361,23 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
         "lost_outputs": outputs["lost"],
         "duplicated_outputs": outputs["duplicated"],
         "energy_model_error_pct": error,
+        "energy_steady_error_pct": steady_error,
     }
     return out
+
+
+def _in_windows(rec: Recording, robot: str, ts: list[float], bs: list[float], mt: list[float], mv: list[float],
+                spans: list[tuple[float, float]]) -> tuple[float, float]:
+    """(metered energy less overheads less the model's, the model's) of ``robot`` within ``spans``."""
+    overheads = [rec.series(f"robots/{robot}/overhead_j/{what}") for what in OVERHEAD_KINDS]
+    shifted = model_in = 0.0
+    for a, b in spans:
+        model = _integrate_hold(mt, mv, a, b) or 0.0
+        used = transitions.at(ts, bs, a) - transitions.at(ts, bs, b)
+        used -= sum(transitions.at(ot, ov, b) - transitions.at(ot, ov, a) for ot, ov in overheads if ot)
+        shifted += used - model
+        model_in += model
+    return shifted, model_in
 
 
 def _live_policy(rec: Recording) -> str | None:

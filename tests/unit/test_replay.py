@@ -225,3 +225,42 @@ def test_each_robots_energy_is_split_into_the_models_steady_state_and_each_overh
     row = next(line for line in text.splitlines() if line.strip().startswith(f"{robot}:"))
     cols = dict(zip([w for w in head.split() if w != "J"], row.split(), strict=True))
     assert cols["chains"] == "91.25" and cols["control"] == "1.25" and cols["runtime"] == "7.50"
+
+
+def test_the_model_is_checked_apart_within_reconfigurations_and_in_steady_running(tmp_path):
+    """A stage moves onto r1 at t = 50 (its model power 1 W -> 2 W); the runtime carries the move out
+    over its reaction time, so r1 draws the old power 2.5 s longer (the inputs of those seconds ran
+    where they were). A steady-state model cannot follow that: the whole run disagrees by 2.5 J, and
+    outside the reconfiguration window (two status periods of wall time at the run's x5) meter and
+    model agree exactly. A disagreement outside every window is not hidden by one."""
+    from autopower.recording.recorder import tag_event
+    from autopower.recording.telemetry import DECISIONS
+    from autopower.recording.transitions import reaction_s
+
+    def recording(name: str, drift_w: float) -> dict:
+        path = tmp_path / name
+        with Telemetry(path, kind="live", properties={"scenario": "paper-fig7"}) as tel:
+            tel.text(DECISIONS, 0.0, tag_event("plan epoch 1", type="plan", speed=5.0, epoch_unix=0.0))
+            battery = 1000.0
+            tel.scalar("robots/r1/model_w", 0.0, 1.0)
+            tel.scalar("robots/r1/model_w", 50.0, 2.0)
+            for i in range(201):
+                t = i * 0.5
+                tel.battery(t, "r1", battery)
+                battery -= 0.5 * ((1.0 if t < 52.5 else 2.0) + drift_w * (t >= 80.0))
+        return summarize(load(path), path)
+
+    from autopower.agent.process import AgentConfig
+    from autopower.recording.transitions import STATUS_PERIOD_S
+
+    assert STATUS_PERIOD_S == AgentConfig.status_period_s  # the runtime's, which the window is made of
+    s = recording("lag.rrd", 0.0)
+    assert reaction_s(5.0) == s["energy"]["transitions"]["window_s"] == 5.0
+    assert s["energy"]["transitions"]["windows"] == [[50.0, 55.0]]
+    assert s["energy_model_error_pct"] == pytest.approx(-2.5 / 150.0 * 100)  # 147.5 J metered, 150 J modelled
+    assert s["energy_steady_error_pct"] == pytest.approx(0.0, abs=1e-9)
+    assert s["energy"]["transitions"]["transition_j"] == pytest.approx(-2.5)
+    assert s["energy"]["per_robot"]["r1"]["transition_j"] == pytest.approx(-2.5)
+    # a meter drifting from the model in steady running (20 s at +0.1 W from t = 80) shows outside them
+    drifted = recording("drift.rrd", 0.1)
+    assert drifted["energy_steady_error_pct"] == pytest.approx(2.0 / (150.0 - 10.0) * 100)  # the window modelled 10 J
