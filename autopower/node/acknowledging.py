@@ -227,7 +227,11 @@ class Acknowledging:
                 continue  # the stage is moving: wait for its new host's report (it stays due)
             if not self.rt.frames.routable(node):
                 continue  # no route yet: it stays due
-            frame = self.rt.custody.resend(held, now)
+            frame, again = self.rt.custody.resend(held, now)
+            if not again:  # held back since it was produced (no route then): its first copy
+                self.rt.tally("held-back-frames-sent")
+                self.rt.frames.send_frame(frame, node)
+                continue
             self.rt.tally("resent-frames")
             if frame.attempt == 1:
                 log.info("%s: %s seq %d to stage %d was lost on the way to %s; resending", self.rt.node, frame.chain,

@@ -78,6 +78,9 @@ class Held:
     kept_unix: float
     sent_unix: float | None  # None: not on the wire yet (no route to its consumer)
     result: bool = False  # a chain's result for its sink: bounded by the hold budget alone
+    # False only while no copy has left this node: its first send found no route (`held_back`).
+    # Its first copy to go is then the chain's own traffic, not a resend (`resend`).
+    on_air: bool = True
 
 
 @dataclass(frozen=True)
@@ -388,12 +391,27 @@ class Custody:
                 out.append((report.node, held))
         return out
 
-    def resend(self, held: Held, now: float) -> ChainFrame:
-        """The next copy of a held frame (its attempt number raised), as sent now."""
-        held.frame = replace(held.frame, attempt=held.frame.attempt + 1)
+    def held_back(self, frame: ChainFrame) -> None:
+        """``frame``'s first send found no route: no copy of it has left this node."""
+        held = self.hops.get((frame.chain, frame.target), {}).get((frame.run, frame.seq))
+        if held is not None:
+            held.on_air = False
+
+    def resend(self, held: Held, now: float) -> tuple[ChainFrame, bool]:
+        """The next copy of a held frame, as sent now, and whether it repeats one sent before.
+
+        Rule: only a frame a copy of which has left this node is resent (its attempt number raised,
+        counted in ``resent``, its radio and its consumer's run metered as recovery). A frame held
+        back since it was produced, for want of a route, goes for the first time: its attempt
+        stays 0 (no consumer can have it, so its output is no second copy either) and what it
+        costs is the chain's steady work, which the model prices, not an overhead of the fault."""
+        first = not held.on_air
+        if not first:
+            held.frame = replace(held.frame, attempt=held.frame.attempt + 1)
+            self.resent += 1
+        held.on_air = True
         held.sent_unix = now
-        self.resent += 1
-        return held.frame
+        return held.frame, not first
 
     def frames(self) -> list[ChainFrame]:
         """Every frame held (what a clean stop leaves in flight: `autopower.node.in_flight`)."""

@@ -62,7 +62,8 @@ class Frames:
         """Send a frame this node produced, keeping it until its consumer acknowledges it."""
         frame = dataclasses.replace(frame, floor=self.rt.custody.floor(frame.chain, frame.target, frame.run, frame.seq))
         self.keep(frame)
-        self.send_frame(frame, dest)
+        if not self.send_frame(frame, dest):
+            self.rt.custody.held_back(frame)  # its first copy goes when a route does (`Custody.resend`)
 
     def keep(self, frame: ChainFrame) -> None:
         """Keep a frame this node is answerable for until its consumer acknowledges it: a chain's
@@ -72,13 +73,14 @@ class Frames:
         else:
             self.rt.custody.keep(frame, self.rt.wall())
 
-    def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0, purpose: str = "chain") -> None:
+    def send_frame(self, frame: ChainFrame, dest: str, forwards: int = 0, purpose: str = "chain") -> bool:
+        """Send ``frame`` to ``dest`` (delivered here when it is this node); False if no route took it."""
         if dest == self.rt.node:
             self.deliver_frame(frame, forwards)
-            return
+            return True
         chain = self.rt.chains[frame.chain]
-        self.send_routed(dest, encode(frame), chain.message_bytes[frame.target], self.weights[chain.name],
-                         purpose, chain.name)
+        return self.send_routed(dest, encode(frame), chain.message_bytes[frame.target], self.weights[chain.name],
+                                purpose, chain.name)
 
     def send_routed(self, dest: str, body: bytes, charge_bytes: int, weight: float, purpose: str,
                     chain: str) -> bool:
@@ -242,7 +244,9 @@ class Frames:
         hosted.runs += 1
         # a stage started without state recomputes what its lost predecessor may have sent already:
         # an overhead of the failover, not the plan's steady work
-        recomputed = hosted.gate.catch_up_below is not None and frame.seq < hosted.gate.catch_up_below
+        # (a first copy, attempt 0, went to no instance before: running it is the chain's own work)
+        recomputed = hosted.gate.catch_up_below is not None and frame.seq < hosted.gate.catch_up_below \
+            and frame.attempt > 0
         latency = self.rt.scenario.components[hosted.stage.component].latency_s[self.rt.platform.name]
         self.rt.meter.charge_run(latency, self.rt.now(), "recovery" if recomputed else "chain")
         payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")

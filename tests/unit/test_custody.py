@@ -61,8 +61,8 @@ def test_acknowledged_frames_leave_custody_and_lost_ones_are_resent_once_a_late_
     custody.on_report("Blob-2", 0, report(next_seq=2, max_seq=6, missing=(2,), t=1.2))
     due = custody.due(now=1.3)
     assert [(node, held.frame.seq) for node, held in due] == [("laptop", 2)]  # not 3, 4: it has them
-    resent = custody.resend(due[0][1], now=1.3)
-    assert resent.attempt == 1 and resent.seq == 2
+    resent, again = custody.resend(due[0][1], now=1.3)
+    assert again and resent.attempt == 1 and resent.seq == 2
     assert custody.due(now=1.4) == []  # sent again just now: wait for a report after that
     custody.on_report("Blob-2", 0, report(next_seq=7, max_seq=6, t=2.0))
     assert len(custody) == 0 and custody.bytes == 0 and custody.evicted == 0
@@ -147,6 +147,58 @@ def test_a_frame_not_on_the_wire_is_not_resent_and_reports_of_old_generations_ar
     assert len(custody) == 1
     custody.on_report("Blob-2", 0, report(next_seq=0, max_seq=3, missing=(0,), t=9.0, generation=2))
     assert [held.frame.seq for _, held in custody.due(now=9.0)] == [0]
+
+
+def test_a_frame_held_back_for_want_of_a_route_goes_first_as_itself_and_only_then_as_a_resend():
+    custody = Custody(resend_after_s=1.0)
+    custody.keep(frame(0), now=0.0)
+    custody.held_back(frame(0))  # its first send found no route: no copy left this node
+    custody.on_report("Blob-2", 0, report(next_seq=0, max_seq=3, missing=(0,), t=2.0))
+    [(node, held)] = custody.due(now=2.0)
+    first, again = custody.resend(held, now=2.0)
+    assert node == "laptop" and not again and first.attempt == 0 and custody.resent == 0
+    custody.on_report("Blob-2", 0, report(next_seq=0, max_seq=5, missing=(0,), t=3.5))  # lost on the way too
+    [(_, held)] = custody.due(now=3.5)
+    second, again = custody.resend(held, now=3.5)
+    assert again and second.attempt == 1 and custody.resent == 1
+
+
+def test_inputs_produced_while_their_consumer_was_out_of_reach_are_the_chains_work_when_they_go():
+    """A robot cut from the host of its chain's stage keeps the inputs it produces meanwhile; when
+    the route is back they go for the first time. Their radio and their runs are the chain's steady
+    work, which the model prices, not an overhead of the fault: metered as such, not as recovery
+    (a first copy reaches no consumer twice, so its output is no second copy either)."""
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Loc-2": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    r2, laptop = team.nodes["r2"], team.nodes["laptop"]
+    plan = r2.plan_view.plan
+    next_status = [0.5]
+
+    def tick(t: float) -> None:
+        if t >= next_status[0]:
+            team.exchange_statuses()
+            next_status[0] = t + 0.5
+
+    team.run_until(9.7, on_tick=tick)
+    r2.plan_view.override_placement(dict(plan.placement), {"laptop"})  # no route to the laptop
+    team.run_until(14.5, on_tick=tick)
+    held_back = [h for (chain, _), hop in r2.custody.hops.items() if chain == "Loc-2" for h in hop.values()
+                 if not h.on_air]
+    assert len(held_back) >= 2  # the scans of t = 10 and 12
+    r2.plan_view.set_plan(plan)  # the route is back
+    team.run_until(30.0, on_tick=tick)
+    for _ in range(6):
+        team.clock.advance(0.5)
+        team.exchange_statuses()
+    produced = r2.sources["Loc-2"].seq
+    assert sorted(seq for _, seq, _ in outputs["Loc-2"]) == list(range(produced))
+    assert r2.sinks["Loc-2"].duplicates_total == 0
+    assert not [k for k, joules in r2.meter.energy_j.items() if "recovery" in k and joules > 0], r2.meter.energy_j
+    assert r2.custody.resent == 0 and r2.counters.get("resent-frames", 0) == 0
+    assert r2.counters.get("held-back-frames-sent", 0) >= len(held_back)
+    assert laptop.counters.get("resent-frames", 0) == 0
 
 
 def test_custody_is_bounded_and_counts_what_it_gives_up():
@@ -597,7 +649,7 @@ def test_a_stage_restarted_cold_recomputes_what_its_dead_host_delivered_without_
     for (chain, _), frames in list(r2.custody.hops.items()):
         if chain == "Loc-2":
             for h in sorted(frames.values(), key=lambda h: h.frame.seq):
-                r2.frames.send_frame(r2.custody.resend(h, r2.wall()), "r2", purpose="recovery")
+                r2.frames.send_frame(r2.custody.resend(h, r2.wall())[0], "r2", purpose="recovery")
     team.pump()
     assert r2.hosted["Loc-2"].gate.catch_up_below is None
     team.run_until(30.0)
