@@ -151,6 +151,11 @@ def write(args, result: dict) -> None:
                            "the energy model", result["energy_model_j"], group=g,
                            note="the model's power integrated over the same run (migrations and recovery, "
                                 "reported apart, left out of the metered side)"),
+            results.figure("team energy metered outside reconfigurations", result["energy_metered_outside_j"], "J",
+                           "the energy model outside them", result["energy_model_outside_j"], group=g,
+                           note=f"the run less its reconfiguration windows ({result['reconfiguration_covered_s']:.0f} "
+                                "mission s: two status periods from each change of a robot's model power and "
+                                "each fault), overheads left out as above"),
         ]
     figures.append(results.figure("ERROR lines or tracebacks in the logs", sum(result["log_errors"].values()),
                                   "lines", "fault commands sent", len(faults), group=g,
@@ -203,6 +208,12 @@ def main() -> None:
                       outputs_produced=s["outputs"].get("produced", 0),
                       energy_model_error_pct=s["energy_model_error_pct"],
                       energy_error_pct_per_robot={r: v["error_pct"] for r, v in s["energy"]["per_robot"].items()},
+                      # outside the reconfiguration windows, and what the windows shifted (recording.transitions)
+                      energy_steady_error_pct=s["energy_steady_error_pct"],
+                      energy_transition_j=s["energy"]["transitions"]["transition_j"],
+                      reconfiguration_covered_s=s["energy"]["transitions"]["covered_s"],
+                      energy_metered_outside_j=s["energy"]["transitions"]["steady_metered_j"],
+                      energy_model_outside_j=s["energy"]["transitions"]["steady_model_j"],
                       failed_invariants=[i for i in s["invariants"] if i["ok"] is False],
                       invariants_checked=sum(i["ok"] is not None for i in s["invariants"]),
                       energy_metered_steady_j=s["energy"]["metered_j"] - sum(s["energy"]["overhead_j"].values()),
@@ -222,6 +233,8 @@ def main() -> None:
               f"before it flushed their recording, {result['in_flight']} in flight at the stop and "
               f"{result['abandoned']} abandoned when their chain restarted; of {result['outputs_produced']} produced), "
               f"{result['duplicated']} duplicated; energy vs model {result['energy_model_error_pct']:+.2f} % "
+              f"({result['energy_steady_error_pct']:+.2f} % outside reconfigurations, which shifted "
+              f"{result['energy_transition_j']:+.1f} J) "
               f"(per robot {', '.join(f'{r} {v:+.1f}' for r, v in result['energy_error_pct_per_robot'].items())})")
         for inv in result["failed_invariants"]:
             print(f"  FAILED {inv['name']}: {inv['detail']}")

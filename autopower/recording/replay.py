@@ -55,7 +55,8 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                  # change of a robot's model power and each fault, for two status periods of wall
                  # time: recording.transitions) and outside them
                  "transitions": {"window_s": float, "windows": [[float, float]], "covered_s": float,
-                                 "transition_j": float | null, "steady_error_pct": float | null}},
+                                 "transition_j": float | null, "steady_error_pct": float | null,
+                                 "steady_model_j": float | null, "steady_metered_j": float | null}},
       "outputs": {"recorded": bool,
                   "produced": int,  # what the sources produced (per run: `produced`, else up to the last delivered)
                   "lost": int,  # produced, not delivered, and in no other class below
@@ -353,7 +354,11 @@ def summarize(rec: Recording, path: str | Path | None = None) -> dict[str, Any]:
                    "transitions": {"window_s": window_s, "windows": [list(w) for w in reconfigurations],
                                    "covered_s": sum(b - a for a, b in transitions.clip(reconfigurations, start, end)),
                                    "transition_j": transition_sum if model_known and robots else None,
-                                   "steady_error_pct": steady_error}},
+                                   "steady_error_pct": steady_error,
+                                   # outside the windows: the model's, and the metered less overheads
+                                   "steady_model_j": steady_sum["model_j"] if model_known and robots else None,
+                                   "steady_metered_j": steady_sum["model_j"] + steady_sum["residual_j"]
+                                   if model_known and robots else None}},
         "outputs": outputs,
         "quality": _quality(rec),
         "invariants": invariants,

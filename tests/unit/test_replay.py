@@ -261,6 +261,9 @@ def test_the_model_is_checked_apart_within_reconfigurations_and_in_steady_runnin
     assert s["energy_steady_error_pct"] == pytest.approx(0.0, abs=1e-9)
     assert s["energy"]["transitions"]["transition_j"] == pytest.approx(-2.5)
     assert s["energy"]["per_robot"]["r1"]["transition_j"] == pytest.approx(-2.5)
+    t = s["energy"]["transitions"]
+    assert t["steady_model_j"] == pytest.approx(140.0) and t["steady_metered_j"] == pytest.approx(140.0)
+    assert t["covered_s"] == pytest.approx(5.0)
     # a meter drifting from the model in steady running (20 s at +0.1 W from t = 80) shows outside them
     drifted = recording("drift.rrd", 0.1)
     assert drifted["energy_steady_error_pct"] == pytest.approx(2.0 / (150.0 - 10.0) * 100)  # the window modelled 10 J
