@@ -156,6 +156,13 @@ class Acknowledging:
                 report = hosted.gate.report(hosted.run, hosted.generation)
                 if report is not None:  # less the inputs still in the stage's worker (their outputs are not out)
                     out[hop_key(hosted.chain.name, hosted.index)] = self.acknowledged(hosted, report)
+                elif hosted.index > 0 or hosted.chain.sourced:  # (a first stage fed by flows only has no hop)
+                    # Rule: a running instance reports its hop before its first input too (it has
+                    # consumed nothing): its producer may hold frames for its dead predecessor, and one
+                    # so backed up captures nothing new (`Custody.has_room`), so no first input would
+                    # ever come to start the gate; told, it resends what it holds.
+                    out[hop_key(hosted.chain.name, hosted.index)] = Consumed(
+                        run=hosted.run, generation=hosted.generation, next_seq=0, max_seq=-1, missing=())
         for name, ledger in self.rt.sinking.ledgers.items():
             if committed_sinks and self.rt.sinking.store is not None:
                 report = self._sinks_committed.get(name)

@@ -45,7 +45,10 @@ resent and is counted, so a loss is visible instead of silent. A source does not
 that point when its consumer is behind: while its first hop is full (its frames per hop, or its
 share of the bytes) and the oldest frame in it waits for longer than a resend would, it skips its
 captures, counted as missed periods (``missed-periods-backlog``), so a consumer that falls behind
-gets the stream late but whole, never with holes (`has_room`).
+gets the stream late but whole, never with holes (`has_room`). What it holds then goes to the
+consumer's next instance, which says it has nothing before its first input
+(`Acknowledging.consumed`): waiting for a first input that the backed-up source will not capture
+would stall the chain for good.
 
 A chain's results (the frames for its sink) are the exception: they are what the operator wants,
 so they are kept, and resent, for as long as their sink needs to come back (store and forward),
@@ -406,9 +409,17 @@ class Custody:
         stays 0 (no consumer can have it, so its output is no second copy either) and what it
         costs is the chain's steady work, which the model prices, not an overhead of the fault."""
         first = not held.on_air
+        # A copy carries the hop's floor as it is now, not as it was at the first sending: a
+        # consumer's fresh instance starts its gate at the lower of a frame's seq and its floor, and
+        # an older floor would start it below frames that were acknowledged since and never come
+        # again (it waited for them until it gave the gap up, with its producer backed up).
+        frame = held.frame
+        floor = frame.floor if frame.floor is None else self.floor(frame.chain, frame.target, frame.run, frame.seq)
         if not first:
-            held.frame = replace(held.frame, attempt=held.frame.attempt + 1)
+            held.frame = replace(frame, attempt=frame.attempt + 1, floor=floor)
             self.resent += 1
+        elif floor != frame.floor:
+            held.frame = replace(frame, floor=floor)
         held.on_air = True
         held.sent_unix = now
         return held.frame, not first

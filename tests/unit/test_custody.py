@@ -615,7 +615,10 @@ def test_a_stage_restarted_without_state_catches_up_on_what_never_reached_its_ol
         team.exchange_statuses()
     produced = r2.sources["Loc-2"].seq
     assert sorted(seq for _, seq, _ in outputs["Loc-2"]) == list(range(produced))  # the lost scan included
-    assert r2.hosted["Loc-2"].gate.catch_up_below == lost_scan + 1
+    # the new instance said at once that it had nothing (before its first input), so r2 resent the
+    # lost scan before its next one: the gate started there, with no range to catch up below a newer
+    gate = r2.hosted["Loc-2"].gate
+    assert gate.catch_up_below is None and lost_scan in gate.resent
     assert r2.sinks["Loc-2"].duplicates_total == 0
 
 
@@ -949,3 +952,59 @@ def test_a_late_input_for_a_stage_moved_out_of_reach_waits_as_an_orphan_until_a_
     monkeypatch.setattr(laptop.frames, "send_frame", lambda frame, dest, *args, **kwargs: sent.append((frame.seq, dest)))
     laptop.on_plan(dataclasses.replace(cut, epoch=cut.epoch + 1, links=plan.links))  # r2 in reach again
     assert sent == [(10_000, "r2")] and name not in laptop.hosting.orphans
+
+
+def test_a_resent_copy_carries_the_hops_floor_as_it_is_now():
+    custody = Custody(resend_after_s=1.0)
+    for seq in range(6):
+        custody.keep(dataclasses.replace(frame(seq), floor=0), now=0.0)
+    custody.on_report("Blob-2", 0, report(next_seq=3, max_seq=5, missing=(3, 4, 5), t=2.0))  # 0-2 run
+    [(_, held), *_] = custody.due(now=2.0)
+    copy, again = custody.resend(held, now=2.0)
+    # a fresh instance starting at this copy starts at 3, not below it at seqs that never come again
+    assert again and copy.seq == 3 and copy.floor == 3
+
+
+def test_a_cold_restarted_stage_gets_what_its_backed_up_producer_holds(tmp_path):
+    """Live random faults, seed 7: r3's camera chain ran on the base station, cut off from r3 for a
+    while; r3's custody for it filled up (145 camera frames, its share of the bytes), so its source
+    skipped every capture (back-pressure: the consumer is behind). A subgroup round restarted the
+    stage on r3 itself, cold. The new instance had no input yet, so it reported nothing, so r3 resent
+    nothing, so the source, still backed up, captured nothing: the chain stood still for the rest of
+    the run (80 s of wall time, 1,700 captures skipped), and r3 read 15 % below the model. A running
+    instance reports its hop before its first input too: its producer resends what it holds."""
+    from autopower.node.held_store import HeldStore
+    from autopower.node.ports import NodeStores
+    from autopower.protocol import Assign
+
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Blob-3": "laptop"}),
+                   stores={"r3": NodeStores(held_store=HeldStore(tmp_path / "r3.held"))})
+    outputs = collect(team)
+    team.join()
+    r3 = team.nodes["r3"]
+    next_status = [0.5]
+
+    def tick(t: float) -> None:
+        if t >= next_status[0]:
+            team.exchange_statuses()
+            next_status[0] = t + 0.5
+
+    team.run_until(5.0, on_tick=tick)
+    team.cut_silently("laptop", "r3")
+    team.run_until(50.0, on_tick=tick)
+    source = r3.sources["Blob-3"]
+    backed_up = source.seq
+    assert r3.counters.get("missed-periods-backlog", 0) > 0  # custody full: captures skipped
+    assert not r3.custody.has_room("Blob-3", 0, sc.chain("Blob-3").message_bytes[0], r3.wall(),
+                                   sharers=len(r3.feeds))
+    r3.hosting.on_assign(Assign(stage="Blob-3", generation=10**9, chain="Blob-3", run=r3.plan.running["Blob-3"],
+                                resume_seq=None))  # as a subgroup round restarts it
+    r3.plan_view.override_placement({**r3.plan.placement, "Blob-3": "r3"}, {"laptop"})
+    team.run_until(70.0, on_tick=tick)
+    assert source.seq >= backed_up + 4 * 15  # capturing again at 4 Hz within 5 s of the restart
+    hosted = r3.hosted["Blob-3"]
+    assert hosted.runs >= source.seq - backed_up  # what was held ran, and what came since
+    assert r3.custody.held_for("Blob-3", 0) <= 4  # drained: only the last second's frames
+    assert not [seq for _, seq, _ in outputs["Blob-3"] if seq >= backed_up]  # results held for the laptop
+    assert len(r3.holds) >= source.seq - backed_up
