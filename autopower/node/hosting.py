@@ -411,6 +411,11 @@ class Hosting:
         sink out of reach holds them). A stage in a worker keeps them as orphans (sent to the
         stage's host once a plan places it). A chain the operator stopped, or whose component
         failed, drops them.
+
+        A chain stopped by a fault resumes its run (`basestation.runs`): a producer only out of
+        sight still holds the gap and what waits behind it, and sends them to the next instance
+        (whose outputs of them are marked resends: a sink that has these drops them); a producer
+        that was killed took the gap with it, and this is the only run those inputs get.
         """
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:

@@ -10,6 +10,12 @@ it or was about to. The simulator sees all of that at the instant of each kill (
 an output labelled died that no kill took is a violation (it was lost elsewhere, not in a crash).
 The process is not checked: a frame one process's restart names may have gone to another that
 was killed with it in hand (a result its stage's host held for a sink that had crashed).
+
+A kill also takes the inputs a stage's gate elsewhere holds behind one it took (`stranded`): a stage
+runs its inputs in order, each once, so an input it waits for that died leaves those behind it
+runnable only past a gap, which a stand-in stage refuses as a skipped input (`teamsim.components`).
+A chain whose source robot is killed resumes its run when the robot is back: its stage's host
+released the instance that waited behind the gap (the chain stopped), so those inputs are never run.
 """
 
 from __future__ import annotations
@@ -25,17 +31,21 @@ Key = tuple[str, int, int]  # (chain, run, seq)
 def frames_of(payload: bytes) -> set[Key]:
     """The chain frames a message carries: a packet's frame, a migration's pending inputs, what a
     relayed message carries (none for anything else, or a garbled one)."""
+    return _keys(_frames(payload))
+
+
+def _frames(payload: bytes) -> tuple[ChainFrame, ...]:
     try:
         msg = decode(payload, (Packet, Relayed, StateTransfer, ChainFrame))
     except ProtocolError:
-        return set()
+        return ()
     if isinstance(msg, Packet):
-        return frames_of(msg.body)
+        return _frames(msg.body)
     if isinstance(msg, Relayed):
-        return frames_of(msg.payload)
+        return _frames(msg.payload)
     if isinstance(msg, StateTransfer):
-        return _keys(msg.pending)
-    return _keys((msg,))
+        return tuple(msg.pending)
+    return (msg,)
 
 
 def only_in(world, node: str) -> set[Key]:
@@ -53,7 +63,37 @@ def only_in(world, node: str) -> set[Key]:
             others |= in_hands(world, other)
     for payload in world.network.in_transit(but=node):
         others |= frames_of(payload)
-    return mine - others
+    taken = mine - others
+    return taken | stranded(world, node, taken)
+
+
+def stranded(world, node: str, taken: set[Key]) -> set[Key]:
+    """The inputs stranded behind one the kill of ``node`` takes (``taken``): for each stage's gate on
+    another live process, the first seq it waits for (from ``next_seq``) that the kill took, if any,
+    and the inputs of its hop above that seq waiting in the gate or on their way (from any sender but
+    ``node``). The gate runs its inputs in order: those can be run only past a gap (the module's rules)."""
+    gates: list[tuple[str, int, int, int]] = []  # (chain, run, target, the first seq taken it waits for)
+    out: set[Key] = set()
+    for other, shell in world.shells.items():
+        if other == node or not shell.up or shell.rt is None:
+            continue
+        for hosted in shell.rt.hosted.values():
+            gate = hosted.gate
+            if gate.next_seq is None:
+                continue
+            chain, run = hosted.chain.name, hosted.run
+            dead = next((seq for seq in range(gate.next_seq, gate.next_seq + gate.max_pending + 1)
+                         if seq not in gate.pending and (chain, run, seq) in taken), None)
+            if dead is None:
+                continue
+            gates.append((chain, run, hosted.index, dead))
+            out.update((f.chain, f.run, f.seq) for f in gate.pending.values() if f.seq > dead)
+    if gates:
+        for payload in world.network.in_transit(but=node):
+            for f in _frames(payload):
+                if any((f.chain, f.run, f.target) == g[:3] and f.seq > g[3] for g in gates):
+                    out.add((f.chain, f.run, f.seq))
+    return out
 
 
 def in_hands(world, node: str) -> set[Key]:

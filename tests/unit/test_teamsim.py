@@ -484,6 +484,41 @@ def test_what_a_kill_takes_is_what_the_killed_process_alone_had(tmp_path):
         world.close()
 
 
+def test_a_kill_takes_the_inputs_stranded_behind_one_it_took(tmp_path):
+    """r2's camera frames go to the laptop through r1 (the direct link is cut); a moment's cut of r2's
+    side loses three of them, which only r2's custody holds. The laptop's Blob-2 gate waits for the
+    first of them with the next ones behind it, and one more is on its way from r1: a kill of r2 takes
+    those too (`evidence.stranded`), since the gate runs its inputs in order and a stand-in refuses a
+    skipped one. (Seeds 124, 185, 369, 403, 525, 746 and 1197 of CI's sweep once a chain stopped by a
+    fault resumed its run: the laptop released the stage and its waiting inputs were never run.)"""
+    from autopower.teamsim.evidence import frames_of, in_hands, only_in
+    from autopower.teamsim.team import World
+
+    world = World(config(seed=3), tmp_path)
+    try:
+        for node in ("laptop", "r1", "r2", "r3"):
+            world.start(node)
+        world.scheduler.run_until(5.0)
+        world.network.set_cut("r2", "laptop", True)
+        world.network.set_cut("laptop", "r2", True)
+        world.scheduler.run_until(10.0)
+        assert world.shells["r2"].rt.plan_view.network.path("r2", "laptop") == ["r2", "r1", "laptop"]
+        world.network.set_cut("r2", "r1", True)  # one way, for a moment: r2's frames vanish
+        world.scheduler.run_until(10.6)
+        world.network.set_cut("r2", "r1", False)
+        world.scheduler.run_until(11.3)
+        gate = world.shells["laptop"].rt.hosted["Blob-2"].gate
+        waiting = {("Blob-2", 0, seq) for seq in gate.pending}
+        on_the_way = {key for p in world.network.in_transit(but="r2") for key in frames_of(p) if key[0] == "Blob-2"}
+        gap = {("Blob-2", 0, seq) for seq in range(gate.next_seq, min(gate.pending))}
+        assert len(gap) == 3 and len(waiting) == 2 and len(on_the_way) == 1  # 37-39 lost, 40-41 wait, 42 comes
+        assert gap <= in_hands(world, "r2") and not gap & in_hands(world, "laptop")
+        dies = only_in(world, "r2")
+        assert gap | waiting | on_the_way <= dies
+    finally:
+        world.close()
+
+
 def test_a_died_label_counts_only_for_an_output_a_kill_took():
     """An output a restarted process names died with it is let go only if some kill took it; one no
     kill took is lost (or the tail of an ended run), and the violation says it was labelled."""
