@@ -198,6 +198,9 @@ class Frames:
             return
         if refusable and self._no_room(hosted, frame):
             return
+        if hosted.lifecycle is Lifecycle.RUNNING and hosted.gate.skips_below(frame.floor) and hosted.carries_state():
+            # an instance with state does not move past a gap on a floor: it starts afresh (`Hosting.start_afresh`)
+            self.rt.hosting.start_afresh(hosted, frame.floor)
         before, redundant, skipped = hosted.gate.duplicates, hosted.gate.redundant, hosted.gate.skipped
         for ready in hosted.gate.offer(frame.seq, frame, frame.floor, resent=frame.attempt > 0, now=self.rt.wall()):
             self._run(hosted, ready)

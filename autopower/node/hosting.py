@@ -209,6 +209,54 @@ class Hosting:
                      hosted.run, run)
             hosted.component, hosted.run, hosted.gate = component, run, SequenceGate()
 
+    def start_afresh(self, hosted: HostedStage, floor: int) -> bool:
+        """Start ``hosted`` afresh at ``floor``, its producer's floor that opens a gap in its gate: a
+        fresh component and gate, same run and generation (False: its component is in a worker, or
+        its constructor raised: it goes on as it was).
+
+        Rule: an instance that carries state (`HostedStage.carries_state`) does not move past a gap on
+        its producer's floor: when the floor rises above an input its gate waits for, it starts
+        afresh there. A floor says that the producer no longer holds what is below it. That is what
+        an instance of the stage ran, or what the producer lost: a producer that was killed lost its
+        custody, and the restarted one sends what it makes next with its floor there (the frames only
+        its process had died with it, `Resuming._died_in_hand`). The base station stops a chain whose source
+        robot it lost, and the chain resumes its run with its stages started afresh; but it may not
+        see the robot go (a restart within the lease; a stale view of a relay: a keyframe of a
+        status lost on a lossy link), and then the instance that waited for the dead input gets the
+        restarted source's frames. Run past the gap, its component would take the next input as
+        the one after the last it ran (the simulator's stand-ins refuse it, and the stage failed,
+        its chain stopped until the operator enabled it). So it starts afresh at the floor, as the
+        resumed chain would have: what it waited for is gone either way.
+
+        The inputs waiting below the floor (they reached it, one before them had not) are run past
+        the gap by the old instance before it goes, as a release runs them (`on_release`); those at
+        or above it go to the fresh one. A component in a worker keeps going as it was (killing
+        its worker would lose the inputs it is running, which its producer no longer holds)."""
+        if worker_of(hosted.component) is not None:
+            return False
+        name = hosted.stage.name
+        order = Assign(stage=name, generation=hosted.generation, chain=hosted.chain.name, run=hosted.run,
+                       resume_seq=floor)
+        component = self._construct(order, hosted.chain, hosted.stage)
+        if component is None:
+            return False
+        old = hosted.gate
+        waiting = old.take_pending()
+        below = [frame for frame in waiting if frame.seq < floor]
+        log.warning("%s: %s waited for seq %d; its producer no longer holds what is below seq %d: started afresh "
+                    "there%s", self.rt.node, name, old.next_seq, floor,
+                    f" ({len(below)} input(s) waiting below it run first)" if below else "")
+        self.rt.tally("stage-started-afresh")
+        if below:
+            self.rt.frames.run_before_release(hosted, below)
+        self.rt.components.retire(hosted.component)
+        hosted.component, hosted.imported = component, False
+        hosted.gate = SequenceGate(next_seq=floor)
+        hosted.gate.resent.extend(old.resent)  # late originals of these are redundant here too
+        for frame in waiting[len(below):]:  # already taken in once: never refused
+            self.rt.frames.admit(hosted, frame, refusable=False)
+        return True
+
     def on_assign(self, msg: Assign) -> None:
         chain, index = self.rt.stage_index[msg.stage]
         stage = chain.stages[index]
@@ -356,6 +404,7 @@ class Hosting:
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
                              gate=SequenceGate(next_seq=msg.next_seq))
         hosted.gate.resent.extend(msg.resent)  # late originals of these are redundant here too
+        hosted.imported = imported
         self._adopt_outputs(msg, hosted)
         self.failed.pop(msg.stage, None)
         if current is not None:

@@ -88,6 +88,7 @@ class SequenceGate(Generic[T]):
     producer_floor: int | None = None
     _floor_heard: float | None = None
     resent: deque = field(default_factory=lambda: deque(maxlen=4096))  # recent seqs first offered as a resend
+    released: int = 0  # inputs handed on to run (its instance's component has seen them)
 
     def offer(self, seq: int, item: T, floor: int | None = None, resent: bool = False,
               now: float | None = None) -> list[T]:
@@ -151,6 +152,12 @@ class SequenceGate(Generic[T]):
             return False
         return now is None or self._floor_heard is None or now - self._floor_heard <= self.max_gap_s
 
+    def skips_below(self, floor: int | None) -> bool:
+        """Would ``floor`` move this gate past a seq that is not waiting here (`_release_below`)?"""
+        if floor is None or self.next_seq is None or floor <= self.next_seq:
+            return False
+        return sum(1 for seq in self.pending if seq < floor) < floor - self.next_seq
+
     def _release_below(self, floor: int) -> list[T]:
         """Move to ``floor``, counting the seqs below it that are not here as consumed elsewhere and
         releasing, in order, those that are."""
@@ -159,6 +166,7 @@ class SequenceGate(Generic[T]):
             self.consumed_elsewhere += seq - self.next_seq
             released.append(self.pending.pop(seq))
             self.next_seq = seq + 1
+        self.released += len(released)
         self.consumed_elsewhere += floor - self.next_seq
         self.next_seq = floor
         if not self.pending:
@@ -178,6 +186,7 @@ class SequenceGate(Generic[T]):
         while self.next_seq is not None and self.next_seq in self.pending:
             ready.append(self.pending.pop(self.next_seq))
             self.next_seq += 1
+        self.released += len(ready)
         return ready
 
     def recent_resends(self, window: int = 512) -> tuple[int, ...]:

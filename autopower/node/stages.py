@@ -77,6 +77,12 @@ class HostedStage:
     # was lost (`basestation.placing.Placement.resend_orders`).
     answer: bytes = b""
     shipped: tuple[int, str, bytes] | None = None
+    imported: bool = False  # its component imported a migrated state (`Hosting.on_state`)
+
+    def carries_state(self) -> bool:
+        """Whether its component may hold state from earlier inputs: it ran one here, or it imported
+        the state of an instance that did. A fresh component has seen nothing: it may start anywhere."""
+        return self.imported or self.gate.released > 0
 
 
 @dataclass

@@ -87,6 +87,15 @@ FOUND_BEYOND_RANGE: tuple[int, ...] = ()
 # committed (`NodeRuntime.commit_sinks`), and a moving stage takes the outputs only the old host's
 # memory holds with its state (`StateTransfer.outputs`). A regression test in test_teamsim_findings.py.
 FIXED_UNCOMMITTED_OUTPUTS = (4024,)
+# 1695 (beyond this range, fixed 2026-11-30): r3 was killed with camera frames for the laptop's Blob-3
+# in its custody only (a partition had eaten them), and the base station never saw it go (the keyframe
+# of r1's status saying it had lost r3 was lost on a lossy link, and its deltas could not be applied
+# for 10 s), so Blob-3 kept running on the laptop, its gate waiting for the first of them. The
+# restarted r3 went on past them with its floor there; the gate ran the next frame past the gap and
+# the stage, whose state expected the gap, failed. An instance with state now starts afresh at a floor
+# that would skip an input (`Hosting.start_afresh`): the unit test in test_custody.py pins the rule,
+# the seed is a regression test in test_teamsim_findings.py.
+FIXED_RESTARTED_PRODUCER_BEYOND_RANGE = (1695,)
 # seeds whose sink counted a copy a duplicating link made on an earlier hop of a routed packet (the
 # oracle took the copy for one the team made): 53 and 270 (in this range), 382 (a regression test)
 FIXED_FORWARDED_COPIES = (53, 270, 382)

@@ -18,6 +18,7 @@ from autopower.model.loading import load_scenario
 from autopower.node.custody import Custody, Report, hop_key, is_consumed, parse_hop_key
 from autopower.node.ports import SinkListener
 from autopower.node.sequencing import MAX_MISSING, SequenceGate, SinkLedger, in_ranges, missing_between, ranges_of
+from autopower.node.stages import Lifecycle
 from autopower.protocol import Ack, ChainFrame, Consumed, NodeStatus, decode, encode
 from tests.unit.sim_team import SimTeam
 from tests.unit.test_agent_migration import FC, check_exactly_once, collect
@@ -581,6 +582,52 @@ def test_a_gate_runs_what_waits_below_the_floor_past_what_another_instance_consu
     assert gate.next_seq == 20 and gate.consumed_elsewhere == 2 and gate.skipped == 0 and not gate.pending
     # a gap the floor does not cover still waits
     assert gate.offer(22, 22, floor=21) == [] and gate.next_seq == 21 and gate.consumed_elsewhere == 3
+
+
+def test_a_gate_knows_when_a_floor_would_move_it_past_an_input_not_waiting_in_it():
+    gate = SequenceGate(next_seq=5)
+    assert not gate.skips_below(None) and not gate.skips_below(5) and not gate.skips_below(3)
+    gate.offer(5, 5, floor=5)
+    gate.offer(7, 7, floor=5)
+    assert gate.released == 1  # 5 ran; 7 waits behind 6
+    assert not gate.skips_below(6)  # nothing below 6 is missing: 5 ran
+    assert gate.skips_below(8)  # 6 is neither run nor waiting
+    gate.offer(6, 6, floor=5)
+    assert gate.released == 3 and not gate.skips_below(8)
+
+
+def test_a_stage_whose_producer_lost_the_input_it_waits_for_starts_afresh_at_the_floor():
+    """Sweep seed 1695 (CI's plan): r3's camera frames 64-69 for the laptop's Blob-3 vanished in a
+    partition, and r3 was killed with them in its custody only. The base station never saw r3 go (a
+    keyframe of a relay's status lost on a lossy link left its view of r3 stale), so Blob-3 kept
+    running on the laptop, its gate waiting for 64. The restarted r3 went on at 70 with its floor
+    there; the gate took the floor as what another instance had run and ran 70 past the gap, and the
+    component (whose state expected 64) refused it: the stage failed and its chain stopped. An
+    instance that has run inputs does not move past a gap on its producer's floor: it starts afresh
+    there, as the chain resumed after its source robot's kill would (`Hosting.start_afresh`)."""
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Blob-3": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    r3, laptop = team.nodes["r3"], team.nodes["laptop"]
+    team.run_exchanging_statuses(5.0)
+    assert laptop.hosted["Blob-3"].gate.released > 0
+    team.cut_silently("r3", "laptop", one_way=True)  # r3's camera frames vanish on the way
+    team.run_exchanging_statuses(6.0)
+    waited = laptop.hosted["Blob-3"].gate.next_seq
+    died = {h.frame.seq for (chain, target), frames in r3.custody.hops.items() if (chain, target) == ("Blob-3", 0)
+            for h in frames.values()}
+    assert waited == min(died)
+    # r3 is killed with them in its custody only; its restarted source goes on after them (`Resuming`)
+    r3.custody.forget_chain("Blob-3")
+    team.heal_silently("r3", "laptop")
+    team.run_exchanging_statuses(9.0)
+    hosted = laptop.hosted["Blob-3"]
+    assert hosted.lifecycle is Lifecycle.RUNNING and "Blob-3" not in laptop.hosting.failed
+    assert laptop.counters.get("stage-started-afresh") == 1
+    produced = r3.sources["Blob-3"].seq
+    assert sorted(seq for _, seq, _ in outputs["Blob-3"]) == [seq for seq in range(produced) if seq not in died]
+    assert laptop.sinks["Blob-3"].duplicates_total == 0
 
 
 def test_a_stage_restarted_without_state_catches_up_on_what_never_reached_its_old_host():

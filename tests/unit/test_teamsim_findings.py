@@ -18,6 +18,7 @@ from tests.integration.test_sim_sweep import (
     FIXED_FORWARDED_COPIES,
     FIXED_GAPS_AND_KILLS_BEYOND_RANGE,
     FIXED_OLD_RUNS,
+    FIXED_RESTARTED_PRODUCER_BEYOND_RANGE,
     FIXED_SLOWED_LINKS_BEYOND_RANGE,
     FIXED_UNCOMMITTED_OUTPUTS,
     FIXED_WAITING_INPUTS,
@@ -188,6 +189,17 @@ def test_sweep_seeds_where_a_stage_moved_past_outputs_only_its_old_host_held(see
     were run and r2 (their source) dropped them: the outputs died with the laptop. A node acknowledges
     to itself only what its sinks committed, and the outputs only the old host's memory holds move with
     the stage's state; r2 resent them to the restarted base station."""
+    verdict = run_seed(PLAN, seed)
+    assert verdict.ok, verdict.first
+
+
+@pytest.mark.parametrize("seed", FIXED_RESTARTED_PRODUCER_BEYOND_RANGE)
+def test_sweep_seed_where_a_stage_ran_its_restarted_producers_frame_past_the_gap_its_kill_left(seed):
+    """Found by the simulator (fixed): 1695, r3 was killed with Blob-3's frames 64-69 in its custody
+    only (a partition had eaten them) while the base station, its view of r3 stale, kept Blob-3 running
+    on the laptop. The restarted r3 sent 70 with its floor there: the laptop's gate, waiting for 64, ran
+    it past the gap and the stage failed (its state expected 64), stopping the chain. The instance now
+    starts afresh at the floor (`Hosting.start_afresh`); 64-69 died with r3 (named, and taken by its kill)."""
     verdict = run_seed(PLAN, seed)
     assert verdict.ok, verdict.first
 
