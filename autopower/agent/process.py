@@ -143,7 +143,7 @@ class Agent:
         cfg = self.config
         self.rounds = SubgroupRounds(
             runtime=self.runtime, scenario=scenario, bus=bus, keys=keys, wall=time.time,
-            reachable=self.relayer.reachable, statuses=self.statuses,
+            reachable=self.relayer.reachable, reached=self.relayer.reached, statuses=self.statuses,
             settings=RoundSettings(enabled=cfg.subgroup, settle_s=cfg.subgroup_settle_s,
                                    timeout_s=cfg.subgroup_timeout_s, status_period_s=cfg.status_period_s),
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=self._started_unix,

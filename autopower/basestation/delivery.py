@@ -18,18 +18,25 @@ A robot's plan is thus the base station's newest in all it acts on, and the base
 robot for running a plan when it runs the last one sent to it (`holds`): for resends
 (`PlanPublisher.behind_plan`), a fault's reconfiguration (`TeamFaults.mark_reconfigured`) and
 battery drift (`Deciding.check_drift`).
+
+What a robot is sent of a plan is its part (`robot_part`, protocol 8): the plan with the robot's own
+predicted power alone, the only one it acts on. A new decision predicts every robot's power anew,
+so a change that carried the team's predicted power grew with the team; a robot's part changes by
+its own figure. Every part of one plan shares the hash of all but the predicted power
+(`shared_digest`), made once per plan; a robot's change is the plan's change (made once per base
+epoch) with the robot's predicted power and the digests of its parts (`_change_for`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 
 from autopower.model.network import Link, Network
 from autopower.protocol import LinkInfo, NodeStatus, PlanChange, PlanUpdate, encode
-from autopower.protocol.plans import plan_change
+from autopower.protocol.plans import part_digest, plan_change, robot_part, shared_digest
 
 PLAN_HISTORY = 64  # plans kept to make a robot holding an older one its change (`PlanDelivery.history`)
-WHOLE = -1  # (the key of the whole plan among the payloads made for one sending)
 
 
 class PlanDelivery:
@@ -47,6 +54,7 @@ class PlanDelivery:
         self.catch_up_unix: float | None = None  # when they get the newest, whatever it changes
         self.reached: set[str] = set()  # the robots in reach when the last new plan went out
         self.last_concerned: set[str] | None = None  # whom the last new change concerned (None: everyone)
+        self._shared: dict[int, bytes] = {}  # epoch -> `shared_digest` of our plan of it (a part's hash starts from it)
         self._chains_by_name = {c.name: c for c in team.scenario.chains}
         self._has_flows = any(c.inputs for c in team.scenario.chains)  # a flow feeds a stage from another chain
 
@@ -69,14 +77,17 @@ class PlanDelivery:
         the first of a new one (the robots get it whole)."""
         if not continues:
             self.history.clear()
+            self._shared.clear()
         self.history[update.epoch] = (update, digest)
+        self._shared.pop(update.epoch, None)
         while len(self.history) > PLAN_HISTORY:
+            self._shared.pop(next(iter(self.history)), None)
             del self.history[next(iter(self.history))]
 
     # ---- sending -----------------------------------------------------------------------------------------------
     def deliver(self, update: PlanUpdate, payload: bytes, change: PlanChange | None) -> None:
-        """The new plan ``update`` (``payload``: whole, or ``change`` from the plan before) to the robots
-        in reach, by the module's rules."""
+        """The new plan ``update`` (``payload``: whole, or ``change`` from the plan before, as the plan key
+        carries it) to the robots in reach, each its part (`robot_part`), by the module's rules."""
         team = self.team
         alive = team.alive_nodes()  # (a set built per call: once, not once per robot)
         in_reach = [r for r in team.robots if r in alive]
@@ -84,16 +95,16 @@ class PlanDelivery:
             self.lagging.clear()
             self.catch_up_unix = None
             for robot in in_reach:
-                self._send(robot, update, payload)
+                self._send(robot, update, self._whole_for(robot, update))
             self.reached = set(in_reach)
             return
         concerned = self._concerned(change, update)
         self.last_concerned = concerned
         everyone = concerned is None or not team.placing.migrations  # (the wave is over: those behind catch up)
-        made: dict[int, bytes] = {update.epoch - 1: payload}  # a change from each base epoch, made once
+        made: dict[int, PlanChange] = {update.epoch - 1: change}  # the plan's change from each base epoch, made once
         for robot in in_reach:
             if robot not in self.reached:
-                self._send(robot, update, made.setdefault(WHOLE, encode(update)))  # back in reach: whole
+                self._send(robot, update, self._whole_for(robot, update))  # back in reach: whole
             elif everyone or robot in concerned:
                 self._send(robot, update, self._change_for(robot, update, made))
             else:
@@ -119,26 +130,44 @@ class PlanDelivery:
                 or newest[0].incarnation != incarnation):
             return
         alive = team.alive_nodes()
-        made: dict[int, bytes] = {}
+        made: dict[int, PlanChange] = {}
         for robot in sorted(lagging):
             if robot in alive and robot in self.reached:
                 self._send(robot, newest[0], self._change_for(robot, newest[0], made))
 
     def resend(self, robots: list[str], update: PlanUpdate, payload: bytes) -> None:
-        """The current plan ``update`` again, whole (``payload``), to ``robots``."""
+        """The current plan ``update`` again, whole (each robot's part: ``payload`` is the whole plan's), to ``robots``."""
         for robot in robots:
-            self._send(robot, update, payload)
+            self._send(robot, update, self._whole_for(robot, update))
 
-    def _change_for(self, robot: str, update: PlanUpdate, made: dict[int, bytes]) -> bytes:
-        """``update`` for ``robot``: its change from the plan last sent to it (whole if that plan is not kept)."""
+    def _whole_for(self, robot: str, update: PlanUpdate) -> bytes:
+        """``robot``'s part of ``update``, whole."""
+        return encode(robot_part(update, robot))
+
+    def _part_digest(self, update: PlanUpdate, robot: str) -> bytes:
+        """`plan_digest` of ``robot``'s part of our plan ``update`` (kept in `history`), without hashing it whole."""
+        shared = self._shared.get(update.epoch)
+        if shared is None:
+            shared = self._shared[update.epoch] = shared_digest(update)  # (history keeps sorted plans)
+        return part_digest(shared, robot_part(update, robot).predicted_w)
+
+    def _change_for(self, robot: str, update: PlanUpdate, made: dict[int, PlanChange]) -> bytes:
+        """``update`` for ``robot``: the change of its part from the part last sent to it (whole if that
+        plan is not kept). The plan's change from that plan is made once (``made``, by base epoch);
+        the robot's part of it differs only in the predicted power and the digests."""
         sent = self.sent.get(robot)
         held = self.history.get(sent[1]) if sent is not None and sent[0] == update.incarnation else None
         if held is None or held[0].leader != update.leader or update.epoch not in self.history:
-            return made.setdefault(WHOLE, encode(update))
-        epoch = held[0].epoch
-        if epoch not in made:
-            made[epoch] = encode(plan_change(held[0], held[1], update, self.history[update.epoch][1]))
-        return made[epoch]
+            return self._whole_for(robot, update)
+        base = held[0]
+        change = made.get(base.epoch)
+        if change is None:
+            change = made[base.epoch] = plan_change(base, held[1], update, self.history[update.epoch][1])
+        old, new = base.predicted_w.get(robot), update.predicted_w.get(robot)
+        return encode(dataclasses.replace(
+            change, base_digest=self._part_digest(base, robot), digest=self._part_digest(update, robot),
+            predicted_w={robot: new} if new is not None and new != old else {},
+            not_predicted=(robot,) if old is not None and new is None else ()))
 
     def _send(self, robot: str, update: PlanUpdate, payload: bytes) -> None:
         team = self.team

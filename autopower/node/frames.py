@@ -51,7 +51,11 @@ class Frames:
         return self.rt.flows.stats(self.rt.hosted)
 
     def join_tick(self) -> None:
-        """Run the fan-in steps whose wait is over (from the node's timer)."""
+        """Run the fan-in steps whose wait is over (from the node's timer). Without a flow in the
+        scenario no stage joins inputs: nothing to look at (the base station's host runs a fleet's
+        stages by the hundred, and this runs at every timer)."""
+        if not self.rt.flows.fan_in:
+            return
         speed, wall = self.rt.mission.speed if self.rt.mission else 1.0, self.rt.wall()
         for hosted in list(self.rt.hosted.values()):
             for frame in self.rt.flows.ready(hosted, self.rt.plan, speed, wall):

@@ -306,6 +306,11 @@ class Flows:
         return {f.name: flow_weight(self._chain_of[f.producer], accounting)
                 for flows in self._out.values() for f in flows}
 
+    @property
+    def fan_in(self) -> bool:
+        """Does a stage of the scenario take a flow (and so may wait to join its inputs, `ready`)?"""
+        return bool(self._in)
+
     def running(self, plan: PlanUpdate | None) -> set[str]:
         """The flows whose producer's and consumer's chains both run."""
         running = plan.running if plan else {}

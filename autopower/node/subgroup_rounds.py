@@ -42,7 +42,8 @@ class SubgroupRounds:
                  wall: Callable[[], float], reachable: Callable[[str], bool],
                  statuses: Mapping[str, PeerStatus], settings: RoundSettings,
                  publish_status: Callable[[], object], save_resume: Callable[[], None],
-                 started_unix: float, signing: Signing | None = None):
+                 started_unix: float, signing: Signing | None = None,
+                 reached: Callable[[], set[str]] | None = None):
         self.rt = runtime
         self.node = runtime.node
         self.scenario = scenario
@@ -50,6 +51,8 @@ class SubgroupRounds:
         self.keys = keys
         self.wall = wall
         self.reachable = reachable
+        # every node we reach at once (`Relayer.reached`): the same answers as ``reachable``, one search
+        self.reached = reached
         self.statuses = statuses  # the process's: read here, never written
         self.settings = settings
         self.publish_status = publish_status
@@ -110,7 +113,9 @@ class SubgroupRounds:
             self._model_out_of_reach(frozenset())
             return
         robots = [r.name for r in self.scenario.robots]
-        members = tuple(sorted({self.node} | {r for r in robots if self.reachable(r)}))
+        # the robots we reach: one search over the links we know (`Relayer.reached`), not one per robot
+        reached = self.reached() if self.reached is not None else {r for r in robots if self.reachable(r)}
+        members = tuple(sorted({self.node} | {r for r in robots if r in reached}))
         self._model_out_of_reach(frozenset({base, *robots}) - set(members))
         now = self.wall()
         if self.base_lost_at is None:

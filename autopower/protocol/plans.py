@@ -25,6 +25,8 @@ import hashlib
 from collections.abc import Mapping
 from typing import TypeVar
 
+import msgpack
+
 from autopower.errors import ProtocolError
 from autopower.protocol.codec import decode, encode, message_kind
 from autopower.protocol.messages import LinkInfo, PlanChange, PlanUpdate
@@ -38,8 +40,35 @@ V = TypeVar("V")
 def plan_digest(plan: PlanUpdate) -> bytes:
     """What identifies a plan's content: a hash of its encoding. Hash a plan as a receiver holds
     it, decoded (an int where the message says float is written back as a float): the base
-    station hashes ``decode(encode(plan))``, `published_digest`."""
-    return hashlib.blake2b(encode(sorted_plan(plan)), digest_size=DIGEST_BYTES).digest()
+    station hashes ``decode(encode(plan))``, `published_digest`.
+
+    In two parts (protocol 8): the plan without its predicted power (`shared_digest`), then its
+    predicted power (`part_digest`). Each robot is sent the plan with its own predicted power
+    alone (`robot_part`): the base station hashes the part every robot shares once per plan, and
+    each robot's part in time independent of the team."""
+    plan = sorted_plan(plan)
+    return part_digest(shared_digest(plan), plan.predicted_w)
+
+
+def shared_digest(plan: PlanUpdate) -> bytes:
+    """The hash of a sorted plan (`sorted_plan`) without its predicted power: what every robot's part
+    of it shares (`plan_digest`)."""
+    return hashlib.blake2b(encode(dataclasses.replace(plan, predicted_w={})), digest_size=DIGEST_BYTES).digest()
+
+
+def part_digest(shared: bytes, predicted_w: Mapping[str, float]) -> bytes:
+    """`plan_digest` of a plan whose `shared_digest` is ``shared`` and whose predicted power is ``predicted_w``."""
+    power = msgpack.packb(sorted(predicted_w.items()), use_bin_type=True)
+    return hashlib.blake2b(shared + power, digest_size=DIGEST_BYTES).digest()
+
+
+def robot_part(plan: PlanUpdate, robot: str) -> PlanUpdate:
+    """``plan`` as ``robot`` is sent it: its own predicted power alone (the only one it acts on: its
+    status's ``model_w``, its recording's prediction), the rest whole. A robot's subgroup rounds
+    place the whole team's stages over the whole network when the base station is gone (every
+    robot may be the round's leader), so the placement, runs and links stay whole."""
+    own = plan.predicted_w.get(robot)
+    return dataclasses.replace(plan, predicted_w={} if own is None else {robot: own})
 
 
 def published_digest(payload: bytes) -> tuple[PlanUpdate, bytes]:

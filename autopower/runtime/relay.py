@@ -128,6 +128,20 @@ class Relayer:
     def reachable(self, dest: str) -> bool:
         return self.path_to(dest) is not None
 
+    def reached(self) -> set[str]:
+        """Every node `reachable` says we reach (ourselves included), found by one search over the
+        same links: a robot that asks about each of the team's robots in turn makes one search per
+        robot, and the work grows with the square of the team (`SubgroupRounds.tick`)."""
+        seen = {self.node}
+        todo = deque([self.node])
+        while todo:
+            u = todo.popleft()
+            for v in self.direct if u == self.node else self.views.get(u, ()):
+                if v not in seen:
+                    seen.add(v)
+                    todo.append(v)
+        return seen
+
     # ---- sending -----------------------------------------------------------------------------------------
     def send(self, dest: str, key: str, payload: bytes, *, reliable: bool = True) -> bool:
         """Publish ``payload`` on ``key`` for ``dest``: directly if in sight, else relayed."""

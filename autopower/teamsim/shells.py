@@ -217,7 +217,7 @@ class RobotShell(Shell):
         self.watch = PeerWatch(WatchSettings(own_period_s=w.status_period_s, lease_s=w.network.lease_s))
         self.rounds = SubgroupRounds(
             runtime=rt, scenario=w.scenario, bus=self.bus, keys=keys, wall=w.scheduler.wall,
-            reachable=self.relayer.reachable, statuses=self.statuses,
+            reachable=self.relayer.reachable, reached=self.relayer.reached, statuses=self.statuses,
             settings=RoundSettings(enabled=w.subgroup, status_period_s=w.status_period_s),
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=w.scheduler.wall())
         self.bus.subscribe(keys.node_data(robot), lambda k, p: self.guarded(self._received, k, p))

@@ -150,4 +150,75 @@ def test_a_robot_back_in_reach_is_sent_the_new_plan_whole_and_the_team_its_chang
     team.pump()
     assert "plan" in heard["r1"] and "plan" not in heard["r2"]  # whole to the one back, at once
     assert team.nodes["r1"].plan_view.order == team.nodes["r2"].plan_view.order == (co.takeover.incarnation, co.plans.epoch)
-    assert team.nodes["r1"].plan == team.nodes["r2"].plan  # the same plan, whichever way it came
+    # the same plan, whichever way it came, but for the predicted power: each robot's own alone (`robot_part`)
+    r1, r2 = team.nodes["r1"].plan, team.nodes["r2"].plan
+    assert dataclasses.replace(r1, predicted_w={}) == dataclasses.replace(r2, predicted_w={})
+    assert set(r1.predicted_w) <= {"r1"} and set(r2.predicted_w) <= {"r2"}
+
+
+def _fleet_plan(robots: list[str], epoch: int, watts: float, far_host: str) -> PlanUpdate:
+    return sorted_plan(PlanUpdate(
+        epoch=epoch, mission=MISSION, incarnation=1, leader="laptop:1",
+        placement={**{f"Loc-{r}": r for r in robots}, "Loc-far": far_host}, running={f"Loc-{r}": 0 for r in robots},
+        links=tuple(LinkInfo(a="laptop", b=r, medium="802.11a") for r in robots),
+        predicted_w={r: watts for r in robots}, predicted_lifetime_s=3600.0, plan_t_virtual=float(epoch)))
+
+
+def _delivered(n: int) -> tuple[dict[str, list[bytes]], list[PlanUpdate]]:
+    """What each robot of an ``n``-robot team is sent of a first plan, then of the next, which moves a far
+    robot's stage and predicts every robot's power anew (`PlanDelivery`, protocol 8)."""
+    from types import SimpleNamespace
+
+    from autopower.basestation.delivery import PlanDelivery
+
+    robots = [f"r{i:04d}" for i in range(n)]
+    sent: dict[str, list[bytes]] = {r: [] for r in robots}
+    team = SimpleNamespace(
+        scenario=SimpleNamespace(chains=[]), chain_of={}, robots=robots, alive_nodes=lambda: set(robots) | {"laptop"},
+        placing=SimpleNamespace(migrations={}), statuses={}, wall=lambda: 0.0,
+        config=SimpleNamespace(plan_catch_up_s=1.0), keys=SimpleNamespace(node_control=lambda r: r),
+        send_to=lambda robot, key, payload: sent[robot].append(payload))
+    delivery = PlanDelivery(team)
+    plans = []
+    for epoch, watts, far in ((1, 1.0, robots[0]), (2, 1.5, robots[1])):
+        held, digest, whole = published(_fleet_plan(robots, epoch, watts, far))
+        change = None if not plans else plan_change(plans[-1][0], plans[-1][1], held, digest)
+        delivery.remember(held, digest, continues=bool(plans))
+        delivery.deliver(held, whole if change is None else encode(change), change)
+        plans.append((held, digest))
+    return sent, [p for p, _ in plans]
+
+
+def test_a_robot_is_sent_its_part_of_a_plan_and_a_change_of_it_that_does_not_grow_with_the_team():
+    """Rule (`robot_part`): a robot's plan carries its own predicted power alone. A decision that predicts
+    every robot's power anew used to send each robot the whole team's figures (327 B of a 1.1 kB change at
+    100 robots); each robot's change now carries its own, and applies to the part it holds, digest and all."""
+    sizes = {}
+    for n in (10, 100):
+        sent, plans = _delivered(n)
+        robot = "r0005"
+        first, second = sent[robot]
+        assert message_kind(first) == "plan" and message_kind(second) == "plan-change"
+        change = decode(second, PlanChange)
+        assert change.predicted_w == {robot: 1.5} and change.not_predicted == ()
+        assert change.placement == {"Loc-far": "r0001"}
+        assembler = PlanAssembler()
+        got = assembler.whole(first)
+        assert got.predicted_w == {robot: 1.0}
+        got = assembler.whole(second)  # digests checked: the part's, not the whole plan's
+        assert got is not None and got.predicted_w == {robot: 1.5}
+        assert dataclasses.replace(got, predicted_w={}) == dataclasses.replace(plans[1], predicted_w={})
+        assert plan_digest(got) == change.digest
+        sizes[n] = len(second)
+    assert sizes[100] == sizes[10]  # the change of the far robot's stage: the same bytes at 10 and 100 robots
+
+
+def test_a_plans_digest_is_that_of_its_parts_shared_hash_and_its_predicted_power():
+    from autopower.protocol.plans import part_digest, robot_part, shared_digest
+
+    p = published(plan(1, {"Loc-1": "r1"}))[0]
+    assert plan_digest(p) == part_digest(shared_digest(p), p.predicted_w)
+    part = robot_part(p, "r2")
+    assert part.predicted_w == {"r2": 0.5} and shared_digest(part) == shared_digest(p)
+    assert plan_digest(part) == part_digest(shared_digest(p), {"r2": 0.5}) != plan_digest(p)
+    assert robot_part(p, "r9").predicted_w == {}

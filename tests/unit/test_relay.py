@@ -150,3 +150,31 @@ def test_a_view_naming_the_nodes_out_of_sight_routes_as_one_naming_those_in_sigh
     r1.on_status(PeerStatus(node="laptop", t_unix=1.0, plan_epoch=1, battery_j=None, hosted={}, generations={},
                             links={}, unseen=("r1", "r4")))
     assert r1._shuns("laptop")
+
+
+def test_reached_is_every_node_reachable_says_we_reach_found_by_one_search():
+    """`Relayer.reached` answers as `reachable` does for every node (what a subgroup round's members
+    are), with one search over the links instead of one per robot."""
+    import random
+
+    hub = InMemoryHub()
+    nodes = [f"r{i}" for i in range(40)]
+    for seed in range(20):
+        rng = random.Random(seed)
+        r0 = Relayer(node="r0", bus=hub.bus(f"r0-{seed}"), keys=KEYS)
+        r0.direct = {n for n in nodes[1:] if rng.random() < 0.05}
+        r0.views = {n: {m for m in nodes if m != n and rng.random() < 0.04} for n in nodes[1:]}
+        searches = 0
+        path_to = r0.path_to
+
+        def counted(dest, path_to=path_to):
+            nonlocal searches
+            searches += 1
+            return path_to(dest)
+
+        r0.path_to = counted
+        assert r0.reached() == {n for n in nodes if r0.reachable(n)}
+        searches_each = searches
+        searches = 0
+        r0.reached()
+        assert searches == 0 and searches_each == len(nodes)
