@@ -17,12 +17,19 @@ The event loop never waits for the file system's metadata (`runtime.snapshot_jou
 agent's snapshot is written by a thread of its own (`background=True`), and the source positions
 go to journal generations the loop only appends to; a snapshot the thread has not finished yet is
 skipped, and the next status brings a newer one. Nothing noted is ever lost.
+
+The plan a robot runs lists the team's stages and links (28 kB at 300 robots) and changes far less
+often than its battery: it goes to a side file of the snapshot (`SnapshotJournal`), named by its
+hash and written only when it changed; each snapshot names it (``plan_file``), and a load puts it
+back in the state's ``plan``.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
+import re
 from pathlib import Path
 
 from autopower.runtime.snapshot_journal import SnapshotJournal
@@ -31,6 +38,7 @@ log = logging.getLogger(__name__)
 
 VERSION = 1
 AGENTS_DIR = "agents"  # in the team's state directory: one resume file per agent, <robot>.json
+_PLAN_FILE = re.compile(r"[0-9a-f]{32}")  # a plan's side file: the hash of its text
 
 
 class ResumeFile:
@@ -44,6 +52,7 @@ class ResumeFile:
         self.journal_path = self.path.with_name(self.path.name + ".journal")  # before generations
         self._files = SnapshotJournal(self.path, background=background, on_error=self._warn,
                                       supersedes=(self.journal_path,))
+        self._plan: tuple[str, str, bytes] | None = None  # (plan text, its side file's name, its bytes)
 
     @property
     def current_journal(self) -> Path:
@@ -63,6 +72,13 @@ class ResumeFile:
             return None
         if not isinstance(state, dict) or state.get("version") != VERSION:
             return None
+        name = state.pop("plan_file", None)
+        if isinstance(name, str) and _PLAN_FILE.fullmatch(name):
+            try:
+                state["plan"] = self._files.side_path(name).read_bytes().decode("ascii")
+            except (OSError, UnicodeDecodeError) as exc:
+                log.warning("resume state %s: plan %s unreadable (%s)", self.path, name, exc)
+                state["plan"] = None
         sources = state.get("sources")
         if isinstance(sources, dict):  # positions noted after the snapshot: the last one of each chain
             since = state.get("journal")
@@ -99,8 +115,17 @@ class ResumeFile:
         ``wait_s``: how long to wait for a snapshot still being written (the last one before the
         process ends), instead of skipping.
         """
+        side = None
+        plan = state.get("plan")
+        if isinstance(plan, str):  # the plan to its side file, written when it changed (the module's rule)
+            if self._plan is None or self._plan[0] is not plan and self._plan[0] != plan:
+                data = plan.encode("ascii")
+                self._plan = (plan, hashlib.blake2b(data, digest_size=16).hexdigest(), data)
+            side = self._plan[1:]
+            state = {**state, "plan": None, "plan_file": self._plan[1]}
         return self._files.snapshot(lambda generation: json.dumps({"version": VERSION, **state,
-                                                                  "journal": generation}).encode(), wait_s=wait_s)
+                                                                  "journal": generation}).encode(), wait_s=wait_s,
+                                    side=side)
 
     def written(self, timeout_s: float) -> bool:
         """Wait until no snapshot is being written (at most `timeout_s`); whether none is."""

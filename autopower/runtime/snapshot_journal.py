@@ -17,6 +17,11 @@ is newer) and the loop goes on appending: nothing appended is ever lost. A kill 
 leaves either the old snapshot and every generation from the one it names, or the new one and its
 own. Without the thread (``background=False``, the simulator) the same steps run in the caller.
 
+A snapshot may name a side file (``<path>.side.<name>``): content that changes far less often than
+the snapshot (a robot's plan, which lists the team, beside its battery, which changes at every
+status). It is written once, before the first snapshot that names it is put in place, and removed
+once a snapshot naming another one is: a kill leaves every side file a snapshot on disk names.
+
 Never raises for a failing disk: the first error goes to ``on_error`` (the caller says what a
 restart would lose) and the operation reports failure.
 """
@@ -45,7 +50,9 @@ class SnapshotJournal:
         self._failed = False
         self._cond = threading.Condition()
         self._spare: tuple[int, int] | None = None  # (generation, fd): created ahead by the writer
-        self._pending: tuple[int, bytes, int | None] | None = None  # (generation, content, fd it retires)
+        # (generation, content, fd it retires, its side file: (name, content) or None)
+        self._pending: tuple[int, bytes, int | None, tuple[str, bytes] | None] | None = None
+        self._sides: set[str] | None = None  # the side files on disk (listed once, then kept like generations)
         self._closing = False
         # The generations on disk, listed once, then kept as this journal creates and removes them
         # (only its own process writes them): a snapshot does not list a folder that other
@@ -107,11 +114,16 @@ class SnapshotJournal:
         return out
 
     # ---- writing -------------------------------------------------------------------------------
-    def snapshot(self, content: Callable[[int], bytes], *, wait_s: float = 0.0) -> bool:
+    def side_path(self, name: str) -> Path:
+        return self.path.with_name(f"{self.path.name}.side.{name}")
+
+    def snapshot(self, content: Callable[[int], bytes], *, wait_s: float = 0.0,
+                 side: tuple[str, bytes] | None = None) -> bool:
         """Replace the snapshot with ``content(g)``, where ``g`` is the generation it must name (the
         appends from now on go there); False if skipped (the writer is behind) or the disk failed.
 
         ``wait_s``: how long to wait for a snapshot still being written, instead of skipping.
+        ``side``: (name, content) of the side file the snapshot names (written only if not on disk yet).
         """
         if wait_s > 0 and self._thread is not None:
             self.written(wait_s)  # only this caller hands snapshots over: none can start meanwhile
@@ -127,7 +139,7 @@ class SnapshotJournal:
                     return False
             retired = self._journal
             self._generation, self._journal = spare
-            self._pending = (self._generation, content(self._generation), retired)
+            self._pending = (self._generation, content(self._generation), retired, side)
             self._cond.notify_all()
         if self._thread is None:
             self._write_pending()
@@ -220,15 +232,17 @@ class SnapshotJournal:
 
     def _write_pending(self) -> None:
         with self._cond:
-            generation, content, retired = self._pending  # type: ignore[misc]
+            generation, content, retired, side = self._pending  # type: ignore[misc]
         spare = None
         try:
-            fd = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            try:
-                _write_all(fd, content)
-            finally:
-                os.close(fd)
-            os.replace(self._tmp, self.path)
+            sides = self._known_sides()
+            if side is not None and side[0] not in sides:  # before the snapshot that names it
+                self._replace(self.side_path(side[0]), side[1])
+                sides.add(side[0])
+            self._replace(self.path, content)
+            for name in sorted(sides - ({side[0]} if side is not None else set())):  # named by no snapshot now
+                self.side_path(name).unlink(missing_ok=True)
+                sides.discard(name)
             # the snapshot is in place: what the older generations said, it says
             for old in self._known_generations():
                 if old < generation:
@@ -248,6 +262,25 @@ class SnapshotJournal:
                 if spare is not None:
                     self._spare = spare
                 self._cond.notify_all()
+
+    def _replace(self, path: Path, content: bytes) -> None:
+        """``path`` replaced atomically by ``content`` (written to ``<snapshot>.tmp`` and renamed)."""
+        fd = os.open(self._tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            _write_all(fd, content)
+        finally:
+            os.close(fd)
+        os.replace(self._tmp, path)
+
+    def _known_sides(self) -> set[str]:
+        """The side files on disk: listed once (a crashed predecessor's included), then kept (writer only)."""
+        if self._sides is None:
+            prefix = f"{self.path.name}.side."
+            try:
+                self._sides = {p.name[len(prefix):] for p in self.path.parent.glob(prefix + "*")}
+            except OSError:
+                self._sides = set()
+        return self._sides
 
     def _error(self, exc: OSError) -> None:
         if not self._failed:  # once: a full disk must not flood the log at the caller's rate

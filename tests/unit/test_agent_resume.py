@@ -325,3 +325,46 @@ def test_sources_built_before_the_mission_are_the_ones_its_first_plan_runs():
     rt.on_plan(team.nodes["r2"].plan)
     assert len(built) == len(own)  # the plan built nothing more
     assert {id(runner.source) for runner in rt.sources.values()} == prepared
+
+
+def test_the_plan_is_written_once_while_it_stays_and_every_snapshot_names_it(tmp_path, monkeypatch):
+    """Rule (`agent.resume`): a robot's plan lists the team and changes far less often than its battery,
+    so it goes to a side file written only when it changed; each snapshot names it, and a load puts it
+    back. A kill between a new plan's file and the snapshot that names it leaves the older pair."""
+    from autopower.runtime import snapshot_journal
+
+    written: list[str] = []
+    replace = snapshot_journal.SnapshotJournal._replace
+
+    def counted(self, path, content):
+        written.append(path.name)
+        return replace(self, path, content)
+
+    monkeypatch.setattr(snapshot_journal.SnapshotJournal, "_replace", counted)
+    store = ResumeFile(tmp_path / "r2.json")
+    plan_a, plan_b = "A" * 40_000, "B" * 40_000
+    for battery in (10.0, 9.0, 8.0):
+        store.save({"node": "r2", "battery": battery, "plan": plan_a})
+    sides = [n for n in written if ".side." in n]
+    assert len(sides) == 1 and written.count("r2.json") == 3  # the plan once, the snapshot at every save
+    assert (tmp_path / "r2.json").stat().st_size < 1_000  # the snapshot no longer carries the plan
+    state = store.load()
+    assert state["plan"] == plan_a and state["battery"] == 8.0 and "plan_file" not in state
+    store.save({"node": "r2", "battery": 7.0, "plan": plan_b})
+    assert ResumeFile(tmp_path / "r2.json").load()["plan"] == plan_b
+    new_side = written[-2]  # written before the snapshot that names it; the old one is gone
+    assert ".side." in new_side and new_side != sides[0]
+    assert [p.name for p in tmp_path.glob("r2.json.side.*")] == [new_side]
+    store.save({"node": "r2", "battery": 6.0, "plan": None})  # no plan: no side file left
+    assert ResumeFile(tmp_path / "r2.json").load()["plan"] is None and not list(tmp_path.glob("r2.json.side.*"))
+    store.close()
+
+
+def test_a_snapshot_whose_plan_file_is_gone_loads_without_a_plan(tmp_path):
+    store = ResumeFile(tmp_path / "r2.json")
+    store.save({"node": "r2", "plan": "P" * 100})
+    store.close()
+    for side in tmp_path.glob("r2.json.side.*"):
+        side.unlink()
+    state = ResumeFile(tmp_path / "r2.json").load()
+    assert state["node"] == "r2" and state["plan"] is None
