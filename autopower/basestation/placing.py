@@ -260,12 +260,10 @@ class Placement:
             if have is None or have not in alive:
                 self.placement.pop(stage, None)
                 busy = any(s.name in self.placement or s.name in self.migrations for s in chain.stages)
-                run, resume, how = self.runs.run_for(chain, busy)
-                if how == "new":  # what the old run still holds upstream is obsolete (docs/known-limits.md)
-                    self.team.note(f"{chain.name} starts run {run} with {stage} on {want} (the operator or a failed "
-                                   "component had stopped the chain)")
-                elif how == "resumed":  # its instances start from the oldest input their producer holds
-                    self.team.note(f"{chain.name} resumes run {run} with {stage} on {want} (the chain had stopped)")
+                run, resume, restarted = self.runs.run_for(chain, busy)
+                # a new run is said: what the old one still holds upstream is obsolete (docs/known-limits.md)
+                if restarted:
+                    self.team.note(f"{chain.name} starts run {run} with {stage} on {want} (the chain had stopped)")
                 m = self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.team.wall())
                 self._order(m, want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))
             else:
@@ -274,7 +272,7 @@ class Placement:
         self._update_running()
 
     def _update_running(self) -> None:
-        self.runs.update(self.team.scenario.chains, self.target, self.placement, self.team.operating.disabled)
+        self.runs.update(self.team.scenario.chains, self.target, self.placement)
 
     def on_inbox(self, payload: bytes) -> None:
         """An answer to an order, as it arrives on the base station's inbox (raises ProtocolError

@@ -1,13 +1,9 @@
 """The chains' runs: which run each chain is in, and which chains run.
 
-A chain's run is a number its source stamps on every input. A chain the operator stopped (or a
-failed component, which stops it the same way), and a chain with no source (its fan-in stage names
-the outputs), starts the next run when it runs again (its sequence from 0). A chain that stopped
-for any other reason (a fault: its source robot was out of reach) goes on in its run, as does a
-chain that keeps running while a stage replaces a dead host: the new instances start from the
-first input they see, the oldest their producer still holds, so the inputs the chain had not run
-when it stopped are run, not abandoned. After a takeover, a chain whose run no robot has said yet
-is neither assigned afresh nor declared running until it is known (`learn`).
+A chain's run is a number its source stamps on every input; a chain that stopped entirely starts
+the next run (its sequence from 0), and a stage replacing a dead host in a chain that keeps running
+continues the run from the first input it sees. After a takeover, a chain whose run no robot has
+said yet is neither assigned afresh nor declared running until it is known (`learn`).
 """
 
 from __future__ import annotations
@@ -28,8 +24,6 @@ class ChainRuns:
         self.runs_unknown: set[str] = set()
         self.run_live: dict[str, bool] = {}  # has the current run produced anything yet
         self.running: dict[str, int] = {}  # chain -> run, for the chains all of whose stages run where targeted
-        # chains whose run the operator (or a failed component) ended: they start the next one when they run again
-        self.ended: set[str] = set()
 
     def adopt(self, runs: dict[str, int], unknown: set[str]) -> None:
         """The runs of a team taken over (their sequences go on), and the chains whose run is still to be said."""
@@ -38,28 +32,20 @@ class ChainRuns:
             self.run_live[chain] = True  # its sequence goes on: a new instance starts where inputs are
         self.runs_unknown |= unknown
 
-    def run_for(self, chain: Chain, busy: bool) -> tuple[int, int | None, str]:
-        """(the run a fresh instance of a stage of ``chain`` joins, the seq it starts at (None: the first
-        input it sees), how: "first" (the chain's first run), "new" (a chain the operator or a failed
-        component stopped runs again, and a chain with no source: the next run, from seq 0),
-        "resumed" (a sourced chain that stopped for another reason runs again in its run) or
-        "continues" (``busy``: a stage of the chain is placed or moving, or the chain runs)."""
-        name = chain.name
-        if busy or name in self.running:
-            return self.runs[name], (None if self.run_live.get(name) else 0), "continues"
-        # a chain with no source (a fan-in stage's outputs are named by the stage) cannot go on in its
-        # run with a fresh instance: that one would name its steps from 0 again
-        if name not in self.runs or name in self.ended or not chain.sourced:
-            self.ended.discard(name)
-            self.runs[name] = self.runs.get(name, -1) + 1
-            self.run_live[name] = False
-            return self.runs[name], 0, "new" if self.runs[name] > 0 else "first"
-        return self.runs[name], (None if self.run_live.get(name) else 0), "resumed"
+    def run_for(self, chain: Chain, busy: bool) -> tuple[int, int | None, bool]:
+        """(the run a fresh instance of a stage of ``chain`` joins, the seq it starts at, whether that
+        run is a restart). ``busy``: a stage of the chain is placed or moving. A chain that had stopped
+        entirely (not busy, not running) starts a new run at seq 0; otherwise the instance continues
+        the run from the first input it sees."""
+        restarted = False
+        if not busy and chain.name not in self.running:
+            self.runs[chain.name] = self.runs.get(chain.name, -1) + 1
+            self.run_live[chain.name] = False
+            restarted = self.runs[chain.name] > 0  # its first run is the mission's start
+        return self.runs[chain.name], (None if self.run_live.get(chain.name) else 0), restarted
 
-    def update(self, chains: list[Chain], target: dict[str, str], placement: dict[str, str],
-               disabled: set[str]) -> None:
-        """The chains that run: every stage targeted and placed, and the run known. A ``disabled``
-        chain that does not run has its run ended (`run_for`)."""
+    def update(self, chains: list[Chain], target: dict[str, str], placement: dict[str, str]) -> None:
+        """The chains that run: every stage targeted and placed, and the run known."""
         running = {}
         for chain in chains:
             names = [s.name for s in chain.stages]
@@ -69,7 +55,6 @@ class ChainRuns:
                 running[chain.name] = self.runs[chain.name]
                 self.run_live[chain.name] = True
         self.running = running
-        self.ended.update(name for name in disabled if name not in running)
 
     def learn(self, status: NodeStatus, chain_named) -> list[str]:
         """The run of each chain ``status.node`` is the source of, when a takeover did not know it;
