@@ -295,6 +295,8 @@ class Custody:
         held = self.hops.get((frame.chain, frame.target), {}).get((frame.run, frame.seq))
         if held is not None:
             held.sent_unix = sent_unix
+            if sent_unix is not None:  # a copy has left (a held result its sink routes again): a
+                held.on_air = True  # copy after it is a resend, which a sink that has the first drops
 
     def forget(self, frame: ChainFrame) -> None:
         """Stop holding a frame its producer dropped itself (a result a full hold let go, counted

@@ -164,6 +164,23 @@ def test_a_frame_held_back_for_want_of_a_route_goes_first_as_itself_and_only_the
     assert again and second.attempt == 1 and custody.resent == 1
 
 
+def test_a_held_result_sent_when_its_sink_came_back_is_on_the_air_and_its_next_copy_a_resend():
+    """CI, test_supervision: the laptop held r2's poses while r2 was killed (no route to the sink),
+    flushed them when r2 was back, and when r2's report still lacked one it sent it again as a
+    first copy (attempt 0): the flushed copy arrived too, and r2's sink counted a duplicate instead
+    of dropping a redundant resend. A copy that left through the hold's flush is on the air."""
+    custody = Custody(resend_after_s=1.0)
+    result = frame(7, target=1)
+    custody.keep(result, now=0.0, sent=False, result=True)
+    custody.held_back(result)  # emit: no route to the sink
+    custody.mark(result, None)  # held
+    custody.mark(result, 2.0)  # flushed: the sink is routed again
+    custody.on_report("Blob-2", 1, report(next_seq=0, max_seq=9, missing=(7,), t=3.5))
+    [(_, held)] = custody.due(now=3.5)
+    copy, again = custody.resend(held, now=3.5)
+    assert again and copy.attempt == 1 and custody.resent == 1
+
+
 def test_inputs_produced_while_their_consumer_was_out_of_reach_are_the_chains_work_when_they_go():
     """A robot cut from the host of its chain's stage keeps the inputs it produces meanwhile; when
     the route is back they go for the first time. Their radio and their runs are the chain's steady
