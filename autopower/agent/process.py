@@ -296,7 +296,8 @@ class Agent:
                 self.statuses[status.node] = status
                 rt.on_peer_status(status)  # what it consumed: acks for our custody buffer
                 # a base station that began listening, or hears us again, gets our next status whole
-                heard_again = rt.sight.take_status_asked() or self._base_came_within_reach(base_was_reachable)
+                heard_again = rt.sight.take_status_asked() or self._base_came_within_reach(base_was_reachable) \
+                    or status.send_whole  # it missed our last whole status: the next one goes whole
                 if heard_again:
                     self.status_encoder.refresh()
                 if rt.hosting.yield_to_newer(status) or heard_again:

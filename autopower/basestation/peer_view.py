@@ -49,10 +49,12 @@ class PeerViews:
                 self._own.setdefault(end, set()).add(chain.name)
 
     def addressed(self, coordinator: Coordinator, status: NodeStatus | None, t_unix: float,
-                  next_status_s: float) -> Iterator[tuple[str, str, bytes]]:
+                  next_status_s: float, send_whole: Iterable[str] = ()) -> Iterator[tuple[str, str, bytes]]:
         """(robot, key, payload) for each robot the coordinator takes for alive: ``status`` as that
         robot acts on it (`view`), or, before the mission (``status`` None), that this base station
-        runs no plan yet (`listening`)."""
+        runs no plan yet (`listening`, which has every robot send its status whole anyway).
+        ``send_whole``: the robots whose whole status this base station missed (`PeerStatus.send_whole`)."""
+        send_whole = set(send_whole)
         co = coordinator
         alive = co.alive_nodes()
         listening = (encode(self._short(self.listening(self._node, t_unix, alive - {self._node}, next_status_s)))
@@ -72,6 +74,8 @@ class PeerViews:
                 if sent is not None and (sent[0], status.plan_epoch) == (co.takeover.incarnation, co.plans.epoch) != sent:
                     # it holds the last plan sent to it: the newest as far as it concerns it (`PlanDelivery`)
                     view = dataclasses.replace(view, plan_epoch=sent[1])
+                if robot in send_whole:
+                    view = dataclasses.replace(view, send_whole=True)
                 payload = encode(view)
             yield robot, self._keys.addressed(robot, self._node), payload
 

@@ -592,8 +592,8 @@ class BaseStation:
                             self._bus.publish(key, payload, reliable=False)
                             self._bus.repeat_until_next(key, payload, REPEAT_AFTER_PERIODS * status.next_status_s,
                                                         REPEAT_EVERY_PERIODS * status.next_status_s)
-                            for robot, key, payload in self.peer_views.addressed(co, status, now,
-                                                                                 status.next_status_s):
+                            for robot, key, payload in self.peer_views.addressed(
+                                    co, status, now, status.next_status_s, self.statuses_in.take_wanted()):
                                 self._send_view(robot, key, payload, status.next_status_s)
                         rt.acknowledging.send(self.relayer.reachable, built.queue_wait_s)  # to the nodes that sent us frames
                     if self.config.parent_pid is not None and os.getppid() != self.config.parent_pid:

@@ -521,6 +521,9 @@ class PeerStatus:
     # itself and these, and ``links`` is empty (a base station sees most of its team: its view to a
     # robot names the few out of sight, not the whole team, `basestation.peer_view`). `sees` reads both.
     unseen: tuple[str, ...] | None = None
+    # The sender could not apply the receiver's last status change (it missed the whole status the
+    # change was from): the receiver sends its next status whole (`protocol.statuses`).
+    send_whole: bool = False
 
     def sees(self, team: Iterable[str]) -> set[str]:
         """The nodes the sender has in sight; ``team``: every member's name (the ``unseen`` form)."""

@@ -18,9 +18,12 @@ Rules (`StatusEncoder`, one per sending process; `StatusAssembler`, one per rece
   status due as a keyframe at the time of the last one goes as a delta);
 - a receiver holds, per sender, its keyframe with the latest ``t_unix``, and applies a delta only
   to the keyframe it names (``key_t``). Any other delta is ignored and counted (`unapplied`): an
-  older delta arriving after a newer keyframe names the older one and never rolls a view back; a
-  receiver without the keyframe waits for the next one. A delta still shows that its sender is
-  there: callers count it as heard before they assemble it;
+  older delta arriving after a newer keyframe names the older one and never rolls a view back. A
+  receiver without the keyframe asks for one (`take_wanted`: a base station's view to that robot
+  says ``send_whole``) instead of waiting up to `KEY_EVERY_S` for it: a keyframe lost on a lossy
+  link kept a base station's view of a robot (and of whom it sees) stale for 10 s, long enough to
+  take a robot nobody reached for one reached through a relay. A delta still shows that its sender
+  is there: callers count it as heard before they assemble it;
 - a delta is turned into the whole status's wire form and decoded as strictly as a status sent
   whole; one that changes the sender's name or clock through ``changes``, names a field or a
   key position the keyframe does not have, or has a map field's change in another shape raises
@@ -140,6 +143,7 @@ class StatusAssembler:
         self._held: dict[str, _Keyframe] = {}
         self._max_senders = max_senders
         self.unapplied = 0  # deltas whose keyframe was not held (missed, or superseded by a newer one)
+        self._wanted: set[str] = set()  # senders whose keyframe this receiver missed (`take_wanted`)
 
     def whole(self, msg: NodeStatus | StatusDelta) -> NodeStatus | None:
         """The whole status ``msg`` is or makes; None for a delta this receiver cannot apply.
@@ -152,8 +156,16 @@ class StatusAssembler:
         held = self._held.get(msg.node)
         if held is None or held.t_unix != msg.key_t:
             self.unapplied += 1
+            if held is None or held.t_unix < msg.key_t:  # missed (not an older delta overtaken)
+                self._wanted.add(msg.node)
             return None
         return decode_fields(NodeStatus, self._applied(held, msg))
+
+    def take_wanted(self) -> set[str]:
+        """The senders whose whole status this receiver missed since last asked (a delta named a
+        keyframe it does not hold, newer than the one it holds): to be asked for one at once."""
+        wanted, self._wanted = self._wanted, set()
+        return wanted
 
     def holds(self, node: str) -> float | None:
         """The ``t_unix`` of the keyframe held for ``node`` (None: none)."""

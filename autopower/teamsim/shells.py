@@ -288,7 +288,8 @@ class RobotShell(Shell):
             self.statuses[status.node] = status
             rt.on_peer_status(status)
             # as the agent: a base station asking, or back within reach through a peer, hears us at once, whole
-            heard_again = rt.sight.take_status_asked() or (not base_was_reachable and self.relayer.reachable(base))
+            heard_again = rt.sight.take_status_asked() or (not base_was_reachable and self.relayer.reachable(base)) \
+                or status.send_whole
             if heard_again:
                 self.status_encoder.refresh()
             if rt.hosting.yield_to_newer(status) or heard_again:
@@ -533,7 +534,7 @@ class BaseShell(Shell):
                              reliable=False)  # standby base stations
             # each robot the part it acts on (`basestation.peer_view`)
             for robot, key, payload in self.peer_views.addressed(co, status, w.scheduler.wall(),
-                                                                 status.next_status_s):
+                                                                 status.next_status_s, self.statuses_in.take_wanted()):
                 self._send_view(robot, key, payload)
         rt.acknowledging.send(self.relayer.reachable, built.queue_wait_s)
         self._status_sent(built)

@@ -83,3 +83,8 @@ def test_each_robot_in_reach_gets_its_view_on_its_own_key_and_before_the_mission
     assert [(v.plan_epoch, v.hosted, v.t_unix, sorted(v.sees(fleet.node_names()))) for v in before] == \
         [(-1, {}, 5.0, ["r1", "r2"])] * 2
     assert before[0].unseen == ("r3",)  # the one out of sight, shorter than the two in it
+    # the robots whose whole status the base station missed are asked for one, in their view alone
+    asked = {robot: decode(payload, PeerStatus).send_whole
+             for robot, _, payload in views.addressed(co, status, 5.0, 2.0, send_whole={"r2", "r3"})}
+    assert asked == {"r1": False, "r2": True}
+    assert not decode(sent[1][2], PeerStatus).send_whole

@@ -90,6 +90,30 @@ def test_without_its_keyframe_a_delta_waits_for_the_next_keyframe_then_the_view_
     assert isinstance(msg, StatusDelta) and receiver.whole(msg) == after
 
 
+def test_a_receiver_that_missed_a_keyframe_asks_for_one_and_has_the_view_within_a_status():
+    """Sweep seed 1695: r1's keyframe (it said it had lost sight of r3) was lost on a lossy link, and
+    the base station applied none of r1's next seven changes: for 10 s it took r3 for reachable
+    through r1. The receiver names a sender whose keyframe it missed (`take_wanted`); asked, the
+    sender's next status goes whole (the base station's view to it says `send_whole`)."""
+    encoder, receiver = StatusEncoder(), StatusAssembler()
+    assert receiver.whole(sent(encoder, status(0.0))) == status(0.0)
+    lost = encoder.encode(status(1.0, links={"laptop": True, "r2": False, "r3": False}))  # its links changed
+    assert isinstance(decode(lost), NodeStatus)  # so it went whole, and was lost on the way
+    assert receiver.whole(sent(encoder, status(1.5, links={"laptop": True, "r2": False, "r3": False}))) is None
+    assert receiver.take_wanted() == {"r1"} and receiver.take_wanted() == set()  # asked once per miss
+    encoder.refresh()  # what the robot does on a view saying send_whole
+    now = status(2.0, links={"laptop": True, "r2": False, "r3": False})
+    assert receiver.whole(sent(encoder, now)) == now
+    # an older change overtaken by a newer keyframe asks for nothing: the receiver has a newer one
+    stale = StatusEncoder(key_every_s=2.0)
+    k1 = stale.encode(status(0.0, node="r2"))
+    d1 = stale.encode(status(1.0, node="r2", plan_epoch=9))
+    k2 = stale.encode(status(2.5, node="r2", plan_epoch=9))
+    receiver.whole(decode(k1))
+    receiver.whole(decode(k2))
+    assert receiver.whole(decode(d1)) is None and receiver.take_wanted() == set()
+
+
 def test_an_older_delta_after_a_newer_keyframe_never_rolls_the_view_back():
     encoder, receiver = StatusEncoder(key_every_s=2.0), StatusAssembler()
     k1 = encoder.encode(status(0.0))
