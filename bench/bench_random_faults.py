@@ -149,8 +149,9 @@ def write(args, result: dict) -> None:
                            result["invariants_checked"], group=g, note="every invariant the replay checks"),
             results.figure("team energy metered (steady state)", result["energy_metered_steady_j"], "J",
                            "the energy model", result["energy_model_j"], group=g,
-                           note="the model's power integrated over the same run (migrations and recovery, "
-                                "reported apart, left out of the metered side)"),
+                           note="the model's power integrated over the same run (migrations, recovery, backlogs, "
+                                "the control plane and the runtime's CPU, reported apart, left out of the "
+                                "metered side)"),
             results.figure("team energy metered outside reconfigurations", result["energy_metered_outside_j"], "J",
                            "the energy model outside them", result["energy_model_outside_j"], group=g,
                            note=f"the run less its reconfiguration windows ({result['reconfiguration_covered_s']:.0f} "

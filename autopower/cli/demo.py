@@ -92,6 +92,7 @@ def human_summary(result: dict) -> str:
     if error is not None:
         # what the model leaves out, set apart before the comparison and said (not hidden in it)
         apart = [f"{what} {result[key]:.0f} J" for what, key in (("recovery after the cuts", "recovery_j"),
+                                                                  ("backlogs of restarted stages", "backlog_j"),
                                                                   ("the runtime's own CPU", "runtime_j"),
                                                                   ("the control plane", "control_j"))
                  if result.get(key)]

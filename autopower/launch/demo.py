@@ -427,6 +427,8 @@ def story_from_replay(replay: dict) -> dict:
         "energy_steady_error_pct": replay["energy_steady_error_pct"],
         "transition_j": replay["energy"]["transitions"]["transition_j"],
         "recovery_j": replay["energy"]["overhead_j"].get("recovery"),
+        # first runs of inputs that waited through a reconfiguration, on the host a stage restarted on
+        "backlog_j": replay["energy"]["overhead_j"].get("backlog"),
         # the control plane: what each robot's links carried beyond its chain packets (measured), and
         # the energy its radios paid for it, apart from the model
         "control_j": replay["energy"]["overhead_j"].get("control"),

@@ -249,13 +249,19 @@ class Frames:
             return
         hosted.compute_s += compute_s
         hosted.runs += 1
-        # a stage started without state recomputes what its lost predecessor may have sent already:
-        # an overhead of the failover, not the plan's steady work
-        # (a first copy, attempt 0, went to no instance before: running it is the chain's own work)
+        # A stage started without state recomputes what its lost predecessor may have sent already
+        # (a repeated copy below its catch-up point: a first copy went to no instance before): an
+        # overhead of the failover. An input captured before this host was named for the stage
+        # waited through the reconfiguration (held for want of a route, or in the old host's gate):
+        # the model priced its run where the stage was then, so running it here is a backlog,
+        # metered apart from the plan's steady work. (The model prices a rate: from the change on,
+        # the runs here are the inputs captured from then on, give or take the one in flight.)
         recomputed = hosted.gate.catch_up_below is not None and frame.seq < hosted.gate.catch_up_below \
             and frame.attempt > 0
+        backlog = frame.t_virtual < hosted.placed_t
+        purpose = "recovery" if recomputed else "backlog" if backlog else "chain"
         latency = self.rt.scenario.components[hosted.stage.component].latency_s[self.rt.platform.name]
-        self.rt.meter.charge_run(latency, self.rt.now(), "recovery" if recomputed else "chain")
+        self.rt.meter.charge_run(latency, self.rt.now(), purpose)
         payload = pad(output, chain.message_bytes[target], f"{hosted.stage.name} output")
         # An input that came as a resend was resent because its acknowledgement had not come: the
         # instance it first went to may have run it and sent its output before it died or moved on.

@@ -38,6 +38,7 @@ from autopower.model.parts import (
     CPU_RECOVERY,
     CPU_RUNTIME,
     OVERHEAD_KINDS,
+    RUN_PARTS,
     overhead_kind,
     radio_part as part,
 )
@@ -107,13 +108,16 @@ class BatteryMeter:
 
     # ---- activity ------------------------------------------------------------------------------
     def charge_run(self, latency_s: float, t: float, purpose: str = "chain") -> float:
-        """Charge one run of modelled (nominal) latency; at a DVFS level it takes factor times longer."""
+        """Charge one run of modelled (nominal) latency; at a DVFS level it takes factor times longer.
+
+        ``purpose``: ``"chain"`` (the plan's steady work), ``"recovery"`` or ``"backlog"``
+        (`autopower.model.parts.RUN_PARTS`)."""
         self.advance(t)
         if self.mains:
             return 0.0
         latency_s *= self.latency_factor
         joules = (self.platform.busy_w - self.platform.idle_w) * latency_s
-        self._add(CPU_BUSY if purpose == "chain" else CPU_RECOVERY, joules)
+        self._add(RUN_PARTS[purpose], joules)
         self.cpu_busy_s += latency_s
         return joules
 

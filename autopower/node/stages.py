@@ -78,11 +78,20 @@ class HostedStage:
     answer: bytes = b""
     shipped: tuple[int, str, bytes] | None = None
     imported: bool = False  # its component imported a migrated state (`Hosting.on_state`)
+    # Mission time this host was named for the stage (its first order here): the model prices the
+    # stage here from then on, and inputs captured before it where the stage was then
+    # (`Frames.ran` meters their runs here as a backlog). An instance that replaces one still
+    # here (prepared, running, draining) keeps its time.
+    placed_t: float = 0.0
 
     def carries_state(self) -> bool:
         """Whether its component may hold state from earlier inputs: it ran one here, or it imported
         the state of an instance that did. A fresh component has seen nothing: it may start anywhere."""
         return self.imported or self.gate.released > 0
+
+    def placed_since(self) -> float | None:
+        """``placed_t`` for an instance that replaces this one on the same host (see there)."""
+        return self.placed_t if self.lifecycle in (Lifecycle.STARTING, Lifecycle.RUNNING, Lifecycle.DRAINING) else None
 
 
 @dataclass

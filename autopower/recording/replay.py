@@ -40,9 +40,10 @@ from the telemetry layout and the structured text events (`autopower.recording.r
                   #  detected_* null, reconfigured_* from the detection)
                   # *_wall_s = *_mission_s / the run's speed-up; null in simulations (no wall clock)
       "energy": {"metered_j": float, "model_j": float | null, "error_pct": float | null,
-                 "overhead_j": {"migration": float, "recovery": float, "control": float, "runtime": float},
+                 "overhead_j": {"migration": float, "recovery": float, "backlog": float,
+                                "control": float, "runtime": float},
                  "per_robot": {robot: {"metered_j": float, "model_j": float | null, "error_pct": float | null,
-                                       "overhead_j": {"migration": float, "recovery": float,
+                                       "overhead_j": {"migration": float, "recovery": float, "backlog": float,
                                                       "control": float, "runtime": float},
                                        "control_bytes": {"sent": int, "received": int,  # the control
                                                          "link_sent": int, "link_received": int},  # plane's, of the links'

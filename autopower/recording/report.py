@@ -62,7 +62,7 @@ def render_text(summary: dict[str, Any]) -> str:
     if any(any((v.get("overhead_j") or {}).values()) for v in per_robot.values()):
         # each robot's battery drop split: what the model's steady state prices (idle, component runs,
         # chain packets, sleeping radios) and each overhead it leaves out
-        kinds = [k for k in ("control", "runtime", "migration", "recovery")
+        kinds = [k for k in ("control", "runtime", "migration", "recovery", "backlog")
                  if any((v.get("overhead_j") or {}).get(k) for v in per_robot.values())]
         lines.append(f"  {'split':<8}{'chains J':>12}" + "".join(f"{k + ' J':>13}" for k in kinds))
         for r, v in sorted(per_robot.items()):

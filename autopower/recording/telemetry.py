@@ -12,7 +12,8 @@ entity path                        archetype                   what
 ``robots/<robot>/battery_j``       Scalars                     remaining battery (J)
 ``robots/<robot>/power_w/total``   Scalars                     total power draw (W)
 ``robots/<robot>/power_w/<part>``  Scalars                     by part: ``cpu_idle``, ``cpu_busy``,
-                                                               ``cpu_recovery``, ``cpu_runtime``,
+                                                               ``cpu_recovery``, ``cpu_backlog``,
+                                                               ``cpu_runtime``,
                                                                ``<medium>/send``, ``/receive``, ``/sleep``,
                                                                ``/migration``, ``/recovery``, ``/control``
                                                                (a live status's ``802.11a:send`` maps to
@@ -182,7 +183,8 @@ def series_style(rr, entity: str):
 # a state holds until the next change; zoomed out, a 0 and a 1 in one pixel must not average to 0.5
 _STEPS = {"interpolation_mode": "StepAfter", "aggregation_policy": "Off"}
 _PART_NAMES = {"cpu": "CPU", "cpu_idle": "CPU idle", "cpu_busy": "CPU busy (components)",
-               "cpu_recovery": "CPU recovery", "cpu_runtime": "CPU runtime (its own)"}
+               "cpu_recovery": "CPU recovery", "cpu_backlog": "CPU backlog (a reconfiguration's)",
+               "cpu_runtime": "CPU runtime (its own)"}
 
 
 def new_recording_id() -> str:

@@ -103,7 +103,12 @@ def test_demo_json(tmp_path):
     assert replay["energy"]["overhead_j"]["recovery"] > 0
     assert replay["outputs"]["resent"] > 0 and replay["outputs"]["given_up"] == 0
     # the model is a steady state: within its reconfigurations the robots run otherwise than it puts
-    # on them (docs/known-limits.md: what the replay's windows take apart, and what they miss)
+    # on them (the inputs of those seconds run where they are: the whole run read 0.7-0.8 % below
+    # the model in three demos); outside them, with the backlogs the restarted stages ran set apart,
+    # meter and model agree (+0.005 to +0.18 % there): docs/known-limits.md
     assert abs(out["energy_model_error_pct"]) <= 2.0
     assert out["energy_steady_error_pct"] == replay["energy_steady_error_pct"]
+    assert abs(out["energy_steady_error_pct"]) <= 1.0, replay["energy"]["transitions"]
+    # the all-cut's subgroup restarts stages on the robots, which run the inputs held through it first
+    assert out["backlog_j"] > 0 and out["backlog_j"] == replay["energy"]["overhead_j"]["backlog"]
     assert out["transition_j"] == pytest.approx(sum(e["transition_j"] for e in replay["energy"]["per_robot"].values()))

@@ -219,6 +219,47 @@ def test_inputs_produced_while_their_consumer_was_out_of_reach_are_the_chains_wo
     assert laptop.counters.get("resent-frames", 0) == 0
 
 
+def test_inputs_that_waited_through_a_reconfiguration_run_as_its_backlog_where_the_stage_restarts():
+    """r2 is cut from the laptop, which ran Loc-2; a subgroup restarts Loc-2 on r2 (cold). The scans
+    r2 held meanwhile were captured while the model priced Loc-2 on the laptop: running them on r2
+    is the reconfiguration's backlog, metered apart (`cpu_backlog`); the scans captured from the
+    restart on are the plan's steady work (`cpu_busy`). Each ran once, and every pose arrived once.
+    (Live, the demo's all-cut ran such backlogs as chain work: +1.2 % on the robots' steady
+    energy against the model.)"""
+    from autopower.protocol import Assign
+
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Loc-2": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    r2 = team.nodes["r2"]
+    team.run_until(9.7)
+    team.exchange_statuses()
+    r2.plan_view.override_placement({}, {"laptop"})  # no route to the laptop: r2 holds its scans
+    team.run_until(14.5)
+    waited = sorted(h.frame.seq for (chain, _), hop in r2.custody.hops.items() if chain == "Loc-2"
+                    for h in hop.values() if not h.on_air)
+    assert len(waited) >= 2  # the scans of t = 10, 12 and 14
+    restart_t = r2.now()
+    r2.hosting.on_assign(Assign(stage="Loc-2", generation=10**9, chain="Loc-2", run=r2.plan.running["Loc-2"],
+                                resume_seq=None))
+    r2.plan_view.override_placement({"Loc-2": "r2"}, {"laptop"})
+    team.run_until(30.0)
+    for _ in range(6):
+        team.clock.advance(0.5)
+        team.exchange_statuses()
+    latency = sc.components["Loc"].latency_s[r2.platform.name]
+    per_run = (r2.platform.busy_w - r2.platform.idle_w) * latency
+    hosted = r2.hosted["Loc-2"]
+    assert hosted.placed_t == pytest.approx(restart_t)
+    captured_after = r2.sources["Loc-2"].seq - (max(waited) + 1)  # scans of t = 16 .. 30
+    assert r2.meter.energy_j["cpu_backlog"] == pytest.approx(len(waited) * per_run)
+    assert r2.meter.energy_j["cpu_busy"] == pytest.approx(captured_after * per_run)
+    assert hosted.runs == len(waited) + captured_after
+    seqs = sorted(seq for _, seq, _ in outputs["Loc-2"])
+    assert seqs[-len(waited) - captured_after:] == list(range(min(waited), r2.sources["Loc-2"].seq))
+
+
 def test_custody_is_bounded_and_counts_what_it_gives_up():
     custody = Custody(max_frames_per_hop=3, max_bytes=10_000, max_age_s=60.0)
     for seq in range(5):
