@@ -103,7 +103,7 @@ class PlanView:
         """``stage`` has left this node for ``to_node``: the model's power is priced with it there until
         the plan says where it landed."""
         if self.plan is not None and self.plan.predicted_w:
-            self.model_override = self.predict_power({**self.plan.placement, stage: to_node})
+            self.model_override = self.predict_power({**self.plan.placement, stage: to_node}, own_only=True)
 
     @property
     def model_w(self) -> float | None:
@@ -121,9 +121,9 @@ class PlanView:
             return
         self.out_of_reach = nodes
         if self.plan is not None and self.network is not None:
-            self.plan = dataclasses.replace(self.plan, predicted_w=self.predict_power())
+            self.plan = dataclasses.replace(self.plan, predicted_w=self.predict_power(own_only=True))
 
-    def predict_power(self, placement: dict[str, str] | None = None) -> dict[str, float]:
+    def predict_power(self, placement: dict[str, str] | None = None, own_only: bool = False) -> dict[str, float]:
         """The model's power per robot for the plan this node runs (its placement, or the one
         given, routing and DVFS levels; a chain whose sink is out of reach buffers at its source).
 
@@ -131,7 +131,11 @@ class PlanView:
         placed here (another partition's placement, seen from this one, after a subgroup round
         moved only what this one reaches). Left in, it would make the whole prediction fail, and the
         recording would keep the old plan's power for this robot while it runs its chains itself.
-        {} if the model cannot price it (telemetry: never worth stopping for)."""
+        {} if the model cannot price it (telemetry: never worth stopping for).
+
+        ``own_only``: this node's power alone (its `model_w`), priced from the chains that load it
+        (`_touching`), the same figure at a fraction of the cost on a large team: a node's power
+        depends only on its own CPU and radios, which no other chain loads."""
         from autopower.model.dvfs import apply_levels
         from autopower.model.energy import evaluate
         from autopower.policies import effective_scenario
@@ -148,12 +152,18 @@ class PlanView:
             active = ({self.rt.stage_index[s][0].name for s in placement} & set(plan.running)) \
                 - _unroutable(scenario, network, placement)
             placement = {s: n for s, n in placement.items() if self.rt.stage_index[s][0].name in active}
+            if own_only and not any(c.inputs for c in scenario.chains):  # DAG flows: every chain, as ever
+                active &= _touching(scenario, network, placement, self.rt.node)
+                placement = {s: n for s, n in placement.items() if self.rt.stage_index[s][0].name in active}
             disabled = frozenset(c.name for c in scenario.chains if c.name not in active)
             ev = evaluate(scenario, network, placement, accounting=plan.mission.accounting,
                           disabled_chains=disabled)
         except (AutoPowerError, KeyError, ValueError) as exc:
             log.info("%s: no model prediction for the placement %s: %s", self.rt.node, dict(plan.placement), exc)
             return {}
+        if own_only:
+            own = ev.robots.get(self.rt.node)
+            return {} if own is None else {self.rt.node: own.steady_w}
         return {r: p.steady_w for r, p in ev.robots.items()}
 
     def text(self) -> str | None:
@@ -164,6 +174,21 @@ class PlanView:
         if self._text_of is None or self._text_of[0] is not self.plan:
             self._text_of = (self.plan, base64.b64encode(encode(self.plan)).decode("ascii"))
         return self._text_of[1]
+
+
+def _touching(scenario, network, placement: dict[str, str], node: str) -> set[str]:
+    """Chains that load ``node``: a stage placed on it, or a hop (source, each stage's host, sink)
+    whose route sends or receives on it (as an end or a relay)."""
+    out = set()
+    for chain in scenario.chains:
+        hosts = [placement.get(stage.name) for stage in chain.stages]
+        if None in hosts:
+            continue
+        path = [chain.source, *hosts, chain.sink]
+        if node in path or any(node in (u, v) for a, b in zip(path, path[1:], strict=False) if a != b
+                               for u, v, _ in network.hops(a, b)):
+            out.add(chain.name)
+    return out
 
 
 def _unroutable(scenario, network, placement: dict[str, str]) -> set[str]:
