@@ -18,7 +18,7 @@ import logging
 
 from autopower.model.scenario import Chain
 from autopower.node.sequencing import SequenceGate
-from autopower.node.stages import ORPHAN_LIMIT, HostedStage, Lifecycle
+from autopower.node.stages import ORPHAN_LIMIT, HostedStage, Lifecycle, placed_since
 from autopower.node.workers import worker_of
 from autopower.protocol import (
     Assign,
@@ -257,11 +257,6 @@ class Hosting:
             self.rt.frames.admit(hosted, frame, refusable=False)
         return True
 
-    def _placed_t(self, current: HostedStage | None) -> float:
-        """When this host was named for a stage whose new instance replaces ``current``."""
-        since = current.placed_since() if current is not None else None
-        return self.rt.now() if since is None else since
-
     def on_assign(self, msg: Assign) -> None:
         chain, index = self.rt.stage_index[msg.stage]
         stage = chain.stages[index]
@@ -279,7 +274,7 @@ class Hosting:
             self.rt.components.retire(current.component)
         hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
-                             gate=SequenceGate(next_seq=msg.resume_seq), placed_t=self._placed_t(current))
+                             gate=SequenceGate(next_seq=msg.resume_seq), placed_t=placed_since(current, self.rt.now()))
         held = (current.buffer if current else []) + self.orphans.pop(msg.stage, [])
         self.hosted[msg.stage] = hosted
         hosted.answer = self._reply(StageReady(stage=msg.stage, generation=msg.generation, node=self.rt.node,
@@ -301,7 +296,7 @@ class Hosting:
             self.rt.count("prepare-while-running", msg.stage, logging.ERROR)
             return
         hosted = HostedStage(stage=chain.stages[index], chain=chain, index=index, generation=msg.generation,
-                             lifecycle=Lifecycle.STARTING, placed_t=self._placed_t(current))
+                             lifecycle=Lifecycle.STARTING, placed_t=placed_since(current, self.rt.now()))
         hosted.buffer = self.orphans.pop(msg.stage, [])
         if current is not None and current.lifecycle is Lifecycle.STARTING:
             hosted.buffer = current.buffer + hosted.buffer
@@ -407,7 +402,7 @@ class Hosting:
         held += self.orphans.pop(msg.stage, [])
         hosted = HostedStage(stage=stage, chain=chain, index=index, generation=msg.generation,
                              lifecycle=Lifecycle.RUNNING, run=msg.run, component=component,
-                             gate=SequenceGate(next_seq=msg.next_seq), placed_t=self._placed_t(current))
+                             gate=SequenceGate(next_seq=msg.next_seq), placed_t=placed_since(current, self.rt.now()))
         hosted.gate.resent.extend(msg.resent)  # late originals of these are redundant here too
         hosted.imported = imported
         self._adopt_outputs(msg, hosted)

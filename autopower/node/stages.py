@@ -89,9 +89,12 @@ class HostedStage:
         the state of an instance that did. A fresh component has seen nothing: it may start anywhere."""
         return self.imported or self.gate.released > 0
 
-    def placed_since(self) -> float | None:
-        """``placed_t`` for an instance that replaces this one on the same host (see there)."""
-        return self.placed_t if self.lifecycle in (Lifecycle.STARTING, Lifecycle.RUNNING, Lifecycle.DRAINING) else None
+
+def placed_since(current: HostedStage | None, now: float) -> float:
+    """`HostedStage.placed_t` of a new instance that replaces ``current`` on this host: its time
+    while it is still here (prepared, running, draining), else ``now``."""
+    here = current is not None and current.lifecycle in (Lifecycle.STARTING, Lifecycle.RUNNING, Lifecycle.DRAINING)
+    return current.placed_t if here else now
 
 
 @dataclass
