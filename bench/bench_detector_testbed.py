@@ -2,9 +2,10 @@
 nothing failing. Not a timed test; needs root (network namespaces).
 
     .venv/bin/python bench/bench_detector_testbed.py [--loss 0,0.1,0.2] [--minutes 10] [--speed 5]
+                                                     [--transport tls|quic]
 
-For each loss rate, `autopower testbed up paper-fig7` (shaped 802.11a, mutual TLS, the lease of
-``--lease-ms``) runs until ready, then `autopower fault loss A B PCT` makes every link lose that
+For each loss rate, `autopower testbed up paper-fig7` (shaped 802.11a, mutual TLS over TCP or, with
+``--transport quic``, over Zenoh's QUIC link, the lease of ``--lease-ms``) runs until ready, then `autopower fault loss A B PCT` makes every link lose that
 share of its packets both ways (nftables, `numgen random`) for ``--minutes`` wall minutes. Nothing
 fails, so every peer a robot takes out of sight is a false suspicion: counted by the robots
 themselves (`silent-peers`: its statuses stopped; `tokens-lost`: Zenoh's lease expired or its
@@ -85,7 +86,7 @@ def cut_detected_s(env: dict) -> float | None:
     return detected
 
 
-def measure(loss: float, minutes: float, speed: float, lease_ms: int, cuts: int) -> dict:
+def measure(loss: float, minutes: float, speed: float, lease_ms: int, cuts: int, transport: str) -> dict:
     work = Path(tempfile.mkdtemp(prefix="bench-detector-testbed-"))
     os.chmod(work, 0o700)
     env = {**os.environ, "AUTOPOWER_STATE_DIR": str(work / "state"), "PYTHONUNBUFFERED": "1"}
@@ -94,6 +95,7 @@ def measure(loss: float, minutes: float, speed: float, lease_ms: int, cuts: int)
     out_file, err_file = open(work / "testbed.out", "w"), open(work / "testbed.err", "w")  # noqa: SIM115
     proc = subprocess.Popen([AUTOPOWER, "testbed", "up", "paper-fig7", "--json", "--speed", f"{speed:g}",
                              "--lease-ms", str(lease_ms), "--duration", f"{minutes * 60 + 240:g}",
+                             "--transport", transport,
                              "--log-dir", str(work / "logs")], env=env, stdout=out_file, stderr=err_file)
     try:
         deadline = time.monotonic() + 120
@@ -155,11 +157,17 @@ def main() -> None:
     parser.add_argument("--speed", type=float, default=5.0)
     parser.add_argument("--lease-ms", type=int, default=1000)
     parser.add_argument("--cuts", type=int, default=5, help="real cuts of r1-laptop after each window")
+    parser.add_argument("--transport", choices=("tls", "quic"), default="tls",
+                        help="what carries the team's links (`testbed up --transport`)")
     bench_results.add_json_out(parser)
     args = parser.parse_args()
     if os.geteuid() != 0:
         sys.exit("bench_detector_testbed needs root (network namespaces)")
-    runs = [measure(float(p), args.minutes, args.speed, args.lease_ms, args.cuts) for p in args.loss.split(",")]
+    runs = [measure(float(p), args.minutes, args.speed, args.lease_ms, args.cuts, args.transport)
+            for p in args.loss.split(",")]
+    # the links' transport names the groups only when it is not the default, so the TLS tables keep their names
+    over = "" if args.transport == "tls" else f", over {args.transport.upper()}"
+    print(f"transport {args.transport}")
     print(f"{'loss':>5} {'robot-hours':>11} {'silent':>7} {'lease':>6} {'per robot-day':>14} {'base station':>13} "
           f"{'delivered':>10} {'missing':>8} {'dup':>4}  a cut detected after")
     for r in runs:
@@ -175,13 +183,13 @@ def main() -> None:
         if r["detect_p50_s"] is not None:
             figures.append(bench_results.figure(
                 "a silent cut of r1-laptop detected by the base station (p50)", r["detect_p50_s"], "s", "the lease",
-                args.lease_ms / 1000.0, group=f"{100 * r['loss']:g} % packet loss on every testbed link",
+                args.lease_ms / 1000.0, group=f"{100 * r['loss']:g} % packet loss on every testbed link{over}",
                 note="Zenoh's lease on every node",
                 detail=f"p99 {r['detect_p99_s']:.2f} s over {len(r['detections_s'])} cuts; {r['undetected']} not "
                        f"within 20 s; target at most 1 s at p99"))
         if r["loss"] == 0:
             continue
-        g = f"{100 * r['loss']:g} % packet loss on every testbed link"
+        g = f"{100 * r['loss']:g} % packet loss on every testbed link{over}"
         base = clean["per_robot_day"] if clean else None
         figures += [
             bench_results.figure(
@@ -198,7 +206,8 @@ def main() -> None:
                                  detail=f"{r['duplicates']} delivered twice"),
         ]
     bench_results.write_result("detector_testbed", {"loss": args.loss, "minutes": args.minutes,
-                                                    "speed": args.speed, "lease_ms": args.lease_ms}, figures,
+                                                    "speed": args.speed, "lease_ms": args.lease_ms,
+                                                    "transport": args.transport}, figures,
                                args.json_out, what=__doc__.splitlines()[0], extra={"runs": runs})
 
 

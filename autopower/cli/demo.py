@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from autopower.cli.options import INSECURE_OPT, LEASE_MS, POSITIVE, stage_workers_option, warn_insecure
+from autopower.cli.options import INSECURE_OPT, LEASE_MS, POSITIVE, TRANSPORT_OPT, stage_workers_option, warn_insecure
 from autopower.errors import AutoPowerError
 from autopower.launch.demo import run_demo
 from autopower.policies import POLICY_NAMES
@@ -32,8 +32,9 @@ from autopower.policies import POLICY_NAMES
               help="SIGKILL the base station after the agent: the robots carry on in a subgroup, the "
                    "supervisor starts a new base station and it takes over the running team.")
 @stage_workers_option
+@TRANSPORT_OPT
 def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, insecure, testbed, crash_base,
-         stage_workers):
+         stage_workers, transport):
     """Three agents + the base station: a cut, a heal, a subgroup without the base, an agent and the
     base station killed and restarted, the replay."""
     if not 10 <= mission_wall_s <= 600:
@@ -43,12 +44,16 @@ def demo(as_json, speed, mission_wall_s, lease_ms, log_dir, no_record, policy, i
     if insecure and testbed:
         raise AutoPowerError("--insecure does not apply to --testbed: the testbed always runs mutual TLS and "
                              "access control; drop --insecure")
+    if transport != "tls" and not testbed:
+        raise AutoPowerError(f"--transport {transport} needs --testbed: on localhost the demo's links are proxies "
+                             "that forward TCP (they stand for the radios a fault cuts)")
     warn_insecure(insecure)
     directory = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix="autopower-demo-"))
     directory.mkdir(parents=True, exist_ok=True)
     result = run_demo(speed=speed, mission_wall_s=mission_wall_s, lease_ms=lease_ms, log_dir=directory,
                       record=not no_record, quiet=as_json, policy=policy,
-                      secure=not insecure, testbed=testbed, crash_base=crash_base, stage_workers=stage_workers)
+                      secure=not insecure, testbed=testbed, crash_base=crash_base, stage_workers=stage_workers,
+                      transport=transport)
     if as_json:
         slim = {k: v for k, v in result.items() if k != "replay"}  # the full replay: `autopower replay`
         click.echo(json.dumps(slim, default=str))

@@ -207,6 +207,12 @@ def zenoh_settings(listen: tuple[str, ...], connect: tuple[str, ...], lease_ms: 
 
 
 
+TRANSPORT_OPT = click.option(
+    "--transport", type=click.Choice(["tls", "quic"]), default="tls", show_default=True,
+    help="What carries the links between nodes: TLS over TCP, or Zenoh's QUIC link (UDP, TLS 1.3 inside, the "
+         "same certificates and access control), which keeps a lossy radio's link open where TCP stalls. "
+         "The operator CLI reaches the base station over TLS either way.")
+
 INSECURE_OPT = click.option("--insecure", is_flag=True,
                             help="Plain tcp, no certificates, no access control: anyone who reaches a port "
                                  "controls the team. Default: mutual TLS and default-deny access control.")

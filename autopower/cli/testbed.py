@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from autopower.cli.live_table import render
-from autopower.cli.options import DEFAULT_SPEED, build_scenario, parse_pairs
+from autopower.cli.options import DEFAULT_SPEED, TRANSPORT_OPT, build_scenario, parse_pairs
 from autopower.cli.team import SNAPSHOT_EVERY_S, end_session
 from autopower.errors import AutoPowerError
 from autopower.launch.summary import at_ready_complete, complete_at_ready, run_summary
@@ -37,8 +37,9 @@ def testbed() -> None:
 @click.option("--log-dir", type=click.Path(file_okay=False), default=None)
 @click.option("--record-dir", type=click.Path(file_okay=False), default=None,
               help="Record the run with Rerun: every process writes here, merged into DIR/run.rrd at the end.")
+@TRANSPORT_OPT
 def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, media, pin, no_shaping, ready_timeout,
-               log_dir, record_dir):
+               log_dir, record_dir, transport):
     """Start the team in the testbed and watch it; Ctrl-C (or --duration) removes every namespace and link.
 
     `autopower status`, `chain`, `migrate`, `fault cut|heal|kill|freeze|thaw` and `replay` work on
@@ -57,7 +58,8 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
     parse_pairs(pin, "--pin", "Loc-2=r1")
     parse_pairs(media, "--media", "laptop-robot=gsm")
     spec = TeamSpec(scenario=scenario_name, speed=speed, topology=topology, media=tuple(media), pins=tuple(pin),
-                    lease_ms=lease_ms, log_dir=log_dir, record_dir=Path(record_dir) if record_dir else None)
+                    lease_ms=lease_ms, log_dir=log_dir, record_dir=Path(record_dir) if record_dir else None,
+                    transport=transport)
     if record_dir:
         from autopower.recording.health import check_record_dir
 
@@ -79,7 +81,7 @@ def testbed_up(scenario_name, speed, duration, as_json, lease_ms, topology, medi
         if not as_json:
             click.echo(f"testbed {team.net.run_id}: {len(team.nodes)} namespaces, {len(team.net.links)} links "
                        f"({'shaped to rate x ' + format(speed, 'g') if not no_shaping else 'unshaped'}), "
-                       f"mutual TLS + access control; team {team.team}, logs in {team.log_dir}")
+                       f"mutual TLS{' over QUIC' if transport == 'quic' else ''} + access control; team {team.team}, logs in {team.log_dir}")
             if record_dir:
                 click.echo(f"recording into {record_dir}; if this run is cut short, "
                            f"`autopower recording merge {record_dir}` builds {Path(record_dir) / 'run.rrd'}")

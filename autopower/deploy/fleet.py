@@ -5,6 +5,7 @@ optionally a port, and the address others use to reach it over a given link)::
 
     team = "lab"
     lease_ms = 1000
+    transport = "tls"         # or "quic"; default "tls"
     [nodes.laptop]            # the scenario's base station
     address = "192.168.50.1"
     [nodes.r1]
@@ -13,7 +14,10 @@ optionally a port, and the address others use to reach it over a given link)::
 
 Links follow the scenario's topology: over each link the node later in the scenario's node
 order connects to the earlier one, so every linked pair has exactly
-one mutual-TLS session and unlinked pairs have none (the agents relay for them).
+one mutual-TLS session and unlinked pairs have none (the agents relay for them). ``transport``
+says what carries the links between nodes: ``tls`` (TLS over TCP) or ``quic`` (Zenoh's QUIC link,
+UDP on the same port number, the same certificates and access control; `runtime.bus.TRANSPORTS`).
+The operator CLI reaches the base station over ``tls`` either way.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from autopower.model.scenario import Scenario
 from autopower.protocol.access import OPERATOR, TeamAccess
 from autopower.protocol.keys import Keys, check_name
 from autopower.runtime.access_control import zenoh_access_control
-from autopower.runtime.bus import TlsFiles, ZenohSettings
+from autopower.runtime.bus import TRANSPORTS, TlsFiles, ZenohSettings
 
 DEFAULT_PORT = 7447
 
@@ -49,6 +53,11 @@ class Fleet:
     lease_ms: int = 1000
     # (node, peer) -> the address ``node`` uses to reach ``peer`` (a peer with one address per link)
     via: dict[tuple[str, str], str] = field(default_factory=dict)
+    transport: str = "tls"  # what carries the links between nodes (one of TRANSPORTS)
+
+    def __post_init__(self):
+        if self.transport not in TRANSPORTS:
+            raise AutoPowerError(f"transport {self.transport!r}: expected one of {', '.join(TRANSPORTS)}")
 
     def check_covers(self, scenario: Scenario) -> None:
         missing = [n for n in scenario.node_names() if n not in self.nodes]
@@ -62,9 +71,10 @@ class Fleet:
         out += [addr for (_, peer), addr in self.via.items() if peer == node]
         return list(dict.fromkeys(out))
 
-    def endpoint(self, node: str, peer: str, scheme: str = "tls") -> str:
+    def endpoint(self, node: str, peer: str, scheme: str | None = None) -> str:
+        """Where ``node`` connects to reach ``peer`` (over the fleet's transport unless ``scheme``)."""
         host = self.via.get((node, peer), self.nodes[peer].address)
-        return f"{scheme}/{_host(host)}:{self.nodes[peer].port}"
+        return f"{scheme or self.transport}/{_host(host)}:{self.nodes[peer].port}"
 
 
 def _host(address: str) -> str:
@@ -91,6 +101,14 @@ def load_fleet(path: Path) -> Fleet:
     lease = data.get("lease_ms", 1000)
     if not isinstance(lease, int) or lease < 100:
         raise AutoPowerError(f"{path}: lease_ms = {lease!r}; expected an integer >= 100 (milliseconds)")
+    transport = data.get("transport", "tls")
+    if transport not in TRANSPORTS:
+        raise AutoPowerError(f"{path}: transport = {transport!r}; expected one of "
+                             f"{', '.join(repr(t) for t in TRANSPORTS)} (TLS over TCP, or Zenoh's QUIC link)")
+    unknown = set(data) - {"team", "lease_ms", "transport", "nodes"}
+    if unknown:
+        raise AutoPowerError(f"{path}: unknown field(s) {', '.join(sorted(unknown))}; "
+                             "expected team, lease_ms, transport, [nodes.NAME]")
     raw = data.get("nodes")
     if not isinstance(raw, dict) or not raw:
         raise AutoPowerError(f"{path}: no [nodes.NAME] tables; give each node of the scenario an address")
@@ -113,7 +131,7 @@ def load_fleet(path: Path) -> Fleet:
             raise AutoPowerError(f"{where}: unknown field(s) {', '.join(sorted(unknown))}; "
                                  "expected address, port, listen")
         nodes[name] = FleetNode(name=name, address=spec["address"], port=port, listen_host=spec.get("listen"))
-    return Fleet(team=team, nodes=nodes, lease_ms=lease)
+    return Fleet(team=team, nodes=nodes, lease_ms=lease, transport=transport)
 
 
 def linked_pairs(scenario: Scenario, topology: str | None = None) -> list[tuple[str, str]]:
@@ -135,7 +153,15 @@ def node_settings(fleet: Fleet, scenario: Scenario, node: str, tls: TlsFiles, *,
                   topology: str | None = None, lease_ms: int | None = None) -> ZenohSettings:
     """One node's Zenoh settings: listen on its own address, connect along its links, mTLS, ACL."""
     me = fleet.nodes[node]
-    listen = (f"tls/{_host(me.listen_host or me.address)}:{me.port}",)
+    at = f"{_host(me.listen_host or me.address)}:{me.port}"
+    listen: tuple[str, ...] = (f"{fleet.transport}/{at}",)
+    if node == scenario.basestation and fleet.transport != "tls":
+        # The operator CLI connects over TLS whatever the team's links are: it opens one session
+        # per command and asks and answers, so a stalled TCP stream costs it a slower answer,
+        # never a link the team closes; and TCP passes where UDP may not (the testbed's bridge
+        # from the host into the base station's namespace forwards TCP connections, a site's
+        # firewall). TCP and UDP ports are apart: both listeners use the node's port.
+        listen += (f"tls/{at}",)
     connect = tuple(fleet.endpoint(node, peer) for late, peer in linked_pairs(scenario, topology) if late == node)
     return ZenohSettings(listen=listen, connect=connect, lease_ms=lease_ms or fleet.lease_ms, tls=tls,
                          access_control=zenoh_access_control(team_access(scenario, fleet.team)),
@@ -145,5 +171,5 @@ def node_settings(fleet: Fleet, scenario: Scenario, node: str, tls: TlsFiles, *,
 def operator_settings(fleet: Fleet, scenario: Scenario, tls: TlsFiles) -> ZenohSettings:
     """The operator CLI: connects to the base station only and listens on nothing."""
     base = scenario.basestation
-    return ZenohSettings(connect=(fleet.endpoint(OPERATOR, base),), tls=tls,
+    return ZenohSettings(connect=(fleet.endpoint(OPERATOR, base, scheme="tls"),), tls=tls,
                          lease_ms=fleet.lease_ms)

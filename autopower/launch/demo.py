@@ -200,7 +200,7 @@ RUNTIME_MARGIN = 1.4
 
 def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Path, record: bool,
              quiet: bool, policy: str = "rebalance", secure: bool = True, testbed: bool = False,
-             crash_base: bool = False, stage_workers: str = "auto") -> dict:
+             crash_base: bool = False, stage_workers: str = "auto", transport: str = "tls") -> dict:
     from autopower.launch.faults import FaultController
     from autopower.launch.localhost import LocalTeam, TeamSpec
     from autopower.model.loading import load_scenario
@@ -220,7 +220,7 @@ def run_demo(*, speed: float, mission_wall_s: float, lease_ms: int, log_dir: Pat
     record_dir = log_dir / f"run-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}" if record else None
     spec = TeamSpec(scenario=SCENARIO, speed=speed, energy_scale=energy_scale, lease_ms=lease_ms,
                     proxied_links=True, log_dir=log_dir, record_dir=record_dir, policy=policy, secure=secure,
-                    stage_workers=stage_workers)
+                    stage_workers=stage_workers, transport=transport)
     faults_out: list[dict] = []
     adopted = 0
     if testbed:  # each node in its network namespace, links shaped like their radios (root)

@@ -40,7 +40,7 @@ from autopower.launch.forkserver import ForkedProcess, ForkServer
 from autopower.launch.supervisor import RestartPolicy, Supervisor, SupervisorEvent
 from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
-from autopower.runtime.bus import ZenohSettings
+from autopower.runtime.bus import TRANSPORTS, ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -50,12 +50,13 @@ READY_HOLD_S = 2.0  # `wait_ready`: how long one query waits for the team (then 
 SUPERVISE_IDLE_S = 0.5  # with pidfds it sleeps until a child exits, a restart is due, or this long
 
 
-def free_ports(n: int, host: str = HOST) -> list[int]:
-    """Ports free right now on ``host`` (held open together so they are distinct)."""
+def free_ports(n: int, host: str = HOST, kind: int = socket.SOCK_STREAM) -> list[int]:
+    """Ports free right now on ``host`` (held open together so they are distinct); TCP ports, or UDP
+    ones with ``kind=socket.SOCK_DGRAM`` (what a QUIC listener binds)."""
     socks = []
     try:
         for _ in range(n):
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s = socket.socket(socket.AF_INET, kind)
             s.bind((host, 0))
             socks.append(s)
         return [s.getsockname()[1] for s in socks]
@@ -182,6 +183,8 @@ class TeamSpec:
     # mutual TLS and default-deny access control, as on real hosts (`autopower.launch.identities`);
     # False is `--insecure`: plain tcp, anyone who reaches a port controls the team
     secure: bool = True
+    # what carries a secure team's links (`runtime.bus.TRANSPORTS`): "tls" (TCP) or "quic"
+    transport: str = "tls"
     tls_dir: Path | None = None  # where the team's CA and identities go (default: under the state dir)
     restart: RestartPolicy | None = field(default_factory=RestartPolicy)  # None: a crash stops the team
     # the children forked from one process that imported their modules once (`launch.forkserver`);
@@ -189,10 +192,23 @@ class TeamSpec:
     fork_server: bool = True
 
 
+def check_transport(spec: TeamSpec) -> None:
+    """A transport the team can run, or one line saying why not."""
+    if spec.transport not in TRANSPORTS:
+        raise AutoPowerError(f"transport {spec.transport!r}: expected one of {', '.join(TRANSPORTS)}")
+    if spec.transport != "tls" and not spec.secure:
+        raise AutoPowerError(f"--insecure is plain tcp: it cannot run over {spec.transport}, which is always TLS; "
+                             "drop --insecure or --transport")
+    if spec.transport != "tls" and spec.proxied_links:
+        raise AutoPowerError(f"a localhost team's link proxies forward TCP: its links cannot run over "
+                             f"{spec.transport}; use the testbed (its links are real interfaces)")
+
+
 class LocalTeam:
     """A team of processes on localhost (a context manager: leaving it stops every child)."""
 
     def __init__(self, spec: TeamSpec, scenario: Scenario):
+        check_transport(spec)
         self.spec = spec
         self.scenario = scenario
         self.team = spec.team or f"up-{os.getpid()}-{secrets.token_hex(3)}"
@@ -204,8 +220,8 @@ class LocalTeam:
             from autopower.launch.identities import LocalIdentities
 
             self.identities = LocalIdentities.create(self.team, self.nodes, spec.tls_dir)
-        self.scheme = "tls" if spec.secure else "tcp"
-        ports = free_ports(len(self.nodes))
+        self.scheme = spec.transport if spec.secure else "tcp"
+        ports = free_ports(len(self.nodes), kind=socket.SOCK_DGRAM if self.scheme == "quic" else socket.SOCK_STREAM)
         self.ports = dict(zip(self.nodes, ports, strict=True))
         self.proxies: dict[frozenset[str], "LinkProxy"] = {}
         if spec.proxied_links:

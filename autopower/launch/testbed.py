@@ -2,10 +2,11 @@
 
 `TestbedTeam` is a `LocalTeam` whose network is a `NamespaceNetwork`: the team's fleet is
 generated the way `autopower deploy init` writes one for real hosts (a CA for this run, mutual
-TLS on every link, default-deny access control, each node connecting to its neighbours' link
-addresses), each child starts inside its namespace from its node directory (``--fleet``), and a
-fault cut silences the real link (random loss and a one-way cut drop one direction's packets; a
-rate change re-shapes it; a flap or a roam cuts it on a schedule the fault controller keeps).
+TLS on every link, over TCP or QUIC as ``spec.transport`` says, default-deny access control,
+each node connecting to its neighbours' link addresses), each child starts inside its namespace
+from its node directory (``--fleet``), and a fault cut silences the real link (random loss and
+a one-way cut drop one direction's packets; a rate change re-shapes it; a flap or a roam cuts it
+on a schedule the fault controller keeps).
 Everything it created is removed when it stops, however it stops; `autopower testbed down`
 removes what a killed run left.
 """
@@ -25,7 +26,7 @@ from autopower.deploy.bundle import write_bundle
 from autopower.deploy.fleet import Fleet, FleetNode
 from autopower.deploy.pki import identity_in
 from autopower.errors import AutoPowerError
-from autopower.launch.localhost import PARENT_PID, Child, LocalTeam, TeamSpec, _die_with_parent
+from autopower.launch.localhost import PARENT_PID, Child, LocalTeam, TeamSpec, _die_with_parent, check_transport
 from autopower.launch.netns import NamespaceNetwork, require_root
 from autopower.model.network import build_network
 from autopower.model.scenario import Scenario
@@ -91,15 +92,16 @@ class TestbedTeam(LocalTeam):
     def __init__(self, spec: TeamSpec, scenario: Scenario, *, shaping: bool = True):
         require_root()
         # the loopback parts of LocalTeam (ports, proxies, identities) are not used here
-        super().__init__(dataclasses.replace(spec, secure=False, proxied_links=False), scenario)
+        super().__init__(dataclasses.replace(spec, secure=False, proxied_links=False, transport="tls"), scenario)
         self.spec = spec
+        check_transport(dataclasses.replace(spec, secure=True, proxied_links=False))  # always TLS, real links
         media = dict(item.split("=", 1) for item in spec.media)
         network = build_network(scenario, topology=spec.topology, media=media or None)
         self.net = NamespaceNetwork(network, scenario.radios, speed=spec.speed, state_dir=state_dir(),
                                     shaping=shaping)
         self.proxies = {frozenset((l.a, l.b)): _LinkSwitch(self.net, l.a, l.b) for l in self.net.links}
         self.fleet_dir = state_dir() / TLS_DIR / self.team
-        self.scheme = "tls"
+        self.scheme = spec.transport
         self._bridge_sock: socket.socket | None = None
         self._bridge: subprocess.Popen | None = None
         self.network_s: float | None = None  # how long `start` took to build the namespaces and links
@@ -113,10 +115,12 @@ class TestbedTeam(LocalTeam):
         for link in net.links:
             via[(link.a, link.b)] = link.address(link.b)
             via[(link.b, link.a)] = link.address(link.a)
-        return Fleet(team=self.team, nodes=nodes, lease_ms=self.spec.lease_ms, via=via)
+        return Fleet(team=self.team, nodes=nodes, lease_ms=self.spec.lease_ms, via=via, transport=self.spec.transport)
 
     @property
     def base_endpoint(self) -> str:
+        # the bridge forwards TCP: the operator reaches the base station over TLS whatever the team's
+        # links run (the base station listens on both, `deploy.fleet.node_settings`)
         return f"tls/127.0.0.1:{self._bridge_sock.getsockname()[1]}"
 
     def operator_settings(self) -> ZenohSettings:

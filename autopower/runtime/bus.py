@@ -99,16 +99,29 @@ class TlsFiles:
     key: str
 
 
+# The schemes a secure team's peer links may use. ``tls``: TLS over TCP. ``quic``: Zenoh's QUIC
+# link (over UDP, TLS 1.3 inside, the same certificates), whose loss recovery resends a lost
+# packet after about a round trip and numbers each resend anew (a lost resend is found as fast),
+# where TCP waits at least 200 ms, doubles the wait each time and gives the connection up after
+# `tcp_retries2`; on a lossy radio TCP's stalled stream blocks a reliable put until the team
+# closes the link (docs/known-limits.md, "Lossy links and large teams").
+TRANSPORTS = ("tls", "quic")
+
+
 @dataclass(frozen=True, kw_only=True)
 class ZenohSettings:
     """How one process joins Zenoh. Endpoints are explicit; nothing is discovered.
 
-    With ``tls`` every link is mutual TLS against the team CA (endpoints are ``tls/...``): the
-    listener refuses a peer without a certificate of that CA, and each side learns the other's
-    certificate name, which ``access_control`` (Zenoh's section, see `runtime.access_control`)
-    uses to decide what that peer may put, declare or query here. Zenoh traps handled: the
-    connecting side must set ``enable_mtls`` too or it never sends its certificate; an ACL only
-    holds when nobody can reach the node around it, hence scouting off.
+    With ``tls`` every link is mutual TLS against the team CA (endpoints are ``tls/...`` over TCP
+    or ``quic/...``, see `TRANSPORTS`): the listener refuses a peer without a certificate of that
+    CA, and each side learns the other's certificate name, which ``access_control`` (Zenoh's
+    section, see `runtime.access_control`) uses to decide what that peer may put, declare or query
+    here. Zenoh's QUIC link reads the same ``transport/link/tls`` section (TLS 1.3 is inside
+    QUIC): on 1.10.2 it refuses a peer without a certificate or with another CA's, and access
+    control matches its certificate's name as on a TLS link (tests/integration/test_security.py
+    runs both). Zenoh traps handled: the connecting side must set ``enable_mtls`` too or it
+    never sends its certificate; an ACL only holds when nobody can reach the node around it,
+    hence scouting off.
     """
 
     listen: tuple[str, ...] = ()

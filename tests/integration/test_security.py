@@ -7,6 +7,9 @@ first checks that its attacker's session really is connected where it matters, s
 happened" cannot come from an attacker that never arrived. Where Zenoh's access control is what
 must stop a forgery, a `Witness` on every node shows that no node's Zenoh delivered it, so a check
 in the processes cannot stand in for the access control unnoticed.
+
+Every test runs twice: the team's links over TLS (TCP), and over Zenoh's QUIC link, which reads
+the same certificates and whose access control must refuse the same identities.
 """
 
 from __future__ import annotations
@@ -31,10 +34,10 @@ from tests.integration.runtime_helpers import sinks_of, sources_of, wait_for
 pytestmark = pytest.mark.slow
 
 
-@pytest.fixture(scope="module")
-def team(tmp_path_factory):
+@pytest.fixture(scope="module", params=["tls", "quic"])
+def team(request, tmp_path_factory):
     spec = TeamSpec(scenario="paper-fig7", speed=5.0, auto_replan=False, lease_ms=1000,
-                    log_dir=tmp_path_factory.mktemp("secure-team"))
+                    log_dir=tmp_path_factory.mktemp(f"secure-team-{request.param}"), transport=request.param)
     team = LocalTeam(spec, build_scenario("paper-fig7"))
     assert team.identities is not None, "a team must be secure by default"
     team.__enter__()
@@ -57,7 +60,9 @@ def open_client(settings: ZenohSettings):
 
 
 def base_tls(team) -> str:
-    return endpoint(team.ports[team.scenario.basestation], scheme="tls")
+    """The base station's secure endpoint (tls/... or quic/..., the team's transport)."""
+    assert team.scheme in ("tls", "quic"), team.scheme
+    return endpoint(team.ports[team.scenario.basestation], scheme=team.scheme)
 
 
 # ---- who may connect -------------------------------------------------------------------------------
@@ -98,10 +103,11 @@ def test_a_certificate_from_another_ca_is_refused(team, tmp_path):
         open_client(ZenohSettings(connect=(base_tls(team),), tls=tls)).close()
 
 
-def test_plain_tcp_to_a_tls_port_is_refused(team):
+def test_a_plain_link_to_a_secure_port_is_refused(team):
+    """Zenoh's link without TLS on the same port: tcp to a TLS listener, udp to a QUIC one."""
     import zenoh
 
-    plain = endpoint(team.ports[team.scenario.basestation], scheme="tcp")
+    plain = endpoint(team.ports[team.scenario.basestation], scheme={"tls": "tcp", "quic": "udp"}[team.scheme])
     with pytest.raises(zenoh.ZError):
         open_client(ZenohSettings(connect=(plain,))).close()
 
@@ -124,7 +130,7 @@ class Insider:
 
     def __init__(self, team, identity: str = "r2"):
         self.keys = Keys(team.team)
-        eps = tuple(endpoint(team.ports[n], scheme="tls") for n in team.nodes if n != identity)
+        eps = tuple(endpoint(team.ports[n], scheme=team.scheme) for n in team.nodes if n != identity)
         self.bus = ZenohBus(ZenohSettings(connect=eps, tls=team.identities.files(identity)))
         self.expected = len(eps)
         self.latest: dict[str, bytes] = {}
@@ -180,7 +186,7 @@ class Witness:
         self._subscribers = []
         try:
             for node in self.nodes:
-                session = open_client(ZenohSettings(connect=(endpoint(team.ports[node], scheme="tls"),),
+                session = open_client(ZenohSettings(connect=(endpoint(team.ports[node], scheme=team.scheme),),
                                                     tls=team.identities.files(team.scenario.basestation)))
                 self._sessions.append(session)
                 for expr in (self.keys.status_all, *key_exprs):
