@@ -205,7 +205,9 @@ def main() -> None:
                                  note="same run; a gap below the highest output seen",
                                  detail=f"{r['duplicates']} delivered twice"),
         ]
-    bench_results.write_result("detector_testbed", {"loss": args.loss, "minutes": args.minutes,
+    # one result per transport (bench/report.py shows both): "detector_testbed", "detector_testbed_quic"
+    name = "detector_testbed" if args.transport == "tls" else "detector_testbed_quic"
+    bench_results.write_result(name, {"loss": args.loss, "minutes": args.minutes,
                                                     "speed": args.speed, "lease_ms": args.lease_ms,
                                                     "transport": args.transport}, figures,
                                args.json_out, what=__doc__.splitlines()[0], extra={"runs": runs})

@@ -88,6 +88,8 @@ BENCHES = (
           "Policies, live", "results", 2.0, long=True),
     Bench("detector_testbed", "bench/bench_detector_testbed.py", ("--minutes", "10"),
           "Failure detection on lossy links, in the testbed", "performance", 36.0, long=True),
+    Bench("detector_testbed_quic", "bench/bench_detector_testbed.py", ("--minutes", "10", "--transport", "quic"),
+          "Failure detection on lossy links, in the testbed, over QUIC", "performance", 36.0, long=True),
     Bench("random_faults", "bench/bench_random_faults.py", ("--seed", "1", "--faults", "20"), "Random faults",
           "performance", 2.5, long=True),
     Bench("flood", "bench/bench_flood.py", ("--messages", "4000", "16000"), "A flood of garbage", "performance",
