@@ -176,29 +176,25 @@ class PlanView:
         return self._text_of[1]
 
 
-def _touching(scenario, network, placement: dict[str, str], node: str) -> set[str]:
-    """Chains that load ``node``: a stage placed on it, or a hop (source, each stage's host, sink)
-    whose route sends or receives on it (as an end or a relay)."""
-    out = set()
+def _hops(scenario, placement: dict[str, str]):
+    """Each placed chain and its hops between distinct nodes (source, each stage's host, sink)."""
     for chain in scenario.chains:
         hosts = [placement.get(stage.name) for stage in chain.stages]
         if None in hosts:
             continue
         path = [chain.source, *hosts, chain.sink]
-        if node in path or any(node in (u, v) for a, b in zip(path, path[1:], strict=False) if a != b
-                               for u, v, _ in network.hops(a, b)):
-            out.add(chain.name)
-    return out
+        yield chain, [(a, b) for a, b in zip(path, path[1:], strict=False) if a != b]
+
+
+def _touching(scenario, network, placement: dict[str, str], node: str) -> set[str]:
+    """Chains that load ``node``: a stage placed on it, or a hop whose route sends or receives on it
+    (as an end or a relay)."""
+    return {chain.name for chain, hops in _hops(scenario, placement)
+            if any(node in (u, v) for a, b in hops for u, v, _ in network.hops(a, b))
+            or node in (placement.get(s.name) for s in chain.stages)}
 
 
 def _unroutable(scenario, network, placement: dict[str, str]) -> set[str]:
-    """Chains with a hop (source, each stage's host, sink) whose ends do not reach each other."""
-    out = set()
-    for chain in scenario.chains:
-        hosts = [placement.get(stage.name) for stage in chain.stages]
-        if None in hosts:
-            continue
-        path = [chain.source, *hosts, chain.sink]
-        if any(a != b and not network.reachable(a, b) for a, b in zip(path, path[1:], strict=False)):
-            out.add(chain.name)
-    return out
+    """Chains with a hop whose ends do not reach each other."""
+    return {chain.name for chain, hops in _hops(scenario, placement)
+            if any(not network.reachable(a, b) for a, b in hops)}
