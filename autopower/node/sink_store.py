@@ -5,8 +5,8 @@ custody (`autopower.node.custody`) resends every output the old sink had not ack
 (acknowledgements travel in the status, every half second), including some it had received:
 without its ledgers the new sink would hand those to the operator a second time. So the sink
 notes every new output it takes in and writes the notes out (`commit`) just before the status that
-acknowledges them (the recording of those outputs is flushed at the same moment, see
-`Recorder.before_publish`); the restarted sink rebuilds its ledgers from the notes, counts the
+acknowledges them (the recording of those outputs is written at the same moment and never sooner,
+`Recorder.flush_outputs`); the restarted sink rebuilds its ledgers from the notes, counts the
 resent copies as redundant and reports the same prefix to the producers. An output taken in after
 the last status is neither noted nor acknowledged nor recorded when the process dies: custody
 resends it and the new sink delivers and records it once (noting it at once instead would lose it

@@ -55,8 +55,12 @@ Text events carry a machine-readable JSON tail after `EVENT_TAG` (see `tag_event
 
 Logging never stops a robot: every handler catches everything, `Telemetry` never raises, and
 scalars and texts are batched with ``send_columns`` (flushed every `flush_every_s`).
-Data still buffered when a process is SIGKILLed (≤ `flush_every_s`) is lost, except outputs: they
-are flushed before the status that acknowledges them to their producers leaves (`before_publish`).
+Data still buffered when a process is SIGKILLed (≤ `flush_every_s`) is lost. Outputs follow the
+sink's commits instead of that timer: an output is written to the recording only by `flush_outputs`,
+which the process calls right after the sink notes what it took in (`node.sink_store`) and before
+the status that acknowledges it leaves. An output taken in after the last commit
+is then neither noted, nor acknowledged, nor recorded when the process dies: custody resends it and
+the restarted sink records it once.
 """
 
 from __future__ import annotations
@@ -259,9 +263,10 @@ class Recorder:
         self.flush_every_s = flush_every_s
         self.visual_every_s = visual_every_s
         self._last_flush = time.monotonic()
-        # outputs recorded since the last flush: a sink acknowledges what it received in its next
-        # status (custody then forgets it), so those outputs are flushed before that status leaves
-        self._outputs_unflushed = False
+        # outputs taken in since the sink's last commit, (entity, mission t, seq) each: written only
+        # with the commit (`flush_outputs`). The timed flush must not write them: an output recorded
+        # but not noted is delivered again by a restarted sink when custody resends it
+        self._outputs_held: list[tuple[str, float, int]] = []
         self._last_visual: dict[str, float] = {}
         self._last_epoch = -1
         self._links_seen: dict[str, bool] = {}
@@ -621,8 +626,7 @@ class Recorder:
 
     def _output(self, chain: str, run: int, seq: int, data: bytes) -> None:
         t = self.now()
-        self._outputs_unflushed = True
-        self.telemetry.scalar(output_path(chain, run), t, seq)
+        self._outputs_held.append((output_path(chain, run), t, seq))
         if self.quality is not None:  # measured quality: beside the declared score
             for metric, value in self.quality(chain, seq, data, self._variants).items():
                 self.telemetry.scalar(component_path(chain, f"quality/{metric}"), t, float(value))
@@ -647,22 +651,23 @@ class Recorder:
             self.telemetry.flush()
 
     def flush(self) -> None:
+        """Write out everything, the outputs taken in since the last commit included."""
         with self._lock:
+            self._write_held_outputs()
             self.telemetry.flush()
             self._last_flush = time.monotonic()
-            self._outputs_unflushed = False
 
-    def before_publish(self, key: str) -> None:
-        """Flush recorded outputs before the status and the acknowledgements (`Ack`) that follow
-        it are sent: a SIGKILL after the acknowledgement then cannot lose from the recording what
-        custody no longer resends."""
-        if "/status/" in key or "/from/" in key:
-            self.flush_outputs()
+    def _write_held_outputs(self) -> None:
+        held, self._outputs_held = self._outputs_held, []
+        for entity, t, seq in held:
+            self.telemetry.scalar(entity, t, seq)
 
     def flush_outputs(self) -> None:
-        """Write out the outputs recorded since the last flush (nothing if none): before anything
-        acknowledges them (the sink's notes are committed first, `node.sink_store`)."""
-        if self._outputs_unflushed:
+        """Write out the outputs taken in since the last commit (nothing if none): called right after
+        the sink notes them (`node.sink_store`) and before anything acknowledges them. Only there: a
+        publish of another node's status or acknowledgement (relayed) must not write outputs the sink
+        has not noted."""
+        if self._outputs_held:
             try:
                 self.flush()
             except Exception as exc:  # noqa: BLE001 - recording must never stop a robot
@@ -674,6 +679,7 @@ class Recorder:
             if self.closed:
                 return
             self.closed = True
+            self._write_held_outputs()  # a clean stop: what the sink took in last is delivered
             if self._owns:
                 self.telemetry.close()
             else:
@@ -710,7 +716,6 @@ class RecordingBus:
         return self.inner.links()
 
     def publish(self, key: str, payload: bytes, *, reliable: bool = True) -> None:
-        self.recorder.before_publish(key)
         self.inner.publish(key, payload, reliable=reliable)
         self.recorder.on_publish(key, payload)
 
@@ -745,10 +750,10 @@ class RecordingBus:
         self.inner.repeat_until_next(key, payload, after_s, every_s)  # a copy: recorded once, when first put
 
     def flush_recording(self) -> None:
-        """The outputs recorded so far written out, before what acknowledges them leaves (a status
-        or an `Ack` flushes them too, `Recorder.before_publish`): a process whose status is held
-        back commits its sink's notes and flushes here, so that each commit is flushed before the
-        next (`node.sink_store`: only the last commit may miss its recording after a kill)."""
+        """The outputs taken in since the sink's last commit written out: each process calls it
+        right after `NodeRuntime.commit_sinks` and before its status and acknowledgements leave, so
+        that each commit is flushed before the next (`node.sink_store`: only the last commit may
+        miss its recording after a kill) and nothing is recorded that the sink has not noted."""
         self.recorder.flush_outputs()
 
     @property

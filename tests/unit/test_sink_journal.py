@@ -113,3 +113,44 @@ def test_the_replay_takes_outputs_a_killed_sink_delivered_as_delivered(tmp_path)
     assert (o["chains"]["Blob-2"]["lost"], o["chains"]["Blob-2"]["unrecorded"]) == (0, 5)
     detail = next(i["detail"] for i in s["invariants"] if i["name"] == "every output exactly once at its sink")
     assert "5 delivered by a sink killed before it flushed their recording" in detail
+
+
+_KILLED_SINK = """
+import os, signal, sys
+from autopower.recording.recorder import Recorder
+t = [0.0]
+sink = Recorder.open(sys.argv[1], "r2", clock=lambda: t[0], flush_every_s=0.0)
+sink.telemetry.battery(0.0, "r2", 100.0)
+for seq in range(0, 5):
+    t[0] += 0.5
+    sink.on_output("Loc-2", 0, seq, b"")
+sink.flush_outputs()  # the sink noted 0-4: written with that commit
+for seq in range(5, 8):  # taken in after the last commit
+    t[0] += 0.5
+    sink.on_output("Loc-2", 0, seq, b"")
+    sink.on_held_dropped("Blob-2", 0, seq)  # other records, each with the timed flush due
+sink.telemetry.flush()
+os.kill(os.getpid(), signal.SIGKILL)  # before the next commit
+"""
+
+
+def test_an_output_taken_in_after_the_last_commit_dies_unrecorded_with_a_killed_sink(tmp_path):
+    """Issue 30 (CI on 31847dc): r2, the Loc-2 sink, was SIGKILLed and restarted with its saved
+    ledger; the laptop resent results 29-31, which r2 had taken in after its last commit, and the
+    new sink delivered them again. The old process's timed flush had already written one of them to
+    the recording: outputs are written with the sink's commits only (`Recorder.flush_outputs`), so
+    what custody resends is recorded once, by the restarted sink."""
+    import subprocess
+    import sys
+
+    from autopower.recording.merge import merge_run
+    from autopower.recording.recorder import output_path
+    from autopower.recording.replay import load
+
+    run_dir = tmp_path / "run-9"
+    done = subprocess.run([sys.executable, "-c", _KILLED_SINK, str(run_dir)], capture_output=True, timeout=60)
+    assert done.returncode == -9, done.stderr.decode()
+    recording = load(merge_run(run_dir))
+    assert "components/Blob-2/run/0/held_dropped" in recording.scalars, "the timed flush wrote nothing: the test proves nothing"
+    _, seqs = recording.scalars[output_path("Loc-2", 0)]
+    assert sorted(seqs) == [0, 1, 2, 3, 4]
