@@ -63,6 +63,7 @@ from autopower.basestation.operating import OperatorControl
 from autopower.basestation.placing import Placement
 from autopower.basestation.prediction import Prediction
 from autopower.basestation.publishing import PlanPublisher
+from autopower.basestation.runs import SourceSight
 from autopower.basestation.takeover import Takeover
 from autopower.errors import AutoPowerError
 from autopower.model.scenario import Scenario
@@ -177,6 +178,10 @@ class Coordinator:
         self.present: set[str] = set()
         self.departed: set[str] = set()  # left or depleted: excluded until they come back
         self.statuses: dict[str, NodeStatus] = {}
+        # robots that came into sight (or left it) since their last status: what that status says
+        # may be another process's (`source_sight`)
+        self.unheard: set[str] = set()
+        self.sightings: dict[str, int] = {}  # robot -> how many times it came into sight
         # robots back after an absence: their report of what they host (a subgroup may have
         # reallocated without us) is the starting point, not our stale placement
         self._awaiting_actual: dict[str, float] = {}
@@ -210,6 +215,17 @@ class Coordinator:
     def alive_nodes(self) -> set[str]:
         return (self.present - self.departed) | {self.base}
 
+    def source_sight(self, robot: str) -> SourceSight:
+        """What this base station knows of ``robot`` as a chain's source now: which time it came into
+        sight (None: out of sight), its last status, and whether that status speaks for the process
+        it runs now (heard since it came into sight, and that process runs a plan: it takes its saved
+        state up at its first plan). What says whether it holds a chain's run (`ChainRuns.run_for`)."""
+        status = self.statuses.get(robot)
+        in_sight = robot in self.present and robot not in self.departed
+        return SourceSight(sighting=self.sightings.get(robot) if in_sight else None, status=status,
+                           current=in_sight and status is not None and robot not in self.unheard
+                           and status.plan_epoch >= 0)
+
     def awaiting_reports(self) -> list[str]:
         """The robots back after an absence that have not said yet what they run (sorted)."""
         return sorted(self._awaiting_actual)
@@ -232,6 +248,8 @@ class Coordinator:
         """The statuses a team taken over reported (batteries, links: what the policy starts from)."""
         for node, status in reports.items():
             self.statuses[node] = status
+            if node in self.present:
+                self.unheard.discard(node)
 
     def learn(self, status: NodeStatus) -> None:
         """A robot's status before this base station runs the mission (`Takeover.learn`)."""
@@ -254,6 +272,8 @@ class Coordinator:
                 return
             self.present.add(node)
             self.departed.discard(node)
+            self.unheard.add(node)
+            self.sightings[node] = self.sightings.get(node, 0) + 1
             self.takeover.came_into_sight(node)
             self.note(f"{node} joined")
             if self.mission is None:
@@ -266,6 +286,7 @@ class Coordinator:
             if node not in self.present:
                 return
             self.present.discard(node)
+            self.unheard.add(node)
             self.faults.record("node-left", node, detected_unix or self.wall())
             self.note(f"{node} left")
             self.placing.node_lost(node)
@@ -282,6 +303,8 @@ class Coordinator:
         if status.node not in self.robot_names:
             return
         self.statuses[status.node] = status
+        if status.node in self.present:
+            self.unheard.discard(status.node)
         self.placing.generations.follow(status)
         self.placing.learn_runs(status)
         if status.depleted:
@@ -305,6 +328,7 @@ class Coordinator:
             # a lossy link): its newer instance is adopted, ours released, and the plan says so at
             # once, or its producers would go on feeding ours the inputs it has not seen.
             self.deciding.replan(f"{status.node} runs stages it agreed on without the base station")
+        self.placing.source_heard(status)
         self.faults.check_links(status)
         self.deciding.check_drift(status)
 

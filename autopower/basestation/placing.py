@@ -116,6 +116,8 @@ class Placement:
         self.aborted = 0
         self.order_resends = 0  # migration orders sent again for want of an answer (`resend_orders`)
         self.adopted = 0  # stages taken as placed where a robot runs them (a takeover, a returning robot)
+        # source robots whose chains wait to be assigned until their process says whether it holds the run
+        self.waiting_for: set[str] = set()
 
     def set_target(self, target: dict[str, str]) -> None:
         """Where each stage should run (`reconcile` orders what closes the gap)."""
@@ -127,11 +129,12 @@ class Placement:
 
     def adopt_team(self, placement: dict[str, str], generation_of: dict[str, int],
                    waiting: dict[str, tuple[str, int]], runs: dict[str, int], unknown: set[str],
-                   stale: list[tuple[str, str]]) -> None:
+                   stale: list[tuple[str, str]],
+                   holders: dict[str, tuple[int | None, int | None]] | None = None) -> None:
         """A running team taken over: its stages run where they run (``generation_of``: the instance
         each is), those of ``waiting`` still wait for their state, its chains go on with their
-        ``runs`` (``unknown``: those whose run a robot has still to say), and ``stale``'s (node,
-        stage) copies are released."""
+        ``runs`` (``unknown``: those whose run a robot has still to say; ``holders``: the sighting of a
+        chain's source robot and the process that said its run), and ``stale``'s (node, stage) copies are released."""
         self.placement = placement
         for stage, (node, generation) in waiting.items():
             # its state is on its way or lost: its StageReady completes it, else the migration
@@ -139,7 +142,7 @@ class Placement:
             self.migrations[stage] = Migration(stage, generation, node, None, "transferring", self.team.wall())
         self.placed_generation = generation_of
         self.target = dict(placement)
-        self.runs.adopt(runs, unknown)
+        self.runs.adopt(runs, unknown, holders)
         self._update_running()
         for node, stage in stale:
             self.send(node, Release(stage=stage, generation=self.generations.next()))
@@ -150,7 +153,7 @@ class Placement:
         the stages waiting for them are assigned, and the plan says so."""
         if not self.runs.runs_unknown:
             return
-        learned = self.runs.learn(status, self.team.scenario.chain)
+        learned = self.runs.learn(status, self.team.scenario.chain, self.team.source_sight)
         if learned:
             self.team.note(f"learned from {status.node}: {', '.join(learned)}")
             self.reconcile()
@@ -256,23 +259,43 @@ class Placement:
             chain = self.team.chain_of[stage]
             if (have is None or have not in alive) and chain.name in self.runs.runs_unknown:
                 continue  # a fresh instance needs its chain's run: assigned once the source robot says it
-            gen = self.generations.next()
             if have is None or have not in alive:
                 self.placement.pop(stage, None)
                 busy = any(s.name in self.placement or s.name in self.migrations for s in chain.stages)
-                run, resume, restarted = self.runs.run_for(chain, busy)
+                run, resume, how = self.runs.run_for(chain, busy, self.team.source_sight(chain.source))
+                if how == "waiting":  # the run goes on only if the source's process holds it: assigned once it says
+                    self.waiting_for.add(chain.source)
+                    continue
                 # a new run is said: what the old one still holds upstream is obsolete (docs/known-limits.md)
-                if restarted:
-                    self.team.note(f"{chain.name} starts run {run} with {stage} on {want} (the chain had stopped)")
+                if how in ("new", "restarted"):
+                    why = ("its source robot's process does not hold the run's position" if how == "restarted"
+                           else "the operator or a failed component had stopped the chain" if chain.sourced
+                           else "a chain with no source starts over")
+                    self.team.note(f"{chain.name} starts run {run} with {stage} on {want} ({why})")
+                elif how == "resumed":  # its instances start from the oldest input their producer holds
+                    self.team.note(f"{chain.name} resumes run {run} with {stage} on {want} (the chain had stopped)")
+                gen = self.generations.next()
                 m = self.migrations[stage] = Migration(stage, gen, want, None, "assigning", self.team.wall())
                 self._order(m, want, Assign(stage=stage, generation=gen, chain=chain.name, run=run, resume_seq=resume))
             else:
+                gen = self.generations.next()
                 m = self.migrations[stage] = Migration(stage, gen, want, have, "preparing", self.team.wall())
                 self._order(m, want, Prepare(stage=stage, generation=gen, from_node=have))
         self._update_running()
 
     def _update_running(self) -> None:
-        self.runs.update(self.team.scenario.chains, self.target, self.placement)
+        self.runs.update(self.team.scenario.chains, self.target, self.placement, self.team.operating.disabled,
+                         self.team.source_sight)
+
+    def source_heard(self, status: NodeStatus) -> None:
+        """A status of a robot whose chains wait for their source to say whether it holds their run
+        (`ChainRuns.run_for`): they are assigned now, if it says enough, and the plan says so."""
+        if status.node in self.waiting_for and self.team.source_sight(status.node).current:
+            self.waiting_for.discard(status.node)
+            ordered = set(self.migrations)
+            self.reconcile()
+            if set(self.migrations) != ordered:  # (a chain no longer targeted waits for nothing)
+                self.team.plans.publish_plan()
 
     def on_inbox(self, payload: bytes) -> None:
         """An answer to an order, as it arrives on the base station's inbox (raises ProtocolError

@@ -142,11 +142,15 @@ class Takeover:
         # the operator's pins, disabled chains, links and radios, from the newest plan the robots run
         kept = team.operating.adopt(newest.plan_operator) if newest.plan_operator else []
         placement, stale, waiting = _placement_of(reports, set(team.chain_of))
-        runs, unknown = {}, set()
+        runs, unknown, holders = {}, set(), {}
         for chain in team.scenario.chains:
             chain_runs = [s.sources[chain.name].run for s in reports.values() if chain.name in s.sources]
             if chain_runs:
                 runs[chain.name] = max(chain_runs)  # its sequence goes on: a new instance starts where inputs are
+                said = reports.get(chain.source)
+                if said is not None and chain.name in said.sources and said.sources[chain.name].run == runs[chain.name]:
+                    # its process holds the run's position (`ChainRuns.run_for`)
+                    holders[chain.name] = (team.source_sight(chain.source).sighting, said.process)
             elif chain.source in team.robots and chain.source not in reports:
                 unknown.add(chain.name)  # its source robot has not spoken: `Placement.learn_runs`
             elif not chain.sourced:
@@ -155,7 +159,7 @@ class Takeover:
                 # (`Placement.learn_runs`), and a stage that died starts the next one (`ChainRuns.run_for`).
                 unknown.add(chain.name)
         generation_of = {stage: reports[node].generations.get(stage, 0) for stage, node in placement.items()}
-        team.placing.adopt_team(placement, generation_of, waiting, runs, unknown, stale)
+        team.placing.adopt_team(placement, generation_of, waiting, runs, unknown, stale, holders)
         team.deciding.replan_periodically_from(team.now() + team.config.replan_interval_s)
         self.adopted_team = {"up_unix": self.listening.up_unix, "adopted_unix": team.wall(),
                              "incarnation": self.incarnation, "from_robots": sorted(reports),

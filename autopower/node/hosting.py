@@ -220,13 +220,14 @@ class Hosting:
         an instance of the stage ran, or what the producer lost: a producer that was killed lost its
         custody, and the restarted one sends what it makes next with its floor there (the frames only
         its process had died with it, `Resuming._died_in_hand`). The base station stops a chain whose source
-        robot it lost, and the chain starts again with its stages started afresh; but it may not
+        robot it lost, and the chain runs again with its stages started afresh (in its run when the
+        robot's process holds its position, `basestation.runs`); but it may not
         see the robot go (a restart within the lease; a stale view of a relay: a keyframe of a
         status lost on a lossy link), and then the instance that waited for the dead input gets the
         restarted source's frames. Run past the gap, its component would take the next input as
         the one after the last it ran (the simulator's stand-ins refuse it, and the stage failed,
         its chain stopped until the operator enabled it). So it starts afresh at the floor, as the
-        restarted chain would have: what it waited for is gone either way.
+        resumed chain would have: what it waited for is gone either way.
 
         The inputs waiting below the floor (they reached it, one before them had not) are run past
         the gap by the old instance before it goes, as a release runs them (`on_release`); those at
@@ -461,10 +462,11 @@ class Hosting:
         stage's host once a plan places it). A chain the operator stopped, or whose component
         failed, drops them.
 
-        A producer only out of sight still holds the gap and what waits behind it, and sends them
-        to the stage's next instance in its run (whose outputs of them are marked resends: a sink
-        that has these drops them); a producer that was killed took the gap with it, and this is
-        the only run those inputs get.
+        A chain stopped by a fault resumes its run when its source robot's process holds the run's
+        position (`basestation.runs`): a producer only out of
+        sight still holds the gap and what waits behind it, and sends them to the next instance
+        (whose outputs of them are marked resends: a sink that has these drops them); a producer
+        that was killed took the gap with it, and this is the only run those inputs get.
         """
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:

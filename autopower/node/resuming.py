@@ -15,6 +15,7 @@ from __future__ import annotations
 import base64
 import copy
 import logging
+import secrets
 
 from autopower.errors import ProtocolError
 from autopower.node.meter import BatteryMeter
@@ -36,6 +37,14 @@ DIED_WITH_PROCESS_S = 2.0
 RESUME_ALONE_MAX_AGE_S = 300.0
 
 
+def new_process_id() -> int:
+    """A number telling one process of a node from its others (`NodeStatus.process`): a base station
+    that lost a robot tells by it whether the robot came back as the same process. Random, not the
+    start time: a robot without a real-time clock may start two processes at the same time of day.
+    Bit 62 set, so that every process's takes as many bytes on the wire."""
+    return 1 << 62 | secrets.randbits(62)
+
+
 class Resuming:
     """A restarted node's saved state: applied at the mission's first plan, and saved again."""
 
@@ -46,6 +55,8 @@ class Resuming:
         self.resume_from = saved
         self._listeners = listeners
         self.resumed = False
+        # chain -> the run whose source position was taken from the saved state (`NodeStatus.resumed`)
+        self.sources: dict[str, int] = {}
         self.down: tuple[float, float] | None = None  # see NodeStatus.down
 
     def resume(self, mission: MissionInfo, meter: BatteryMeter) -> BatteryMeter:
@@ -67,6 +78,7 @@ class Resuming:
             return fresh
         self.rt.feeds.resume(sources)
         self.resumed = True
+        self.sources = {name: src.run for name, src in sources.items()}
         self.rt.holds.take_back(mission_key(mission))
         self._died_with_process(sources, mission)
         self._died_in_hand(sources, saved.get("in_hand"))

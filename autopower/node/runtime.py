@@ -73,7 +73,7 @@ from autopower.node.plan_view import PlanView
 from autopower.node.ports import NodePorts, NodeStores, SinkListener, SinkListeners
 from autopower.node.production import Production
 from autopower.node.relaying import ArrivalRelay
-from autopower.node.resuming import Resuming, mission_key
+from autopower.node.resuming import Resuming, mission_key, new_process_id
 from autopower.node.sequencing import SinkLedger
 from autopower.node.sight import Sight
 from autopower.node.sinks import Sinks
@@ -109,11 +109,12 @@ class NodeRuntime:
                  make_component: Callable | None = None, make_source: Callable | None = None,
                  clock_factory: Callable[[MissionInfo], Clock] | None = None, stage_workers: bool = False,
                  wall: Callable[[], float] | None = None, perf: Callable[[], float] | None = None,
-                 ports: NodePorts | None = None, stores: NodeStores | None = None):
+                 ports: NodePorts | None = None, stores: NodeStores | None = None, process: int | None = None):
         """``wall`` is the node's wall clock (custody, gates, joins, the status's ``t_unix``, a
         frame's capture time) and ``perf`` the clock a component run is timed with (the status's
         ``compute_ms``); a simulator passes its own time for both. ``ports`` and ``stores`` are its
-        ways out to the owning process (`autopower.node.ports`)."""
+        ways out to the owning process (`autopower.node.ports`). ``process`` says which process of
+        the node this is in its statuses (`NodeStatus.process`; None: drawn at random, `new_process_id`)."""
         ports = ports or NodePorts()
         stores = stores or NodeStores()
         if node not in scenario.node_names():
@@ -125,6 +126,7 @@ class NodeRuntime:
             make_component = make_component or chains.make_component
             make_source = make_source or chains.make_source
         self.node = node
+        self.process = new_process_id() if process is None else process
         self.scenario = scenario
         self.bus = bus
         self.keys = keys

@@ -3,7 +3,7 @@
 Built from what each of the runtime's collaborators owns: the meter's energies and power, the stages
 hosted (`Hosting`), the sources (`Sources`), the sinks' ledgers (`Sinks`), the links in sight
 (`Sight`), custody's and the holds' counts, the acknowledgements wanted (`Acknowledging`), the plan
-and the model's power (`PlanView`), the time down (`Resuming`) and the CPU and control-plane bytes
+and the model's power (`PlanView`), the time down and the sources resumed (`Resuming`), the process and the CPU and control-plane bytes
 (`Metering`).
 """
 
@@ -52,4 +52,6 @@ def node_status(rt, window_s: float, queue_depth: int = 0, queue_wait_s: float =
         control_bytes=rt.control_plane.control_bytes(),
         runtime_cpu_s=rt.metering.runtime_cpu_s,
         component_cpu_s=rt.metering.component_cpu_s,
+        process=rt.process,
+        resumed=dict(rt.resuming.sources),
     )

@@ -23,14 +23,15 @@ import msgpack
 
 from autopower.errors import ProtocolError
 
-PROTOCOL_VERSION = 9  # 2: acknowledgements left the status for `Ack` messages; 3: fields by position;
+PROTOCOL_VERSION = 10  # 2: acknowledgements left the status for `Ack` messages; 3: fields by position;
 # 4: statuses as their change from a whole one (`StatusDelta`); 5: a moving stage's unacknowledged
 # outputs go with its state (`StateTransfer.outputs`); 6: a `PeerStatus` may name the nodes out of
 # its sender's sight instead of those in it (`PeerStatus.unseen`); 7: a robot's plans come on its
 # control key, as changes from the plan it holds (`basestation.delivery`), not on the plan key;
 # 8: a robot is sent its part of a plan (its own predicted power alone), and a plan's digest hashes
 # the plan without its predicted power, then that power (`protocol.plans.plan_digest`); 9: a base
-# station's view asks a robot whose whole status it missed for one (`PeerStatus.send_whole`)
+# station's view asks a robot whose whole status it missed for one (`PeerStatus.send_whole`); 10: a
+# status says which process of its node sent it and the sources it resumed (`NodeStatus.process`, `resumed`)
 MAGIC = b"AP"
 # The first bytes of every encoded message (a 4-element array, then the magic): a check cheap
 # enough for a transport thread, so that a flood of random bytes is dropped before it is queued.

@@ -470,6 +470,21 @@ class NodeStatus:
     # slowdown, `Metering.charge_runtime`) and its component code's
     runtime_cpu_s: float = 0.0
     component_cpu_s: float = 0.0
+    # which process of the node this is: a number drawn when it starts (`NodeRuntime.process`). A base
+    # station that lost a chain's source robot tells by it that the robot came back as the process it
+    # lost (cut off, frozen) and still holds the chain's position (`basestation.runs`); 0: not said
+    process: int = 0
+    # chain -> the run whose source position this process took from its crashed predecessor's saved
+    # state (`Resuming.resume`): its seqs in that run go on after the predecessor's. A restarted
+    # process that names a chain's run here does not source that run's seqs again from 0
+    resumed: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.process < 2**63:
+            raise ValueError(f"process {self.process} is outside [0, 2**63)")
+        for chain, run in self.resumed.items():
+            if run < 0 or chain not in self.sources:  # a source taken up is one the process reports
+                raise ValueError(f"resumed {chain!r} run {run}: not a run of a source this status reports")
 
 
 @message

@@ -14,8 +14,9 @@ was killed with it in hand (a result its stage's host held for a sink that had c
 A kill also takes the inputs a stage's gate elsewhere holds behind one it took (`stranded`): a stage
 runs its inputs in order, each once, so an input it waits for that died leaves those behind it
 runnable only past a gap, which a stand-in stage refuses as a skipped input (`teamsim.components`).
-When the chain stops (its source robot left), its stage's host releases the instance that waited
-behind the gap, so those inputs are never run.
+A chain whose source robot is killed runs again when the robot is back (in its run if the restarted
+process took its position up from its saved state, else in the next: `basestation.runs`): its stage's
+host released the instance that waited behind the gap (the chain stopped), so those inputs are never run.
 """
 
 from __future__ import annotations

@@ -75,10 +75,12 @@ class Shell:
         self.up = True
         self.bus = SimBus(self.node, w.network, w.trace, self._after_event)
         self.relayer = Relayer(node=self.node, bus=self.bus, keys=self.keys, count=self._count, access=w.access)
+        w.process_starts += 1  # its id: unique and as long on the wire as a drawn one (`new_process_id`)
         self.rt = NodeRuntime(node=self.node, scenario=w.scenario, bus=self.bus, keys=self.keys,
                               make_component=w.make_component, make_source=w.make_source,
                               clock_factory=w.clock_for, wall=w.scheduler.wall, perf=w.scheduler.wall,
-                              ports=NodePorts(send_to=self.relayer.send), stores=self.stores())
+                              ports=NodePorts(send_to=self.relayer.send), stores=self.stores(),
+                              process=1 << 62 | w.process_starts)
         self.rt.listen(SinkListener(
             output=self._output, held_dropped=self._dropped_by_budget,
             died_with_process=lambda c, r, s: w.ledger.let_go((c, r, s), "died-with-process"),

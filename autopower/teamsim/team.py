@@ -150,6 +150,7 @@ class World:
         self.shells: dict[str, Shell] = {}
         self.base_shells: list[BaseShell] = []  # every start of the base station, for its decisions
         self.base_starts = 0
+        self.process_starts = 0  # every process started, for its id (`NodeStatus.process`): the same each run
         self.failed_seen: set[tuple[str, str]] = set()
         self.idle_from: dict[str, float] = {}  # robot -> virtual time its metering began
 

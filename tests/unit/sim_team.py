@@ -85,29 +85,47 @@ class SimTeam:
         self.coordinator = Coordinator(scenario=scenario, bus=self.hub.bus("coordinator"), keys=self.keys,
                                        config=config or CoordinatorConfig(speed=speed), policy=policy,
                                        wall_fn=self.clock.wall, on_decision_answer=on_decision_answer)
-        kwargs = dict(make_component=FakeComponent, make_source=FakeSource) if fake else {}
+        self._kwargs = dict(make_component=FakeComponent, make_source=FakeSource) if fake else {}
+        self._node_kwargs = node_kwargs or {}
+        self._relay_on_arrival = relay_on_arrival
+        self._starts: dict[str, int] = {}
         self.nodes: dict[str, NodeRuntime] = {}
         self.subscriptions: dict[str, list] = {}
         for node in scenario.node_names():
-            bus = self.hub.bus(node)
-            ports = NodePorts(
-                send_to=lambda dest, key, payload, node=node, bus=bus, reliable=True: self._send(node, dest, key, payload, bus),
-                # as an agent does: a packet only crossing this node is forwarded on arrival (not
-                # across a silent cut: that one goes to `on_data`, whose send is lost in `_send`)
-                in_sight=lambda dest, node=node: relay_on_arrival and (node, dest) not in self.cut_links)
-            rt = NodeRuntime(node=node, scenario=scenario, bus=bus, keys=self.keys,
-                             clock_factory=lambda mission: self.clock,
-                             wall=self.clock.wall,  # custody ages frames on the test's clock
-                             ports=ports, stores=(stores or {}).get(node),
-                             **{**kwargs, **(node_kwargs or {}).get(node, {})})
-            self.nodes[node] = rt
-            self.subscriptions[node] = [
-                bus.subscribe(k, lambda key, payload, rt=rt: rt.on_message(key, payload))
-                for k in ((self.keys.node_control(node), self.keys.plan) if node == scenario.basestation
-                          else (self.keys.node_control(node),))]  # a robot's plans come on its control key
-            self.subscriptions[node].append(bus.subscribe(
-                self.keys.node_data(node), lambda key, payload, rt=rt: rt.relay_now(payload) or rt.on_message(key, payload)))
+            self._start(node, (stores or {}).get(node))
         self.coordinator.bus.subscribe(self.keys.inbox, self._inbox)
+
+    def _start(self, node: str, stores: NodeStores | None) -> NodeRuntime:
+        """A process of ``node``: its runtime, on a bus of its own, hearing its keys."""
+        starts = self._starts[node] = self._starts.get(node, 0) + 1
+        bus = self.hub.bus(node if starts == 1 else f"{node}#{starts}")
+        ports = NodePorts(
+            send_to=lambda dest, key, payload, node=node, bus=bus, reliable=True: self._send(node, dest, key, payload, bus),
+            # as an agent does: a packet only crossing this node is forwarded on arrival (not
+            # across a silent cut: that one goes to `on_data`, whose send is lost in `_send`)
+            in_sight=lambda dest, node=node: self._relay_on_arrival and (node, dest) not in self.cut_links)
+        rt = NodeRuntime(node=node, scenario=self.scenario, bus=bus, keys=self.keys,
+                         clock_factory=lambda mission: self.clock,
+                         wall=self.clock.wall,  # custody ages frames on the test's clock
+                         ports=ports, stores=stores,
+                         process=1 << 62 | sum(self._starts.values()),  # as every run of the test has it
+                         **{**self._kwargs, **self._node_kwargs.get(node, {})})
+        self.nodes[node] = rt
+        self.subscriptions[node] = [
+            bus.subscribe(k, lambda key, payload, rt=rt: rt.on_message(key, payload))
+            for k in ((self.keys.node_control(node), self.keys.plan) if node == self.scenario.basestation
+                      else (self.keys.node_control(node),))]  # a robot's plans come on its control key
+        self.subscriptions[node].append(bus.subscribe(
+            self.keys.node_data(node), lambda key, payload, rt=rt: rt.relay_now(payload) or rt.on_message(key, payload)))
+        return rt
+
+    def restart(self, robot: str, saved: dict | None = None) -> NodeRuntime:
+        """``robot`` killed (`leave`: what only its process held is gone) and started again as a new
+        process, with its predecessor's ``saved`` state (`NodeRuntime.resume_state`; None: none,
+        as a process killed before its first snapshot). It is back once it `join`s."""
+        if robot in self.subscriptions:
+            self.leave(robot)
+        return self._start(robot, NodeStores(resume_from=saved))
 
     # ---- silent cuts: what one node sends another vanishes, nobody is told ----------------------------
     cut_links: frozenset = frozenset()  # (sender, receiver) pairs

@@ -218,7 +218,8 @@ def test_disable_and_enable_start_a_new_run():
     assert team.coordinator.placing.runs.running["Blob-2"] == 1
     # said, once: what the old run still held upstream is obsolete from here (the first runs are not)
     said = [e for e in team.coordinator.events if " starts run " in e]
-    assert len(said) == 1 and said[0].endswith("Blob-2 starts run 1 with Blob-2 on laptop (the chain had stopped)"), said
+    assert len(said) == 1 and said[0].endswith("Blob-2 starts run 1 with Blob-2 on laptop (the operator or a failed "
+                                               "component had stopped the chain)"), said
     runner = team.nodes["r2"].sources["Blob-2"]
     assert runner.run == 1 and runner.produced_total > produced_before
     # missed periods count over every run, like produced_total (the summaries divide one by the other)
@@ -227,6 +228,107 @@ def test_disable_and_enable_start_a_new_run():
     assert ledger.run == 1 and ledger.contiguous == runner.seq and ledger.duplicates_total == 0
     runs = sorted({run for run, _, _ in outputs["Blob-2"]})
     assert runs == [0, 1] and sorted(seq for run, seq, _ in outputs["Blob-2"] if run == 1) == list(range(runner.seq))
+
+
+def test_a_chain_stopped_while_its_source_was_out_of_reach_goes_on_in_its_run():
+    """r2 (Blob-2's source) out of the base station's sight: the chain stops, its stage on the laptop
+    is released, and the frames r2 sent into a silent cut wait in its custody. Back in sight, the
+    chain resumes its run (not a new one), the new instance starts from the oldest frame r2 holds,
+    and every output of the run reaches the sink once: none is abandoned."""
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Blob-2": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    team.run_exchanging_statuses(5.0)
+    team.report_status()  # the base station knows r2's process (`NodeStatus.process`)
+    team.cut_silently("r2", "laptop", one_way=True)  # frames and statuses from r2 vanish
+    team.run_exchanging_statuses(6.0)
+    for rt in team.nodes.values():  # r2's session expires: everyone takes it for gone
+        if rt.node != "r2":
+            rt.on_liveliness("r2", False)
+    team.coordinator.on_liveliness("r2", False)
+    team.run_exchanging_statuses(8.0)
+    assert "Blob-2" not in team.coordinator.placing.runs.running
+    waiting = {f.seq for f in team.nodes["r2"].custody.frames() if f.chain == "Blob-2" and f.target == 0}
+    assert waiting  # inputs of run 0 the chain had not run when it stopped
+    team.heal_silently("r2", "laptop")
+    team.join(["r2"])
+    assert "Blob-2" not in team.coordinator.placing.migrations  # not before r2's process says what it holds
+    team.report_status()  # the same process: it holds run 0's position
+    team.run_exchanging_statuses(15.0)
+    assert team.coordinator.placing.runs.running["Blob-2"] == 0
+    assert not [e for e in team.coordinator.events if " starts run " in e]
+    assert [e for e in team.coordinator.events if "Blob-2 resumes run 0" in e]
+    runner = team.nodes["r2"].sources["Blob-2"]
+    assert runner.run == 0
+    seqs = sorted(seq for run, seq, _ in outputs["Blob-2"] if run == 0)
+    assert seqs == list(range(runner.seq))  # the waiting inputs were run, each output once
+    assert team.nodes["laptop"].sinks["Blob-2"].duplicates_total == 0
+
+
+def _killed_source_comes_back(saved: bool):
+    """Blob-2 (source r2, its stage pinned on the laptop, the laptop its sink) runs; r2 is killed and
+    restarted, with its predecessor's saved state or without (a process killed before its first
+    snapshot), and joins again. Returns the team, the outputs, the new process and what the laptop's
+    sink had of run 0 at the kill."""
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Blob-2": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    team.run_exchanging_statuses(5.0)
+    team.report_status()  # the base station knows r2's process
+    old = team.nodes["r2"]
+    assert team.coordinator.placing.runs.running["Blob-2"] == 0 and old.sources["Blob-2"].seq > 0
+    state = old.resume_state() if saved else None
+    delivered = {seq for run, seq, _ in outputs["Blob-2"] if run == 0}
+    rt = team.restart("r2", state)  # the kill: the chain stops, its stage on the laptop is released
+    team.run_exchanging_statuses(7.0)
+    assert "Blob-2" not in team.coordinator.placing.runs.running
+    team.join(["r2"])
+    # r2 says nothing before its first plan (it takes its saved state up then): the base station
+    # replans without its report, and Blob-2 waits for r2's process to say what it holds
+    team.run_exchanging_statuses(9.0)
+    assert rt.plan_view.plan is not None and rt.resuming.resumed == saved
+    assert "Blob-2" in team.coordinator.placing.target and "Blob-2" not in team.coordinator.placing.migrations
+    assert "Blob-2" not in team.coordinator.placing.runs.running
+    team.report_status()  # it says
+    team.run_exchanging_statuses(15.0)
+    return team, outputs, rt, delivered
+
+
+def test_a_source_robot_restarted_without_its_position_starts_a_new_run():
+    """The case tests/e2e/test_supervision.py caught: r2 killed before its first resume snapshot
+    restarts without its sources' positions and sources Blob-2 from seq 0. Its status says it
+    resumed nothing and comes from another process, so the chain starts run 1: resumed in run 0,
+    those seqs named inputs the sink had already delivered (duplicates)."""
+    team, outputs, rt, _ = _killed_source_comes_back(saved=False)
+    status = rt.status(1.0)
+    assert status.resumed == {} and status.process != 0
+    assert team.coordinator.placing.runs.running["Blob-2"] == 1
+    said = [e for e in team.coordinator.events if "Blob-2 starts run 1" in e]
+    assert said and said[0].endswith("(its source robot's process does not hold the run's position)"), said
+    assert not [e for e in team.coordinator.events if "Blob-2 resumes" in e]
+    runner = rt.sources["Blob-2"]
+    assert runner.run == 1 and runner.seq > 0
+    assert sorted(seq for run, seq, _ in outputs["Blob-2"] if run == 1) == list(range(runner.seq))
+    sink = team.nodes["laptop"].sinks["Blob-2"]
+    assert sink.run == 1 and sink.duplicates_total == 0
+
+
+def test_a_source_robot_restarted_with_its_position_goes_on_in_its_run():
+    """r2 killed and restarted from its saved state: its status says it resumed Blob-2's run 0, so
+    the chain goes on in run 0, from the seq after the last the killed process made: nothing the
+    killed process had delivered comes again, and nothing of the run is abandoned."""
+    team, outputs, rt, delivered = _killed_source_comes_back(saved=True)
+    assert rt.status(1.0).resumed == {"Blob-2": 0, "Loc-2": 0}
+    assert team.coordinator.placing.runs.running["Blob-2"] == 0
+    assert [e for e in team.coordinator.events if "Blob-2 resumes run 0" in e]
+    assert not [e for e in team.coordinator.events if " starts run " in e]
+    runner = rt.sources["Blob-2"]
+    assert runner.run == 0 and runner.seq > max(delivered) + 1
+    seqs = sorted(seq for run, seq, _ in outputs["Blob-2"] if run == 0)
+    assert seqs == list(range(runner.seq)), set(range(runner.seq)) - set(seqs)  # each once, none abandoned
+    assert team.nodes["laptop"].sinks["Blob-2"].duplicates_total == 0
 
 
 def test_a_sink_hands_an_older_runs_output_on_once():

@@ -86,7 +86,7 @@ SAMPLES = [
                                          latency_ms_p50=1.0, latency_ms_max=2.0, received_total=2,
                                          duplicates_total=0, digest=12345)},
                links={"laptop": True}, runs={}, compute_ms={}, queue_depth=0, errors={}, counters={},
-               depleted=False, acks_wanted=("Blob-1", "Loc-1")),
+               depleted=False, acks_wanted=("Blob-1", "Loc-1"), process=1 << 62 | 7, resumed={"Loc-1": 0}),
     PeerStatus.of(STATUS),
     StatusDelta(node="r1", t_unix=1.5, key_t=1.0, changes={1: 3.5, 5: 63989.0, 7: [{0: 10.5, "cpu_busy": 0.1}, []]}),
     ACK := Ack(node="laptop", t_unix=1.5, queue_wait_s=0.25,
@@ -187,6 +187,15 @@ def test_fields_go_on_the_wire_by_position_without_their_names():
     (_raw("frame", {**_fields(FRAME), "payload_len": 99}), "exceeds"),
     (_raw("state", {**_fields(SAMPLES[2]), "pending": [["x"]]}), "expected .* fields"),
     (_raw("plan", {**_fields(SAMPLES[9]), "links": [["r1", "laptop"]]}), "expected 3 fields"),
+    # which process sent a status, and the source positions it resumed: what a base station's
+    # decision to go on in a chain's run rests on (`basestation.runs`)
+    (_raw("status", {**_fields(STATUS), "process": -1}), "process"),
+    (_raw("status", {**_fields(STATUS), "process": 2**63}), "process"),
+    (_raw("status", {**_fields(STATUS), "process": 1.5}), "expected int"),
+    (_raw("status", {**_fields(STATUS), "resumed": {"Blob-2": 0}}), "not a run of a source"),
+    (_raw("status", {**_fields(STATUS), "resumed": {"Loc-1": -1}}), "not a run of a source"),
+    (_raw("status", {**_fields(STATUS), "resumed": {"Loc-1": "0"}}), "expected int"),
+    (_raw("status", {**_fields(STATUS), "resumed": [["Loc-1", 0]]}), "expected a map"),
     *[(_raw("ack", {**_fields(ACK), "consumed": {"Blob-2#1": [0, 1, 4, 20, missing]}}), match)
       for missing, match in (([[6, 5]], "not sorted"), ([[2, 5]], "within"), ([[8, 9], [4, 5]], "not sorted"),
                              ([[4, 5], [6, 7]], "disjoint"), ([[4, 21]], "within"),

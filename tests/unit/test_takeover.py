@@ -65,9 +65,11 @@ def test_a_new_base_station_adopts_the_running_team_before_deciding(sc):
     assert new.placing.generations.last > max(generations)
     assert new.takeover.adopted_team["from_robots"] == list(ROBOTS) and new.takeover.adopted_team["stages"] == 2
     assert new.takeover.adopted_team["previous"] == {"incarnation": old.takeover.incarnation, "epoch": old.plans.epoch, "leader": old.takeover.leader}
-    # the chains that run go on with their run; those whose stage ran only on the old base station
-    # (nobody reports it: here it is cut off, in a real crash it is gone) restart as a new run
-    assert new.placing.runs.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 1, "Loc-3": 1, "Blob-2": 1}
+    # every chain goes on with its run: those whose stage ran only on the old base station (nobody
+    # reports it: here it is cut off, in a real crash it is gone) on a fresh instance, from the oldest
+    # input their source still holds (a new run would leave those inputs unrun): each source robot's
+    # process reported its run and stayed in sight, so it holds the run's position
+    assert new.placing.runs.runs == {"Loc-2": 0, "Blob-3": 0, "Loc-1": 0, "Loc-3": 0, "Blob-2": 0}
     for robot in ROBOTS:  # the policy starts from the batteries as measured, not the scenario's
         assert new.deciding.remaining_energies()[robot] == pytest.approx(team.nodes[robot].meter.battery_j)
         assert new.deciding.remaining_energies()[robot] < sc.robot(robot).energy_j
@@ -329,7 +331,8 @@ def test_a_takeover_that_did_not_hear_a_chains_source_robot_waits_for_its_run(sc
     team.run_until(team.clock.t + 20.0)
     team.report_status()
     run = new.placing.runs.running["Loc-3"]
-    assert run > r3_run  # its host was released, so the chain starts anew: a run above the one r3 ran
+    # its host was released: the chain goes on in the run r3's process said it holds, on a fresh instance
+    assert run == r3_run
     assert team.nodes["r3"].status(10.0).sources["Loc-3"].run == run  # r3's source follows the plan
     assert team.nodes["r3"].sinks["Loc-3"].run == run and team.nodes["r3"].sinks["Loc-3"].received > 0
     assert not any(rt.errors.get("internal-error") for rt in team.nodes.values())
