@@ -302,6 +302,19 @@ class Coordinator:
     def on_status(self, status: NodeStatus) -> None:
         if status.node not in self.robot_names:
             return
+        held = self.statuses.get(status.node)
+        if held is not None and held.process != status.process:
+            if status.t_unix < held.t_unix:
+                return  # a late status of a process that ended (relayed, queued): it speaks for nobody now
+            if self.mission is not None and status.node in self.present and status.node not in self.unheard:
+                # It restarted within the lease (its liveliness never went). Whatever its old process
+                # held (custody; its sources' positions, unless this status says it resumed them) is
+                # gone as if it had left: it leaves and comes back, so its chains stop and run again
+                # by `ChainRuns.run_for`'s rule. Left running, a source it did not resume would name
+                # its run's seqs from 0 again, and its consumers would drop the new inputs as copies.
+                self.note(f"{status.node} runs another process (it restarted unseen)")
+                self.on_liveliness(status.node, False)
+                self.on_liveliness(status.node, True)
         self.statuses[status.node] = status
         if status.node in self.present:
             self.unheard.discard(status.node)

@@ -331,6 +331,45 @@ def test_a_source_robot_restarted_with_its_position_goes_on_in_its_run():
     assert team.nodes["laptop"].sinks["Blob-2"].duplicates_total == 0
 
 
+def test_a_source_robot_restarted_unseen_starts_a_new_run_and_loses_no_new_input():
+    """r2 restarts within the lease (its liveliness never goes: a supervisor that restarts at once),
+    killed before its first snapshot. The base station learns it from r2's status, which names
+    another process and no resumed run: r2 leaves and comes back, and Blob-2 starts run 1. Left in
+    run 0, the new process would name its captures 0, 1, ... again and the laptop's gate would drop
+    them as copies of what the old process sent: new data lost, and counted nowhere as lost. A late
+    status of the old process (relayed, queued) then changes nothing."""
+    from autopower.node.ports import NodeStores
+
+    sc = load_scenario("paper-fig7")
+    team = SimTeam(sc, config=CoordinatorConfig(speed=1.0, media=FC, auto_replan=False, pins={"Blob-2": "laptop"}))
+    outputs = collect(team)
+    team.join()
+    team.run_exchanging_statuses(5.0)
+    team.report_status()
+    old_status = team.nodes["r2"].status(10.0)
+    for handle in team.subscriptions.pop("r2"):  # the kill; nobody sees r2's liveliness go
+        handle.close()
+    rt = team._start("r2", NodeStores(resume_from=None))
+    for node in team.present - {"r2"}:
+        rt.on_liveliness(node, True)
+    team.coordinator.on_status(rt.status(0.0))  # its first status (an agent's go out before it has a plan):
+    team.pump()                                   # another process, no plan, nothing resumed
+    for t in range(6, 15):
+        team.run_exchanging_statuses(float(t))
+        team.report_status()
+    team.coordinator.on_status(old_status)  # late: older than what the base station holds
+    team.run_exchanging_statuses(16.0)
+    assert team.coordinator.placing.runs.running["Blob-2"] == 1
+    assert team.coordinator.statuses["r2"].process == rt.status(1.0).process
+    runner = rt.sources["Blob-2"]
+    assert runner.run == 1 and runner.seq > 0
+    assert sorted(seq for run, seq, _ in outputs["Blob-2"] if run == 1) == list(range(runner.seq))
+    stage = team.nodes["laptop"].hosted["Blob-2"]
+    assert stage.run == 1 and stage.gate.duplicates == 0
+    assert team.nodes["laptop"].sinks["Blob-2"].duplicates_total == 0
+    assert any("r2 runs another process" in e for e in team.coordinator.events)
+
+
 def test_a_sink_hands_an_older_runs_output_on_once():
     """The node's side of the rule above: the first copy of a run-0 output after run 1 began
     reaches `on_output` (stale, no error), a second one is a duplicate-output error, not handed on."""
