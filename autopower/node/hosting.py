@@ -467,6 +467,9 @@ class Hosting:
         sight still holds the gap and what waits behind it, and sends them to the next instance
         (whose outputs of them are marked resends: a sink that has these drops them); a producer
         that was killed took the gap with it, and this is the only run those inputs get.
+
+        A starting instance (prepared for a state that did not come) keeps the inputs it buffered as
+        orphans too: a subgroup round that restarts the stage on another member sends them there.
         """
         hosted = self.hosted.get(msg.stage)
         if hosted is not None and hosted.generation <= msg.generation:
@@ -487,6 +490,8 @@ class Hosting:
                     self.orphans.setdefault(msg.stage, []).extend(waiting)
                     log.info("%s: %s released with %d input(s) waiting; kept for its next instance", self.rt.node,
                              msg.stage, len(waiting))
+            if hosted.buffer:  # a starting instance's inputs, held for its state: its successor's
+                self.orphans.setdefault(msg.stage, []).extend(hosted.buffer)
             self.rt.components.retire(hosted.component)
             self.hosted.pop(msg.stage, None)  # a failing run may have dropped it already
         chain = self.rt.stage_index.get(msg.stage, (None, 0))[0]

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from autopower.model.scenario import Scenario
 from autopower.node.runtime import NodeRuntime
 from autopower.node.stages import Lifecycle
-from autopower.protocol import Assign, Keys, MigrateOut, PeerStatus, SubgroupMove, SubgroupPropose, encode
+from autopower.protocol import Assign, Keys, MigrateOut, PeerStatus, Release, SubgroupMove, SubgroupPropose, encode
 from autopower.runtime.bus import Bus
 from autopower.runtime.signatures import Signing
 from autopower.runtime.subgroup import SubgroupAgreement
@@ -92,13 +92,29 @@ class SubgroupRounds:
 
     def running_on(self, node: str) -> set[str]:
         """The stages ``node`` runs or is starting: ours as hosted here, a peer's from its last status."""
-        rt = self.rt
+        return {stage for stage, state in self._hosted_states(node).items()
+                if state in (Lifecycle.RUNNING.value, Lifecycle.STARTING.value)}
+
+    def _hosted_states(self, node: str) -> dict[str, str]:
+        """stage -> lifecycle value of what ``node`` hosts: ours as hosted here, a peer's from its last status."""
         if node == self.node:
-            hosted = {s: h.lifecycle.value for s, h in rt.hosted.items()}
+            hosted = {s: h.lifecycle.value for s, h in self.rt.hosted.items()}
         else:
             hosted = getattr(self.statuses.get(node), "hosted", None) or {}
-        return {stage for stage, state in hosted.items()
-                if state in (Lifecycle.RUNNING.value, Lifecycle.STARTING.value) and stage in rt.stage_index}
+        return {stage: state for stage, state in hosted.items() if stage in self.rt.stage_index}
+
+    def _runs_in(self, stage: str, state: str, members) -> bool:
+        """Whether an instance in ``state`` runs ``stage`` for the subgroup ``members``.
+
+        A starting instance waits for the state of the stage's host in our plan (a plan names a
+        stage's old host until its new one reports ready): a host outside the subgroup cannot send it
+        while the subgroup is cut off, and the base station that ordered the migration may have given
+        it up meanwhile (it tells a host out of its reach nothing). Such an instance runs nothing, and
+        the round restarts the stage as it restarts one stranded outside; counted as running, the
+        round left the stage to it and the model priced work that was never done."""
+        if state == Lifecycle.RUNNING.value:
+            return True
+        return state == Lifecycle.STARTING.value and self.rt.plan.placement.get(stage) in members
 
     # ---- a turn ----------------------------------------------------------------------------------
     def tick(self) -> None:
@@ -190,12 +206,13 @@ class SubgroupRounds:
         it: its plan still names the hosts before it (the base station, say). Starting from that
         would restart, elsewhere, a stage that round already placed on a member, and it would run
         twice. So a stage whose planned host is outside the subgroup, but that a member runs (our
-        own stages, the others' last statuses), starts from that member.
+        own stages, the others' last statuses), starts from that member; one a member only starts
+        (`_runs_in`) does not.
         """
         placement = dict(self.rt.plan.placement)
         for member in members:
-            for stage in sorted(self.running_on(member)):
-                if placement.get(stage) not in members:
+            for stage, state in sorted(self._hosted_states(member).items()):
+                if placement.get(stage) not in members and self._runs_in(stage, state, members):
                     placement[stage] = member
         for stage, host in list(placement.items()):
             if host in members and self._lost_on(stage, host):
@@ -229,9 +246,13 @@ class SubgroupRounds:
         margin = (self.settings.timeout_s + self.settings.status_period_s) * rt.clock.speed
         return status.down[0] >= known[1] - margin
 
-    def _runs_here(self, stage: str) -> bool:
+    def _starts_here_in_vain(self, stage: str, proposal: SubgroupPropose) -> bool:
         hosted = self.rt.hosted.get(stage)
-        return hosted is not None and hosted.lifecycle in (Lifecycle.RUNNING, Lifecycle.STARTING)
+        return hosted is not None and hosted.lifecycle is Lifecycle.STARTING and not self._runs_here(stage, proposal)
+
+    def _runs_here(self, stage: str, proposal: SubgroupPropose) -> bool:
+        hosted = self.rt.hosted.get(stage)
+        return hosted is not None and self._runs_in(stage, hosted.lifecycle.value, proposal.members)
 
     # ---- the agreement's answers -------------------------------------------------------------------
     def _objection(self, proposal: SubgroupPropose) -> str | None:
@@ -242,7 +263,7 @@ class SubgroupRounds:
             # on it; the leader tries again later
             return f"{self.node} has no plan yet (restarted {self.wall() - self.started_unix:.1f} s ago)"
         for move in proposal.moves:
-            if move.to_node != self.node and move.from_node != self.node and self._runs_here(move.stage):
+            if move.to_node != self.node and move.from_node != self.node and self._runs_here(move.stage, proposal):
                 return f"{move.stage} runs on {self.node}, the round starts it on {move.to_node}"
         return None
 
@@ -257,12 +278,15 @@ class SubgroupRounds:
             chain, _ = rt.stage_index[move.stage]
             if move.from_node == me and move.to_node != me:
                 rt.hosting.on_migrate_out(MigrateOut(stage=move.stage, generation=proposal.generation, to_node=move.to_node))
-            elif move.from_node is None and move.to_node == me and self._runs_here(move.stage):
+            elif move.from_node is None and move.to_node == me and self._runs_here(move.stage, proposal):
                 rt.tally("subgroup-restart-kept")  # it runs here already: a restart would redo its inputs
-            elif move.from_node is None and move.to_node == me:
+            elif move.from_node is None and move.to_node == me:  # (an instance starting here in vain is replaced)
                 run = rt.plan.running.get(chain.name, 0)
                 rt.hosting.on_assign(Assign(stage=move.stage, generation=proposal.generation, chain=chain.name, run=run,
                                     resume_seq=None))
+            elif move.to_node != me and self._starts_here_in_vain(move.stage, proposal):
+                # restarted on another member: what it buffered goes there (`Hosting.on_release`)
+                rt.hosting.on_release(Release(stage=move.stage, generation=proposal.generation))
         rt.plan_view.override_placement(dict(proposal.placement), {self.scenario.basestation})
         # the moved stages are placed now: a member restarted before this round started what the
         # round put on it (`_lost_on`)

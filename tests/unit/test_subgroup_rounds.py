@@ -463,3 +463,49 @@ def test_a_restarted_member_without_a_plan_refuses_a_round(team):
     assert agents["r1"].rounds.agreement.aborted == 1 and agents["r1"].rounds.agreement.committed == 0
     assert agents["r3"].rounds.agreement.committed == 0 and not agents["r3"].runtime.errors.get("internal-error")
     assert "Loc-3" not in running(agents)
+
+
+def test_a_stage_starting_for_a_state_from_beyond_the_subgroup_is_restarted_by_the_round(team):
+    """Random faults, seed 15 (issue 30): the base station began moving Loc-1 and Loc-3 from the
+    laptop to r1, lost r1, and gave the moves up without being able to tell r1. r1 kept both
+    prepared (starting, their inputs buffered), the subgroup round counted them as running on r1
+    and restarted neither: they ran nowhere for 280 mission seconds while r1's model priced them
+    (model 2.14 W, metered 1.35 W: -17 % outside reconfigurations). A starting instance waits for
+    its plan host's state; from beyond the subgroup it runs nothing, and the round restarts it with
+    what it buffered."""
+    from autopower.protocol import Prepare
+
+    hub, agents, _ = team
+    r1 = agents["r1"]
+    see_all(agents)
+    r1.runtime.hosting.on_prepare(Prepare(stage="Loc-1", generation=50, from_node="laptop"))
+    assert r1.runtime.hosted["Loc-1"].lifecycle is Lifecycle.STARTING
+    for agent in agents.values():
+        agent.publish_status()
+    drain(hub, agents)
+    r1._subgroup_tick()  # the base station is out of reach from now
+    r1._subgroup_tick()  # the round for the stranded stages of the laptop
+    drain(hub, agents)
+    assert len(running(agents).get("Loc-1", [])) == 1, running(agents)
+    host = running(agents)["Loc-1"][0]
+    assert all(a.runtime.plan.placement["Loc-1"] == host for a in agents.values())
+    assert [s for s, h in r1.runtime.hosted.items() if h.lifecycle is Lifecycle.STARTING] == []
+    assert r1.runtime.plan_view.model_w is not None
+
+
+def test_a_starting_instance_the_round_puts_elsewhere_hands_its_inputs_on(team):
+    """Its buffered inputs follow the stage to the member the round restarts it on."""
+    from autopower.protocol import Prepare
+
+    hub, agents, _ = team
+    see_all(agents)
+    r3 = agents["r3"].runtime
+    r3.hosting.on_prepare(Prepare(stage="Loc-2", generation=50, from_node="laptop"))
+    r3.frames.deliver_frame(encode_frame(7))
+    assert [f.seq for f in r3.hosted["Loc-2"].buffer] == [7]
+    on_r2 = (SubgroupMove(stage="Loc-2", from_node=None, to_node="r2"),)
+    assert agents["r1"].rounds.agreement.propose(ROBOTS, {"Loc-2": "r2"}, on_r2, 100, "on r2")
+    drain(hub, agents)
+    assert "Loc-2" not in r3.hosted and "Loc-2" not in r3.hosting.orphans
+    assert running(agents)["Loc-2"] == ["r2"]
+    assert 7 in agents["r2"].runtime.hosted["Loc-2"].gate.pending  # (its producer holds 5 and 6)
