@@ -43,7 +43,7 @@ class SubgroupRounds:
                  statuses: Mapping[str, PeerStatus], settings: RoundSettings,
                  publish_status: Callable[[], object], save_resume: Callable[[], None],
                  started_unix: float, signing: Signing | None = None,
-                 reached: Callable[[], set[str]] | None = None):
+                 reached: Callable[[], set[str]] | None = None, relay: Callable[..., None] | None = None):
         self.rt = runtime
         self.node = runtime.node
         self.scenario = scenario
@@ -60,7 +60,7 @@ class SubgroupRounds:
         self.started_unix = started_unix  # when this process started (what an objection says)
         self.agreement = SubgroupAgreement(node=self.node, bus=bus, keys=keys, now=wall, on_commit=self._commit,
                                            on_abort=self._aborted, objection=self._objection,
-                                           timeout_s=settings.timeout_s, signing=signing)
+                                           timeout_s=settings.timeout_s, signing=signing, relay=relay)
         self.base_lost_at: float | None = None
         self._done: tuple | None = None  # (members, plan order, where stages run) handled
         self._retry_at = 0.0  # after an aborted round: not before fresh statuses are in
@@ -276,7 +276,12 @@ class SubgroupRounds:
         rt, me = self.rt, self.node
         for move in proposal.moves:
             chain, _ = rt.stage_index[move.stage]
-            if move.from_node == me and move.to_node != me:
+            if move.from_node == me and move.to_node != me and getattr(
+                    rt.hosted.get(move.stage), "lifecycle", None) is not Lifecycle.RUNNING:
+                # stopped here since we reported it (a newer instance elsewhere took over, `yield_to_newer`):
+                # nothing to hand over; the next round starts from where it runs
+                rt.tally("subgroup-move-gone")
+            elif move.from_node == me and move.to_node != me:
                 rt.hosting.on_migrate_out(MigrateOut(stage=move.stage, generation=proposal.generation, to_node=move.to_node))
             elif move.from_node is None and move.to_node == me and self._runs_here(move.stage, proposal):
                 rt.tally("subgroup-restart-kept")  # it runs here already: a restart would redo its inputs

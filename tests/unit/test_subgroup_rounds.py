@@ -17,7 +17,7 @@ import pytest
 from autopower.agent.process import Agent, AgentConfig
 from autopower.model.loading import load_scenario
 from autopower.node.stages import Lifecycle
-from autopower.protocol import LinkInfo, MissionInfo, PlanUpdate, Release, SubgroupMove, encode
+from autopower.protocol import LinkInfo, MissionInfo, PlanUpdate, Release, SubgroupMove, SubgroupPropose, encode
 from autopower.runtime.bus import InMemoryHub
 from autopower.runtime.clock import ManualClock
 from tests.unit.sim_team import FakeComponent, FakeSource
@@ -509,3 +509,19 @@ def test_a_starting_instance_the_round_puts_elsewhere_hands_its_inputs_on(team):
     assert "Loc-2" not in r3.hosted and "Loc-2" not in r3.hosting.orphans
     assert running(agents)["Loc-2"] == ["r2"]
     assert 7 in agents["r2"].runtime.hosted["Loc-2"].gate.pending  # (its producer holds 5 and 6)
+
+
+def test_a_stage_that_stopped_here_after_the_proposal_is_not_handed_over(team):
+    """Live random faults, seed 6: r1 proposed moving Loc-2 from itself to r2; before the commit its
+    Loc-2 yielded to a newer instance on r2 (`yield_to_newer`), and the commit's hand-over logged an
+    ERROR (migrate-not-running: Loc-2 is absent). Nothing is left to hand over: it is counted, not an error."""
+    hub, agents, _ = team
+    loc2_on_r1(hub, agents)
+    rt = agents["r1"].runtime
+    proposal = SubgroupPropose(round_id="x", leader="r1", members=ROBOTS, placement={"Loc-2": "r2"},
+                               moves=(SubgroupMove(stage="Loc-2", from_node="r1", to_node="r2"),),
+                               generation=300, reason="move")
+    rt.hosting.on_release(Release(stage="Loc-2", generation=200))  # stopped here meanwhile
+    agents["r1"].rounds._commit(proposal)
+    assert rt.counters.get("subgroup-move-gone") == 1
+    assert "migrate-not-running" not in rt.errors
