@@ -147,7 +147,7 @@ class Agent:
             settings=RoundSettings(enabled=cfg.subgroup, settle_s=cfg.subgroup_settle_s,
                                    timeout_s=cfg.subgroup_timeout_s, status_period_s=cfg.status_period_s),
             publish_status=self.publish_status, save_resume=self.save_resume, started_unix=self._started_unix,
-            signing=self.signing)
+            signing=self.signing, relay=self.relayer.send_beyond_sight)
         self.runtime.production.prepare()  # before anyone sees us: a camera's scene takes a while to render
         # what is for this robot (data, control, relayed control, what others address to it) on one
         # subscription (`Keys.node_all`); the peers' statuses as robots need them (`PeerStatus`):

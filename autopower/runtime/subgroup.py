@@ -64,10 +64,18 @@ class SubgroupAgreement:
     def __init__(self, *, node: str, bus: Bus, keys: Keys, now: Callable[[], float],
                  on_commit: Callable[[SubgroupPropose], None], timeout_s: float = 1.0,
                  on_abort: Callable[[str, str], None] | None = None, signing: Signing | None = None,
-                 objection: Callable[[SubgroupPropose], str | None] | None = None):
+                 objection: Callable[[SubgroupPropose], str | None] | None = None,
+                 relay: Callable[..., None] | None = None):
         """With ``signing``, every proposal, vote and decision is signed, and one that its claimed
-        author (the leader, the voter) did not sign is dropped: a robot cannot vote for another."""
+        author (the leader, the voter) did not sign is dropped: a robot cannot vote for another.
+
+        ``relay(dests, key, payload, reliable=...)`` (`Relayer.send_beyond_sight`): each message is
+        also relayed to those it is for that a publish does not reach. A round's members are every
+        robot the leader reaches, through others too, and Zenoh peers do not relay: published only,
+        a proposal never reached a member behind a cut link, which never voted, and every round
+        timed out while the stages of the laptop ran nowhere."""
         self.node = node
+        self.relay = relay
         self.signing = signing
         self.bus = bus
         self.keys = keys
@@ -101,7 +109,7 @@ class SubgroupAgreement:
         self.phase = Phase.PROPOSED
         log.info("subgroup %s: proposing %s to %s (%d moves): %s", self.node, round_id, ", ".join(members),
                  len(moves), reason)
-        self._publish(proposal)
+        self._publish(proposal, members)
         self._maybe_decide()
         return round_id
 
@@ -116,7 +124,7 @@ class SubgroupAgreement:
 
     def _finish(self, commit: bool, reason: str) -> None:
         r = self.round
-        self._publish(SubgroupDecision(round_id=r.proposal.round_id, commit=commit, reason=reason))
+        self._publish(SubgroupDecision(round_id=r.proposal.round_id, commit=commit, reason=reason), r.proposal.members)
         if commit:
             self.agreement_s.append(self.now() - r.started)
         self._apply(r.proposal, commit, reason)
@@ -175,10 +183,14 @@ class SubgroupAgreement:
         self._vote(msg, True, "")
 
     def _vote(self, msg: SubgroupPropose, accept: bool, reason: str) -> None:
-        self._publish(SubgroupVote(round_id=msg.round_id, node=self.node, accept=accept, reason=reason))
+        self._publish(SubgroupVote(round_id=msg.round_id, node=self.node, accept=accept, reason=reason), (msg.leader,))
 
-    def _publish(self, msg) -> None:
-        self.bus.publish(self.keys.subgroup, encode(self.signing.sign(msg) if self.signing is not None else msg))
+    def _publish(self, msg, dests) -> None:
+        """To every node in sight, and relayed to those of ``dests`` out of it."""
+        payload = encode(self.signing.sign(msg) if self.signing is not None else msg)
+        self.bus.publish(self.keys.subgroup, payload)
+        if self.relay is not None:
+            self.relay([d for d in dests if d != self.node], self.keys.subgroup, payload)
 
     def _authentic(self, msg, author: str) -> bool:
         return self.signing is None or self.signing.check(msg, author, f"a subgroup {type(msg).__name__}")

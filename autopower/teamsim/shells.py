@@ -221,7 +221,8 @@ class RobotShell(Shell):
             runtime=rt, scenario=w.scenario, bus=self.bus, keys=keys, wall=w.scheduler.wall,
             reachable=self.relayer.reachable, reached=self.relayer.reached, statuses=self.statuses,
             settings=RoundSettings(enabled=w.subgroup, status_period_s=w.status_period_s),
-            publish_status=self.publish_status, save_resume=self.save_resume, started_unix=w.scheduler.wall())
+            publish_status=self.publish_status, save_resume=self.save_resume, started_unix=w.scheduler.wall(),
+            relay=self.relayer.send_beyond_sight)
         self.bus.subscribe(keys.node_data(robot), lambda k, p: self.guarded(self._received, k, p))
         # (not the plan key: each robot gets its plans on its control key, `PlanDelivery`)
         for key in (keys.node_control(robot), keys.addressed_to(robot), keys.node_relay(robot), keys.peer_all,

@@ -101,3 +101,58 @@ def test_a_busy_member_rejects_a_second_round(group):
     hub.pump()
     assert nodes["r3"].decided[second] is False  # rejected: r2 was busy
     assert applied["r2"] == [first] and applied["r1"] == [first]
+
+
+class _Line:
+    """r1 - r2 - r3 in a line (the r1-r3 link cut): a publish reaches the neighbours only, as Zenoh
+    peers do not relay; ``relay`` carries a message to the others through r2 (`Relayer.send_beyond_sight`)."""
+
+    NEIGHBOURS = {"r1": {"r2"}, "r2": {"r1", "r3"}, "r3": {"r2"}}
+
+    def __init__(self):
+        self.nodes: dict[str, SubgroupAgreement] = {}
+        self.queue: list[tuple[str, bytes]] = []
+        self.relayed: list[tuple[str, str]] = []
+
+    def bus(self, name: str):
+        line = self
+
+        class Bus:
+            def publish(self, key, payload, *, reliable=True):
+                line.queue += [(n, payload) for n in sorted(line.NEIGHBOURS[name])]
+
+        return Bus()
+
+    def relay(self, name: str):
+        def send_beyond_sight(dests, key, payload, *, reliable=True):
+            for dest in dests:
+                if dest not in self.NEIGHBOURS[name]:
+                    self.relayed.append((name, dest))
+                    self.queue.append((dest, payload))
+        return send_beyond_sight
+
+    def pump(self):
+        while self.queue:
+            dest, payload = self.queue.pop(0)
+            self.nodes[dest].on_message(payload)
+
+
+@pytest.mark.parametrize("relaying", [True, False])
+def test_a_round_reaches_a_member_behind_a_cut_link_through_another(relaying):
+    """Live random faults, seed 8: r1 led rounds of r1, r2, r3 with its link to r2 cut (r2 reached
+    through r3); published only, the proposals never reached r2, and eight rounds in a row timed
+    out while Loc-2 and Blob-2 ran nowhere for 130 mission seconds."""
+    line, clock = _Line(), Clock()
+    applied: dict[str, list[str]] = {}
+    for name in ("r1", "r2", "r3"):
+        applied[name] = []
+        line.nodes[name] = SubgroupAgreement(node=name, bus=line.bus(name), keys=KEYS, now=clock, timeout_s=1.0,
+                                             on_commit=lambda p, n=name: applied[n].append(p.round_id),
+                                             relay=line.relay(name) if relaying else None)
+    rid = line.nodes["r1"].propose(("r1", "r2", "r3"), {}, MOVES, 7, "x")
+    line.pump()
+    if relaying:
+        assert applied == {"r1": [rid], "r2": [rid], "r3": [rid]}
+        assert ("r1", "r3") in line.relayed and ("r3", "r1") in line.relayed  # proposal and decision; the vote
+    else:  # what it did before: r3 never votes, the round times out
+        assert applied == {"r1": [], "r2": [], "r3": []} and line.nodes["r1"].phase is Phase.PROPOSED
