@@ -236,8 +236,9 @@ class Acknowledging:
                 continue  # no route yet: it stays due
             frame, again = self.rt.custody.resend(held, now)
             if not again:  # held back since it was produced (no route then): its first copy
+                # metered as a backlog: the model priced no traffic of the chain while it had no route
                 self.rt.tally("held-back-frames-sent")
-                self.rt.frames.send_frame(frame, node)
+                self.rt.frames.send_frame(frame, node, purpose="backlog")
                 continue
             self.rt.tally("resent-frames")
             if frame.attempt == 1:

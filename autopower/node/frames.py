@@ -43,8 +43,10 @@ class Frames:
         self.weights = weights
 
     def flush_held(self) -> None:
-        """Send the held results whose sink the plan's network routes again (`Holds.flush`)."""
-        self.rt.holds.flush(self.rt.plan_view.network, self.send_frame)
+        """Send the held results whose sink the plan's network routes again (`Holds.flush`): metered as
+        a backlog, as the model priced no traffic of theirs while their sink was out of reach."""
+        self.rt.holds.flush(self.rt.plan_view.network,
+                            lambda frame, sink: self.send_frame(frame, sink, purpose="backlog"))
 
     def join_stats(self) -> dict[str, dict[str, int]]:
         """Per fan-in stage hosted here: steps joined, inputs late, missing, empty steps."""

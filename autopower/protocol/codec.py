@@ -31,7 +31,8 @@ PROTOCOL_VERSION = 10  # 2: acknowledgements left the status for `Ack` messages;
 # 8: a robot is sent its part of a plan (its own predicted power alone), and a plan's digest hashes
 # the plan without its predicted power, then that power (`protocol.plans.plan_digest`); 9: a base
 # station's view asks a robot whose whole status it missed for one (`PeerStatus.send_whole`); 10: a
-# status says which process of its node sent it and the sources it resumed (`NodeStatus.process`, `resumed`)
+# status says which process of its node sent it and the sources it resumed (`NodeStatus.process`, `resumed`),
+# and a packet's purpose may be "backlog" (frames held back while their chain had no route)
 MAGIC = b"AP"
 # The first bytes of every encoded message (a 4-element array, then the magic): a check cheap
 # enough for a transport thread, so that a flood of random bytes is dropped before it is queued.

@@ -165,7 +165,7 @@ class Packet:
     hop: int  # index in path of the node this copy is addressed to
     charge_bytes: int  # bytes the radios are charged for (the chain's declared message size)
     weight: float  # modelled messages this real message stands for (model.flow_weight)
-    purpose: str  # "chain" | "migration" | "recovery" (a resent frame): which meter bucket pays
+    purpose: str  # "chain" | "migration" | "recovery" (a resent frame) | "backlog" (held back): which meter bucket pays
     chain: str
     body: bytes  # an encoded ChainFrame or StateTransfer
 
@@ -183,8 +183,8 @@ class Packet:
             return f"hop {hop} outside path of {len(path)} nodes"
         if charge_bytes < 0 or weight < 0:
             return "charge_bytes and weight must be >= 0"
-        if purpose not in ("chain", "migration", "recovery"):
-            return f"purpose {purpose!r} is not chain, migration or recovery"
+        if purpose not in ("chain", "migration", "recovery", "backlog"):
+            return f"purpose {purpose!r} is not chain, migration, recovery or backlog"
         return None
 
 

@@ -240,3 +240,28 @@ def test_a_writer_stuck_at_a_new_mission_is_waited_for_once_and_then_never_again
     assert store._files.written(5)
     assert [f.seq for f in HeldStore(store.path).load(other)] == [3]
     store.close()
+
+
+def test_held_results_sent_once_their_sink_is_back_are_metered_as_a_backlog():
+    """Live random faults, seed 18: after the partitions r1 sent what it had held over GSM, and the
+    meter charged it as the chain's steady traffic, which the model prices at the chain's rate
+    from the plan on: +338 J on r1 inside the reconfiguration windows. Their radio goes to the
+    reconfiguration's backlog (`overhead_j/backlog`), as the first runs of a restarted stage's held
+    inputs do (and on the receiving end too: the packet says so)."""
+    team = SimTeam(load_scenario("paper-fig7"))
+    team.join()
+    team.run_until(20.0)
+    r2 = team.nodes["r2"]
+    results = [_result(300_000 + i) for i in range(4)]
+    for frame in results:
+        r2.holds.keep(frame, sent=False)
+        r2.holds.hold(frame)
+    sent_before, backlog_before = r2.meter.energy_j.copy(), r2.meter.overhead_j()["backlog"]
+    r2.frames.flush_held()
+    team.pump()
+    assert r2.meter.overhead_j()["backlog"] > backlog_before
+    from autopower.model.parts import radio_part
+
+    send = radio_part(next(iter(r2.meter.media)), "send")
+    assert send in sent_before  # (its chains sent before: the part's name is right)
+    assert r2.meter.energy_j[send] == sent_before[send]
