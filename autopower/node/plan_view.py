@@ -36,6 +36,7 @@ class PlanView:
         # the model's power per robot once a stage has left us and before the plan says where it
         # landed (`stage_left`): we no longer run it; None: the plan's prediction holds
         self.model_override: dict[str, float] | None = None
+        self.left: dict[str, str] = {}  # stage -> the node it left us for, until the next plan (`stage_left`)
         self._payload: bytes | None = None  # the last plan message handled (a repeat of it is skipped)
         self._plans = PlanAssembler()  # plans sent as their change from the one before (`protocol.plans`)
         self._text_of: tuple[PlanUpdate, str] | None = None  # (plan, its resume-state text): `text`
@@ -65,6 +66,7 @@ class PlanView:
         same_links = self.plan is not None and self.network is not None and plan.links == self.plan.links
         self.plan = plan
         self.model_override = None
+        self.left = {}
         if not same_links:  # most new plans move stages, not links: the routes stay (O(links) to build)
             nodes = self.rt.scenario.node_names()
             known = frozenset(nodes)
@@ -102,8 +104,9 @@ class PlanView:
     def stage_left(self, stage: str, to_node: str) -> None:
         """``stage`` has left this node for ``to_node``: the model's power is priced with it there until
         the plan says where it landed."""
+        self.left[stage] = to_node
         if self.plan is not None and self.plan.predicted_w:
-            self.model_override = self.predict_power({**self.plan.placement, stage: to_node}, own_only=True)
+            self.model_override = self.predict_power({**self.plan.placement, **self.left}, own_only=True)
 
     @property
     def model_w(self) -> float | None:
@@ -140,11 +143,7 @@ class PlanView:
         from autopower.model.energy import evaluate
         from autopower.policies import effective_scenario
 
-        plan, network = self.plan, self.network
-        if self.out_of_reach:
-            network = Network(network.nodes, network.basestation,
-                              [l for l in network.links if l.a not in self.out_of_reach and l.b not in self.out_of_reach],
-                              network.topology)
+        plan, network = self.plan, self._network_in_reach()
         try:
             scenario = apply_levels(self.rt.scenario, dict(plan.levels)) if plan.levels else self.rt.scenario
             scenario, _ = effective_scenario(scenario, network)
@@ -165,6 +164,27 @@ class PlanView:
             own = ev.robots.get(self.rt.node)
             return {} if own is None else {self.rt.node: own.steady_w}
         return {r: p.steady_w for r, p in ev.robots.items()}
+
+    def _network_in_reach(self) -> Network:
+        """The plan's network without the nodes out of reach (`set_out_of_reach`)."""
+        network = self.network
+        if self.out_of_reach:
+            network = Network(network.nodes, network.basestation,
+                              [l for l in network.links if l.a not in self.out_of_reach and l.b not in self.out_of_reach],
+                              network.topology)
+        return network
+
+    def priced_here(self) -> set[str]:
+        """The stages the model prices on this node (`predict_power`'s rule): placed here by the plan
+        it runs, where the stages that left us since went (`stage_left`), of a chain the plan runs
+        whose every hop is routable. What the simulator's oracle holds against what this node runs
+        (`teamsim`'s model-runs invariant)."""
+        if self.plan is None or self.network is None:
+            return set()
+        placement = {s: n for s, n in {**self.plan.placement, **self.left}.items() if s in self.rt.stage_index}
+        stranded = _unroutable(self.rt.scenario, self._network_in_reach(), placement)
+        return {s for s, n in placement.items() if n == self.rt.node
+                and self.rt.stage_index[s][0].name in set(self.plan.running) - stranded}
 
     def text(self) -> str | None:
         """The plan we run as the resume state keeps it: encoded once per plan (a fleet's plan is

@@ -51,6 +51,11 @@ SETTLE_S = 2.0  # the run is judged once the newest plan is this old and no migr
 SETTLE_MAX_S = 30.0  # ... or this long after the quiet phase, whichever comes first
 STATUS_PERIOD_S = 0.5
 STATUS_REST_PERIOD_S = 2.0  # the slow heartbeat (`AgentConfig.status_rest_period_s`)
+# How long a robot's model may price a stage it does not run (`World._model_runs`): a reconfiguration
+# (a round's state on its way, a restarted robot's first plan, a plan waiting for a robot's answer)
+# takes a few status periods; a stage left starting for good lasted as long as the partition (280 s).
+UNRUN_GRACE_S = 10.0
+_RUNS = (Lifecycle.RUNNING, Lifecycle.DRAINING, Lifecycle.MIGRATED)  # running, or handing over to its next host
 STATUS_WINDOW_S = 2.0
 ENERGY_TOLERANCE = 1e-6  # relative
 
@@ -153,6 +158,8 @@ class World:
         self.process_starts = 0  # every process started, for its id (`NodeStatus.process`): the same each run
         self.failed_seen: set[tuple[str, str]] = set()
         self.idle_from: dict[str, float] = {}  # robot -> virtual time its metering began
+        # (robot's process, stage) -> since when its model prices the stage there while it does not run it
+        self.unrun_since: dict[tuple[Shell, str], float] = {}
 
     def decisions(self) -> dict:
         """How often the base station's policy decided, over all its starts, and the wall time it took."""
@@ -234,11 +241,30 @@ class World:
         rt = shell.rt
         if rt.meter is not None and not rt.resuming.resumed and shell.node != self.scenario.basestation:
             self.idle_from[shell.node] = rt.meter.t0
+        if shell.node != self.scenario.basestation:
+            self._model_runs(shell)
         leaders = [s.node for s in self.base_shells if self.shells.get(s.node) is s
                    and s.up and s.co.mission is not None and s.co.takeover.stepped_down is None]
         if len(leaders) > 1:
             self.ledger.violate("one-leader", f"{len(leaders)} base stations lead at once", self.scheduler.now,
                                 self.trace.events)
+
+    def _model_runs(self, shell: Shell) -> None:
+        """A robot's model prices only what it runs, give or take a reconfiguration: a stage its plan
+        puts on it (`PlanView.priced_here`) that it has not run for `UNRUN_GRACE_S` is work the model
+        charges and nobody does (a chain standing still while the team believes it runs)."""
+        rt, now = shell.rt, self.scheduler.now
+        hosted = {s: h.lifecycle for s, h in rt.hosted.items()}
+        unrun = {s for s in rt.plan_view.priced_here() if hosted.get(s) not in _RUNS}
+        for key in [k for k in self.unrun_since if k[0] is shell and k[1] not in unrun]:
+            del self.unrun_since[key]
+        for stage in sorted(unrun):
+            since = self.unrun_since.setdefault((shell, stage), now)
+            if now - since > UNRUN_GRACE_S and since >= 0:
+                self.unrun_since[(shell, stage)] = -1.0  # said once
+                state = hosted[stage].value if stage in hosted else "not hosted"
+                self.ledger.violate("model-runs", f"{shell.node}'s model prices {stage} there since t={since:.1f} s, "
+                                    f"but it is {state} there", now, self.trace.events)
 
     # ---- after the run ----------------------------------------------------------------------------------
     def settled(self) -> bool:

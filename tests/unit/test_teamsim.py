@@ -574,3 +574,26 @@ def test_on_a_lossy_link_the_base_stations_view_of_a_robot_is_what_it_sent_or_wa
     assert unapplied and all(views[i][0] == StatusDelta.__name__ for i in unapplied)
     assert any(kind == NodeStatus.__name__ for kind, _ in views[unapplied[0]:])
     assert views[-1][1] is not None and views[-1][1] in sent[("r1", views[-1][1].t_unix)]
+
+
+def test_the_oracle_finds_a_stage_a_robots_model_prices_but_nobody_runs(monkeypatch):
+    """The `model-runs` invariant: live seed 15 had Loc-1 and Loc-3 priced on r1 for 280 s while
+    nothing ran them. Here the robots' rounds restart the laptop's stages during a long cut, but the
+    restarts are made to do nothing: the oracle says which robot prices which stage."""
+    from autopower.node.subgroup_rounds import SubgroupRounds
+
+    cut = [Fault(kind="cut", t=12.0, duration=30.0, a="laptop", b=r.name) for r in SC.robots]
+    assert not [v for v in run(config(faults=cut, mission_s=45.0)).violations if v.invariant == "model-runs"]
+    commit = SubgroupRounds._commit
+
+    def restarts_nothing(self, proposal):
+        monkeypatch.setattr(self.rt.hosting, "on_assign", lambda msg: None)
+        try:
+            commit(self, proposal)
+        finally:
+            monkeypatch.delattr(self.rt.hosting, "on_assign")
+
+    monkeypatch.setattr(SubgroupRounds, "_commit", restarts_nothing)
+    found = [v for v in run(config(faults=cut, mission_s=45.0)).violations if v.invariant == "model-runs"]
+    assert found and "model prices" in found[0].detail and "not hosted" in found[0].detail, found
+    assert 12.0 + 10.0 < found[0].t < 12.0 + 30.0  # within the cut, once the grace is over
