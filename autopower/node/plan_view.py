@@ -149,7 +149,7 @@ class PlanView:
             scenario, _ = effective_scenario(scenario, network)
             placement = {s: n for s, n in (plan.placement if placement is None else placement).items() if s in self.rt.stage_index}
             active = ({self.rt.stage_index[s][0].name for s in placement} & set(plan.running)) \
-                - _unroutable(scenario, network, placement)
+                - _unroutable(scenario.chains, network, placement)
             placement = {s: n for s, n in placement.items() if self.rt.stage_index[s][0].name in active}
             if own_only and not any(c.inputs for c in scenario.chains):  # DAG flows: every chain, as ever
                 active &= _touching(scenario, network, placement, self.rt.node)
@@ -182,9 +182,11 @@ class PlanView:
         if self.plan is None or self.network is None:
             return set()
         placement = {s: n for s, n in {**self.plan.placement, **self.left}.items() if s in self.rt.stage_index}
-        stranded = _unroutable(self.rt.scenario, self._network_in_reach(), placement)
-        return {s for s, n in placement.items() if n == self.rt.node
-                and self.rt.stage_index[s][0].name in set(self.plan.running) - stranded}
+        here = {s for s, n in placement.items() if n == self.rt.node and self.rt.stage_index[s][0].name in self.plan.running}
+        # only the chains with a stage here: checked at every status, on teams of hundreds
+        chains = {self.rt.stage_index[s][0].name: self.rt.stage_index[s][0] for s in here}.values()
+        stranded = _unroutable(chains, self._network_in_reach(), placement)
+        return {s for s in here if self.rt.stage_index[s][0].name not in stranded}
 
     def text(self) -> str | None:
         """The plan we run as the resume state keeps it: encoded once per plan (a fleet's plan is
@@ -196,9 +198,9 @@ class PlanView:
         return self._text_of[1]
 
 
-def _hops(scenario, placement: dict[str, str]):
-    """Each placed chain and its hops between distinct nodes (source, each stage's host, sink)."""
-    for chain in scenario.chains:
+def _hops(chains, placement: dict[str, str]):
+    """Each placed chain of ``chains`` and its hops between distinct nodes (source, each stage's host, sink)."""
+    for chain in chains:
         hosts = [placement.get(stage.name) for stage in chain.stages]
         if None in hosts:
             continue
@@ -209,12 +211,12 @@ def _hops(scenario, placement: dict[str, str]):
 def _touching(scenario, network, placement: dict[str, str], node: str) -> set[str]:
     """Chains that load ``node``: a stage placed on it, or a hop whose route sends or receives on it
     (as an end or a relay)."""
-    return {chain.name for chain, hops in _hops(scenario, placement)
+    return {chain.name for chain, hops in _hops(scenario.chains, placement)
             if any(node in (u, v) for a, b in hops for u, v, _ in network.hops(a, b))
             or node in (placement.get(s.name) for s in chain.stages)}
 
 
-def _unroutable(scenario, network, placement: dict[str, str]) -> set[str]:
-    """Chains with a hop whose ends do not reach each other."""
-    return {chain.name for chain, hops in _hops(scenario, placement)
+def _unroutable(chains, network, placement: dict[str, str]) -> set[str]:
+    """The chains of ``chains`` with a hop whose ends do not reach each other."""
+    return {chain.name for chain, hops in _hops(chains, placement)
             if any(not network.reachable(a, b) for a, b in hops)}
